@@ -1,0 +1,1 @@
+"""Checks for the notebooks' exercises, fixtures, and (later) student release and grading."""

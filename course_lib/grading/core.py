@@ -1,0 +1,268 @@
+"""The check machinery shared by every notebook: verdicts, fixtures, and safe calls.
+
+A check cell in a notebook calls one function of a check module of
+:mod:`course_lib.grading` (one per notebook topic, e.g. :mod:`course_lib.grading.fundamental`)
+with the student's function. That check function runs the
+student's code on stored cases (fixtures), compares with the stored reference results and with
+properties (rank 2, det R = +1, points in front), and prints short verdicts through a
+:class:`Check`::
+
+    check_fundamental(estimate_fundamental_matrix)
+
+    estimate_fundamental_matrix
+      ✔ returns a (3, 3) array of rank 2
+      ✔ matches the reference on the noiseless pair (up to scale and sign)
+      ✘ noisy pair with outliers: Sampson error 35.2 px, expected < 1 px. Did you normalize the points?
+      2 of 3 checks passed
+
+Lines of passing checks are deterministic (no floating-point numbers), so nbval can compare
+them; failing lines may carry numbers, since they never appear in a reference run.
+
+Fixtures are stored expected results in ``data/fixtures/<name>.npz``, made from the reference
+solutions by one command, ``python -m course_lib fixtures``; the test suite rebuilds them and
+compares, to prove they are current. Check cells and step inputs read fixtures only, so a student
+release without the reference solutions still runs and checks.
+"""
+
+from __future__ import annotations
+
+import importlib
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from course_lib.paths import FIXTURES_DIR
+
+__all__ = [
+    "Check",
+    "CheckResult",
+    "RESULTS",
+    "FAILED",
+    "fixture_builder",
+    "load_fixture",
+    "build_fixtures",
+    "FIXTURE_MODULES",
+]
+
+PASS, FAIL = "✔", "✘"
+
+#: Check modules, one per notebook topic; importing them registers their fixture builders.
+FIXTURE_MODULES = (
+    "course_lib.grading.fundamental",
+    "course_lib.grading.essential",
+    "course_lib.grading.triangulation",
+    "course_lib.grading.pnp",
+    "course_lib.grading.bundle_adjustment",
+    "course_lib.grading.nerf_data",
+    "course_lib.grading.nerf_model",
+    "course_lib.grading.nerf_rendering",
+)
+
+
+class _Failed:
+    """Sentinel returned by :meth:`Check.call` when the student's function raised."""
+
+    def __repr__(self) -> str:
+        return "FAILED"
+
+    def __bool__(self) -> bool:
+        return False
+
+
+FAILED = _Failed()
+
+
+@dataclass
+class CheckResult:
+    """The outcome of one check cell: which exercise, how many checks passed, and the lines."""
+
+    exercise: str
+    passed: int
+    total: int
+    lines: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return self.total > 0 and self.passed == self.total
+
+    def __repr__(self) -> str:  # deterministic, in case a cell displays it
+        return f"CheckResult({self.exercise!r}, {self.passed}/{self.total})"
+
+
+#: Results of the check cells run in this process, by exercise name (the grader reads it).
+RESULTS: dict[str, CheckResult] = {}
+
+
+class Check:
+    """Collects and prints the verdicts for one exercise.
+
+    Use as a context manager; the verdicts are printed when the block ends, even when a check
+    itself raised (that is reported as a failed check, never as a traceback)::
+
+        with Check("estimate_fundamental_matrix") as c:
+            F = c.call(student_fn, x1, x2, case="noiseless pair")
+            if c.shape(F, (3, 3), "F"):
+                c.expect(rank(F) == 2, "F has rank 2", "F has rank 3: enforce rank 2 with an SVD")
+    """
+
+    def __init__(self, exercise: str):
+        self.exercise = exercise
+        self.lines: list[str] = []
+        self.passed = 0
+        self.total = 0
+
+    # -- recording ---------------------------------------------------------------------------
+    def expect(self, condition: bool, pass_msg: str, fail_msg: str) -> bool:
+        """Record one check; ``pass_msg`` must be deterministic, ``fail_msg`` should name the likely mistake."""
+        self.total += 1
+        if bool(condition):
+            self.passed += 1
+            self.lines.append(f"  {PASS} {pass_msg}")
+            return True
+        self.lines.append(f"  {FAIL} {fail_msg}")
+        return False
+
+    def fail(self, msg: str) -> bool:
+        """Record a failed check."""
+        return self.expect(False, "", msg)
+
+    def call(self, fn: Callable, *args, case: str, **kwargs) -> Any:
+        """Call the student's function; on an exception record a failure and return :data:`FAILED`.
+
+        ``NotImplementedError`` is reported as "not implemented yet" rather than as a crash.
+        Array arguments are copied so that a function that modifies its input cannot corrupt
+        the next case.
+        """
+        args = tuple(a.copy() if isinstance(a, np.ndarray) else a for a in args)
+        try:
+            return fn(*args, **kwargs)
+        except NotImplementedError:
+            self.fail(f"{case}: not implemented yet (the function raises NotImplementedError)")
+        except Exception as exc:  # noqa: BLE001 - any student error becomes a verdict
+            where = _student_frame(exc)
+            self.fail(f"{case}: your function raised {type(exc).__name__}: {exc}{where}")
+        return FAILED
+
+    def shape(self, value: Any, shape: tuple, what: str) -> bool:
+        """Check that ``value`` is an array of ``shape`` (``None`` entries match any size)."""
+        if value is FAILED:
+            return False
+        arr = np.asarray(value) if not isinstance(value, np.ndarray) else value
+        ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape))
+        want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+        if not ok:
+            return self.fail(f"{what} has shape {tuple(arr.shape)}, expected {want}")
+        if np.issubdtype(arr.dtype, np.number) and not np.isfinite(arr).all():
+            return self.fail(f"{what} contains NaN or inf")
+        return self.expect(True, f"{what} has shape {want}", "")
+
+    # -- context manager -----------------------------------------------------------------------
+    def __enter__(self) -> "Check":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc is not None:
+            self.fail(f"the check could not finish: {type(exc).__name__}: {exc}")
+        self.report()
+        return True  # the verdict is the output; never a traceback in a check cell
+
+    def report(self) -> CheckResult:
+        result = CheckResult(self.exercise, self.passed, self.total, list(self.lines))
+        RESULTS[self.exercise] = result
+        print(self.exercise)
+        for line in self.lines:
+            print(line)
+        if result.ok:
+            print(f"  all {self.total} checks passed")
+        else:
+            print(f"  {self.passed} of {self.total} checks passed")
+        return result
+
+
+def _student_frame(exc: BaseException) -> str:
+    """' (line N of your cell)' for the innermost frame that is not the kit's own code."""
+    frames = traceback.extract_tb(exc.__traceback__)
+    for fr in reversed(frames):
+        if "course_lib" not in fr.filename and "site-packages" not in fr.filename:
+            if fr.filename.startswith("<") or "ipykernel" in fr.filename or "/tmp/" in fr.filename:
+                return f" (line {fr.lineno} of your cell)"
+            return f" ({Path(fr.filename).name}, line {fr.lineno})"
+    return ""
+
+
+# ---------------------------------------------------------------------------------------------
+# Fixtures: stored expected results, made from the reference by one command.
+# ---------------------------------------------------------------------------------------------
+
+_BUILDERS: dict[str, Callable[[], dict[str, np.ndarray]]] = {}
+
+
+def fixture_builder(name: str):
+    """Register ``fn() -> dict[str, np.ndarray]`` as the builder of fixture ``name``."""
+
+    def register(fn):
+        _BUILDERS[name] = fn
+        return fn
+
+    return register
+
+
+def load_fixture(name: str) -> dict[str, np.ndarray]:
+    """Load ``data/fixtures/<name>.npz`` as a dict of arrays."""
+    path = FIXTURES_DIR / f"{name}.npz"
+    if not path.exists():
+        raise FileNotFoundError(
+            f"fixture {name!r} is missing ({path}); instructors rebuild fixtures with: python -m course_lib fixtures"
+        )
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def _register_all() -> None:
+    for mod in FIXTURE_MODULES:
+        try:
+            importlib.import_module(mod)
+        except ModuleNotFoundError as exc:
+            if exc.name != mod:
+                raise
+
+
+def build_fixtures(names: list[str] | None = None, write: bool = True) -> dict[str, list[str]]:
+    """Rebuild fixtures from the reference solutions.
+
+    Args:
+        names: fixtures to build (default all registered).
+        write: write ``data/fixtures/<name>.npz``; with False only compare with the stored files.
+
+    Returns:
+        ``{name: [keys that differ from the stored file]}``; an empty list means up to date.
+    """
+    _register_all()
+    todo = sorted(_BUILDERS) if names is None else names
+    diffs: dict[str, list[str]] = {}
+    for name in todo:
+        new = _BUILDERS[name]()
+        try:
+            old = load_fixture(name)
+        except FileNotFoundError:
+            old = {}
+        changed = [k for k in sorted(set(new) | set(old)) if not _same(new.get(k), old.get(k))]
+        diffs[name] = changed
+        if write and changed:
+            FIXTURES_DIR.mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(FIXTURES_DIR / f"{name}.npz", **{k: np.asarray(v) for k, v in new.items()})
+    return diffs
+
+
+def _same(a, b) -> bool:
+    if a is None or b is None:
+        return False
+    a, b = np.asarray(a), np.asarray(b)
+    if a.shape != b.shape or a.dtype.kind != b.dtype.kind:
+        return False
+    if a.dtype.kind in "fc":
+        return bool(np.allclose(a, b, rtol=1e-6, atol=1e-8, equal_nan=True))
+    return bool(np.array_equal(a, b))

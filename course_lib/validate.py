@@ -1,0 +1,118 @@
+"""Input checks at the public boundary, with messages a student can act on.
+
+Every public function of the kit calls these on its inputs, so that a wrong shape, a NaN or a
+singular K fails at once with a sentence that says what to fix, e.g.::
+
+    x1 has shape (7, 2): the 8-point algorithm needs at least 8 correspondences
+
+and never with a traceback deep inside numpy.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["KitInputError", "points", "matching_points", "intrinsics", "rotation", "vector3", "existing_path"]
+
+
+class KitInputError(ValueError):
+    """Raised for bad input to a kit function; the message says what is wrong and what to do."""
+
+
+def _shape(a) -> str:
+    return str(tuple(np.shape(a)))
+
+
+def points(x, name: str, dim: int, min_count: int = 0, why: str = "") -> np.ndarray:
+    """Check and return a float ``(N, dim)`` array of points.
+
+    Args:
+        x: array-like of shape ``(N, dim)``.
+        name: the argument's name, for the message.
+        dim: 2 for image points, 3 for world points.
+        min_count: the fewest rows the caller can work with.
+        why: what needs ``min_count`` rows ("the 8-point algorithm"), for the message.
+
+    Raises:
+        KitInputError: wrong shape, too few rows, or non-finite values.
+    """
+    try:
+        a = np.asarray(x, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise KitInputError(f"{name} must be a numeric array of shape (N, {dim}); got {type(x).__name__} ({exc})") from None
+    if a.ndim != 2 or a.shape[1] != dim:
+        hint = " (points are rows: transpose it?)" if a.ndim == 2 and a.shape[0] == dim else ""
+        raise KitInputError(f"{name} has shape {_shape(a)}: expected (N, {dim}){hint}")
+    if a.shape[0] < min_count:
+        need = f"{why} needs" if why else "this needs"
+        raise KitInputError(
+            f"{name} has shape {_shape(a)}: {need} at least {min_count} "
+            f"{'correspondences' if dim == 2 else 'points'}"
+        )
+    bad = ~np.isfinite(a).all(axis=1)
+    if bad.any():
+        rows = np.flatnonzero(bad)[:5].tolist()
+        raise KitInputError(f"{name} has {int(bad.sum())} row(s) with NaN or inf (first rows {rows}): drop or fix them first")
+    return a
+
+
+def matching_points(x1, x2, min_count: int = 0, why: str = "", names=("x1", "x2"), dims=(2, 2)):
+    """Check two arrays of corresponding points: each valid and with the same number of rows."""
+    a = points(x1, names[0], dims[0], min_count, why)
+    b = points(x2, names[1], dims[1], min_count, why)
+    if a.shape[0] != b.shape[0]:
+        raise KitInputError(
+            f"{names[0]} has {a.shape[0]} rows but {names[1]} has {b.shape[0]}: row k of both must be the same correspondence"
+        )
+    return a, b
+
+
+def intrinsics(K, name: str = "K") -> np.ndarray:
+    """Check and return a ``(3, 3)`` float intrinsic matrix that is finite and invertible."""
+    try:
+        K = np.asarray(K, dtype=float)
+    except (TypeError, ValueError):
+        raise KitInputError(f"{name} must be a 3x3 numeric matrix, got {type(K).__name__}") from None
+    if K.shape != (3, 3):
+        raise KitInputError(f"{name} has shape {_shape(K)}: expected the (3, 3) intrinsic matrix")
+    if not np.isfinite(K).all():
+        raise KitInputError(f"{name} contains NaN or inf: check the calibration file")
+    if abs(np.linalg.det(K)) < 1e-12 or K[0, 0] == 0 or K[1, 1] == 0:
+        raise KitInputError(f"{name} is not invertible (focal lengths {K[0, 0]:g}, {K[1, 1]:g}): check the calibration file")
+    if not np.allclose(K[2], [0, 0, 1]):
+        raise KitInputError(f"{name} must have last row [0, 0, 1], got {K[2].tolist()}")
+    return K
+
+
+def rotation(R, name: str = "R", atol: float = 1e-6) -> np.ndarray:
+    """Check and return a ``(3, 3)`` rotation matrix (orthonormal, det = +1)."""
+    R = np.asarray(R, dtype=float)
+    if R.shape != (3, 3):
+        raise KitInputError(f"{name} has shape {_shape(R)}: expected (3, 3)")
+    if not np.isfinite(R).all():
+        raise KitInputError(f"{name} contains NaN or inf")
+    if not np.allclose(R @ R.T, np.eye(3), atol=atol):
+        raise KitInputError(f"{name} is not orthonormal (R Rᵀ ≠ I): orthogonalize it with an SVD")
+    if np.linalg.det(R) < 0:
+        raise KitInputError(f"{name} has det = -1: it is a reflection, not a rotation (flip its sign)")
+    return R
+
+
+def vector3(t, name: str = "t") -> np.ndarray:
+    """Check and return a finite vector of shape ``(3,)`` (``(3, 1)`` is accepted and flattened)."""
+    t = np.asarray(t, dtype=float)
+    if t.size != 3:
+        raise KitInputError(f"{name} has shape {_shape(t)}: expected (3,)")
+    if not np.isfinite(t).all():
+        raise KitInputError(f"{name} contains NaN or inf")
+    return t.reshape(3)
+
+
+def existing_path(path, what: str) -> Path:
+    """Return ``Path(path)`` if it exists, else raise with a message that names what was expected."""
+    p = Path(path)
+    if not p.exists():
+        raise KitInputError(f"{what} not found: {p} (check the path; it is resolved from {Path.cwd()})")
+    return p

@@ -1,0 +1,1 @@
+"""Pictures: plotly 3-D scenes, matplotlib figures and ipywidgets (the one place for them)."""
