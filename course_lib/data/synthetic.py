@@ -36,7 +36,7 @@ def look_at(C: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, -1.0, 0.0)
     C = np.asarray(C, float)
     z = np.asarray(target, float) - C
     z /= np.linalg.norm(z)
-    x = np.cross(z, -np.asarray(up, float))  # camera x = right; y = down = -up
+    x = np.cross(-np.asarray(up, float), z)  # camera x = right = (down) x (forward)
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     R_cw = np.stack([x, y, z])  # rows are the camera axes in world coordinates
