@@ -1,0 +1,575 @@
+"""Read and write the P3 matching format of the WPI / UPenn "Buildings built in minutes" SfM project.
+
+A P3 folder holds ``1.png`` (or ``1.jpg``) ... ``M.png``, ``calibration.txt`` with K, and
+``matching1.txt`` ... ``matching{M-1}.txt``. ``matching{i}.txt`` lists features of image *i*
+and their matches in the images after it::
+
+    nFeatures: N
+    k R G B u_i v_i j1 u_j1 v_j1 [j2 u_j2 v_j2 ...]
+
+``k`` counts the images the feature is seen in *including image i*, so a row has
+``5 + 3 (k - 1)`` numbers after ``k``. Image ids are 1-based; ``(u, v)`` are pixels (column,
+row), origin at the top-left corner (the kit's convention, see :mod:`course_lib.conventions`).
+
+What the reader copes with (all found in the course's own files, see ``SOURCES.md``):
+
+* CRLF or LF line endings, trailing spaces, blank lines, no final newline;
+* ``nFeatures`` that is *not* the number of rows (WPI: the number of SIFT features detected):
+  rows are read until the end of the file; the header line is optional;
+* the same correspondence on several rows (kept once: ``matches`` holds *unique* correspondences);
+* the same feature of image *i* on several rows with different sets of *j*;
+* feature identity across files given only by equal coordinates: tracks are the connected
+  components of the graph whose nodes are ``(image, u, v)`` and whose edges are the
+  correspondences (union-find);
+* calibration files as three rows of three numbers or in MATLAB syntax ``K = [a b c; d e f; g h i]``.
+
+**Inconsistent tracks.** Real matches contain outliers, so a connected component can hold two
+*different* features of the same image (e.g. feature A of image 1 is matched to B in image 3 on
+one row and to B' in image 3 on another). A track holds only one observation per image, so the
+reader applies this rule to such a component:
+
+1. in every image that holds more than one of its features, keep the feature with strictly the
+   most (unique) correspondences inside the component and drop the others; on a tie drop them all;
+2. the kept features may fall apart into several pieces (connected by correspondences between
+   kept features); every piece with at least two observations becomes a track.
+
+The dropped observations are counted in :attr:`P3Data.stats` (``inconsistent_components``,
+``dropped_observations``). ``matches`` is not affected by this rule (it holds the pairs "as
+given"); a correspondence whose two features are not both in the same track has ``track_id = -1``.
+
+Malformed input raises :class:`~course_lib.validate.KitInputError` naming the file and the line.
+
+Introduced in ``notebooks/01_fundamental_matrix.ipynb``.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from course_lib.validate import KitInputError, intrinsics
+
+__all__ = ["PairMatches", "P3Data", "read_calibration", "read_p3", "write_p3", "IMAGE_EXTENSIONS"]
+
+#: Image file extensions the reader looks for, in order of preference (``1.png`` before ``1.jpg``).
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp")
+
+_MATCHING_RE = re.compile(r"^matching(\d+)\.txt$", re.IGNORECASE)
+_HEADER_RE = re.compile(r"^\s*nFeatures\s*:?\s*(\S*)\s*$", re.IGNORECASE)
+
+
+@dataclass
+class PairMatches:
+    """Unique correspondences between images ``i < j`` as given in ``matching{i+1}.txt``.
+
+    Attributes:
+        x1: ``(N, 2)`` pixels in image i.
+        x2: ``(N, 2)`` pixels in image j.
+        rgb: ``(N, 3)`` uint8 colour of the feature in image i.
+        track_ids: ``(N,)`` int index into :attr:`P3Data.track_uv`, -1 where the correspondence
+            is not part of a (consistent) track.
+    """
+
+    x1: np.ndarray
+    x2: np.ndarray
+    rgb: np.ndarray
+    track_ids: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.x1.shape[0])
+
+
+def _empty_pair() -> PairMatches:
+    return PairMatches(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 3), np.uint8), np.zeros(0, int))
+
+
+@dataclass
+class P3Data:
+    """The content of a P3 folder, with 0-based image indices.
+
+    Attributes:
+        folder: the folder it was read from.
+        image_names: ``M`` file names; index ``i`` is P3 image id ``i + 1``.
+        K: ``(3, 3)`` intrinsics (pixels).
+        track_uv: ``(T, M, 2)`` float pixels of every track in every image, NaN where unseen.
+        track_rgb: ``(T, 3)`` uint8 colour of each track (from the row of its first image).
+        matches: ``{(i, j): PairMatches}`` for ``i < j``; pairs without any correspondence are absent
+            (use :meth:`pair`, which returns an empty :class:`PairMatches` for them).
+        stats: counts of what the reader found and fixed (rows, duplicates, dropped observations ...).
+    """
+
+    folder: Path
+    image_names: list[str]
+    K: np.ndarray
+    track_uv: np.ndarray
+    track_rgb: np.ndarray
+    matches: dict
+    stats: dict = field(default_factory=dict)
+    _images: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def n_images(self) -> int:
+        """M, the number of images."""
+        return len(self.image_names)
+
+    @property
+    def n_tracks(self) -> int:
+        """T, the number of tracks."""
+        return int(self.track_uv.shape[0])
+
+    def pair(self, i: int, j: int) -> PairMatches:
+        """Correspondences of images ``i`` and ``j`` (0-based, either order; empty if none).
+
+        For ``i > j`` the returned ``x1`` is in image i (the columns are swapped for you).
+        """
+        for idx in (i, j):
+            if not 0 <= idx < self.n_images:
+                raise KitInputError(f"image index {idx} out of range: this folder has {self.n_images} images (0..{self.n_images - 1})")
+        if i == j:
+            raise KitInputError(f"pair ({i}, {j}): an image has no correspondences with itself")
+        pm = self.matches.get((min(i, j), max(i, j)), _empty_pair())
+        return pm if i < j else PairMatches(pm.x2, pm.x1, pm.rgb, pm.track_ids)
+
+    def image_path(self, i: int) -> Path:
+        """Path of image ``i`` (0-based)."""
+        if not 0 <= i < self.n_images:
+            raise KitInputError(f"image index {i} out of range: this folder has {self.n_images} images (0..{self.n_images - 1})")
+        return Path(self.folder) / self.image_names[i]
+
+    def image(self, i: int) -> np.ndarray:
+        """Image ``i`` (0-based) as ``(H, W, 3)`` uint8 RGB, read on first use and cached."""
+        if i not in self._images:
+            import cv2
+
+            p = self.image_path(i)
+            if not p.is_file():
+                raise KitInputError(f"image {i} (P3 id {i + 1}) not found: {p} (the matches can be used without it)")
+            bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
+            if bgr is None:
+                raise KitInputError(f"could not decode image {p}: is it a valid PNG/JPEG file?")
+            self._images[i] = np.ascontiguousarray(bgr[:, :, ::-1])
+        return self._images[i]
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """``(W, H)`` of the images in pixels (read from the first image)."""
+        H, W = self.image(0).shape[:2]
+        return (int(W), int(H))
+
+
+# --------------------------------------------------------------------------------------------
+# calibration
+
+
+def _parse_calibration_text(text: str, name: str) -> np.ndarray:
+    body = text
+    if "=" in body:  # MATLAB syntax: K = [a b c; d e f; g h i]
+        body = body.split("=", 1)[1]
+    body = body.replace("[", " ").replace("]", " ").replace(";", " ").replace(",", " ")
+    tokens = body.split()
+    values = []
+    for tok in tokens:
+        try:
+            values.append(float(tok))
+        except ValueError:
+            raise KitInputError(f"{name}: cannot read {tok!r} as a number; expected 3 rows of 3 numbers or 'K = [a b c; d e f; g h i]'") from None
+    if len(values) != 9:
+        raise KitInputError(f"{name}: found {len(values)} numbers, expected the 9 entries of K (3 rows of 3 numbers or 'K = [a b c; d e f; g h i]')")
+    K = np.array(values, float).reshape(3, 3)
+    try:
+        return intrinsics(K, name=f"K in {name}")
+    except KitInputError as exc:
+        raise KitInputError(str(exc)) from None
+
+
+def read_calibration(path) -> np.ndarray:
+    """Read the intrinsic matrix K from a P3 ``calibration.txt``.
+
+    Accepts three rows of three numbers (WPI) or MATLAB syntax ``K = [a b c; d e f; g h i]``
+    over one or several lines (UPenn), with CRLF or LF endings and with or without a final newline.
+
+    Args:
+        path: the calibration file (or a P3 folder, then ``calibration.txt`` inside it).
+
+    Returns:
+        ``(3, 3)`` float K in pixels.
+
+    Raises:
+        KitInputError: file missing, not 9 numbers, or not a valid K.
+
+    Introduced in ``notebooks/01_fundamental_matrix.ipynb``.
+    """
+    p = Path(path)
+    if p.is_dir():
+        p = p / "calibration.txt"
+    if not p.is_file():
+        raise KitInputError(f"calibration file not found: {p} (a P3 folder needs calibration.txt with the 3x3 K)")
+    return _parse_calibration_text(p.read_text(encoding="utf-8", errors="replace"), p.name)
+
+
+# --------------------------------------------------------------------------------------------
+# matching files
+
+
+class _UnionFind:
+    def __init__(self):
+        self.parent: list[int] = []
+
+    def add(self) -> int:
+        self.parent.append(len(self.parent))
+        return len(self.parent) - 1
+
+    def find(self, a: int) -> int:
+        p = self.parent
+        root = a
+        while p[root] != root:
+            root = p[root]
+        while p[a] != root:
+            p[a], a = root, p[a]
+        return root
+
+    def union(self, a: int, b: int) -> None:
+        ra, rb = self.find(a), self.find(b)
+        if ra != rb:
+            if ra < rb:
+                self.parent[rb] = ra
+            else:
+                self.parent[ra] = rb
+
+
+def _parse_number(tok: str, where: str) -> float:
+    try:
+        x = float(tok)
+    except ValueError:
+        raise KitInputError(f"{where}: {tok!r} is not a number") from None
+    if not math.isfinite(x):
+        raise KitInputError(f"{where}: value {tok!r} is not finite (NaN or inf); fix or remove that row")
+    return x
+
+
+def _parse_image_id(x: float, where: str, what: str) -> int:
+    if x != int(x):
+        raise KitInputError(f"{where}: {what} {x:g} is not an integer image id")
+    return int(x)
+
+
+def _find_image(folder: Path, image_id: int) -> str | None:
+    for ext in IMAGE_EXTENSIONS:
+        for cand in (f"{image_id}{ext}", f"{image_id}{ext.upper()}"):
+            if (folder / cand).is_file():
+                return cand
+    return None
+
+
+def read_p3(folder, require_images: bool = True) -> P3Data:
+    """Read a P3 folder: K, image names, unique pair matches and tracks.
+
+    Args:
+        folder: folder with ``calibration.txt``, ``matching*.txt`` and the images ``1.png`` (or
+            ``.jpg``) ... ``M.png``.
+        require_images: if True (default) every image referenced by the matches must exist
+            (checked at once, read lazily by :meth:`P3Data.image`); set False to read only the
+            matches (e.g. a folder written without images).
+
+    Returns:
+        :class:`P3Data` with 0-based image indices. Tracks with the inconsistency rule of this
+        module's docstring; the counts in ``stats``.
+
+    Raises:
+        KitInputError: folder missing or without ``matching*.txt``, calibration missing or
+            malformed, a malformed row (the message names the file and line), an image id out of
+            range, a NaN value, or (with ``require_images``) missing image files.
+
+    Introduced in ``notebooks/01_fundamental_matrix.ipynb``.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise KitInputError(f"P3 folder not found: {folder} (expected a folder with calibration.txt, matching1.txt, ... and 1.png, 2.png, ...)")
+    files = []
+    for p in folder.iterdir():
+        m = _MATCHING_RE.match(p.name)
+        if m and p.is_file():
+            files.append((int(m.group(1)), p))
+    files.sort()
+    if not files:
+        raise KitInputError(f"no matching*.txt files in {folder}: is this a P3 folder (calibration.txt, matching1.txt, ..., 1.png, ...)?")
+    K = read_calibration(folder / "calibration.txt")
+
+    uf = _UnionFind()
+    node_id: dict[tuple[int, float, float], int] = {}
+    node_key: list[tuple[int, float, float]] = []
+    node_rgb: dict[int, tuple[int, int, int]] = {}
+
+    def node(img: int, u: float, v: float) -> int:
+        key = (img, u, v)
+        n = node_id.get(key)
+        if n is None:
+            n = uf.add()
+            node_id[key] = n
+            node_key.append(key)
+        return n
+
+    pair_rows: dict[tuple[int, int], dict] = {}  # (i, j) -> {(n_i, n_j): rgb} in insertion order
+    n_rows = n_corr = n_dup = 0
+    max_id = 0
+    for file_id, path in files:
+        if file_id < 1:
+            raise KitInputError(f"{path.name}: image ids are 1-based, so there is no matching{file_id}.txt (rename it?)")
+        max_id = max(max_id, file_id)
+        i = file_id - 1
+        text = path.read_text(encoding="utf-8", errors="replace")
+        for lineno, line in enumerate(text.splitlines(), start=1):
+            s = line.strip()
+            if not s:
+                continue
+            if _HEADER_RE.match(s):
+                continue
+            where = f"{path.name} line {lineno}"
+            tokens = s.split()
+            vals = [_parse_number(t, where) for t in tokens]
+            k = _parse_image_id(vals[0], where, "the count k")
+            if k < 1:
+                raise KitInputError(f"{where}: k = {k}, but k counts the images the feature is seen in (including image {file_id}), so k >= 1")
+            expected = 5 + 3 * (k - 1)
+            found = len(vals) - 1
+            if found < expected:
+                raise KitInputError(
+                    f"{where}: expected 5 + 3*(k-1) = {expected} numbers after k={k}, found {found} — is the file truncated?"
+                )
+            if found > expected:
+                raise KitInputError(
+                    f"{where}: expected 5 + 3*(k-1) = {expected} numbers after k={k}, found {found} — "
+                    "are two rows merged, or is k wrong?"
+                )
+            n_rows += 1
+            rgb_f = vals[1:4]
+            if any(c < 0 or c > 255 for c in rgb_f):
+                raise KitInputError(f"{where}: colour {rgb_f} is outside 0..255")
+            rgb = tuple(int(round(c)) for c in rgb_f)
+            ui, vi = vals[4], vals[5]
+            ni = node(i, ui, vi)
+            node_rgb.setdefault(ni, rgb)
+            for t in range(k - 1):
+                jid = _parse_image_id(vals[6 + 3 * t], where, "image id")
+                if jid < 1:
+                    raise KitInputError(f"{where}: image id {jid} out of range (ids are 1-based)")
+                if jid == file_id:
+                    raise KitInputError(f"{where}: image id {jid} matches image {file_id} with itself")
+                max_id = max(max_id, jid)
+                j = jid - 1
+                nj = node(j, vals[7 + 3 * t], vals[8 + 3 * t])
+                uf.union(ni, nj)
+                n_corr += 1
+                a, b = (i, j) if i < j else (j, i)
+                na, nb = (ni, nj) if i < j else (nj, ni)
+                d = pair_rows.setdefault((a, b), {})
+                if (na, nb) in d:
+                    n_dup += 1
+                else:
+                    d[(na, nb)] = rgb
+
+    # image names
+    M = max_id
+    names, missing = [], []
+    n_files = 0
+    while _find_image(folder, n_files + 1) is not None:
+        n_files += 1
+    M = max(M, n_files)
+    for iid in range(1, M + 1):
+        nm = _find_image(folder, iid)
+        if nm is None:
+            missing.append(iid)
+            nm = f"{iid}.png"
+        names.append(nm)
+    if require_images and missing:
+        shown = ", ".join(f"{m}.png/.jpg" for m in missing[:6])
+        raise KitInputError(
+            f"{folder}: the matches refer to {M} images but image file(s) {shown} are missing "
+            "(copy the images next to the matching files, or call read_p3(folder, require_images=False) to read only the matches)"
+        )
+
+    # tracks: connected components; apply the inconsistency rule (module docstring)
+    edges = [e for d in pair_rows.values() for e in d]
+    neighbours: dict[int, list[int]] = {}
+    for a_, b_ in edges:
+        neighbours.setdefault(a_, []).append(b_)
+        neighbours.setdefault(b_, []).append(a_)
+    comps: dict[int, list[int]] = {}
+    for n in range(len(node_key)):
+        comps.setdefault(uf.find(n), []).append(n)
+    track_uv_list, track_rgb_list = [], []
+    node_track = np.full(len(node_key), -1, dtype=int)
+    n_conflict_comps = n_dropped_obs = 0
+
+    def add_track(nodes: list[int]) -> None:
+        uv = np.full((M, 2), np.nan)
+        for n in nodes:
+            uv[node_key[n][0]] = node_key[n][1:]
+            node_track[n] = len(track_uv_list)
+        first = min(nodes, key=lambda n: node_key[n][0])
+        rgb = node_rgb.get(first)
+        if rgb is None:  # the first image's feature only appears as a match target
+            rgb = next((node_rgb[n] for n in nodes if n in node_rgb), (0, 0, 0))
+        track_uv_list.append(uv)
+        track_rgb_list.append(rgb)
+
+    for root in sorted(comps):  # root = smallest node id = order of first appearance
+        members = comps[root]
+        per_image: dict[int, list[int]] = {}
+        for n in members:
+            per_image.setdefault(node_key[n][0], []).append(n)
+        if all(len(ns) == 1 for ns in per_image.values()):
+            if len(members) >= 2:
+                add_track(members)
+            continue
+        # inconsistent: per image keep the feature with strictly the most correspondences, drop the rest
+        n_conflict_comps += 1
+        kept: set[int] = set()
+        for ns in per_image.values():
+            if len(ns) == 1:
+                kept.add(ns[0])
+                continue
+            deg = sorted(((len(set(neighbours.get(n, ()))), n) for n in ns), reverse=True)
+            if deg[0][0] > deg[1][0]:
+                kept.add(deg[0][1])
+                n_dropped_obs += len(ns) - 1
+            else:
+                n_dropped_obs += len(ns)
+        # what is left may fall apart: its connected pieces (edges between kept nodes) are the tracks
+        todo = sorted(kept)
+        done: set[int] = set()
+        for start in todo:
+            if start in done:
+                continue
+            piece, stack = [], [start]
+            done.add(start)
+            while stack:
+                n = stack.pop()
+                piece.append(n)
+                for m_ in neighbours.get(n, ()):
+                    if m_ in kept and m_ not in done:
+                        done.add(m_)
+                        stack.append(m_)
+            if len(piece) >= 2:
+                add_track(sorted(piece))
+            else:
+                n_dropped_obs += 1
+    track_uv = np.stack(track_uv_list) if track_uv_list else np.zeros((0, M, 2))
+    track_rgb = np.array(track_rgb_list, dtype=np.uint8).reshape(-1, 3)
+
+    matches = {}
+    for (a, b) in sorted(pair_rows):
+        d = pair_rows[(a, b)]
+        ns = np.array(list(d.keys()), dtype=int).reshape(-1, 2)
+        x1 = np.array([node_key[n][1:] for n in ns[:, 0]], float).reshape(-1, 2)
+        x2 = np.array([node_key[n][1:] for n in ns[:, 1]], float).reshape(-1, 2)
+        t1, t2 = node_track[ns[:, 0]], node_track[ns[:, 1]]
+        tid = np.where((t1 == t2) & (t1 >= 0), t1, -1)
+        matches[(a, b)] = PairMatches(x1, x2, np.array(list(d.values()), np.uint8).reshape(-1, 3), tid)
+
+    stats = {
+        "rows": n_rows,
+        "correspondences": n_corr,
+        "duplicate_correspondences": n_dup,
+        "unique_correspondences": n_corr - n_dup,
+        "tracks": int(track_uv.shape[0]),
+        "inconsistent_components": n_conflict_comps,
+        "dropped_observations": n_dropped_obs,
+        "missing_images": missing,
+    }
+    return P3Data(folder, names, K, track_uv, track_rgb, matches, stats)
+
+
+# --------------------------------------------------------------------------------------------
+# writer
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.6f}"
+
+
+def write_p3(folder, image_names, K, track_uv, track_rgb, images=None) -> Path:
+    """Write tracks as a P3 folder that :func:`read_p3` reads back.
+
+    For every track and every image *i* in which it is seen with later images, ``matching{i+1}.txt``
+    gets one row (as in the course files: a point seen in images 1, 2, 3 has a row with k = 3 in
+    ``matching1.txt`` and one with k = 2 in ``matching2.txt``), so every pair of the track is listed.
+    ``nFeatures`` is the number of rows, ids are 1-based, rows end with a trailing space, lines
+    with LF. Coordinates are written with 6 decimals. Tracks seen in fewer than 2 images are skipped.
+    :func:`read_p3` returns the tracks ordered by their first image (stable), so tracks given in
+    that order come back in the same order.
+
+    Args:
+        folder: output folder (created if needed).
+        image_names: ``M`` file names (e.g. ``["1.png", ..., "5.png"]``); they must be
+            ``"{i+1}.png"`` / ``".jpg"`` for the folder to be a valid P3 folder.
+        K: ``(3, 3)`` intrinsics, written to ``calibration.txt``.
+        track_uv: ``(T, M, 2)`` pixels, NaN where unseen. Two different tracks must not share a
+            pixel in the same image (the reader joins tracks by equal coordinates).
+        track_rgb: ``(T, 3)`` uint8 colours.
+        images: optional list of ``M`` ``(H, W, 3)`` uint8 RGB images, written under ``image_names``
+            (the extension picks PNG or JPEG; JPEG quality 90).
+
+    Returns:
+        The folder as a ``Path``.
+
+    Introduced in ``notebooks/01_fundamental_matrix.ipynb``.
+    """
+    folder = Path(folder)
+    K = intrinsics(K)
+    image_names = [str(n) for n in image_names]
+    M = len(image_names)
+    track_uv = np.asarray(track_uv, dtype=float)
+    if track_uv.ndim != 3 or track_uv.shape[1:] != (M, 2):
+        raise KitInputError(f"track_uv has shape {track_uv.shape}: expected (T, {M}, 2) for {M} image names")
+    track_rgb = np.asarray(track_rgb)
+    if track_rgb.shape != (track_uv.shape[0], 3):
+        raise KitInputError(f"track_rgb has shape {track_rgb.shape}: expected ({track_uv.shape[0]}, 3), one colour per track")
+    if np.isnan(track_uv[..., 0]).__ne__(np.isnan(track_uv[..., 1])).any():
+        raise KitInputError("track_uv has observations with only one of u, v NaN: mark unseen with NaN in both")
+    if np.isinf(track_uv).any():
+        raise KitInputError("track_uv contains inf: mark unseen observations with NaN")
+    for i, n in enumerate(image_names):
+        if Path(n).stem != str(i + 1):
+            raise KitInputError(f"image_names[{i}] = {n!r}: P3 folders name image i {i + 1}.png or {i + 1}.jpg")
+    if images is not None and len(images) != M:
+        raise KitInputError(f"images has {len(images)} entries but there are {M} image names")
+    rgb = np.clip(np.round(track_rgb.astype(float)), 0, 255).astype(int)
+
+    folder.mkdir(parents=True, exist_ok=True)
+    seen = ~np.isnan(track_uv[..., 0])
+    rows: list[list[str]] = [[] for _ in range(M)]
+    for t in np.flatnonzero(seen.sum(1) >= 2):
+        imgs = np.flatnonzero(seen[t])
+        for a, i in enumerate(imgs[:-1]):
+            later = imgs[a + 1:]
+            parts = [str(len(later) + 1), *map(str, rgb[t]), _fmt(track_uv[t, i, 0]), _fmt(track_uv[t, i, 1])]
+            for j in later:
+                parts += [str(j + 1), _fmt(track_uv[t, j, 0]), _fmt(track_uv[t, j, 1])]
+            rows[i].append(" ".join(parts) + " ")
+    for old in folder.glob("matching*.txt"):
+        if _MATCHING_RE.match(old.name):
+            old.unlink()
+    for i in range(M - 1):
+        with open(folder / f"matching{i + 1}.txt", "w", newline="\n") as f:
+            f.write(f"nFeatures: {len(rows[i])}\n")
+            for r in rows[i]:
+                f.write(r + "\n")
+    with open(folder / "calibration.txt", "w", newline="\n") as f:
+        for r in K:
+            f.write(" ".join(repr(float(x)) for x in r) + "\n")
+    if images is not None:
+        import cv2
+
+        for name, img in zip(image_names, images):
+            img = np.asarray(img)
+            if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+                raise KitInputError(f"image {name} has dtype {img.dtype} and shape {img.shape}: expected (H, W, 3) uint8 RGB")
+            params = [cv2.IMWRITE_JPEG_QUALITY, 90] if name.lower().endswith((".jpg", ".jpeg")) else [cv2.IMWRITE_PNG_COMPRESSION, 9]
+            if not cv2.imwrite(str(folder / name), np.ascontiguousarray(img[:, :, ::-1]), params):
+                raise KitInputError(f"could not write image {folder / name}")
+    return folder
