@@ -1,0 +1,557 @@
+"""Bundle adjustment: refine all cameras and points together by minimizing the reprojection error.
+
+The objective is the sum over the observed (point, camera) pairs, i.e. over the ones with
+:math:`V_{ij} = 1` in the visibility matrix (:mod:`course_lib.sfm.visibility`)::
+
+    min_{R_i, t_i, X_j}  sum_{(i,j): V_ij = 1}  || project(K, R_i, t_i, X_j) - x_ij ||^2
+
+with the intrinsics ``K`` fixed (the P3 data comes calibrated).
+
+Parameters
+    Camera ``i`` is 6 numbers: the rotation vector ``r_i`` (axis times angle, radians, so
+    ``R_cw = exp([r_i]_x)``, :class:`scipy.spatial.transform.Rotation`) and ``t_cw``; point ``j`` is
+    ``X_j``. The parameter vector is laid out as in the SciPy cookbook's bundle adjustment::
+
+        params = [r_0, t_0, r_1, t_1, ..., r_{M-1}, t_{M-1}, X_0, X_1, ..., X_{N-1}]   # 6M + 3N
+
+Residuals
+    One pair per observation ``k`` (camera ``camera_idx[k]``, point ``point_idx[k]``):
+    ``r[2k:2k+2] = project(K, R, t, X) - uv[k]`` in pixels, so the cost is ``0.5 * sum(r**2)``.
+
+Jacobian
+    Analytic and sparse: the two rows of observation ``k`` are non-zero only in the 6 columns of
+    its camera and the 3 columns of its point (a ``2 x 6`` and a ``2 x 3`` block). With the
+    camera-frame point ``x_c = R X + t = (x, y, z)`` and ``K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]]``::
+
+        d(u, v)/d x_c = [[fx/z, s/z, -(fx x + s y)/z^2],
+                         [0,    fy/z, -fy y/z^2       ]]
+        d x_c / d X = R,    d x_c / d t = I,    d x_c / d r = -[R X]_x R J_r(r)
+
+    where ``J_r`` is the right Jacobian of SO(3),
+    ``J_r(r) = I - (1 - cos a)/a^2 [r]_x + (a - sin a)/a^3 [r]_x^2`` with ``a = |r|``.
+    The tests compare it with finite differences.
+
+Gauge (the ambiguity BA cannot resolve)
+    Images alone fix the scene only up to a similarity (7 degrees of freedom: rotation,
+    translation, scale). :func:`bundle_adjust` removes them by holding camera ``ref_camera``
+    (default 0) fixed (6 parameters) and one coordinate of the translation of a second camera,
+    ``scale_camera`` (default: the one farthest from ``ref_camera``): the coordinate ``k`` with the
+    largest ``|R_s (C_s - C_ref)|_k``, the direction in which a change of scale about the fixed
+    camera would move ``t_s``. The result therefore keeps the input's world frame and scale.
+    ``fix_scale=False`` leaves the scale free (the trust region keeps it from drifting).
+
+Solver
+    :func:`scipy.optimize.least_squares` (``method="trf"``, ``x_scale="jac"``) with the analytic
+    sparse Jacobian, optionally with a robust loss (``loss="huber"``, ``f_scale`` in pixels).
+
+Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from course_lib.conventions import camera_center
+from course_lib.sfm.visibility import observation_list
+from course_lib.validate import KitInputError, intrinsics, rotation
+
+__all__ = [
+    "pack_params",
+    "unpack_params",
+    "reprojection_residuals",
+    "jacobian_sparsity",
+    "reprojection_jacobian",
+    "BAResult",
+    "bundle_adjust",
+    "reprojection_error_stats",
+]
+
+
+# ---------------------------------------------------------------------------------------------
+# Parameters
+# ---------------------------------------------------------------------------------------------
+
+
+def pack_params(R_cw: np.ndarray, t_cw: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Stack cameras and points into one parameter vector.
+
+    Args:
+        R_cw: ``(M, 3, 3)`` rotations. t_cw: ``(M, 3)`` translations. X: ``(N, 3)`` points.
+
+    Returns:
+        ``(6M + 3N,)``: per camera its rotation vector and ``t_cw``, then the points.
+    """
+    R_cw = np.asarray(R_cw, float).reshape(-1, 3, 3)
+    rvec = Rotation.from_matrix(R_cw).as_rotvec()
+    cams = np.hstack([rvec, np.asarray(t_cw, float).reshape(-1, 3)])
+    return np.concatenate([cams.ravel(), np.asarray(X, float).ravel()])
+
+
+def unpack_params(params: np.ndarray, n_cameras: int, n_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The inverse of :func:`pack_params`: ``R_cw (M, 3, 3), t_cw (M, 3), X (N, 3)``."""
+    params = np.asarray(params, float)
+    if params.shape != (6 * n_cameras + 3 * n_points,):
+        raise KitInputError(
+            f"params has shape {params.shape}: expected (6 * {n_cameras} + 3 * {n_points},) = ({6 * n_cameras + 3 * n_points},)"
+        )
+    cams = params[: 6 * n_cameras].reshape(n_cameras, 6)
+    R = Rotation.from_rotvec(cams[:, :3]).as_matrix().reshape(n_cameras, 3, 3)
+    return R, cams[:, 3:].copy(), params[6 * n_cameras :].reshape(n_points, 3).copy()
+
+
+def _check_indices(n_cameras, n_points, camera_idx, point_idx):
+    camera_idx = np.asarray(camera_idx)
+    point_idx = np.asarray(point_idx)
+    if camera_idx.ndim != 1 or point_idx.shape != camera_idx.shape:
+        raise KitInputError(
+            f"camera_idx {camera_idx.shape} and point_idx {point_idx.shape} must be 1-D and of the same length (one per observation)"
+        )
+    if not (np.issubdtype(camera_idx.dtype, np.integer) and np.issubdtype(point_idx.dtype, np.integer)):
+        raise KitInputError("camera_idx and point_idx must be integer arrays (indices of cameras and points)")
+    if len(camera_idx) and (camera_idx.min() < 0 or camera_idx.max() >= n_cameras):
+        raise KitInputError(f"camera_idx has values outside 0..{n_cameras - 1}")
+    if len(point_idx) and (point_idx.min() < 0 or point_idx.max() >= n_points):
+        raise KitInputError(f"point_idx has values outside 0..{n_points - 1}")
+    return camera_idx.astype(np.int64), point_idx.astype(np.int64)
+
+
+# ---------------------------------------------------------------------------------------------
+# Residuals and Jacobian
+# ---------------------------------------------------------------------------------------------
+
+
+def reprojection_residuals(
+    params: np.ndarray,
+    n_cameras: int,
+    n_points: int,
+    camera_idx: np.ndarray,
+    point_idx: np.ndarray,
+    uv: np.ndarray,
+    K: np.ndarray,
+) -> np.ndarray:
+    """The residual vector of bundle adjustment (projected minus observed pixels).
+
+    Args:
+        params: ``(6M + 3N,)`` parameters laid out as in :func:`pack_params`.
+        n_cameras: M. n_points: N.
+        camera_idx: ``(K_obs,)`` int, camera of each observation.
+        point_idx: ``(K_obs,)`` int, point of each observation.
+        uv: ``(K_obs, 2)`` observed pixels.
+        K: ``(3, 3)`` intrinsics.
+
+    Returns:
+        ``(2 K_obs,)``: ``[u_0' - u_0, v_0' - v_0, u_1' - u_1, ...]`` in pixels.
+
+    Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
+    """
+    R, t, X = unpack_params(params, n_cameras, n_points)
+    xc = np.einsum("kab,kb->ka", R[camera_idx], X[point_idx]) + t[camera_idx]
+    xh = xc @ np.asarray(K, float).T
+    proj = xh[:, :2] / xh[:, 2:3]
+    return (proj - np.asarray(uv, float)).ravel()
+
+
+def jacobian_sparsity(n_cameras: int, n_points: int, camera_idx: np.ndarray, point_idx: np.ndarray) -> sp.csr_matrix:
+    """Which entries of the Jacobian can be non-zero.
+
+    Args:
+        n_cameras: M. n_points: N.
+        camera_idx, point_idx: ``(K_obs,)`` int, camera and point of each observation.
+
+    Returns:
+        ``(2 K_obs, 6M + 3N)`` sparse 0/1 matrix: rows ``2k, 2k+1`` have ones in the 6 columns of
+        camera ``camera_idx[k]`` and the 3 columns of point ``point_idx[k]``.
+
+    Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
+    """
+    camera_idx, point_idx = _check_indices(n_cameras, n_points, camera_idx, point_idx)
+    cols = _block_columns(n_cameras, camera_idx, point_idx)
+    data = np.ones(cols.shape, dtype=np.int8)
+    return _csr_from_blocks(data, cols, 6 * n_cameras + 3 * n_points)
+
+
+def _block_columns(n_cameras: int, camera_idx: np.ndarray, point_idx: np.ndarray) -> np.ndarray:
+    """``(2K, 9)`` column indices of the nine non-zeros of each residual row."""
+    cam_cols = 6 * camera_idx[:, None] + np.arange(6)
+    pt_cols = 6 * n_cameras + 3 * point_idx[:, None] + np.arange(3)
+    cols = np.hstack([cam_cols, pt_cols])  # (K, 9)
+    return np.repeat(cols, 2, axis=0)  # rows 2k and 2k+1
+
+
+def _csr_from_blocks(data: np.ndarray, cols: np.ndarray, n_cols: int) -> sp.csr_matrix:
+    n_rows, per_row = cols.shape
+    indptr = np.arange(0, n_rows * per_row + 1, per_row)
+    return sp.csr_matrix((data.ravel(), cols.ravel(), indptr), shape=(n_rows, n_cols))
+
+
+def _right_jacobian_so3(rvec: np.ndarray) -> np.ndarray:
+    """``(M, 3, 3)`` right Jacobians ``J_r`` of SO(3) at the rotation vectors ``(M, 3)``."""
+    a = np.linalg.norm(rvec, axis=1)
+    small = a < 1e-4
+    a_safe = np.where(small, 1.0, a)
+    c1 = np.where(small, 0.5 - a**2 / 24.0, (1.0 - np.cos(a_safe)) / a_safe**2)
+    c2 = np.where(small, 1.0 / 6.0 - a**2 / 120.0, (a_safe - np.sin(a_safe)) / a_safe**3)
+    S = _skew_rows(rvec)
+    return np.eye(3) - c1[:, None, None] * S + c2[:, None, None] * (S @ S)
+
+
+def _skew_rows(v: np.ndarray) -> np.ndarray:
+    """``(N, 3, 3)`` cross-product matrices of the rows of ``v (N, 3)``."""
+    S = np.zeros((len(v), 3, 3))
+    S[:, 0, 1], S[:, 0, 2] = -v[:, 2], v[:, 1]
+    S[:, 1, 0], S[:, 1, 2] = v[:, 2], -v[:, 0]
+    S[:, 2, 0], S[:, 2, 1] = -v[:, 1], v[:, 0]
+    return S
+
+
+def _jacobian_blocks(params, n_cameras, n_points, camera_idx, point_idx, K):
+    """``(K_obs, 2, 9)`` Jacobian blocks: columns 0-2 rotation vector, 3-5 t, 6-8 the point."""
+    cams = params[: 6 * n_cameras].reshape(n_cameras, 6)
+    R = Rotation.from_rotvec(cams[:, :3]).as_matrix().reshape(n_cameras, 3, 3)
+    X = params[6 * n_cameras :].reshape(n_points, 3)
+    Rk = R[camera_idx]
+    RX = np.einsum("kab,kb->ka", Rk, X[point_idx])
+    xc = RX + cams[camera_idx, 3:]
+    x, y, z = xc[:, 0], xc[:, 1], xc[:, 2]
+    fx, s, fy = K[0, 0], K[0, 1], K[1, 1]
+    iz = 1.0 / z
+    dp = np.zeros((len(z), 2, 3))  # d(u, v) / d x_c
+    dp[:, 0, 0] = fx * iz
+    dp[:, 0, 1] = s * iz
+    dp[:, 0, 2] = -(fx * x + s * y) * iz**2
+    dp[:, 1, 1] = fy * iz
+    dp[:, 1, 2] = -fy * y * iz**2
+    RJ = (R @ _right_jacobian_so3(cams[:, :3]))[camera_idx]  # (K, 3, 3)
+    d_rot = -_skew_rows(RX) @ RJ  # d x_c / d r
+    blocks = np.empty((len(z), 2, 9))
+    blocks[:, :, 0:3] = dp @ d_rot
+    blocks[:, :, 3:6] = dp
+    blocks[:, :, 6:9] = dp @ Rk
+    return blocks
+
+
+def reprojection_jacobian(
+    params: np.ndarray,
+    n_cameras: int,
+    n_points: int,
+    camera_idx: np.ndarray,
+    point_idx: np.ndarray,
+    K: np.ndarray,
+) -> sp.csr_matrix:
+    """The analytic Jacobian of :func:`reprojection_residuals` with respect to ``params``.
+
+    Args:
+        params: ``(6M + 3N,)`` parameters (:func:`pack_params`).
+        n_cameras: M. n_points: N.
+        camera_idx, point_idx: ``(K_obs,)`` int.
+        K: ``(3, 3)`` intrinsics.
+
+    Returns:
+        ``(2 K_obs, 6M + 3N)`` ``scipy.sparse.csr_matrix`` with the sparsity of :func:`jacobian_sparsity`.
+
+    Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
+    """
+    camera_idx, point_idx = _check_indices(n_cameras, n_points, camera_idx, point_idx)
+    params = np.asarray(params, float)
+    blocks = _jacobian_blocks(params, n_cameras, n_points, camera_idx, point_idx, np.asarray(K, float))
+    cols = _block_columns(n_cameras, camera_idx, point_idx)
+    return _csr_from_blocks(blocks.reshape(-1, 9), cols, 6 * n_cameras + 3 * n_points)
+
+
+def reprojection_error_stats(errors: np.ndarray) -> dict[str, float]:
+    """``{"rms", "mean", "median", "max"}`` of per-observation reprojection errors (pixels)."""
+    e = np.asarray(errors, float)
+    if e.size == 0:
+        return {"rms": float("nan"), "mean": float("nan"), "median": float("nan"), "max": float("nan")}
+    return {
+        "rms": float(np.sqrt(np.mean(e**2))),
+        "mean": float(np.mean(e)),
+        "median": float(np.median(e)),
+        "max": float(np.max(e)),
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# The bundle adjuster
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class BAResult:
+    """What :func:`bundle_adjust` returns.
+
+    Attributes:
+        R_cw: ``(M, 3, 3)`` refined rotations. t_cw: ``(M, 3)``. X: ``(N, 3)`` refined points
+            (rows of points without observations are returned unchanged).
+        point_idx, camera_idx: ``(K_obs,)`` the observations that entered the sum.
+        initial_errors, final_errors: ``(K_obs,)`` reprojection error of each observation
+            (Euclidean distance in pixels) before and after.
+        initial_rms, final_rms: ``sqrt(mean(error**2))`` over the observations (pixels).
+        initial_mean, final_mean: ``mean(error)`` (pixels).
+        n_iterations: iterations of the solver (accepted or not; one per Jacobian evaluation).
+        n_evaluations: residual evaluations.
+        seconds: wall-clock time of the optimization.
+        cost_history: ``0.5 * sum(r**2)`` at the start and after every iteration (with a robust
+            loss, still the plain squared error, so the values are comparable).
+        iterates: ``[(R_cw, t_cw, X), ...]`` the start and every iteration, if ``keep_iterates``.
+        gauge: a sentence describing how the gauge was fixed.
+        success, message: from :func:`scipy.optimize.least_squares`.
+    """
+
+    R_cw: np.ndarray
+    t_cw: np.ndarray
+    X: np.ndarray
+    point_idx: np.ndarray
+    camera_idx: np.ndarray
+    initial_errors: np.ndarray
+    final_errors: np.ndarray
+    n_iterations: int
+    n_evaluations: int
+    seconds: float
+    cost_history: list[float] = field(default_factory=list)
+    iterates: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
+    gauge: str = ""
+    success: bool = True
+    message: str = ""
+
+    @property
+    def initial_rms(self) -> float:
+        return reprojection_error_stats(self.initial_errors)["rms"]
+
+    @property
+    def final_rms(self) -> float:
+        return reprojection_error_stats(self.final_errors)["rms"]
+
+    @property
+    def initial_mean(self) -> float:
+        return reprojection_error_stats(self.initial_errors)["mean"]
+
+    @property
+    def final_mean(self) -> float:
+        return reprojection_error_stats(self.final_errors)["mean"]
+
+    def summary(self) -> str:
+        return (
+            f"bundle adjustment: {len(self.point_idx)} observations, {self.n_iterations} iterations, "
+            f"{self.seconds:.2f} s; reprojection error rms {self.initial_rms:.3f} -> {self.final_rms:.3f} px, "
+            f"mean {self.initial_mean:.3f} -> {self.final_mean:.3f} px"
+        )
+
+
+def _check_ba_inputs(K, R_cw, t_cw, X, uv):
+    K = intrinsics(K)
+    R_cw = np.asarray(R_cw, float)
+    if R_cw.ndim != 3 or R_cw.shape[1:] != (3, 3):
+        raise KitInputError(f"R_cw has shape {R_cw.shape}: expected (M, 3, 3), one rotation per camera")
+    M = R_cw.shape[0]
+    for i in range(M):
+        rotation(R_cw[i], f"R_cw[{i}]", atol=1e-5)
+    t_cw = np.asarray(t_cw, float)
+    if t_cw.shape != (M, 3):
+        raise KitInputError(f"t_cw has shape {t_cw.shape}: expected ({M}, 3), one translation per camera of R_cw")
+    if not np.isfinite(t_cw).all():
+        raise KitInputError("t_cw contains NaN or inf")
+    X = np.asarray(X, float)
+    if X.ndim != 2 or X.shape[1] != 3:
+        raise KitInputError(f"X has shape {X.shape}: expected (N, 3), points as rows")
+    uv = np.asarray(uv, float)
+    if uv.shape != (X.shape[0], M, 2):
+        raise KitInputError(
+            f"uv has shape {uv.shape}: expected (N, M, 2) = ({X.shape[0]}, {M}, 2), the pixel of point j in image i at [j, i], NaN where unseen"
+        )
+    return K, R_cw, t_cw, X, uv
+
+
+def bundle_adjust(
+    K: np.ndarray,
+    R_cw: np.ndarray,
+    t_cw: np.ndarray,
+    X: np.ndarray,
+    uv: np.ndarray,
+    *,
+    loss: str = "linear",
+    f_scale: float = 1.0,
+    max_iterations: int = 100,
+    ftol: float = 1e-8,
+    xtol: float = 1e-10,
+    ref_camera: int = 0,
+    scale_camera: int | None = None,
+    fix_scale: bool = True,
+    callback: Callable[[int, np.ndarray, np.ndarray, np.ndarray, float], None] | None = None,
+    keep_iterates: bool = False,
+    verbose: int = 0,
+) -> BAResult:
+    """Refine cameras and points by minimizing the reprojection error over all observations.
+
+    Args:
+        K: ``(3, 3)`` intrinsics, shared by all cameras and held fixed.
+        R_cw: ``(M, 3, 3)`` initial rotations (camera from world).
+        t_cw: ``(M, 3)`` initial translations.
+        X: ``(N, 3)`` initial points; rows may be NaN for points with no observation in ``uv``.
+        uv: ``(N, M, 2)`` observed pixels, NaN where point j is not seen in image i (only the
+            observations you want in the sum: drop outliers first, or use a robust ``loss``).
+        loss: ``"linear"`` (plain least squares) or a robust loss of ``least_squares``
+            (``"huber"``, ``"soft_l1"``, ``"cauchy"``...).
+        f_scale: pixels at which the robust loss starts to flatten.
+        max_iterations: at most this many iterations (Jacobian evaluations).
+        ftol, xtol: stopping tolerances of ``least_squares``.
+        ref_camera: the camera held fixed (gauge: position and orientation of the world).
+        scale_camera: the camera one of whose translation coordinates is held fixed (gauge: the
+            scale); default the camera farthest from ``ref_camera``.
+        fix_scale: if False, only ``ref_camera`` is fixed and the scale stays free.
+        callback: called as ``callback(iteration, R_cw, t_cw, X, cost)`` at the start (iteration
+            0) and after every iteration, e.g. to draw progress.
+        keep_iterates: store every iterate in ``BAResult.iterates`` (for a slider over iterations).
+        verbose: passed to ``least_squares``.
+
+    Returns:
+        :class:`BAResult`.
+
+    Raises:
+        KitInputError: shapes do not match, a rotation is not a rotation, an observed point has
+            no coordinates, or fewer than two cameras see anything.
+
+    Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
+    """
+    K, R_cw, t_cw, X, uv = _check_ba_inputs(K, R_cw, t_cw, X, uv)
+    M, N = R_cw.shape[0], X.shape[0]
+    obs = observation_list(uv)
+    if len(obs) == 0:
+        raise KitInputError("uv has no observations (all NaN): nothing to adjust")
+    bad_X = ~np.isfinite(X[obs.point_idx]).all(axis=1)
+    if bad_X.any():
+        j = int(obs.point_idx[bad_X][0])
+        raise KitInputError(f"X[{j}] is NaN but the point has observations in uv: triangulate it or drop its observations")
+    seen_cams = np.unique(obs.camera_idx)
+    if len(seen_cams) < 2:
+        raise KitInputError(f"only camera(s) {seen_cams.tolist()} have observations: bundle adjustment needs at least two")
+    if not 0 <= ref_camera < M:
+        raise KitInputError(f"ref_camera={ref_camera} is not a camera index (0..{M - 1})")
+
+    X_fill = np.where(np.isfinite(X), X, 0.0)
+    x0_full = pack_params(R_cw, t_cw, X_fill)
+    n_full = x0_full.size
+
+    # --- gauge: fix ref_camera, and one translation coordinate of scale_camera ---------------
+    free = np.ones(n_full, dtype=bool)
+    free[6 * ref_camera : 6 * ref_camera + 6] = False
+    # cameras with no observation and points with no observation have zero columns: hold them fixed
+    for i in range(M):
+        if i not in seen_cams:
+            free[6 * i : 6 * i + 6] = False
+    seen_pts = np.zeros(N, dtype=bool)
+    seen_pts[obs.point_idx] = True
+    free[6 * M :] = np.repeat(seen_pts, 3)
+    gauge = f"camera {ref_camera} fixed"
+    if fix_scale:
+        C = np.stack([camera_center(R, t) for R, t in zip(R_cw, t_cw)])
+        if scale_camera is None:
+            d = np.linalg.norm(C - C[ref_camera], axis=1)
+            d[[i for i in range(M) if i not in seen_cams or i == ref_camera]] = -1.0
+            scale_camera = int(np.argmax(d))
+        if not 0 <= scale_camera < M or scale_camera == ref_camera:
+            raise KitInputError(f"scale_camera={scale_camera} must be a camera index other than ref_camera={ref_camera}")
+        direction = R_cw[scale_camera] @ (C[scale_camera] - C[ref_camera])
+        if np.linalg.norm(direction) < 1e-12:
+            raise KitInputError(
+                f"cameras {ref_camera} and {scale_camera} have the same centre: the scale cannot be fixed by their baseline"
+            )
+        k = int(np.argmax(np.abs(direction)))
+        free[6 * scale_camera + 3 + k] = False
+        gauge += f", t_cw[{scale_camera}][{k}] fixed (scale)"
+    else:
+        gauge += ", scale free"
+
+    free_idx = np.flatnonzero(free)
+    # Column map full -> reduced (-1 = fixed); the kept pattern is the same at every evaluation.
+    col_map = -np.ones(n_full, dtype=np.int64)
+    col_map[free_idx] = np.arange(free_idx.size)
+    cols_full = _block_columns(M, obs.camera_idx, obs.point_idx)
+    cols_red = col_map[cols_full]
+    keep = cols_red >= 0
+    counts = keep.sum(axis=1)
+    indptr = np.concatenate([[0], np.cumsum(counts)])
+    cols_kept = cols_red[keep]
+
+    def full(xr):
+        p = x0_full.copy()
+        p[free_idx] = xr
+        return p
+
+    def fun(xr):
+        return reprojection_residuals(full(xr), M, N, obs.camera_idx, obs.point_idx, obs.uv, K)
+
+    def jac(xr):
+        blocks = _jacobian_blocks(full(xr), M, N, obs.camera_idx, obs.point_idx, K).reshape(-1, 9)
+        return sp.csr_matrix((blocks[keep], cols_kept, indptr), shape=(2 * len(obs), free_idx.size))
+
+    history: list[float] = []
+    iterates: list = []
+
+    def record(xr, it):
+        r = fun(xr)
+        cost = 0.5 * float(r @ r)
+        history.append(cost)
+        if keep_iterates or callback is not None:
+            Rk, tk, Xk = unpack_params(full(xr), M, N)
+            Xk[~seen_pts] = X[~seen_pts]
+            if keep_iterates:
+                iterates.append((Rk, tk, Xk))
+            if callback is not None:
+                callback(it, Rk, tk, Xk, cost)
+
+    x0 = x0_full[free_idx]
+    r0 = fun(x0)
+    if not np.isfinite(r0).all():
+        raise KitInputError("some observed points project to infinity (depth 0 in a camera): check the initial poses and points")
+    e0 = np.linalg.norm(r0.reshape(-1, 2), axis=1)
+    record(x0, 0)
+
+    def ls_callback(intermediate_result):
+        record(intermediate_result.x, len(history))
+
+    t0 = time.perf_counter()
+    res = least_squares(
+        fun,
+        x0,
+        jac=jac,
+        method="trf",
+        x_scale="jac",
+        loss=loss,
+        f_scale=f_scale,
+        max_nfev=max_iterations,
+        ftol=ftol,
+        xtol=xtol,
+        gtol=1e-10,
+        tr_solver="lsmr",
+        verbose=verbose,
+        callback=ls_callback,
+    )
+    seconds = time.perf_counter() - t0
+    R_out, t_out, X_out = unpack_params(full(res.x), M, N)
+    X_out[~seen_pts] = X[~seen_pts]
+    e1 = np.linalg.norm(fun(res.x).reshape(-1, 2), axis=1)
+    return BAResult(
+        R_cw=R_out,
+        t_cw=t_out,
+        X=X_out,
+        point_idx=obs.point_idx,
+        camera_idx=obs.camera_idx,
+        initial_errors=e0,
+        final_errors=e1,
+        n_iterations=int(res.njev if res.njev is not None else len(history) - 1),
+        n_evaluations=int(res.nfev),
+        seconds=seconds,
+        cost_history=history,
+        iterates=iterates,
+        gauge=gauge,
+        success=bool(res.success),
+        message=str(res.message),
+    )
