@@ -290,3 +290,15 @@ def test_writer_rejects_bad_input(tmp_path):
         write_p3(tmp_path, ["1.png", "2.png"], K, np.zeros((3, 3, 2)), np.zeros((3, 3), np.uint8))
     with pytest.raises(KitInputError, match="P3 folders name image"):
         write_p3(tmp_path, ["a.png", "b.png"], K, np.zeros((3, 2, 2)), np.zeros((3, 3), np.uint8))
+
+
+def test_tracks_from_pairs_matches_reader_rule():
+    from course_lib.data.p3 import tracks_from_pairs
+
+    pairs = {(0, 1): ([[10, 10], [10, 10]], [[11, 11], [90, 90]]), (1, 2): ([[11, 11]], [[12, 12]])}
+    track_uv, ids, stats = tracks_from_pairs(3, pairs)
+    np.testing.assert_allclose(track_uv, [[[10, 10], [11, 11], [12, 12]]])
+    assert ids[(0, 1)].tolist() == [0, -1] and ids[(1, 2)].tolist() == [0]
+    assert stats == {"inconsistent_components": 1, "dropped_observations": 1}
+    with pytest.raises(KitInputError, match="not a pair"):
+        tracks_from_pairs(2, {(0, 0): ([[1, 1]], [[2, 2]])})

@@ -53,7 +53,7 @@ import numpy as np
 
 from course_lib.validate import KitInputError, intrinsics
 
-__all__ = ["PairMatches", "P3Data", "read_calibration", "read_p3", "write_p3", "IMAGE_EXTENSIONS"]
+__all__ = ["PairMatches", "P3Data", "read_calibration", "read_p3", "write_p3", "tracks_from_pairs", "IMAGE_EXTENSIONS"]
 
 #: Image file extensions the reader looks for, in order of preference (``1.png`` before ``1.jpg``).
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp")
@@ -265,6 +265,132 @@ def _find_image(folder: Path, image_id: int) -> str | None:
     return None
 
 
+def _build_tracks(node_key, edges, M, uf=None):
+    """Tracks from the correspondence graph, with the inconsistency rule of the module docstring.
+
+    Args:
+        node_key: list of ``(image, u, v)`` per node.
+        edges: iterable of unique ``(node_a, node_b)`` pairs.
+        M: number of images.
+        uf: a :class:`_UnionFind` over the nodes with the edges already joined (built if None).
+
+    Returns:
+        ``track_uv (T, M, 2)``, ``node_track (n_nodes,)`` (-1: in no track), number of
+        inconsistent components, number of dropped observations.
+    """
+    edges = list(edges)
+    if uf is None:
+        uf = _UnionFind()
+        for _ in node_key:
+            uf.add()
+        for a_, b_ in edges:
+            uf.union(a_, b_)
+    neighbours: dict[int, list[int]] = {}
+    for a_, b_ in edges:
+        neighbours.setdefault(a_, []).append(b_)
+        neighbours.setdefault(b_, []).append(a_)
+    comps: dict[int, list[int]] = {}
+    for n in range(len(node_key)):
+        comps.setdefault(uf.find(n), []).append(n)
+    track_uv_list = []
+    node_track = np.full(len(node_key), -1, dtype=int)
+    n_conflict_comps = n_dropped_obs = 0
+
+    def add_track(nodes: list[int]) -> None:
+        uv = np.full((M, 2), np.nan)
+        for n in nodes:
+            uv[node_key[n][0]] = node_key[n][1:]
+            node_track[n] = len(track_uv_list)
+        track_uv_list.append(uv)
+
+    for root in sorted(comps):  # root = smallest node id = order of first appearance
+        members = comps[root]
+        per_image: dict[int, list[int]] = {}
+        for n in members:
+            per_image.setdefault(node_key[n][0], []).append(n)
+        if all(len(ns) == 1 for ns in per_image.values()):
+            if len(members) >= 2:
+                add_track(members)
+            continue
+        # inconsistent: per image keep the feature with strictly the most correspondences, drop the rest
+        n_conflict_comps += 1
+        kept: set[int] = set()
+        for ns in per_image.values():
+            if len(ns) == 1:
+                kept.add(ns[0])
+                continue
+            deg = sorted(((len(set(neighbours.get(n, ()))), n) for n in ns), reverse=True)
+            if deg[0][0] > deg[1][0]:
+                kept.add(deg[0][1])
+                n_dropped_obs += len(ns) - 1
+            else:
+                n_dropped_obs += len(ns)
+        # what is left may fall apart: its connected pieces (edges between kept nodes) are the tracks
+        done: set[int] = set()
+        for start in sorted(kept):
+            if start in done:
+                continue
+            piece, stack = [], [start]
+            done.add(start)
+            while stack:
+                n = stack.pop()
+                piece.append(n)
+                for m_ in neighbours.get(n, ()):
+                    if m_ in kept and m_ not in done:
+                        done.add(m_)
+                        stack.append(m_)
+            if len(piece) >= 2:
+                add_track(sorted(piece))
+            else:
+                n_dropped_obs += 1
+    track_uv = np.stack(track_uv_list) if track_uv_list else np.zeros((0, M, 2))
+    return track_uv, node_track, n_conflict_comps, n_dropped_obs
+
+
+def tracks_from_pairs(n_images: int, pairs: dict) -> tuple[np.ndarray, dict, dict]:
+    """Join pairwise correspondences into tracks (features are identified by equal pixels).
+
+    The same union-find and inconsistency rule as :func:`read_p3` (module docstring).
+
+    Args:
+        n_images: M.
+        pairs: ``{(i, j): (x1 (N, 2), x2 (N, 2))}`` with 0-based ``i != j``.
+
+    Returns:
+        ``track_uv (T, M, 2)`` (NaN where unseen), ``{(i, j): track_ids (N,)}`` (-1 where the
+        correspondence is in no track) and a stats dict (``inconsistent_components``,
+        ``dropped_observations``).
+    """
+    node_id: dict = {}
+    node_key: list = []
+
+    def node(img, u, v):
+        key = (int(img), float(u), float(v))
+        n = node_id.get(key)
+        if n is None:
+            n = node_id[key] = len(node_key)
+            node_key.append(key)
+        return n
+
+    pair_nodes = {}
+    edges = {}
+    for (i, j), (x1, x2) in pairs.items():
+        if not (0 <= i < n_images and 0 <= j < n_images) or i == j:
+            raise KitInputError(f"pair ({i}, {j}) is not a pair of two different images among 0..{n_images - 1}")
+        x1, x2 = np.asarray(x1, float).reshape(-1, 2), np.asarray(x2, float).reshape(-1, 2)
+        ns = [(node(i, *a), node(j, *b)) for a, b in zip(x1, x2)]
+        pair_nodes[(i, j)] = ns
+        for e in ns:
+            edges.setdefault(e, None)
+    track_uv, node_track, n_conf, n_drop = _build_tracks(node_key, edges, n_images)
+    ids = {}
+    for key, ns in pair_nodes.items():
+        ns = np.array(ns, int).reshape(-1, 2)
+        t1, t2 = node_track[ns[:, 0]], node_track[ns[:, 1]]
+        ids[key] = np.where((t1 == t2) & (t1 >= 0), t1, -1)
+    return track_uv, ids, {"inconsistent_components": n_conf, "dropped_observations": n_drop}
+
+
 def read_p3(folder, require_images: bool = True) -> P3Data:
     """Read a P3 folder: K, image names, unique pair matches and tracks.
 
@@ -394,72 +520,15 @@ def read_p3(folder, require_images: bool = True) -> P3Data:
 
     # tracks: connected components; apply the inconsistency rule (module docstring)
     edges = [e for d in pair_rows.values() for e in d]
-    neighbours: dict[int, list[int]] = {}
-    for a_, b_ in edges:
-        neighbours.setdefault(a_, []).append(b_)
-        neighbours.setdefault(b_, []).append(a_)
-    comps: dict[int, list[int]] = {}
-    for n in range(len(node_key)):
-        comps.setdefault(uf.find(n), []).append(n)
-    track_uv_list, track_rgb_list = [], []
-    node_track = np.full(len(node_key), -1, dtype=int)
-    n_conflict_comps = n_dropped_obs = 0
-
-    def add_track(nodes: list[int]) -> None:
-        uv = np.full((M, 2), np.nan)
-        for n in nodes:
-            uv[node_key[n][0]] = node_key[n][1:]
-            node_track[n] = len(track_uv_list)
-        first = min(nodes, key=lambda n: node_key[n][0])
-        rgb = node_rgb.get(first)
-        if rgb is None:  # the first image's feature only appears as a match target
-            rgb = next((node_rgb[n] for n in nodes if n in node_rgb), (0, 0, 0))
-        track_uv_list.append(uv)
-        track_rgb_list.append(rgb)
-
-    for root in sorted(comps):  # root = smallest node id = order of first appearance
-        members = comps[root]
-        per_image: dict[int, list[int]] = {}
-        for n in members:
-            per_image.setdefault(node_key[n][0], []).append(n)
-        if all(len(ns) == 1 for ns in per_image.values()):
-            if len(members) >= 2:
-                add_track(members)
-            continue
-        # inconsistent: per image keep the feature with strictly the most correspondences, drop the rest
-        n_conflict_comps += 1
-        kept: set[int] = set()
-        for ns in per_image.values():
-            if len(ns) == 1:
-                kept.add(ns[0])
-                continue
-            deg = sorted(((len(set(neighbours.get(n, ()))), n) for n in ns), reverse=True)
-            if deg[0][0] > deg[1][0]:
-                kept.add(deg[0][1])
-                n_dropped_obs += len(ns) - 1
-            else:
-                n_dropped_obs += len(ns)
-        # what is left may fall apart: its connected pieces (edges between kept nodes) are the tracks
-        todo = sorted(kept)
-        done: set[int] = set()
-        for start in todo:
-            if start in done:
-                continue
-            piece, stack = [], [start]
-            done.add(start)
-            while stack:
-                n = stack.pop()
-                piece.append(n)
-                for m_ in neighbours.get(n, ()):
-                    if m_ in kept and m_ not in done:
-                        done.add(m_)
-                        stack.append(m_)
-            if len(piece) >= 2:
-                add_track(sorted(piece))
-            else:
-                n_dropped_obs += 1
-    track_uv = np.stack(track_uv_list) if track_uv_list else np.zeros((0, M, 2))
-    track_rgb = np.array(track_rgb_list, dtype=np.uint8).reshape(-1, 3)
+    track_uv, node_track, n_conflict_comps, n_dropped_obs = _build_tracks(node_key, edges, M, uf)
+    track_rgb = np.zeros((track_uv.shape[0], 3), np.uint8)
+    rgb_set = np.zeros(track_uv.shape[0], bool)
+    first_image = np.argmax(~np.isnan(track_uv[..., 0]), axis=1) if len(track_uv) else np.zeros(0, int)
+    for d in pair_rows.values():  # colour of the track's feature in its first image, from its first row
+        for (na, nb), rgb in d.items():
+            t = node_track[na]
+            if t >= 0 and not rgb_set[t] and node_key[na][0] == first_image[t]:
+                track_rgb[t], rgb_set[t] = rgb, True
 
     matches = {}
     for (a, b) in sorted(pair_rows):
