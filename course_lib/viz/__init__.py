@@ -46,26 +46,22 @@ __all__ = [
     "write_html",
 ]
 
-try:  # the 2-D figures and widgets are added as their modules land
-    from course_lib.viz.figures import (  # noqa: F401
-        draw_epipolar_lines,
-        draw_matches,
-        image_grid,
-        plot_jacobian_sparsity,
-        plot_reprojection_errors,
-        plot_training_curves,
-        plot_visibility,
-    )
+from course_lib.viz.figures import (  # noqa: E402
+    draw_epipolar_lines,
+    draw_matches,
+    image_grid,
+    plot_jacobian_sparsity,
+    plot_reprojection_errors,
+    plot_training_curves,
+    plot_visibility,
+)
 
-    __all__ += [
-        "draw_matches",
-        "draw_epipolar_lines",
-        "plot_reprojection_errors",
-        "plot_visibility",
-        "plot_jacobian_sparsity",
-        "plot_training_curves",
-        "image_grid",
-    ]
-except ImportError as _exc:  # pragma: no cover
-    if "course_lib.viz.figures" not in str(_exc):
-        raise
+__all__ += [
+    "draw_matches",
+    "draw_epipolar_lines",
+    "plot_reprojection_errors",
+    "plot_visibility",
+    "plot_jacobian_sparsity",
+    "plot_training_curves",
+    "image_grid",
+]
