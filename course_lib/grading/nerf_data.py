@@ -296,8 +296,8 @@ def check_stratified_samples(stratified_samples: Callable) -> None:
                      f"{case}: {int((~inside).sum())} samples leave their bin: scale the uniform jitter by the bin "
                      "width (upper - lower), not by far - near")
             off = (zt - lower) / (upper - lower)
-            varied_s = np.ptp(off, axis=1).min() > 1e-6
-            varied_r = np.ptp(off, axis=0).min() > 1e-6
+            varied_s = np.ptp(off, axis=1).min() > 1e-3
+            varied_r = np.ptp(off, axis=0).min() > 1e-3
             c.expect(varied_s and varied_r, f"{case}: independent jitter for every ray and every sample",
                      f"{case}: the same jitter for every {'sample' if not varied_s else 'ray'}: draw a (n_rays, n_samples) "
                      "array of uniform numbers")
@@ -372,7 +372,7 @@ def encoding_variant(x: np.ndarray, L: int, include_input: bool = True, pi: bool
 def _encoding_params(x, L, include_input, value) -> dict | None:
     """The (include_input, pi, order, freqs) of the variant equal to ``value``, or None."""
     for inc, pi, order, freqs in itertools.product((include_input, not include_input), (True, False), ORDERS, FREQS):
-        if close(value, encoding_variant(x, L, inc, pi, order, freqs)):
+        if close(value, encoding_variant(x, L, inc, pi, order, freqs), rtol=1e-3, atol=2e-3):
             return {"include_input": inc, "pi": pi, "order": order, "freqs": freqs}
     return None
 
@@ -421,7 +421,7 @@ def check_positional_encoding(positional_encoding: Callable) -> None:
                     hint = ": keep the leading (batch) axes and concatenate along the last axis"
                 c.fail(f"{case}: the encoding has shape {out.shape}, expected {want}{hint}")
                 continue
-            if close(out, ref):
+            if close(out, ref, rtol=1e-3, atol=2e-3):  # float32 sin(2^9 pi x) is good to ~1e-4
                 c.expect(True, f"{case}: shape {want} and values match the reference", "")
                 continue
             mine = _encoding_params(xin, L, inc, out)

@@ -1,0 +1,251 @@
+"""Checks of notebook 07 (the NeRF MLP): the ``NeRF`` module and ``psnr``.
+
+``check_nerf_model(NeRF)`` builds the student's class with its default arguments (the paper's
+network: 8 ReLU layers of width 256, the encoded position concatenated again after the 4th, a
+density head, a view-dependent branch of width 128 and a sigmoid RGB head) and with a small
+configuration, and compares with the reference stored in fixture ``nerf_model``
+(``python -m course_lib fixtures nerf_model``):
+
+* the fully connected layers (in -> out features) and the parameter count: names a missing skip
+  connection, a missing view-direction branch, a missing positional encoding, one output head;
+* the forward pass: shapes ``rgb (..., 3)``, ``sigma (...)``; rgb in [0, 1] (sigmoid), sigma >= 0
+  (ReLU); sigma independent of the viewing direction, rgb dependent on it;
+* with the reference's weights copied in (matched layer by layer in order of definition) the
+  outputs equal the reference's, which pins down the wiring (ReLU after every layer, the order
+  of concatenations, where the heads branch off).
+
+The reference :class:`course_lib.nerf.model.NeRF` is imported only inside the fixture builder.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from typing import Callable
+
+import numpy as np
+
+from course_lib.grading.core import FAILED, Check, fixture_builder, load_fixture
+from course_lib.grading.nerf_data import close, to_numpy
+
+__all__ = ["check_nerf_model", "check_psnr", "layer_table", "set_test_weights"]
+
+FIXTURE = "nerf_model"
+
+#: the configurations the check builds: (name, constructor kwargs)
+CONFIGS = (
+    ("default", {}),
+    ("small", {"depth": 4, "width": 32, "skips": (2,), "pos_freqs": 3, "dir_freqs": 2}),
+)
+
+
+def layer_table(model) -> list[tuple[int, int]]:
+    """``[(in_features, out_features), ...]`` of the model's ``nn.Linear`` layers, in order of definition."""
+    import torch.nn as nn
+
+    return [(m.in_features, m.out_features) for m in model.modules() if isinstance(m, nn.Linear)]
+
+
+def _test_tensors(shapes: list[tuple[int, ...]]):
+    """Deterministic test values for parameters of the given shapes (seed = position in the list)."""
+    import torch
+
+    out = []
+    for i, shp in enumerate(shapes):
+        g = torch.Generator().manual_seed(1000 + i)
+        fan_in = shp[1] if len(shp) == 2 else 1
+        scale = 1.5 / math.sqrt(fan_in) if len(shp) == 2 else 0.1
+        out.append(torch.randn(shp, generator=g, dtype=torch.float32) * scale)
+    return out
+
+
+def set_test_weights(model, ref_shapes: list[tuple[int, ...]]) -> bool:
+    """Copy the reference's test weights into ``model``, matching parameters by shape in order.
+
+    Parameter k of the reference gets test tensor k; each goes to the first not yet used
+    parameter of ``model`` with the same shape. Returns False (model unchanged) when the shapes
+    do not match one to one.
+    """
+    import torch
+
+    params = list(model.parameters())
+    if sorted(tuple(p.shape) for p in params) != sorted(ref_shapes):
+        return False
+    used = [False] * len(params)
+    assign = []
+    for k, shp in enumerate(ref_shapes):
+        j = next(j for j, p in enumerate(params) if not used[j] and tuple(p.shape) == shp)
+        used[j] = True
+        assign.append(j)
+    vals = _test_tensors(ref_shapes)
+    with torch.no_grad():
+        for k, j in enumerate(assign):
+            params[j].copy_(vals[k])
+    return True
+
+
+def _inputs():
+    g = np.random.default_rng(7)
+    pts = g.uniform(-1.5, 1.5, size=(4, 8, 3))
+    dirs = g.normal(size=(4, 8, 3))
+    dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+    return pts.astype(np.float32), dirs.astype(np.float32)
+
+
+@fixture_builder(FIXTURE)
+def _build() -> dict[str, np.ndarray]:
+    import torch
+
+    from course_lib.nerf.model import NeRF
+
+    out: dict[str, np.ndarray] = {}
+    pts, dirs = _inputs()
+    for name, kw in CONFIGS:
+        torch.manual_seed(0)
+        m = NeRF(**kw)
+        out[f"{name}_layers"] = np.array(layer_table(m), dtype=np.int64)
+        out[f"{name}_n_params"] = np.array(sum(p.numel() for p in m.parameters()))
+        shapes = [tuple(p.shape) for p in m.parameters()]
+        out[f"{name}_param_shapes"] = np.array([list(s) + [0] * (2 - len(s)) for s in shapes], dtype=np.int64)
+        out[f"{name}_param_ndim"] = np.array([len(s) for s in shapes], dtype=np.int64)
+        set_test_weights(m, shapes)
+        with torch.no_grad():
+            rgb, sigma = m(torch.as_tensor(pts), torch.as_tensor(dirs))
+        out[f"{name}_rgb"], out[f"{name}_sigma"] = rgb.numpy(), sigma.numpy()
+    out["pts"], out["dirs"] = pts, dirs
+    return out
+
+
+def _shapes(f, name) -> list[tuple[int, ...]]:
+    return [tuple(int(v) for v in row[:n]) for row, n in zip(f[f"{name}_param_shapes"], f[f"{name}_param_ndim"])]
+
+
+def _layer_hint(mine: list[tuple[int, int]], ref: list[tuple[int, int]], kw: dict) -> str:
+    """Name the likely mistake from the difference of the layer tables."""
+    cm, cr = Counter(mine), Counter(ref)
+    missing, extra = list((cr - cm).elements()), list((cm - cr).elements())
+    W = kw.get("width", 256)
+    Lx, Ld = kw.get("pos_freqs", 10), kw.get("dir_freqs", 4)
+    enc_x, enc_d = 3 * (1 + 2 * Lx), 3 * (1 + 2 * Ld)
+    hints = []
+    if (W + enc_x, W) in missing:
+        hints.append(f"no skip connection: the layer after the skip takes [γ(x), h] ({enc_x} + {W} inputs)")
+    if (enc_x, W) in missing and (3, W) in extra:
+        hints.append(f"the positions are not encoded: the first layer takes γ(x) ({enc_x} inputs), not x (3)")
+    if any(i == W + enc_d for i, _ in missing):
+        hints.append(f"the view direction is not used: the colour branch takes [feature, γ(d)] ({W} + {enc_d} inputs)")
+    if any(o == 4 for _, o in extra):
+        hints.append("one head with 4 outputs: the density comes from the position branch (W -> 1) and the colour "
+                     "from the view-dependent branch (-> 3)")
+    detail = f"missing {missing}, unexpected {extra}" if (missing or extra) else "the same layers in another order"
+    return "; ".join(hints + [f"layers (in, out): {detail}"])
+
+
+def check_nerf_model(NeRF: Callable) -> None:
+    """Check the student's ``NeRF`` class (notebook 07); prints one verdict per property."""
+    import torch
+
+    f = load_fixture(FIXTURE)
+    pts, dirs = torch.as_tensor(f["pts"]), torch.as_tensor(f["dirs"])
+    lead = tuple(f["pts"].shape[:-1])
+    with Check("NeRF") as c:
+        for name, kw in CONFIGS:
+            args = ", ".join(f"{k}={v}" for k, v in kw.items())
+            case = f"NeRF({args})"
+            torch.manual_seed(0)
+            model = c.call(NeRF, case=case, **kw)
+            if model is FAILED:
+                continue
+            if not isinstance(model, torch.nn.Module):
+                c.fail(f"{case}: expected an nn.Module, got {type(model).__name__}")
+                continue
+            ref_layers = [tuple(int(v) for v in r) for r in f[f"{name}_layers"]]
+            mine = layer_table(model)
+            c.expect(sorted(mine) == sorted(ref_layers),
+                     f"{case}: {len(ref_layers)} linear layers with the reference's sizes",
+                     f"{case}: {_layer_hint(mine, ref_layers, kw)}")
+            n_ref = int(f[f"{name}_n_params"])
+            n = sum(p.numel() for p in model.parameters())
+            c.expect(n == n_ref, f"{case}: {n_ref:,} parameters, as the reference",
+                     f"{case}: {n:,} parameters, the reference has {n_ref:,} ({n - n_ref:+,})")
+            # forward with the student's own initialisation
+            with torch.no_grad():
+                out = c.call(model, pts, dirs, case=f"{case} forward")
+            if out is FAILED:
+                continue
+            if not isinstance(out, (tuple, list)) or len(out) != 2:
+                c.fail(f"{case}: forward must return (rgb, sigma), got {type(out).__name__}")
+                continue
+            rgb, sigma = to_numpy(out[0]), to_numpy(out[1])
+            if sigma is not None and sigma.shape == (*lead, 1):
+                c.fail(f"{case}: sigma has shape {sigma.shape}: drop the last axis (sigma[..., 0]) so that it is {lead}")
+                continue
+            if not (c.shape(rgb, (*lead, 3), f"{case}: rgb") & c.shape(sigma, lead, f"{case}: sigma")):
+                continue
+            if name == "default":
+                c.expect(rgb.min() >= 0 and rgb.max() <= 1, f"{case}: rgb in [0, 1]",
+                         f"{case}: rgb ranges over [{rgb.min():.3g}, {rgb.max():.3g}]: no sigmoid on the RGB head")
+                c.expect(sigma.min() >= 0, f"{case}: sigma >= 0",
+                         f"{case}: sigma has negative values (min {sigma.min():.3g}): the density must be non-negative, "
+                         "apply a ReLU to the density head")
+                other = torch.flip(dirs, dims=(0,))
+                with torch.no_grad():
+                    out2 = c.call(model, pts, other, case=f"{case} forward")
+                if out2 is not FAILED:
+                    rgb2, sigma2 = to_numpy(out2[0]), to_numpy(out2[1])
+                    c.expect(close(sigma2, sigma), f"{case}: sigma does not depend on the viewing direction",
+                             f"{case}: sigma changes with the viewing direction: the density head must branch off "
+                             "before the view direction is concatenated")
+                    c.expect(not close(rgb2, rgb, rtol=1e-6, atol=1e-7), f"{case}: rgb depends on the viewing direction",
+                             f"{case}: rgb ignores viewdirs: concatenate γ(d) with the feature vector before the colour layer")
+            # forward with the reference's test weights: pins the wiring
+            shapes = _shapes(f, name)
+            if not set_test_weights(model, shapes):
+                c.fail(f"{case}: the parameters' shapes differ from the reference's, so its weights cannot be copied in "
+                       "(see the layer sizes above)")
+                continue
+            with torch.no_grad():
+                out = c.call(model, pts, dirs, case=f"{case} forward")
+            if out is FAILED:
+                continue
+            rgb, sigma = to_numpy(out[0]), to_numpy(out[1]).reshape(lead)
+            ok_rgb = close(rgb, f[f"{name}_rgb"].astype(float))
+            ok_sig = close(sigma, f[f"{name}_sigma"].astype(float))
+            if ok_rgb and ok_sig:
+                c.expect(True, f"{case}: with the reference's weights, rgb and sigma equal the reference's", "")
+            else:
+                what = " and ".join(w for w, ok in (("rgb", ok_rgb), ("sigma", ok_sig)) if not ok)
+                hint = ("check the ReLU after every layer, the skip input torch.cat([γ(x), h], -1), that sigma comes "
+                        "from the last trunk layer, and the colour input torch.cat([feature, γ(d)], -1)")
+                if not ok_sig and ok_rgb is False and sigma.min() < 0:
+                    hint = "sigma is negative: ReLU on the density head; " + hint
+                c.fail(f"{case}: with the reference's weights (copied layer by layer in order of definition) "
+                       f"{what} differ: {hint}")
+
+
+def check_psnr(psnr: Callable) -> None:
+    """Check ``psnr(mse) -> float``: peak signal-to-noise ratio in dB of images in [0, 1], -10 log10(mse)."""
+    import torch
+
+    cases = [(0.01, 20.0), (0.001, 30.0), (0.25, -10 * math.log10(0.25))]
+    with Check("psnr") as c:
+        for mse, want in cases:
+            case = f"mse = {mse:g}"
+            got = c.call(psnr, torch.tensor(mse), case=case)
+            v = to_numpy(got)
+            if v is None:
+                continue
+            if v.size != 1:
+                c.fail(f"{case}: expected a single number, got shape {v.shape}")
+                continue
+            v = float(v.reshape(()))
+            if abs(v - want) < 1e-4:
+                c.expect(True, f"{case}: PSNR = -10 log10(mse)", "")
+            elif abs(v + want) < 1e-4:
+                c.fail(f"{case}: got {v:.3f} dB: the sign is flipped, PSNR = -10 log10(mse)")
+            elif abs(v + 10 * math.log(mse)) < 1e-3 or abs(v + math.log10(mse)) < 1e-4:
+                c.fail(f"{case}: got {v:.3f} dB: PSNR = -10 log10(mse), with the base-10 logarithm and the factor 10")
+            elif abs(v - want / 2) < 1e-4:
+                c.fail(f"{case}: got {v:.3f} dB: PSNR = -10 log10(mse) = -20 log10(rmse); the factor is 10 for the MSE")
+            else:
+                c.fail(f"{case}: got {v:.3f} dB, expected {want:.2f}: PSNR = -10 log10(mse) for images in [0, 1]")
