@@ -1,0 +1,608 @@
+"""Incremental Structure from Motion on a P3 folder: the notebooks 01-05 chained into one pipeline.
+
+:func:`run_sfm` takes the matches of a P3 folder (:func:`course_lib.data.p3.read_p3`) and returns a
+:class:`Reconstruction` (poses of the registered images, 3-D points, inlier observations) and a
+report of every stage. The stages are the notebooks' exercises, called from the reference
+library:
+
+1. **Outlier matches** (notebook 01): RANSAC on F for every image pair
+   (:func:`~course_lib.sfm.fundamental.ransac_fundamental`). An observation of a track in an image
+   is kept only if at least one of its correspondences is a RANSAC inlier.
+2. **Initial pair** (notebooks 02, 03): among the pairs with many inliers, the one whose
+   triangulated points have the widest triangulation angles (a long baseline): score =
+   number of inlier points triangulated in front of both cameras with an angle above
+   ``init_min_angle_deg``. E from F (:func:`~course_lib.sfm.essential.essential_from_fundamental`),
+   the four candidates and the cheirality test (:func:`~course_lib.sfm.triangulation.choose_pose`)
+   give the second camera; the first is the world frame (``R = I, t = 0``) and the baseline has
+   length 1 (the unit of the reconstruction).
+3. **Triangulation** (notebook 03): linear from two views, then non-linear over all registered
+   views that see the track; a point is kept if it lies in front of those cameras, reprojects
+   within ``max_reproj_px`` and its triangulation angle is at least ``min_angle_deg``
+   (observations that reproject badly are dropped one by one).
+4. **Registration** (notebook 04): the unregistered image that sees the most triangulated tracks
+   next: PnP RANSAC (:func:`~course_lib.sfm.pnp.pnp_ransac`) then non-linear PnP on the inliers.
+   This is how UPenn images 5 and 6, which share no matches with images 1 and 2, come in.
+5. **Bundle adjustment** (notebook 05, :func:`~course_lib.sfm.bundle_adjustment.bundle_adjust`):
+   after every registration (robust Huber loss), then outlier observations are removed and a
+   final BA with the plain squared loss polishes the result.
+
+P3 data quirks handled upstream by the reader (:mod:`course_lib.data.p3`): tracks across
+matching files are joined by equal coordinates, duplicate rows are merged, inconsistent tracks
+are split. Matches contain outliers on purpose (step 1).
+
+Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from course_lib.conventions import camera_center, projection_matrix
+from course_lib.sfm.bundle_adjustment import bundle_adjust, reprojection_error_stats
+from course_lib.validate import KitInputError, intrinsics
+
+__all__ = ["Reconstruction", "run_sfm", "triangulation_angles_deg", "reprojection_error_matrix"]
+
+
+@dataclass
+class Reconstruction:
+    """The result of :func:`run_sfm`.
+
+    Attributes:
+        K: ``(3, 3)`` intrinsics.
+        image_names: M file names.
+        image_size: ``(W, H)``.
+        registered: ``(M,)`` bool, images with a pose.
+        R_cw: ``(M, 3, 3)`` rotations, NaN for unregistered images.
+        t_cw: ``(M, 3)`` translations, NaN for unregistered images.
+        X: ``(T, 3)`` one point per track, NaN where the track was not triangulated.
+        rgb: ``(T, 3)`` uint8 colour of each track.
+        track_uv: ``(T, M, 2)`` all observations of the tracks (as read), NaN where unseen.
+        inlier: ``(T, M)`` bool, the observations the reconstruction uses (registered image,
+            triangulated point, not rejected as an outlier).
+        report: per-stage numbers (see :func:`run_sfm`), JSON-serializable.
+    """
+
+    K: np.ndarray
+    image_names: list[str]
+    image_size: tuple[int, int]
+    registered: np.ndarray
+    R_cw: np.ndarray
+    t_cw: np.ndarray
+    X: np.ndarray
+    rgb: np.ndarray
+    track_uv: np.ndarray
+    inlier: np.ndarray
+    report: dict = field(default_factory=dict)
+
+    @property
+    def n_points(self) -> int:
+        """Number of triangulated points."""
+        return int(np.isfinite(self.X).all(axis=1).sum())
+
+    @property
+    def n_registered(self) -> int:
+        return int(self.registered.sum())
+
+    @property
+    def observations(self) -> np.ndarray:
+        """``(T, M, 2)`` pixels of the inlier observations, NaN elsewhere (the input of BA)."""
+        return np.where(self.inlier[..., None], self.track_uv, np.nan)
+
+    @property
+    def centers(self) -> np.ndarray:
+        """``(M, 3)`` camera centres, NaN for unregistered images."""
+        C = np.full((len(self.image_names), 3), np.nan)
+        for i in np.flatnonzero(self.registered):
+            C[i] = camera_center(self.R_cw[i], self.t_cw[i])
+        return C
+
+    def reprojection_errors(self) -> np.ndarray:
+        """``(T, M)`` reprojection error of each inlier observation in pixels, NaN elsewhere."""
+        return reprojection_error_matrix(self.K, self.R_cw, self.t_cw, self.X, self.observations)
+
+    def error_stats(self) -> dict[str, float]:
+        """rms / mean / median / max reprojection error over the inlier observations (pixels)."""
+        e = self.reprojection_errors()
+        return reprojection_error_stats(e[np.isfinite(e)])
+
+    def cameras(self) -> list[tuple]:
+        """``[(R_cw, t_cw, K, (W, H), name), ...]`` of the registered images (for :mod:`course_lib.viz`)."""
+        return [
+            (self.R_cw[i], self.t_cw[i], self.K, self.image_size, self.image_names[i]) for i in np.flatnonzero(self.registered)
+        ]
+
+    def points(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(X (P, 3), rgb (P, 3))`` of the triangulated points."""
+        ok = np.isfinite(self.X).all(axis=1)
+        return self.X[ok], self.rgb[ok]
+
+    def write_colmap(self, folder) -> Path:
+        """Write the model as COLMAP text files (:func:`course_lib.data.colmap.write_colmap_text`)."""
+        from course_lib.data.colmap import write_colmap_text
+
+        return write_colmap_text(
+            folder, self.K, self.image_size, self.image_names, self.R_cw, self.t_cw, self.registered, self.X, self.rgb,
+            self.observations,
+        )
+
+
+# ---------------------------------------------------------------------------------------------
+# Small geometric helpers
+# ---------------------------------------------------------------------------------------------
+
+
+def reprojection_error_matrix(K, R_cw, t_cw, X, uv) -> np.ndarray:
+    """``(T, M)`` reprojection errors (pixels) of the finite observations ``uv (T, M, 2)``, NaN elsewhere.
+
+    Observations behind the camera get ``inf``.
+    """
+    K = np.asarray(K, float)
+    T, M = uv.shape[:2]
+    E = np.full((T, M), np.nan)
+    seen = np.isfinite(uv).all(axis=2) & np.isfinite(X).all(axis=1)[:, None]
+    for i in range(M):
+        j = np.flatnonzero(seen[:, i])
+        if len(j) == 0 or not np.isfinite(R_cw[i]).all():
+            continue
+        xc = X[j] @ R_cw[i].T + t_cw[i]
+        xh = xc @ K.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            e = np.linalg.norm(xh[:, :2] / xh[:, 2:3] - uv[j, i], axis=1)
+        e[~(xc[:, 2] > 0)] = np.inf
+        E[j, i] = e
+    return E
+
+
+def triangulation_angles_deg(X: np.ndarray, centers: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``(T,)`` the largest angle (degrees) between the rays from the observing cameras to each point.
+
+    Args:
+        X: ``(T, 3)`` points. centers: ``(M, 3)`` camera centres. mask: ``(T, M)`` which cameras see
+            each point. Points seen by fewer than two cameras get 0.
+    """
+    T, M = mask.shape
+    rays = np.full((T, M, 3), np.nan)
+    for i in range(M):
+        if mask[:, i].any():
+            d = X - centers[i]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                rays[:, i] = d / np.linalg.norm(d, axis=1, keepdims=True)
+    best = np.zeros(T)
+    for a in range(M):
+        for b in range(a + 1, M):
+            both = mask[:, a] & mask[:, b]
+            if both.any():
+                c = np.clip(np.einsum("ij,ij->i", rays[both, a], rays[both, b]), -1.0, 1.0)
+                best[both] = np.maximum(best[both], np.degrees(np.arccos(c)))
+    return best
+
+
+def _stats(E: np.ndarray) -> dict[str, float]:
+    e = E[np.isfinite(E)]
+    s = reprojection_error_stats(e)
+    return {k: round(v, 4) for k, v in s.items()}
+
+
+def _image_size(data) -> tuple[int, int]:
+    try:
+        return tuple(int(v) for v in data.image_size)
+    except (KitInputError, FileNotFoundError, OSError, AttributeError):
+        uv = data.track_uv
+        return (int(np.ceil(np.nanmax(uv[..., 0]) + 1)), int(np.ceil(np.nanmax(uv[..., 1]) + 1)))
+
+
+# ---------------------------------------------------------------------------------------------
+# The pipeline
+# ---------------------------------------------------------------------------------------------
+
+
+class _State:
+    """Arrays the stages share (all indexed by track j and image i)."""
+
+    def __init__(self, data, K):
+        self.K = K
+        self.uv = np.asarray(data.track_uv, float)
+        T, M = self.uv.shape[:2]
+        self.T, self.M = T, M
+        self.visible = np.isfinite(self.uv).all(axis=2)
+        self.candidate = self.visible.copy()  # observation not (yet) rejected
+        self.registered = np.zeros(M, dtype=bool)
+        self.R = np.full((M, 3, 3), np.nan)
+        self.t = np.full((M, 3), np.nan)
+        self.X = np.full((T, 3), np.nan)
+
+    @property
+    def has_X(self) -> np.ndarray:
+        return np.isfinite(self.X).all(axis=1)
+
+    @property
+    def inlier(self) -> np.ndarray:
+        return self.candidate & self.registered[None, :] & self.has_X[:, None]
+
+    def centers(self) -> np.ndarray:
+        C = np.full((self.M, 3), np.nan)
+        for i in np.flatnonzero(self.registered):
+            C[i] = camera_center(self.R[i], self.t[i])
+        return C
+
+    def errors(self) -> np.ndarray:
+        return reprojection_error_matrix(self.K, self.R, self.t, self.X, np.where(self.inlier[..., None], self.uv, np.nan))
+
+    def observation_stats(self) -> dict[str, float]:
+        return _stats(self.errors())
+
+
+def _reject_outlier_matches(data, st: _State, rng, threshold_px: float, min_matches: int, report: dict):
+    """RANSAC on F for every pair; keep an observation only if one of its correspondences is an inlier."""
+    from course_lib.sfm.fundamental import ransac_fundamental
+
+    good = np.zeros((st.T, st.M), dtype=int)
+    pairs = {}
+    rows = []
+    for (i, j) in sorted(data.matches):
+        pm = data.matches[(i, j)]
+        n = len(pm)
+        if n < max(8, min_matches):
+            rows.append({"pair": [i, j], "matches": n, "inliers": 0, "note": "too few matches for RANSAC"})
+            continue
+        res = ransac_fundamental(pm.x1, pm.x2, rng, threshold_px=threshold_px)
+        inl = np.asarray(res.inliers, bool)
+        tid = np.asarray(pm.track_ids)
+        ok = inl & (tid >= 0)
+        np.add.at(good, (tid[ok], np.full(ok.sum(), i)), 1)
+        np.add.at(good, (tid[ok], np.full(ok.sum(), j)), 1)
+        pairs[(i, j)] = (res.F, inl)
+        rows.append({"pair": [i, j], "matches": n, "inliers": int(inl.sum()), "ransac_iterations": int(res.n_iters)})
+    st.candidate &= good > 0
+    report["pairs"] = rows
+    report["observations_kept_after_ransac"] = int(st.candidate.sum())
+    report["observations_before_ransac"] = int(st.visible.sum())
+    return pairs
+
+
+def _two_view(data, st: _State, i: int, j: int, F: np.ndarray, inl: np.ndarray):
+    """Relative pose of the pair from F and the triangulated inlier matches (camera i at the origin)."""
+    from course_lib.sfm.essential import essential_from_fundamental, pose_candidates
+    from course_lib.sfm.triangulation import choose_pose
+
+    pm = data.matches[(i, j)]
+    x1, x2 = pm.x1[inl], pm.x2[inl]
+    E = essential_from_fundamental(F, st.K)
+    R4, C4 = pose_candidates(E)
+    choice = choose_pose(R4, C4, st.K, x1, x2)
+    C2 = camera_center(choice.R_cw, choice.t_cw)
+    a = choice.X
+    r1 = a / np.linalg.norm(a, axis=1, keepdims=True)
+    r2 = (a - C2) / np.linalg.norm(a - C2, axis=1, keepdims=True)
+    ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", r1, r2), -1, 1)))
+    return choice, ang
+
+
+def _choose_initial_pair(data, st: _State, pairs: dict, min_inliers: int, min_angle_deg: float):
+    scored = []
+    for (i, j), (F, inl) in pairs.items():
+        n = int(inl.sum())
+        if n < min_inliers:
+            continue
+        try:
+            choice, ang = _two_view(data, st, i, j, F, inl)
+        except KitInputError:
+            continue
+        good = choice.in_front & (ang >= min_angle_deg)
+        med = float(np.median(ang[choice.in_front])) if choice.in_front.any() else 0.0
+        scored.append((int(good.sum()), n, med, (i, j), choice))
+    if not scored:
+        raise KitInputError(
+            f"no image pair has {min_inliers} or more RANSAC inliers: the matches are too few or too noisy to start a reconstruction"
+        )
+    scored.sort(key=lambda s: (s[0], s[1]), reverse=True)
+    return scored
+
+
+def _triangulate_new(st: _State, new: int, min_angle_deg: float, max_reproj_px: float) -> int:
+    """Triangulate tracks seen in image ``new`` and at least one other registered image."""
+    from course_lib.sfm.triangulation import triangulate_linear, triangulate_nonlinear
+
+    regs = [k for k in np.flatnonzero(st.registered) if k != new]
+    todo = ~st.has_X & st.candidate[:, new]
+    C = st.centers()
+    P_new = projection_matrix(st.K, st.R[new], st.t[new])
+    X0 = np.full((st.T, 3), np.nan)
+    # widest baseline first: each track is triangulated from the new image and its farthest partner
+    regs.sort(key=lambda k: -np.linalg.norm(C[k] - C[new]))
+    for k in regs:
+        js = np.flatnonzero(todo & st.candidate[:, k] & ~np.isfinite(X0).all(axis=1))
+        if len(js) == 0:
+            continue
+        X0[js] = triangulate_linear(P_new, projection_matrix(st.K, st.R[k], st.t[k]), st.uv[js, new], st.uv[js, k])
+    js = np.flatnonzero(np.isfinite(X0).all(axis=1))
+    if len(js) == 0:
+        return 0
+    return _refine_and_accept(st, js, X0[js], min_angle_deg, max_reproj_px, triangulate_nonlinear)
+
+
+def _refine_and_accept(st: _State, js, X0, min_angle_deg, max_reproj_px, triangulate_nonlinear) -> int:
+    """Check linearly triangulated tracks ``js`` against all registered views, refine, keep the good ones.
+
+    Observations that reproject farther than ``max_reproj_px`` from the linear estimate are
+    dropped, the point is refined non-linearly over the remaining ones, checked again, and kept if
+    at least two observations in front of their cameras remain and its triangulation angle is at
+    least ``min_angle_deg``. Dropped observations are rejected for good.
+    """
+    regs = np.flatnonzero(st.registered)
+    good_X0 = np.isfinite(X0).all(axis=1)
+    js, X0 = js[good_X0], X0[good_X0]
+    if len(js) == 0:
+        return 0
+    mask = st.candidate[js][:, regs]
+    uv = np.where(mask[..., None], st.uv[js][:, regs], np.nan)
+    E = reprojection_error_matrix(st.K, st.R[regs], st.t[regs], X0, uv)
+    uv[~(E <= max_reproj_px)] = np.nan
+    two = np.isfinite(uv).all(axis=2).sum(axis=1) >= 2
+    X = X0.copy()
+    if two.any():
+        X[two] = triangulate_nonlinear(st.K, st.R[regs], st.t[regs], uv[two], X0[two])
+    E = reprojection_error_matrix(st.K, st.R[regs], st.t[regs], X, uv)
+    ok_obs = E <= max_reproj_px
+    ang = triangulation_angles_deg(X, st.centers()[regs], ok_obs)
+    ok = (ok_obs.sum(axis=1) >= 2) & (ang >= min_angle_deg) & np.isfinite(X).all(axis=1)
+    rejected = mask & ~ok_obs
+    sub = st.candidate[js]
+    sub[:, regs] &= ~rejected
+    st.candidate[js] = sub
+    st.X[js[ok]] = X[ok]
+    return int(ok.sum())
+
+
+def _register(st: _State, i: int, rng, threshold_px: float, min_inliers: int):
+    from course_lib.sfm.pnp import pnp_nonlinear, pnp_ransac
+
+    js = np.flatnonzero(st.has_X & st.candidate[:, i])
+    if len(js) < max(6, min_inliers):
+        return None
+    res = pnp_ransac(st.X[js], st.uv[js, i], st.K, rng, threshold_px=threshold_px)
+    inl = np.asarray(res.inliers, bool)
+    if inl.sum() < min_inliers:
+        return None
+    R, t = pnp_nonlinear(st.X[js[inl]], st.uv[js[inl], i], st.K, res.R_cw, res.t_cw)
+    st.R[i], st.t[i] = R, t
+    st.registered[i] = True
+    st.candidate[js[~inl], i] = False
+    return {"correspondences": int(len(js)), "pnp_inliers": int(inl.sum()), "ransac_iterations": int(res.n_iters)}
+
+
+def _filter(st: _State, max_reproj_px: float, min_angle_deg: float) -> dict:
+    """Drop observations that reproject badly, then points with < 2 observations or a small angle."""
+    E = st.errors()
+    bad = st.inlier & ~(E <= max_reproj_px)
+    st.candidate &= ~bad
+    inl = st.inlier
+    ang = triangulation_angles_deg(np.where(st.has_X[:, None], st.X, 0.0), np.nan_to_num(st.centers()), inl)
+    drop = st.has_X & ((inl.sum(axis=1) < 2) | (ang < min_angle_deg))
+    st.X[drop] = np.nan
+    return {"observations_removed": int(bad.sum()), "points_removed": int(drop.sum())}
+
+
+def _bundle(st: _State, ref: int, loss: str, f_scale: float, max_iterations: int) -> dict:
+    cams = np.flatnonzero(st.registered)
+    pts = np.flatnonzero(st.has_X)
+    inl = st.inlier
+    uv = np.where(inl[np.ix_(pts, cams)][..., None], st.uv[np.ix_(pts, cams)], np.nan)
+    ref_local = int(np.flatnonzero(cams == ref)[0])
+    res = bundle_adjust(
+        st.K, st.R[cams], st.t[cams], st.X[pts], uv, loss=loss, f_scale=f_scale, max_iterations=max_iterations,
+        ref_camera=ref_local, ftol=1e-6, xtol=1e-8,
+    )
+    st.R[cams], st.t[cams], st.X[pts] = res.R_cw, res.t_cw, res.X
+    return {
+        "iterations": res.n_iterations,
+        "rms_before": round(res.initial_rms, 4),
+        "rms_after": round(res.final_rms, 4),
+        "seconds": round(res.seconds, 3),
+        "gauge": res.gauge,
+    }
+
+
+def run_sfm(
+    data,
+    rng: np.random.Generator,
+    *,
+    f_threshold_px: float = 1.0,
+    pnp_threshold_px: float = 3.0,
+    max_reproj_px: float = 4.0,
+    final_max_reproj_px: float = 2.0,
+    min_angle_deg: float = 1.0,
+    init_min_angle_deg: float = 2.0,
+    min_pair_inliers: int = 50,
+    min_pnp_inliers: int = 20,
+    bundle_adjustment: str = "incremental",
+    ba_loss: str = "huber",
+    ba_f_scale: float = 1.0,
+    ba_max_iterations: int = 50,
+    initial_pair: tuple[int, int] | None = None,
+    verbose: bool = False,
+) -> Reconstruction:
+    """Incremental SfM: RANSAC on F, initial pair, triangulation, PnP registration, bundle adjustment.
+
+    Args:
+        data: a :class:`course_lib.data.p3.P3Data` (``K``, ``image_names``, ``track_uv``,
+            ``track_rgb``, ``matches``; ``image_size`` if the images are present).
+        rng: seeded ``numpy.random.Generator`` (RANSAC on F and PnP draw from it).
+        f_threshold_px: RANSAC threshold on the Sampson distance for the pairs (pixels).
+        pnp_threshold_px: PnP RANSAC threshold on the reprojection error (pixels).
+        max_reproj_px: observations reprojecting farther than this are dropped during the run.
+        final_max_reproj_px: the stricter threshold of the last filtering before the final BA.
+        min_angle_deg: smallest triangulation angle for a point to be kept.
+        init_min_angle_deg: angle a point of the initial pair must have to count in its score.
+        min_pair_inliers: pairs with fewer RANSAC inliers cannot be the initial pair.
+        min_pnp_inliers: an image is registered only with at least this many PnP inliers.
+        bundle_adjustment: ``"incremental"`` (after every registration and at the end),
+            ``"final"`` (once at the end) or ``"none"`` (the result *before* bundle adjustment,
+            the starting point of notebook 05).
+        ba_loss, ba_f_scale: robust loss of the intermediate bundle adjustments (the final one is
+            plain least squares on the filtered observations).
+        ba_max_iterations: iteration cap of each bundle adjustment.
+        initial_pair: force the initial pair ``(i, j)`` (0-based) instead of choosing it.
+        verbose: print one line per stage.
+
+    Returns:
+        :class:`Reconstruction`; ``report`` holds ``pairs`` (matches / RANSAC inliers per pair),
+        ``initial_pair``, ``stages`` (one entry per registered image: PnP inliers, new points,
+        points, reprojection error before and after BA, seconds), ``final`` (registered images,
+        points, observations, mean / median / rms reprojection error) and ``seconds`` per stage.
+
+    Raises:
+        KitInputError: bad data (no pair with enough inliers, malformed arrays) or options.
+
+    Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
+    """
+    t_start = time.perf_counter()
+    if not isinstance(rng, np.random.Generator):
+        raise KitInputError(f"rng must be a numpy.random.Generator (np.random.default_rng(seed)), got {type(rng).__name__}")
+    if bundle_adjustment not in ("incremental", "final", "none"):
+        raise KitInputError(f"bundle_adjustment={bundle_adjustment!r}: expected 'incremental', 'final' or 'none'")
+    for attr in ("K", "image_names", "track_uv", "track_rgb", "matches"):
+        if not hasattr(data, attr):
+            raise KitInputError(f"data has no attribute {attr!r}: pass the P3Data returned by course_lib.data.p3.read_p3")
+    K = intrinsics(data.K)
+    uv = np.asarray(data.track_uv, float)
+    M = len(data.image_names)
+    if uv.ndim != 3 or uv.shape[1:] != (M, 2):
+        raise KitInputError(f"data.track_uv has shape {uv.shape}: expected (T, {M}, 2) for {M} images")
+    if M < 2:
+        raise KitInputError(f"data has {M} image(s): SfM needs at least two")
+    say = print if verbose else (lambda *a, **k: None)
+
+    st = _State(data, K)
+    report: dict = {"n_images": M, "n_tracks": st.T, "options": {
+        "f_threshold_px": f_threshold_px, "pnp_threshold_px": pnp_threshold_px, "max_reproj_px": max_reproj_px,
+        "final_max_reproj_px": final_max_reproj_px, "min_angle_deg": min_angle_deg,
+        "bundle_adjustment": bundle_adjustment, "ba_loss": ba_loss, "ba_f_scale": ba_f_scale}}
+    seconds: dict[str, float] = {}
+
+    # 1. outlier matches -----------------------------------------------------------------------
+    t0 = time.perf_counter()
+    pairs = _reject_outlier_matches(data, st, rng, f_threshold_px, 8, report)
+    seconds["ransac_F"] = time.perf_counter() - t0
+    say(f"RANSAC on F: {len(pairs)} pairs, {report['observations_kept_after_ransac']}/{report['observations_before_ransac']} observations kept")
+
+    # 2. initial pair ----------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    if initial_pair is not None:
+        a, b = sorted(int(v) for v in initial_pair)
+        if (a, b) not in pairs:
+            raise KitInputError(f"initial_pair={initial_pair}: that pair has no RANSAC result (too few matches?)")
+        choice, ang = _two_view(data, st, a, b, *pairs[(a, b)])
+        scored = [(int((choice.in_front & (ang >= init_min_angle_deg)).sum()), int(pairs[(a, b)][1].sum()), 0.0, (a, b), choice)]
+    else:
+        scored = _choose_initial_pair(data, st, pairs, min_pair_inliers, init_min_angle_deg)
+    score, n_inl, _, (a, b), choice = scored[0]
+    st.R[a], st.t[a] = np.eye(3), np.zeros(3)
+    st.R[b], st.t[b] = choice.R_cw, choice.t_cw
+    st.registered[[a, b]] = True
+    from course_lib.sfm.triangulation import triangulate_linear, triangulate_nonlinear
+
+    js = np.flatnonzero(st.candidate[:, a] & st.candidate[:, b])
+    X0 = triangulate_linear(projection_matrix(K, st.R[a], st.t[a]), projection_matrix(K, st.R[b], st.t[b]), st.uv[js, a], st.uv[js, b])
+    n_new = _refine_and_accept(st, js, X0, min_angle_deg, max_reproj_px, triangulate_nonlinear)
+    report["initial_pair"] = {
+        "images": [a, b],
+        "names": [data.image_names[a], data.image_names[b]],
+        "ransac_inliers": n_inl,
+        "score": score,
+        "candidates": [{"images": list(s[3]), "score": s[0], "ransac_inliers": s[1], "median_angle_deg": round(s[2], 2)} for s in scored],
+        "points": n_new,
+    }
+    stages = []
+    stage = {"stage": "initial pair", "images": [a, b], "new_points": n_new, "points": int(st.has_X.sum()),
+             "reprojection_before_ba": st.observation_stats()}
+    if bundle_adjustment == "incremental":
+        stage["ba"] = _bundle(st, a, ba_loss, ba_f_scale, ba_max_iterations)
+        stage["filter"] = _filter(st, max_reproj_px, min_angle_deg)
+        stage["reprojection_after_ba"] = st.observation_stats()
+    stage["seconds"] = round(time.perf_counter() - t0, 3)
+    stages.append(stage)
+    seconds["initial_pair"] = time.perf_counter() - t0
+    say(f"initial pair {data.image_names[a]}, {data.image_names[b]}: {n_new} points")
+
+    # 3-5. register the other images --------------------------------------------------------------
+    t_reg = time.perf_counter()
+    failed: set[int] = set()
+    while True:
+        todo = [i for i in range(M) if not st.registered[i] and i not in failed]
+        if not todo:
+            break
+        counts = {i: int((st.has_X & st.candidate[:, i]).sum()) for i in todo}
+        i = max(todo, key=lambda k: (counts[k], -k))
+        t0 = time.perf_counter()
+        info = _register(st, i, rng, pnp_threshold_px, min_pnp_inliers)
+        if info is None:
+            failed.add(i)
+            stages.append({"stage": "register", "image": i, "name": data.image_names[i], "registered": False,
+                           "correspondences": counts[i], "note": "too few 2D-3D correspondences / PnP inliers"})
+            continue
+        n_new = _triangulate_new(st, i, min_angle_deg, max_reproj_px)
+        stage = {"stage": "register", "image": i, "name": data.image_names[i], "registered": True, **info,
+                 "new_points": n_new, "points": int(st.has_X.sum()), "reprojection_before_ba": st.observation_stats()}
+        if bundle_adjustment == "incremental":
+            stage["ba"] = _bundle(st, a, ba_loss, ba_f_scale, ba_max_iterations)
+            stage["filter"] = _filter(st, max_reproj_px, min_angle_deg)
+            stage["reprojection_after_ba"] = st.observation_stats()
+        stage["points_after"] = int(st.has_X.sum())
+        stage["seconds"] = round(time.perf_counter() - t0, 3)
+        stages.append(stage)
+        failed.clear()  # new points may let a failed image in now
+        say(f"registered {data.image_names[i]}: {info['pnp_inliers']}/{info['correspondences']} PnP inliers, "
+            f"{n_new} new points, {int(st.has_X.sum())} points")
+    seconds["registration"] = time.perf_counter() - t_reg
+
+    # final bundle adjustment ------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    final_stage = {"stage": "final", "reprojection_before_ba": st.observation_stats()}
+    if bundle_adjustment != "none":
+        if bundle_adjustment == "final":
+            final_stage["ba_robust"] = _bundle(st, a, ba_loss, ba_f_scale, 2 * ba_max_iterations)
+        final_stage["filter"] = _filter(st, final_max_reproj_px, min_angle_deg)
+        final_stage["ba"] = _bundle(st, a, "linear", 1.0, 2 * ba_max_iterations)
+        final_stage["filter_after"] = _filter(st, final_max_reproj_px, min_angle_deg)
+        final_stage["reprojection_after_ba"] = st.observation_stats()
+    final_stage["seconds"] = round(time.perf_counter() - t0, 3)
+    stages.append(final_stage)
+    seconds["final_ba"] = time.perf_counter() - t0
+    seconds["total"] = time.perf_counter() - t_start
+
+    rec = Reconstruction(
+        K=K,
+        image_names=list(data.image_names),
+        image_size=_image_size(data),
+        registered=st.registered.copy(),
+        R_cw=st.R.copy(),
+        t_cw=st.t.copy(),
+        X=st.X.copy(),
+        rgb=np.asarray(data.track_rgb, dtype=np.uint8).copy(),
+        track_uv=st.uv.copy(),
+        inlier=st.inlier.copy(),
+        report=report,
+    )
+    stats = rec.error_stats()
+    report["stages"] = stages
+    report["final"] = {
+        "registered_images": rec.n_registered,
+        "registered": [data.image_names[i] for i in np.flatnonzero(rec.registered)],
+        "points": rec.n_points,
+        "observations": int(rec.inlier.sum()),
+        "mean_track_length": round(float(rec.inlier.sum() / max(rec.n_points, 1)), 3),
+        "mean_reprojection_error_px": round(stats["mean"], 4),
+        "median_reprojection_error_px": round(stats["median"], 4),
+        "rms_reprojection_error_px": round(stats["rms"], 4),
+        "max_reprojection_error_px": round(stats["max"], 4),
+    }
+    report["seconds"] = {k: round(v, 3) for k, v in seconds.items()}
+    say(f"final: {rec.n_registered}/{M} images, {rec.n_points} points, mean reprojection error {stats['mean']:.3f} px, "
+        f"{seconds['total']:.1f} s")
+    return rec
