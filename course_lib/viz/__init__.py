@@ -65,3 +65,12 @@ __all__ += [
     "plot_training_curves",
     "image_grid",
 ]
+
+from course_lib.viz.widgets import (  # noqa: E402
+    ba_iterations_widget,
+    nerf_snapshot_slider,
+    novel_view_widget,
+    ransac_threshold_widget,
+)
+
+__all__ += ["ransac_threshold_widget", "ba_iterations_widget", "nerf_snapshot_slider", "novel_view_widget"]
