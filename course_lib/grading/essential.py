@@ -1,0 +1,241 @@
+"""Checks of notebook 02 (the essential matrix and the four pose candidates).
+
+Each ``check_*`` function runs the student's function on stored cases (fixture ``essential``,
+built from :mod:`course_lib.sfm.essential` by ``python -m course_lib fixtures essential``),
+compares with the stored reference results and with properties, and names the likely mistake:
+
+* ``essential_from_fundamental``: no singular-value correction, ``K F Kᵀ`` instead of
+  ``Kᵀ F K``, ``K⁻ᵀ F K⁻¹`` (that maps E to F, not F to E), singular values ``(s, s, 0)`` with s ≠ 1;
+* ``pose_candidates``: ``R`` with det -1 (not flipped), ``C`` not of unit length, ``t = ±U[:, 2]``
+  returned in place of the centre ``C = -Rᵀ t``, only one rotation (W and Wᵀ), candidates that
+  do not factor E.
+
+Cases: E from a noiseless and from a noisy synthetic pair (with the true relative pose) and from
+the embedded scene's pair (1, 2) (the reference F of notebook 01) when it is present.
+
+The reference solutions are imported only inside the fixture builder.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from course_lib.grading.core import FAILED, Check, fixture_builder, load_fixture
+
+__all__ = ["check_essential_from_fundamental", "check_pose_candidates", "match_candidates"]
+
+FIXTURE = "essential"
+
+_CASE_TEXT = {
+    "noiseless": "noiseless synthetic pair",
+    "noisy": "noisy synthetic pair",
+    "building": "embedded building pair",
+    "signflip": "noisy synthetic pair, E with the opposite sign",
+}
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _skew(v):
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def _same_up_to_sign(A, B, tol: float) -> bool:
+    A, B = np.asarray(A, float), np.asarray(B, float)
+    if A.shape != B.shape or not np.isfinite(A).all():
+        return False
+    return bool(min(np.abs(A - B).max(), np.abs(A + B).max()) < tol)
+
+
+def _unit(M):
+    M = np.asarray(M, float)
+    n = np.linalg.norm(M)
+    return M / n if n > 0 else M
+
+
+def _rot_deg(Ra, Rb) -> float:
+    c = np.clip((np.trace(Ra @ Rb.T) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.degrees(np.arccos(c)))
+
+
+def match_candidates(R, C, R_ref, C_ref, rot_deg: float = 1e-4, cos_min: float = 1 - 1e-8) -> list[int]:
+    """For each reference candidate k, the index of the candidate of ``(R, C)`` equal to it (or -1)."""
+    hits = []
+    for k in range(len(R_ref)):
+        found = -1
+        for m in range(len(R)):
+            Cn = C[m] / np.linalg.norm(C[m]) if np.linalg.norm(C[m]) > 0 else C[m]
+            if _rot_deg(R[m], R_ref[k]) < rot_deg and float(Cn @ C_ref[k]) > cos_min:
+                found = m
+                break
+        hits.append(found)
+    return hits
+
+
+# --------------------------------------------------------------------------- fixtures
+
+
+@fixture_builder(FIXTURE)
+def _build() -> dict[str, np.ndarray]:
+    from course_lib.data.synthetic import make_scene
+    from course_lib.sfm import essential as ref
+    from course_lib.sfm.fundamental import eight_point
+
+    out: dict[str, np.ndarray] = {}
+    cases = []
+    for name, noise, seed in (("noiseless", 0.0, 21), ("noisy", 0.7, 22)):
+        sc = make_scene(np.random.default_rng(seed), n_cameras=2, n_points=150, noise_px=noise, outlier_fraction=0.0)
+        x1, x2, _, _ = sc.pair(0, 1)
+        R_rel = sc.R_cw[1] @ sc.R_cw[0].T
+        t_rel = sc.t_cw[1] - R_rel @ sc.t_cw[0]
+        C_rel = -R_rel.T @ t_rel
+        out[f"{name}_F"] = eight_point(x1, x2)
+        out[f"{name}_K"] = sc.K
+        out[f"{name}_x1"], out[f"{name}_x2"] = x1, x2
+        out[f"{name}_R_true"], out[f"{name}_C_true"] = R_rel, C_rel / np.linalg.norm(C_rel)
+        cases.append(name)
+    # the embedded pair: the same reference result that two_view_step() serves to notebook 02
+    # (recomputed here, so that this fixture does not depend on the order fixtures are built in)
+    from course_lib.grading.fundamental import STEP_PAIR, STEP_SEED, STEP_THRESHOLD_PX, _embedded_pair
+    from course_lib.sfm.fundamental import ransac_fundamental
+
+    emb = _embedded_pair()
+    if emb is not None:
+        x1, x2, K = emb
+        res = ransac_fundamental(x1, x2, np.random.default_rng(STEP_SEED), threshold_px=STEP_THRESHOLD_PX)
+        out["building_F"], out["building_K"] = res.F, K
+        out["building_x1"], out["building_x2"] = x1[res.inliers], x2[res.inliers]
+        out["building_pair"] = np.array(STEP_PAIR)
+        cases.append("building")
+    out["cases"] = np.array(cases)
+    for name in cases:
+        E = ref.essential_from_fundamental(out[f"{name}_F"], out[f"{name}_K"])
+        R, C = ref.pose_candidates(E)
+        out[f"{name}_E"], out[f"{name}_R"], out[f"{name}_C"] = E, R, C
+    # E and -E are the same essential matrix; one of the two makes the SVD give det(U) det(V) = -1,
+    # so that a missing det flip shows (pose_candidates only)
+    E = -out["noisy_E"]
+    out["signflip_E"] = E
+    out["signflip_R"], out["signflip_C"] = ref.pose_candidates(E)
+    return out
+
+
+# --------------------------------------------------------------------------- essential_from_fundamental
+
+
+def check_essential_from_fundamental(essential_from_fundamental: Callable) -> None:
+    """Check ``essential_from_fundamental(F (3, 3), K (3, 3)) -> E (3, 3)`` (notebook 02).
+
+    E must equal the reference ``Kᵀ F K`` projected to singular values ``(1, 1, 0)``, up to sign.
+    """
+    f = load_fixture(FIXTURE)
+    with Check("essential_from_fundamental") as c:
+        for name in [str(n) for n in f["cases"]]:
+            F, K, E_ref = f[f"{name}_F"], f[f"{name}_K"], f[f"{name}_E"]
+            case = _CASE_TEXT[name]
+            E = c.call(essential_from_fundamental, F, K, case=case)
+            if E is FAILED:
+                continue
+            E = np.asarray(E, dtype=float)
+            if not c.shape(E, (3, 3), f"{case}: E"):
+                continue
+            s = np.linalg.svd(E, compute_uv=False)
+            raw = K.T @ F @ K
+            if np.allclose(s, [1.0, 1.0, 0.0], atol=1e-6):
+                c.expect(True, f"{case}: E has singular values (1, 1, 0)", "")
+            elif _same_up_to_sign(_unit(E), _unit(raw), 1e-6) and not np.isclose(s[0], s[1], rtol=1e-4):
+                c.fail(f"{case}: E = Kᵀ F K is not corrected (singular values {np.round(s / s[0], 3).tolist()} relative): "
+                       "set them to (1, 1, 0), E = U diag(1, 1, 0) Vᵀ from the SVD of Kᵀ F K")
+            elif np.isclose(s[0], s[1], rtol=1e-6) and s[2] < 1e-6 * s[0]:
+                c.fail(f"{case}: E has singular values ({s[0]:.4g}, {s[1]:.4g}, 0): use exactly diag(1, 1, 0)")
+            else:
+                c.fail(f"{case}: E has singular values {np.round(s, 4).tolist()}, expected (1, 1, 0): "
+                       "E = U diag(1, 1, 0) Vᵀ from the SVD of Kᵀ F K")
+            if _same_up_to_sign(E, E_ref, 1e-6) or _same_up_to_sign(_unit(E), _unit(E_ref), 1e-6):
+                c.expect(True, f"{case}: E matches the reference Kᵀ F K (up to sign)", "")
+                continue
+            Ki = np.linalg.inv(K)
+            variants = [
+                ("K F Kᵀ: the order is E = Kᵀ F K (F = K⁻ᵀ E K⁻¹)", K @ F @ K.T),
+                ("K⁻ᵀ F K⁻¹ turns an E into an F; the other way round is E = Kᵀ F K", Ki.T @ F @ Ki),
+                ("Fᵀ was used: E = Kᵀ F K with F as given (x2ᵀ F x1 = 0)", K.T @ F.T @ K),
+                ("K F K is missing a transpose: E = Kᵀ F K", K @ F @ K),
+            ]
+            hint = None
+            for h, M in variants:
+                U, _, Vt = np.linalg.svd(M)
+                Mc = U @ np.diag([1.0, 1.0, 0.0]) @ Vt
+                if _same_up_to_sign(_unit(E), _unit(M), 1e-5) or _same_up_to_sign(_unit(E), _unit(Mc), 1e-5):
+                    hint = h
+                    break
+            c.fail(f"{case}: {hint or 'E differs from the reference Kᵀ F K (corrected to singular values (1, 1, 0))'}")
+
+
+# --------------------------------------------------------------------------- pose_candidates
+
+
+def check_pose_candidates(pose_candidates: Callable) -> None:
+    """Check ``pose_candidates(E (3, 3)) -> (R (4, 3, 3), C (4, 3))`` (notebook 02).
+
+    Every R must be a rotation (det +1), every C of unit length, every (R, C) must factor E as
+    ``E ∝ [t]ₓ R`` with ``t = -R C``, and the four candidates must equal the reference's (in any order).
+    """
+    f = load_fixture(FIXTURE)
+    with Check("pose_candidates") as c:
+        for name in [str(n) for n in f["cases"]] + ["signflip"]:
+            E, R_ref, C_ref = f[f"{name}_E"], f[f"{name}_R"], f[f"{name}_C"]
+            case = _CASE_TEXT[name]
+            out = c.call(pose_candidates, E, case=case)
+            if out is FAILED:
+                continue
+            if not isinstance(out, (tuple, list)) or len(out) != 2:
+                c.fail(f"{case}: expected a tuple (R (4, 3, 3), C (4, 3)), got {type(out).__name__}")
+                continue
+            try:
+                R, C = np.asarray(out[0], float), np.asarray(out[1], float)
+            except (TypeError, ValueError):
+                c.fail(f"{case}: R and C must be numeric arrays (np.stack the four candidates)")
+                continue
+            if C.shape == (4, 3, 1):
+                C = C[..., 0]
+            if not (c.shape(R, (4, 3, 3), f"{case}: R") & c.shape(C, (4, 3), f"{case}: C")):
+                continue
+            dets = np.linalg.det(R)
+            orth = all(np.allclose(Rk @ Rk.T, np.eye(3), atol=1e-6) for Rk in R)
+            if orth and np.allclose(dets, 1.0, atol=1e-6):
+                c.expect(True, f"{case}: every R is a rotation (orthonormal, det +1)", "")
+            elif orth:
+                bad = [k for k in range(4) if dets[k] < 0]
+                c.fail(f"{case}: R[{', '.join(map(str, bad))}] has det -1 (a reflection): when det(R) < 0, "
+                       "flip the sign of both R and C")
+            else:
+                c.fail(f"{case}: R is not orthonormal: R = U W Vᵀ or U Wᵀ Vᵀ with U, V from the SVD of E")
+            norms = np.linalg.norm(C, axis=1)
+            c.expect(np.allclose(norms, 1.0, atol=1e-6), f"{case}: every C has unit length",
+                     f"{case}: C does not have unit length (|C| = {np.round(norms, 3).tolist()}): the scale is unknown, "
+                     "return C / np.linalg.norm(C)")
+            # factoring E: E ∝ [t]ₓ R with t = -R C, and E C = 0
+            Cn = C / np.where(norms > 0, norms, 1.0)[:, None]
+            factors = all(
+                _same_up_to_sign(_unit(_skew(-R[k] @ Cn[k]) @ R[k]), _unit(E), 1e-5) for k in range(4)
+            ) and np.allclose(E @ Cn.T, 0.0, atol=1e-6)
+            hits = match_candidates(R, Cn, R_ref, C_ref)
+            if factors and -1 not in hits and len(set(hits)) == 4:
+                c.expect(True, f"{case}: the four candidates factor E and match the reference (in any order)", "")
+                continue
+            # diagnose: C holds t = ±U[:, 2] instead of the centre -Rᵀ t
+            Ct = np.stack([-(R[k].T @ Cn[k]) for k in range(4)])
+            if -1 not in match_candidates(R, Ct, R_ref, C_ref, rot_deg=1e-3, cos_min=1 - 1e-6):
+                c.fail(f"{case}: C holds the translation t = ±U[:, 2], not the camera centre: C = -Rᵀ t "
+                       "(the right null vector of E, ±V[:, 2]); t = -R C")
+            elif len({tuple(np.round(Rk, 6).ravel()) for Rk in np.abs(R)}) < 2:
+                c.fail(f"{case}: only one rotation: the candidates use both U W Vᵀ and U Wᵀ Vᵀ, each with C and -C")
+            elif not factors:
+                c.fail(f"{case}: some candidates do not factor E (E ∝ [t]ₓ R with t = -R C): "
+                       "R = U W Vᵀ or U Wᵀ Vᵀ, t = ±U[:, 2], C = -Rᵀ t")
+            else:
+                c.fail(f"{case}: the candidates differ from the reference: R ∈ {{U W Vᵀ, U Wᵀ Vᵀ}}, C = ±(-Rᵀ U[:, 2])")
