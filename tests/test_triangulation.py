@@ -208,3 +208,102 @@ def test_bad_inputs_give_clear_messages(call, words):
     with pytest.raises(KitInputError, match=None) as info:
         call(P, x)
     assert words in str(info.value)
+
+
+# ------------------------------------------------------------------------------------------------
+# The check cells of notebook 03: the reference passes, typical mistakes are named.
+# ------------------------------------------------------------------------------------------------
+
+from course_lib.grading import triangulation as gtri  # noqa: E402
+from course_lib.grading.core import RESULTS  # noqa: E402
+from course_lib.sfm import triangulation as tri  # noqa: E402
+
+
+def run_check(check, fn, capsys):
+    check(fn)
+    text = capsys.readouterr().out
+    return text, RESULTS[text.splitlines()[0]]
+
+
+@pytest.mark.parametrize("check, fn", [
+    (gtri.check_triangulate_linear, tri.triangulate_linear),
+    (gtri.check_choose_pose, tri.choose_pose),
+    (gtri.check_triangulate_nonlinear, tri.triangulate_nonlinear),
+])
+def test_checks_pass_with_the_reference(check, fn, capsys):
+    text, result = run_check(check, fn, capsys)
+    assert result.ok, text
+    assert "✘" not in text
+
+
+def _dlt_homogeneous(P1, P2, x1, x2):
+    A = np.stack([x1[:, :1] * P1[2] - P1[0], x1[:, 1:] * P1[2] - P1[1],
+                  x2[:, :1] * P2[2] - P2[0], x2[:, 1:] * P2[2] - P2[1]], axis=1)
+    return np.linalg.svd(A)[2][:, -1]
+
+
+def _choose_with(test):
+    """choose_pose with another cheirality test(R_k, C_k, X) -> mask."""
+    def choose(R, C, K, x1, x2):
+        P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
+        best, counts = None, []
+        for k in range(4):
+            t = -R[k] @ C[k]
+            X = tri.triangulate_linear(P1, K @ np.hstack([R[k], t[:, None]]), x1, x2)
+            m = test(R[k], C[k], X)
+            counts.append(m.sum())
+            if best is None or m.sum() > best[0]:
+                best = (m.sum(), R[k], t, X, m)
+        return tri.PoseChoice(best[1], best[2], best[3], best[4], np.array(counts))
+    return choose
+
+
+def _choose_returning(transform):
+    def choose(R, C, K, x1, x2):
+        ch = tri.choose_pose(R, C, K, x1, x2)
+        ch.R_cw, ch.t_cw = transform(ch.R_cw, ch.t_cw, R[ch.index], C[ch.index])
+        return ch
+    return choose
+
+
+@pytest.mark.parametrize("check, fn, words", [
+    (gtri.check_triangulate_linear, lambda *a: _dlt_homogeneous(*a)[:, :3], "divide by the homogeneous coordinate"),
+    (gtri.check_triangulate_linear, lambda *a: _dlt_homogeneous(*a), "homogeneous points"),
+    (gtri.check_triangulate_linear, lambda *a: tri.triangulate_linear(*a).T, "transpose"),
+    (gtri.check_triangulate_linear, lambda P1, P2, x1, x2: tri.triangulate_linear(P1, P2, x1[:, ::-1], x2[:, ::-1]),
+     "u goes with the first row"),
+    (gtri.check_choose_pose, _choose_with(lambda R, C, X: (X[:, 2] < 0) & ((X - C) @ R[2] < 0)), "points behind"),
+    (gtri.check_choose_pose, _choose_with(lambda R, C, X: (X - C) @ R[2] > 0), "checks only camera 2"),
+    (gtri.check_choose_pose, _choose_with(lambda R, C, X: X[:, 2] > 0), "checks only camera 1"),
+    (gtri.check_choose_pose, _choose_with(lambda R, C, X: (X[:, 2] > 0) & (X @ R[2] > 0)), "forgets the centre"),
+    (gtri.check_choose_pose, _choose_with(lambda R, C, X: (X[:, 2] > 0) & ((X - C) @ R[:, 2] > 0)), "third ROW"),
+    (gtri.check_choose_pose, _choose_returning(lambda R, t, Rk, Ck: (R.T, t)), "R_wc"),
+    (gtri.check_choose_pose, _choose_returning(lambda R, t, Rk, Ck: (R, Ck)), "camera centre C"),
+    (gtri.check_choose_pose, _choose_returning(lambda R, t, Rk, Ck: (R, -Ck)), "C vs t"),
+    (gtri.check_triangulate_nonlinear, lambda K, R, t, uv, X0: X0 + 0.05, "increased the reprojection error"),
+    (gtri.check_triangulate_nonlinear, lambda K, R, t, uv, X0: X0.copy(), "did not move"),
+    (gtri.check_triangulate_nonlinear, lambda K, R, t, uv, X0: tri.triangulate_nonlinear(K, R[:2], t[:2], uv[:, :2], X0),
+     "only the first two views"),
+    (gtri.check_triangulate_nonlinear, lambda K, R, t, uv, X0: 0.5 * (X0 + tri.triangulate_nonlinear(K, R, t, uv, X0)),
+     "run the solver to convergence"),
+    (gtri.check_triangulate_nonlinear, lambda K, R, t, uv, X0: np.full_like(X0, np.nan), "NaN"),
+])
+def test_checks_name_the_mistake(check, fn, words, capsys):
+    text, result = run_check(check, fn, capsys)
+    assert not result.ok
+    assert words in text, text
+
+
+def test_check_reports_not_implemented(capsys):
+    def todo(*args):
+        raise NotImplementedError
+
+    text, result = run_check(gtri.check_triangulate_linear, todo, capsys)
+    assert "not implemented yet" in text and not result.ok
+
+
+def test_fixtures_are_current():
+    from course_lib.grading.core import build_fixtures
+
+    diffs = build_fixtures(["triangulation", "triangulation_step"], write=False)
+    assert not any(diffs.values()), diffs
