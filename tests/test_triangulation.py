@@ -236,6 +236,42 @@ def test_checks_pass_with_the_reference(check, fn, capsys):
     assert "✘" not in text
 
 
+def textbook_triangulate_linear(P1, P2, x1, x2):
+    """The DLT as a student writes it: a loop over points, no row scaling."""
+    X = []
+    for (u1, v1), (u2, v2) in zip(x1, x2):
+        A = np.array([u1 * P1[2] - P1[0], v1 * P1[2] - P1[1], u2 * P2[2] - P2[0], v2 * P2[2] - P2[1]])
+        Xh = np.linalg.svd(A)[2][-1]
+        X.append(Xh[:3] / Xh[3])
+    return np.array(X)
+
+
+def textbook_triangulate_nonlinear(K, R_cws, t_cws, uv, X0):
+    """One least_squares per point, default settings."""
+    from scipy.optimize import least_squares
+
+    from course_lib.conventions import project
+
+    X = X0.copy()
+    for j in range(len(X0)):
+        views = [i for i in range(len(R_cws)) if np.isfinite(uv[j, i]).all()]
+
+        def res(p, j=j, views=views):
+            return np.concatenate([project(K, R_cws[i], t_cws[i], p[None])[0] - uv[j, i] for i in views])
+
+        X[j] = least_squares(res, X0[j]).x
+    return X
+
+
+@pytest.mark.parametrize("check, fn", [
+    (gtri.check_triangulate_linear, textbook_triangulate_linear),
+    (gtri.check_triangulate_nonlinear, textbook_triangulate_nonlinear),
+])
+def test_checks_pass_a_textbook_implementation(check, fn, capsys):
+    text, result = run_check(check, fn, capsys)
+    assert result.ok, text
+
+
 def _dlt_homogeneous(P1, P2, x1, x2):
     A = np.stack([x1[:, :1] * P1[2] - P1[0], x1[:, 1:] * P1[2] - P1[1],
                   x2[:, :1] * P2[2] - P2[0], x2[:, 1:] * P2[2] - P2[1]], axis=1)

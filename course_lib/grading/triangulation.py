@@ -79,7 +79,11 @@ def two_view_input(folder, pair: tuple[int, int] = EMBEDDED_PAIR, seed: int = ST
     data = read_p3(folder)
     i, j = pair
     m = data.matches[(i, j)]
-    res = fundamental.ransac_fundamental(m.x1, m.x2, np.random.default_rng(seed))
+    try:  # the same RANSAC setting as notebook 01's step result (course_lib.grading.fundamental.two_view_step)
+        from course_lib.grading.fundamental import STEP_THRESHOLD_PX as threshold_px
+    except ImportError:
+        threshold_px = 1.0
+    res = fundamental.ransac_fundamental(m.x1, m.x2, np.random.default_rng(seed), threshold_px=threshold_px)
     E = essential.essential_from_fundamental(res.F, data.K)
     R, C = essential.pose_candidates(E)
     inl = res.inliers

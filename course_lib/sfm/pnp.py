@@ -59,7 +59,7 @@ def _dlt(X: np.ndarray, xn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     A[0::2, 8:12] = u * Xh
     A[1::2, 4:8] = -Xh
     A[1::2, 8:12] = v * Xh
-    _, _, Vt = np.linalg.svd(A)
+    _, _, Vt = np.linalg.svd(A, full_matrices=False)  # Vt is (12, 12); U (2N, 2N) is never needed
     P = Vt[-1].reshape(3, 4) @ T  # undo the conditioning: P_world = P_normalized @ T
     M = P[:, :3]
     if np.linalg.det(M) < 0:  # P is known up to a scale lambda that may be negative:

@@ -1,0 +1,444 @@
+"""Checks of notebook 04 (PnP) and its step input.
+
+Each ``check_*`` function runs the student's function on stored cases (fixture ``pnp``, built
+from :mod:`course_lib.sfm.pnp` by ``python -m course_lib fixtures pnp``): a synthetic scene with
+known truth and the embedded scene (``data/synthetic-building``: its third image registered
+against the two-view reconstruction of step 3). It compares with the stored reference results
+and with properties, and names the likely mistake:
+
+* ``pnp_linear``: R not orthogonalized, det R = -1, ``R_cw`` vs ``R_wc`` (transposed), the centre
+  ``C`` returned as ``t``, ``t`` not divided by the scale of ``R``, the sign of ``P`` not fixed
+  (points behind the camera), the DLT on pixel instead of normalized coordinates.
+* ``pnp_ransac``: inverted inlier mask, squared error compared with the pixel threshold,
+  a pose that is not refit on the inliers, too few or too many iterations.
+* ``pnp_nonlinear``: a step that increases the error, points that do not move, a rotation that
+  is no rotation (optimizing the 9 entries), stopping early.
+
+Step input: :func:`step_input` gives notebook 04 the reference result of step 3 (the two-view
+reconstruction: poses, triangulated points and their track ids) and the 2D-3D correspondences
+of the next image, from fixture ``pnp_step``.
+
+The reference solutions are imported only inside the fixture builders and :func:`two_view_reconstruction`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from course_lib.conventions import project, rotation_angle_deg, world_to_camera
+from course_lib.grading.core import FAILED, Check, fixture_builder, load_fixture
+from course_lib.paths import EMBEDDED_SFM
+
+__all__ = [
+    "check_pnp_linear",
+    "check_pnp_ransac",
+    "check_pnp_nonlinear",
+    "step_input",
+    "two_view_reconstruction",
+    "correspondences_2d3d",
+    "NEW_IMAGE",
+]
+
+FIXTURE = "pnp"
+STEP_FIXTURE = "pnp_step"
+#: The image of the embedded scene registered in notebook 04 (0-based); the pair is (0, 1).
+NEW_IMAGE = 2
+RANSAC_SEED = 0
+THRESHOLD_PX = 2.0
+
+
+# --------------------------------------------------------------------------- step input
+
+
+def correspondences_2d3d(track_ids: np.ndarray, X: np.ndarray, track_uv: np.ndarray, image: int):
+    """2D-3D correspondences of one image: reconstructed points whose track is seen in it.
+
+    Args:
+        track_ids: ``(N,)`` track id of each reconstructed point (-1: not in a track).
+        X: ``(N, 3)`` reconstructed points.
+        track_uv: ``(T, M, 2)`` pixels of every track in every image, NaN where unseen
+            (:attr:`course_lib.data.p3.P3Data.track_uv`).
+        image: 0-based index of the image to register.
+
+    Returns:
+        ``X_new (K, 3)``, ``x_new (K, 2)`` and ``ids (K,)`` (their track ids).
+
+    Introduced in notebooks/04_pnp.ipynb
+    """
+    track_ids = np.asarray(track_ids, int)
+    ok = track_ids >= 0
+    uv = np.full((len(track_ids), 2), np.nan)
+    uv[ok] = track_uv[track_ids[ok], image]
+    seen = ok & np.isfinite(uv).all(axis=1)
+    return np.asarray(X, float)[seen], uv[seen], track_ids[seen]
+
+
+def two_view_reconstruction(folder, new_image: int = NEW_IMAGE) -> dict[str, np.ndarray]:
+    """Step 3's reference result: the two-view reconstruction of the pair, and the next image's 2D-3D matches.
+
+    Runs the reference chain on the pair of :func:`course_lib.grading.triangulation.step_input`:
+    :func:`~course_lib.sfm.triangulation.choose_pose`, then
+    :func:`~course_lib.sfm.triangulation.triangulate_nonlinear`, keeping the points in front of
+    both cameras.
+
+    Returns:
+        dict with ``K``, ``pair (2,)``, ``R_cws (2, 3, 3)``, ``t_cws (2, 3)`` (camera 1 at ``I, 0``,
+        ``|t_cws[1]| = 1``), ``X (N, 3)``, ``track_ids (N,)``, ``new_image``, ``X_new (K, 3)``,
+        ``x_new (K, 2)``, ``ids_new (K,)``.
+    """
+    from course_lib.grading import triangulation as gtri
+
+    try:
+        from course_lib.data.p3 import read_p3
+        from course_lib.sfm import triangulation as tri
+    except ModuleNotFoundError as exc:
+        raise RuntimeError(
+            f"computing the step input for {folder} needs the reference library ({exc.name}); "
+            "use the embedded data (DATA = EMBEDDED_SFM) or your own functions from notebook 03"
+        ) from None
+    st = gtri.step_input(folder)
+    K = st["K"]
+    ch = tri.choose_pose(st["R_candidates"], st["C_candidates"], K, st["x1"], st["x2"])
+    R_cws = np.stack([np.eye(3), ch.R_cw])
+    t_cws = np.stack([np.zeros(3), ch.t_cw])
+    keep = ch.in_front
+    uv = np.stack([st["x1"][keep], st["x2"][keep]], axis=1)
+    X = tri.triangulate_nonlinear(K, R_cws, t_cws, uv, ch.X[keep])
+    ids = st["track_ids"][keep]
+    data = read_p3(folder, require_images=False)
+    X_new, x_new, ids_new = correspondences_2d3d(ids, X, data.track_uv, new_image)
+    return {"K": K, "pair": st["pair"], "R_cws": R_cws, "t_cws": t_cws, "X": X, "track_ids": ids,
+            "x1": uv[:, 0], "x2": uv[:, 1], "new_image": np.array(new_image),
+            "X_new": X_new, "x_new": x_new, "ids_new": ids_new}
+
+
+@fixture_builder(STEP_FIXTURE)
+def _build_step() -> dict[str, np.ndarray]:
+    if not (EMBEDDED_SFM / "ground_truth.json").exists():
+        return {}  # the embedded scene is not generated yet (python -m course_lib make-data): nothing to store
+    out = two_view_reconstruction(EMBEDDED_SFM)
+    if (EMBEDDED_SFM / "ground_truth.json").exists():
+        from course_lib.data.building import load_ground_truth
+
+        _, _, R_cw, t_cw = load_ground_truth(EMBEDDED_SFM)
+        i, j = (int(v) for v in out["pair"])
+        k = int(out["new_image"])
+        scale = np.linalg.norm(t_cw[j] - R_cw[j] @ R_cw[i].T @ t_cw[i])  # the true baseline of the pair
+        R = R_cw[k] @ R_cw[i].T
+        out["true_R_cw_new"] = R
+        out["true_t_cw_new"] = (t_cw[k] - R @ t_cw[i]) / scale
+    return out
+
+
+def step_input(folder=None) -> dict[str, np.ndarray]:
+    """Notebook 04's starting point: the two-view reconstruction and the next image's 2D-3D matches.
+
+    Args:
+        folder: ``None`` or the embedded scene: the stored fixture (no reference needed); another
+            P3 folder (e.g. ``course_data("wpi")``): computed with :func:`two_view_reconstruction`.
+
+    Returns:
+        the dict of :func:`two_view_reconstruction` (for the embedded scene also the true pose
+        ``true_R_cw_new, true_t_cw_new`` of the new image in the reconstruction's frame).
+    """
+    if folder is None or Path(folder).resolve() == EMBEDDED_SFM.resolve():
+        return load_fixture(STEP_FIXTURE)
+    return two_view_reconstruction(folder)
+
+
+# --------------------------------------------------------------------------- fixtures
+
+
+def _view(seed, noise_px, outlier_fraction, n_points, image=2):
+    from course_lib.data.synthetic import make_scene
+
+    sc = make_scene(np.random.default_rng(seed), n_cameras=4, n_points=n_points, noise_px=noise_px,
+                    outlier_fraction=outlier_fraction)
+    vis = sc.visible[:, image]
+    return sc.K, sc.X[vis], sc.uv[vis, image], sc.outlier[vis, image], sc.R_cw[image], sc.t_cw[image]
+
+
+def _pixel_dlt(X, x):
+    """A typical mistake: the DLT on pixel coordinates, then R = orthogonalized P[:, :3] (kept for its answer)."""
+    from course_lib.sfm import pnp
+
+    return pnp._dlt(X, x)
+
+
+@fixture_builder(FIXTURE)
+def _build() -> dict[str, np.ndarray]:
+    from course_lib.sfm import pnp
+
+    out: dict[str, np.ndarray] = {}
+    # pnp_linear: noiseless, noisy
+    K, X, x, _, R, t = _view(41, 0.0, 0.0, 80)
+    out.update({"lin_noiseless_K": K, "lin_noiseless_X": X[:40], "lin_noiseless_x": x[:40],
+                "lin_noiseless_R": R, "lin_noiseless_t": t})
+    K, X, x, _, R, t = _view(42, 1.0, 0.0, 200)
+    Rr, tr = pnp.pnp_linear(X, x, K)
+    Rp, tp = _pixel_dlt(X, x)
+    out.update({"lin_noisy_K": K, "lin_noisy_X": X, "lin_noisy_x": x, "lin_noisy_R": Rr, "lin_noisy_t": tr,
+                "lin_noisy_true_R": R, "lin_noisy_true_t": t, "lin_noisy_pixel_R": Rp, "lin_noisy_pixel_t": tp})
+    # pnp_ransac: outliers
+    K, X, x, outl, R, t = _view(43, 0.3, 0.2, 400)
+    res = pnp.pnp_ransac(X, x, K, np.random.default_rng(RANSAC_SEED), threshold_px=THRESHOLD_PX)
+    out.update({"ransac_syn_K": K, "ransac_syn_X": X, "ransac_syn_x": x, "ransac_syn_outlier": outl,
+                "ransac_syn_true_R": R, "ransac_syn_true_t": t, "ransac_syn_R": res.R_cw, "ransac_syn_t": res.t_cw,
+                "ransac_syn_inliers": res.inliers})
+    # pnp_nonlinear: from the linear estimate on the inliers
+    K, X, x, _, R, t = _view(44, 1.0, 0.0, 200)
+    R0, t0 = pnp.pnp_linear(X, x, K)
+    R1, t1 = pnp.pnp_nonlinear(X, x, K, R0, t0)
+    out.update({"nl_syn_K": K, "nl_syn_X": X, "nl_syn_x": x, "nl_syn_R0": R0, "nl_syn_t0": t0, "nl_syn_R": R1, "nl_syn_t": t1,
+                "nl_syn_true_R": R, "nl_syn_true_t": t})
+    # the embedded scene: register the new image against step 3's reconstruction
+    if (EMBEDDED_SFM / "ground_truth.json").exists():
+        st = two_view_reconstruction(EMBEDDED_SFM)
+        K, X, x = st["K"], st["X_new"], st["x_new"]
+        res = pnp.pnp_ransac(X, x, K, np.random.default_rng(RANSAC_SEED), threshold_px=THRESHOLD_PX)
+        out.update({"ransac_embedded_K": K, "ransac_embedded_X": X, "ransac_embedded_x": x,
+                    "ransac_embedded_R": res.R_cw, "ransac_embedded_t": res.t_cw, "ransac_embedded_inliers": res.inliers})
+        Xi, xi = X[res.inliers], x[res.inliers]
+        Rl, tl = pnp.pnp_linear(Xi, xi, K)
+        out.update({"lin_embedded_K": K, "lin_embedded_X": Xi, "lin_embedded_x": xi, "lin_embedded_R": Rl, "lin_embedded_t": tl})
+        R1, t1 = pnp.pnp_nonlinear(Xi, xi, K, Rl, tl)
+        out.update({"nl_embedded_K": K, "nl_embedded_X": Xi, "nl_embedded_x": xi, "nl_embedded_R0": Rl, "nl_embedded_t0": tl,
+                    "nl_embedded_R": R1, "nl_embedded_t": t1})
+    return out
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _pose(out, c: Check, case: str):
+    """``(R (3, 3), t (3,))`` from the student's return value, or None after recording a failure."""
+    if out is FAILED:
+        return None
+    if hasattr(out, "R_cw") and hasattr(out, "t_cw"):
+        out = (out.R_cw, out.t_cw)
+    if not isinstance(out, (tuple, list)) or len(out) < 2:
+        c.fail(f"{case}: return the tuple (R_cw, t_cw), got {type(out).__name__}")
+        return None
+    try:
+        R, t = np.asarray(out[0], float), np.asarray(out[1], float)
+    except (TypeError, ValueError):
+        c.fail(f"{case}: R_cw and t_cw must be numeric arrays")
+        return None
+    if R.shape != (3, 3) or t.size != 3:
+        c.fail(f"{case}: R_cw must have shape (3, 3) and t_cw shape (3,), got {R.shape} and {t.shape}")
+        return None
+    if not (np.isfinite(R).all() and np.isfinite(t).all()):
+        c.fail(f"{case}: R_cw or t_cw contains NaN or inf")
+        return None
+    return R, t.reshape(3)
+
+
+def _errors(K, R, t, X, x) -> np.ndarray:
+    z = world_to_camera(R, t, X)[:, 2]
+    with np.errstate(all="ignore"):
+        e = np.linalg.norm(project(K, R, t, X) - x, axis=1)
+    e[~(z > 0)] = np.inf
+    return e
+
+
+def _rms(e) -> float:
+    return float(np.sqrt(np.mean(np.square(e)))) if np.isfinite(e).all() else float("inf")
+
+
+def _rotation_verdict(c: Check, R, case: str) -> bool:
+    """Orthonormal with det +1, or a failure that names the mistake."""
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
+        return c.fail(f"{case}: R_cw is not orthonormal (R Rᵀ ≠ I): you forgot to orthogonalize R; with "
+                      "P[:, :3] = U S Vᵀ take R = U Vᵀ")
+    if np.linalg.det(R) < 0:
+        return c.fail(f"{case}: det R = -1 (a reflection): P is known only up to sign; when det P[:, :3] < 0 "
+                      "flip the sign of P (R and t together)")
+    return True
+
+
+def _pose_mistake(R, t, R_ref, t_ref, rot_tol, t_tol) -> str | None:
+    """Name a typical confusion when (R, t) is not (R_ref, t_ref)."""
+    rot_ok = rotation_angle_deg(R, R_ref) < rot_tol
+    near = lambda a, b: np.linalg.norm(a - b) < t_tol * max(1.0, np.linalg.norm(b))  # noqa: E731
+    if not rot_ok and rotation_angle_deg(R.T, R_ref) < rot_tol:
+        return "R_cw is transposed: you returned R_wc (world from camera); x_cam = R_cw X + t_cw"
+    if rot_ok:
+        C = -R_ref.T @ t_ref
+        if near(t, C):
+            return "t_cw is the camera centre C (C vs t confusion): t_cw = -R_cw @ C"
+        if near(t, -t_ref):
+            return "t_cw has the wrong sign, so the points end up behind the camera: flip R and t together"
+        s = float(t @ t_ref / max(t_ref @ t_ref, 1e-300))
+        if s > 0 and abs(s - 1) > 0.01 and near(t / s, t_ref):
+            return (f"t_cw has the wrong scale (x{s:.3g}): divide P[:, 3] by the same scale as the rotation block, "
+                    "t = P[:, 3] / σ with σ the singular values of P[:, :3]")
+    if not rot_ok and rotation_angle_deg(-R, R_ref) < rot_tol:
+        return "det R = -1: flip the sign of P when det P[:, :3] < 0"
+    return None
+
+
+# --------------------------------------------------------------------------- pnp_linear
+
+
+def check_pnp_linear(fn, exercise: str = "pnp_linear") -> None:
+    """Check ``fn(X, x, K) -> (R_cw, t_cw)`` on noiseless, noisy and embedded 2D-3D matches."""
+    f = load_fixture(FIXTURE)
+    with Check(exercise) as c:
+        # noiseless: exact
+        K, X, x, R_t, t_t = (f[f"lin_noiseless_{s}"] for s in ("K", "X", "x", "R", "t"))
+        out = _pose(c.call(fn, X, x, K, case="noiseless synthetic view"), c, "noiseless synthetic view")
+        if out is not None and _rotation_verdict(c, out[0], "noiseless synthetic view"):
+            R, t = out
+            ok = rotation_angle_deg(R, R_t) < 1e-4 and np.linalg.norm(t - t_t) < 1e-6 * max(1.0, np.linalg.norm(t_t))
+            if ok:
+                c.expect(True, "noiseless synthetic view: recovers the true pose exactly", "")
+            else:
+                why = _pose_mistake(R, t, R_t, t_t, 1e-3, 1e-4) or _pixel_hint(R, K, R_t) or (
+                    "check the two equations per point, u_n (p3ᵀX) - p1ᵀX = 0 and v_n (p3ᵀX) - p2ᵀX = 0, "
+                    "with x_n = K⁻¹ x (normalized coordinates)")
+                c.fail(f"noiseless synthetic view: rotation error {rotation_angle_deg(R, R_t):.3g}°, "
+                       f"translation error {np.linalg.norm(t - t_t):.3g}: {why}")
+        # noisy and embedded: close to the reference
+        for key, case in (("lin_noisy", "noisy synthetic view"), ("lin_embedded", "embedded scene")):
+            if f"{key}_X" not in f:
+                continue
+            K, X, x, R_r, t_r = (f[f"{key}_{s}"] for s in ("K", "X", "x", "R", "t"))
+            out = _pose(c.call(fn, X, x, K, case=case), c, case)
+            if out is None or not _rotation_verdict(c, out[0], case):
+                continue
+            R, t = out
+            e_s, e_r = _rms(_errors(K, R, t, X, x)), _rms(_errors(K, R_r, t_r, X, x))
+            if rotation_angle_deg(R, R_r) < 0.5 and e_s <= 1.5 * e_r + 0.5:
+                c.expect(True, f"{case}: close to the reference pose", "")
+                continue
+            why = _pose_mistake(R, t, R_r, t_r, 0.5, 0.05)
+            if why is None and key == "lin_noisy" and rotation_angle_deg(R, f["lin_noisy_pixel_R"]) < 0.05:
+                why = ("the DLT ran on pixel coordinates: use normalized coordinates x_n = K⁻¹ [u, v, 1]ᵀ, so that "
+                       "P = λ [R | t] holds no K")
+            if why is None:
+                why = "check the equations on normalized coordinates x_n = K⁻¹ x and the orthogonalization R = U Vᵀ"
+            c.fail(f"{case}: rotation {rotation_angle_deg(R, R_r):.3g}° from the reference, RMS reprojection error "
+                   f"{e_s:.3g} px (reference {e_r:.3g} px): {why}")
+
+
+def _pixel_hint(R, K, R_true) -> str | None:
+    """The rotation a DLT on pixel coordinates gives on noiseless data: the orthogonalized K R."""
+    U, _, Vt = np.linalg.svd(K @ R_true)
+    if rotation_angle_deg(R, U @ Vt) < 0.05:
+        return ("the DLT ran on pixel coordinates: use normalized coordinates x_n = K⁻¹ [u, v, 1]ᵀ, so that "
+                "P = λ [R | t] holds no K")
+    return None
+
+
+# --------------------------------------------------------------------------- pnp_ransac
+
+
+def _ransac_fields(out, c: Check, case: str, n: int):
+    if out is FAILED:
+        return None
+    if all(hasattr(out, a) for a in ("R_cw", "t_cw", "inliers")):
+        R, t, inl, it = out.R_cw, out.t_cw, out.inliers, getattr(out, "n_iters", None)
+    elif isinstance(out, (tuple, list)) and len(out) >= 3:
+        R, t, inl = out[:3]
+        it = out[3] if len(out) > 3 else None
+    else:
+        c.fail(f"{case}: return a PnPResult(R_cw, t_cw, inliers, n_iters), got {type(out).__name__}")
+        return None
+    pose = _pose((R, t), c, case)
+    if pose is None:
+        return None
+    inl = np.asarray(inl)
+    if inl.shape != (n,) or inl.dtype != bool:
+        c.fail(f"{case}: inliers must be a bool array of shape ({n},), got {inl.dtype} {inl.shape} "
+               "(a mask over ALL correspondences, not the inlier indices)")
+        return None
+    return pose[0], pose[1], inl, it
+
+
+def check_pnp_ransac(fn, exercise: str = "pnp_ransac") -> None:
+    """Check ``fn(X, x, K, rng) -> PnPResult`` on synthetic matches with 20 % outliers and on the embedded scene."""
+    f = load_fixture(FIXTURE)
+    with Check(exercise) as c:
+        for key, case in (("ransac_syn", "synthetic view with 20 % outliers"), ("ransac_embedded", "embedded scene")):
+            if f"{key}_X" not in f:
+                continue
+            K, X, x, R_r, t_r, inl_r = (f[f"{key}_{s}"] for s in ("K", "X", "x", "R", "t", "inliers"))
+            out = _ransac_fields(c.call(fn, X, x, K, np.random.default_rng(RANSAC_SEED), case=case), c, case, len(X))
+            if out is None:
+                continue
+            R, t, inl, it = out
+            if not _rotation_verdict(c, R, case):
+                continue
+            agree = float((inl == inl_r).mean())
+            if agree < 0.5 and float((~inl == inl_r).mean()) > 0.9:
+                c.fail(f"{case}: the inlier mask is inverted: inliers are the points with reprojection error BELOW the threshold")
+                continue
+            e = _errors(K, R, t, X, x)
+            n_r = int(inl_r.sum())
+            rot = rotation_angle_deg(R, R_r)
+            if rot > 1.0:
+                why = _pose_mistake(R, t, R_r, t_r, 1.0, 0.05) or (
+                    "score each sample by the reprojection error in pixels of ALL points and keep the best; "
+                    "then refit on its inliers")
+                c.fail(f"{case}: rotation {rot:.3g}° from the reference ({int(inl.sum())} inliers, reference {n_r}): {why}")
+                continue
+            c.expect(True, f"{case}: finds the pose despite the outliers", "")
+            if inl.sum() < 0.85 * n_r:
+                below = int((e < THRESHOLD_PX).sum())
+                hint = ("did you compare the squared error with the threshold? compare the distance in pixels"
+                        if (e < np.sqrt(THRESHOLD_PX)).sum() >= 0.9 * inl.sum() else
+                        "refit the pose on all inliers of the best sample and recompute the inliers with the refit pose")
+                c.fail(f"{case}: {int(inl.sum())} inliers, the reference finds {n_r} ({below} points are within "
+                       f"{THRESHOLD_PX:g} px of your pose): {hint}")
+            else:
+                c.expect(agree > 0.9, f"{case}: the inliers agree with the reference",
+                         f"{case}: only {agree:.0%} of the inlier labels agree with the reference: inliers are the "
+                         f"points with reprojection error below threshold_px = {THRESHOLD_PX:g} (in front of the camera)")
+            if f"{key}_outlier" in f:
+                outl = f[f"{key}_outlier"]
+                c.expect((inl & outl).sum() <= 0.02 * len(X), f"{case}: rejects the outliers",
+                         f"{case}: {int((inl & outl).sum())} injected outliers are marked as inliers")
+            if it is not None:
+                try:
+                    it = int(it)
+                except (TypeError, ValueError):
+                    it = -1
+                c.expect(1 <= it <= 1000, f"{case}: n_iters is within the limit",
+                         f"{case}: n_iters = {it}: count the samples drawn (1 <= n_iters <= max_iters)")
+
+
+# --------------------------------------------------------------------------- pnp_nonlinear
+
+
+def check_pnp_nonlinear(fn, exercise: str = "pnp_nonlinear") -> None:
+    """Check ``fn(X, x, K, R_cw, t_cw) -> (R_cw, t_cw)`` from the linear estimate, synthetic and embedded."""
+    f = load_fixture(FIXTURE)
+    with Check(exercise) as c:
+        for key, case in (("nl_syn", "noisy synthetic view"), ("nl_embedded", "embedded scene")):
+            if f"{key}_X" not in f:
+                continue
+            K, X, x, R0, t0, R_r, t_r = (f[f"{key}_{s}"] for s in ("K", "X", "x", "R0", "t0", "R", "t"))
+            out = _pose(c.call(fn, X, x, K, R0, t0, case=case), c, case)
+            if out is None:
+                continue
+            R, t = out
+            if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+                c.fail(f"{case}: the refined R_cw is not a rotation: optimize a rotation vector (3 numbers, "
+                       "Rotation.from_rotvec) or a quaternion, not the 9 entries of R")
+                continue
+            e0, e_r, e_s = (_rms(_errors(K, Rq, tq, X, x)) for Rq, tq in ((R0, t0), (R_r, t_r), (R, t)))
+            if np.allclose(R, R0, atol=1e-12) and np.allclose(t, t0, atol=1e-12):
+                c.fail(f"{case}: the pose did not move: return the optimized parameters (result.x), not the start")
+                continue
+            if e_s > e0 * (1 + 1e-9) + 1e-9:
+                why = _pose_mistake(R, t, R_r, t_r, 0.5, 0.05) or (
+                    "check the residual (projection with the parameters being optimized, minus the observed pixels) "
+                    "and convert the rotation vector back with Rotation.from_rotvec(...).as_matrix()")
+                c.fail(f"{case}: the non-linear step increased the reprojection error ({e0:.3g} -> {e_s:.3g} px): {why}")
+                continue
+            c.expect(True, f"{case}: lowers the reprojection error", "")
+            c.expect(e_s <= e_r * (1 + 1e-3) + 1e-6 and rotation_angle_deg(R, R_r) < 0.05,
+                     f"{case}: reaches the least-squares optimum",
+                     f"{case}: RMS reprojection error {e_s:.4g} px, the optimum is {e_r:.4g} px: run the solver to convergence")
