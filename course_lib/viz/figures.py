@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import matplotlib as mpl
 import numpy as np
+from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 
 from course_lib.validate import KitInputError, matching_points
@@ -219,8 +220,8 @@ def draw_matches(img1, img2, x1, x2, inliers=None, max_lines: int = 200, rng_see
             colours = np.where(inl, INLIER_COLOUR, OUTLIER_COLOUR)
         # outliers first, so the inliers are drawn on top
         order = idx[np.argsort(colours[idx] == INLIER_COLOUR, kind="stable")] if inliers is not None else idx
-        for k in order:
-            ax.plot([x1[k, 0], x2[k, 0] + off], [x1[k, 1], x2[k, 1]], "-", color=colours[k], lw=0.7, alpha=0.8)
+        segs = np.stack([x1[order], x2[order] + [off, 0.0]], axis=1)  # (L, 2 ends, 2)
+        ax.add_collection(LineCollection(segs, colors=list(colours[order]), linewidths=0.7, alpha=0.8))
         ax.scatter(x1[:, 0], x1[:, 1], s=4, c=colours, linewidths=0)
         ax.scatter(x2[:, 0] + off, x2[:, 1], s=4, c=colours, linewidths=0)
         ax.set_xlim(-0.5, canvas.shape[1] - 0.5)
