@@ -1,0 +1,707 @@
+"""The kit's embedded scenes: a small textured building, rendered by ray casting, with ground truth.
+
+One seeded generator makes both embedded data sets, so the kit runs (and is tested) without the
+course's own data:
+
+* ``data/synthetic-building/`` -- an SfM capture in the course's P3 format: 6 photos (800x600
+  JPEG, K like the WPI camera) taken while walking past the building, SIFT features matched
+  across all pairs with OpenCV (ratio test, so there are real outliers, as in the course data),
+  joined into tracks and written with :func:`course_lib.data.p3.write_p3`, plus
+  ``ground_truth.json`` with the true cameras (read it with :func:`load_ground_truth`).
+* ``data/synthetic-building-nerf/`` -- the same building (on a bounded base slab, no infinite
+  ground) seen from ~100 views on the upper hemisphere at 100x100, RGBA with a transparent
+  background, in NeRF's Blender format (:func:`course_lib.data.blender.write_blender`).
+
+The scene
+    World axes: **z up**, metres. A two-storey main block (8 m wide, 4 m deep, 5 m to the eaves)
+    with a gable roof (ridge at 6.5 m), a one-storey wing (3 x 2 m) that sticks out 2 m towards the
+    street, and a kiosk box in front: so the scene has depth and several planes, never a single
+    one. Walls have procedural stone blocks, windows with frames, a door, signs with letters and
+    posters; the roof has tiles; the ground has paving stones and grass. Every surface is a
+    textured planar rectangle (or triangle, for the gables) with a per-face Lambertian shade.
+
+The renderer
+    A pinhole camera in the kit's conventions (:mod:`course_lib.conventions`: x right, y down,
+    z forward, ``x_cam = R_cw X + t_cw``, pixel centre of the top-left pixel at (0, 0)). Each
+    pixel is sampled 2x2 times (supersampling against aliasing); every ray is intersected with
+    every surface (vectorized numpy), the nearest hit wins, its colour is the bilinear lookup in
+    the surface's texture times its shade. Rays that miss see the sky (SfM) or are transparent
+    (NeRF).
+
+Regenerate with ``python -m course_lib make-data`` (same seed -> same files).
+
+Introduced in ``notebooks/01_fundamental_matrix.ipynb`` (SfM) and
+``notebooks/06_nerf_data_and_rays.ipynb`` (NeRF).
+"""
+
+from __future__ import annotations
+
+import json
+import string
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from course_lib.conventions import camera_center, invert_pose
+from course_lib.data.synthetic import WPI_LIKE_K, look_at
+from course_lib.validate import KitInputError, intrinsics, rotation, vector3
+
+__all__ = [
+    "DEFAULT_SEED",
+    "GENERATOR",
+    "Surface",
+    "build_scene",
+    "render",
+    "cast_rays",
+    "sfm_cameras",
+    "nerf_cameras",
+    "detect_and_match",
+    "make_sfm_dataset",
+    "make_nerf_dataset",
+    "load_ground_truth",
+    "epipolar_errors",
+]
+
+#: Seed of the committed data sets.
+DEFAULT_SEED = 2024
+#: Name and version written into ground_truth.json.
+GENERATOR = "course_lib.data.building v1"
+#: Image size of the SfM photos (W, H).
+SFM_IMAGE_SIZE = (800, 600)
+#: OpenCV SIFT's keypoint offset from the kit's pixel convention (subtracted; see detect_and_match).
+SIFT_OFFSET = 0.25
+#: Lowe's ratio for the SIFT matches.
+RATIO = 0.8
+#: NeRF: scene centre (world, metres) and scale into the NeRF frame, camera distance, field of view.
+NERF_CENTER = np.array([0.0, -1.0, 2.5])
+NERF_SCALE = 0.2
+NERF_RADIUS = 4.0
+NERF_CAMERA_ANGLE_X = 0.8
+NERF_SIZE = 100
+
+_SUN = np.array([-0.45, -0.65, 0.62]) / np.linalg.norm([-0.45, -0.65, 0.62])
+
+
+# ============================================================================ textures
+
+
+def _noise(rng, h: int, w: int, cell_px: float, octaves: int = 3) -> np.ndarray:
+    """Smooth multi-octave value noise in about [-1, 1], shape ``(h, w)`` float32."""
+    import cv2
+
+    out = np.zeros((h, w), np.float32)
+    amp, total = 1.0, 0.0
+    for o in range(octaves):
+        c = max(cell_px / 2**o, 1.0)
+        gh, gw = int(np.ceil(h / c)) + 2, int(np.ceil(w / c)) + 2
+        grid = rng.uniform(-1, 1, (gh, gw)).astype(np.float32)
+        up = cv2.resize(grid, (int(gw * c), int(gh * c)), interpolation=cv2.INTER_CUBIC)
+        out += amp * up[:h, :w]
+        total += amp
+        amp *= 0.5
+    return out / total
+
+
+def _blocks(rng, h, w, rho, size_m, mortar_m, base, shade=0.18, mortar=(0.78, 0.76, 0.72), offset=0.5):
+    """Running-bond blocks (stone, bricks, tiles, paving): ``(h, w, 3)`` float32 in [0, 1]."""
+    bw, bh = size_m[0] * rho, size_m[1] * rho
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    row = np.floor(yy / bh).astype(int)
+    xs = xx + (row % 2) * offset * bw
+    col = np.floor(xs / bw).astype(int)
+    nr, nc = row.max() + 2, col.max() + 2
+    table = rng.normal(0.0, shade, (nr, nc, 1)).astype(np.float32)
+    tint = rng.normal(0.0, shade * 0.3, (nr, nc, 3)).astype(np.float32)
+    img = np.asarray(base, np.float32)[None, None, :] * (1.0 + table[row, col]) + tint[row, col] * 0.5
+    fy, fx = yy / bh - np.floor(yy / bh), xs / bw - np.floor(xs / bw)
+    m = mortar_m * rho
+    joint = (fy * bh < m) | (fx * bw < m)
+    img[joint] = np.asarray(mortar, np.float32)
+    return img
+
+
+def _draw_window(img, x0, y0, w, h, rng, rho):
+    """A framed window with a cross bar; glass with a sky reflection. Pixel box on ``img``."""
+    import cv2
+
+    f = max(int(0.07 * rho), 2)
+    x0, y0, w, h = int(x0), int(y0), int(w), int(h)
+    img[y0:y0 + h, x0:x0 + w] = (0.93, 0.92, 0.88)
+    gy = np.linspace(0, 1, h - 2 * f, dtype=np.float32)[:, None, None]
+    glass = (1 - gy) * np.array([0.35, 0.45, 0.58], np.float32) + gy * np.array([0.10, 0.13, 0.2], np.float32)
+    glass = glass + 0.08 * _noise(rng, h - 2 * f, w - 2 * f, 0.3 * rho, 2)[..., None]
+    img[y0 + f:y0 + h - f, x0 + f:x0 + w - f] = glass
+    cv2.rectangle(img, (x0 + w // 2 - f // 2, y0), (x0 + w // 2 + f // 2, y0 + h - 1), (0.93, 0.92, 0.88), -1)
+    cv2.rectangle(img, (x0, y0 + int(h * 0.4) - f // 2), (x0 + w - 1, y0 + int(h * 0.4) + f // 2), (0.93, 0.92, 0.88), -1)
+    cv2.rectangle(img, (x0 - f, y0 + h), (x0 + w + f, y0 + h + f), (0.6, 0.58, 0.55), -1)  # sill
+
+
+def _draw_sign(img, x0, y0, w, h, rng, rho, text=None):
+    """A coloured sign (or poster) with random letters and shapes: strong, unique features."""
+    import cv2
+
+    x0, y0, w, h = int(x0), int(y0), int(w), int(h)
+    bg = rng.uniform(0.15, 0.95, 3)
+    img[y0:y0 + h, x0:x0 + w] = bg
+    for _ in range(int(rng.integers(3, 7))):
+        c = tuple(float(v) for v in rng.uniform(0, 1, 3))
+        cx, cy = int(x0 + rng.uniform(0.1, 0.9) * w), int(y0 + rng.uniform(0.1, 0.9) * h)
+        r = int(rng.uniform(0.08, 0.3) * min(w, h))
+        if rng.random() < 0.5:
+            cv2.circle(img, (cx, cy), r, c, -1)
+        else:
+            cv2.rectangle(img, (cx - r, cy - r // 2), (cx + r, cy + r // 2), c, -1)
+    if text is None:
+        text = "".join(rng.choice(list(string.ascii_uppercase + string.digits), int(rng.integers(3, 7))))
+    scale = 0.5 * h / 30.0
+    (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_DUPLEX, scale, 1)
+    scale *= min(1.0, 0.9 * w / max(tw, 1))
+    thick = max(1, int(scale * 2))
+    (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_DUPLEX, scale, thick)
+    ink = (0.05, 0.05, 0.05) if bg.mean() > 0.5 else (0.97, 0.97, 0.95)
+    cv2.putText(img, text, (x0 + (w - tw) // 2, y0 + (h + th) // 2), cv2.FONT_HERSHEY_DUPLEX, scale, ink, thick, cv2.LINE_AA)
+
+
+def _wall_texture(rng, w_m, h_m, rho, windows=(), doors=(), signs=(), base=(0.62, 0.45, 0.36)):
+    """Stone-block wall with windows/doors/signs given as (x, z, w, h) in metres (z from the bottom)."""
+    h, w = int(np.ceil(h_m * rho)), int(np.ceil(w_m * rho))
+    img = _blocks(rng, h, w, rho, (0.42, 0.21), 0.025, base)
+    img *= 1.0 + 0.22 * _noise(rng, h, w, 1.2 * rho)[..., None]  # weathering
+    img = np.ascontiguousarray(img)
+
+    def box(x, z, bw, bh):  # metres (z up from the bottom edge) -> pixel box (x0, y0, w, h)
+        return x * rho, (h_m - z - bh) * rho, bw * rho, bh * rho
+
+    for win in windows:
+        _draw_window(img, *box(*win), rng, rho)
+    for d in doors:
+        x0, y0, dw, dh = (int(v) for v in box(*d))
+        img[y0:y0 + dh, x0:x0 + dw] = (0.32, 0.2, 0.12)
+        img[y0:y0 + dh, x0:x0 + dw] *= 1 + 0.15 * _noise(rng, dh, dw, 0.2 * rho, 2)[..., None]
+        k = max(int(0.06 * rho), 2)
+        img[y0 + k:y0 + dh // 2 - k, x0 + k:x0 + dw - k] = (0.2, 0.25, 0.3)
+    for s in signs:
+        _draw_sign(img, *box(*s[:4]), rng, rho, text=s[4] if len(s) > 4 else None)
+    return np.clip(img, 0, 1)
+
+
+def _roof_texture(rng, w_m, h_m, rho):
+    h, w = int(np.ceil(h_m * rho)), int(np.ceil(w_m * rho))
+    img = _blocks(rng, h, w, rho, (0.32, 0.22), 0.03, (0.55, 0.22, 0.15), shade=0.22, mortar=(0.25, 0.1, 0.08))
+    img *= 1.0 + 0.25 * _noise(rng, h, w, 1.5 * rho)[..., None]
+    return np.clip(img, 0, 1)
+
+
+def _ground_texture(rng, w_m, h_m, rho, grass=True):
+    h, w = int(np.ceil(h_m * rho)), int(np.ceil(w_m * rho))
+    img = _blocks(rng, h, w, rho, (0.6, 0.6), 0.03, (0.55, 0.55, 0.52), shade=0.15, mortar=(0.3, 0.3, 0.28), offset=0.0)
+    img *= 1.0 + 0.2 * _noise(rng, h, w, 0.8 * rho)[..., None]
+    if grass:
+        n = _noise(rng, h, w, 3.0 * rho, 2)
+        g = np.stack([0.25 + 0.1 * n, 0.45 + 0.12 * n, 0.18 + 0.05 * n], -1)
+        g = g * (1 + 0.3 * _noise(rng, h, w, 0.1 * rho, 2)[..., None])
+        mask = np.clip((n - 0.15) * 6, 0, 1)[..., None]
+        img = img * (1 - mask) + g * mask
+    return np.clip(img, 0, 1).astype(np.float32)
+
+
+def _plain_texture(rng, w_m, h_m, rho, base, noise=0.25, cell_m=0.3):
+    h, w = int(np.ceil(h_m * rho)), int(np.ceil(w_m * rho))
+    img = np.ones((h, w, 3), np.float32) * np.asarray(base, np.float32)
+    img *= 1.0 + noise * _noise(rng, h, w, cell_m * rho, 3)[..., None]
+    return np.clip(img, 0, 1)
+
+
+# ============================================================================ scene
+
+
+@dataclass
+class Surface:
+    """A textured planar parallelogram ``X = origin + s a + t b``, ``s, t in [0, 1]``.
+
+    Attributes:
+        name: for debugging and documentation.
+        origin: ``(3,)`` corner, world metres.
+        a, b: ``(3,)`` edge vectors (``b`` runs "up" the texture).
+        texture: ``(Ht, Wt, 3)`` float32 RGB in [0, 1]; texel ``(row, col)`` covers
+            ``s = (col + 0.5) / Wt``, ``t = 1 - (row + 0.5) / Ht``.
+        triangle: if True only the half ``s + t <= 1`` exists (the gables).
+    """
+
+    name: str
+    origin: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    texture: np.ndarray
+    triangle: bool = False
+
+    @property
+    def normal(self) -> np.ndarray:
+        n = np.cross(self.a, self.b)
+        return n / np.linalg.norm(n)
+
+
+def build_scene(rng: np.random.Generator, ground: str = "large", rho: float = 80.0) -> list[Surface]:
+    """The building's surfaces with their procedural textures.
+
+    Args:
+        rng: seeded generator (textures only; the geometry is fixed).
+        ground: ``"large"`` (a 30 x 30 m paved square for the SfM photos) or ``"slab"`` (a bounded
+            11 x 9 m base slab, 0.3 m thick, for the NeRF views: no infinite ground).
+        rho: texels per metre of the walls.
+
+    Returns:
+        List of :class:`Surface`.
+    """
+    V = lambda *v: np.array(v, float)  # noqa: E731
+    S = []
+
+    def add(name, o, a, b, tex, tri=False):
+        S.append(Surface(name, V(*o), V(*a), V(*b), tex.astype(np.float32), tri))
+
+    win = lambda x, z: (x, z, 1.0, 1.4)  # noqa: E731
+    # main block: x in [-4, 4], y in [-2, 2], z in [0, 5]; the street is at y < 0
+    add("main front", (-4, -2, 0), (8, 0, 0), (0, 0, 5), _wall_texture(
+        rng, 8, 5, rho, windows=[win(0.5, 1.0), win(2.3, 1.0), win(0.5, 3.2), win(2.3, 3.2), win(4.3, 3.2), win(6.2, 3.2)],
+        doors=[(4.3, 0.0, 1.2, 2.3)], signs=[(0.4, 2.55, 3.0, 0.5, "COURSE KIT"), (3.9, 2.45, 0.7, 0.55), (6.0, 0.6, 0.9, 1.2)]))
+    add("main left", (-4, 2, 0), (0, -4, 0), (0, 0, 5), _wall_texture(
+        rng, 4, 5, rho, windows=[win(0.6, 1.0), win(2.4, 3.2)], signs=[(2.2, 0.8, 1.2, 1.6), (0.3, 3.0, 1.4, 0.6, "SFM")],
+        base=(0.66, 0.52, 0.40)))
+    add("main right", (4, -2, 0), (0, 4, 0), (0, 0, 5), _wall_texture(
+        rng, 4, 5, rho, windows=[win(2.2, 1.0), win(1.0, 3.2)], signs=[(0.4, 3.3, 0.5, 1.0)], base=(0.66, 0.52, 0.40)))
+    add("main back", (4, 2, 0), (-8, 0, 0), (0, 0, 5), _wall_texture(
+        rng, 8, 5, rho, windows=[win(1.0, 1.0), win(5.5, 1.0), win(1.0, 3.2), win(3.5, 3.2), win(5.5, 3.2)],
+        signs=[(3.0, 0.8, 1.6, 1.0, "NERF")]))
+    add("roof front", (-4, -2, 5), (8, 0, 0), (0, 2, 1.5), _roof_texture(rng, 8, 2.5, rho))
+    add("roof back", (4, 2, 5), (-8, 0, 0), (0, -2, 1.5), _roof_texture(rng, 8, 2.5, rho))
+    add("gable left", (-4, 2, 5), (0, -4, 0), (0, -2, 1.5), _plain_texture(rng, 4, 2.5, rho, (0.85, 0.8, 0.68)), tri=True)
+    add("gable right", (4, -2, 5), (0, 4, 0), (0, 2, 1.5), _plain_texture(rng, 4, 2.5, rho, (0.85, 0.8, 0.68)), tri=True)
+    # wing: x in [1, 4], y in [-4, -2], z in [0, 3] with a flat roof
+    add("wing front", (1, -4, 0), (3, 0, 0), (0, 0, 3), _wall_texture(
+        rng, 3, 3, rho, windows=[(0.3, 0.9, 2.4, 1.5)], signs=[(0.5, 2.55, 2.0, 0.35, "CAFE 549")], base=(0.78, 0.74, 0.66)))
+    add("wing left", (1, -2, 0), (0, -2, 0), (0, 0, 3), _wall_texture(
+        rng, 2, 3, rho, windows=[(0.5, 1.0, 1.0, 1.2)], signs=[(0.3, 2.3, 1.4, 0.45)], base=(0.78, 0.74, 0.66)))
+    add("wing right", (4, -4, 0), (0, 2, 0), (0, 0, 3), _wall_texture(rng, 2, 3, rho, signs=[(0.4, 0.8, 1.2, 1.4)], base=(0.78, 0.74, 0.66)))
+    add("wing roof", (1, -4, 3), (3, 0, 0), (0, 2, 0), _plain_texture(rng, 3, 2, rho, (0.35, 0.35, 0.38), 0.35, 0.15))
+    # kiosk: x in [-3, -1.8], y in [-5.2, -4.2], z in [0, 1.3]
+    kiosk = lambda w, h: _wall_texture(rng, w, h, rho, signs=[(0.1, 0.2, w - 0.2, h - 0.4)], base=(0.3, 0.45, 0.6))  # noqa: E731
+    add("kiosk front", (-3, -5.2, 0), (1.2, 0, 0), (0, 0, 1.3), kiosk(1.2, 1.3))
+    add("kiosk left", (-3, -4.2, 0), (0, -1, 0), (0, 0, 1.3), kiosk(1.0, 1.3))
+    add("kiosk right", (-1.8, -5.2, 0), (0, 1, 0), (0, 0, 1.3), kiosk(1.0, 1.3))
+    add("kiosk back", (-1.8, -4.2, 0), (-1.2, 0, 0), (0, 0, 1.3), kiosk(1.2, 1.3))
+    add("kiosk top", (-3, -5.2, 1.3), (1.2, 0, 0), (0, 1, 0), _plain_texture(rng, 1.2, 1.0, rho, (0.8, 0.8, 0.8), 0.3, 0.1))
+    if ground == "large":
+        add("ground", (-15, -22, 0), (30, 0, 0), (0, 30, 0), _ground_texture(rng, 30, 30, 40.0))
+    elif ground == "slab":
+        x0, x1, y0, y1, d = -5.5, 5.5, -6.0, 3.0, 0.3
+        add("slab top", (x0, y0, 0), (x1 - x0, 0, 0), (0, y1 - y0, 0), _ground_texture(rng, x1 - x0, y1 - y0, rho))
+        side = lambda w: _plain_texture(rng, w, d, rho, (0.45, 0.42, 0.4), 0.3, 0.1)  # noqa: E731
+        add("slab front", (x0, y0, -d), (x1 - x0, 0, 0), (0, 0, d), side(x1 - x0))
+        add("slab back", (x1, y1, -d), (x0 - x1, 0, 0), (0, 0, d), side(x1 - x0))
+        add("slab left", (x0, y1, -d), (0, y0 - y1, 0), (0, 0, d), side(y1 - y0))
+        add("slab right", (x1, y0, -d), (0, y1 - y0, 0), (0, 0, d), side(y1 - y0))
+        add("slab bottom", (x0, y1, -d), (x1 - x0, 0, 0), (0, y0 - y1, 0), side(x1 - x0)[:1].repeat(8, 0))
+    else:
+        raise KitInputError(f"ground = {ground!r}: expected 'large' or 'slab'")
+    return S
+
+
+# ============================================================================ rendering
+
+
+def cast_rays(surfaces: list[Surface], C: np.ndarray, d: np.ndarray):
+    """Nearest hit of rays ``C + lam d`` (``lam > 0``) with the surfaces.
+
+    Args:
+        surfaces: the scene.
+        C: ``(3,)`` common origin (the camera centre).
+        d: ``(N, 3)`` directions (any length).
+
+    Returns:
+        ``lam (N,)`` (inf where nothing is hit), ``sid (N,)`` surface index (-1: miss),
+        ``s (N,)``, ``t (N,)`` surface coordinates of the hit.
+    """
+    N = d.shape[0]
+    best = np.full(N, np.inf)
+    sid = np.full(N, -1, int)
+    bs, bt = np.zeros(N), np.zeros(N)
+    for k, S in enumerate(surfaces):
+        n = np.cross(S.a, S.b)
+        denom = d @ n
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = ((S.origin - C) @ n) / denom
+        q0 = C - S.origin
+        G = np.array([[S.a @ S.a, S.a @ S.b], [S.a @ S.b, S.b @ S.b]])
+        Gi = np.linalg.inv(G)
+        qa = q0 @ S.a + lam * (d @ S.a)
+        qb = q0 @ S.b + lam * (d @ S.b)
+        s = Gi[0, 0] * qa + Gi[0, 1] * qb
+        t = Gi[1, 0] * qa + Gi[1, 1] * qb
+        ok = (lam > 1e-9) & (lam < best) & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1)
+        if S.triangle:
+            ok &= s + t <= 1
+        best[ok], sid[ok], bs[ok], bt[ok] = lam[ok], k, s[ok], t[ok]
+    return best, sid, bs, bt
+
+
+def _bilinear(tex: np.ndarray, s: np.ndarray, t: np.ndarray) -> np.ndarray:
+    Ht, Wt = tex.shape[:2]
+    x = np.clip(s * Wt - 0.5, 0, Wt - 1)
+    y = np.clip((1.0 - t) * Ht - 0.5, 0, Ht - 1)
+    x0, y0 = np.minimum(x.astype(int), Wt - 2), np.minimum(y.astype(int), Ht - 2)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    return ((1 - fy) * ((1 - fx) * tex[y0, x0] + fx * tex[y0, x0 + 1])
+            + fy * ((1 - fx) * tex[y0 + 1, x0] + fx * tex[y0 + 1, x0 + 1]))
+
+
+def _shade(surfaces, sid, d, rgb_out, s, t):
+    for k, S in enumerate(surfaces):
+        m = sid == k
+        if not m.any():
+            continue
+        n = S.normal
+        facing = np.where((d[m] @ n) < 0, 1.0, -1.0)[:, None] * n[None, :]  # normal towards the viewer
+        shade = 0.5 + 0.6 * np.clip(facing @ _SUN, 0, 1)
+        rgb_out[m] = _bilinear(S.texture, s[m], t[m]) * shade[:, None]
+
+
+def _sky(d: np.ndarray) -> np.ndarray:
+    e = np.clip(d[:, 2] / np.linalg.norm(d, axis=1), -0.2, 1)[:, None]
+    return (1 - e) * np.array([0.78, 0.85, 0.93]) + e * np.array([0.35, 0.55, 0.85])
+
+
+def render(surfaces: list[Surface], K: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, image_size: tuple[int, int],
+           supersample: int = 2, background: str = "sky", chunk: int = 300_000) -> tuple[np.ndarray, np.ndarray]:
+    """Ray-cast an image of the scene.
+
+    Args:
+        surfaces: from :func:`build_scene`.
+        K: ``(3, 3)`` intrinsics. R_cw: ``(3, 3)``. t_cw: ``(3,)`` (the kit's convention).
+        image_size: ``(W, H)``.
+        supersample: n, renders n x n rays per pixel (at offsets ``(k + 0.5) / n - 0.5``) and averages.
+        background: ``"sky"`` (a gradient, alpha 1 everywhere) or ``"transparent"`` (alpha 0 where
+            rays miss; the returned RGB is the mean over the hits, i.e. *not* premultiplied).
+        chunk: rays per batch (memory).
+
+    Returns:
+        ``rgb (H, W, 3)`` float in [0, 1] and ``alpha (H, W)`` float in [0, 1] (fraction of hits).
+    """
+    K = intrinsics(K)
+    R_cw = rotation(R_cw, "R_cw")
+    t_cw = vector3(t_cw, "t_cw")
+    W, H = (int(v) for v in image_size)
+    n = int(supersample)
+    C = camera_center(R_cw, t_cw)
+    off = (np.arange(n) + 0.5) / n - 0.5
+    rows = (np.arange(H)[:, None] + off[None, :]).ravel()  # (H n,) pixel v of the sub-rows
+    cols = (np.arange(W)[:, None] + off[None, :]).ravel()  # (W n,)
+    vv, uu = np.meshgrid(rows, cols, indexing="ij")
+    pix = np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)], 1)
+    d_cam = pix @ np.linalg.inv(K).T
+    d = d_cam @ R_cw  # world directions: R_cw^T d_cam, row-wise
+    rgb = np.zeros((d.shape[0], 3))
+    hit = np.zeros(d.shape[0], bool)
+    for a in range(0, d.shape[0], chunk):
+        dd = d[a:a + chunk]
+        lam, sid, s, t = cast_rays(surfaces, C, dd)
+        out = np.zeros((dd.shape[0], 3))
+        _shade(surfaces, sid, dd, out, s, t)
+        miss = sid < 0
+        if background == "sky":
+            out[miss] = _sky(dd[miss])
+        rgb[a:a + chunk] = out
+        hit[a:a + chunk] = ~miss
+    rgb = rgb.reshape(H, n, W, n, 3)
+    hit = hit.reshape(H, n, W, n).astype(float)
+    if background == "sky":
+        return np.clip(rgb.mean(axis=(1, 3)), 0, 1), np.ones((H, W))
+    if background != "transparent":
+        raise KitInputError(f"background = {background!r}: expected 'sky' or 'transparent'")
+    cover = hit.sum(axis=(1, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        col = (rgb * hit[..., None]).sum(axis=(1, 3)) / cover[..., None]
+    col[cover == 0] = 0
+    return np.clip(col, 0, 1), cover / (n * n)
+
+
+# ============================================================================ cameras
+
+
+def _roll(R_cw: np.ndarray, angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ R_cw
+
+
+def sfm_cameras(rng: np.random.Generator, n_cameras: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """Cameras of a student walking past the building, all looking at it.
+
+    Centres spread over an arc around (0, -1) in front of the building, from -30 to +30 degrees,
+    9.5-13.5 m away and 1.3-2.3 m high (eye height, a step, a low wall), each aimed at the
+    building's middle with a few decimetres of jitter and a degree or two of roll. The centres are
+    deliberately not close to a line, so that comparing a reconstruction with the truth after a
+    similarity alignment of the centres is well conditioned.
+
+    Returns:
+        ``R_cw (M, 3, 3)``, ``t_cw (M, 3)``.
+    """
+    angles = np.radians(np.linspace(-30.0, 30.0, n_cameras)) + rng.normal(0, np.radians(1.5), n_cameras)
+    radii = 11.5 + rng.uniform(-2.0, 2.0, n_cameras)
+    heights = rng.uniform(1.3, 2.3, n_cameras)
+    Rs, ts = [], []
+    for a, r, h in zip(angles, radii, heights):
+        C = np.array([r * np.sin(a), -1.0 - r * np.cos(a), h])
+        target = np.array([0.0, -1.5, 2.6]) + rng.normal(0, [0.5, 0.3, 0.3])
+        R, _ = look_at(C, target, up=(0.0, 0.0, 1.0))
+        R = _roll(R, rng.normal(0, np.radians(1.5)))
+        Rs.append(R)
+        ts.append(-R @ C)
+    return np.stack(Rs), np.stack(ts)
+
+
+def nerf_cameras(rng: np.random.Generator, n: int, kind: str = "random") -> np.ndarray:
+    """Camera-to-world matrices (OpenCV axes) in the NeRF frame, all looking at the origin.
+
+    Args:
+        rng: seeded generator.
+        n: number of views.
+        kind: ``"random"``: uniform on the upper hemisphere (elevation 8-75 degrees), distance
+            :data:`NERF_RADIUS`; ``"ring"``: n views on a circle at 30 degrees elevation.
+
+    Returns:
+        ``c2w (n, 4, 4)``: camera-to-world, OpenCV axes (x right, y down, z forward), in the NeRF
+        frame ``X_nerf = NERF_SCALE * (X_world - NERF_CENTER)``.
+    """
+    if kind == "random":
+        az = rng.uniform(0, 2 * np.pi, n)
+        z = rng.uniform(np.sin(np.radians(8)), np.sin(np.radians(75)), n)  # uniform on the sphere's zone
+        el = np.arcsin(z)
+    elif kind == "ring":
+        az = np.linspace(0, 2 * np.pi, n, endpoint=False) + np.radians(10)
+        el = np.full(n, np.radians(30.0))
+    else:
+        raise KitInputError(f"kind = {kind!r}: expected 'random' or 'ring'")
+    out = []
+    for a, e in zip(az, el):
+        C = NERF_RADIUS * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+        R_cw, t_cw = look_at(C, np.zeros(3), up=(0.0, 0.0, 1.0))
+        M = np.eye(4)
+        M[:3, :3], M[:3, 3] = invert_pose(R_cw, t_cw)
+        out.append(M)
+    return np.stack(out)
+
+
+# ============================================================================ features
+
+
+def _to_uint8(rgb: np.ndarray) -> np.ndarray:
+    return np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
+
+
+def detect_and_match(images: list[np.ndarray], ratio: float = RATIO) -> dict:
+    """SIFT features of every image, matched across all pairs (ratio test + mutual nearest neighbour).
+
+    Keypoints are sorted by position so that the result does not depend on OpenCV's threading.
+
+    Args:
+        images: M ``(H, W, 3)`` uint8 RGB images.
+        ratio: Lowe's ratio (the best match must be closer than ``ratio`` times the second best).
+
+    Returns:
+        ``{(i, j): (x1 (N, 2), x2 (N, 2))}`` for every pair ``i < j`` with matches (float64 pixels).
+    """
+    import cv2
+
+    sift = cv2.SIFT_create()
+    feats = []
+    for img in images:
+        gray = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
+        kps, des = sift.detectAndCompute(gray, None)
+        # OpenCV's SIFT reports points 0.25 px right of and below the kit's pixel-centre convention
+        # (measured on Gaussian blobs at known sub-pixel positions: +0.250 +- 0.02 px at every
+        # scale; it comes from the doubled first octave). Left in, it acts like a principal point
+        # shifted by a quarter pixel and costs ~0.03 deg of rotation accuracy.
+        pts = np.array([k.pt for k in kps], np.float64).reshape(-1, 2) - SIFT_OFFSET
+        key = np.array([(k.pt[1], k.pt[0], k.size, k.angle, k.response) for k in kps]).reshape(-1, 5)
+        order = np.lexsort(key.T[::-1])
+        feats.append((pts[order], np.ascontiguousarray(des[order])))
+    bf = cv2.BFMatcher(cv2.NORM_L2)
+    pairs = {}
+    M = len(images)
+    for i in range(M):
+        for j in range(i + 1, M):
+            (p1, d1), (p2, d2) = feats[i], feats[j]
+            if len(p1) < 2 or len(p2) < 2:
+                continue
+            fwd = bf.knnMatch(d1, d2, k=2)
+            bwd = bf.match(d2, d1)
+            back = np.full(len(p2), -1)
+            for m in bwd:
+                back[m.queryIdx] = m.trainIdx
+            sel = []
+            for m in fwd:
+                if len(m) == 2 and m[0].distance < ratio * m[1].distance:
+                    q, tr = m[0].queryIdx, m[0].trainIdx
+                    if back[tr] == q or np.array_equal(p1[back[tr]], p1[q]):
+                        sel.append((q, tr))
+            if sel:
+                sel = np.array(sel)
+                pairs[(i, j)] = (p1[sel[:, 0]], p2[sel[:, 1]])
+    return pairs
+
+
+# ============================================================================ data sets
+
+
+def _jpeg_roundtrip(rgb_u8: np.ndarray, quality: int) -> tuple[bytes, np.ndarray]:
+    import cv2
+
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(rgb_u8[:, :, ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise RuntimeError("JPEG encoding failed")
+    dec = cv2.imdecode(buf, cv2.IMREAD_COLOR)[:, :, ::-1]
+    return buf.tobytes(), np.ascontiguousarray(dec)
+
+
+def make_sfm_dataset(folder, seed: int = DEFAULT_SEED, n_cameras: int = 6, quality: int = 88, verbose: bool = False) -> dict:
+    """Render the SfM photos, match SIFT features and write a P3 folder with ground truth.
+
+    Args:
+        folder: output folder (e.g. ``data/synthetic-building``); existing P3 files are replaced.
+        seed: the seed of everything random (textures, cameras, sensor noise).
+        n_cameras: number of photos (5-6 is like the course data).
+        quality: JPEG quality of the photos.
+        verbose: print progress.
+
+    Returns:
+        Summary dict (matches per pair, tracks, inlier fraction vs the ground truth).
+    """
+    from course_lib.data.p3 import tracks_from_pairs, write_p3
+
+    folder = Path(folder)
+    rng = np.random.default_rng(seed)
+    surfaces = build_scene(rng, ground="large")
+    K = WPI_LIKE_K.copy()
+    R_cw, t_cw = sfm_cameras(rng, n_cameras)
+    names = [f"{i + 1}.jpg" for i in range(n_cameras)]
+    folder.mkdir(parents=True, exist_ok=True)
+    images = []
+    for i in range(n_cameras):
+        rgb, _ = render(surfaces, K, R_cw[i], t_cw[i], SFM_IMAGE_SIZE, supersample=2)
+        rgb = rgb + rng.normal(0, 1.5 / 255, rgb.shape)  # sensor noise
+        data, dec = _jpeg_roundtrip(_to_uint8(rgb), quality)
+        (folder / names[i]).write_bytes(data)
+        images.append(dec)  # features are detected on what the students get: the decoded JPEG
+        if verbose:
+            print(f"rendered {names[i]}", flush=True)
+    pairs = detect_and_match(images)
+    track_uv, _, tstats = tracks_from_pairs(n_cameras, pairs)
+    first = np.argmax(~np.isnan(track_uv[..., 0]), axis=1)
+    uv0 = track_uv[np.arange(len(track_uv)), first]
+    W, H = SFM_IMAGE_SIZE
+    cols = np.clip(np.round(uv0[:, 0]).astype(int), 0, W - 1)
+    rows_ = np.clip(np.round(uv0[:, 1]).astype(int), 0, H - 1)
+    track_rgb = np.stack([images[f][r, c] for f, r, c in zip(first, rows_, cols)]) if len(first) else np.zeros((0, 3), np.uint8)
+    write_p3(folder, names, K, track_uv, track_rgb)  # images already written (JPEG bytes)
+    gt = {
+        "K": K.tolist(),
+        "image_size": list(SFM_IMAGE_SIZE),
+        "images": [{"name": n, "R_cw": R.tolist(), "t_cw": t.tolist()} for n, R, t in zip(names, R_cw, t_cw)],
+        "seed": int(seed),
+        "generator": GENERATOR,
+        "world": "metres, z up; building x in [-4, 4], y in [-4, 2], z in [0, 6.5] (kiosk in front down to y = -5.2); cameras 9.5-13.5 m in front of it",
+        "scene_size": float(np.linalg.norm([8.0, 6.0, 6.5])),
+        "convention": "x_cam = R_cw @ X + t_cw; OpenCV camera axes (x right, y down, z forward)",
+    }
+    (folder / "ground_truth.json").write_text(json.dumps(gt, indent=1))
+    summary = {"tracks": int(len(track_uv)), **tstats,
+               "pairs": {f"{i + 1}-{j + 1}": int(len(x1)) for (i, j), (x1, _) in pairs.items()}}
+    return summary
+
+
+def make_nerf_dataset(folder, seed: int = DEFAULT_SEED, n_train: int = 100, n_val: int = 5, n_test: int = 12,
+                      size: int = NERF_SIZE, verbose: bool = False) -> dict:
+    """Render the NeRF views (RGBA, transparent background) and write them in Blender format.
+
+    The building stands on a bounded base slab; the NeRF frame is
+    ``X_nerf = NERF_SCALE * (X_world - NERF_CENTER)`` (z up), so the scene fits in about
+    ``[-1.1, 1.1] x [-1, 0.8] x [-0.6, 0.8]`` and the cameras sit :data:`NERF_RADIUS` from the origin.
+    Train and val views are random on the upper hemisphere; test views are a ring at 30 degrees.
+
+    Returns:
+        Summary dict (number of views per split, image size, camera_angle_x).
+    """
+    from course_lib.data.blender import intrinsics_from_fov, write_blender
+
+    folder = Path(folder)
+    rng = np.random.default_rng(seed + 1)
+    surfaces = build_scene(rng, ground="slab", rho=40.0)
+    K = intrinsics_from_fov(size, size, NERF_CAMERA_ANGLE_X)
+    splits = {"train": nerf_cameras(rng, n_train), "val": nerf_cameras(rng, n_val), "test": nerf_cameras(rng, n_test, "ring")}
+    for split, c2w in splits.items():
+        imgs = []
+        for M in c2w:
+            C_world = NERF_CENTER + M[:3, 3] / NERF_SCALE
+            R_cw = M[:3, :3].T
+            rgb, alpha = render(surfaces, K, R_cw, -R_cw @ C_world, (size, size), supersample=2, background="transparent")
+            imgs.append(np.concatenate([_to_uint8(rgb), _to_uint8(alpha[..., None])], -1))
+        write_blender(folder, split, np.stack(imgs), c2w, NERF_CAMERA_ANGLE_X, names=[f"{split}_{i:03d}" for i in range(len(c2w))])
+        if verbose:
+            print(f"rendered {len(c2w)} {split} views", flush=True)
+    info = {"seed": int(seed), "generator": GENERATOR, "nerf_center_world": NERF_CENTER.tolist(), "nerf_scale": NERF_SCALE,
+            "radius": NERF_RADIUS, "camera_angle_x": NERF_CAMERA_ANGLE_X, "image_size": [size, size],
+            "world": "NeRF frame: z up, X_nerf = nerf_scale * (X_world - nerf_center_world); world in metres"}
+    (folder / "scene.json").write_text(json.dumps(info, indent=1))
+    return {k: len(v) for k, v in splits.items()}
+
+
+# ============================================================================ ground truth
+
+
+def load_ground_truth(folder) -> tuple[np.ndarray, list[str], np.ndarray, np.ndarray]:
+    """Read ``ground_truth.json`` of a generated P3 folder.
+
+    Args:
+        folder: the folder (or the JSON file itself).
+
+    Returns:
+        ``K (3, 3)``, image names (M), ``R_cw (M, 3, 3)``, ``t_cw (M, 3)`` (the kit's convention).
+
+    Introduced in ``notebooks/01_fundamental_matrix.ipynb``.
+    """
+    p = Path(folder)
+    if p.is_dir():
+        p = p / "ground_truth.json"
+    if not p.is_file():
+        raise KitInputError(f"ground truth not found: {p} (only the kit's generated scenes have ground_truth.json)")
+    try:
+        gt = json.loads(p.read_text())
+        K = intrinsics(np.array(gt["K"], float))
+        names = [im["name"] for im in gt["images"]]
+        R_cw = np.array([im["R_cw"] for im in gt["images"]], float).reshape(-1, 3, 3)
+        t_cw = np.array([im["t_cw"] for im in gt["images"]], float).reshape(-1, 3)
+    except (KeyError, TypeError, ValueError, json.JSONDecodeError) as exc:
+        raise KitInputError(f"{p}: not a valid ground_truth.json ({exc})") from None
+    return K, names, R_cw, t_cw
+
+
+def epipolar_errors(K, R_cw_i, t_cw_i, R_cw_j, t_cw_j, x1, x2) -> np.ndarray:
+    """Sampson distance (pixels) of correspondences to the epipolar geometry of the true cameras.
+
+    Args:
+        K: ``(3, 3)``. R_cw_i, t_cw_i, R_cw_j, t_cw_j: the two true poses. x1, x2: ``(N, 2)`` pixels.
+
+    Returns:
+        ``(N,)`` distances in pixels (small for true matches; outliers are usually far).
+    """
+    R = R_cw_j @ R_cw_i.T  # j from i
+    t = t_cw_j - R @ t_cw_i
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    Ki = np.linalg.inv(K)
+    F = Ki.T @ tx @ R @ Ki
+    h1 = np.c_[x1, np.ones(len(x1))]
+    h2 = np.c_[x2, np.ones(len(x2))]
+    Fx1, Ftx2 = h1 @ F.T, h2 @ F
+    num = np.sum(h2 * Fx1, axis=1)
+    den = Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2
+    return np.abs(num) / np.sqrt(den)
