@@ -24,7 +24,9 @@ API::
         state (0.5 * sum of squared residuals). reference: optional (R_cw, t_cw, X) drawn in grey
         (e.g. the ground truth, already aligned). The 3-D scene of the chosen iteration is
         redrawn with fixed axes, so the motion of cameras and points is visible.
-        children: (slider, label HTML, Output).
+        children: (slider, label HTML, Output). With course_lib.sfm.bundle_adjustment:
+            res = bundle_adjust(K, R_cw, t_cw, X, uv, keep_iterates=True)
+            ba_iterations_widget(res.iterates, K, (W, H), res.cost_history)
 
     nerf_snapshot_slider(images, iterations=None, reference=None, width=None) -> VBox
         images: list of image paths (PNG/JPEG) or of (H,W,3) arrays (uint8 or float [0,1]),
