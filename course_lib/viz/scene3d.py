@@ -15,11 +15,13 @@ puts world ``-y`` up by default (``up=(0, -1, 0)``). For NeRF scenes converted f
 API (all arrays may be numpy arrays, lists or torch tensors; every function returns the figure)::
 
     scene_figure(cameras=None, points=None, title=None, point_budget=20000, height=600,
-                 up=(0, -1, 0), camera_scale=None, name="scene") -> go.Figure
+                 up=(0, -1, 0), camera_scale=None, name="scene", eye=None) -> go.Figure
         cameras: list of tuples (R_cw (3,3), t_cw (3,), K (3,3), (W, H)) or
                  (R_cw, t_cw, K, (W, H), name); drawn as one legend group `name + " cameras"`.
         points:  X (N,3) or a tuple (X (N,3), rgb (N,3) uint8 or None); NaN rows are dropped;
                  above `point_budget` points a fixed random subset is drawn.
+        up: world direction shown up on screen; eye: optional (3,) viewpoint (plotly units).
+        camera_scale: frustum depth in world units (default 5 % of the scene size).
 
     add_cameras(fig, R_cw (M,3,3), t_cw (M,3), K (3,3) or (M,3,3), image_size (W, H),
                 names=None, color=None, scale=None, legend_group=None, images=None,
@@ -44,7 +46,8 @@ API (all arrays may be numpy arrays, lists or torch tensors; every function retu
 
     camera_frustum(R_cw (3,3), t_cw (3,), K (3,3), image_size (W,H), scale) -> dict
         The geometry drawn for one camera, in world coordinates: "apex" (3,), "corners" (4,3)
-        (image top-left, top-right, bottom-right, bottom-left), "up_tip" (3,).
+        (image top-left, top-right, bottom-right, bottom-left), "up_triangle" (3,3) (the marker
+        on the top edge), "up_tip" (3,) (its tip, towards camera -y).
 
     scene_size(X (N,3)) -> float     robust diameter (2nd..98th percentile box) of points.
     write_html(fig, path) -> Path    standalone HTML with plotly.js embedded (opens offline).
