@@ -152,7 +152,7 @@ def reprojection_residuals(
     Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
     """
     R, t, X = unpack_params(params, n_cameras, n_points)
-    xc = np.einsum("kab,kb->ka", R[camera_idx], X[point_idx]) + t[camera_idx]
+    xc = (R[camera_idx] * X[point_idx][:, None, :]).sum(axis=2) + t[camera_idx]
     xh = xc @ np.asarray(K, float).T
     proj = xh[:, :2] / xh[:, 2:3]
     return (proj - np.asarray(uv, float)).ravel()
@@ -217,7 +217,7 @@ def _jacobian_blocks(params, n_cameras, n_points, camera_idx, point_idx, K):
     R = Rotation.from_rotvec(cams[:, :3]).as_matrix().reshape(n_cameras, 3, 3)
     X = params[6 * n_cameras :].reshape(n_points, 3)
     Rk = R[camera_idx]
-    RX = np.einsum("kab,kb->ka", Rk, X[point_idx])
+    RX = (Rk * X[point_idx][:, None, :]).sum(axis=2)
     xc = RX + cams[camera_idx, 3:]
     x, y, z = xc[:, 0], xc[:, 1], xc[:, 2]
     fx, s, fy = K[0, 0], K[0, 1], K[1, 1]
@@ -279,6 +279,146 @@ def reprojection_error_stats(errors: np.ndarray) -> dict[str, float]:
 
 
 # ---------------------------------------------------------------------------------------------
+# Levenberg-Marquardt with the Schur complement (the classic sparse bundle adjuster)
+# ---------------------------------------------------------------------------------------------
+
+
+def _robust(loss: str, s: np.ndarray, f_scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(rho, weight)`` of squared residual norms ``s`` for a robust loss.
+
+    ``cost = 0.5 * sum(rho)`` with ``rho = f^2 * rho0(s / f^2)`` as in ``least_squares``; the
+    weight ``rho0'(s / f^2)`` scales each observation in the normal equations (IRLS).
+    """
+    if loss == "linear":
+        return s, np.ones_like(s)
+    z = s / f_scale**2
+    if loss == "huber":
+        big = z > 1.0
+        rho0 = np.where(big, 2.0 * np.sqrt(z) - 1.0, z)
+        w = np.where(big, 1.0 / np.sqrt(np.maximum(z, 1.0)), 1.0)
+    elif loss == "soft_l1":
+        rho0 = 2.0 * (np.sqrt(1.0 + z) - 1.0)
+        w = 1.0 / np.sqrt(1.0 + z)
+    elif loss == "cauchy":
+        rho0 = np.log1p(z)
+        w = 1.0 / (1.0 + z)
+    else:
+        raise KitInputError(f"loss={loss!r}: expected 'linear', 'huber', 'soft_l1' or 'cauchy'")
+    return f_scale**2 * rho0, w
+
+
+def _outer2(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """``P_k^T Q_k`` for stacks of 2-row blocks ``P (K, 2, a)``, ``Q (K, 2, b)`` -> ``(K, a, b)``."""
+    return P[:, 0, :, None] * Q[:, 0, None, :] + P[:, 1, :, None] * Q[:, 1, None, :]
+
+
+def _schur_lm(x0_full, free, n_cameras, n_points, obs, K, loss, f_scale, max_iterations, ftol, xtol, record):
+    """Levenberg-Marquardt on the normal equations, points eliminated by the Schur complement.
+
+    Normal equations of one Gauss-Newton step (weights ``w`` from the robust loss, IRLS)::
+
+        [U   W] [dc]   [-g_c]       U = sum A^T w A (6x6 per camera),  V = sum B^T w B (3x3 per point)
+        [W^T V] [dp] = [-g_p]       W = A^T w B per observation,       g = J^T w r
+
+    with ``A`` the 2x6 camera block and ``B`` the 2x3 point block of an observation. ``V`` is
+    block diagonal, so the points are eliminated: ``(U - W V^-1 W^T) dc = -g_c + W V^-1 g_p`` (the
+    reduced camera system, 6M x 6M), then ``dp = -V^-1 (g_p + W^T dc)``. Damping:
+    ``U + lambda diag(U)``, ``V + lambda diag(V)`` (Marquardt), lambda adapted on success/failure.
+    """
+    M, N = n_cameras, n_points
+    cam, pt = obs.camera_idx, obs.point_idx
+    n_obs = len(cam)
+    free_cam = free[: 6 * M]
+    seen_pts = np.zeros(N, dtype=bool)
+    seen_pts[pt] = True
+    # all pairs (k, l) of observations of the same point, for the Schur complement
+    order = np.argsort(pt, kind="stable")
+    counts = np.bincount(pt, minlength=N)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    n_k = counts[pt]
+    pair_k = np.repeat(np.arange(n_obs), n_k)
+    offs = np.arange(pair_k.size) - np.repeat(np.cumsum(n_k) - n_k, n_k)
+    pair_l = order[np.repeat(starts[pt], n_k) + offs]
+    pair_cc = cam[pair_k] * M + cam[pair_l]
+    # scatter matrices: sum per camera / per point / per camera pair as sparse products (fast)
+    ones = np.ones(n_obs)
+    to_cam = sp.csr_matrix((ones, (cam, np.arange(n_obs))), shape=(M, n_obs))
+    to_pt = sp.csr_matrix((ones, (pt, np.arange(n_obs))), shape=(N, n_obs))
+    to_pair = sp.csr_matrix((np.ones(pair_k.size), (pair_cc, np.arange(pair_k.size))), shape=(M * M, pair_k.size))
+
+    def evaluate(p):
+        r = reprojection_residuals(p, M, N, cam, pt, obs.uv, K).reshape(-1, 2)
+        s = (r**2).sum(axis=1)
+        rho, w = _robust(loss, s, f_scale)
+        return r, w, 0.5 * float(rho.sum())
+
+    p = x0_full.copy()
+    r, w, cost = evaluate(p)
+    lam = 1e-3
+    n_iter = n_eval = 0
+    message = "the maximum number of iterations is reached"
+    success = False
+    eye3 = np.eye(3)
+    while n_iter < max_iterations:
+        blocks = _jacobian_blocks(p, M, N, cam, pt, K)
+        A, B = blocks[:, :, :6], blocks[:, :, 6:]
+        Aw, Bw = A * w[:, None, None], B * w[:, None, None]
+        U = (to_cam @ _outer2(Aw, A).reshape(n_obs, 36)).reshape(M, 6, 6)
+        V = (to_pt @ _outer2(Bw, B).reshape(n_obs, 9)).reshape(N, 3, 3)
+        Wk = _outer2(Aw, B)  # (K, 6, 3)
+        g_c = to_cam @ (Aw[:, 0] * r[:, :1] + Aw[:, 1] * r[:, 1:])
+        g_p = to_pt @ (Bw[:, 0] * r[:, :1] + Bw[:, 1] * r[:, 1:])
+        g_c_flat = g_c.ravel()
+        if np.abs(g_c_flat[free_cam]).max(initial=0.0) + np.abs(g_p[seen_pts]).max(initial=0.0) < 1e-12:
+            message, success = "the gradient vanishes", True
+            break
+        improved = False
+        while not improved and lam < 1e16:
+            n_eval += 1
+            Vd = V + lam * V * eye3 + 1e-12 * eye3
+            Vd[~seen_pts] = eye3
+            Vinv = np.linalg.inv(Vd)
+            Y = Wk @ Vinv[pt]  # (K, 6, 3)
+            S = -(to_pair @ (Y[pair_k] @ np.transpose(Wk[pair_l], (0, 2, 1))).reshape(-1, 36)).reshape(M, M, 6, 6)
+            for i in range(M):
+                S[i, i] += U[i] + lam * U[i] * np.eye(6)
+            S = S.transpose(0, 2, 1, 3).reshape(6 * M, 6 * M)
+            rhs = (g_c - to_cam @ (Y * g_p[pt][:, None, :]).sum(axis=2)).ravel()
+            dc = np.zeros(6 * M)
+            Sf = S[np.ix_(free_cam, free_cam)]
+            try:
+                dc[free_cam] = np.linalg.solve(Sf, -rhs[free_cam])
+            except np.linalg.LinAlgError:
+                dc[free_cam] = np.linalg.lstsq(Sf, -rhs[free_cam], rcond=None)[0]
+            tmp = g_p + to_pt @ (Wk * dc.reshape(M, 6)[cam][:, :, None]).sum(axis=1)
+            dp = -(Vinv * tmp[:, None, :]).sum(axis=2)
+            dp[~seen_pts] = 0.0
+            step = np.concatenate([dc, dp.ravel()])
+            p_new = p + step
+            r_new, w_new, cost_new = evaluate(p_new)
+            if np.isfinite(cost_new) and cost_new < cost:
+                improved = True
+                rel = (cost - cost_new) / max(cost, 1e-300)
+                small_step = np.linalg.norm(step) < xtol * (xtol + np.linalg.norm(p))
+                p, r, w, cost = p_new, r_new, w_new, cost_new
+                lam = max(lam / 10.0, 1e-12)
+                n_iter += 1
+                record(p, n_iter)
+                if rel < ftol:
+                    message, success = "the relative decrease of the cost is below ftol", True
+                elif small_step:
+                    message, success = "the step is below xtol", True
+            else:
+                lam *= 10.0
+        if not improved:
+            message, success = "no step decreases the cost (converged to the precision available)", True
+            break
+        if success:
+            break
+    return p, n_iter, n_eval, success, message
+
+
+# ---------------------------------------------------------------------------------------------
 # The bundle adjuster
 # ---------------------------------------------------------------------------------------------
 
@@ -295,8 +435,9 @@ class BAResult:
             (Euclidean distance in pixels) before and after.
         initial_rms, final_rms: ``sqrt(mean(error**2))`` over the observations (pixels).
         initial_mean, final_mean: ``mean(error)`` (pixels).
-        n_iterations: iterations of the solver (accepted or not; one per Jacobian evaluation).
-        n_evaluations: residual evaluations.
+        n_iterations: iterations of the solver (``"lm"``: accepted steps; ``"trf"``: Jacobian
+            evaluations).
+        n_evaluations: residual evaluations (``"lm"``: linear systems solved).
         seconds: wall-clock time of the optimization.
         cost_history: ``0.5 * sum(r**2)`` at the start and after every iteration (with a robust
             loss, still the plain squared error, so the values are comparable).
@@ -320,6 +461,7 @@ class BAResult:
     gauge: str = ""
     success: bool = True
     message: str = ""
+    method: str = "lm"
 
     @property
     def initial_rms(self) -> float:
@@ -376,6 +518,7 @@ def bundle_adjust(
     X: np.ndarray,
     uv: np.ndarray,
     *,
+    method: str = "lm",
     loss: str = "linear",
     f_scale: float = 1.0,
     max_iterations: int = 100,
@@ -397,10 +540,16 @@ def bundle_adjust(
         X: ``(N, 3)`` initial points; rows may be NaN for points with no observation in ``uv``.
         uv: ``(N, M, 2)`` observed pixels, NaN where point j is not seen in image i (only the
             observations you want in the sum: drop outliers first, or use a robust ``loss``).
-        loss: ``"linear"`` (plain least squares) or a robust loss of ``least_squares``
-            (``"huber"``, ``"soft_l1"``, ``"cauchy"``...).
+        method: ``"lm"`` (default): the kit's Levenberg-Marquardt that eliminates the points with
+            the Schur complement and solves the small reduced camera system exactly (fast, a few
+            iterations); ``"trf"``: :func:`scipy.optimize.least_squares` (trust region, ``lsmr``
+            on the sparse Jacobian, ``x_scale="jac"``). Both use the same residuals, analytic
+            Jacobian and gauge, and reach the same minimum.
+        loss: ``"linear"`` (plain least squares) or a robust loss (``"huber"``, ``"soft_l1"``,
+            ``"cauchy"``, defined as in ``least_squares``; ``"lm"`` applies it by reweighting).
         f_scale: pixels at which the robust loss starts to flatten.
-        max_iterations: at most this many iterations (Jacobian evaluations).
+        max_iterations: at most this many iterations (``"lm"``: accepted steps; ``"trf"``:
+            function evaluations).
         ftol, xtol: stopping tolerances of ``least_squares``.
         ref_camera: the camera held fixed (gauge: position and orientation of the world).
         scale_camera: the camera one of whose translation coordinates is held fixed (gauge: the
@@ -421,6 +570,10 @@ def bundle_adjust(
     Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
     """
     K, R_cw, t_cw, X, uv = _check_ba_inputs(K, R_cw, t_cw, X, uv)
+    if method not in ("lm", "trf"):
+        raise KitInputError(f"method={method!r}: expected 'lm' (the kit's Schur-complement Levenberg-Marquardt) or 'trf' (scipy)")
+    if loss not in ("linear", "huber", "soft_l1", "cauchy"):
+        raise KitInputError(f"loss={loss!r}: expected 'linear', 'huber', 'soft_l1' or 'cauchy'")
     M, N = R_cw.shape[0], X.shape[0]
     obs = observation_list(uv)
     if len(obs) == 0:
@@ -495,12 +648,12 @@ def bundle_adjust(
     history: list[float] = []
     iterates: list = []
 
-    def record(xr, it):
-        r = fun(xr)
+    def record(p_full, it):
+        r = reprojection_residuals(p_full, M, N, obs.camera_idx, obs.point_idx, obs.uv, K)
         cost = 0.5 * float(r @ r)
         history.append(cost)
         if keep_iterates or callback is not None:
-            Rk, tk, Xk = unpack_params(full(xr), M, N)
+            Rk, tk, Xk = unpack_params(p_full, M, N)
             Xk[~seen_pts] = X[~seen_pts]
             if keep_iterates:
                 iterates.append((Rk, tk, Xk))
@@ -512,32 +665,43 @@ def bundle_adjust(
     if not np.isfinite(r0).all():
         raise KitInputError("some observed points project to infinity (depth 0 in a camera): check the initial poses and points")
     e0 = np.linalg.norm(r0.reshape(-1, 2), axis=1)
-    record(x0, 0)
-
-    def ls_callback(intermediate_result):
-        record(intermediate_result.x, len(history))
+    record(x0_full, 0)
 
     t0 = time.perf_counter()
-    res = least_squares(
-        fun,
-        x0,
-        jac=jac,
-        method="trf",
-        x_scale="jac",
-        loss=loss,
-        f_scale=f_scale,
-        max_nfev=max_iterations,
-        ftol=ftol,
-        xtol=xtol,
-        gtol=1e-10,
-        tr_solver="lsmr",
-        verbose=verbose,
-        callback=ls_callback,
-    )
+    if method == "lm":
+        p_out, n_iter, n_eval, success, message = _schur_lm(
+            x0_full, free, M, N, obs, K, loss, f_scale, max_iterations, ftol, xtol, record
+        )
+    else:
+
+        def ls_callback(intermediate_result):
+            record(full(intermediate_result.x), len(history))
+
+        res = least_squares(
+            fun,
+            x0,
+            jac=jac,
+            method="trf",
+            x_scale="jac",
+            loss=loss,
+            f_scale=f_scale,
+            max_nfev=max_iterations,
+            ftol=ftol,
+            xtol=xtol,
+            gtol=1e-10,
+            tr_solver="lsmr",
+            verbose=verbose,
+            callback=ls_callback,
+        )
+        p_out = full(res.x)
+        n_iter = int(res.njev if res.njev is not None else len(history) - 1)
+        n_eval, success, message = int(res.nfev), bool(res.success), str(res.message)
     seconds = time.perf_counter() - t0
-    R_out, t_out, X_out = unpack_params(full(res.x), M, N)
+    R_out, t_out, X_out = unpack_params(p_out, M, N)
     X_out[~seen_pts] = X[~seen_pts]
-    e1 = np.linalg.norm(fun(res.x).reshape(-1, 2), axis=1)
+    e1 = np.linalg.norm(
+        reprojection_residuals(p_out, M, N, obs.camera_idx, obs.point_idx, obs.uv, K).reshape(-1, 2), axis=1
+    )
     return BAResult(
         R_cw=R_out,
         t_cw=t_out,
@@ -546,12 +710,13 @@ def bundle_adjust(
         camera_idx=obs.camera_idx,
         initial_errors=e0,
         final_errors=e1,
-        n_iterations=int(res.njev if res.njev is not None else len(history) - 1),
-        n_evaluations=int(res.nfev),
+        n_iterations=n_iter,
+        n_evaluations=n_eval,
         seconds=seconds,
         cost_history=history,
         iterates=iterates,
         gauge=gauge,
-        success=bool(res.success),
-        message=str(res.message),
+        success=success,
+        message=message,
+        method=method,
     )

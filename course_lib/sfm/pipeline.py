@@ -388,7 +388,7 @@ def _filter(st: _State, max_reproj_px: float, min_angle_deg: float) -> dict:
     return {"observations_removed": int(bad.sum()), "points_removed": int(drop.sum())}
 
 
-def _bundle(st: _State, ref: int, loss: str, f_scale: float, max_iterations: int) -> dict:
+def _bundle(st: _State, ref: int, loss: str, f_scale: float, max_iterations: int, ftol: float = 1e-4) -> dict:
     cams = np.flatnonzero(st.registered)
     pts = np.flatnonzero(st.has_X)
     inl = st.inlier
@@ -396,7 +396,7 @@ def _bundle(st: _State, ref: int, loss: str, f_scale: float, max_iterations: int
     ref_local = int(np.flatnonzero(cams == ref)[0])
     res = bundle_adjust(
         st.K, st.R[cams], st.t[cams], st.X[pts], uv, loss=loss, f_scale=f_scale, max_iterations=max_iterations,
-        ref_camera=ref_local, ftol=1e-6, xtol=1e-8,
+        ref_camera=ref_local, ftol=ftol, xtol=1e-10,
     )
     st.R[cams], st.t[cams], st.X[pts] = res.R_cw, res.t_cw, res.X
     return {
@@ -413,7 +413,7 @@ def run_sfm(
     rng: np.random.Generator,
     *,
     f_threshold_px: float = 1.0,
-    pnp_threshold_px: float = 3.0,
+    pnp_threshold_px: float = 8.0,
     max_reproj_px: float = 4.0,
     final_max_reproj_px: float = 2.0,
     min_angle_deg: float = 1.0,
@@ -423,7 +423,7 @@ def run_sfm(
     bundle_adjustment: str = "incremental",
     ba_loss: str = "huber",
     ba_f_scale: float = 1.0,
-    ba_max_iterations: int = 50,
+    ba_max_iterations: int = 20,
     initial_pair: tuple[int, int] | None = None,
     verbose: bool = False,
 ) -> Reconstruction:
@@ -568,7 +568,7 @@ def run_sfm(
         if bundle_adjustment == "final":
             final_stage["ba_robust"] = _bundle(st, a, ba_loss, ba_f_scale, 2 * ba_max_iterations)
         final_stage["filter"] = _filter(st, final_max_reproj_px, min_angle_deg)
-        final_stage["ba"] = _bundle(st, a, "linear", 1.0, 2 * ba_max_iterations)
+        final_stage["ba"] = _bundle(st, a, "linear", 1.0, 2 * ba_max_iterations, ftol=1e-8)
         final_stage["filter_after"] = _filter(st, final_max_reproj_px, min_angle_deg)
         final_stage["reprojection_after_ba"] = st.observation_stats()
     final_stage["seconds"] = round(time.perf_counter() - t0, 3)
