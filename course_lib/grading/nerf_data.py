@@ -377,11 +377,11 @@ def _encoding_params(x, L, include_input, value) -> dict | None:
     return None
 
 
-def _encoding_hint(mine: dict, ref: dict) -> str:
+def _encoding_hint(mine: dict, ref: dict, include_input: bool) -> str:
     hints = []
-    if mine["include_input"] != ref["include_input"]:
+    if mine["include_input"] != include_input:
         hints.append("missing identity term: the encoding starts with x itself, then the sines and cosines"
-                     if ref["include_input"] else "the identity term x should only be there with include_input=True")
+                     if include_input else "the identity term x should only be there with include_input=True")
     if mine["pi"] != ref["pi"]:
         hints.append("missing pi factor: use sin(2^k pi x) and cos(2^k pi x)" if ref["pi"]
                      else "no pi factor in the kit's encoding: use sin(2^k x), cos(2^k x)")
@@ -426,7 +426,7 @@ def check_positional_encoding(positional_encoding: Callable) -> None:
                 continue
             mine = _encoding_params(xin, L, inc, out)
             if mine is not None and ref_params is not None:
-                c.fail(f"{case}: {_encoding_hint(mine, ref_params)}")
+                c.fail(f"{case}: {_encoding_hint(mine, ref_params, inc) or 'values differ from the reference'}")
             else:
                 c.fail(f"{case}: the values differ from the reference (max error {float(np.abs(out - ref).max()):.3g}); "
                        "compare with the formula above: [x, sin(2^0 pi x), cos(2^0 pi x), ..., cos(2^(L-1) pi x)]")

@@ -217,8 +217,10 @@ def check_nerf_model(NeRF: Callable) -> None:
                 what = " and ".join(w for w, ok in (("rgb", ok_rgb), ("sigma", ok_sig)) if not ok)
                 hint = ("check the ReLU after every layer, the skip input torch.cat([γ(x), h], -1), that sigma comes "
                         "from the last trunk layer, and the colour input torch.cat([feature, γ(d)], -1)")
-                if not ok_sig and ok_rgb is False and sigma.min() < 0:
+                if not ok_sig and sigma.min() < 0:
                     hint = "sigma is negative: ReLU on the density head; " + hint
+                if not ok_rgb and (rgb.min() < 0 or rgb.max() > 1):
+                    hint = "rgb outside [0, 1]: sigmoid on the RGB head; " + hint
                 c.fail(f"{case}: with the reference's weights (copied layer by layer in order of definition) "
                        f"{what} differ: {hint}")
 
