@@ -85,7 +85,8 @@ def two_view_reconstruction(folder, new_image: int = NEW_IMAGE) -> dict[str, np.
 
     Returns:
         dict with ``K``, ``pair (2,)``, ``R_cws (2, 3, 3)``, ``t_cws (2, 3)`` (camera 1 at ``I, 0``,
-        ``|t_cws[1]| = 1``), ``X (N, 3)``, ``track_ids (N,)``, ``new_image``, ``X_new (K, 3)``,
+        ``|t_cws[1]| = 1``), ``X (N, 3)``, ``track_ids (N,)``, ``rgb (N, 3)`` uint8, ``x1, x2 (N, 2)``
+        (the pixels of the points in the pair), ``new_image``, ``X_new (K, 3)``,
         ``x_new (K, 2)``, ``ids_new (K,)``.
     """
     from course_lib.grading import triangulation as gtri
@@ -109,7 +110,7 @@ def two_view_reconstruction(folder, new_image: int = NEW_IMAGE) -> dict[str, np.
     ids = st["track_ids"][keep]
     data = read_p3(folder, require_images=False)
     X_new, x_new, ids_new = correspondences_2d3d(ids, X, data.track_uv, new_image)
-    return {"K": K, "pair": st["pair"], "R_cws": R_cws, "t_cws": t_cws, "X": X, "track_ids": ids,
+    return {"K": K, "pair": st["pair"], "R_cws": R_cws, "t_cws": t_cws, "X": X, "track_ids": ids, "rgb": st["rgb"][keep],
             "x1": uv[:, 0], "x2": uv[:, 1], "new_image": np.array(new_image),
             "X_new": X_new, "x_new": x_new, "ids_new": ids_new}
 
@@ -310,7 +311,8 @@ def check_pnp_linear(fn, exercise: str = "pnp_linear") -> None:
                 continue
             R, t = out
             e_s, e_r = _rms(_errors(K, R, t, X, x)), _rms(_errors(K, R_r, t_r, X, x))
-            if rotation_angle_deg(R, R_r) < 0.5 and e_s <= 1.5 * e_r + 0.5:
+            t_close = np.linalg.norm(t - t_r) <= 0.05 * np.linalg.norm(t_r)  # t = P[:, 3] / σ is a few % off
+            if rotation_angle_deg(R, R_r) < 0.5 and (t_close or e_s <= 1.5 * e_r + 0.5):
                 c.expect(True, f"{case}: close to the reference pose", "")
                 continue
             why = _pose_mistake(R, t, R_r, t_r, 0.5, 0.05)
@@ -389,7 +391,8 @@ def check_pnp_ransac(fn, exercise: str = "pnp_ransac") -> None:
                 below = int((e < THRESHOLD_PX).sum())
                 hint = ("did you compare the squared error with the threshold? compare the distance in pixels"
                         if (e < np.sqrt(THRESHOLD_PX)).sum() >= 0.9 * inl.sum() else
-                        "refit the pose on all inliers of the best sample and recompute the inliers with the refit pose")
+                        "refit the pose on all inliers of the best sample and recompute the inliers with the refit "
+                        "pose; in pnp_linear re-estimate t with R fixed (t = P[:, 3] / σ is too noisy)")
                 c.fail(f"{case}: {int(inl.sum())} inliers, the reference finds {n_r} ({below} points are within "
                        f"{THRESHOLD_PX:g} px of your pose): {hint}")
             else:

@@ -65,7 +65,7 @@ def two_view_input(folder, pair: tuple[int, int] = EMBEDDED_PAIR, seed: int = ST
 
     Returns:
         dict with ``K (3, 3)``, ``pair (2,)``, ``F (3, 3)``, ``E (3, 3)``, ``x1, x2 (N, 2)`` (the RANSAC
-        inliers), ``track_ids (N,)`` (-1 if not in a track), ``R_candidates (4, 3, 3)``,
+        inliers), ``track_ids (N,)`` (-1 if not in a track), ``rgb (N, 3)`` uint8, ``R_candidates (4, 3, 3)``,
         ``C_candidates (4, 3)``, ``n_matches`` (before RANSAC).
     """
     try:
@@ -95,6 +95,7 @@ def two_view_input(folder, pair: tuple[int, int] = EMBEDDED_PAIR, seed: int = ST
         "x1": m.x1[inl],
         "x2": m.x2[inl],
         "track_ids": m.track_ids[inl],
+        "rgb": m.rgb[inl],
         "R_candidates": R,
         "C_candidates": C,
         "n_matches": np.array(len(m.x1)),

@@ -67,8 +67,23 @@ def _dlt(X: np.ndarray, xn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         M = P[:, :3]
     U, S, Vt3 = np.linalg.svd(M)
     R = U @ Vt3  # the closest rotation (det +1 since det M > 0)
-    t = P[:, 3] / S.mean()  # the same scale lambda as the rotation block
+    # t = P[:, 3] / mean(S) has the scale of the rotation block, but the scale is a noisy estimate
+    # (near-planar scenes make it worse); with R fixed, t solves the linear equations
+    # [x_n]x (R X + t) = 0 in the least-squares sense, which is as cheap and much more accurate.
+    S_x = _skew_rows(to_homogeneous(xn))  # (N, 3, 3)
+    A = S_x.reshape(-1, 3)
+    b = -(S_x @ (X @ R.T)[:, :, None]).reshape(-1)
+    t = np.linalg.solve(A.T @ A, A.T @ b) if np.linalg.cond(A.T @ A) < 1e12 else P[:, 3] / S.mean()
     return R, t
+
+
+def _skew_rows(v: np.ndarray) -> np.ndarray:
+    """``(N, 3, 3)`` cross-product matrices of the rows of ``v (N, 3)``."""
+    S = np.zeros((v.shape[0], 3, 3))
+    S[:, 0, 1], S[:, 0, 2] = -v[:, 2], v[:, 1]
+    S[:, 1, 0], S[:, 1, 2] = v[:, 2], -v[:, 0]
+    S[:, 2, 0], S[:, 2, 1] = -v[:, 1], v[:, 0]
+    return S
 
 
 def pnp_linear(X: np.ndarray, x: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -78,8 +93,10 @@ def pnp_linear(X: np.ndarray, x: np.ndarray, K: np.ndarray) -> tuple[np.ndarray,
     gives ``u_n (p3ᵀ X_h) - p1ᵀ X_h = 0`` and ``v_n (p3ᵀ X_h) - p2ᵀ X_h = 0``. ``P`` is the
     right singular vector of the smallest singular value (the 3-D points are centred and scaled
     first, for conditioning). Its sign is chosen so that ``det P[:, :3] > 0`` (then the points
-    lie in front of the camera); ``P[:, :3] = U S Vᵀ`` gives ``R = U Vᵀ`` and
-    ``t = P[:, 3] / mean(S)``.
+    lie in front of the camera); ``P[:, :3] = U S Vᵀ`` gives ``R = U Vᵀ``. The translation with
+    the same scale would be ``P[:, 3] / mean(S)``; instead, with ``R`` fixed, ``t`` is solved
+    from the linear equations ``[x_n]ₓ (R X + t) = 0`` (least squares), which is consistent
+    with ``R`` and far less sensitive to noise and to near-planar scenes.
 
     Args:
         X: ``(N, 3)`` world points, N >= 6, not all on one plane.
