@@ -105,7 +105,9 @@ def _eight_point_core(x1: np.ndarray, x2: np.ndarray) -> np.ndarray | None:
     u2, v2 = ((x2 - c2) * s2).T
     # One row per correspondence: x2ᵀ F x1 = 0 written as A f = 0 with f = F.ravel() (row-major).
     A = np.stack([u2 * u1, u2 * v1, u2, v2 * u1, v2 * v1, v2, u1, v1, np.ones_like(u1)], axis=1)
-    _, S, Vt = np.linalg.svd(A)
+    # full_matrices only for N = 8, where the null vector is the 9th row of Vt (thin SVD otherwise:
+    # the full U of a big A is N x N and slow)
+    _, S, Vt = np.linalg.svd(A, full_matrices=len(A) < 9)
     # f is unique (up to scale) only if A has rank 8: its 8th singular value must not vanish.
     if len(S) < 8 or S[7] <= 1e-10 * S[0]:
         return None
