@@ -57,6 +57,8 @@ __all__ = [
     "sfm_cameras",
     "nerf_cameras",
     "detect_and_match",
+    "sfm_photos",
+    "tracks_from_images",
     "make_sfm_dataset",
     "make_nerf_dataset",
     "load_ground_truth",
@@ -563,6 +565,53 @@ def _jpeg_roundtrip(rgb_u8: np.ndarray, quality: int) -> tuple[bytes, np.ndarray
     return buf.tobytes(), np.ascontiguousarray(dec)
 
 
+def sfm_photos(seed: int = DEFAULT_SEED, n_cameras: int = 6, quality: int = 88, count: int | None = None):
+    """Render the SfM photos one by one (a generator), exactly as :func:`make_sfm_dataset` does.
+
+    Args:
+        seed, n_cameras, quality: as in :func:`make_sfm_dataset`.
+        count: stop after this many photos (the first ones are identical to the full run's).
+
+    Yields:
+        First ``(K, R_cw (M, 3, 3), t_cw (M, 3))``, then per photo ``(jpeg_bytes, rgb (H, W, 3) uint8)``
+        where ``rgb`` is the decoded JPEG (what the students get).
+    """
+    rng = np.random.default_rng(seed)
+    surfaces = build_scene(rng, ground="large")
+    K = WPI_LIKE_K.copy()
+    R_cw, t_cw = sfm_cameras(rng, n_cameras)
+    yield K, R_cw, t_cw
+    for i in range(n_cameras if count is None else min(count, n_cameras)):
+        rgb, _ = render(surfaces, K, R_cw[i], t_cw[i], SFM_IMAGE_SIZE, supersample=2)
+        rgb = rgb + rng.normal(0, 1.5 / 255, rgb.shape)  # sensor noise
+        yield _jpeg_roundtrip(_to_uint8(rgb), quality)
+
+
+def tracks_from_images(images: list[np.ndarray], ratio: float = RATIO):
+    """SIFT matches of all pairs joined into tracks, with each track's colour.
+
+    Args:
+        images: M ``(H, W, 3)`` uint8 RGB images.
+        ratio: Lowe's ratio.
+
+    Returns:
+        ``track_uv (T, M, 2)``, ``track_rgb (T, 3)`` uint8 (colour at the first observation),
+        ``pairs`` (the raw matches of :func:`detect_and_match`) and the stats of
+        :func:`course_lib.data.p3.tracks_from_pairs`.
+    """
+    from course_lib.data.p3 import tracks_from_pairs
+
+    pairs = detect_and_match(images, ratio)
+    track_uv, _, tstats = tracks_from_pairs(len(images), pairs)
+    first = np.argmax(~np.isnan(track_uv[..., 0]), axis=1)
+    uv0 = track_uv[np.arange(len(track_uv)), first]
+    H, W = images[0].shape[:2]
+    cols = np.clip(np.round(uv0[:, 0]).astype(int), 0, W - 1)
+    rows = np.clip(np.round(uv0[:, 1]).astype(int), 0, H - 1)
+    track_rgb = np.stack([images[f][r, c] for f, r, c in zip(first, rows, cols)]) if len(first) else np.zeros((0, 3), np.uint8)
+    return track_uv, track_rgb, pairs, tstats
+
+
 def make_sfm_dataset(folder, seed: int = DEFAULT_SEED, n_cameras: int = 6, quality: int = 88, verbose: bool = False) -> dict:
     """Render the SfM photos, match SIFT features and write a P3 folder with ground truth.
 
@@ -574,34 +623,22 @@ def make_sfm_dataset(folder, seed: int = DEFAULT_SEED, n_cameras: int = 6, quali
         verbose: print progress.
 
     Returns:
-        Summary dict (matches per pair, tracks, inlier fraction vs the ground truth).
+        Summary dict (tracks, raw matches per pair, track-building stats).
     """
-    from course_lib.data.p3 import tracks_from_pairs, write_p3
+    from course_lib.data.p3 import write_p3
 
     folder = Path(folder)
-    rng = np.random.default_rng(seed)
-    surfaces = build_scene(rng, ground="large")
-    K = WPI_LIKE_K.copy()
-    R_cw, t_cw = sfm_cameras(rng, n_cameras)
-    names = [f"{i + 1}.jpg" for i in range(n_cameras)]
     folder.mkdir(parents=True, exist_ok=True)
+    names = [f"{i + 1}.jpg" for i in range(n_cameras)]
+    photos = sfm_photos(seed, n_cameras, quality)
+    K, R_cw, t_cw = next(photos)
     images = []
-    for i in range(n_cameras):
-        rgb, _ = render(surfaces, K, R_cw[i], t_cw[i], SFM_IMAGE_SIZE, supersample=2)
-        rgb = rgb + rng.normal(0, 1.5 / 255, rgb.shape)  # sensor noise
-        data, dec = _jpeg_roundtrip(_to_uint8(rgb), quality)
-        (folder / names[i]).write_bytes(data)
+    for name, (data, dec) in zip(names, photos):
+        (folder / name).write_bytes(data)
         images.append(dec)  # features are detected on what the students get: the decoded JPEG
         if verbose:
-            print(f"rendered {names[i]}", flush=True)
-    pairs = detect_and_match(images)
-    track_uv, _, tstats = tracks_from_pairs(n_cameras, pairs)
-    first = np.argmax(~np.isnan(track_uv[..., 0]), axis=1)
-    uv0 = track_uv[np.arange(len(track_uv)), first]
-    W, H = SFM_IMAGE_SIZE
-    cols = np.clip(np.round(uv0[:, 0]).astype(int), 0, W - 1)
-    rows_ = np.clip(np.round(uv0[:, 1]).astype(int), 0, H - 1)
-    track_rgb = np.stack([images[f][r, c] for f, r, c in zip(first, rows_, cols)]) if len(first) else np.zeros((0, 3), np.uint8)
+            print(f"rendered {name}", flush=True)
+    track_uv, track_rgb, pairs, tstats = tracks_from_images(images)
     write_p3(folder, names, K, track_uv, track_rgb)  # images already written (JPEG bytes)
     gt = {
         "K": K.tolist(),
@@ -620,7 +657,7 @@ def make_sfm_dataset(folder, seed: int = DEFAULT_SEED, n_cameras: int = 6, quali
 
 
 def make_nerf_dataset(folder, seed: int = DEFAULT_SEED, n_train: int = 100, n_val: int = 5, n_test: int = 12,
-                      size: int = NERF_SIZE, verbose: bool = False) -> dict:
+                      size: int = NERF_SIZE, splits=("train", "val", "test"), verbose: bool = False) -> dict:
     """Render the NeRF views (RGBA, transparent background) and write them in Blender format.
 
     The building stands on a bounded base slab; the NeRF frame is
@@ -628,8 +665,17 @@ def make_nerf_dataset(folder, seed: int = DEFAULT_SEED, n_train: int = 100, n_va
     ``[-1.1, 1.1] x [-1, 0.8] x [-0.6, 0.8]`` and the cameras sit :data:`NERF_RADIUS` from the origin.
     Train and val views are random on the upper hemisphere; test views are a ring at 30 degrees.
 
+    Args:
+        folder: output folder.
+        seed: the seed (textures and cameras; the rendering itself is deterministic).
+        n_train, n_val, n_test: views per split.
+        size: image width = height in pixels.
+        splits: the splits to render and write (the cameras of all three are always drawn, so a
+            subset gives the same files as the full run).
+        verbose: print progress.
+
     Returns:
-        Summary dict (number of views per split, image size, camera_angle_x).
+        Summary dict (number of views per split).
     """
     from course_lib.data.blender import intrinsics_from_fov, write_blender
 
@@ -637,8 +683,11 @@ def make_nerf_dataset(folder, seed: int = DEFAULT_SEED, n_train: int = 100, n_va
     rng = np.random.default_rng(seed + 1)
     surfaces = build_scene(rng, ground="slab", rho=40.0)
     K = intrinsics_from_fov(size, size, NERF_CAMERA_ANGLE_X)
-    splits = {"train": nerf_cameras(rng, n_train), "val": nerf_cameras(rng, n_val), "test": nerf_cameras(rng, n_test, "ring")}
-    for split, c2w in splits.items():
+    cams = {"train": nerf_cameras(rng, n_train), "val": nerf_cameras(rng, n_val), "test": nerf_cameras(rng, n_test, "ring")}
+    for split in splits:
+        if split not in cams:
+            raise KitInputError(f"split {split!r}: expected train, val or test")
+        c2w = cams[split]
         imgs = []
         for M in c2w:
             C_world = NERF_CENTER + M[:3, 3] / NERF_SCALE
@@ -652,7 +701,7 @@ def make_nerf_dataset(folder, seed: int = DEFAULT_SEED, n_train: int = 100, n_va
             "radius": NERF_RADIUS, "camera_angle_x": NERF_CAMERA_ANGLE_X, "image_size": [size, size],
             "world": "NeRF frame: z up, X_nerf = nerf_scale * (X_world - nerf_center_world); world in metres"}
     (folder / "scene.json").write_text(json.dumps(info, indent=1))
-    return {k: len(v) for k, v in splits.items()}
+    return {k: len(cams[k]) for k in splits}
 
 
 # ============================================================================ ground truth
