@@ -221,6 +221,9 @@ def _build() -> dict[str, np.ndarray]:
         out.update({"lin_embedded_P1": P1, "lin_embedded_P2": P2, "lin_embedded_x1": x1, "lin_embedded_x2": x2,
                     "lin_embedded_X": tri.triangulate_linear(P1, P2, x1, x2)})
         _store_pose_case(out, "pose_embedded", st["R_candidates"], st["C_candidates"], Ke, x1, x2, tri)
+        truth = _relative_truth(EMBEDDED_SFM, EMBEDDED_PAIR)
+        if truth is not None:
+            out["pose_embedded_gt_R"], out["pose_embedded_gt_t"] = truth
         keep = ch.in_front[:MAX_EMBEDDED]
         R_cws = np.stack([np.eye(3), ch.R_cw])
         t_cws = np.stack([np.zeros(3), ch.t_cw])
@@ -278,6 +281,11 @@ def _reproj_rms(K, R_cws, t_cws, uv, X) -> float:
         sq.append((d**2).sum(axis=1))
     sq = np.concatenate(sq)
     return float(np.sqrt(sq.mean())) if sq.size else 0.0
+
+
+def _angle_deg(R_a, R_b) -> float:
+    c = np.clip((np.trace(np.asarray(R_a) @ np.asarray(R_b).T) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.degrees(np.arccos(c)))
 
 
 def _scale(X) -> float:
@@ -467,6 +475,12 @@ def _pose_case(c: Check, fn, f, key, case) -> None:
     if f"{key}_true_R" in f:
         ok = np.allclose(R_s, f[f"{key}_true_R"], atol=1e-6) and np.allclose(t_s, f[f"{key}_true_t"], atol=1e-6)
         c.expect(ok, f"{case}: equals the true relative pose", f"{case}: differs from the true relative pose")
+    if f"{key}_gt_R" in f:  # estimated from real matches: close to the ground truth, not equal
+        rot = _angle_deg(R_s, f[f"{key}_gt_R"])
+        cos_t = float(t_s @ f[f"{key}_gt_t"] / max(np.linalg.norm(t_s), 1e-300))
+        c.expect(rot < 1.0 and cos_t > np.cos(np.radians(3.0)), f"{case}: agrees with the ground truth of the scene",
+                 f"{case}: {rot:.2g}° and {np.degrees(np.arccos(np.clip(cos_t, -1, 1))):.2g}° (direction of t) from the "
+                 "ground truth")
 
 
 def check_choose_pose(fn, exercise: str = "choose_pose") -> None:
