@@ -310,3 +310,13 @@ def test_render_mistakes(capsys, kwargs, words):
 def test_render_wrong_return_type(capsys):
     out = run_check(capsys, nerf_rendering.check_volume_render, lambda *a, **k: (a[0].sum(1), None))
     assert_names(out, "return a dict")
+
+
+def test_check_modules_do_not_import_the_reference():
+    """A student release without course_lib.nerf still runs the check cells (fixtures only)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, course_lib.grading.nerf_data, course_lib.grading.nerf_model, course_lib.grading.nerf_rendering; "
+            "bad = [m for m in sys.modules if m.startswith('course_lib.nerf')]; assert not bad, bad")
+    subprocess.run([sys.executable, "-c", code], check=True)
