@@ -331,20 +331,26 @@ def _schur_lm(x0_full, free, n_cameras, n_points, obs, K, loss, f_scale, max_ite
     free_cam = free[: 6 * M]
     seen_pts = np.zeros(N, dtype=bool)
     seen_pts[pt] = True
-    # all pairs (k, l) of observations of the same point, for the Schur complement
-    order = np.argsort(pt, kind="stable")
-    counts = np.bincount(pt, minlength=N)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    n_k = counts[pt]
-    pair_k = np.repeat(np.arange(n_obs), n_k)
-    offs = np.arange(pair_k.size) - np.repeat(np.cumsum(n_k) - n_k, n_k)
-    pair_l = order[np.repeat(starts[pt], n_k) + offs]
-    pair_cc = cam[pair_k] * M + cam[pair_l]
-    # scatter matrices: sum per camera / per point / per camera pair as sparse products (fast)
+    # scatter matrices: sums per camera / per point as sparse products (fast)
     ones = np.ones(n_obs)
     to_cam = sp.csr_matrix((ones, (cam, np.arange(n_obs))), shape=(M, n_obs))
     to_pt = sp.csr_matrix((ones, (pt, np.arange(n_obs))), shape=(N, n_obs))
-    to_pair = sp.csr_matrix((np.ones(pair_k.size), (pair_cc, np.arange(pair_k.size))), shape=(M * M, pair_k.size))
+    # W V^-1 W^T is summed over points. Small problems (the course's): as one matrix product over a
+    # dense (6M, 3N) layout of W. Large ones: over all pairs (k, l) of observations of a point.
+    dense = 6 * M * 3 * N <= 2e7
+    if dense:
+        w_rows = (6 * cam[:, None] + np.arange(6)).ravel()  # row of each entry of W_k in (6M, 3N)
+        w_cols = np.repeat(3 * pt, 6)
+    else:
+        order = np.argsort(pt, kind="stable")
+        counts = np.bincount(pt, minlength=N)
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        n_k = counts[pt]
+        pair_k = np.repeat(np.arange(n_obs), n_k)
+        offs = np.arange(pair_k.size) - np.repeat(np.cumsum(n_k) - n_k, n_k)
+        pair_l = order[np.repeat(starts[pt], n_k) + offs]
+        pair_cc = cam[pair_k] * M + cam[pair_l]
+        to_pair = sp.csr_matrix((np.ones(pair_k.size), (pair_cc, np.arange(pair_k.size))), shape=(M * M, pair_k.size))
 
     def evaluate(p):
         r = reprojection_residuals(p, M, N, cam, pt, obs.uv, K).reshape(-1, 2)
@@ -379,7 +385,15 @@ def _schur_lm(x0_full, free, n_cameras, n_points, obs, K, loss, f_scale, max_ite
             Vd[~seen_pts] = eye3
             Vinv = np.linalg.inv(Vd)
             Y = Wk @ Vinv[pt]  # (K, 6, 3)
-            S = -(to_pair @ (Y[pair_k] @ np.transpose(Wk[pair_l], (0, 2, 1))).reshape(-1, 36)).reshape(M, M, 6, 6)
+            if dense:
+                Wd = np.zeros((6 * M, 3 * N))
+                Yd = np.zeros((6 * M, 3 * N))
+                Wd[w_rows[:, None], w_cols[:, None] + np.arange(3)] = Wk.reshape(-1, 3)
+                Yd[w_rows[:, None], w_cols[:, None] + np.arange(3)] = Y.reshape(-1, 3)
+                S = -(Yd @ Wd.T).reshape(M, 6, M, 6).transpose(0, 2, 1, 3)
+            else:
+                S = -(to_pair @ (Y[pair_k] @ np.transpose(Wk[pair_l], (0, 2, 1))).reshape(-1, 36)).reshape(M, M, 6, 6)
+            S = np.ascontiguousarray(S)
             for i in range(M):
                 S[i, i] += U[i] + lam * U[i] * np.eye(6)
             S = S.transpose(0, 2, 1, 3).reshape(6 * M, 6 * M)

@@ -15,16 +15,19 @@ library:
    the four candidates and the cheirality test (:func:`~course_lib.sfm.triangulation.choose_pose`)
    give the second camera; the first is the world frame (``R = I, t = 0``) and the baseline has
    length 1 (the unit of the reconstruction).
-3. **Triangulation** (notebook 03): linear from two views, then non-linear over all registered
-   views that see the track; a point is kept if it lies in front of those cameras, reprojects
-   within ``max_reproj_px`` and its triangulation angle is at least ``min_angle_deg``
-   (observations that reproject badly are dropped one by one).
+3. **Triangulation** (notebook 03): linear from two views (the new image and its farthest
+   registered partner), then non-linear over all registered views that see the track (skipped
+   for images after the initial pair when bundle adjustment follows at once, since BA refines the
+   new points with everything else); a point is kept if it lies in front of those cameras,
+   reprojects within ``max_reproj_px`` and its triangulation angle is at least ``min_angle_deg``;
+   observations that reproject badly are rejected.
 4. **Registration** (notebook 04): the unregistered image that sees the most triangulated tracks
    next: PnP RANSAC (:func:`~course_lib.sfm.pnp.pnp_ransac`) then non-linear PnP on the inliers.
    This is how UPenn images 5 and 6, which share no matches with images 1 and 2, come in.
 5. **Bundle adjustment** (notebook 05, :func:`~course_lib.sfm.bundle_adjustment.bundle_adjust`):
-   after every registration (robust Huber loss), then outlier observations are removed and a
-   final BA with the plain squared loss polishes the result.
+   after every registration (robust Huber loss, then observations beyond ``max_reproj_px`` are
+   removed); at the end observations beyond ``final_max_reproj_px`` are removed and a final BA
+   (Cauchy loss at 0.3 px by default) polishes the result.
 
 P3 data quirks handled upstream by the reader (:mod:`course_lib.data.p3`): tracks across
 matching files are joined by equal coordinates, duplicate rows are merged, inconsistent tracks
@@ -304,7 +307,7 @@ def _choose_initial_pair(data, st: _State, pairs: dict, min_inliers: int, min_an
     return scored
 
 
-def _triangulate_new(st: _State, new: int, min_angle_deg: float, max_reproj_px: float) -> int:
+def _triangulate_new(st: _State, new: int, min_angle_deg: float, max_reproj_px: float, refine: bool) -> int:
     """Triangulate tracks seen in image ``new`` and at least one other registered image."""
     from course_lib.sfm.triangulation import triangulate_linear, triangulate_nonlinear
 
@@ -323,7 +326,7 @@ def _triangulate_new(st: _State, new: int, min_angle_deg: float, max_reproj_px: 
     js = np.flatnonzero(np.isfinite(X0).all(axis=1))
     if len(js) == 0:
         return 0
-    return _refine_and_accept(st, js, X0[js], min_angle_deg, max_reproj_px, triangulate_nonlinear)
+    return _refine_and_accept(st, js, X0[js], min_angle_deg, max_reproj_px, triangulate_nonlinear if refine else None)
 
 
 def _refine_and_accept(st: _State, js, X0, min_angle_deg, max_reproj_px, triangulate_nonlinear) -> int:
@@ -345,7 +348,7 @@ def _refine_and_accept(st: _State, js, X0, min_angle_deg, max_reproj_px, triangu
     uv[~(E <= max_reproj_px)] = np.nan
     two = np.isfinite(uv).all(axis=2).sum(axis=1) >= 2
     X = X0.copy()
-    if two.any():
+    if two.any() and triangulate_nonlinear is not None:
         X[two] = triangulate_nonlinear(st.K, st.R[regs], st.t[regs], uv[two], X0[two])
     E = reprojection_error_matrix(st.K, st.R[regs], st.t[regs], X, uv)
     ok_obs = E <= max_reproj_px
@@ -424,6 +427,8 @@ def run_sfm(
     ba_loss: str = "huber",
     ba_f_scale: float = 1.0,
     ba_max_iterations: int = 20,
+    final_ba_loss: str = "cauchy",
+    final_ba_f_scale: float = 0.3,
     initial_pair: tuple[int, int] | None = None,
     verbose: bool = False,
 ) -> Reconstruction:
@@ -444,9 +449,12 @@ def run_sfm(
         bundle_adjustment: ``"incremental"`` (after every registration and at the end),
             ``"final"`` (once at the end) or ``"none"`` (the result *before* bundle adjustment,
             the starting point of notebook 05).
-        ba_loss, ba_f_scale: robust loss of the intermediate bundle adjustments (the final one is
-            plain least squares on the filtered observations).
-        ba_max_iterations: iteration cap of each bundle adjustment.
+        ba_loss, ba_f_scale: robust loss of the intermediate bundle adjustments.
+        ba_max_iterations: iteration cap of each bundle adjustment (twice that for the final one).
+        final_ba_loss, final_ba_f_scale: loss of the final bundle adjustment, run after the
+            observations beyond ``final_max_reproj_px`` were removed. The default, Cauchy at 0.3 px,
+            down-weights the heavy tail of SIFT localization errors (on the embedded scene it
+            halves the rotation error against the ground truth compared with plain least squares).
         initial_pair: force the initial pair ``(i, j)`` (0-based) instead of choosing it.
         verbose: print one line per stage.
 
@@ -546,7 +554,7 @@ def run_sfm(
             stages.append({"stage": "register", "image": i, "name": data.image_names[i], "registered": False,
                            "correspondences": counts[i], "note": "too few 2D-3D correspondences / PnP inliers"})
             continue
-        n_new = _triangulate_new(st, i, min_angle_deg, max_reproj_px)
+        n_new = _triangulate_new(st, i, min_angle_deg, max_reproj_px, refine=bundle_adjustment != "incremental")
         stage = {"stage": "register", "image": i, "name": data.image_names[i], "registered": True, **info,
                  "new_points": n_new, "points": int(st.has_X.sum()), "reprojection_before_ba": st.observation_stats()}
         if bundle_adjustment == "incremental":
@@ -568,7 +576,7 @@ def run_sfm(
         if bundle_adjustment == "final":
             final_stage["ba_robust"] = _bundle(st, a, ba_loss, ba_f_scale, 2 * ba_max_iterations)
         final_stage["filter"] = _filter(st, final_max_reproj_px, min_angle_deg)
-        final_stage["ba"] = _bundle(st, a, "linear", 1.0, 2 * ba_max_iterations, ftol=1e-8)
+        final_stage["ba"] = _bundle(st, a, final_ba_loss, final_ba_f_scale, 2 * ba_max_iterations, ftol=1e-8)
         final_stage["filter_after"] = _filter(st, final_max_reproj_px, min_angle_deg)
         final_stage["reprojection_after_ba"] = st.observation_stats()
     final_stage["seconds"] = round(time.perf_counter() - t0, 3)
