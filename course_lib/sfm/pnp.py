@@ -188,6 +188,10 @@ def pnp_ransac(
     Returns:
         :class:`PnPResult` ``(R_cw, t_cw, inliers (N,) bool, n_iters)``.
 
+    Raises:
+        KitInputError: bad input, or no sample gave a pose with 6 or more inliers (the
+            correspondences do not match, or K is wrong); a pipeline may catch it and skip the image.
+
     Introduced in notebooks/04_pnp.ipynb
     """
     X, x, K = _inputs(X, x, K, MIN_POINTS, "PnP RANSAC")

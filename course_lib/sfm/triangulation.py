@@ -29,7 +29,14 @@ from scipy.optimize import least_squares
 from course_lib import validate
 from course_lib.conventions import project, to_homogeneous, translation_from_center
 
-__all__ = ["triangulate_linear", "PoseChoice", "choose_pose", "reprojection_errors", "triangulate_nonlinear"]
+__all__ = [
+    "triangulate_linear",
+    "PoseChoice",
+    "choose_pose",
+    "in_front_of_both",
+    "reprojection_errors",
+    "triangulate_nonlinear",
+]
 
 
 def _projection(P, name: str) -> np.ndarray:
