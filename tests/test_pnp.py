@@ -164,6 +164,7 @@ def test_real_data_wpi_registration():
         (lambda X, x, K: pnp_linear(X, x, np.zeros((3, 3))), "not invertible"),
         (lambda X, x, K: pnp_linear(X.T, x, K), "transpose"),
         (lambda X, x, K: pnp_ransac(X, x, K, 0), "numpy Generator"),
+        (lambda X, x, K: pnp_linear(X * np.array([1.0, 1.0, 0.0]) + np.array([0.0, 0.0, 10.0]), x, K), "one plane"),
         (lambda X, x, K: pnp_ransac(X[:4], x[:4], K, np.random.default_rng(0)), "PnP RANSAC needs at least 6"),
         (lambda X, x, K: pnp_nonlinear(X, x, K, -np.eye(3), np.zeros(3)), "det = -1"),
         (lambda X, x, K: pnp_ransac(X, np.random.default_rng(1).random(x.shape) * 800, K, np.random.default_rng(0),

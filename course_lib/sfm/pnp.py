@@ -107,11 +107,18 @@ def pnp_linear(X: np.ndarray, x: np.ndarray, K: np.ndarray) -> tuple[np.ndarray,
         ``R_cw (3, 3)`` with det +1 and ``t_cw (3,)`` of the new camera.
 
     Raises:
-        KitInputError: fewer than 6 correspondences, NaNs, mismatched counts, singular K.
+        KitInputError: fewer than 6 correspondences, NaNs, mismatched counts, singular K,
+            coplanar points.
 
     Introduced in notebooks/04_pnp.ipynb
     """
     X, x, K = _inputs(X, x, K, MIN_POINTS, "linear PnP")
+    sv = np.linalg.svd(X - X.mean(axis=0), compute_uv=False)
+    if sv[2] <= 1e-9 * max(sv[0], 1e-300):
+        raise validate.KitInputError(
+            f"the {X.shape[0]} points of X lie on one plane (or line): the 12-unknown DLT is degenerate for "
+            "coplanar points; add points off the plane"
+        )
     xn = (to_homogeneous(x) @ np.linalg.inv(K).T)[:, :2]
     return _dlt(X, xn)
 
