@@ -365,3 +365,25 @@ print(sorted(g.step_input()))
     assert out.returncode == 0, out.stderr
     assert "not implemented yet" in out.stdout and "Traceback" not in out.stdout
     assert "'K'" in out.stdout
+
+
+def test_nonlinear_point_error_matches_first_order_prediction():
+    """RMSE to the true points equals the one predicted from the noise: sigma^2 (J^T J)^-1 per point."""
+    sigma = 1.0
+    sc, R, t, X = relative_scene(noise_px=sigma, n_points=1500, seed=3)
+    uv = sc.uv
+    P1, P2 = projection_matrix(sc.K, R[0], t[0]), projection_matrix(sc.K, R[1], t[1])
+    Xn = triangulate_nonlinear(sc.K, R, t, uv, triangulate_linear(P1, P2, uv[:, 0], uv[:, 1]))
+    predicted = []
+    fx, fy = sc.K[0, 0], sc.K[1, 1]
+    for j in range(len(X)):
+        J = []
+        for i in range(3):
+            Xc = R[i] @ X[j] + t[i]
+            d = np.array([[fx / Xc[2], 0, -fx * Xc[0] / Xc[2] ** 2], [0, fy / Xc[2], -fy * Xc[1] / Xc[2] ** 2]])
+            J.append(d @ R[i])
+        J = np.vstack(J)
+        predicted.append(np.trace(np.linalg.inv(J.T @ J)) * sigma**2)
+    rmse_pred = np.sqrt(np.mean(predicted))
+    rmse = np.sqrt(((Xn - X) ** 2).sum(1).mean())
+    assert rmse == pytest.approx(rmse_pred, rel=0.1)
