@@ -335,22 +335,11 @@ def _schur_lm(x0_full, free, n_cameras, n_points, obs, K, loss, f_scale, max_ite
     ones = np.ones(n_obs)
     to_cam = sp.csr_matrix((ones, (cam, np.arange(n_obs))), shape=(M, n_obs))
     to_pt = sp.csr_matrix((ones, (pt, np.arange(n_obs))), shape=(N, n_obs))
-    # W V^-1 W^T is summed over points. Small problems (the course's): as one matrix product over a
-    # dense (6M, 3N) layout of W. Large ones: over all pairs (k, l) of observations of a point.
-    dense = 6 * M * 3 * N <= 2e7
-    if dense:
-        w_rows = (6 * cam[:, None] + np.arange(6)).ravel()  # row of each entry of W_k in (6M, 3N)
-        w_cols = np.repeat(3 * pt, 6)
-    else:
-        order = np.argsort(pt, kind="stable")
-        counts = np.bincount(pt, minlength=N)
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        n_k = counts[pt]
-        pair_k = np.repeat(np.arange(n_obs), n_k)
-        offs = np.arange(pair_k.size) - np.repeat(np.cumsum(n_k) - n_k, n_k)
-        pair_l = order[np.repeat(starts[pt], n_k) + offs]
-        pair_cc = cam[pair_k] * M + cam[pair_l]
-        to_pair = sp.csr_matrix((np.ones(pair_k.size), (pair_cc, np.arange(pair_k.size))), shape=(M * M, pair_k.size))
+    # W V^-1 W^T is summed over points: with W and Y = W V^-1 laid out as sparse (6M, 3N)
+    # matrices (block (camera, point) = W_k of the observation), it is one sparse product Y W^T.
+    w_rows = np.repeat((6 * cam[:, None] + np.arange(6)).ravel(), 3)
+    w_cols = (np.repeat(3 * pt, 6)[:, None] + np.arange(3)).ravel()
+    w_shape = (6 * M, 3 * N)
 
     def evaluate(p):
         r = reprojection_residuals(p, M, N, cam, pt, obs.uv, K).reshape(-1, 2)
@@ -385,14 +374,9 @@ def _schur_lm(x0_full, free, n_cameras, n_points, obs, K, loss, f_scale, max_ite
             Vd[~seen_pts] = eye3
             Vinv = np.linalg.inv(Vd)
             Y = Wk @ Vinv[pt]  # (K, 6, 3)
-            if dense:
-                Wd = np.zeros((6 * M, 3 * N))
-                Yd = np.zeros((6 * M, 3 * N))
-                Wd[w_rows[:, None], w_cols[:, None] + np.arange(3)] = Wk.reshape(-1, 3)
-                Yd[w_rows[:, None], w_cols[:, None] + np.arange(3)] = Y.reshape(-1, 3)
-                S = -(Yd @ Wd.T).reshape(M, 6, M, 6).transpose(0, 2, 1, 3)
-            else:
-                S = -(to_pair @ (Y[pair_k] @ np.transpose(Wk[pair_l], (0, 2, 1))).reshape(-1, 36)).reshape(M, M, 6, 6)
+            Wsp = sp.csr_matrix((Wk.ravel(), (w_rows, w_cols)), shape=w_shape)
+            Ysp = sp.csr_matrix((Y.ravel(), (w_rows, w_cols)), shape=w_shape)
+            S = -(Ysp @ Wsp.T).toarray().reshape(M, 6, M, 6).transpose(0, 2, 1, 3)
             S = np.ascontiguousarray(S)
             for i in range(M):
                 S[i, i] += U[i] + lam * U[i] * np.eye(6)

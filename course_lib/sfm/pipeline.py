@@ -260,7 +260,8 @@ def _reject_outlier_matches(data, st: _State, rng, threshold_px: float, min_matc
         np.add.at(good, (tid[ok], np.full(ok.sum(), i)), 1)
         np.add.at(good, (tid[ok], np.full(ok.sum(), j)), 1)
         pairs[(i, j)] = (res.F, inl)
-        rows.append({"pair": [i, j], "matches": n, "inliers": int(inl.sum()), "ransac_iterations": int(res.n_iters)})
+        rows.append({"pair": [i, j], "names": [data.image_names[i], data.image_names[j]], "matches": n,
+                     "inliers": int(inl.sum()), "ransac_iterations": int(res.n_iters)})
     st.candidate &= good > 0
     report["pairs"] = rows
     report["observations_kept_after_ransac"] = int(st.candidate.sum())
@@ -426,7 +427,7 @@ def run_sfm(
     bundle_adjustment: str = "incremental",
     ba_loss: str = "huber",
     ba_f_scale: float = 1.0,
-    ba_max_iterations: int = 20,
+    ba_max_iterations: int = 10,
     final_ba_loss: str = "cauchy",
     final_ba_f_scale: float = 0.3,
     initial_pair: tuple[int, int] | None = None,
@@ -490,7 +491,8 @@ def run_sfm(
     report: dict = {"n_images": M, "n_tracks": st.T, "options": {
         "f_threshold_px": f_threshold_px, "pnp_threshold_px": pnp_threshold_px, "max_reproj_px": max_reproj_px,
         "final_max_reproj_px": final_max_reproj_px, "min_angle_deg": min_angle_deg,
-        "bundle_adjustment": bundle_adjustment, "ba_loss": ba_loss, "ba_f_scale": ba_f_scale}}
+        "bundle_adjustment": bundle_adjustment, "ba_loss": ba_loss, "ba_f_scale": ba_f_scale,
+        "final_ba_loss": final_ba_loss, "final_ba_f_scale": final_ba_f_scale}}
     seconds: dict[str, float] = {}
 
     # 1. outlier matches -----------------------------------------------------------------------
@@ -576,7 +578,7 @@ def run_sfm(
         if bundle_adjustment == "final":
             final_stage["ba_robust"] = _bundle(st, a, ba_loss, ba_f_scale, 2 * ba_max_iterations)
         final_stage["filter"] = _filter(st, final_max_reproj_px, min_angle_deg)
-        final_stage["ba"] = _bundle(st, a, final_ba_loss, final_ba_f_scale, 2 * ba_max_iterations, ftol=1e-8)
+        final_stage["ba"] = _bundle(st, a, final_ba_loss, final_ba_f_scale, 2 * ba_max_iterations, ftol=1e-6)
         final_stage["filter_after"] = _filter(st, final_max_reproj_px, min_angle_deg)
         final_stage["reprojection_after_ba"] = st.observation_stats()
     final_stage["seconds"] = round(time.perf_counter() - t0, 3)
