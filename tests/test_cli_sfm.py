@@ -1,0 +1,94 @@
+"""``python -m course_lib sfm``: outputs (COLMAP model, report.json, scene.html) and one-line errors on bad input."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from course_lib.__main__ import main
+from course_lib.data.colmap import read_colmap_text
+from course_lib.paths import EMBEDDED_SFM
+
+
+@pytest.fixture(scope="module")
+def run_embedded(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sfm_out")
+    rc = main(["sfm", "--out", str(out), "--seed", "0", "--quiet"])
+    return rc, out
+
+
+def test_writes_the_three_outputs(run_embedded, capsys):
+    rc, out = run_embedded
+    assert rc == 0
+    for name in ("cameras.txt", "images.txt", "points3D.txt"):
+        assert (out / "colmap" / name).is_file()
+    report = json.loads((out / "report.json").read_text())
+    assert report["totals"]["registered_images"] == 6
+    assert report["final"]["points"] == report["totals"]["points"] > 500
+    assert {"pairs", "initial_pair", "stages", "final", "seconds", "totals"} <= set(report)
+    html = (out / "scene.html").read_text()
+    assert "<html" in html and "plotly" in html.lower()
+    assert len(html) > 1_000_000  # plotly.js is embedded: the page opens offline
+
+
+def test_model_reads_back(run_embedded):
+    _, out = run_embedded
+    m = read_colmap_text(out / "colmap")
+    report = json.loads((out / "report.json").read_text())
+    assert len(m.image_names) == 6 and len(m.X) == report["final"]["points"]
+    assert abs(m.error.mean() - report["final"]["mean_reprojection_error_px"]) < 0.2  # per-point vs per-observation mean
+
+
+def test_pycolmap_reads_the_model(run_embedded):
+    pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is an optional cross-check (not in environment.txt)")
+    _, out = run_embedded
+    rec = pycolmap.Reconstruction(str(out / "colmap"))
+    m = read_colmap_text(out / "colmap")
+    assert rec.num_reg_images() == 6 and rec.num_points3D() == len(m.X)
+    for k, iid in enumerate(m.image_ids):
+        img = rec.images[int(iid)]
+        pose = img.cam_from_world() if callable(img.cam_from_world) else img.cam_from_world
+        np.testing.assert_allclose(pose.rotation.matrix(), m.R_cw[k], atol=1e-9)
+        np.testing.assert_allclose(pose.translation, m.t_cw[k], atol=1e-9)
+    rec.update_point_3d_errors()
+    assert abs(rec.compute_mean_reprojection_error() - m.error.mean()) < 1e-6
+
+
+def _copy_embedded(tmp_path):
+    dst = tmp_path / "scene"
+    shutil.copytree(EMBEDDED_SFM, dst)
+    return dst
+
+
+def _error_line(capsys):
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: "), err
+    return err[0]
+
+
+def test_missing_folder(tmp_path, capsys):
+    assert main(["sfm", str(tmp_path / "nowhere"), "--out", str(tmp_path / "o")]) == 2
+    assert "not found" in _error_line(capsys)
+
+
+def test_truncated_matching_file(tmp_path, capsys):
+    d = _copy_embedded(tmp_path)
+    text = (d / "matching2.txt").read_text()
+    (d / "matching2.txt").write_text(text[: len(text) // 2].rsplit(" ", 3)[0])  # cut in the middle of a row
+    assert main(["sfm", str(d), "--out", str(tmp_path / "o")]) == 2
+    assert "matching2.txt" in _error_line(capsys)
+
+
+def test_missing_image(tmp_path, capsys):
+    d = _copy_embedded(tmp_path)
+    (d / "3.jpg").unlink()
+    assert main(["sfm", str(d), "--out", str(tmp_path / "o")]) == 2
+    assert "3.png/.jpg" in _error_line(capsys) or "3.jpg" in capsys.readouterr().err
+
+
+def test_non_invertible_K(tmp_path, capsys):
+    d = _copy_embedded(tmp_path)
+    (d / "calibration.txt").write_text("0 0 400\n0 0 300\n0 0 1\n")
+    assert main(["sfm", str(d), "--out", str(tmp_path / "o")]) == 2
+    assert "not invertible" in _error_line(capsys)
