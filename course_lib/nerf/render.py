@@ -31,7 +31,7 @@ LAST_DELTA = 1e10
 
 
 def volume_render(rgb: torch.Tensor, sigma: torch.Tensor, z_vals: torch.Tensor, rays_d: torch.Tensor,
-                  white_background: bool = True) -> dict[str, torch.Tensor]:
+                  white_background: bool = True, last_delta: float | None = LAST_DELTA) -> dict[str, torch.Tensor]:
     """Composite samples along each ray (the NeRF quadrature).
 
     Args:
@@ -40,6 +40,10 @@ def volume_render(rgb: torch.Tensor, sigma: torch.Tensor, z_vals: torch.Tensor, 
         z_vals: ``(R, S)`` sorted sample depths (in units of ``|rays_d|``).
         rays_d: ``(R, 3)`` ray directions (unnormalized; deltas are scaled by their norm).
         white_background: add ``1 - acc`` (white behind the scene).
+        last_delta: length of the last interval (in units of ``z_vals``): 1e10, "to infinity",
+            as the paper; ``None`` repeats the previous interval (for a field that ends at the
+            last sample, such as a voxel grid in its box: with 1e10 its boundary voxels would
+            stop every ray and take the background's colour).
 
     Returns:
         dict with ``rgb_map (R, 3)``, ``depth_map (R,)`` (``sum w z``, in the units of ``z_vals``),
@@ -55,7 +59,8 @@ def volume_render(rgb: torch.Tensor, sigma: torch.Tensor, z_vals: torch.Tensor, 
     if rays_d.shape != (sigma.shape[0], 3):
         raise KitInputError(f"rays_d has shape {tuple(rays_d.shape)}: expected ({sigma.shape[0]}, 3)")
     dists = z_vals[:, 1:] - z_vals[:, :-1]
-    dists = torch.cat([dists, torch.full_like(z_vals[:, :1], LAST_DELTA)], dim=-1)  # (R, S)
+    last = dists[:, -1:] if last_delta is None else torch.full_like(z_vals[:, :1], last_delta)
+    dists = torch.cat([dists, last], dim=-1)  # (R, S)
     dists = dists * torch.linalg.norm(rays_d, dim=-1, keepdim=True)
     alpha = 1.0 - torch.exp(-sigma * dists)
     # exclusive cumulative product: T_1 = 1, T_i = prod_{j<i} (1 - alpha_j); 1e-10 keeps it > 0 (as the paper's code)
@@ -111,7 +116,8 @@ def sample_pdf(bins: torch.Tensor, weights: torch.Tensor, n_samples: int, pertur
     return (bin_lo + t * (bin_hi - bin_lo)).detach()
 
 
-def _run_model(model, pts: torch.Tensor, viewdirs: torch.Tensor, z_vals, rays_d, white_background, color_threshold):
+def _run_model(model, pts: torch.Tensor, viewdirs: torch.Tensor, z_vals, rays_d, white_background, color_threshold,
+               last_delta):
     """Network + volume rendering; optionally skip the colour of points that do not contribute."""
     R, S = z_vals.shape
     dirs = viewdirs[:, None, :].expand(R, S, 3)
@@ -119,19 +125,20 @@ def _run_model(model, pts: torch.Tensor, viewdirs: torch.Tensor, z_vals, rays_d,
         # Two passes: density everywhere (cheap for grid models), colour only where the weight
         # is above the threshold -- empty space and hidden points cost nothing.
         sigma = model.density(pts)
-        out = volume_render(torch.zeros_like(pts), sigma, z_vals, rays_d, white_background=False)
+        out = volume_render(torch.zeros_like(pts), sigma, z_vals, rays_d, white_background=False, last_delta=last_delta)
         mask = out["weights"] > color_threshold
         rgb = torch.zeros_like(pts)
         if mask.any():
             rgb = rgb.index_put((mask,), model.color(pts[mask], dirs[mask]))
     else:
         rgb, sigma = model(pts, dirs)
-    return volume_render(rgb, sigma, z_vals, rays_d, white_background)
+    return volume_render(rgb, sigma, z_vals, rays_d, white_background, last_delta)
 
 
 def render_rays(model, rays_o: torch.Tensor, rays_d: torch.Tensor, near, far, n_samples: int,
                 n_importance: int = 0, model_fine=None, perturb: bool = False, white_background: bool = True,
-                generator: torch.Generator | None = None, color_threshold: float = 0.0) -> dict[str, torch.Tensor]:
+                generator: torch.Generator | None = None, color_threshold: float = 0.0,
+                last_delta: float | None = LAST_DELTA) -> dict[str, torch.Tensor]:
     """Render a batch of rays: stratified coarse samples, network, volume rendering (+ fine pass).
 
     Args:
@@ -147,6 +154,7 @@ def render_rays(model, rays_o: torch.Tensor, rays_d: torch.Tensor, near, far, n_
         generator: torch Generator for the jitter.
         color_threshold: if > 0 and the model has ``density``/``color`` methods, evaluate colours
             only where the weight exceeds it (a speed-up for grid models).
+        last_delta: the last interval, see :func:`volume_render`.
 
     Returns:
         dict of the (fine, if any) pass: ``rgb_map (R, 3)``, ``depth_map (R,)``, ``acc_map (R,)``,
@@ -165,7 +173,7 @@ def render_rays(model, rays_o: torch.Tensor, rays_d: torch.Tensor, near, far, n_
     viewdirs = rays_d / torch.linalg.norm(rays_d, dim=-1, keepdim=True)
     z_vals = stratified_samples(near, far, n_samples, R, perturb, generator=generator)
     pts = query_points(rays_o, rays_d, z_vals)
-    out = _run_model(model, pts, viewdirs, z_vals, rays_d, white_background, color_threshold)
+    out = _run_model(model, pts, viewdirs, z_vals, rays_d, white_background, color_threshold, last_delta)
     out["z_vals"] = z_vals
     if n_importance > 0:
         z_mid = 0.5 * (z_vals[:, 1:] + z_vals[:, :-1])
@@ -173,7 +181,7 @@ def render_rays(model, rays_o: torch.Tensor, rays_d: torch.Tensor, near, far, n_
         z_all, _ = torch.sort(torch.cat([z_vals, z_new], dim=-1), dim=-1)
         pts = query_points(rays_o, rays_d, z_all)
         fine = _run_model(model_fine if model_fine is not None else model, pts, viewdirs, z_all, rays_d,
-                          white_background, color_threshold)
+                          white_background, color_threshold, last_delta)
         fine["z_vals"] = z_all
         for k in ("rgb_map", "depth_map", "acc_map"):
             fine[k + "_coarse"] = out[k]
@@ -184,11 +192,12 @@ def render_rays(model, rays_o: torch.Tensor, rays_d: torch.Tensor, near, far, n_
 @torch.no_grad()
 def render_image(model, H: int, W: int, K, c2w, near, far, n_samples: int, n_importance: int = 0, model_fine=None,
                  white_background: bool = True, chunk: int = 4096, color_threshold: float = 0.0,
-                 ray_bounds=None) -> dict[str, torch.Tensor]:
+                 ray_bounds=None, last_delta: float | None = LAST_DELTA) -> dict[str, torch.Tensor]:
     """Render a whole view, in chunks of rays, without gradients (evaluation, novel views).
 
     Args:
-        model, n_samples, n_importance, model_fine, white_background, color_threshold: as :func:`render_rays`.
+        model, n_samples, n_importance, model_fine, white_background, color_threshold, last_delta: as
+            :func:`render_rays`.
         H, W, K, c2w: the camera (OpenCV axes), as :func:`course_lib.nerf.rays.get_rays`.
         near, far: floats (or None when ``ray_bounds`` is given).
         chunk: rays per forward pass (memory vs. speed).
@@ -212,7 +221,7 @@ def render_image(model, H: int, W: int, K, c2w, near, far, n_samples: int, n_imp
         o, d = rays_o[i:i + chunk], rays_d[i:i + chunk]
         n, f = ray_bounds(o, d) if ray_bounds is not None else (near, far)
         out = render_rays(model, o, d, n, f, n_samples, n_importance, model_fine, perturb=False,
-                          white_background=white_background, color_threshold=color_threshold)
+                          white_background=white_background, color_threshold=color_threshold, last_delta=last_delta)
         rgb.append(out["rgb_map"])
         depth.append(out["depth_map"])
         acc.append(out["acc_map"])

@@ -1,0 +1,134 @@
+"""Training: a tiny synthetic scene (an analytic two-coloured ball) -- the loss falls, a stopped
+run resumes to exactly the same state, metrics/snapshots/checkpoints are written; the CLI."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from course_lib.data.blender import BlenderData, intrinsics_from_fov, write_blender
+from course_lib.data.synthetic import look_at
+from course_lib.nerf.presets import preset
+from course_lib.nerf.render import render_image
+from course_lib.nerf.train import circular_path, load_checkpoint, scene_bounds, train
+
+
+class Ball(torch.nn.Module):
+    """Radius-0.8 ball at the origin: red above z = 0, blue below."""
+
+    def forward(self, pts, viewdirs=None):
+        inside = (pts.norm(dim=-1) < 0.8).to(pts.dtype)
+        top = (pts[..., 2] > 0).to(pts.dtype)
+        rgb = torch.stack([top, 0.2 * torch.ones_like(top), 1 - top], dim=-1)
+        return rgb, 30.0 * inside
+
+
+def make_scene(n=8, size=16, dist=3.0):
+    K = intrinsics_from_fov(size, size, 0.9)
+    c2ws, imgs = [], []
+    for k in range(n):
+        th = 2 * np.pi * k / n
+        C = dist * np.array([np.cos(th) * 0.9, np.sin(th) * 0.9, 0.45 if k % 2 else -0.3])
+        R_cw, _ = look_at(C, np.zeros(3), up=np.array([0, 0, 1.0]))
+        M = np.eye(4)
+        M[:3, :3], M[:3, 3] = R_cw.T, C
+        c2ws.append(M)
+        imgs.append(render_image(Ball(), size, size, K, M, 1.0, 5.0, 96)["rgb"].numpy())
+    return BlenderData(images=np.stack(imgs).astype(np.float32), c2w=np.stack(c2ws), K=K, H=size, W=size,
+                       names=[f"v{k}" for k in range(n)], camera_angle_x=0.9)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene()
+
+
+def tiny_nerf_config(**kw):
+    base = dict(depth=2, width=32, skips=(), pos_freqs=4, dir_freqs=2, view_width=16, density="softplus",
+                n_samples=16, batch_rays=256, lr=5e-3, lr_final=5e-3, snapshot_every=0, checkpoint_every=0, threads=1)
+    base.update(kw)
+    return preset("paper", **base)
+
+
+def test_scene_bounds(scene):
+    b = scene_bounds(scene.c2w, scene.K, scene.W)
+    np.testing.assert_allclose(b["center"], 0.0, atol=1e-6)
+    assert 0.8 < b["radius"] < 3.0 and 0 < b["near"] < 3.0 - 0.8 and b["far"] > 3.0 + 0.8
+
+
+def test_grid_training_lowers_the_loss(scene, tmp_path):
+    cfg = preset("fast", iters=60, minutes=None, batch_rays=512, n_samples=48, snapshot_every=30, checkpoint_every=0,
+                 occupancy_start=20, occupancy_every=10, grid_schedule=((0, 16), (20, 24)), grid_resolution=24,
+                 shrink_box_at=20, threads=1, grid_lr=0.3, grid_lr_final=0.1)
+    res = train(scene.subset(slice(0, 6)), scene.subset([6, 7]), cfg, out_dir=tmp_path, progress=False)
+    loss = res.history["loss"]
+    assert np.mean(loss[-10:]) < 0.3 * np.mean(loss[:5])
+    assert res.metrics["final_train_psnr"] > 17
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    for key in ("test_psnr", "iterations", "train_seconds", "preset", "history"):
+        assert key in m
+    assert m["iterations"] == 60 and m["preset"] == "fast" and np.isfinite(m["test_psnr"])  # 6 views of 16x16 px: no generalisation expected
+    assert (tmp_path / "test" / "v6.png").exists() and (tmp_path / "checkpoint.pt").exists()
+    assert sorted(p.name for p in (tmp_path / "snapshots").iterdir()) == ["step_000000.png", "step_000030.png", "step_000060.png"]
+    assert len(res.snapshots) == 3 and res.test_renders.shape == (2, 16, 16, 3)
+    # the box was fitted around the ball (radius 0.8, plus a margin) and the grid refined
+    assert res.bounds["shrunk"] and res.model.resolution == 24
+    assert np.all(np.array(res.bounds["box_max"]) > 0.75) and np.all(np.array(res.bounds["box_min"]) < -0.75)
+
+
+def test_nerf_training_lowers_the_loss(scene):
+    res = train(scene, None, tiny_nerf_config(iters=40), progress=False)
+    loss = res.history["loss"]
+    assert np.mean(loss[-5:]) < 0.6 * np.mean(loss[:5])
+    assert res.metrics["test_psnr"] is None and res.metrics["iterations"] == 40
+
+
+def test_fine_network_runs(scene):
+    res = train(scene, None, tiny_nerf_config(iters=3, n_importance=8, fine=True), progress=False)
+    assert res.model_fine is not None and len(res.history["loss"]) == 3
+
+
+def test_resume_gives_the_same_state(scene, tmp_path):
+    cfg = tiny_nerf_config(iters=8, checkpoint_every=4)
+    full = train(scene, None, cfg, out_dir=tmp_path / "full", progress=False)
+    # a run stopped after 4 steps (the callback stops it; a checkpoint is written) ...
+    part = train(scene, None, cfg, out_dir=tmp_path / "part", progress=False, callback=lambda step, info: step == 4)
+    assert part.metrics["iterations"] == 4 and load_checkpoint(tmp_path / "part")["step"] == 4
+    # ... resumed continues at step 5 and ends where the uninterrupted run ends
+    resumed = train(scene, None, cfg, out_dir=tmp_path / "part", progress=False)
+    assert resumed.history["iterations"] == list(range(1, 9))
+    assert resumed.history["loss"] == pytest.approx(full.history["loss"], rel=1e-5)
+    for a, b in zip(full.model.state_dict().values(), resumed.model.state_dict().values()):
+        torch.testing.assert_close(a, b)
+
+
+def test_time_budget_stops(scene):
+    res = train(scene, None, tiny_nerf_config(iters=10**6, minutes=0.02), progress=False)
+    assert res.metrics["stopped_by"] == "time" and res.metrics["train_seconds"] >= 1.2
+
+
+def test_circular_path(scene):
+    path = circular_path(scene.c2w, [0, 0, 0], n_frames=6)
+    assert path.shape == (6, 4, 4)
+    # every camera looks at the centre and keeps the world up (z) up in the image (camera y down)
+    for M in path:
+        np.testing.assert_allclose(M[:3, 2], -M[:3, 3] / np.linalg.norm(M[:3, 3]), atol=1e-9)
+        assert M[2, 1] < 0
+
+
+def test_cli_train_and_render(scene, tmp_path):
+    from course_lib.__main__ import main
+
+    folder = tmp_path / "scene"
+    u8 = (scene.images * 255).round().astype(np.uint8)
+    write_blender(folder, "train", u8[:6], scene.c2w[:6], scene.camera_angle_x)
+    write_blender(folder, "test", u8[6:], scene.c2w[6:], scene.camera_angle_x)
+    out = tmp_path / "out"
+    rc = main(["nerf", "train", str(folder), "--out", str(out), "--preset", "fast", "--iters", "5", "--quiet",
+               "--threads", "1", "--samples", "16", "--batch", "128"])
+    assert rc == 0 and json.loads((out / "metrics.json").read_text())["iterations"] == 5
+    rc = main(["nerf", "render", str(out / "checkpoint.pt"), "--out", str(tmp_path / "views"), "--frames", "3"])
+    assert rc == 0 and (tmp_path / "views" / "path.gif").exists() and (tmp_path / "views" / "frame_002.png").exists()
+    assert main(["nerf", "train", str(tmp_path / "nope"), "--out", str(out)]) == 2
+    assert main(["nerf", "render", str(tmp_path / "nope.pt"), "--out", str(out)]) == 2
