@@ -1,0 +1,335 @@
+"""The notebooks' interactive pictures really render: JupyterLab + headless Chromium.
+
+For every notebook in ``notebooks/`` whose stored outputs contain a plotly figure
+(``application/vnd.plotly.v1+json``) or an ipywidget view, the session fixture
+
+1. starts JupyterLab 4 headless on a free loopback port with a random token, serving throw-away
+   copies of those notebooks, with ``COURSE_LIB_QUICK=1`` in the kernels' environment;
+2. opens each notebook in its own tab of headless Chromium (all tabs at once, so the kernels run
+   in parallel), waits for its kernel, and runs JupyterLab's "Run All Cells" command (the Run
+   menu's entry);
+3. waits until that command has finished, every code cell has an execution count and the
+   kernel is idle, then inspects the page.
+
+Then one test per notebook asserts that
+
+* no cell raised (no ``error`` output);
+* every plotly figure has drawn: at least as many ``.js-plotly-plot`` elements as the stored
+  notebook has plotly outputs, each with traces, a WebGL canvas (3-D) or an SVG container (2-D),
+  no "WebGL is not supported" message, and a screenshot of the plot area that is not blank;
+* every widget view is alive: moving its (first) slider with the keyboard changes the widget's
+  output (the last child of its box: the redrawn figure or image);
+* the browser console shows no errors (and no uncaught page errors).
+
+A last test runs ``python -m course_lib sfm`` and opens its ``scene.html`` from a ``file://`` URL
+with the network cut off: plotly.js must be embedded and the 3-D scene must draw.
+
+Screenshots (each plot, each widget before/after its slider moved, each page) go to
+``outputs/screenshots/`` (git-ignored); the test prints where. The tests skip, saying why, only
+when no Chromium executable is found (install Debian's ``chromium``, or set
+``COURSE_LIB_CHROMIUM`` to a Chrome/Chromium binary). Nothing is downloaded.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+
+from browser_helpers import (
+    LAB_JS,
+    REPO_ROOT,
+    SCREENSHOT_DIR,
+    LabServer,
+    find_chromium,
+    launch_browser,
+    notebook_inventory,
+)
+
+CHROMIUM = find_chromium()
+pytestmark = pytest.mark.skipif(
+    CHROMIUM is None,
+    reason="no Chromium found (apt-get install chromium, or set COURSE_LIB_CHROMIUM): the browser checks did not run",
+)
+
+INTERACTIVE = [info for info in notebook_inventory() if info.interactive]
+if os.environ.get("COURSE_LIB_BROWSER_NOTEBOOKS"):  # e.g. "01,05": only these (while developing)
+    _only = tuple(os.environ["COURSE_LIB_BROWSER_NOTEBOOKS"].split(","))
+    INTERACTIVE = [info for info in INTERACTIVE if info.path.name.startswith(_only)]
+RUN_TIMEOUT_S = float(os.environ.get("COURSE_LIB_BROWSER_TIMEOUT", "420"))  # all notebooks together
+
+# Console messages that are not errors of the kit. Keep this list short and explain each entry.
+CONSOLE_ALLOW = (
+    # none yet
+)
+
+
+def _playwright():
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:  # Chromium is there but the pinned test package is not: an install error
+        pytest.fail("the Python package 'playwright' is missing: pip install -r environment.txt "
+                    "(it drives the system Chromium; no browser download is needed)")
+    return sync_playwright
+
+
+def _distinct_colours(png: bytes, crop=(0.3, 0.3, 0.7, 0.7)) -> int:
+    """Number of distinct RGB colours in the central part of a PNG screenshot."""
+    from PIL import Image
+
+    img = Image.open(io.BytesIO(png)).convert("RGB")
+    w, h = img.size
+    box = (int(crop[0] * w), int(crop[1] * h), int(crop[2] * w), int(crop[3] * h))
+    return len(img.crop(box).getcolors(maxcolors=1 << 20) or [])
+
+
+# The widget views of a page: each top-level widget box of an output area (nested widgets and the
+# output areas inside Output widgets excluded). They get a data-kit-widget index for locators.
+WIDGET_ROOTS_JS = """() => {
+    const roots = Array.from(document.querySelectorAll('.jp-OutputArea-output > .jupyter-widgets'))
+        .filter(el => !el.parentElement.closest('.jupyter-widgets'));
+    roots.forEach((el, i) => el.setAttribute('data-kit-widget', String(i)));
+    return roots.length;
+}"""
+
+WIDGET_STATE_JS = """(i) => {
+    const root = document.querySelector('[data-kit-widget="' + i + '"]');
+    const handle = root && root.querySelector('.noUi-handle');
+    const out = root && root.lastElementChild;  // the redrawn part: Output, Image or box of images
+    return {
+        handle: !!handle,
+        value: handle ? handle.getAttribute('aria-valuenow') : null,
+        max: handle ? handle.getAttribute('aria-valuemax') : null,
+        output: out ? out.innerHTML : null,
+        stderr: !!(out && out.querySelector('[data-mime-type="application/vnd.jupyter.stderr"]')),
+    };
+}"""
+
+
+def _check_widgets(page, stem: str, shots: list[str]) -> tuple[int, list[str]]:
+    """Move the first slider of every widget view; returns (number alive, problems)."""
+    problems: list[str] = []
+    alive = 0
+    for i in range(page.evaluate(WIDGET_ROOTS_JS)):
+        root = page.locator(f'[data-kit-widget="{i}"]')
+        root.scroll_into_view_if_needed()
+        before = page.evaluate(WIDGET_STATE_JS, i)
+        if not before["handle"]:
+            problems.append(f"widget {i}: no slider drawn")
+            continue
+        path = SCREENSHOT_DIR / f"{stem}_widget{i}_before.png"
+        root.screenshot(path=str(path))
+        shots.append(path.name)
+        at_max = before["value"] is not None and before["max"] is not None and float(before["value"]) >= float(before["max"])
+        handle = root.locator(".noUi-handle").first
+        handle.focus()
+        handle.press("ArrowLeft" if at_max else "ArrowRight")
+        try:
+            page.wait_for_function(
+                """([i, before, value]) => {
+                    const s = (%s)(i);
+                    return s.value !== value && s.output !== null && s.output !== before && !s.stderr;
+                }""" % WIDGET_STATE_JS,
+                arg=[i, before["output"], before["value"]],
+                timeout=120_000,
+                polling=250,
+            )
+        except Exception:
+            now = page.evaluate(WIDGET_STATE_JS, i)
+            problems.append(f"widget {i}: moving the slider from {before['value']} (now {now['value']}) did not "
+                            f"change its output within 120 s" + (" (stderr shown)" if now["stderr"] else ""))
+            continue
+        _wait_for_plots(page, root, 0)  # a plotly figure redrawn inside the widget must draw too
+        path = SCREENSHOT_DIR / f"{stem}_widget{i}_after.png"
+        root.screenshot(path=str(path))
+        shots.append(path.name)
+        alive += 1
+    return alive, problems
+
+
+def _wait_for_plots(page, scope, expected: int) -> None:
+    """Wait until ``expected`` plotly figures (and all that are there) under ``scope`` have drawn."""
+    try:
+        page.wait_for_function(
+            """([root, n]) => {
+                const els = Array.from((root || document).querySelectorAll('.js-plotly-plot'));
+                return els.length >= n && els.every(el => el._fullData && el._fullData.length > 0
+                    && (el.querySelector('.gl-container canvas') || el.querySelector('.svg-container')));
+            }""",
+            arg=[scope.element_handle() if scope is not None else None, expected],
+            timeout=60_000,
+            polling=250,
+        )
+    except Exception:
+        pass  # the caller reports what is there
+
+
+def _check_plots(page, stem: str, expected: int, shots: list[str]) -> tuple[list[dict], list[str]]:
+    """Wait for the plotly figures to draw; returns (per-plot info, problems)."""
+    problems: list[str] = []
+    _wait_for_plots(page, None, expected)
+    plots = page.evaluate(LAB_JS["plots"])
+    if len(plots) < expected:
+        problems.append(f"{len(plots)} plotly figures drawn, the stored notebook has {expected}")
+    locs = page.locator(".js-plotly-plot")
+    for p in plots:
+        k = p["index"]
+        if p["traces"] == 0:
+            problems.append(f"plot {k}: no traces")
+        if p["no_webgl"]:
+            problems.append(f"plot {k}: 'WebGL is not supported' shown")
+        is3d = any(t.endswith("3d") or t in ("mesh3d", "cone", "surface") for t in p["types"])
+        if is3d and not p["gl_canvas"]:
+            problems.append(f"plot {k}: a 3-D figure without a WebGL canvas ({p['types']})")
+        if not (p["gl_canvas"] or p["svg"]):
+            problems.append(f"plot {k}: neither a WebGL canvas nor an SVG container")
+        loc = locs.nth(k)
+        loc.scroll_into_view_if_needed()
+        page.wait_for_timeout(300)  # let WebGL paint the frame after scrolling (a redraw, not a wait for work)
+        png = loc.screenshot()
+        path = SCREENSHOT_DIR / f"{stem}_plot{k}.png"
+        path.write_bytes(png)
+        shots.append(path.name)
+        p["colours"] = _distinct_colours(png)
+        if p["colours"] < 8:
+            problems.append(f"plot {k}: the plot area is blank ({p['colours']} colours in its centre)")
+    return plots, problems
+
+
+@pytest.fixture(scope="session")
+def lab_results():
+    """Run every interactive notebook in JupyterLab in headless Chromium; one result dict per notebook."""
+    sync_playwright = _playwright()
+    SCREENSHOT_DIR.mkdir(parents=True, exist_ok=True)
+    results: dict[str, dict] = {}
+    t0 = time.monotonic()
+    with LabServer([info.path for info in INTERACTIVE]) as server, sync_playwright() as pw:
+        ctx = launch_browser(pw, CHROMIUM, Path(tempfile.mkdtemp(prefix="course-lib-chromium-")))
+        try:
+            pages = {}
+            for info in INTERACTIVE:
+                name = info.path.name
+                res = results[name] = {"console": [], "problems": [], "shots": [], "info": info}
+                page = ctx.new_page()
+                page.on("console", lambda m, r=res: r["console"].append(f"{m.type}: {m.text}") if m.type == "error" else None)
+                page.on("pageerror", lambda e, r=res: r["console"].append(f"uncaught: {e}"))
+                page.goto(server.url(name), wait_until="domcontentloaded")
+                pages[name] = page
+            for name, page in pages.items():  # the tabs load in parallel; here we only wait for each
+                ready = page.evaluate(LAB_JS["ready"], name)
+                results[name]["kernel"] = ready
+                if ready.get("error") or not ready.get("kernel"):
+                    results[name]["problems"].append(f"notebook did not open with a kernel: {ready}")
+                    continue
+                page.evaluate("() => window.jupyterapp.shell.collapseLeft()")
+                page.evaluate(LAB_JS["run_all"])
+                results[name]["started"] = time.monotonic() - t0
+            for name, page in pages.items():
+                res = results[name]
+                if "started" not in res:
+                    continue
+                left = max(5.0, RUN_TIMEOUT_S - (time.monotonic() - t0))
+                try:  # run-all done, every code cell executed, kernel idle
+                    page.wait_for_function(
+                        """(f) => { const s = (%s)(); return s.done && s.status === 'idle' && s.executed === s.total; }"""
+                        % LAB_JS["state"],
+                        timeout=left * 1000,
+                        polling=500,
+                    )
+                except Exception:
+                    res["problems"].append(f"Run All did not finish within {RUN_TIMEOUT_S:.0f} s "
+                                           f"(state {page.evaluate(LAB_JS['state'])})")
+                res["state"] = page.evaluate(LAB_JS["state"])
+                res["finished"] = time.monotonic() - t0
+            for name, page in pages.items():
+                res = results[name]
+                if "finished" not in res:
+                    continue
+                stem = Path(name).stem
+                page.bring_to_front()
+                res["plots"], problems = _check_plots(page, stem, res["info"].n_plotly, res["shots"])
+                res["problems"] += problems
+                res["widgets_alive"], problems = _check_widgets(page, stem, res["shots"])
+                res["problems"] += problems
+                path = SCREENSHOT_DIR / f"{stem}_page.png"
+                page.screenshot(path=str(path))
+                res["shots"].append(path.name)
+                res["checked"] = time.monotonic() - t0
+        finally:
+            ctx.close()
+    total = time.monotonic() - t0
+    print(f"\nbrowser test: {len(results)} notebooks in {total:.0f} s; screenshots in {SCREENSHOT_DIR}")
+    for name, res in results.items():
+        print(f"  {name}: run finished at {res.get('finished', float('nan')):.0f} s, "
+              f"{len(res.get('plots', []))} plots, {res.get('widgets_alive', 0)} widgets alive, "
+              f"{len(res['console'])} console errors, {len(res['problems'])} problems")
+    return results
+
+
+@pytest.mark.parametrize("info", INTERACTIVE, ids=[i.path.stem for i in INTERACTIVE])
+def test_notebook_renders_in_jupyterlab(lab_results, info):
+    res = lab_results[info.path.name]
+    print(f"screenshots of {info.path.name}: {', '.join(res['shots'])} in {SCREENSHOT_DIR}")
+    problems = list(res["problems"])
+    state = res.get("state") or {}
+    for err in state.get("errors", []):
+        problems.append(f"cell {err['cell']} raised {err['ename']}: {err['evalue']}")
+    if info.n_widgets and res.get("widgets_alive", 0) < info.n_widgets:
+        problems.append(f"{res.get('widgets_alive', 0)} of {info.n_widgets} widget views responded to their slider")
+    console = [m for m in res["console"] if not any(a in m for a in CONSOLE_ALLOW)]
+    problems += [f"browser console: {m[:300]}" for m in console]
+    assert not problems, f"{info.path.name} in JupyterLab:\n  " + "\n  ".join(problems)
+
+
+def test_scene_html_opens_offline(tmp_path):
+    """``python -m course_lib sfm`` writes scene.html that draws from file:// with no network."""
+    sync_playwright = _playwright()
+    out = tmp_path / "sfm"
+    env = {**os.environ, "COURSE_LIB_QUICK": "1"}
+    proc = subprocess.run([sys.executable, "-m", "course_lib", "sfm", "--out", str(out), "--ba", "none", "--quiet"],
+                          cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    html = out / "scene.html"
+    assert html.exists(), f"no scene.html in {out}: {proc.stdout}"
+    requests: list[str] = []
+    console: list[str] = []
+    with sync_playwright() as pw:
+        ctx = launch_browser(pw, CHROMIUM, tmp_path / "chromium", offline=True)
+        try:
+            page = ctx.new_page()
+
+            def route(r):  # only the file itself may load: anything else means plotly.js is not embedded
+                if r.request.url.startswith("file://"):
+                    r.continue_()
+                else:
+                    requests.append(r.request.url)
+                    r.abort()
+
+            page.route("**/*", route)
+            page.on("console", lambda m: console.append(f"{m.type}: {m.text}") if m.type == "error" else None)
+            page.on("pageerror", lambda e: console.append(f"uncaught: {e}"))
+            page.goto(html.as_uri())
+            page.wait_for_function(
+                "() => { const el = document.querySelector('.js-plotly-plot');"
+                " return el && el._fullData && el._fullData.length > 0 && el.querySelector('.gl-container canvas'); }",
+                timeout=60_000,
+            )
+            plots = page.evaluate(LAB_JS["plots"])
+            page.wait_for_timeout(300)
+            png = page.locator(".js-plotly-plot").first.screenshot()
+        finally:
+            ctx.close()
+    SCREENSHOT_DIR.mkdir(parents=True, exist_ok=True)
+    (SCREENSHOT_DIR / "sfm_scene_html.png").write_bytes(png)
+    print(f"scene.html ({html.stat().st_size / 1e6:.1f} MB): {plots[0]['traces']} traces; screenshot "
+          f"{SCREENSHOT_DIR / 'sfm_scene_html.png'}")
+    assert not requests, f"scene.html asked the network for {requests[:5]}: plotly.js must be embedded"
+    assert not console, "browser console: " + "; ".join(console)
+    assert plots and plots[0]["traces"] > 0 and plots[0]["gl_canvas"] and not plots[0]["no_webgl"], plots
+    assert _distinct_colours(png) >= 8, "scene.html: the plot area is blank"
