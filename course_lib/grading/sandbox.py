@@ -1,0 +1,507 @@
+"""Hidden checks: an exercise cut out of a submitted notebook, run in a separate process on new cases.
+
+* :func:`extract_exercise` cuts the exercise out of the notebook: the top-level ``def`` (or
+  ``class``) of its name in the cells before its check cell, plus the imports, helper functions
+  and simple assignments it needs (transitively, the last binding of each name, as the notebook
+  would see it when the check cell runs).
+* :func:`scan_exercise` reads that code and flags what gets no credit: imports of the reference
+  solutions (modules the student kit leaves out, or the graded exercise's own reference), of the
+  check machinery, and dynamic tricks that could reach either (``exec``, ``__import__``,
+  ``importlib``, ``sys``, ``gc``, ``inspect``, dunder attributes such as ``__globals__``...).
+  :func:`scan_notebook` flags a notebook that patches or rebinds the checks, prints verdicts by
+  hand or swaps ``print``.
+* :func:`build_hidden_fixtures` makes the hidden cases: the fixture builders of the check modules
+  (the instructor's full library) run again with every seeded ``numpy.random.default_rng`` salted
+  by a grading-time seed, so the synthetic scenes are new; seed 0, which the checks reuse for the
+  student's own RANSAC calls, is kept.
+* :func:`run_hidden` runs the check function of the exercise on those cases in a forked process
+  with a time limit. In that process the reference of the graded exercise is replaced, wherever
+  the library holds it, by a trap that records a call; the check machinery is fingerprinted before
+  the student's code runs and compared afterwards, so a patched check is detected, and the verdict
+  travels back through a pipe, never through printed text.
+"""
+
+from __future__ import annotations
+
+import ast
+import builtins
+import contextlib
+import importlib
+import io
+import multiprocessing as mp
+import os
+import re
+import shutil
+import sys
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from course_lib.grading.release import python_source, resolve_import
+
+__all__ = [
+    "Extracted",
+    "extract_exercise",
+    "scan_exercise",
+    "scan_notebook",
+    "build_hidden_fixtures",
+    "HiddenJob",
+    "HiddenOutcome",
+    "run_hidden",
+]
+
+#: Modules exercise code may not import (they reach the interpreter, the files or the checks).
+FORBIDDEN_MODULES = {
+    "importlib", "gc", "inspect", "builtins", "ctypes", "sys", "subprocess", "signal", "pickle", "marshal",
+    "types", "code", "codeop", "runpy", "multiprocessing", "threading", "os", "glob", "pathlib", "shutil",
+    "tempfile", "io", "dill", "cloudpickle", "socket", "pty", "atexit", "faulthandler", "trace", "linecache",
+}
+#: Built-ins exercise code may not call.
+FORBIDDEN_CALLS = {"exec", "eval", "compile", "__import__", "globals", "locals", "vars", "setattr", "delattr",
+                   "open", "breakpoint", "input", "exit", "quit"}
+#: Dunder attributes that are fine in exercise code (classes, operators).
+ALLOWED_DUNDERS = {"__init__", "__call__", "__len__", "__getitem__", "__setitem__", "__repr__", "__str__",
+                   "__iter__", "__next__", "__enter__", "__exit__", "__name__", "__eq__", "__hash__",
+                   "__post_init__", "__contains__", "__add__", "__mul__", "__matmul__", "__neg__", "__sub__"}
+#: Names of the check machinery a notebook must not import or rebind.
+CHECK_INTERNALS = {"Check", "CheckResult", "RESULTS", "FAILED", "load_fixture", "fixture_builder", "core",
+                   "build_fixtures", "PASS", "FAIL"}
+VERDICT_MARKS = ("✔", "✘", "checks passed")
+
+
+# ---------------------------------------------------------------------------------------------
+# Extraction
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Extracted:
+    """The code of one exercise as cut out of a notebook."""
+
+    name: str
+    code: str  # imports + helpers + the def, in notebook order
+    tree: ast.Module
+    def_cell: int  # cell index of the def used
+    problems: list[str] = field(default_factory=list)  # e.g. names the grader could not find
+
+
+def _bound_names(node: ast.AST) -> list[str]:
+    if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+        return [node.name]
+    if isinstance(node, (ast.Import, ast.ImportFrom)):
+        return [(a.asname or a.name).split(".")[0] for a in node.names if a.name != "*"]
+    targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
+    out = []
+    for t in targets:
+        for n in ast.walk(t):
+            if isinstance(n, ast.Name):
+                out.append(n.id)
+    return out
+
+
+def _used_names(node: ast.AST) -> set[str]:
+    out = set()
+    for n in ast.walk(node):
+        if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load):
+            out.add(n.id)
+    return out
+
+
+def _segment(src: str, node: ast.AST) -> str:
+    lines = src.splitlines()
+    start = min([node.lineno] + [d.lineno for d in getattr(node, "decorator_list", [])]) - 1
+    return "\n".join(lines[start:node.end_lineno])
+
+
+def code_cells(nb) -> list[tuple[int, str, ast.Module | None]]:
+    """``[(cell index, python source, tree or None if it does not parse)]`` of the code cells."""
+    out = []
+    for i, cell in enumerate(nb.cells):
+        if cell.cell_type != "code":
+            continue
+        src = python_source(cell.source)
+        try:
+            tree = ast.parse(src)
+        except SyntaxError:
+            tree = None
+        out.append((i, src, tree))
+    return out
+
+
+def extract_exercise(nb, name: str, before_cell: int) -> Extracted | None:
+    """Cut exercise ``name`` out of a notebook: its last top-level def before cell ``before_cell``, with what it needs.
+
+    Returns None when no cell before ``before_cell`` defines ``name`` at top level.
+    """
+    stmts: list[tuple[int, str, ast.AST]] = []  # (cell, source, node) in notebook order
+    syntax_errors = []
+    for i, src, tree in code_cells(nb):
+        if i >= before_cell:
+            break
+        if tree is None:
+            syntax_errors.append(i)
+            continue
+        for node in tree.body:
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef, ast.Import, ast.ImportFrom,
+                                 ast.Assign, ast.AnnAssign)):
+                stmts.append((i, src, node))
+    last: dict[str, int] = {}
+    for k, (_, _, node) in enumerate(stmts):
+        for n in _bound_names(node):
+            last[n] = k
+    if name not in last or not isinstance(stmts[last[name]][2], (ast.FunctionDef, ast.ClassDef,
+                                                                    ast.AsyncFunctionDef)):
+        return None
+    need, todo, missing = set(), [last[name]], set()
+    while todo:
+        k = todo.pop()
+        if k in need:
+            continue
+        need.add(k)
+        node = stmts[k][2]
+        for n in sorted(_used_names(node)):
+            if n in last and last[n] != k:
+                todo.append(last[n])
+            elif n not in last and not hasattr(builtins, n):
+                missing.add(n)
+    parts = [_segment(stmts[k][1], stmts[k][2]) for k in sorted(need)]
+    code = "\n\n".join(parts) + "\n"
+    ex = Extracted(name, code, ast.parse(code), stmts[last[name]][0])
+    # names bound inside functions (locals, comprehension variables) are not "missing"
+    local = {n.id for n in ast.walk(ex.tree) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store)}
+    local |= {a.arg for n in ast.walk(ex.tree) if isinstance(n, ast.arguments)
+              for a in n.args + n.kwonlyargs + n.posonlyargs + ([n.vararg] if n.vararg else [])
+              + ([n.kwarg] if n.kwarg else [])}
+    local |= {n.name for n in ast.walk(ex.tree) if isinstance(n, (ast.FunctionDef, ast.ClassDef))}
+    local |= {(a.asname or a.name).split(".")[0] for n in ast.walk(ex.tree) if isinstance(n, (ast.Import, ast.ImportFrom))
+              for a in n.names}
+    missing -= local
+    missing -= {"__class__"}
+    if missing:
+        ex.problems.append("uses notebook names that no top-level def, import or assignment before its check cell "
+                           f"defines: {', '.join(sorted(missing))} (the grader runs the function on its own)")
+    return ex
+
+
+# ---------------------------------------------------------------------------------------------
+# Scans
+# ---------------------------------------------------------------------------------------------
+
+
+def scan_exercise(tree: ast.Module, reference: str | None, omitted: set[str]) -> list[str]:
+    """Reasons why this exercise code gets no credit (empty list: nothing found).
+
+    Args:
+        tree: the extracted code.
+        reference: ``"module:attribute"`` of the graded exercise's reference solution, or None.
+        omitted: course_lib modules the student kit leaves out (reference solutions).
+    """
+    found: list[str] = []
+    ref_mod, ref_attr = reference.split(":") if reference else (None, None)
+    aliases: dict[str, str] = {}  # local name -> module
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            for mod, attr in resolve_import(node):
+                top = mod.split(".")[0]
+                if top in FORBIDDEN_MODULES:
+                    found.append(f"imports {mod} (line {node.lineno}): exercise code may not reach the interpreter, "
+                                 "files or other processes")
+                if mod.startswith("course_lib.grading") or mod == "course_lib" and attr == "grading":
+                    found.append(f"imports the check machinery {mod} (line {node.lineno})")
+                if mod in omitted:
+                    found.append(f"imports {mod} (line {node.lineno}), the instructor's reference solution, which is "
+                                 "not part of the student kit")
+                if ref_mod and mod == ref_mod and attr in (ref_attr, None, "*"):
+                    if attr == ref_attr or attr == "*":
+                        found.append(f"calls the reference solution {mod}.{ref_attr} (line {node.lineno})")
+                for a in node.names:
+                    aliases[(a.asname or a.name).split(".")[0]] = mod if attr is None else f"{mod}.{attr}"
+        elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in FORBIDDEN_CALLS:
+            found.append(f"calls {node.func.id}() (line {node.lineno}), which exercise code may not use")
+        elif isinstance(node, ast.Name) and node.id in FORBIDDEN_CALLS | {"__builtins__"}:
+            found.append(f"uses {node.id} (line {node.lineno}), which exercise code may not use")
+        elif isinstance(node, ast.Attribute):
+            if re.fullmatch(r"__\w+__", node.attr) and node.attr not in ALLOWED_DUNDERS:
+                found.append(f"uses the attribute {node.attr} (line {node.lineno}), which exercise code may not use")
+    if ref_mod:
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Attribute) and node.attr == ref_attr and isinstance(node.value, ast.Name) \
+                    and aliases.get(node.value.id) == ref_mod:
+                found.append(f"calls the reference solution {ref_mod}.{ref_attr} (line {node.lineno})")
+    return sorted(set(found))
+
+
+def scan_notebook(nb, intact_check_cells: set[int], check_names: set[str]) -> list[tuple[int, str]]:
+    """``[(cell, reason)]``: code that tampers with the checks, anywhere in the notebook.
+
+    Args:
+        nb: the submitted notebook.
+        intact_check_cells: indices of check cells identical to the reference (not scanned).
+        check_names: the check functions the notebook's check cells call.
+    """
+    found: list[tuple[int, str]] = []
+    for i, src, tree in code_cells(nb):
+        if i in intact_check_cells:
+            continue
+        if tree is None:
+            continue
+        grading_aliases = set()
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                for mod, attr in resolve_import(node):
+                    if not mod.startswith("course_lib.grading") and not (mod == "course_lib" and attr == "grading"):
+                        continue
+                    if isinstance(node, ast.Import) or attr is None or attr == "grading":
+                        found.append((i, f"imports the check module {mod} itself"))
+                        grading_aliases |= {(a.asname or a.name).split(".")[0] for a in node.names}
+                    elif attr in CHECK_INTERNALS or mod.endswith(".core"):
+                        found.append((i, f"imports {attr} from the check machinery"))
+                    elif attr.startswith("check_") and (attr not in check_names):
+                        pass
+            targets = []
+            if isinstance(node, (ast.Assign, ast.AugAssign, ast.AnnAssign)):
+                targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            elif isinstance(node, (ast.FunctionDef, ast.ClassDef)) and node.name in check_names | {"print"}:
+                found.append((i, f"redefines {node.name}"))
+            for t in targets:
+                for n in ast.walk(t):
+                    if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store) and n.id in check_names | {"print"}:
+                        found.append((i, f"rebinds {n.id}"))
+                    if isinstance(n, ast.Attribute) and isinstance(n.ctx, ast.Store):
+                        root = n.value
+                        while isinstance(root, ast.Attribute):
+                            root = root.value
+                        if isinstance(root, ast.Name) and (root.id in check_names | grading_aliases | CHECK_INTERNALS
+                                                           | {"builtins", "sys"}):
+                            found.append((i, f"assigns to {ast.unparse(n)}"))
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in {"setattr", "delattr"}:
+                found.append((i, f"calls {node.func.id}()"))
+            if isinstance(node, ast.Attribute) and node.attr in {"__code__", "__globals__", "modules"} and \
+                    not (node.attr == "modules" and not (isinstance(node.value, ast.Name) and node.value.id == "sys")):
+                found.append((i, f"uses {ast.unparse(node)}"))
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and any(m in node.value for m in VERDICT_MARKS):
+                found.append((i, "prints a check verdict by hand"))
+    return sorted(set(found))
+
+
+# ---------------------------------------------------------------------------------------------
+# Hidden fixtures
+# ---------------------------------------------------------------------------------------------
+
+#: Seeds the check functions reuse when they call the student's function (kept unsalted).
+KEPT_SEEDS = {0}
+
+
+def _salted_rng_factory(salt: int):
+    original = np.random.default_rng
+
+    def default_rng(seed=None):
+        if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool) and int(seed) not in KEPT_SEEDS:
+            return original(np.random.SeedSequence([int(salt) % 2**63, int(seed)]))
+        return original(seed)
+
+    return original, default_rng
+
+
+def _build_hidden(out_dir: str, check_modules: list[str], salt: int) -> dict:
+    from course_lib.grading import core
+
+    built = {}
+    original, salted = _salted_rng_factory(salt)
+    for mod_name in check_modules:
+        mod = importlib.import_module(mod_name)
+        names = [mod.FIXTURE] if isinstance(getattr(mod, "FIXTURE", None), str) else []
+        for name in names:
+            np.random.default_rng = salted
+            try:
+                arrays = core._BUILDERS[name]()
+            finally:
+                np.random.default_rng = original
+            np.savez_compressed(Path(out_dir) / f"{name}.npz", **{k: np.asarray(v) for k, v in arrays.items()})
+            built[name] = sorted(arrays)
+    return built
+
+
+def build_hidden_fixtures(out_dir: Path, check_modules: list[str], salt: int, timeout: float = 600) -> dict:
+    """Write the hidden fixtures of ``check_modules`` into ``out_dir`` (public fixtures copied first).
+
+    Runs in a forked process (the reference library builds them; torch stays out of this process).
+    """
+    from course_lib.paths import FIXTURES_DIR
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for p in sorted(Path(FIXTURES_DIR).glob("*.npz")):
+        shutil.copyfile(p, out_dir / p.name)
+    res = _in_child(_build_hidden, (str(out_dir), sorted(set(check_modules)), int(salt)), timeout)
+    if "error" in res:
+        raise RuntimeError(f"building the hidden cases failed: {res['error']}")
+    return res["value"]
+
+
+# ---------------------------------------------------------------------------------------------
+# Running one exercise
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class HiddenJob:
+    name: str  # the exercise
+    code: str  # the extracted code
+    check_module: str
+    check_function: str
+    fixtures_dir: str
+    reference: str | None = None  # "module:attr" of the graded exercise's reference
+    allow_reference: bool = False  # the instructor's self-test
+
+
+@dataclass
+class HiddenOutcome:
+    status: str  # "ok", "timeout", "error", "crashed"
+    lines: list[str] = field(default_factory=list)  # the verdict lines ("  ✔ ..." / "  ✘ ...")
+    reference_called: bool = False
+    tampered: list[str] = field(default_factory=list)
+    message: str = ""
+    seconds: float = 0.0
+
+    @property
+    def passing(self) -> list[str]:
+        return [ln.strip()[2:] for ln in self.lines if ln.strip().startswith("✔")]
+
+    @property
+    def failing(self) -> list[str]:
+        return [ln.strip()[2:] for ln in self.lines if ln.strip().startswith("✘")]
+
+
+class ReferenceSolutionCalled(Exception):
+    """Raised by the trap that replaces the graded exercise's reference while its hidden checks run."""
+
+
+def _fingerprint(check_mod, check_fn_name: str) -> dict:
+    from course_lib.grading import core
+
+    fp = {"core.RESULTS": id(core.RESULTS), "print": id(builtins.print), "core.Check": id(core.Check),
+          "check module Check": id(getattr(check_mod, "Check", None)),
+          f"{check_fn_name}": id(getattr(check_mod, check_fn_name)),
+          f"{check_fn_name}.__code__": id(getattr(check_mod, check_fn_name).__code__),
+          "core.load_fixture": id(core.load_fixture), "core.FIXTURES_DIR": id(core.FIXTURES_DIR),
+          "np.allclose": id(np.allclose), "np.isclose": id(np.isclose)}
+    for k, v in vars(core.Check).items():
+        if callable(v):
+            fp[f"Check.{k}"] = id(v)
+            fp[f"Check.{k}.__code__"] = id(getattr(v, "__code__", None))
+    for k, v in vars(check_mod).items():
+        if callable(v) and getattr(v, "__module__", None) == check_mod.__name__:
+            fp[f"{check_mod.__name__}.{k}"] = id(v)
+    return fp
+
+
+def _run_job(job: HiddenJob) -> dict:
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:  # pragma: no cover
+        pass
+    from course_lib.grading import core
+
+    core.FIXTURES_DIR = Path(job.fixtures_dir)
+    core.RESULTS.clear()
+    check_mod = importlib.import_module(job.check_module)
+    check_fn = getattr(check_mod, job.check_function)
+    fired: list[str] = []
+    if job.reference and not job.allow_reference:
+        mod_name, attr = job.reference.split(":")
+        ref_mod = importlib.import_module(mod_name)
+        original = getattr(ref_mod, attr)
+
+        def trap(*args, **kwargs):
+            fired.append(attr)
+            raise ReferenceSolutionCalled(f"the reference solution {mod_name}.{attr} is not available while grading")
+
+        for m in list(sys.modules.values()):
+            d = getattr(m, "__dict__", None)
+            if not isinstance(d, dict):
+                continue
+            for k, v in list(d.items()):
+                if v is original:
+                    d[k] = trap
+    before = _fingerprint(check_mod, job.check_function)
+    out = io.StringIO()
+    ns = {"__name__": "__submission__", "__builtins__": builtins}
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
+        try:
+            exec(compile(job.code, "<your notebook>", "exec"), ns)  # noqa: S102 - the sandboxed student code
+        except BaseException as exc:  # noqa: BLE001
+            return {"status": "error", "message": f"defining {job.name} failed: {type(exc).__name__}: {exc}",
+                    "reference_called": bool(fired)}
+        obj = ns.get(job.name)
+        try:
+            check_fn(obj)
+        except BaseException as exc:  # noqa: BLE001 - the check itself never raises; a student's exit might
+            return {"status": "error", "message": f"the check stopped: {type(exc).__name__}: {exc}",
+                    "reference_called": bool(fired)}
+    after = _fingerprint(check_mod, job.check_function)
+    tampered = sorted(k for k in before if after.get(k) != before[k])
+    results = list(core.RESULTS.values())
+    if len(results) != 1:
+        tampered.append(f"{len(results)} verdicts recorded instead of 1")
+    lines = list(results[0].lines) if results else []
+    return {"status": "ok", "lines": lines, "reference_called": bool(fired), "tampered": tampered}
+
+
+def _child_main(conn, fn, args):
+    try:
+        value = fn(*args)
+        conn.send({"value": value})
+    except BaseException as exc:  # noqa: BLE001
+        try:
+            conn.send({"error": f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=3)}"})
+        except Exception:  # noqa: BLE001
+            pass
+    finally:
+        conn.close()
+        os._exit(0)
+
+
+def _in_child(fn, args, timeout: float) -> dict:
+    """Run ``fn(*args)`` in a forked process; ``{"value": ...}``, ``{"error": ...}`` or ``{"timeout": True}``."""
+    ctx = mp.get_context("fork")
+    parent, child = ctx.Pipe(duplex=False)
+    p = ctx.Process(target=_child_main, args=(child, fn, args), daemon=True)
+    p.start()
+    child.close()
+    try:
+        if parent.poll(timeout):
+            try:
+                return parent.recv()
+            except EOFError:
+                return {"crashed": True}
+        return {"timeout": True}
+    finally:
+        if p.is_alive():
+            p.kill()
+        p.join(5)
+        parent.close()
+
+
+def run_hidden(job: HiddenJob, timeout: float = 60.0) -> HiddenOutcome:
+    """Run the hidden checks of one exercise in a forked process with a time limit."""
+    import time
+
+    t0 = time.perf_counter()
+    res = _in_child(_run_job, (job,), timeout)
+    dt = time.perf_counter() - t0
+    if res.get("timeout"):
+        return HiddenOutcome("timeout", message=f"stopped after {timeout:g} s: an endless loop, or far too slow",
+                             seconds=dt)
+    if res.get("crashed"):
+        return HiddenOutcome("crashed", message="the process running your function ended without a verdict",
+                             seconds=dt)
+    if "error" in res:
+        return HiddenOutcome("error", message=f"the grader failed: {res['error']}", seconds=dt)
+    v = res["value"]
+    return HiddenOutcome(v["status"], lines=v.get("lines", []), reference_called=v.get("reference_called", False),
+                         tampered=v.get("tampered", []), message=v.get("message", ""), seconds=dt)
