@@ -19,6 +19,8 @@ COMMANDS = {
     "nerf": ("course_lib.nerf.cli", "train a NeRF or render novel views from a checkpoint"),
     "fixtures": ("course_lib.grading.cli", "rebuild (or --check) the stored expected results behind the check cells"),
     "make-data": ("course_lib.data.cli", "regenerate the embedded synthetic data sets under data/"),
+    "release": ("course_lib.grading.cli_release", "write the student kit: notebooks with solution stubs, no reference solutions"),
+    "grade": ("course_lib.grading.cli_grade", "grade a student's kit: nbval against the reference verdicts + hidden checks"),
     "ba": ("course_lib.sfm.ba_cli", "bundle-adjust a 'Bundle Adjustment in the Large' problem with the kit's sparse LM"),
 }
 
