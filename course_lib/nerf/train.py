@@ -312,7 +312,8 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
         progress: show a tqdm.auto progress bar.
         device: torch device (default: CPU).
         callback: optional ``callback(step, info: dict) -> bool``, called after each step with
-            loss, psnr, seconds; return True to stop (a checkpoint is written).
+            ``loss, psnr, seconds`` (training time so far), ``model, model_fine, config, bounds``;
+            return True to stop (a checkpoint is written). Its own time is not training time.
         snapshot_view: index of the held-out view in the snapshots.
 
     Returns:
@@ -458,7 +459,8 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
             if cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
                 checkpoint()
             if callback is not None and callback(step, {"loss": loss.item(), "psnr": p, "seconds": elapsed,
-                                                        "model": model, "model_fine": model_fine}):
+                                                        "model": model, "model_fine": model_fine, "config": cfg,
+                                                        "bounds": bounds}):
                 stopped_by = "callback"
                 break
     except KeyboardInterrupt:

@@ -1,0 +1,108 @@
+"""NeRF training speed: PSNR after 1, 2, 5 minutes of training for the presets, samples/s, memory.
+
+    python benchmarks/nerf_speed.py                          # lego-100 if present, else the embedded scene
+    python benchmarks/nerf_speed.py DATA_DIR --minutes 5 --presets fast paper --at 1 2 5
+
+Each preset trains in its own process (so the peak memory is its own), on the scene's train split;
+at each ``--at`` minute of *training* time (evaluation time excluded) it renders all test views
+and records their mean PSNR. Prints a table and the machine's load average before and after (on
+a shared machine, other processes slow the run down: compare numbers taken at similar load).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+def _one(data: str, preset_name: str, minutes: float, at: list[float], seed: int, threads: int | None) -> dict:
+    import torch
+
+    from course_lib.data.blender import load_blender
+    from course_lib.nerf.presets import preset
+    from course_lib.nerf.train import evaluate, train
+
+    tr = load_blender(data, "train")
+    te = None
+    for split in ("test", "val"):
+        if (Path(data) / f"transforms_{split}.json").exists():
+            te = load_blender(data, split)
+            break
+    over = dict(minutes=minutes, seed=seed, snapshot_every=0, checkpoint_every=0)
+    if threads is not None:
+        over["threads"] = threads
+    cfg = preset(preset_name, **over)
+    marks = sorted(m * 60.0 for m in at if m < minutes)
+    psnr_at: dict[str, float] = {}
+
+    def callback(step, info):
+        while marks and info["seconds"] >= marks[0]:
+            t = marks.pop(0)
+            psnr_at[f"{t / 60:g}"] = round(evaluate(info["model"], info["model_fine"], info["config"], info["bounds"], te)[0], 2)
+        return False
+
+    res = train(tr, te, cfg, progress=False, callback=callback if te is not None else None)
+    m = res.metrics
+    psnr_at[f"{minutes:g}"] = m["test_psnr"]
+    return dict(preset=preset_name, psnr_at=psnr_at, iterations=m["iterations"], train_seconds=m["train_seconds"],
+                samples_per_second=m["samples_per_second"], rays_per_second=m["rays_per_second"],
+                peak_memory_mb=m["peak_memory_mb"], threads=m["threads"], n_parameters=m["n_parameters"],
+                torch_threads=torch.get_num_threads())
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("data", nargs="?", default=None, help="Blender scene folder (default: lego-100, else embedded)")
+    p.add_argument("--minutes", type=float, default=5.0)
+    p.add_argument("--at", type=float, nargs="+", default=[1, 2, 5], help="minutes at which to measure test PSNR")
+    p.add_argument("--presets", nargs="+", default=["paper", "fast"])
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--json", default=None, help="also write the results here")
+    p.add_argument("--_one", default=None, help=argparse.SUPPRESS)
+    a = p.parse_args(argv)
+    if a.data is None:
+        from course_lib.paths import EMBEDDED_NERF, course_data
+
+        a.data = str(course_data("lego") or EMBEDDED_NERF)
+    if a._one:
+        print("RESULT " + json.dumps(_one(a.data, a._one, a.minutes, a.at, a.seed, a.threads)))
+        return 0
+    rows = []
+    for name in a.presets:
+        load0 = os.getloadavg()
+        t0 = time.time()
+        cmd = [sys.executable, __file__, a.data, "--minutes", str(a.minutes), "--seed", str(a.seed), "--_one", name,
+               "--at", *map(str, a.at)] + (["--threads", str(a.threads)] if a.threads is not None else [])
+        out = subprocess.run(cmd, capture_output=True, text=True)
+        line = next((ln for ln in out.stdout.splitlines() if ln.startswith("RESULT ")), None)
+        if line is None:
+            print(out.stdout, out.stderr, file=sys.stderr)
+            return 1
+        r = json.loads(line[7:])
+        r.update(load_before=[round(x, 2) for x in load0], load_after=[round(x, 2) for x in os.getloadavg()],
+                 wall_seconds=round(time.time() - t0, 1))
+        rows.append(r)
+    marks = [f"{m:g}" for m in a.at if m <= a.minutes]
+    if f"{a.minutes:g}" not in marks:
+        marks.append(f"{a.minutes:g}")
+    print(f"data: {a.data}   cores: {os.cpu_count()}")
+    head = ["preset"] + [f"PSNR@{m}min" for m in marks] + ["iters", "samples/s", "rays/s", "peak MB", "threads", "load 1-min before/after"]
+    print(" | ".join(head))
+    for r in rows:
+        cells = [r["preset"]] + [f"{r['psnr_at'].get(m, float('nan')):.2f}" for m in marks]
+        cells += [str(r["iterations"]), f"{r['samples_per_second']:.0f}", f"{r['rays_per_second']:.0f}",
+                  f"{r['peak_memory_mb']:.0f}", str(r["torch_threads"]), f"{r['load_before'][0]}/{r['load_after'][0]}"]
+        print(" | ".join(cells))
+    if a.json:
+        Path(a.json).write_text(json.dumps({"data": a.data, "rows": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
