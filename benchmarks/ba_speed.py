@@ -21,7 +21,8 @@ seconds to the kit's:
 
 All costs are ``0.5 * sum(r**2)`` in BAL's pixel units, recomputed with the kit's BAL residual
 from each solver's final parameters. Times are wall-clock seconds of the optimization only
-(the file is read once, before). Run::
+(the file is read once, before); ``cpu s`` is the CPU time of the process over the same span
+(all threads), a steadier number on a shared machine. Run::
 
     python benchmarks/ba_speed.py [PROBLEM_FILE] [--json OUT.json] [--skip-cookbook] [--skip-ceres]
 """
@@ -35,6 +36,12 @@ import platform
 import sys
 import time
 from pathlib import Path
+
+# One BLAS thread for everyone (override by setting it yourself): the cookbook's trf/lsmr makes
+# thousands of small dense BLAS calls, and with OpenBLAS threads fighting over a busy 2-core
+# machine it took 493 s instead of ~14 s. The kit holds BLAS to one thread itself; Ceres uses its
+# own thread pool (--ceres-threads), not OpenBLAS.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np
 import scipy.sparse as sp
@@ -74,10 +81,11 @@ def depth_in_front(problem: BALProblem) -> np.ndarray:
 
 
 def run_kit(problem: BALProblem):
+    c0 = time.process_time()
     res = lm.solve(
         lm.BALCamera(), problem.camera_params, problem.points, problem.cam_idx, problem.pt_idx, problem.obs, ftol=FTOL
     )
-    return res.cameras, res.points, res.iterations, res.seconds
+    return res.cameras, res.points, res.iterations, res.seconds, time.process_time() - c0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -131,7 +139,7 @@ def _cookbook_sparsity(n_cameras, n_points, camera_indices, point_indices):
 def run_cookbook(problem: BALProblem):
     M, N = problem.n_cameras, problem.n_points
     x0 = np.hstack((problem.camera_params.ravel(), problem.points.ravel()))
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     A = _cookbook_sparsity(M, N, problem.cam_idx, problem.pt_idx)
     res = least_squares(
         _cookbook_fun,
@@ -143,8 +151,8 @@ def run_cookbook(problem: BALProblem):
         method="trf",
         args=(M, N, problem.cam_idx, problem.pt_idx, problem.obs),
     )
-    seconds = time.perf_counter() - t0
-    return res.x[: 9 * M].reshape(M, 9), res.x[9 * M :].reshape(N, 3), int(res.njev), seconds
+    seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return res.x[: 9 * M].reshape(M, 9), res.x[9 * M :].reshape(N, 3), int(res.njev), seconds, cpu
 
 
 # ---------------------------------------------------------------------------------------------
@@ -214,10 +222,10 @@ def run_ceres(problem: BALProblem, pycolmap, num_threads: int = -1):
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in rec.reg_image_ids():
         config.add_image(image_id)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     adjuster = pycolmap.create_default_bundle_adjuster(options, config, rec)
     summary = adjuster.solve()
-    seconds = time.perf_counter() - t0
+    seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     iterations = -1
     try:
         cs = summary.ceres_summary
@@ -225,7 +233,7 @@ def run_ceres(problem: BALProblem, pycolmap, num_threads: int = -1):
     except Exception:
         pass
     cams, pts = colmap_to_bal(rec, problem, point_ids)
-    return cams, pts, iterations, seconds, summary
+    return cams, pts, iterations, seconds, cpu, summary
 
 
 # ---------------------------------------------------------------------------------------------
@@ -247,15 +255,16 @@ def main(argv=None) -> int:
     in_front = depth_in_front(problem)
     print(f"{problem}; {int((~in_front).sum())} observations behind their camera at the start")
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load average "
-          f"{' '.join(f'{x:.1f}' for x in os.getloadavg())}")
+          f"{' '.join(f'{x:.1f}' for x in os.getloadavg())}; OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']}")
     init_all, init_front = bal_costs(problem, problem.camera_params, problem.points, in_front)
     rows = []
 
-    def add(name, cams, pts, iterations, seconds, note=""):
+    def add(name, cams, pts, iterations, seconds, cpu_seconds):
         c_all, c_front = bal_costs(problem, cams, pts, in_front)
         rows.append(dict(solver=name, final_cost=c_all, final_cost_in_front=c_front, iterations=iterations,
-                         seconds=seconds, note=note))
-        print(f"  {name}: cost {c_all:.6e} (in front {c_front:.6e}), {iterations} iterations, {seconds:.2f} s", flush=True)
+                         seconds=seconds, cpu_seconds=cpu_seconds))
+        print(f"  {name}: cost {c_all:.6e} (in front {c_front:.6e}), {iterations} iterations, {seconds:.2f} s "
+              f"(cpu {cpu_seconds:.2f} s)", flush=True)
 
     add("kit (course_lib.sfm.lm)", *run_kit(problem))
     if not args.skip_cookbook:
@@ -267,8 +276,8 @@ def main(argv=None) -> int:
             pycolmap = None
             print("  ceres: pycolmap is not installed, skipped")
         if pycolmap is not None:
-            cams, pts, it, sec, summary = run_ceres(problem, pycolmap, args.ceres_threads)
-            add(f"ceres (pycolmap {pycolmap.__version__}, {args.ceres_threads} thr)", cams, pts, it, sec)
+            *out, summary = run_ceres(problem, pycolmap, args.ceres_threads)
+            add(f"ceres (pycolmap {pycolmap.__version__}, {args.ceres_threads} thr)", *out)
             try:
                 print("   ", summary.ceres_summary.BriefReport())
             except Exception:
@@ -277,13 +286,14 @@ def main(argv=None) -> int:
     kit_seconds = rows[0]["seconds"]
     print()
     print(f"initial cost {init_all:.4e} (all {problem.n_obs} observations), {init_front:.4e} (in front)")
-    header = f"| {'solver':32s} | {'final cost':>10s} | {'in front':>10s} | {'iter':>4s} | {'seconds':>7s} | {'x kit':>6s} |"
+    header = (f"| {'solver':32s} | {'final cost':>10s} | {'in front':>10s} | {'iter':>4s} | {'seconds':>7s} | "
+              f"{'x kit':>6s} | {'cpu s':>7s} |")
     print(header)
     print("|" + "|".join("-" * (len(c)) for c in header.split("|")[1:-1]) + "|")
     for r in rows:
         r["ratio_to_kit"] = r["seconds"] / kit_seconds
         print(f"| {r['solver']:32s} | {r['final_cost']:10.4e} | {r['final_cost_in_front']:10.4e} | "
-              f"{r['iterations']:4d} | {r['seconds']:7.2f} | {r['ratio_to_kit']:6.2f} |")
+              f"{r['iterations']:4d} | {r['seconds']:7.2f} | {r['ratio_to_kit']:6.2f} | {r['cpu_seconds']:7.2f} |")
     if args.json:
         args.json.write_text(json.dumps(dict(problem=str(path), initial_cost=init_all, initial_cost_in_front=init_front,
                                              load_average=os.getloadavg(), rows=rows), indent=2) + "\n")
