@@ -448,29 +448,36 @@ class _Structure:
         pk = np.repeat(np.arange(K), nk)
         offs = np.arange(pk.size) - np.repeat(np.cumsum(nk) - nk, nk)
         pl = order[np.repeat(starts[pt_idx], nk) + offs]
-        keep = cam_idx[pk] <= cam_idx[pl]
+        keep = cam_idx[pk] < cam_idx[pl]  # the diagonal blocks (k == l) are summed camera by camera
         pk, pl = pk[keep], pl[keep]
         cp = cam_idx[pk] * n_cameras + cam_idx[pl]
         o = np.argsort(cp, kind="stable")
         self.pair_k, self.pair_l = pk[o], pl[o]
         self.block_ids, first = np.unique(cp[o], return_index=True)
         self.block_bounds = np.append(first, len(o))
-        self.n_pairs = len(o)
+        self.n_pairs = len(o) + K
 
-    def reduced_blocks(self, Yt: np.ndarray, Wt: np.ndarray) -> np.ndarray:
-        """``(n_blocks, n, n)`` blocks ``sum_j W_ij V_j^-1 W_lj^T`` for the camera pairs ``block_ids``.
+    def reduced_blocks(self, Yt: np.ndarray, Wt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The blocks of ``W V^-1 W^T``: ``(diag (M, n, n), off (n_blocks, n, n))``.
 
-        ``Yt (K, 3, n)`` holds ``V_j^-1 W_k^T`` and ``Wt (K, 3, n)`` holds ``W_k^T``; each camera
-        pair's block is ONE matrix product over all the points the two cameras share.
+        ``diag[i] = sum_{k in i} W_k V_j^-1 W_k^T`` and ``off[q]`` the same sum over the points
+        that cameras ``i < l`` (``divmod(block_ids[q], M)``) share. ``Yt (K, 3, n)`` holds
+        ``V_j^-1 W_k^T`` and ``Wt (K, 3, n)`` holds ``W_k^T``; each block is ONE matrix product
+        over all the points of the camera or camera pair.
         """
         n = self.n
+        diag = np.empty((self.M, n, n))
+        Yf, Wf = Yt.reshape(-1, n), Wt.reshape(-1, n)
+        c = 3 * self.cam_start
+        for i in range(self.M):  # observations of camera i are contiguous: no gather
+            np.matmul(Yf[c[i] : c[i + 1]].T, Wf[c[i] : c[i + 1]], out=diag[i])
         Yg = Yt[self.pair_k].reshape(-1, n)  # (3 P, n)
         Wg = Wt[self.pair_l].reshape(-1, n)
-        out = np.empty((len(self.block_ids), n, n))
+        off = np.empty((len(self.block_ids), n, n))
         b = 3 * self.block_bounds
         for q in range(len(self.block_ids)):
-            np.matmul(Yg[b[q] : b[q + 1]].T, Wg[b[q] : b[q + 1]], out=out[q])
-        return out
+            np.matmul(Yg[b[q] : b[q + 1]].T, Wg[b[q] : b[q + 1]], out=off[q])
+        return diag, off
 
 
 def _outer2(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
@@ -543,7 +550,7 @@ def schur_solve(structure: _Structure, ne: NormalEquations, lam: float, free_cam
     Vdiag = _damping(np.einsum("jii->ji", ne.V))
     Vinv = np.linalg.inv(ne.V + lam * Vdiag[:, :, None] * np.eye(3))
     Yt = _mm(Vinv[pt], ne.Wt)  # (K, 3, n): V_j^-1 W_k^T
-    blocks = st.reduced_blocks(Yt, ne.Wt)
+    diag, blocks = st.reduced_blocks(Yt, ne.Wt)
     Udiag = _damping(np.einsum("kii->ki", ne.U))
     q = np.einsum("jab,jb->ja", Vinv, ne.g_p)  # V^-1 g_X
     rhs = -(ne.g_c - st.to_cam @ np.einsum("kab,ka->kb", ne.Wt, q[pt])).ravel()
@@ -554,7 +561,7 @@ def schur_solve(structure: _Structure, ne: NormalEquations, lam: float, free_cam
         S = np.zeros((M, M, n, n))
         S[bi, bl] = -blocks
         S[bl, bi] = -np.transpose(blocks, (0, 2, 1))
-        S[np.arange(M), np.arange(M)] += ne.U + lam * Udiag[:, :, None] * np.eye(n)
+        S[np.arange(M), np.arange(M)] = ne.U + lam * Udiag[:, :, None] * np.eye(n) - diag
         S = S.transpose(0, 2, 1, 3).reshape(n * M, n * M)
         S[fixed, :] = 0.0
         S[:, fixed] = 0.0
@@ -564,10 +571,9 @@ def schur_solve(structure: _Structure, ne: NormalEquations, lam: float, free_cam
         except np.linalg.LinAlgError:
             dc = np.linalg.lstsq(S, rhs, rcond=None)[0]
     else:
-        off = bi != bl
-        data = np.concatenate([-blocks, -np.transpose(blocks[off], (0, 2, 1)), ne.U + lam * Udiag[:, :, None] * np.eye(n)])
-        rows = np.concatenate([bi, bl[off], np.arange(M)])
-        cols = np.concatenate([bl, bi[off], np.arange(M)])
+        data = np.concatenate([-blocks, -np.transpose(blocks, (0, 2, 1)), ne.U + lam * Udiag[:, :, None] * np.eye(n) - diag])
+        rows = np.concatenate([bi, bl, np.arange(M)])
+        cols = np.concatenate([bl, bi, np.arange(M)])
         order = np.lexsort((cols, rows))
         indptr = np.searchsorted(rows[order], np.arange(M + 1))
         S = sp.bsr_matrix((data[order], cols[order], indptr), shape=(n * M, n * M)).tocsr()
