@@ -36,7 +36,7 @@ Schur complement (why BA scales)
 Damping strategy
     Nielsen's (the one in Ceres): the gain ratio ``rho = actual / predicted decrease``; a step is
     taken when ``rho > 1e-3``, then ``lam *= max(1/3, 1 - (2 rho - 1)^3)``; otherwise ``lam *= nu``,
-    ``nu *= 2``. Stops when the relative decrease of the cost in a step is below ``ftol`` (Ceres'
+    ``nu *= 2``; ``lam`` stays within ``[LAM_MIN, LAM_MAX]``. Stops when the relative decrease of the cost in a step is below ``ftol`` (Ceres'
     ``function_tolerance``), the step is below ``xtol`` relative to the parameters, the gradient is
     below ``gtol``, or after ``max_iterations`` steps.
 
@@ -100,6 +100,10 @@ __all__ = [
 # ---------------------------------------------------------------------------------------------
 
 _BLAS_HANDLES: list | None = None
+
+#: Bounds of the damping (Ceres: 1 / max_trust_region_radius and 1 / min_trust_region_radius,
+#: with a larger floor so that a point seen once keeps a well-conditioned 3x3 block).
+LAM_MIN, LAM_MAX = 1e-10, 1e16
 
 
 def _openblas_thread_controls() -> list:
@@ -439,6 +443,8 @@ class _Structure:
         self.cam_start = np.searchsorted(cam_idx, np.arange(n_cameras + 1))
         self.to_pt = sp.csr_matrix((np.ones(K), (pt_idx, np.arange(K))), shape=(n_points, K))
         self.to_cam = sp.csr_matrix((np.ones(K), (cam_idx, np.arange(K))), shape=(n_cameras, K))
+        self.seen = np.zeros(n_points, bool)
+        self.seen[pt_idx] = True
         # Pairs (k, l) of observations of the same point with camera(k) <= camera(l): the terms of
         # W V^-1 W^T (its upper block triangle), grouped by camera pair (i, l).
         order = np.argsort(pt_idx, kind="stable")
@@ -548,7 +554,12 @@ def schur_solve(structure: _Structure, ne: NormalEquations, lam: float, free_cam
     M, n = st.M, st.n
     pt = st.pt_idx
     Vdiag = _damping(np.einsum("jii->ji", ne.V))
-    Vinv = np.linalg.inv(ne.V + lam * Vdiag[:, :, None] * np.eye(3))
+    Vd = ne.V + lam * Vdiag[:, :, None] * np.eye(3)
+    Vd[~st.seen] = np.eye(3)  # points without observations do not move
+    try:
+        Vinv = np.linalg.inv(Vd)
+    except np.linalg.LinAlgError:  # a point seen once is free along its ray when lam is tiny
+        Vinv = np.linalg.pinv(Vd)
     Yt = _mm(Vinv[pt], ne.Wt)  # (K, 3, n): V_j^-1 W_k^T
     diag, blocks = st.reduced_blocks(Yt, ne.Wt)
     Udiag = _damping(np.einsum("kii->ki", ne.U))
@@ -767,7 +778,7 @@ def _lm(model, cameras, points, cam_idx, pt_idx, obs, fixed_cameras, loss, f_sca
                 x_norm = np.sqrt(np.sum(cams**2) + np.sum(pts**2))
                 rel = (cost - cost_new) / max(cost, 1e-300)
                 cams, pts, r, w, cost, plain = c_new, p_new, r_new, w_new, cost_new, plain_new
-                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), LAM_MIN)
                 nu = 2.0
                 n_iter += 1
                 history.append(plain)
@@ -780,7 +791,7 @@ def _lm(model, cameras, points, cam_idx, pt_idx, obs, fixed_cameras, loss, f_sca
             else:
                 lam *= nu
                 nu *= 2.0
-                if lam > 1e16:
+                if lam > LAM_MAX:
                     break
         if not accepted:
             success, message = True, "no step decreases the cost (converged to the precision available)"
