@@ -87,6 +87,7 @@ class NotebookInfo:
     path: Path
     n_plotly: int = 0
     n_widgets: int = 0
+    n_sliders: int = 0  # widget views with a slider (the kit's widgets; not e.g. tqdm's progress bars)
     n_errors: int = 0
     error_cells: list = field(default_factory=list)
 
@@ -109,6 +110,8 @@ def notebook_inventory(folder: Path = NOTEBOOKS_DIR) -> list[NotebookInfo]:
                 data = out.get("data", {})
                 info.n_plotly += PLOTLY_MIME in data
                 info.n_widgets += WIDGET_MIME in data
+                text = data.get("text/plain", "")
+                info.n_sliders += WIDGET_MIME in data and "Slider(" in ("".join(text) if isinstance(text, list) else text)
         infos.append(info)
     return infos
 
@@ -218,16 +221,14 @@ class LabServer:
         shutil.rmtree(self.tmp, ignore_errors=True)
 
 
-def launch_browser(playwright, chromium: str, user_data_dir: Path, offline: bool = False, viewport=(1280, 900)):
-    """A persistent Chromium context (fresh ``user_data_dir``) with the machine's flags."""
-    return playwright.chromium.launch_persistent_context(
-        str(user_data_dir),
-        executable_path=chromium,
-        headless=True,
-        args=CHROMIUM_FLAGS,
-        offline=offline,
-        viewport={"width": viewport[0], "height": viewport[1]},
-    )
+def launch_browser(playwright, chromium: str):
+    """Headless Chromium (a fresh temporary profile) with the machine's flags; use ``new_context``."""
+    return playwright.chromium.launch(executable_path=chromium, headless=True, args=CHROMIUM_FLAGS)
+
+
+def new_context(browser, offline: bool = False, viewport=(1280, 900)):
+    """A browser context of its own (own storage: JupyterLab tabs do not see each other)."""
+    return browser.new_context(offline=offline, viewport={"width": viewport[0], "height": viewport[1]})
 
 
 # JavaScript helpers evaluated in a JupyterLab page (window.jupyterapp is exposed by the server).
