@@ -436,21 +436,25 @@ def _roll(R_cw: np.ndarray, angle: float) -> np.ndarray:
 
 
 def sfm_cameras(rng: np.random.Generator, n_cameras: int = 6) -> tuple[np.ndarray, np.ndarray]:
-    """Cameras of a student walking past the building, all looking at it.
+    """Cameras of a student walking around a small square in front of the building, all looking at it.
 
-    Centres spread over an arc around (0, -1) in front of the building, from -30 to +30 degrees,
-    alternately about 9 and 14 m away (a zig-zag walk) and 1.3-2.3 m high (eye height, a step,
-    a low wall), each aimed at the building's middle with a few decimetres of jitter and a degree
-    or two of roll. The centres are deliberately far from a line: a reconstruction is compared
-    with the truth after a similarity alignment of the *centres*, and with centres almost on a
-    line that alignment cannot pin the rotation about it (centre errors of 1 cm on a 2 m wide
-    spread already cost 0.15 degrees).
+    The photos are taken on a loop: along the near side of the square (about 9 m from the
+    building) from left to right, then back along the far side (about 14 m) from right to left,
+    at directions spread from -30 to +30 degrees around (0, -1), 1.3-2.3 m high (eye height, a
+    step, a low wall), each aimed at the building's middle with a few decimetres of jitter and a
+    degree or two of roll. So consecutive photos are sideways steps of 5-6 m (good pairs for the
+    two-view notebooks), and the centres are far from a line: a reconstruction is compared with
+    the truth after a similarity alignment of the *centres*, and with centres almost on a line
+    that alignment cannot pin the rotation about it (1 cm of centre error on a 2 m wide spread
+    already costs 0.15 degrees).
 
     Returns:
         ``R_cw (M, 3, 3)``, ``t_cw (M, 3)``.
     """
-    angles = np.radians(np.linspace(-30.0, 30.0, n_cameras)) + rng.normal(0, np.radians(1.5), n_cameras)
-    radii = 11.5 + 2.5 * (-1.0) ** np.arange(n_cameras) + rng.uniform(-0.7, 0.7, n_cameras)  # a step closer, a step back
+    grid = np.linspace(-30.0, 30.0, n_cameras)
+    near, far = grid[1::2], grid[0::2][::-1]
+    angles = np.radians(np.r_[near, far]) + rng.normal(0, np.radians(1.5), n_cameras)
+    radii = np.r_[np.full(len(near), 9.0), np.full(len(far), 14.0)] + rng.uniform(-0.7, 0.7, n_cameras)
     heights = rng.uniform(1.3, 2.3, n_cameras)
     Rs, ts = [], []
     for a, r, h in zip(angles, radii, heights):
