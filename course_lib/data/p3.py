@@ -428,7 +428,6 @@ def read_p3(folder, require_images: bool = True) -> P3Data:
     uf = _UnionFind()
     node_id: dict[tuple[int, float, float], int] = {}
     node_key: list[tuple[int, float, float]] = []
-    node_rgb: dict[int, tuple[int, int, int]] = {}
 
     def node(img: int, u: float, v: float) -> int:
         key = (img, u, v)
@@ -478,7 +477,6 @@ def read_p3(folder, require_images: bool = True) -> P3Data:
             rgb = tuple(int(round(c)) for c in rgb_f)
             ui, vi = vals[4], vals[5]
             ni = node(i, ui, vi)
-            node_rgb.setdefault(ni, rgb)
             for t in range(k - 1):
                 jid = _parse_image_id(vals[6 + 3 * t], where, "image id")
                 if jid < 1:
