@@ -288,8 +288,13 @@ def _reference_of(name: str, region_texts: list[str]) -> str | None:
     return None
 
 
-def kit_specs(notebooks_dir: Path = NOTEBOOKS_DIR, only: list[str] | None = None) -> list[NotebookSpec]:
-    """:func:`notebook_spec` of every notebook (sorted by name), or of those whose name starts with one of ``only``."""
+def kit_specs(notebooks_dir: Path = NOTEBOOKS_DIR, only: list[str] | None = None,
+              errors_out: list[str] | None = None) -> list[NotebookSpec]:
+    """:func:`notebook_spec` of every notebook (sorted by name), or of those whose name starts with one of ``only``.
+
+    Raises :class:`ReleaseError` naming every notebook that cannot be released, unless
+    ``errors_out`` is given: then those messages are appended to it and the others are returned.
+    """
     paths = sorted(Path(notebooks_dir).glob("*.ipynb"))
     if only:
         paths = [p for p in paths if any(p.name.startswith(o) for o in only)]
@@ -299,8 +304,10 @@ def kit_specs(notebooks_dir: Path = NOTEBOOKS_DIR, only: list[str] | None = None
             specs.append(notebook_spec(p))
         except ReleaseError as exc:
             errors.append(str(exc))
-    if errors:
+    if errors and errors_out is None:
         raise ReleaseError("cannot release:\n  " + "\n  ".join(errors))
+    if errors_out is not None:
+        errors_out.extend(errors)
     return specs
 
 

@@ -34,6 +34,7 @@ import re
 import shutil
 import sys
 import traceback
+import types
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -101,12 +102,45 @@ def _bound_names(node: ast.AST) -> list[str]:
     return out
 
 
-def _used_names(node: ast.AST) -> set[str]:
+def _local_names(node: ast.AST) -> set[str]:
+    """Names bound inside a def or class (arguments, assignments, imports, nested defs, loop targets)."""
     out = set()
     for n in ast.walk(node):
-        if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load):
+        if n is node:
+            if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                out |= _arg_names(n.args)
+            continue
+        if isinstance(n, ast.Name) and isinstance(n.ctx, (ast.Store, ast.Del)):
             out.add(n.id)
+        elif isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            out.add(n.name)
+            if not isinstance(n, ast.ClassDef):
+                out |= _arg_names(n.args)
+        elif isinstance(n, ast.Lambda):
+            out |= _arg_names(n.args)
+        elif isinstance(n, (ast.Import, ast.ImportFrom)):
+            out |= {(a.asname or a.name).split(".")[0] for a in n.names}
+        elif isinstance(n, ast.ExceptHandler) and n.name:
+            out.add(n.name)
     return out
+
+
+def _arg_names(a: ast.arguments) -> set[str]:
+    return {x.arg for x in a.posonlyargs + a.args + a.kwonlyargs + [a.vararg, a.kwarg] if x is not None}
+
+
+def _used_names(node: ast.AST) -> set[str]:
+    """The free names of a top-level statement: what it needs from the notebook's globals."""
+    loads = {n.id for n in ast.walk(node) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load)}
+    if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+        outer = set()  # decorators, defaults, bases: evaluated in the notebook's scope
+        exprs = list(getattr(node, "decorator_list", [])) + list(getattr(node, "bases", []))
+        if not isinstance(node, ast.ClassDef):
+            exprs += [d for d in node.args.defaults + node.args.kw_defaults if d is not None]
+        for e in exprs:
+            outer |= {n.id for n in ast.walk(e) if isinstance(n, ast.Name)}
+        return (loads - _local_names(node)) | outer
+    return loads
 
 
 def _segment(src: str, node: ast.AST) -> str:
@@ -430,7 +464,9 @@ def _run_job(job: HiddenJob) -> dict:
                     d[k] = trap
     before = _fingerprint(check_mod, job.check_function)
     out = io.StringIO()
-    ns = {"__name__": "__submission__", "__builtins__": builtins}
+    module = types.ModuleType("__submission__")
+    sys.modules["__submission__"] = module  # dataclasses and pickling look the module up
+    ns = module.__dict__
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
         try:
             exec(compile(job.code, "<your notebook>", "exec"), ns)  # noqa: S102 - the sandboxed student code

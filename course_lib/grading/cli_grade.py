@@ -1,0 +1,49 @@
+"""``python -m course_lib grade SUBMISSION_DIR``: grade a student's kit (see :mod:`course_lib.grading.grade`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("submission", type=Path, help="the student's kit (or a folder with their notebooks)")
+    parser.add_argument("--json", type=Path, default=None, metavar="REPORT.json", help="write the report as JSON")
+    parser.add_argument("--markdown", type=Path, default=None, metavar="FEEDBACK.md", help="write the feedback as Markdown")
+    parser.add_argument("--notebooks", nargs="+", default=None, metavar="PREFIX",
+                        help="grade only these notebooks (name prefixes, e.g. 01 02)")
+    parser.add_argument("--exercises", nargs="+", default=None, metavar="NAME", help="grade only these exercises")
+    parser.add_argument("--hidden-seed", type=int, default=None,
+                        help="seed of the hidden cases (default: random, written into the report)")
+    parser.add_argument("--timeout", type=float, default=60.0, help="seconds for the hidden checks of one exercise")
+    parser.add_argument("--cell-timeout", type=float, default=300.0, help="seconds for one notebook cell under nbval")
+    parser.add_argument("--no-nbval", action="store_true", help="skip the nbval run (hidden checks only)")
+    parser.add_argument("--allow-reference", action="store_true",
+                        help="instructor self-test: the reference notebooks may call the reference solutions")
+    parser.add_argument("--notebooks-dir", type=Path, default=None, help="instructor notebooks (default: notebooks/)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from course_lib.grading.grade import grade_submission, to_markdown
+    from course_lib.grading.release import NOTEBOOKS_DIR
+
+    report = grade_submission(
+        args.submission, notebooks=args.notebooks, exercises=args.exercises, salt=args.hidden_seed,
+        timeout=args.timeout, cell_timeout=args.cell_timeout, run_nbval=not args.no_nbval,
+        allow_reference=args.allow_reference, notebooks_dir=args.notebooks_dir or NOTEBOOKS_DIR,
+    )
+    md = to_markdown(report)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(report, indent=1, ensure_ascii=False) + "\n")
+    if args.markdown:
+        args.markdown.parent.mkdir(parents=True, exist_ok=True)
+        args.markdown.write_text(md)
+    for g in report["exercises"]:
+        print(f"{g['notebook']:40s} {g['name']:28s} {g['points']:6g} / {g['max_points']:g}  {g['status']}")
+    print(f"total {report['total']:g} / {report['max']:g} points (hidden seed {report['hidden_seed']}, "
+          f"{report['seconds']:g} s)")
+    sys.stdout.flush()
+    return 0

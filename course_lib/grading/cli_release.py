@@ -1,0 +1,32 @@
+"""``python -m course_lib release OUT_DIR``: write the student kit (see :mod:`course_lib.grading.release`)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("out_dir", type=Path, help="folder for the student kit (replaced if it holds an earlier release)")
+    parser.add_argument("--notebooks-dir", type=Path, default=None, help="instructor notebooks (default: notebooks/)")
+    parser.add_argument("--force", action="store_true", help="replace a non-empty folder that is not an earlier release")
+
+
+def run(args: argparse.Namespace) -> int:
+    from course_lib.grading.release import NOTEBOOKS_DIR, ReleaseError, write_release
+
+    try:
+        manifest = write_release(args.out_dir, args.notebooks_dir or NOTEBOOKS_DIR, force=args.force)
+    except ReleaseError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    n_ex = sum(len(nb["exercises"]) for nb in manifest["notebooks"])
+    print(f"student kit written to {args.out_dir}: {len(manifest['notebooks'])} notebooks, {n_ex} exercises, "
+          f"{len(manifest['files'])} files")
+    print(f"left out (reference solutions): {', '.join(manifest['omitted_modules']) or 'none'}")
+    for mod, names in sorted(manifest["redacted"].items()):
+        print(f"redacted {mod}: {', '.join(names)} call the student's own functions")
+    for note in manifest["notes"]:
+        print(f"note: {note}")
+    return 0

@@ -1,0 +1,539 @@
+"""Grading a student submission: nbval against the stored reference verdicts, plus hidden checks.
+
+``python -m course_lib grade SUBMISSION_DIR [--json REPORT.json] [--markdown FEEDBACK.md]``
+
+For every exercise of the instructor notebooks (:func:`course_lib.grading.release.kit_specs`; the
+reference verdicts and check cells come from the instructor's side, never from the submission):
+
+1. **Structure.** The submitted notebook must still hold the exercise's ``def`` before its check
+   cell, in the original order, and the check cell unedited. A deleted or moved exercise, or an
+   edited or deleted check cell, gets no credit (and the report says which).
+2. **Scans.** The exercise's code (cut out with its imports and helpers,
+   :func:`course_lib.grading.sandbox.extract_exercise`) must not import the reference solutions,
+   the check machinery, or reach them through the interpreter; the notebook must not patch,
+   rebind or imitate the checks (:func:`course_lib.grading.sandbox.scan_notebook`).
+3. **Hidden checks.** The exercise's own check function runs on *hidden* cases (the fixtures
+   rebuilt with a grading-time seed) in a separate process with a time limit, with the reference
+   of the exercise trapped. The same run with the instructor's solution calibrates the cases:
+   the share of the reference's passing verdicts that the student's function also passes is
+   the hidden score.
+4. **nbval.** The notebooks run under nbval in the current environment, with a per-cell time
+   limit, after their check cells are restored to the reference source and outputs.
+
+Points per exercise (default 10): 90 % times the hidden score, plus 10 % when all hidden checks
+pass *and* the notebook's check cell printed the reference verdict under nbval.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import re
+import secrets
+import subprocess
+import sys
+import tempfile
+import time
+import xml.etree.ElementTree as ET
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import nbformat
+
+from course_lib.grading.release import NOTEBOOKS_DIR, ExerciseSpec, NotebookSpec, kit_specs, release_plan
+from course_lib.grading.sandbox import (
+    HiddenJob,
+    build_hidden_fixtures,
+    code_cells,
+    extract_exercise,
+    run_hidden,
+    scan_exercise,
+    scan_notebook,
+)
+from course_lib.validate import KitInputError
+
+__all__ = ["HiddenCases", "prepare_hidden", "grade_submission", "to_markdown", "HIDDEN_SHARE"]
+
+HIDDEN_SHARE = 0.9  # of an exercise's points: the hidden checks; the rest: nbval verdict (with all hidden passing)
+MAX_FEEDBACK_LINES = 6
+
+
+@dataclass
+class HiddenCases:
+    """The hidden cases of one grading run and the reference's verdicts on them."""
+
+    salt: int
+    fixtures_dir: Path
+    reference_passing: dict[str, list[str]]  # "notebook::exercise" -> passing verdicts of the reference
+    reference_notes: dict[str, str] = field(default_factory=dict)
+
+
+def _key(e: ExerciseSpec) -> str:
+    return f"{e.notebook}::{e.name}"
+
+
+def _preload(specs: list[NotebookSpec]) -> None:
+    """Import torch, the check modules and the references once, so that forked runs start fast."""
+    try:
+        import torch  # noqa: F401
+    except ImportError:  # pragma: no cover
+        pass
+    for s in specs:
+        for e in s.exercises:
+            for mod in (e.check_module, e.reference.split(":")[0] if e.reference else None):
+                if mod:
+                    try:
+                        importlib.import_module(mod)
+                    except ImportError:
+                        pass
+
+
+def _select(specs: list[NotebookSpec], exercises: list[str] | None) -> list[NotebookSpec]:
+    if not exercises:
+        return specs
+    out = []
+    for s in specs:
+        keep = [e for e in s.exercises if e.name in exercises]
+        if keep:
+            out.append(NotebookSpec(s.name, keep, s.solution_modules, s.imports))
+    return out
+
+
+def prepare_hidden(specs: list[NotebookSpec], salt: int, workdir: Path, notebooks_dir: Path = NOTEBOOKS_DIR,
+                   timeout: float = 120.0) -> HiddenCases:
+    """Build the hidden fixtures for a grading-time seed and run the instructor's solutions on them."""
+    _preload(specs)
+    fdir = Path(workdir) / "hidden-fixtures"
+    build_hidden_fixtures(fdir, [e.check_module for s in specs for e in s.exercises], salt)
+    cases = HiddenCases(int(salt), fdir, {})
+    for s in specs:
+        nb = nbformat.read(Path(notebooks_dir) / s.name, as_version=4)
+        for e in s.exercises:
+            ex = extract_exercise(nb, e.name, e.check_cell)
+            out = run_hidden(HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(fdir), e.reference,
+                                       allow_reference=True), timeout)
+            cases.reference_passing[_key(e)] = out.passing
+            if out.failing or out.status != "ok":
+                cases.reference_notes[_key(e)] = (f"the reference fails {len(out.failing)} hidden check(s) for this "
+                                                  f"seed ({out.status} {out.message}); they are not counted")
+    return cases
+
+
+# ---------------------------------------------------------------------------------------------
+# Structure of a submitted notebook
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Placement:
+    check_cell: int | None
+    check_state: str  # "intact", "edited", "deleted"
+    issue: str | None = None  # "deleted", "reordered: ..."
+
+
+def _lis_members(seq: list[int], orig: list[int] | None = None) -> set[int]:
+    """Positions (into seq) of a longest strictly increasing subsequence.
+
+    Among the longest ones, the one whose members moved least from ``orig`` (their original
+    positions) is chosen, so that the cells reported as moved are the ones that moved.
+    """
+    n = len(seq)
+    orig = orig or seq
+    best = [(1, -abs(seq[i] - orig[i])) for i in range(n)]
+    prev = [-1] * n
+    for i in range(n):
+        for j in range(i):
+            cand = (best[j][0] + 1, best[j][1] - abs(seq[i] - orig[i]))
+            if seq[j] < seq[i] and cand > best[i]:
+                best[i], prev[i] = cand, j
+    if not n:
+        return set()
+    k = max(range(n), key=lambda i: best[i])
+    out = set()
+    while k != -1:
+        out.add(k)
+        k = prev[k]
+    return out
+
+
+def place_exercises(nb, spec: NotebookSpec) -> dict[str, Placement]:
+    """Where each exercise and its check cell are in the submitted notebook, and what is wrong with them."""
+    cells = [(i, c.source) for i, c in enumerate(nb.cells) if c.cell_type == "code"]
+    defs: dict[str, list[int]] = {}
+    broken: dict[str, int] = {}
+    names = {e.name for e in spec.exercises}
+    for i, src, tree in code_cells(nb):
+        if tree is None:
+            for n in names:
+                if re.search(rf"^\s*(def|class) {re.escape(n)}\b", src, re.M):
+                    broken.setdefault(n, i)
+            continue
+        for node in tree.body:
+            if getattr(node, "name", None) in names and node.__class__.__name__ in ("FunctionDef", "ClassDef",
+                                                                                   "AsyncFunctionDef"):
+                defs.setdefault(node.name, []).append(i)
+    out: dict[str, Placement] = {}
+    used: set[int] = set()
+    for e in spec.exercises:  # intact check cells first: they are unambiguous
+        intact = [i for i, src in cells if src == e.check_source and i not in used]
+        if intact:
+            out[e.name] = Placement(intact[0], "intact")
+            used.add(intact[0])
+    for e in spec.exercises:
+        if e.name in out:
+            continue
+        edited = [i for i, src in cells if f"{e.check_function}(" in src and i not in used]
+        start = min(defs.get(e.name, [broken.get(e.name, -1)]))
+        marked = [i for i, src in cells if i > start >= 0 and i not in used
+                  and src.lstrip().startswith("# NBVAL_CHECK_OUTPUT")]
+        pick = edited or marked[:1]
+        out[e.name] = Placement(pick[0], "edited") if pick else Placement(None, "deleted")
+        if pick:
+            used.add(pick[0])
+    for e in spec.exercises:
+        p = out[e.name]
+        where = defs.get(e.name, [])
+        if e.name in broken and not [c for c in where if p.check_cell is None or c < p.check_cell]:
+            p.issue = (f"error: the cell defining {e.name} (cell {broken[e.name]}) is not valid Python; "
+                       "fix the syntax error")
+        elif not where:
+            p.issue = f"deleted: no cell defines {e.name} any more"
+        elif p.check_cell is not None and min(where) > p.check_cell:
+            p.issue = f"reordered: {e.name} is defined after its check cell"
+    # order of the exercises (by check cell, then by def) must be the original order
+    present = [e for e in spec.exercises if out[e.name].check_cell is not None and out[e.name].issue is None]
+    for key in ("check", "def"):
+        seq = [out[e.name].check_cell if key == "check" else
+               max(c for c in defs[e.name] if c < out[e.name].check_cell) for e in present]
+        orig = [e.check_cell if key == "check" else e.cell for e in present]
+        keep = _lis_members(seq, orig)
+        for k, e in enumerate(present):
+            if k not in keep and out[e.name].issue is None:
+                out[e.name].issue = f"reordered: the {'check' if key == 'check' else 'exercise'} cell of {e.name} " \
+                                    "was moved out of the original order"
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# nbval
+# ---------------------------------------------------------------------------------------------
+
+
+def _restored(nb, spec: NotebookSpec, places: dict[str, Placement]):
+    """The notebook with its check cells restored to the reference source and verdict outputs."""
+    nb = nbformat.from_dict(json.loads(json.dumps(nb)))
+    for e in spec.exercises:
+        p = places[e.name]
+        if p.check_cell is None:
+            continue
+        cell = nb.cells[p.check_cell]
+        cell.source = e.check_source
+        cell.outputs = [nbformat.v4.new_output("stream", name="stdout", text=e.verdict)]
+    return nb
+
+
+def start_nbval(notebooks: dict[str, object], workdir: Path, cell_timeout: float) -> tuple[subprocess.Popen, Path]:
+    """Start pytest --nbval on the given notebooks (name -> notebook) in the background."""
+    d = Path(workdir) / "nbval"
+    d.mkdir(parents=True, exist_ok=True)
+    for name, nb in notebooks.items():
+        nbformat.write(nb, d / name)
+    junit = Path(workdir) / "nbval-junit.xml"
+    env = dict(os.environ, COURSE_LIB_QUICK="1", PYTHONDONTWRITEBYTECODE="1")
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-c", os.devnull, "--rootdir", str(d),
+           "--nbval-lax", "--nbval-current-env", f"--nbval-cell-timeout={int(cell_timeout)}",
+           f"--junitxml={junit}", *sorted(notebooks)]
+    proc = subprocess.Popen(cmd, cwd=d, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    return proc, junit
+
+
+def finish_nbval(proc: subprocess.Popen, junit: Path, timeout: float) -> tuple[dict[tuple[str, int], str], str]:
+    """``{(notebook, code cell index): "pass" or a failure text}`` and a note (empty when nbval ran)."""
+    try:
+        proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
+        return {}, f"nbval did not finish within {timeout:g} s"
+    if not junit.exists():
+        return {}, "nbval did not run"
+    results = {}
+    for tc in ET.parse(junit).iter("testcase"):
+        name = tc.attrib.get("name", "")
+        if not name.startswith("Cell "):
+            continue
+        nbname = Path(tc.attrib.get("classname", "")).name
+        if not nbname.endswith(".ipynb"):
+            nbname = tc.attrib.get("classname", "").split(".ipynb")[0].split(".")[-1] + ".ipynb"
+        bad = [c for c in tc if c.tag in ("failure", "error")]
+        text = "pass"
+        if bad:
+            text = (bad[0].attrib.get("message") or bad[0].text or "failed").strip()
+        results[(nbname, int(name.split()[1]))] = text
+    return results, ""
+
+
+# ---------------------------------------------------------------------------------------------
+# Grading
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class ExerciseGrade:
+    notebook: str
+    name: str
+    points: float
+    max_points: float
+    feedback: list[str]
+    status: str  # full, partial, zero, flagged, timeout, error, missing, deleted, reordered, check-edited, tampered
+    hidden: dict = field(default_factory=dict)
+    nbval: str = "not run"
+
+
+def _find_notebooks(sub: Path) -> Path:
+    if (sub / "notebooks").is_dir():
+        return sub / "notebooks"
+    return sub
+
+
+def grade_submission(
+    submission: Path,
+    *,
+    notebooks: list[str] | None = None,
+    exercises: list[str] | None = None,
+    hidden: HiddenCases | None = None,
+    salt: int | None = None,
+    timeout: float = 60.0,
+    cell_timeout: float = 300.0,
+    run_nbval: bool = True,
+    allow_reference: bool = False,
+    workdir: Path | None = None,
+    notebooks_dir: Path = NOTEBOOKS_DIR,
+) -> dict:
+    """Grade a submission folder (a student kit, or a folder of notebooks) and return the report dict.
+
+    Args:
+        submission: the student's folder; notebooks are read from ``submission/notebooks`` if it exists.
+        notebooks: grade only notebooks whose names start with one of these (e.g. ``["01", "02"]``).
+        exercises: grade only these exercises.
+        hidden: hidden cases prepared by :func:`prepare_hidden` (made here when None).
+        salt: the hidden seed (random when None; it is written into the report).
+        timeout: seconds for the hidden checks of one exercise.
+        cell_timeout: seconds for one notebook cell under nbval.
+        run_nbval: run the notebooks under nbval.
+        allow_reference: the instructor's self-test: calls of the reference solution are allowed.
+        workdir: scratch folder (a temporary one when None).
+        notebooks_dir: the instructor notebooks.
+    """
+    t0 = time.perf_counter()
+    submission = Path(submission)
+    if not submission.is_dir():
+        raise KitInputError(f"{submission} is not a folder: pass the student's kit (or a folder with their notebooks)")
+    unreleasable: list[str] = []
+    all_specs = kit_specs(notebooks_dir, errors_out=unreleasable)
+    omitted = set(release_plan(all_specs).omit)
+    for err in unreleasable:
+        if not notebooks or any(err.startswith(n) for n in notebooks):
+            raise KitInputError(f"cannot grade against an instructor notebook that cannot be released: {err}")
+    specs = [s for s in all_specs if not notebooks or any(s.name.startswith(n) for n in notebooks)]
+    specs = _select(specs, exercises)
+    if not specs:
+        raise KitInputError(f"no instructor notebook or exercise matches {notebooks or ''} {exercises or ''}")
+    tmp = tempfile.TemporaryDirectory(prefix="course-grade-") if workdir is None else None
+    work = Path(tmp.name if tmp else workdir)
+    work.mkdir(parents=True, exist_ok=True)
+    try:
+        if hidden is None:
+            salt = secrets.randbits(62) if salt is None else int(salt)
+            hidden = prepare_hidden(specs, salt, work, notebooks_dir, timeout=max(timeout, 120.0))
+        else:
+            _preload(specs)
+        nb_dir = _find_notebooks(submission)
+        grades: list[ExerciseGrade] = []
+        plans = []  # (spec, nb or None, placements, tamper reasons)
+        to_nbval = {}
+        for s in specs:
+            path = nb_dir / s.name
+            if not path.exists():
+                plans.append((s, None, {}, []))
+                continue
+            try:
+                nb = nbformat.read(path, as_version=4)
+            except Exception as exc:  # noqa: BLE001 - a broken file is a verdict
+                plans.append((s, None, {}, [(None, f"the notebook cannot be read: {exc}")]))
+                continue
+            places = place_exercises(nb, s)
+            intact = {p.check_cell for p in places.values() if p.check_state == "intact"}
+            check_names = {e.check_function for e in s.exercises}
+            tamper = scan_notebook(nb, intact, check_names)
+            plans.append((s, nb, places, tamper))
+            to_nbval[s.name] = _restored(nb, s, places)
+        proc = junit = None
+        if run_nbval and to_nbval:
+            proc, junit = start_nbval(to_nbval, work, cell_timeout)
+        pending = []  # (grade, spec, outcome placeholder)
+        for s, nb, places, tamper in plans:
+            for e in s.exercises:
+                g = ExerciseGrade(s.name, e.name, 0.0, e.points, [], "zero")
+                grades.append(g)
+                if nb is None:
+                    g.status = "missing"
+                    g.feedback.append(tamper[0][1] if tamper else f"{s.name} is missing from the submission")
+                    continue
+                p = places[e.name]
+                edited_here = [r for c, r in tamper if c == p.check_cell and p.check_state == "edited"]
+                edited_cells = {q.check_cell for q in places.values() if q.check_state == "edited"}
+                elsewhere = [(c, r) for c, r in tamper if c not in edited_cells]
+                if p.issue:
+                    g.status, detail = p.issue.split(": ", 1)
+                    if g.status == "error":
+                        g.feedback.append(f"{detail}; no credit")
+                    else:
+                        g.feedback.append(f"exercise cell {g.status}: {detail}; no credit. Keep every exercise cell, "
+                                          "in its place, followed by its check cell.")
+                    continue
+                if p.check_state != "intact":
+                    g.status = "check-edited"
+                    what = "deleted" if p.check_state == "deleted" else "edited"
+                    msg = f"the check cell of {e.name} was {what}"
+                    if edited_here:
+                        msg += f" ({'; '.join(sorted(set(edited_here)))})"
+                    g.feedback.append(msg + "; no credit. Check cells must stay as released (the grader restores "
+                                      "them and runs its own hidden checks).")
+                    continue
+                if elsewhere:
+                    g.status = "tampered"
+                    g.feedback.append("the notebook tampers with the checks: " + "; ".join(
+                        f"cell {c}: {r}" for c, r in elsewhere[:4]) + ". No credit for this notebook's exercises.")
+                    continue
+                ex = extract_exercise(nb, e.name, p.check_cell)
+                if ex is None:
+                    g.status = "deleted"
+                    g.feedback.append(f"no top-level def of {e.name} before its check cell; no credit")
+                    continue
+                flags = scan_exercise(ex.tree, e.reference, omitted)
+                if allow_reference:
+                    flags = [f for f in flags if "reference solution" not in f]
+                if flags:
+                    g.status = "flagged"
+                    g.feedback += [f"your {e.name} {f}" for f in flags[:4]]
+                    g.feedback.append("no credit: exercise code must be your own and may only use numpy/scipy/torch "
+                                      "and the kit's non-solution modules")
+                    continue
+                g.feedback += [f"note: your {e.name} {pr}" for pr in ex.problems]
+                pending.append((g, e, ex))
+        for g, e, ex in pending:
+            out = run_hidden(HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(hidden.fixtures_dir),
+                                       e.reference, allow_reference), timeout)
+            ref = hidden.reference_passing.get(_key(e), [])
+            matched = sum((Counter(out.passing) & Counter(ref)).values())
+            g.hidden = {"passed": matched, "total": len(ref), "seconds": round(out.seconds, 1)}
+            if out.status == "timeout":
+                g.status = "timeout"
+                g.feedback.append(f"{e.name} did not finish on the hidden cases: {out.message}. No credit; "
+                                  "the other exercises were graded.")
+                continue
+            if out.status != "ok":
+                g.status = "error"
+                g.feedback.append(f"{e.name}: {out.message}")
+                continue
+            if out.reference_called and not allow_reference:
+                g.status = "flagged"
+                g.feedback.append(f"your {e.name} called the reference solution while it was graded; no credit")
+                continue
+            if out.tampered:
+                g.status = "tampered"
+                g.feedback.append(f"running your {e.name} changed the check machinery ({', '.join(out.tampered[:3])}); "
+                                  "no credit")
+                continue
+            frac = matched / len(ref) if ref else 0.0
+            g.points = round(e.points * HIDDEN_SHARE * frac, 2)
+            g.status = "full" if frac == 1 else ("partial" if matched else "zero")
+            if not ref:
+                g.feedback.append("no hidden check could be calibrated for this exercise (instructor: see the notes)")
+            elif frac == 1:
+                g.feedback.append(f"all {len(ref)} hidden checks pass")
+            else:
+                g.feedback.append(f"{matched} of {len(ref)} hidden checks pass (new synthetic cases). What failed:")
+                fails = out.failing or [f"{ln}: not passed" for ln in sorted((Counter(ref) - Counter(out.passing)))]
+                g.feedback += [f"✘ {ln}" for ln in fails[:MAX_FEEDBACK_LINES]]
+                if len(fails) > MAX_FEEDBACK_LINES:
+                    g.feedback.append(f"... and {len(fails) - MAX_FEEDBACK_LINES} more")
+            if _key(e) in hidden.reference_notes:
+                g.feedback.append("note: " + hidden.reference_notes[_key(e)])
+        nbval_note = "nbval was not run"
+        results: dict = {}
+        if proc is not None:
+            results, nbval_note = finish_nbval(proc, junit, timeout=max(cell_timeout * 20, 1800))
+        by_key = {(g.notebook, g.name): g for g in grades}
+        for s, nb, places, _ in plans:
+            if nb is None:
+                continue
+            for e in s.exercises:
+                g = by_key[(s.name, e.name)]
+                p = places[e.name]
+                if p.check_cell is None or proc is None:
+                    continue
+                code_index = sum(1 for c in nb.cells[:p.check_cell] if c.cell_type == "code")
+                r = results.get((s.name, code_index))
+                g.nbval = "not run" if r is None else ("pass" if r == "pass" else "fail")
+                if g.status == "full":
+                    if g.nbval == "pass":
+                        g.points = round(e.points, 2)
+                        g.feedback[0] = (f"full marks: all {g.hidden['total']} hidden checks pass and the check cell "
+                                         "prints the reference verdict")
+                    else:
+                        why = nbval_note or (r if r else "no result")
+                        g.feedback.append(f"in your notebook the check cell of {e.name} does not print the reference "
+                                          f"verdict when the notebook runs top to bottom ({_short(why)}); restart the "
+                                          f"kernel, run all cells, and fix what differs (−{(1 - HIDDEN_SHARE) * 100:.0f} %)")
+        report = _report(grades, hidden, time.perf_counter() - t0, allow_reference)
+        return report
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+
+
+def _short(text: str, n: int = 160) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= n else text[: n - 3] + "..."
+
+
+def _report(grades: list[ExerciseGrade], hidden: HiddenCases, seconds: float, allow_reference: bool) -> dict:
+    notebooks = []
+    for name in sorted({g.notebook for g in grades}):
+        gs = [g for g in grades if g.notebook == name]
+        notebooks.append({"notebook": name, "points": round(sum(g.points for g in gs), 2),
+                          "max_points": round(sum(g.max_points for g in gs), 2)})
+    return {
+        "total": round(sum(g.points for g in grades), 2),
+        "max": round(sum(g.max_points for g in grades), 2),
+        "hidden_seed": hidden.salt,
+        "instructor_self_test": allow_reference,
+        "seconds": round(seconds, 1),
+        "notebooks": notebooks,
+        "exercises": [asdict(g) for g in grades],
+    }
+
+
+def to_markdown(report: dict) -> str:
+    """Feedback for the student, as Markdown (also the GitHub job summary)."""
+    lines = ["# Grading feedback", "", f"**Total: {report['total']:g} / {report['max']:g} points**", ""]
+    lines += ["| notebook | exercise | points | status |", "|---|---|---:|---|"]
+    for g in report["exercises"]:
+        lines.append(f"| {g['notebook']} | `{g['name']}` | {g['points']:g} / {g['max_points']:g} | {g['status']} |")
+    lines.append("")
+    for nb in report["notebooks"]:
+        lines += [f"## {nb['notebook']}: {nb['points']:g} / {nb['max_points']:g}", ""]
+        for g in (g for g in report["exercises"] if g["notebook"] == nb["notebook"]):
+            lines.append(f"### `{g['name']}`: {g['points']:g} / {g['max_points']:g}")
+            lines.append("")
+            for f in g["feedback"]:
+                lines.append(f"- {f}")
+            if g["nbval"] != "not run":
+                lines.append(f"- nbval check cell: {g['nbval']}")
+            lines.append("")
+    lines.append(f"<sub>hidden seed {report['hidden_seed']}, graded in {report['seconds']:g} s</sub>")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,313 @@
+"""Grading, measured on submissions that this file builds itself (notebooks 01 and 02 only, to stay fast).
+
+Submissions: the instructor notebooks (full marks in the instructor's self-test, zero as a student's
+work because they call the reference), the untouched release (zero), a self-written full solution,
+a partly solved one (exact partial score), one with a typical mistake in every exercise (marked
+down, feedback naming the mistake), one that raises, one that loops forever, one that prints the
+expected verdict by hand, one that monkeypatches the checks, one that imports the reference in a
+helper cell, and ones with deleted or reordered cells. The hidden cases (seed 11) are built once.
+The full 8-notebook grading is timed by benchmarks/grade_speed.py, not here.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import textwrap
+from pathlib import Path
+
+import nbformat
+import pytest
+
+from course_lib.grading.grade import grade_submission, prepare_hidden, to_markdown
+from course_lib.grading.release import NOTEBOOKS_DIR, kit_specs, stub_notebook
+
+NOTEBOOKS = ["01", "02"]
+NB01, NB02 = "01_fundamental_matrix.ipynb", "02_essential_matrix_and_pose.ipynb"
+SEED = 11
+
+# ------------------------------------------------------------------ a student's own solutions
+
+SOLUTIONS = {
+    "normalize_points": """
+        c = x.mean(axis=0)
+        s = np.sqrt(2.0) / np.linalg.norm(x - c, axis=1).mean()
+        T = np.array([[s, 0.0, -s * c[0]], [0.0, s, -s * c[1]], [0.0, 0.0, 1.0]])
+        return (x - c) * s, T
+    """,
+    "eight_point": """
+        a, T1 = normalize_points(x1)
+        b, T2 = normalize_points(x2)
+        A = np.stack([b[:, 0] * a[:, 0], b[:, 0] * a[:, 1], b[:, 0], b[:, 1] * a[:, 0], b[:, 1] * a[:, 1],
+                      b[:, 1], a[:, 0], a[:, 1], np.ones(len(a))], axis=1)
+        F = np.linalg.svd(A)[2][-1].reshape(3, 3)
+        U, s, Vt = np.linalg.svd(F)
+        F = T2.T @ (U @ np.diag([s[0], s[1], 0.0]) @ Vt) @ T1
+        F = F / np.linalg.norm(F)
+        return F if F.flat[np.argmax(np.abs(F))] > 0 else -F
+    """,
+    "sampson_distance": """
+        x1h = np.column_stack([x1, np.ones(len(x1))])
+        x2h = np.column_stack([x2, np.ones(len(x2))])
+        Fx1, Ftx2 = x1h @ F.T, x2h @ F
+        e = np.sum(x2h * Fx1, axis=1)
+        return np.abs(e) / np.sqrt(Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2)
+    """,
+    "ransac_fundamental": """
+        n = len(x1)
+        best = np.zeros(n, bool)
+        n_iters, needed = 0, max_iters
+        while n_iters < min(needed, max_iters):
+            idx = rng.choice(n, 8, replace=False)
+            inl = sampson_distance(eight_point(x1[idx], x2[idx]), x1, x2) < threshold_px
+            n_iters += 1
+            if inl.sum() > best.sum():
+                best = inl
+                w = inl.mean()
+                needed = np.log(1 - confidence) / np.log(1 - w**8) if w < 1 else 0
+        return RansacResult(eight_point(x1[best], x2[best]), best, n_iters)
+    """,
+    "essential_from_fundamental": """
+        U, _, Vt = np.linalg.svd(K.T @ F @ K)
+        return U @ np.diag([1.0, 1.0, 0.0]) @ Vt
+    """,
+    "pose_candidates": """
+        U, _, Vt = np.linalg.svd(E)
+        W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+        Rs, Cs = [], []
+        for R0 in (U @ W @ Vt, U @ W.T @ Vt):
+            for t in (U[:, 2], -U[:, 2]):
+                R, C = R0, -R0.T @ t
+                if np.linalg.det(R) < 0:
+                    R, C = -R, -C
+                Rs.append(R)
+                Cs.append(C / np.linalg.norm(C))
+        return np.stack(Rs), np.stack(Cs)
+    """,
+}
+
+#: One typical mistake per exercise, and a phrase the feedback must contain.
+MISTAKES = {
+    "normalize_points": (SOLUTIONS["normalize_points"].replace("np.sqrt(2.0)", "1.0"), "the mean distance is 1"),
+    "eight_point": ("""
+        A = np.stack([x2[:, 0] * x1[:, 0], x2[:, 0] * x1[:, 1], x2[:, 0], x2[:, 1] * x1[:, 0], x2[:, 1] * x1[:, 1],
+                      x2[:, 1], x1[:, 0], x1[:, 1], np.ones(len(x1))], axis=1)
+        F = np.linalg.svd(A)[2][-1].reshape(3, 3)
+        U, s, Vt = np.linalg.svd(F)
+        F = U @ np.diag([s[0], s[1], 0.0]) @ Vt
+        return F / np.linalg.norm(F)
+    """, "not normalized"),
+    "sampson_distance": (SOLUTIONS["sampson_distance"].replace("return np.abs(e) / np.sqrt(", "return e**2 / ("),
+                         "squared error"),
+    "ransac_fundamental": (SOLUTIONS["ransac_fundamental"].replace("n_iters < min(needed, max_iters)",
+                                                                   "n_iters < max_iters"),
+                           "update the number of iterations"),
+    "essential_from_fundamental": ("""
+        return K.T @ F @ K
+    """, "not corrected"),
+    "pose_candidates": (SOLUTIONS["pose_candidates"].replace("if np.linalg.det(R) < 0:", "if False:"), "det -1"),
+}
+
+
+# ------------------------------------------------------------------ building submissions
+
+
+def released(name: str):
+    return stub_notebook(nbformat.read(NOTEBOOKS_DIR / name, as_version=4), name)
+
+
+def fill(nb, name: str, body: str):
+    """Put ``body`` in place of the stub of exercise ``name`` (the student's edit)."""
+    for cell in nb.cells:
+        if cell.cell_type == "code" and re.search(rf"^def {name}\(", cell.source, re.M) and "YOUR CODE HERE" in cell.source:
+            lines = cell.source.splitlines()
+            k = next(i for i, ln in enumerate(lines) if ln.strip() == "# YOUR CODE HERE")
+            indent = lines[k][: len(lines[k]) - len(lines[k].lstrip())]
+            code = textwrap.indent(textwrap.dedent(body).strip("\n"), indent).splitlines()
+            cell.source = "\n".join(lines[:k] + code + lines[k + 2:])
+            return nb
+    raise AssertionError(f"no stub of {name}")
+
+
+def check_cell_index(nb, name: str) -> int:
+    return next(i for i, c in enumerate(nb.cells) if c.cell_type == "code" and c.source.startswith("# NBVAL_CHECK_OUTPUT")
+                and f"({name})" in c.source)
+
+
+def write_submission(root: Path, notebooks: dict) -> Path:
+    (root / "notebooks").mkdir(parents=True, exist_ok=True)
+    for name, nb in notebooks.items():
+        nbformat.write(nb, root / "notebooks" / name)
+    return root
+
+
+def solved(names=tuple(SOLUTIONS), bodies=None) -> dict:
+    bodies = {**SOLUTIONS, **(bodies or {})}
+    nbs = {NB01: released(NB01), NB02: released(NB02)}
+    for nbname, nb in nbs.items():
+        for cell in nb.cells:
+            for ex in names:
+                if cell.cell_type == "code" and re.search(rf"^def {ex}\(", cell.source, re.M):
+                    fill(nb, ex, bodies[ex])
+    return nbs
+
+
+def by_name(report: dict) -> dict:
+    return {g["name"]: g for g in report["exercises"]}
+
+
+@pytest.fixture(scope="module")
+def hidden(tmp_path_factory):
+    specs = kit_specs(NOTEBOOKS_DIR, only=NOTEBOOKS)
+    return prepare_hidden(specs, SEED, tmp_path_factory.mktemp("hidden"))
+
+
+def grade(path, hidden, **kw):
+    kw.setdefault("run_nbval", False)
+    return grade_submission(path, notebooks=NOTEBOOKS, hidden=hidden, timeout=kw.pop("timeout", 20.0), **kw)
+
+
+# ------------------------------------------------------------------ the tests
+
+
+def test_hidden_cases_are_new_and_the_reference_passes_them(hidden):
+    import numpy as np
+
+    from course_lib.paths import FIXTURES_DIR
+
+    with np.load(hidden.fixtures_dir / "fundamental.npz") as h, np.load(FIXTURES_DIR / "fundamental.npz") as p:
+        a, b = h["noisy_x1"], p["noisy_x1"]
+        assert a.shape != b.shape or not np.allclose(a, b), "the hidden scene must differ from the public one"
+    assert all(hidden.reference_passing.values()) and not hidden.reference_notes, hidden.reference_notes
+
+
+def test_self_written_solutions_get_full_marks_with_nbval(tmp_path, hidden):
+    report = grade(write_submission(tmp_path, solved()), hidden, run_nbval=True, cell_timeout=120)
+    assert report["total"] == report["max"] == 60, json.dumps(report, indent=1, ensure_ascii=False)
+    assert all(g["nbval"] == "pass" and g["status"] == "full" for g in report["exercises"])
+    md = to_markdown(report)
+    assert "**Total: 60 / 60 points**" in md and "full marks" in md
+
+
+def test_instructor_notebooks_full_marks_in_self_test_and_zero_as_student_work(tmp_path, hidden):
+    sub = tmp_path / "instructor"
+    write_submission(sub, {n: nbformat.read(NOTEBOOKS_DIR / n, as_version=4) for n in (NB01, NB02)})
+    self_test = grade(sub, hidden, allow_reference=True)
+    assert self_test["total"] == 54 and all(g["status"] == "full" for g in self_test["exercises"])  # 90 % without nbval
+    student = grade(sub, hidden)
+    assert student["total"] == 0
+    for g in student["exercises"]:
+        assert g["status"] == "flagged" and any("calls the reference solution" in f for f in g["feedback"]), g
+
+
+def test_untouched_release_gets_zero(tmp_path, hidden):
+    report = grade(write_submission(tmp_path, {NB01: released(NB01), NB02: released(NB02)}), hidden)
+    assert report["total"] == 0 and report["max"] == 60
+    for g in report["exercises"]:
+        assert g["status"] == "zero" and any("not implemented yet" in f for f in g["feedback"]), g
+
+
+def test_partly_solved_gets_the_exact_partial_score(tmp_path, hidden):
+    nbs = solved(names=("normalize_points", "eight_point", "sampson_distance", "essential_from_fundamental"))
+    report = grade(write_submission(tmp_path, nbs), hidden)
+    g = by_name(report)
+    assert report["total"] == 4 * 9.0  # 90 % of 10 points for each solved exercise (nbval not run here)
+    assert [g[n]["points"] for n in ("ransac_fundamental", "pose_candidates")] == [0, 0]
+    assert g["eight_point"]["hidden"]["passed"] == g["eight_point"]["hidden"]["total"] > 0
+
+
+def test_typical_mistakes_are_marked_down_and_named(tmp_path, hidden):
+    nbs = solved(bodies={k: v[0] for k, v in MISTAKES.items()})
+    report = grade(write_submission(tmp_path, nbs), hidden)
+    for name, (_, phrase) in MISTAKES.items():
+        g = by_name(report)[name]
+        assert 0 <= g["points"] < 9, g
+        assert any(phrase in f for f in g["feedback"]), (name, phrase, g["feedback"])
+
+
+def test_raising_and_looping_exercises_do_not_stop_the_others(tmp_path, hidden):
+    nbs = solved(bodies={"eight_point": "raise ValueError('my bug')", "essential_from_fundamental": "while True:\n    pass"})
+    report = grade(write_submission(tmp_path, nbs), hidden, timeout=8.0)
+    g = by_name(report)
+    assert g["eight_point"]["points"] == 0 and any("raised ValueError: my bug" in f for f in g["eight_point"]["feedback"])
+    assert g["essential_from_fundamental"]["status"] == "timeout" and g["essential_from_fundamental"]["points"] == 0
+    assert g["normalize_points"]["points"] == g["sampson_distance"]["points"] == g["pose_candidates"]["points"] == 9
+
+
+def test_verdict_printed_by_hand_gets_nothing(tmp_path, hidden):
+    nbs = solved(names=("normalize_points", "sampson_distance", "essential_from_fundamental", "pose_candidates"))
+    nb = nbs[NB01]
+    spec = kit_specs(NOTEBOOKS_DIR, only=["01"])[0]
+    k = check_cell_index(nb, "eight_point")
+    nb.cells[k].source = "# NBVAL_CHECK_OUTPUT\nprint(" + repr(spec.exercise("eight_point").verdict) + ", end='')"
+    report = grade(write_submission(tmp_path, nbs), hidden)
+    g = by_name(report)
+    assert g["eight_point"]["points"] == 0 and g["eight_point"]["status"] == "check-edited"
+    assert any("prints a check verdict by hand" in f for f in g["eight_point"]["feedback"]), g["eight_point"]
+    assert g["normalize_points"]["points"] == 9  # only the edited check loses its credit
+
+
+def test_monkeypatched_checks_get_nothing(tmp_path, hidden):
+    nbs = solved()
+    patch = nbformat.v4.new_code_cell(
+        "import course_lib.grading.core as core\n"
+        "_expect = core.Check.expect\n"
+        "core.Check.expect = lambda self, condition, ok, bad: _expect(self, True, ok, bad)\n")
+    nbs[NB01].cells.insert(2, patch)
+    report = grade(write_submission(tmp_path, nbs), hidden)
+    for g in report["exercises"]:
+        if g["notebook"] == NB01:
+            assert g["points"] == 0 and g["status"] == "tampered" and "tampers with the checks" in g["feedback"][0], g
+        else:
+            assert g["points"] == 9
+    # a patch hidden inside the exercise function itself is flagged too
+    body = textwrap.dedent(SOLUTIONS["normalize_points"]) + "\nimport course_lib.grading.core as c\nc.RESULTS.clear()\n"
+    report = grade(write_submission(tmp_path / "inner", solved(bodies={"normalize_points": body})), hidden)
+    g = by_name(report)["normalize_points"]
+    assert g["points"] == 0 and g["status"] in ("flagged", "tampered"), g
+    assert any("check" in f and "core" in f for f in g["feedback"]), g
+
+
+def test_reference_imported_in_a_helper_cell_gets_nothing(tmp_path, hidden):
+    nbs = solved(bodies={"eight_point": "return ref_eight_point(x1, x2)"})
+    nbs[NB01].cells.insert(2, nbformat.v4.new_code_cell("from course_lib.sfm.fundamental import eight_point as ref_eight_point"))
+    report = grade(write_submission(tmp_path, nbs), hidden)
+    g = by_name(report)
+    assert g["eight_point"]["points"] == 0 and g["eight_point"]["status"] == "flagged"
+    assert any("reference solution" in f for f in g["eight_point"]["feedback"])
+    assert g["normalize_points"]["points"] == 9
+
+
+def test_deleted_and_reordered_cells_are_reported(tmp_path, hidden):
+    nbs = solved()
+    nb = nbs[NB01]
+    k = check_cell_index(nb, "sampson_distance")
+    del nb.cells[k - 1]  # the exercise cell of sampson_distance
+    nb2 = nbs[NB02]
+    a, b = check_cell_index(nb2, "essential_from_fundamental"), check_cell_index(nb2, "pose_candidates")
+    moved = nb2.cells[a - 1:a + 1]  # essential_from_fundamental's exercise and check cells, moved to the end
+    del nb2.cells[a - 1:a + 1]
+    nb2.cells += moved
+    report = grade(write_submission(tmp_path, nbs), hidden)
+    g = by_name(report)
+    assert g["sampson_distance"]["status"] == "deleted" and g["sampson_distance"]["points"] == 0
+    assert g["essential_from_fundamental"]["status"] == "reordered" and g["essential_from_fundamental"]["points"] == 0
+    assert "reordered" in g["essential_from_fundamental"]["feedback"][0]
+    assert g["normalize_points"]["points"] == 9 and g["pose_candidates"]["points"] == 9
+
+
+def test_missing_notebook_and_cli_reports(tmp_path, hidden, monkeypatch):
+    from course_lib.__main__ import main
+    from course_lib.grading import grade as grade_mod
+
+    write_submission(tmp_path / "sub", {NB01: released(NB01)})
+    monkeypatch.setattr(grade_mod, "prepare_hidden", lambda *a, **k: hidden)
+    rc = main(["grade", str(tmp_path / "sub"), "--notebooks", "01", "02", "--no-nbval", "--json",
+               str(tmp_path / "r.json"), "--markdown", str(tmp_path / "f.md")])
+    assert rc == 0
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert set(report) >= {"total", "max", "exercises", "notebooks", "hidden_seed"}
+    for g in report["exercises"]:
+        assert set(g) >= {"notebook", "name", "points", "max_points", "feedback"}
+    assert all(g["status"] == "missing" for g in report["exercises"] if g["notebook"] == NB02)
+    assert "# Grading feedback" in (tmp_path / "f.md").read_text()
