@@ -31,7 +31,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-NOTEBOOKS_DIR = REPO_ROOT / "notebooks"
+# COURSE_LIB_BROWSER_NOTEBOOK_DIR: another folder of notebooks (to prove the test fails on broken ones)
+NOTEBOOKS_DIR = Path(os.environ.get("COURSE_LIB_BROWSER_NOTEBOOK_DIR") or REPO_ROOT / "notebooks")
 SCREENSHOT_DIR = REPO_ROOT / "outputs" / "screenshots"  # git-ignored (outputs/)
 
 PLOTLY_MIME = "application/vnd.plotly.v1+json"
@@ -247,8 +248,9 @@ LAB_JS = {
             await new Promise(r => setTimeout(r, 100));
         }
         if (!panel) return {error: 'notebook ' + name + ' did not open'};
-        await panel.context.ready;
-        await panel.sessionContext.ready;
+        const late = new Promise(r => setTimeout(() => r('late'), 180000));
+        if (await Promise.race([panel.context.ready.then(() => panel.sessionContext.ready), late]) === 'late')
+            return {error: 'the kernel of ' + name + ' did not start within 180 s'};
         const k = panel.sessionContext.session && panel.sessionContext.session.kernel;
         return {path: panel.context.path, kernel: k ? k.name : null};
     }""",
@@ -268,6 +270,7 @@ LAB_JS = {
         for (let i = 0; i < cells.length; i++) {
             const c = cells.get(i);
             if (c.type !== 'code') continue;
+            if (!c.sharedModel.getSource().trim()) continue;  // JupyterLab does not number empty cells
             total += 1;
             if (c.executionCount !== null) executed += 1;
             const outs = c.outputs.toJSON();

@@ -63,6 +63,7 @@ if os.environ.get("COURSE_LIB_BROWSER_NOTEBOOKS"):  # e.g. "01,05": only these (
     _only = tuple(os.environ["COURSE_LIB_BROWSER_NOTEBOOKS"].split(","))
     INTERACTIVE = [info for info in INTERACTIVE if info.path.name.startswith(_only)]
 RUN_TIMEOUT_S = float(os.environ.get("COURSE_LIB_BROWSER_TIMEOUT", "420"))  # all notebooks together
+WIDGET_TIMEOUT_S = 60.0  # one slider move: rerun RANSAC, redraw a BA scene, render a NeRF view
 
 # Console messages that are not errors of the kit. Keep this list short and explain each entry.
 CONSOLE_ALLOW = (
@@ -140,13 +141,13 @@ def _check_widgets(page, stem: str, shots: list[str]) -> tuple[int, int, list[st
                     return s.value !== value && s.output !== null && s.output !== before && !s.stderr;
                 }""" % WIDGET_STATE_JS,
                 arg=[i, before["output"], before["value"]],
-                timeout=120_000,
+                timeout=WIDGET_TIMEOUT_S * 1000,
                 polling=250,
             )
         except Exception:
             now = page.evaluate(WIDGET_STATE_JS, i)
             problems.append(f"widget {i}: moving the slider from {before['value']} (now {now['value']}) did not "
-                            f"change its output within 120 s" + (" (stderr shown)" if now["stderr"] else ""))
+                            f"change its output within {WIDGET_TIMEOUT_S:.0f} s" + (" (stderr shown)" if now["stderr"] else ""))
             continue
         _wait_for_plots(page, root, 0)  # a plotly figure redrawn inside the widget must draw too
         path = SCREENSHOT_DIR / f"{stem}_widget{i}_after.png"
@@ -239,9 +240,10 @@ def lab_results():
                 if "started" not in res:
                     continue
                 left = max(5.0, RUN_TIMEOUT_S - (time.monotonic() - t0))
-                try:  # run-all done, every code cell executed, kernel idle
+                try:  # run-all done, kernel idle, and every code cell executed (or one raised: the run stops)
                     page.wait_for_function(
-                        """(f) => { const s = (%s)(); return s.done && s.status === 'idle' && s.executed === s.total; }"""
+                        """(f) => { const s = (%s)();
+                                   return s.done && s.status === 'idle' && (s.executed === s.total || s.errors.length); }"""
                         % LAB_JS["state"],
                         timeout=left * 1000,
                         polling=500,
