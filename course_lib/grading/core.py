@@ -241,7 +241,7 @@ def build_fixtures(names: list[str] | None = None, write: bool = True) -> dict[s
         ``{name: [keys that differ from the stored file]}``; an empty list means up to date.
     """
     _register_all()
-    todo = sorted(_BUILDERS) if names is None else names
+    todo = list(_BUILDERS) if names is None else names  # registration order: later fixtures may read earlier ones
     diffs: dict[str, list[str]] = {}
     for name in todo:
         new = _BUILDERS[name]()
