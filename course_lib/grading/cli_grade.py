@@ -19,6 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="seed of the hidden cases (default: random, written into the report)")
     parser.add_argument("--timeout", type=float, default=60.0, help="seconds for the hidden checks of one exercise")
     parser.add_argument("--cell-timeout", type=float, default=300.0, help="seconds for one notebook cell under nbval")
+    parser.add_argument("--nbval-jobs", type=int, default=2, help="notebooks run under nbval at the same time")
     parser.add_argument("--no-nbval", action="store_true", help="skip the nbval run (hidden checks only)")
     parser.add_argument("--allow-reference", action="store_true",
                         help="instructor self-test: the reference notebooks may call the reference solutions")
@@ -33,6 +34,7 @@ def run(args: argparse.Namespace) -> int:
         args.submission, notebooks=args.notebooks, exercises=args.exercises, salt=args.hidden_seed,
         timeout=args.timeout, cell_timeout=args.cell_timeout, run_nbval=not args.no_nbval,
         allow_reference=args.allow_reference, notebooks_dir=args.notebooks_dir or NOTEBOOKS_DIR,
+        nbval_jobs=args.nbval_jobs,
     )
     md = to_markdown(report)
     if args.json:

@@ -234,44 +234,59 @@ def _restored(nb, spec: NotebookSpec, places: dict[str, Placement]):
     return nb
 
 
-def start_nbval(notebooks: dict[str, object], workdir: Path, cell_timeout: float) -> tuple[subprocess.Popen, Path]:
-    """Start pytest --nbval on the given notebooks (name -> notebook) in the background."""
-    d = Path(workdir) / "nbval"
-    d.mkdir(parents=True, exist_ok=True)
-    for name, nb in notebooks.items():
-        nbformat.write(nb, d / name)
-    junit = Path(workdir) / "nbval-junit.xml"
-    env = dict(os.environ, COURSE_LIB_QUICK="1", PYTHONDONTWRITEBYTECODE="1")
-    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-c", os.devnull, "--rootdir", str(d),
-           "--nbval-lax", "--nbval-current-env", f"--nbval-cell-timeout={int(cell_timeout)}",
-           f"--junitxml={junit}", *sorted(notebooks)]
-    proc = subprocess.Popen(cmd, cwd=d, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    return proc, junit
+class NbvalRun:
+    """pytest --nbval over some notebooks, one pytest process per notebook, ``jobs`` at a time, in the background."""
+
+    def __init__(self, notebooks: dict[str, object], workdir: Path, cell_timeout: float, jobs: int = 2,
+                 timeout: float = 1800.0):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.dir = Path(workdir) / "nbval"
+        self.dir.mkdir(parents=True, exist_ok=True)
+        for name, nb in notebooks.items():
+            nbformat.write(nb, self.dir / name)
+        self.cell_timeout, self.timeout = cell_timeout, timeout
+        self.pool = ThreadPoolExecutor(max_workers=max(1, jobs))
+        self.futures = {name: self.pool.submit(self._one, name) for name in sorted(notebooks)}
+
+    def _one(self, name: str) -> tuple[dict[tuple[str, int], str], str]:
+        junit = self.dir / f"{name}.junit.xml"
+        env = dict(os.environ, COURSE_LIB_QUICK="1", PYTHONDONTWRITEBYTECODE="1")
+        cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-c", os.devnull, "--rootdir",
+               str(self.dir), "--nbval-lax", "--nbval-current-env", f"--nbval-cell-timeout={int(self.cell_timeout)}",
+               f"--junitxml={junit}", name]
+        try:
+            subprocess.run(cmd, cwd=self.dir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                           timeout=self.timeout, check=False)
+        except subprocess.TimeoutExpired:
+            return {}, f"nbval did not finish {name} within {self.timeout:g} s"
+        return _read_junit(junit, name)
+
+    def results(self) -> tuple[dict[tuple[str, int], str], dict[str, str]]:
+        """``{(notebook, code cell index): "pass" or a failure text}`` and ``{notebook: note}`` for runs that failed."""
+        out, notes = {}, {}
+        for name, fut in self.futures.items():
+            res, note = fut.result()
+            out.update(res)
+            if note:
+                notes[name] = note
+        self.pool.shutdown()
+        return out, notes
 
 
-def finish_nbval(proc: subprocess.Popen, junit: Path, timeout: float) -> tuple[dict[tuple[str, int], str], str]:
-    """``{(notebook, code cell index): "pass" or a failure text}`` and a note (empty when nbval ran)."""
-    try:
-        proc.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.communicate()
-        return {}, f"nbval did not finish within {timeout:g} s"
+def _read_junit(junit: Path, name: str) -> tuple[dict[tuple[str, int], str], str]:
     if not junit.exists():
-        return {}, "nbval did not run"
+        return {}, f"nbval did not run {name}"
     results = {}
     for tc in ET.parse(junit).iter("testcase"):
-        name = tc.attrib.get("name", "")
-        if not name.startswith("Cell "):
+        cell = tc.attrib.get("name", "")
+        if not cell.startswith("Cell "):
             continue
-        nbname = Path(tc.attrib.get("classname", "")).name
-        if not nbname.endswith(".ipynb"):
-            nbname = tc.attrib.get("classname", "").split(".ipynb")[0].split(".")[-1] + ".ipynb"
         bad = [c for c in tc if c.tag in ("failure", "error")]
         text = "pass"
         if bad:
             text = (bad[0].attrib.get("message") or bad[0].text or "failed").strip()
-        results[(nbname, int(name.split()[1]))] = text
+        results[(name, int(cell.split()[1]))] = text
     return results, ""
 
 
@@ -311,6 +326,7 @@ def grade_submission(
     allow_reference: bool = False,
     workdir: Path | None = None,
     notebooks_dir: Path = NOTEBOOKS_DIR,
+    nbval_jobs: int = 2,
 ) -> dict:
     """Grade a submission folder (a student kit, or a folder of notebooks) and return the report dict.
 
@@ -326,6 +342,7 @@ def grade_submission(
         allow_reference: the instructor's self-test: calls of the reference solution are allowed.
         workdir: scratch folder (a temporary one when None).
         notebooks_dir: the instructor notebooks.
+        nbval_jobs: notebooks run under nbval at the same time.
     """
     t0 = time.perf_counter()
     submission = Path(submission)
@@ -370,9 +387,7 @@ def grade_submission(
             tamper = scan_notebook(nb, intact, check_names)
             plans.append((s, nb, places, tamper))
             to_nbval[s.name] = _restored(nb, s, places)
-        proc = junit = None
-        if run_nbval and to_nbval:
-            proc, junit = start_nbval(to_nbval, work, cell_timeout)
+        nbval_run = NbvalRun(to_nbval, work, cell_timeout, jobs=nbval_jobs) if run_nbval and to_nbval else None
         pending = []  # (grade, spec, outcome placeholder)
         for s, nb, places, tamper in plans:
             for e in s.exercises:
@@ -463,10 +478,7 @@ def grade_submission(
                     g.feedback.append(f"... and {len(fails) - MAX_FEEDBACK_LINES} more")
             if _key(e) in hidden.reference_notes:
                 g.feedback.append("note: " + hidden.reference_notes[_key(e)])
-        nbval_note = "nbval was not run"
-        results: dict = {}
-        if proc is not None:
-            results, nbval_note = finish_nbval(proc, junit, timeout=max(cell_timeout * 20, 1800))
+        results, nbval_notes = nbval_run.results() if nbval_run is not None else ({}, {})
         by_key = {(g.notebook, g.name): g for g in grades}
         for s, nb, places, _ in plans:
             if nb is None:
@@ -474,7 +486,7 @@ def grade_submission(
             for e in s.exercises:
                 g = by_key[(s.name, e.name)]
                 p = places[e.name]
-                if p.check_cell is None or proc is None:
+                if p.check_cell is None or nbval_run is None:
                     continue
                 code_index = sum(1 for c in nb.cells[:p.check_cell] if c.cell_type == "code")
                 r = results.get((s.name, code_index))
@@ -485,7 +497,7 @@ def grade_submission(
                         g.feedback[0] = (f"full marks: all {g.hidden['total']} hidden checks pass and the check cell "
                                          "prints the reference verdict")
                     else:
-                        why = nbval_note or (r if r else "no result")
+                        why = nbval_notes.get(s.name) or (r if r else "no result")
                         g.feedback.append(f"in your notebook the check cell of {e.name} does not print the reference "
                                           f"verdict when the notebook runs top to bottom ({_short(why)}); restart the "
                                           f"kernel, run all cells, and fix what differs (−{(1 - HIDDEN_SHARE) * 100:.0f} %)")

@@ -262,15 +262,25 @@ def notebook_spec(path: Path) -> NotebookSpec:
     return spec
 
 
-def _in_optional_import(tree: ast.Module, node: ast.AST) -> bool:
-    """True if ``node`` sits in a ``try:`` whose handlers catch ImportError (an optional import)."""
+def _optional_ids(tree: ast.Module) -> set[int]:
+    """ids of the nodes inside ``try:`` blocks whose handlers catch ImportError (optional imports)."""
+    out: set[int] = set()
     for t in ast.walk(tree):
-        if isinstance(t, ast.Try) and any(node is n for s in t.body for n in ast.walk(s)):
+        if isinstance(t, ast.Try):
             names = {getattr(h.type, "id", None) for h in t.handlers} | {
                 getattr(e, "id", None) for h in t.handlers if isinstance(h.type, ast.Tuple) for e in h.type.elts}
             if names & {"ImportError", "ModuleNotFoundError", "Exception", None}:
-                return True
-    return False
+                out |= {id(n) for s in t.body for n in ast.walk(s)}
+    return out
+
+
+def _in_optional_import(tree: ast.Module, node: ast.AST, _cache: dict = {}) -> bool:  # noqa: B006 - per-tree cache
+    """True if ``node`` sits in a ``try:`` whose handlers catch ImportError (an optional import)."""
+    key = id(tree)
+    if key not in _cache or _cache[key][0] is not tree:
+        _cache.clear()
+        _cache[key] = (tree, _optional_ids(tree))
+    return id(node) in _cache[key][1]
 
 
 def _reference_of(name: str, region_texts: list[str]) -> str | None:
@@ -369,7 +379,19 @@ def _module_name(path: Path) -> str:
     return ".".join(parts)
 
 
+_IMPORTS_CACHE: dict[tuple, dict[str, set[str]]] = {}
+
+
 def module_imports(path: Path) -> dict[str, set[str]]:
+    """Cached :func:`_module_imports` (keyed by the file's path, size and modification time)."""
+    st = Path(path).stat()
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    if key not in _IMPORTS_CACHE:
+        _IMPORTS_CACHE[key] = _module_imports(Path(path))
+    return {k: set(v) for k, v in _IMPORTS_CACHE[key].items()}
+
+
+def _module_imports(path: Path) -> dict[str, set[str]]:
     """``{"top": modules imported when the module loads, "lazy": imported inside functions}`` (course_lib only).
 
     Imports inside ``try`` blocks that catch ImportError count as neither (they are optional).
