@@ -267,6 +267,41 @@ def _existing_points(fig: go.Figure) -> np.ndarray:
     return np.concatenate(pts) if pts else np.zeros((0, 3))
 
 
+def _fit_view(fig: go.Figure) -> None:
+    """Keep a few far-away points from shrinking the scene to a dot.
+
+    With plotly's automatic ranges, one badly triangulated point 50 scene sizes away makes the
+    reconstruction a speck in a corner (seen in the browser on the SfM ``scene.html``). When the
+    points' full box is more than 3 times the diagonal of their 1st..99th-percentile box, the
+    axes are set to that robust box together with the camera centres (5 % margin), keeping equal
+    scales; points outside are clipped from the view (the legend still counts them). Scenes
+    without such outliers keep plotly's automatic ranges.
+    """
+    X = _existing_points(fig)
+    X = X[np.isfinite(X).all(axis=1)]
+    if len(X) < 50:
+        return
+    lo, hi = np.percentile(X, [1, 99], axis=0)
+    full = float(np.linalg.norm(X.max(0) - X.min(0)))
+    if full <= 3.0 * max(float(np.linalg.norm(hi - lo)), 1e-12):
+        return
+    centres = [np.c_[_np(tr.x), _np(tr.y), _np(tr.z)] for tr in fig.data
+               if isinstance(tr.uid, str) and "-centres-" in tr.uid and tr.x is not None]
+    if centres:
+        C = np.concatenate(centres)
+        lo, hi = np.minimum(lo, C.min(0)), np.maximum(hi, C.max(0))
+    pad = 0.05 * float((hi - lo).max()) + 1e-9
+    lo, hi = lo - pad, hi + pad
+    ext = hi - lo
+    fig.update_layout(scene=dict(
+        xaxis=dict(range=[float(lo[0]), float(hi[0])], autorange=False),
+        yaxis=dict(range=[float(lo[1]), float(hi[1])], autorange=False),
+        zaxis=dict(range=[float(lo[2]), float(hi[2])], autorange=False),
+        aspectmode="manual",
+        aspectratio=dict(x=float(ext[0] / ext.max()), y=float(ext[1] / ext.max()), z=float(ext[2] / ext.max())),
+    ))
+
+
 # ----------------------------------------------------------------------------- figure
 def _layout(fig: go.Figure, title, height, up, eye) -> None:
     axis = dict(showbackground=True, backgroundcolor="#f4f4f4", gridcolor="#dddddd", zerolinecolor="#bbbbbb")
@@ -439,6 +474,7 @@ def add_points(
             uid=_uid(fig, "points", group),
         )
     )
+    _fit_view(fig)
     return fig
 
 
@@ -547,6 +583,7 @@ def add_cameras(
             raise KitInputError(f"images has {len(images)} entries for {M} cameras")
         for i, (img, f) in enumerate(zip(images, frusta)):
             _add_image_plane(fig, np.asarray(img), f["corners"], dec, group, f"{names[i]} image")
+    _fit_view(fig)
     return fig
 
 
