@@ -301,7 +301,7 @@ def test_scene_html_opens_offline(tmp_path):
     sync_playwright = _playwright()
     out = tmp_path / "sfm"
     env = {**os.environ, "COURSE_LIB_QUICK": "1"}
-    proc = subprocess.run([sys.executable, "-m", "course_lib", "sfm", "--out", str(out), "--ba", "none", "--quiet"],
+    proc = subprocess.run([sys.executable, "-m", "course_lib", "sfm", "--out", str(out), "--quiet"],
                           cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     html = out / "scene.html"
@@ -330,6 +330,7 @@ def test_scene_html_opens_offline(tmp_path):
                 timeout=60_000,
             )
             plots = page.evaluate(LAB_JS["plots"])
+            fill = page.evaluate(FILL_JS)
             page.wait_for_timeout(300)
             png = page.locator(".js-plotly-plot").first.screenshot()
         finally:
@@ -342,3 +343,22 @@ def test_scene_html_opens_offline(tmp_path):
     assert not console, "browser console: " + "; ".join(console)
     assert plots and plots[0]["traces"] > 0 and plots[0]["gl_canvas"] and not plots[0]["no_webgl"], plots
     assert _distinct_colours(png) >= 8, "scene.html: the plot area is blank"
+    assert fill >= 0.25, (f"scene.html: the bulk of the points (5th..95th percentile) fills only {100 * fill:.0f} % "
+                          "of the view: far-away points shrink the reconstruction to a speck")
+
+
+# How much of the 3-D view the bulk of the points fills: max over axes of the 5th..95th percentile
+# extent of the kit's point traces divided by the axis range shown.
+FILL_JS = """() => {
+    const el = document.querySelector('.js-plotly-plot');
+    const pts = el._fullData.filter(t => t.meta === 'course_lib:points');
+    let best = 0;
+    for (const ax of ['x', 'y', 'z']) {
+        const v = pts.flatMap(t => Array.from(t[ax])).filter(Number.isFinite).sort((a, b) => a - b);
+        if (v.length < 2) continue;
+        const q = p => v[Math.min(v.length - 1, Math.floor(p * (v.length - 1)))];
+        const r = el._fullLayout.scene[ax + 'axis'].range;
+        best = Math.max(best, (q(0.95) - q(0.05)) / Math.abs(r[1] - r[0]));
+    }
+    return best;
+}"""
