@@ -80,6 +80,17 @@ def _playwright():
     return sync_playwright
 
 
+def _say(config, text: str) -> None:
+    """Write a line to the terminal even when pytest captures output (where the screenshots are)."""
+    reporter = config.pluginmanager.get_plugin("terminalreporter") if config is not None else None
+    capman = config.pluginmanager.get_plugin("capturemanager") if config is not None else None
+    if reporter is not None and capman is not None:
+        with capman.global_and_fixture_disabled():
+            reporter.write_line(text)
+    else:
+        print(text)
+
+
 def _distinct_colours(png: bytes, crop=(0.3, 0.3, 0.7, 0.7)) -> int:
     """Number of distinct RGB colours in the central part of a PNG screenshot."""
     from PIL import Image
@@ -207,7 +218,7 @@ def _check_plots(page, stem: str, expected: int, shots: list[str]) -> tuple[list
 
 
 @pytest.fixture(scope="session")
-def lab_results():
+def lab_results(pytestconfig):
     """Run every interactive notebook in JupyterLab in headless Chromium; one result dict per notebook."""
     sync_playwright = _playwright()
     SCREENSHOT_DIR.mkdir(parents=True, exist_ok=True)
@@ -270,9 +281,9 @@ def lab_results():
         finally:
             browser.close()
     total = time.monotonic() - t0
-    print(f"\nbrowser test: {len(results)} notebooks in {total:.0f} s; screenshots in {SCREENSHOT_DIR}")
+    _say(pytestconfig, f"\nbrowser test: {len(results)} notebooks in {total:.0f} s; screenshots in {SCREENSHOT_DIR}")
     for name, res in results.items():
-        print(f"  {name}: ready at {res.get('ready', float('nan')):.0f} s, finished at "
+        _say(pytestconfig, f"  {name}: ready at {res.get('ready', float('nan')):.0f} s, finished at "
               f"{res.get('finished', float('nan')):.0f} s, checked at {res.get('checked', float('nan')):.0f} s: "
               f"{len(res.get('plots', []))} plots, {res.get('widgets_alive', 0)} widgets alive, "
               f"{len(res['console'])} console errors, {len(res['problems'])} problems")
@@ -296,7 +307,7 @@ def test_notebook_renders_in_jupyterlab(lab_results, info):
     assert not problems, f"{info.path.name} in JupyterLab:\n  " + "\n  ".join(problems)
 
 
-def test_scene_html_opens_offline(tmp_path):
+def test_scene_html_opens_offline(tmp_path, pytestconfig):
     """``python -m course_lib sfm`` writes scene.html that draws from file:// with no network."""
     sync_playwright = _playwright()
     out = tmp_path / "sfm"
@@ -337,7 +348,7 @@ def test_scene_html_opens_offline(tmp_path):
             browser.close()
     SCREENSHOT_DIR.mkdir(parents=True, exist_ok=True)
     (SCREENSHOT_DIR / "sfm_scene_html.png").write_bytes(png)
-    print(f"scene.html ({html.stat().st_size / 1e6:.1f} MB): {plots[0]['traces']} traces; screenshot "
+    _say(pytestconfig, f"\nscene.html ({html.stat().st_size / 1e6:.1f} MB): {plots[0]['traces']} traces; screenshot "
           f"{SCREENSHOT_DIR / 'sfm_scene_html.png'}")
     assert not requests, f"scene.html asked the network for {requests[:5]}: plotly.js must be embedded"
     assert not console, "browser console: " + "; ".join(console)
