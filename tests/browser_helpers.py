@@ -228,8 +228,16 @@ def launch_browser(playwright, chromium: str):
 
 
 def new_context(browser, offline: bool = False, viewport=(1280, 900)):
-    """A browser context of its own (own storage: JupyterLab tabs do not see each other)."""
-    return browser.new_context(offline=offline, viewport={"width": viewport[0], "height": viewport[1]})
+    """A browser context of its own (own storage: JupyterLab tabs do not see each other).
+
+    Generous default limits: on a loaded 2-core CI machine, six JupyterLab tabs starting at once
+    take a while; every wait in the test is on a condition, so long limits cost nothing when
+    things go well.
+    """
+    ctx = browser.new_context(offline=offline, viewport={"width": viewport[0], "height": viewport[1]})
+    ctx.set_default_navigation_timeout(180_000)
+    ctx.set_default_timeout(120_000)
+    return ctx
 
 
 # JavaScript helpers evaluated in a JupyterLab page (window.jupyterapp is exposed by the server).

@@ -53,7 +53,7 @@ from browser_helpers import (
 )
 
 CHROMIUM = find_chromium()
-pytestmark = pytest.mark.skipif(
+needs_chromium = pytest.mark.skipif(
     CHROMIUM is None,
     reason="no Chromium found (apt-get install chromium, or set COURSE_LIB_CHROMIUM): the browser checks did not run",
 )
@@ -290,6 +290,18 @@ def lab_results(pytestconfig):
     return results
 
 
+def test_lab_extensions_installed():
+    """JupyterLab draws plotly's mimetype and widgets only through these prebuilt extensions."""
+    from jupyter_core.paths import jupyter_path
+
+    wanted = {"jupyterlab-plotly": "plotly (application/vnd.plotly.v1+json)",
+              "@jupyter-widgets/jupyterlab-manager": "jupyterlab_widgets (ipywidgets views)"}
+    found = {name for name in wanted for d in jupyter_path("labextensions") if (Path(d) / name / "package.json").exists()}
+    missing = [f"{name} from {why}" for name, why in wanted.items() if name not in found]
+    assert not missing, f"JupyterLab extensions missing: {missing} (pip install -r environment.txt)"
+
+
+@needs_chromium
 @pytest.mark.parametrize("info", INTERACTIVE, ids=[i.path.stem for i in INTERACTIVE])
 def test_notebook_renders_in_jupyterlab(lab_results, info):
     res = lab_results[info.path.name]
@@ -307,6 +319,7 @@ def test_notebook_renders_in_jupyterlab(lab_results, info):
     assert not problems, f"{info.path.name} in JupyterLab:\n  " + "\n  ".join(problems)
 
 
+@needs_chromium
 def test_scene_html_opens_offline(tmp_path, pytestconfig):
     """``python -m course_lib sfm`` writes scene.html that draws from file:// with no network."""
     sync_playwright = _playwright()
