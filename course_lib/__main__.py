@@ -22,6 +22,8 @@ COMMANDS = {
     "release": ("course_lib.grading.cli_release", "write the student kit: notebooks with solution stubs, no reference solutions"),
     "grade": ("course_lib.grading.cli_grade", "grade a student's kit: nbval against the reference verdicts + hidden checks"),
     "ba": ("course_lib.sfm.ba_cli", "bundle-adjust a 'Bundle Adjustment in the Large' problem with the kit's sparse LM"),
+    "match": ("course_lib.data.match_cli", "SIFT-match a folder of photos with known K into a P3 folder (your own photos -> course data)"),
+    "sfm-to-nerf": ("course_lib.data.sfm_to_nerf", "turn an SfM reconstruction (COLMAP text) + its images into a NeRF Blender data set"),
 }
 
 
