@@ -218,17 +218,20 @@ def _check_plots(page, stem: str, expected: int, shots: list[str]) -> tuple[list
 
 
 @pytest.fixture(scope="session")
-def lab_results(pytestconfig):
-    """Run every interactive notebook in JupyterLab in headless Chromium; one result dict per notebook."""
+def lab_results(pytestconfig, request):
+    """Run the selected interactive notebooks in JupyterLab in headless Chromium; a result dict each."""
     sync_playwright = _playwright()
+    selected = {item.callspec.params["info"].path.name for item in request.session.items
+                if hasattr(item, "callspec") and "info" in item.callspec.params}
+    notebooks = [info for info in INTERACTIVE if info.path.name in selected] or INTERACTIVE
     SCREENSHOT_DIR.mkdir(parents=True, exist_ok=True)
     results: dict[str, dict] = {}
     t0 = time.monotonic()
-    with LabServer([info.path for info in INTERACTIVE]) as server, sync_playwright() as pw:
+    with LabServer([info.path for info in notebooks]) as server, sync_playwright() as pw:
         browser = launch_browser(pw, CHROMIUM)
         try:
             pages = {}
-            for info in INTERACTIVE:
+            for info in notebooks:
                 name = info.path.name
                 res = results[name] = {"console": [], "problems": [], "shots": [], "info": info}
                 page = new_context(browser).new_page()  # a context per notebook: own storage
