@@ -272,14 +272,17 @@ def lab_results(pytestconfig, request):
                 if "finished" not in res:
                     continue
                 stem = Path(name).stem
-                page.bring_to_front()
-                res["plots"], problems = _check_plots(page, stem, res["info"].n_plotly, res["shots"])
-                res["problems"] += problems
-                res["widget_views"], res["widgets_alive"], problems = _check_widgets(page, stem, res["shots"])
-                res["problems"] += problems
-                path = SCREENSHOT_DIR / f"{stem}_page.png"
-                page.screenshot(path=str(path))
-                res["shots"].append(path.name)
+                try:
+                    page.bring_to_front()
+                    res["plots"], problems = _check_plots(page, stem, res["info"].n_plotly, res["shots"])
+                    res["problems"] += problems
+                    res["widget_views"], res["widgets_alive"], problems = _check_widgets(page, stem, res["shots"])
+                    res["problems"] += problems
+                    path = SCREENSHOT_DIR / f"{stem}_page.png"
+                    page.screenshot(path=str(path))
+                    res["shots"].append(path.name)
+                except Exception as exc:  # report it on this notebook, check the others
+                    res["problems"].append(f"the browser checks stopped: {type(exc).__name__}: {exc}")
                 res["checked"] = time.monotonic() - t0
         finally:
             browser.close()
