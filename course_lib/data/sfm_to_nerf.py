@@ -1,0 +1,272 @@
+"""``python -m course_lib sfm-to-nerf SFM_OUT --images IMAGES_DIR --out NERF_DIR``: SfM poses feed a NeRF.
+
+A NeRF needs, for every training photo, the camera that took it: intrinsics and a
+camera-to-world pose. Structure from Motion gives exactly that (this is what COLMAP is used for
+in the NeRF paper's real scenes). This module converts the kit's reconstruction -- the COLMAP text
+model that ``python -m course_lib sfm`` writes to ``SFM_OUT/colmap`` -- into a NeRF data set in
+the Blender format (``transforms_train.json``, ``transforms_test.json``, ``images/``) that
+:func:`course_lib.data.blender.load_blender` and ``python -m course_lib nerf train`` read.
+
+Poses
+    SfM stores ``R_cw, t_cw`` (camera from world, ``x_cam = R_cw X + t_cw``, OpenCV axes). NeRF
+    wants camera-to-world: ``c2w = [[R_cw^T, C], [0, 1]]`` with the centre ``C = -R_cw^T t_cw``,
+    still in OpenCV axes here. The flip to Blender's OpenGL axes (y up, z backwards) happens in
+    :func:`course_lib.data.blender.write_blender` -- the one place in the kit that converts axes.
+
+Centring and scale (a similarity of the whole scene)
+    An SfM world has an arbitrary origin and scale. NeRF samples each ray between ``near`` and
+    ``far``, and the fast preset's voxel grid covers a box, so the scene must sit in a known range.
+    The original NeRF fixes ``near = 2, far = 6`` for its Blender scenes, whose objects fit in a
+    sphere of radius about 1.5 at the origin, seen from cameras 4 units away. The kit's trainer does
+    not fix them: :func:`course_lib.nerf.train.scene_bounds` derives a centre, a radius and
+    ``near``/``far`` from the cameras (for the embedded scene: cameras 4 away, near 1.3, far 6.7).
+    We therefore map the *sparse points' bounding sphere* to the unit sphere::
+
+        X_nerf = scale * (X_sfm - center)
+
+    with ``center`` the per-axis median of the triangulated points and ``radius`` the
+    ``percentile`` (default 95th) of their distances to it (robust to stray points), ``scale = 1 /
+    radius``. Rotations are unchanged; camera centres map like points. ``near``/``far`` for the
+    sphere are written to ``sfm_to_nerf.json`` (``near = max(0.05, d_min - 1.5)``,
+    ``far = d_max + 1.5`` with ``d`` the cameras' distances to the origin, i.e. the unit sphere
+    plus the same 50 % margin as Blender's 2/6 around a radius-1.5 object at distance 4); the
+    trainer's own :func:`~course_lib.nerf.train.scene_bounds` is used unless you pass them.
+
+Images and intrinsics
+    The Blender format knows one horizontal field of view: square pixels, principal point at the
+    image centre ``((W-1)/2, (H-1)/2)`` (:func:`course_lib.data.blender.intrinsics_from_fov`). The
+    photos are resized to ``size`` pixels wide (``cv2.INTER_AREA``; K scaled as in
+    :func:`course_lib.data.match_cli.scale_intrinsics`), then, if the principal point is off
+    centre or ``fx != fy``, resampled by the homography ``K_blender K^-1`` (the same rays, a
+    new pinhole). ``camera_angle_x = 2 atan(W / (2 f))``.
+
+Split
+    Registered images in name order; every ``test_every``-th one (offset ``test_every // 2``) goes
+    to ``test``, the others to ``train``. Unregistered images are left out (they have no pose).
+
+Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from course_lib.validate import KitInputError, intrinsics
+
+__all__ = ["NerfFrame", "normalization", "to_nerf_frame", "resample_images", "sfm_to_nerf", "add_arguments", "run"]
+
+#: Margin of near/far around the unit sphere (Blender: near 2, far 6 around radius 1.5 at distance 4).
+MARGIN = 1.5
+
+
+@dataclass
+class NerfFrame:
+    """The similarity from the SfM world to the NeRF frame: ``X_nerf = scale * (X_sfm - center)``.
+
+    Attributes:
+        center: ``(3,)`` in SfM units. scale: NeRF units per SfM unit. radius: the points' sphere
+        radius in SfM units (``scale = 1 / radius``).
+    """
+
+    center: np.ndarray
+    scale: float
+    radius: float
+
+    def points(self, X: np.ndarray) -> np.ndarray:
+        """``(N, 3)`` SfM points -> NeRF frame."""
+        return self.scale * (np.asarray(X, float) - self.center)
+
+    def c2w(self, R_cw: np.ndarray, t_cw: np.ndarray) -> np.ndarray:
+        """``(M, 3, 3), (M, 3)`` SfM poses -> ``(M, 4, 4)`` camera-to-world in the NeRF frame, OpenCV axes."""
+        R_cw = np.asarray(R_cw, float).reshape(-1, 3, 3)
+        t_cw = np.asarray(t_cw, float).reshape(-1, 3)
+        out = np.tile(np.eye(4), (len(R_cw), 1, 1))
+        out[:, :3, :3] = np.transpose(R_cw, (0, 2, 1))
+        C = -np.einsum("mji,mj->mi", R_cw, t_cw)  # C = -R^T t
+        out[:, :3, 3] = self.points(C)
+        return out
+
+
+def normalization(X: np.ndarray, percentile: float = 95.0) -> NerfFrame:
+    """The similarity that maps the sparse points' (robust) bounding sphere to the unit sphere.
+
+    Args:
+        X: ``(N, 3)`` triangulated points (NaN rows are ignored), N >= 4.
+        percentile: the radius is this percentile of the distances to the median (100: all points).
+
+    Returns:
+        :class:`NerfFrame`.
+    """
+    X = np.asarray(X, float)
+    if X.ndim != 2 or X.shape[1] != 3:
+        raise KitInputError(f"X has shape {X.shape}: expected (N, 3) points")
+    X = X[np.isfinite(X).all(axis=1)]
+    if len(X) < 4:
+        raise KitInputError(f"only {len(X)} triangulated points: the reconstruction is too sparse to place the scene for a NeRF")
+    if not 50.0 <= float(percentile) <= 100.0:
+        raise KitInputError(f"percentile = {percentile!r}: expected 50..100")
+    c = np.median(X, axis=0)
+    r = float(np.percentile(np.linalg.norm(X - c, axis=1), percentile))
+    if not r > 0:
+        raise KitInputError("all points coincide: cannot scale the scene")
+    return NerfFrame(c, 1.0 / r, r)
+
+
+def to_nerf_frame(R_cw, t_cw, X, percentile: float = 95.0) -> tuple[np.ndarray, NerfFrame]:
+    """SfM poses and points -> ``c2w (M, 4, 4)`` in the NeRF frame (OpenCV axes) and the similarity used."""
+    frame = normalization(X, percentile)
+    return frame.c2w(R_cw, t_cw), frame
+
+
+def resample_images(images: list[np.ndarray], K, width: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """Resize photos to ``width`` pixels and re-centre them on a Blender camera (square pixels, centred).
+
+    Args:
+        images: M ``(H, W, 3|4)`` uint8 images of one size. K: ``(3, 3)`` of these images.
+        width: output width W' (the height keeps the aspect ratio).
+
+    Returns:
+        ``images (M, H', W', C)`` uint8, the Blender ``K' (3, 3)``, ``camera_angle_x`` (radians).
+    """
+    import cv2
+
+    from course_lib.data.blender import intrinsics_from_fov
+    from course_lib.data.match_cli import scale_intrinsics
+
+    K = intrinsics(K)
+    H, W = images[0].shape[:2]
+    width = int(width)
+    if width < 8:
+        raise KitInputError(f"size = {width}: expected an output width of at least 8 pixels")
+    W2, H2 = width, max(int(round(H * width / W)), 8)
+    Ks = scale_intrinsics(K, (W, H), (W2, H2))
+    f = 0.5 * (Ks[0, 0] + Ks[1, 1])
+    angle = float(2.0 * np.arctan(0.5 * W2 / f))
+    Kb = intrinsics_from_fov(W2, H2, angle)
+    Hm = Kb @ np.linalg.inv(Ks)  # pixels of the resized photo -> pixels of the Blender camera
+    warp = not np.allclose(Hm, np.eye(3), atol=1e-4)
+    out = []
+    for im in images:
+        if im.shape[:2] != (H, W):
+            raise KitInputError(f"an image is {im.shape[1]}x{im.shape[0]}, another {W}x{H}: one camera, one size")
+        r = cv2.resize(im, (W2, H2), interpolation=cv2.INTER_AREA) if (W2, H2) != (W, H) else im.copy()
+        if warp:
+            r = cv2.warpPerspective(r, Hm, (W2, H2), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        out.append(r)
+    return np.stack(out), Kb, angle
+
+
+def _find_model(sfm_out: Path) -> Path:
+    for cand in (sfm_out / "colmap", sfm_out):
+        if (cand / "images.txt").is_file():
+            return cand
+    raise KitInputError(f"no COLMAP text model in {sfm_out}: expected {sfm_out / 'colmap'}/images.txt "
+                        "(the output of `python -m course_lib sfm ... --out SFM_OUT`) or the model folder itself")
+
+
+def sfm_to_nerf(sfm_out, images_dir, out, size: int = 100, test_every: int = 8, percentile: float = 95.0,
+                alpha_dir=None) -> dict:
+    """Write a NeRF Blender data set from an SfM reconstruction (the ``sfm-to-nerf`` command).
+
+    Args:
+        sfm_out: the ``sfm`` command's output folder (holding ``colmap/``) or a COLMAP text model folder.
+        images_dir: folder with the images named as in the model (e.g. the P3 folder).
+        out: output folder (``transforms_train.json``, ``transforms_test.json``, ``images/``,
+            ``sfm_to_nerf.json``).
+        size: output image width in pixels.
+        test_every: every n-th registered image is a test view (0: no test split).
+        percentile: robust radius of the points' sphere (:func:`normalization`).
+        alpha_dir: optional folder with RGBA versions of the images (same names); their alpha is kept.
+
+    Returns:
+        The summary written to ``out/sfm_to_nerf.json``.
+
+    Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
+    """
+    import cv2
+
+    from course_lib.data.blender import write_blender
+    from course_lib.data.colmap import read_colmap_text
+
+    sfm_out, images_dir, out = Path(sfm_out), Path(images_dir), Path(out)
+    if not sfm_out.exists():
+        raise KitInputError(f"SfM output not found: {sfm_out}")
+    if not images_dir.is_dir():
+        raise KitInputError(f"image folder not found: {images_dir}")
+    if int(test_every) < 0 or int(test_every) == 1:
+        raise KitInputError(f"test_every = {test_every}: expected 0 (no test split) or >= 2")
+    model = read_colmap_text(_find_model(sfm_out))
+    M = len(model.image_names)
+    if M < 2:
+        raise KitInputError(f"the model has {M} registered image(s): a NeRF needs several posed views")
+    images = []
+    for name in model.image_names:
+        src = Path(alpha_dir) / name if alpha_dir is not None else images_dir / name
+        img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise KitInputError(f"cannot read the image {src} named in the model: pass --images with the folder the SfM ran on")
+        if img.ndim == 2:
+            img = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+        elif img.shape[2] == 4:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA)
+        else:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        if img.dtype != np.uint8:
+            img = (img / 257).astype(np.uint8)
+        images.append(img)
+    W0, H0 = model.image_size
+    if images[0].shape[:2] != (H0, W0):
+        raise KitInputError(f"{model.image_names[0]} is {images[0].shape[1]}x{images[0].shape[0]} but the model's camera is {W0}x{H0}")
+    imgs, Kb, angle = resample_images(images, model.K, size)
+    c2w, frame = to_nerf_frame(model.R_cw, model.t_cw, model.X, percentile)
+    idx = np.arange(M)
+    test = (idx % test_every == test_every // 2) if test_every else np.zeros(M, bool)
+    if test.all() or not (~test).any():
+        raise KitInputError("no training views left: use a larger test_every")
+    stems = [Path(n).stem for n in model.image_names]
+    out.mkdir(parents=True, exist_ok=True)
+    write_blender(out, "train", imgs[~test], c2w[~test], angle, names=[f"r_{s}" for s, t in zip(stems, test) if not t])
+    if test.any():
+        write_blender(out, "test", imgs[test], c2w[test], angle, names=[f"r_{s}" for s, t in zip(stems, test) if t])
+    d = np.linalg.norm(c2w[:, :3, 3], axis=1)
+    summary = {
+        "source": str(sfm_out), "images_dir": str(images_dir),
+        "similarity": "X_nerf = scale * (X_sfm - center); rotations unchanged; c2w in OpenCV axes before write_blender's flip",
+        "center": frame.center.tolist(), "scale": frame.scale, "points_radius_sfm": frame.radius, "percentile": percentile,
+        "camera_distance": [float(d.min()), float(d.max())],
+        "near": float(max(0.05, d.min() - MARGIN)), "far": float(d.max() + MARGIN),
+        "image_size": [int(imgs.shape[2]), int(imgs.shape[1])], "camera_angle_x": angle, "K": Kb.tolist(),
+        "train": [n for n, t in zip(model.image_names, test) if not t],
+        "test": [n for n, t in zip(model.image_names, test) if t],
+        "points": int(np.isfinite(model.X).all(axis=1).sum()),
+    }
+    (out / "sfm_to_nerf.json").write_text(json.dumps(summary, indent=1))
+    return summary
+
+
+# --------------------------------------------------------------------------------------------- CLI
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("sfm_out", help="output folder of `python -m course_lib sfm` (with colmap/), or a COLMAP text model folder")
+    p.add_argument("--images", required=True, help="folder with the images named in the model (the P3 folder the SfM ran on)")
+    p.add_argument("--out", required=True, help="output NeRF folder (Blender format: transforms_train.json, transforms_test.json, images/)")
+    p.add_argument("--size", type=int, default=100, help="output image width in pixels (default 100; the height keeps the aspect)")
+    p.add_argument("--test-every", type=int, default=8, help="every n-th registered image becomes a test view (default 8; 0: none)")
+    p.add_argument("--percentile", type=float, default=95.0, help="robust radius of the points' sphere mapped to radius 1 (default 95)")
+    p.add_argument("--alpha-dir", default=None, help="optional folder of RGBA versions of the images (transparent background kept)")
+
+
+def run(args) -> int:
+    s = sfm_to_nerf(args.sfm_out, args.images, args.out, args.size, args.test_every, args.percentile, args.alpha_dir)
+    print(f"NeRF data set in {args.out}: {len(s['train'])} train + {len(s['test'])} test views at "
+          f"{s['image_size'][0]}x{s['image_size'][1]}, camera_angle_x {s['camera_angle_x']:.4f} rad; scene centred and "
+          f"scaled by {s['scale']:.4g} (points' sphere -> radius 1), cameras {s['camera_distance'][0]:.2f}-"
+          f"{s['camera_distance'][1]:.2f} from the origin, near/far for it {s['near']:.2f}/{s['far']:.2f}")
+    print(f"train it: python -m course_lib nerf train {args.out} --preset fast")
+    return 0
