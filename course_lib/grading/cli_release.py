@@ -10,6 +10,9 @@ from pathlib import Path
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("out_dir", type=Path, help="folder for the student kit (replaced if it holds an earlier release)")
     parser.add_argument("--notebooks-dir", type=Path, default=None, help="instructor notebooks (default: notebooks/)")
+    parser.add_argument("--verify", action="store_true",
+                        help="then execute the released notebooks inside the kit and report any error other than "
+                             "NotImplementedError (a few minutes)")
     parser.add_argument("--force", action="store_true", help="replace a non-empty folder that is not an earlier release")
 
 
@@ -29,4 +32,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"redacted {mod}: {', '.join(names)} call the student's own functions")
     for note in manifest["notes"]:
         print(f"note: {note}")
+    if args.verify:
+        from course_lib.grading.release import verify_release
+
+        problems = verify_release(args.out_dir)
+        for name, found in problems.items():
+            print(f"{name}: " + ("runs in the kit (only NotImplementedError where exercises are missing)"
+                                 if not found else "; ".join(found)))
+        if any(problems.values()):
+            print("error: some released notebooks fail in the student kit", file=sys.stderr)
+            return 1
     return 0

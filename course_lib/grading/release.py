@@ -759,3 +759,72 @@ def write_release(out_dir: Path, notebooks_dir: Path = NOTEBOOKS_DIR, force: boo
         dst.parent.mkdir(parents=True, exist_ok=True)
         dst.write_bytes(data)
     return manifest
+
+
+# ---------------------------------------------------------------------------------------------
+# Verification: the released notebooks run in the released kit
+# ---------------------------------------------------------------------------------------------
+
+ALLOWED_ERRORS = ("NotImplementedError",)
+#: Errors allowed after a cell that stopped: names it would have defined, files it would have written.
+CONSEQUENCES = ("NameError", "KitInputError", "FileNotFoundError")
+
+
+def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float = 300.0) -> dict[str, list[str]]:
+    """Execute the released notebooks inside the released kit and list what is wrong.
+
+    The kernel sees the kit's own ``course_lib`` (``PYTHONPATH=out_dir``), so the left-out reference
+    solutions are really absent. Allowed: cells that stop with ``NotImplementedError`` (an exercise
+    not written yet, or a kit function that needs it) and, after such a cell, its consequences
+    (``NameError`` for the names it would have defined, a missing file it would have written). Not allowed: any other error, an error in a check cell
+    (checks turn a student's error into a verdict), or a check cell that prints nothing.
+
+    Returns:
+        ``{notebook: [problems]}`` (empty lists when the release is sound).
+    """
+    import os
+
+    from nbclient import NotebookClient
+
+    out_dir = Path(out_dir).resolve()
+    problems: dict[str, list[str]] = {}
+    paths = sorted((out_dir / "notebooks").glob("*.ipynb"))
+    if only:
+        paths = [p for p in paths if any(p.name.startswith(o) for o in only)]
+    old_env = {k: os.environ.get(k) for k in ("PYTHONPATH", "COURSE_LIB_QUICK", "MPLBACKEND")}
+    os.environ["PYTHONPATH"] = str(out_dir) + (os.pathsep + old_env["PYTHONPATH"] if old_env["PYTHONPATH"] else "")
+    os.environ["COURSE_LIB_QUICK"] = "1"
+    os.environ["MPLBACKEND"] = "Agg"
+    try:
+        for p in paths:
+            nb = nbformat.read(p, as_version=4)
+            probe = nbformat.v4.new_code_cell("import course_lib\nprint(course_lib.__file__)")
+            nb.cells.insert(0, probe)
+            client = NotebookClient(nb, timeout=timeout, kernel_name="python3", allow_errors=True,
+                                    resources={"metadata": {"path": str(p.parent)}})
+            client.execute()
+            found, failed_before = [], False
+            where = _stream_text(nb.cells.pop(0)).strip()
+            if not where.startswith(str(out_dir)):
+                found.append(f"the kernel imported course_lib from {where or '?'}, not from the kit")
+            for i, cell in enumerate(nb.cells):
+                if cell.cell_type != "code":
+                    continue
+                errors = [o for o in cell.outputs if o.output_type == "error"]
+                is_check = cell.source.lstrip().startswith(CHECK_MARK)
+                if is_check and (errors or not _stream_text(cell).strip()):
+                    found.append(f"cell {i}: the check cell " + (f"raised {errors[0].ename}" if errors else "printed nothing"))
+                for e in errors:
+                    if e.ename in ALLOWED_ERRORS or (e.ename in CONSEQUENCES and failed_before):
+                        failed_before = True
+                        continue
+                    found.append(f"cell {i}: {e.ename}: {e.evalue}")
+                    failed_before = True
+            problems[p.name] = found
+    finally:
+        for k, v in old_env.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return problems

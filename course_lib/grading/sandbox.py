@@ -342,6 +342,7 @@ def _salted_rng_factory(salt: int):
 def _build_hidden(out_dir: str, check_modules: list[str], salt: int) -> dict:
     from course_lib.grading import core
 
+    single_thread_math()
     built = {}
     original, salted = _salted_rng_factory(salt)
     for mod_name in check_modules:
@@ -432,13 +433,29 @@ def _fingerprint(check_mod, check_fn_name: str) -> dict:
     return fp
 
 
-def _run_job(job: HiddenJob) -> dict:
-    try:
-        import torch
+def single_thread_math() -> None:
+    """One thread for OpenBLAS (numpy, scipy) and torch in this process: the same numbers on every run."""
+    import ctypes
 
-        torch.set_num_threads(1)
-    except ImportError:  # pragma: no cover
-        pass
+    try:
+        libs = sorted({ln.split()[-1] for ln in open("/proc/self/maps") if "openblas" in ln.lower()})
+    except OSError:  # not Linux
+        libs = []
+    for path in libs:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for sym in ("openblas_set_num_threads", "scipy_openblas_set_num_threads64_", "openblas_set_num_threads64_",
+                    "scipy_openblas_set_num_threads"):
+            if hasattr(lib, sym):
+                getattr(lib, sym)(1)
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(1)
+
+
+def _run_job(job: HiddenJob) -> dict:
+    single_thread_math()
     from course_lib.grading import core
 
     core.FIXTURES_DIR = Path(job.fixtures_dir)
