@@ -17,9 +17,9 @@ SfM lessons read (:mod:`course_lib.data.p3`), so a student's own photos become c
 4. **SIFT + ratio test across all pairs**, with
    :func:`course_lib.data.building.detect_and_match` (OpenCV SIFT, Lowe's ratio, mutual nearest
    neighbour, the +0.25 px SIFT offset corrected) -- the same code that made the embedded scene.
-5. **Geometric verification** of every pair (new here): a fundamental matrix is fitted with the
-   kit's own RANSAC (:func:`course_lib.sfm.fundamental.ransac_fundamental`, threshold
-   ``--verify-px``, seeded) and only its inliers are kept; pairs with fewer than
+5. **Geometric verification** of every pair (new here): a fundamental matrix is fitted by
+   RANSAC (OpenCV's, seeded, threshold ``--verify-px``; see :func:`verify_pairs`) and only its
+   inliers are kept; pairs with fewer than
    ``--min-pair-matches`` inliers are dropped. Without it, one wrong match between two
    otherwise separate features joins their tracks, and with many views the reader's
    inconsistency rule then drops thousands of good observations (40 views of the synthetic
@@ -160,18 +160,24 @@ def downscale_images(images: list[np.ndarray], K, factor: float) -> tuple[list[n
 
 
 def verify_pairs(pairs: dict, rng: np.random.Generator, threshold_px: float = 2.0, min_matches: int = 15) -> tuple[dict, dict]:
-    """Keep the matches of each pair that fit one fundamental matrix (the kit's RANSAC).
+    """Keep the matches of each pair that fit one fundamental matrix (OpenCV's RANSAC, seeded).
+
+    This is plumbing, not the lesson (the lesson's RANSAC is
+    :func:`course_lib.sfm.fundamental.ransac_fundamental`, which the SfM pipeline runs again on
+    the written matches): OpenCV's ``findFundamentalMat(FM_RANSAC)`` (C++) is much faster on the
+    hundreds of mostly empty pairs of a 40-view capture. ``cv2.setRNGSeed`` with a seed drawn
+    from ``rng`` makes it repeatable.
 
     Args:
         pairs: ``{(i, j): (x1 (N, 2), x2 (N, 2))}`` (:func:`course_lib.data.building.detect_and_match`).
-        rng: seeded generator for RANSAC.
-        threshold_px: Sampson distance threshold in pixels.
-        min_matches: pairs with fewer inliers (or fewer than 8 matches) are dropped.
+        rng: seeded generator.
+        threshold_px: distance to the epipolar line, pixels.
+        min_matches: pairs with fewer inliers (or fewer matches) are dropped.
 
     Returns:
         ``(verified pairs, {(i, j): number of inliers})`` (the counts include dropped pairs).
     """
-    from course_lib.sfm.fundamental import ransac_fundamental
+    import cv2
 
     out, counts = {}, {}
     for key in sorted(pairs):
@@ -179,7 +185,10 @@ def verify_pairs(pairs: dict, rng: np.random.Generator, threshold_px: float = 2.
         if len(x1) < max(8, min_matches):
             counts[key] = 0
             continue
-        inl = ransac_fundamental(x1, x2, rng, threshold_px=threshold_px).inliers
+        cv2.setRNGSeed(int(rng.integers(2**31 - 1)))
+        F, mask = cv2.findFundamentalMat(np.ascontiguousarray(x1, np.float64), np.ascontiguousarray(x2, np.float64),
+                                         cv2.FM_RANSAC, float(threshold_px), 0.999, 2000)
+        inl = mask.ravel().astype(bool) if mask is not None and F is not None and F.shape == (3, 3) else np.zeros(len(x1), bool)
         counts[key] = int(inl.sum())
         if inl.sum() >= min_matches:
             out[key] = (x1[inl], x2[inl])

@@ -58,7 +58,8 @@ import numpy as np
 
 from course_lib.validate import KitInputError, intrinsics
 
-__all__ = ["NerfFrame", "normalization", "to_nerf_frame", "resample_images", "sfm_to_nerf", "add_arguments", "run"]
+__all__ = ["NerfFrame", "normalization", "to_nerf_frame", "resample_images", "sfm_to_nerf", "orbit_c2w", "render_building_views",
+           "add_arguments", "run"]
 
 #: Margin of near/far around the unit sphere (Blender: near 2, far 6 around radius 1.5 at distance 4).
 MARGIN = 1.5
@@ -247,6 +248,69 @@ def sfm_to_nerf(sfm_out, images_dir, out, size: int = 100, test_every: int = 8, 
     }
     (out / "sfm_to_nerf.json").write_text(json.dumps(summary, indent=1))
     return summary
+
+
+# ------------------------------------------------------------------- a capture with known poses
+
+
+def orbit_c2w(n: int, elevations_deg=(25.0, 50.0), radius: float | None = None) -> np.ndarray:
+    """Cameras on rings around the embedded NeRF scene's origin, all looking at it (a capture for SfM).
+
+    ``n // len(elevations_deg)`` evenly spaced views per ring, each ring turned by half a step
+    against the previous one, so neighbours are close enough for SIFT (18 degrees apart for 40 views).
+
+    Args:
+        n: number of views. elevations_deg: ring elevations. radius: distance (default
+            :data:`course_lib.data.building.NERF_RADIUS`).
+
+    Returns:
+        ``c2w (n', 4, 4)`` camera-to-world, OpenCV axes, in the NeRF frame of
+        :func:`course_lib.data.building.make_nerf_dataset` (z up); ``n'`` is ``n`` rounded down
+        to a multiple of the number of rings.
+    """
+    from course_lib.conventions import invert_pose
+    from course_lib.data.building import NERF_RADIUS
+    from course_lib.data.synthetic import look_at
+
+    radius = NERF_RADIUS if radius is None else float(radius)
+    per = int(n) // len(elevations_deg)
+    if per < 1:
+        raise KitInputError(f"n = {n}: expected at least one view per ring ({len(elevations_deg)} rings)")
+    out = []
+    for k, e in enumerate(np.radians(np.asarray(elevations_deg, float))):
+        for a in np.linspace(0, 2 * np.pi, per, endpoint=False) + k * np.pi / per:
+            C = radius * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+            R_cw, t_cw = look_at(C, np.zeros(3), up=(0.0, 0.0, 1.0))
+            M = np.eye(4)
+            M[:3, :3], M[:3, 3] = invert_pose(R_cw, t_cw)
+            out.append(M)
+    return np.stack(out)
+
+
+def render_building_views(c2w: np.ndarray, size: int, supersample: int = 2, seed: int | None = None):
+    """Render the embedded NeRF scene (building on its slab) from ``c2w`` as RGBA.
+
+    Args:
+        c2w: ``(N, 4, 4)`` camera-to-world, OpenCV axes, NeRF frame. size: W = H in pixels.
+        supersample: rays per pixel per axis. seed: texture seed (default: the embedded scene's).
+
+    Returns:
+        ``images (N, size, size, 4)`` uint8 RGBA (transparent background) and ``K (3, 3)``
+        (:data:`course_lib.data.building.NERF_CAMERA_ANGLE_X`).
+    """
+    from course_lib.data import building as b
+    from course_lib.data.blender import intrinsics_from_fov
+
+    rng = np.random.default_rng((b.DEFAULT_SEED if seed is None else seed) + 1)  # as make_nerf_dataset
+    surfaces = b.build_scene(rng, ground="slab", rho=40.0)
+    K = intrinsics_from_fov(size, size, b.NERF_CAMERA_ANGLE_X)
+    out = []
+    for M in np.asarray(c2w, float):
+        C_world = b.NERF_CENTER + M[:3, 3] / b.NERF_SCALE
+        R_cw = M[:3, :3].T
+        rgb, alpha = b.render(surfaces, K, R_cw, -R_cw @ C_world, (size, size), supersample=supersample, background="transparent")
+        out.append(np.concatenate([rgb, alpha[..., None]], -1))
+    return np.clip(np.round(np.stack(out) * 255), 0, 255).astype(np.uint8), K
 
 
 # --------------------------------------------------------------------------------------------- CLI
