@@ -307,6 +307,17 @@ def _robust(loss: str, s: np.ndarray, f_scale: float) -> tuple[np.ndarray, np.nd
     return f_scale**2 * rho0, w
 
 
+def _single_threaded_blas():
+    """BLAS held to one thread: its threads only cost time on these small products (a lot on a busy machine)."""
+    try:
+        from course_lib.sfm.lm import single_threaded_blas
+    except ImportError:  # pragma: no cover - a kit without the LM module
+        import contextlib
+
+        return contextlib.nullcontext()
+    return single_threaded_blas()
+
+
 def _outer2(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
     """``P_k^T Q_k`` for stacks of 2-row blocks ``P (K, 2, a)``, ``Q (K, 2, b)`` -> ``(K, a, b)``."""
     return P[:, 0, :, None] * Q[:, 0, None, :] + P[:, 1, :, None] * Q[:, 1, None, :]
@@ -667,9 +678,10 @@ def bundle_adjust(
 
     t0 = time.perf_counter()
     if method == "lm":
-        p_out, n_iter, n_eval, success, message = _schur_lm(
-            x0_full, free, M, N, obs, K, loss, f_scale, max_iterations, ftol, xtol, record
-        )
+        with _single_threaded_blas():
+            p_out, n_iter, n_eval, success, message = _schur_lm(
+                x0_full, free, M, N, obs, K, loss, f_scale, max_iterations, ftol, xtol, record
+            )
     else:
 
         def ls_callback(intermediate_result):

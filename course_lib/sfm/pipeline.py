@@ -38,6 +38,7 @@ Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -470,6 +471,28 @@ def run_sfm(
 
     Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
     """
+    with _single_threaded_blas():
+        return _run_sfm(
+            data, rng, f_threshold_px, pnp_threshold_px, max_reproj_px, final_max_reproj_px, min_angle_deg,
+            init_min_angle_deg, min_pair_inliers, min_pnp_inliers, bundle_adjustment, ba_loss, ba_f_scale,
+            ba_max_iterations, final_ba_loss, final_ba_f_scale, initial_pair, verbose,
+        )
+
+
+def _single_threaded_blas():
+    """BLAS held to one thread (its threads only cost time on the kit's small products, a lot on a busy machine)."""
+    try:
+        from course_lib.sfm.lm import single_threaded_blas
+    except ImportError:  # pragma: no cover - a kit without the LM module
+        return contextlib.nullcontext()
+    return single_threaded_blas()
+
+
+def _run_sfm(
+    data, rng, f_threshold_px, pnp_threshold_px, max_reproj_px, final_max_reproj_px, min_angle_deg,
+    init_min_angle_deg, min_pair_inliers, min_pnp_inliers, bundle_adjustment, ba_loss, ba_f_scale,
+    ba_max_iterations, final_ba_loss, final_ba_f_scale, initial_pair, verbose,
+) -> Reconstruction:
     t_start = time.perf_counter()
     if not isinstance(rng, np.random.Generator):
         raise KitInputError(f"rng must be a numpy.random.Generator (np.random.default_rng(seed)), got {type(rng).__name__}")
