@@ -282,10 +282,11 @@ def _read_junit(junit: Path, name: str) -> tuple[dict[tuple[str, int], str], str
         cell = tc.attrib.get("name", "")
         if not cell.startswith("Cell "):
             continue
-        bad = [c for c in tc if c.tag in ("failure", "error")]
+        bad = [c for c in tc if c.tag in ("failure", "error", "skipped")]
         text = "pass"
-        if bad:
+        if bad:  # nbval skips the cells after one that timed out
             text = (bad[0].attrib.get("message") or bad[0].text or "failed").strip()
+            text = ("not run: " if bad[0].tag == "skipped" else "") + re.sub(r"\x1b\[[0-9;]*m", "", text)
         results[(name, int(cell.split()[1]))] = text
     return results, ""
 
