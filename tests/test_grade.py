@@ -311,3 +311,17 @@ def test_missing_notebook_and_cli_reports(tmp_path, hidden, monkeypatch):
         assert set(g) >= {"notebook", "name", "points", "max_points", "feedback"}
     assert all(g["status"] == "missing" for g in report["exercises"] if g["notebook"] == NB02)
     assert "# Grading feedback" in (tmp_path / "f.md").read_text()
+
+
+def test_ci_template_grades_and_publishes_feedback():
+    yaml = pytest.importorskip("yaml")  # installed with jupyterlab (jupyter_events)
+
+    from course_lib.paths import REPO_ROOT
+
+    wf = yaml.safe_load((REPO_ROOT / "templates" / "github-actions-grade.yml").read_text())
+    steps = wf["jobs"]["grade"]["steps"]
+    run = "\n".join(s.get("run", "") for s in steps)
+    assert "python -m course_lib grade ../submission" in run and "--json" in run and "--markdown" in run
+    assert "GITHUB_STEP_SUMMARY" in run
+    assert any(s.get("uses", "").startswith("actions/upload-artifact") for s in steps)
+    assert "push" in wf[True] if True in wf else "push" in wf["on"]  # YAML 1.1 reads the key `on` as True

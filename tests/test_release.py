@@ -26,9 +26,11 @@ from course_lib.paths import REPO_ROOT
 
 @pytest.fixture(scope="module")
 def kit(tmp_path_factory):
+    from course_lib.__main__ import main
+
     out = tmp_path_factory.mktemp("kit") / "student-kit"
-    manifest = write_release(out)
-    return out, manifest
+    assert main(["release", str(out)]) == 0  # the CLI, in this process
+    return out, json.loads((out / "RELEASE_MANIFEST.json").read_text())
 
 
 def _tree(root: Path) -> dict[str, str]:
