@@ -325,3 +325,15 @@ def test_ci_template_grades_and_publishes_feedback():
     assert "GITHUB_STEP_SUMMARY" in run
     assert any(s.get("uses", "").startswith("actions/upload-artifact") for s in steps)
     assert "push" in wf[True] if True in wf else "push" in wf["on"]  # YAML 1.1 reads the key `on` as True
+
+
+def test_hidden_cases_on_disk_cannot_be_rewritten_by_a_notebook(tmp_path, hidden):
+    """The hidden runs read the cases from the grader's memory: a notebook that rewrites the files gains nothing."""
+    path = hidden.fixtures_dir / "fundamental.npz"
+    saved = path.read_bytes()
+    try:
+        path.write_bytes(b"rewritten by a notebook")
+        report = grade(write_submission(tmp_path, solved()), hidden)
+        assert report["total"] == 54, [(g["name"], g["feedback"]) for g in report["exercises"]]
+    finally:
+        path.write_bytes(saved)

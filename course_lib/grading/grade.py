@@ -31,6 +31,7 @@ import json
 import os
 import re
 import secrets
+import signal
 import subprocess
 import sys
 import tempfile
@@ -255,11 +256,19 @@ class NbvalRun:
         cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-c", os.devnull, "--rootdir",
                str(self.dir), "--nbval-lax", "--nbval-current-env", f"--nbval-cell-timeout={int(self.cell_timeout)}",
                f"--junitxml={junit}", name]
+        # its own session, so that whatever the notebook started is stopped with it
+        proc = subprocess.Popen(cmd, cwd=self.dir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                start_new_session=True)
         try:
-            subprocess.run(cmd, cwd=self.dir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                           timeout=self.timeout, check=False)
+            proc.wait(timeout=self.timeout)
         except subprocess.TimeoutExpired:
             return {}, f"nbval did not finish {name} within {self.timeout:g} s"
+        finally:
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+            proc.wait()
         return _read_junit(junit, name)
 
     def results(self) -> tuple[dict[tuple[str, int], str], dict[str, str]]:

@@ -359,6 +359,19 @@ def _build_hidden(out_dir: str, check_modules: list[str], salt: int) -> dict:
     return built
 
 
+#: Hidden fixtures held in the grader's memory (folder -> name -> arrays); forked runs read them from here.
+_MEMORY: dict[str, dict[str, dict[str, np.ndarray]]] = {}
+
+
+def hold_in_memory(fixtures_dir: Path) -> None:
+    """Load every fixture of ``fixtures_dir`` into this process, for the forked runs to use."""
+    held = {}
+    for p in sorted(Path(fixtures_dir).glob("*.npz")):
+        with np.load(p, allow_pickle=False) as z:
+            held[p.stem] = {k: z[k] for k in z.files}
+    _MEMORY[str(fixtures_dir)] = held
+
+
 def build_hidden_fixtures(out_dir: Path, check_modules: list[str], salt: int, timeout: float = 600) -> dict:
     """Write the hidden fixtures of ``check_modules`` into ``out_dir`` (public fixtures copied first).
 
@@ -371,8 +384,9 @@ def build_hidden_fixtures(out_dir: Path, check_modules: list[str], salt: int, ti
     for p in sorted(Path(FIXTURES_DIR).glob("*.npz")):
         shutil.copyfile(p, out_dir / p.name)
     res = _in_child(_build_hidden, (str(out_dir), sorted(set(check_modules)), int(salt)), timeout)
-    if "error" in res:
-        raise RuntimeError(f"building the hidden cases failed: {res['error']}")
+    if "error" in res or "value" not in res:
+        raise RuntimeError(f"building the hidden cases failed: {res.get('error', res)}")
+    hold_in_memory(out_dir)
     return res["value"]
 
 
@@ -461,6 +475,17 @@ def _run_job(job: HiddenJob) -> dict:
     core.FIXTURES_DIR = Path(job.fixtures_dir)
     core.RESULTS.clear()
     check_mod = importlib.import_module(job.check_module)
+    if job.fixtures_dir in _MEMORY:  # serve the hidden cases from memory, not from files a notebook could rewrite
+        stored = _MEMORY[job.fixtures_dir]
+
+        def load_fixture(name: str) -> dict[str, np.ndarray]:
+            if name not in stored:
+                raise FileNotFoundError(f"fixture {name!r} is not among the hidden cases")
+            return {k: v.copy() for k, v in stored[name].items()}
+
+        for m in list(sys.modules.values()):
+            if getattr(m, "__name__", "").startswith("course_lib.grading") and hasattr(m, "load_fixture"):
+                m.load_fixture = load_fixture
     check_fn = getattr(check_mod, job.check_function)
     fired: list[str] = []
     if job.reference and not job.allow_reference:
