@@ -132,3 +132,18 @@ def test_cli_train_and_render(scene, tmp_path):
     assert rc == 0 and (tmp_path / "views" / "path.gif").exists() and (tmp_path / "views" / "frame_002.png").exists()
     assert main(["nerf", "train", str(tmp_path / "nope"), "--out", str(out)]) == 2
     assert main(["nerf", "render", str(tmp_path / "nope.pt"), "--out", str(out)]) == 2
+
+
+def test_grid_resume_across_rebox_and_upsample(scene, tmp_path):
+    # stop after the box was shrunk (step 4) and before the upsampling (step 8): the resumed run
+    # must rebuild the re-boxed grid, keep it, upsample at step 8 and end where the full run ends
+    cfg = preset("fast", iters=10, minutes=None, batch_rays=128, n_samples=24, snapshot_every=0, checkpoint_every=6,
+                 occupancy_start=2, occupancy_every=2, grid_schedule=((0, 12), (4, 16), (8, 20)), grid_resolution=20,
+                 shrink_box_at=4, threads=1)
+    full = train(scene, None, cfg, out_dir=tmp_path / "full", progress=False)
+    train(scene, None, cfg, out_dir=tmp_path / "part", progress=False, callback=lambda step, info: step == 6)
+    resumed = train(scene, None, cfg, out_dir=tmp_path / "part", progress=False)
+    assert resumed.model.resolution == full.model.resolution == 20
+    assert resumed.bounds == full.bounds
+    assert resumed.history["loss"] == pytest.approx(full.history["loss"], rel=1e-5)
+    torch.testing.assert_close(resumed.model.density_grid, full.model.density_grid)

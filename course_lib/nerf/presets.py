@@ -137,7 +137,7 @@ PRESETS: dict[str, TrainConfig] = {
     "paper": TrainConfig(
         preset="paper", model="nerf", depth=8, width=256, skips=(4,), pos_freqs=10, dir_freqs=4, use_viewdirs=True,
         view_width=128, density="relu", n_samples=64, n_importance=0, batch_rays=1024, lr=5e-4, lr_final=5e-5,
-        snapshot_every=50, checkpoint_every=100, eval_every=0,
+        threads=-1, snapshot_every=50, checkpoint_every=100, eval_every=0,
     ),
     "fast": TrainConfig(
         preset="fast", model="grid", grid_resolution=100, grid_schedule=((0, 40), (200, 80), (450, 100)),
