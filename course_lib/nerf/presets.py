@@ -1,20 +1,26 @@
 """Training configurations: :class:`TrainConfig` and the presets ``"paper"`` and ``"fast"``.
 
 ``"paper"``
-    The paper's model and optimizer: the 8x256 MLP with a skip after layer 4, L = 10 / 4
-    octaves, view-dependent colour, ReLU density, 64 stratified coarse samples per ray
-    (``n_importance=128`` with ``fine=True`` adds the paper's fine network), Adam with lr 5e-4
-    decaying to 5e-5 (exponentially, over the run), batches of random rays across all
-    training images. One difference, for a CPU: 1024 rays per batch (the paper: 4096). It
-    learns slowly on a CPU: minutes give a blurry but recognisable scene.
+    The paper's model and optimizer: the 8x256 MLP with the encoded input concatenated again after
+    layer 4 (0-based, as the official code), L = 10 / 4 octaves, view-dependent colour, ReLU
+    density, 64 stratified coarse samples per ray (``fine=True, n_importance=128`` adds the
+    paper's fine network), Adam with lr 5e-4 decaying exponentially to 5e-5 over the run, batches
+    of random rays across all training images. One difference, for a CPU: 1024 rays per batch
+    (the paper: 4096). On a CPU it learns slowly: minutes give a grey blur, hours a sharp scene.
 
 ``"fast"``
     Same data, same rays, same volume rendering, same loss; the field is a voxel grid
-    (:class:`course_lib.nerf.grid.GridField`) instead of an MLP, with the usual speed-ups:
-    only the scene's box is sampled (ray-box bounds), an occupancy grid skips empty space,
-    colours are computed only where the weight is > 1e-4, coarse to fine (48 -> 96 -> 128
-    voxels), a density total-variation prior, Adam with a high learning rate (0.1 decaying to
-    0.01), and ``torch.set_num_threads`` at the machine's core count.
+    (:class:`course_lib.nerf.grid.GridField`: density + RGB, trilinear interpolation) instead of
+    an MLP, with the usual speed-ups: only the scene's box is sampled (ray-box bounds, 80 samples
+    per ray), a coarse 40-voxel grid first; at step 200 the grid is resampled into the box around
+    the surfaces the rays hit (:func:`course_lib.nerf.train.surface_box`) at 80 voxels, at step 450
+    refined to 100 voxels; an occupancy grid skips empty space; colours only where the weight is
+    > 1e-4; a small density total-variation prior; Adam at a high learning rate (0.1 decaying to
+    0.01) on 2048-ray batches.
+
+Both use ``threads=-1``: ``torch.set_num_threads(1)`` when the machine is busy (load average above
+3/4 of the cores), else all cores -- on a shared machine several torch threads wait for each
+other at every operation and run many times slower than one.
 
 Every field can be overridden (``dataclasses.replace(preset("fast"), n_samples=96)`` or the CLI's
 options).
