@@ -268,6 +268,13 @@ def test_monkeypatched_checks_get_nothing(tmp_path, hidden):
     assert any("check" in f and "core" in f for f in g["feedback"]), g
 
 
+def test_a_harmless_checkmark_of_the_student_is_not_tampering(tmp_path, hidden):
+    nbs = solved()
+    nbs[NB01].cells.insert(3, nbformat.v4.new_code_cell('print("✔ data loaded, 2 images")'))
+    report = grade(write_submission(tmp_path, nbs), hidden)
+    assert report["total"] == 54, [(g["name"], g["status"], g["feedback"][:1]) for g in report["exercises"]]
+
+
 def test_reference_imported_in_a_helper_cell_gets_nothing(tmp_path, hidden):
     nbs = solved(bodies={"eight_point": "return ref_eight_point(x1, x2)"})
     nbs[NB01].cells.insert(2, nbformat.v4.new_code_cell("from course_lib.sfm.fundamental import eight_point as ref_eight_point"))

@@ -394,7 +394,7 @@ def grade_submission(
             places = place_exercises(nb, s)
             intact = {p.check_cell for p in places.values() if p.check_state == "intact"}
             check_names = {e.check_function for e in s.exercises}
-            tamper = scan_notebook(nb, intact, check_names)
+            tamper = scan_notebook(nb, intact, check_names, [e.verdict for e in s.exercises])
             plans.append((s, nb, places, tamper))
             to_nbval[s.name] = _restored(nb, s, places)
         nbval_run = NbvalRun(to_nbval, work, cell_timeout, jobs=nbval_jobs) if run_nbval and to_nbval else None

@@ -69,7 +69,6 @@ ALLOWED_DUNDERS = {"__init__", "__call__", "__len__", "__getitem__", "__setitem_
 #: Names of the check machinery a notebook must not import or rebind.
 CHECK_INTERNALS = {"Check", "CheckResult", "RESULTS", "FAILED", "load_fixture", "fixture_builder", "core",
                    "build_fixtures", "PASS", "FAIL"}
-VERDICT_MARKS = ("✔", "✘", "checks passed")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -267,14 +266,18 @@ def scan_exercise(tree: ast.Module, reference: str | None, omitted: set[str]) ->
     return sorted(set(found))
 
 
-def scan_notebook(nb, intact_check_cells: set[int], check_names: set[str]) -> list[tuple[int, str]]:
+def scan_notebook(nb, intact_check_cells: set[int], check_names: set[str],
+                  verdicts: list[str] = ()) -> list[tuple[int, str]]:
     """``[(cell, reason)]``: code that tampers with the checks, anywhere in the notebook.
 
     Args:
         nb: the submitted notebook.
         intact_check_cells: indices of check cells identical to the reference (not scanned).
         check_names: the check functions the notebook's check cells call.
+        verdicts: the reference verdicts of the notebook's check cells; a string in the code that
+            holds one of their lines (or "checks passed") counts as a verdict printed by hand.
     """
+    verdict_lines = {ln.strip() for v in verdicts for ln in v.splitlines() if "✔" in ln or "✘" in ln}
     found: list[tuple[int, str]] = []
     for i, src, tree in code_cells(nb):
         if i in intact_check_cells:
@@ -315,7 +318,8 @@ def scan_notebook(nb, intact_check_cells: set[int], check_names: set[str]) -> li
             if isinstance(node, ast.Attribute) and node.attr in {"__code__", "__globals__", "modules"} and \
                     not (node.attr == "modules" and not (isinstance(node.value, ast.Name) and node.value.id == "sys")):
                 found.append((i, f"uses {ast.unparse(node)}"))
-            if isinstance(node, ast.Constant) and isinstance(node.value, str) and any(m in node.value for m in VERDICT_MARKS):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and (
+                    "checks passed" in node.value or any(ln.strip() in verdict_lines for ln in node.value.splitlines())):
                 found.append((i, "prints a check verdict by hand"))
     return sorted(set(found))
 
