@@ -104,3 +104,16 @@ def test_cli_and_errors(known_scene, tmp_path, capsys):
         sfm_to_nerf(folder, tmp_path, tmp_path / "o")
     with pytest.raises(KitInputError, match="too sparse"):
         normalization(np.zeros((2, 3)))
+
+
+def test_orbit_cameras_look_at_the_origin():
+    from course_lib.data.sfm_to_nerf import orbit_c2w
+
+    for n, span in ((40, 360.0), (20, 180.0)):
+        c2w = orbit_c2w(n, span_deg=span)
+        C, z = c2w[:, :3, 3], c2w[:, :3, 2]
+        assert c2w.shape == (n, 4, 4)
+        np.testing.assert_allclose(np.linalg.norm(C, axis=1), building.NERF_RADIUS)
+        np.testing.assert_allclose(np.einsum("mi,mi->m", z, -C / building.NERF_RADIUS), 1.0, atol=1e-12)  # z forward, at the origin
+        np.testing.assert_allclose(np.linalg.det(c2w[:, :3, :3]), 1.0)
+        assert (c2w[:, 2, 1] < 0).all()  # camera y (down in the image) points down in the z-up world

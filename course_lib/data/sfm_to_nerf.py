@@ -253,7 +253,7 @@ def sfm_to_nerf(sfm_out, images_dir, out, size: int = 100, test_every: int = 8, 
 # ------------------------------------------------------------------- a capture with known poses
 
 
-def orbit_c2w(n: int, elevations_deg=(25.0, 50.0), radius: float | None = None) -> np.ndarray:
+def orbit_c2w(n: int, elevations_deg=(25.0, 50.0), radius: float | None = None, span_deg: float = 360.0) -> np.ndarray:
     """Cameras on rings around the embedded NeRF scene's origin, all looking at it (a capture for SfM).
 
     ``n // len(elevations_deg)`` evenly spaced views per ring, each ring turned by half a step
@@ -262,6 +262,8 @@ def orbit_c2w(n: int, elevations_deg=(25.0, 50.0), radius: float | None = None) 
     Args:
         n: number of views. elevations_deg: ring elevations. radius: distance (default
             :data:`course_lib.data.building.NERF_RADIUS`).
+        span_deg: 360 for full rings; less for arcs centred on the building's front (azimuth
+            -90 degrees, the street side), e.g. 180 for a half orbit with the same spacing at half the views.
 
     Returns:
         ``c2w (n', 4, 4)`` camera-to-world, OpenCV axes, in the NeRF frame of
@@ -278,7 +280,10 @@ def orbit_c2w(n: int, elevations_deg=(25.0, 50.0), radius: float | None = None) 
         raise KitInputError(f"n = {n}: expected at least one view per ring ({len(elevations_deg)} rings)")
     out = []
     for k, e in enumerate(np.radians(np.asarray(elevations_deg, float))):
-        for a in np.linspace(0, 2 * np.pi, per, endpoint=False) + k * np.pi / per:
+        span = np.radians(float(span_deg))
+        step = span / per
+        az = -0.5 * np.pi - 0.5 * span + (np.arange(per) + 0.5) * step if span_deg < 360 else np.arange(per) * step
+        for a in az + (k - 0.5 * (len(elevations_deg) - 1)) * 0.5 * step * (span_deg < 360) + k * 0.5 * step * (span_deg >= 360):
             C = radius * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
             R_cw, t_cw = look_at(C, np.zeros(3), up=(0.0, 0.0, 1.0))
             M = np.eye(4)
