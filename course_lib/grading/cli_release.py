@@ -30,6 +30,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"left out (reference solutions): {', '.join(manifest['omitted_modules']) or 'none'}")
     for mod, names in sorted(manifest["redacted"].items()):
         print(f"redacted {mod}: {', '.join(names)} call the student's own functions")
+    for name in manifest["left_out_notebooks"]:
+        print(f"left out notebooks/{name} (no exercises, needs the reference solutions)")
     for note in manifest["notes"]:
         print(f"note: {note}")
     if args.verify:

@@ -364,7 +364,7 @@ def grade_submission(
     for err in unreleasable:
         if not notebooks or any(err.startswith(n) for n in notebooks):
             raise KitInputError(f"cannot grade against an instructor notebook that cannot be released: {err}")
-    specs = [s for s in all_specs if not notebooks or any(s.name.startswith(n) for n in notebooks)]
+    specs = [s for s in all_specs if s.exercises and (not notebooks or any(s.name.startswith(n) for n in notebooks))]
     specs = _select(specs, exercises)
     if not specs:
         raise KitInputError(f"no instructor notebook or exercise matches {notebooks or ''} {exercises or ''}")

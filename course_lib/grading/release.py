@@ -235,7 +235,9 @@ def notebook_spec(path: Path) -> NotebookSpec:
         if first == CHECK_MARK:
             call = next((n for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)
                          and n.func.id.startswith("check_")), None)
-            if call is None or not call.args or not isinstance(call.args[0], ast.Name):
+            if call is None:
+                continue  # nbval compares this cell's output, but it checks no exercise
+            if not call.args or not isinstance(call.args[0], ast.Name):
                 raise ReleaseError(f"{where}: a check cell must call check_<exercise>(<exercise>)")
             fn, ex = call.func.id, call.args[0].id
             if ex not in defined:
@@ -252,9 +254,10 @@ def notebook_spec(path: Path) -> NotebookSpec:
                 notebook=path.name, name=ex, cell=ex_cell, check_cell=i, check_module=check_imports[fn],
                 check_function=fn, check_source=cell.source, check_sha256=_sha(cell.source), verdict=verdict,
                 points=points, reference=_reference_of(ex, texts)))
-    if not any_region:
-        raise ReleaseError(f"{path.name}: no '{BEGIN}' / '{END}' region: nothing to release as an exercise "
-                           "(missing solution markers)")
+    spec.solution_modules = sorted(sol_mods)
+    spec.imports = sorted(mods)
+    if not any_region and not spec.exercises:
+        return spec  # a notebook without exercises (a demo): released as it is, not graded
     if not spec.exercises:
         raise ReleaseError(f"{path.name}: solution regions but no check cell ('{CHECK_MARK}' on its first line)")
     spec.solution_modules = sorted(sol_mods)
@@ -436,6 +439,7 @@ class ReleasePlan:
     redact: dict[str, list[str]]  # module -> exercise names replaced by stand-ins
     exercise_notebook: dict[str, str]  # exercise name -> notebook that teaches it
     notes: list[str] = field(default_factory=list)
+    left_out_notebooks: list[str] = field(default_factory=list)  # demos that need the reference solutions
 
 
 def release_plan(specs: list[NotebookSpec]) -> ReleasePlan:
@@ -448,6 +452,8 @@ def release_plan(specs: list[NotebookSpec]) -> ReleasePlan:
     """
     mods = course_lib_modules()
     imports = {m: module_imports(p) for m, p in mods.items()}
+    demos = [s for s in specs if not s.exercises]
+    specs = [s for s in specs if s.exercises]
     sol = solution_modules(specs)
     needed: set[str] = set()
     todo = [m for s in specs for m in s.imports]
@@ -476,7 +482,20 @@ def release_plan(specs: list[NotebookSpec]) -> ReleasePlan:
             notes.append(f"{m} is needed by a notebook but calls left-out {sorted(lazy)} inside functions")
     redact = {m: names for m, names in sol.items() if m in needed and m in mods}
     ex_nb = {e.name: e.notebook for s in specs for e in s.exercises}
-    return ReleasePlan(sorted(omit), redact, ex_nb, notes)
+    left_out = []
+    for d in demos:
+        reach, todo = set(), list(d.imports)
+        while todo:
+            m = todo.pop()
+            if m in reach or m not in mods:
+                continue
+            reach.add(m)
+            todo += sorted(imports[m]["top"] | imports[m]["lazy"])
+        if reach & omit:
+            left_out.append(d.name)
+            notes.append(f"notebooks/{d.name} has no exercises and needs {sorted(reach & omit)[0]} (a reference "
+                         "solution): it is not part of the student kit")
+    return ReleasePlan(sorted(omit), redact, ex_nb, notes, left_out)
 
 
 def redact_module(path: Path, names: list[str], exercise_notebook: dict[str, str], keep: set[str] = frozenset()) -> str:
@@ -609,6 +628,8 @@ outputs/
 def student_readme(specs: list[NotebookSpec], plan: ReleasePlan) -> str:
     rows = []
     for s in specs:
+        if not s.exercises:
+            continue
         names = ", ".join(f"`{e.name}`" for e in s.exercises)
         pts = sum(e.points for e in s.exercises)
         rows.append(f"| `notebooks/{s.name}` | {names} | {pts:g} |")
@@ -714,6 +735,8 @@ def write_release(out_dir: Path, notebooks_dir: Path = NOTEBOOKS_DIR, force: boo
 
     # notebooks
     for p in sorted(Path(notebooks_dir).glob("*.ipynb")):
+        if p.name in plan.left_out_notebooks:
+            continue
         nb = stub_notebook(nbformat.read(p, as_version=4), p.name)
         files[f"notebooks/{p.name}"] = nbformat.writes(nb).encode() + b"\n"
     # course_lib
@@ -747,7 +770,9 @@ def write_release(out_dir: Path, notebooks_dir: Path = NOTEBOOKS_DIR, force: boo
         "kit_version": __version__,
         "notebooks": [
             {"name": s.name, "exercises": [asdict(e) for e in s.exercises]} for s in specs
+            if s.name not in plan.left_out_notebooks
         ],
+        "left_out_notebooks": plan.left_out_notebooks,
         "omitted_modules": plan.omit,
         "redacted": plan.redact,
         "notes": plan.notes,
