@@ -41,12 +41,15 @@ Gauge (the ambiguity BA cannot resolve)
     ``fix_scale=False`` leaves the scale free (the trust region keeps it from drifting).
 
 Solver
-    ``method="lm"`` (default): Levenberg-Marquardt on the normal equations with the points
-    eliminated by the Schur complement (the classic sparse bundle adjuster: the reduced camera
-    system is only 6M x 6M), robust losses by iteratively reweighted least squares; a handful
-    of iterations from a PnP start. ``method="trf"``: :func:`scipy.optimize.least_squares`
-    (``x_scale="jac"``, ``lsmr`` on the same analytic sparse Jacobian), optionally with its robust
-    losses (``loss="huber"``, ``f_scale`` in pixels). Both reach the same minimum (tested).
+    ``method="lm"`` (default): the kit's one sparse bundle adjuster, :func:`course_lib.sfm.lm.solve`
+    (Levenberg-Marquardt, the points eliminated by the Schur complement, the small reduced camera
+    system solved exactly, robust losses by iteratively reweighted least squares) with the camera
+    model :class:`course_lib.sfm.lm.PinholeCamera` (``K`` fixed, 6 parameters) and the gauge above
+    as fixed parameters; the same solver runs the "Bundle Adjustment in the Large" problems
+    (``python -m course_lib ba``, 9 parameters per camera). ``method="trf"``:
+    :func:`scipy.optimize.least_squares` (``x_scale="jac"``, ``lsmr`` on the same analytic sparse
+    Jacobian), optionally with its robust losses (``loss="huber"``, ``f_scale`` in pixels). Both
+    reach the same minimum (tested).
 
 Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
 """
@@ -63,6 +66,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from course_lib.conventions import camera_center
+from course_lib.sfm import lm
 from course_lib.sfm.visibility import observation_list
 from course_lib.validate import KitInputError, intrinsics, rotation
 
@@ -195,50 +199,16 @@ def _csr_from_blocks(data: np.ndarray, cols: np.ndarray, n_cols: int) -> sp.csr_
     return sp.csr_matrix((data.ravel(), cols.ravel(), indptr), shape=(n_rows, n_cols))
 
 
-def _right_jacobian_so3(rvec: np.ndarray) -> np.ndarray:
-    """``(M, 3, 3)`` right Jacobians ``J_r`` of SO(3) at the rotation vectors ``(M, 3)``."""
-    a = np.linalg.norm(rvec, axis=1)
-    small = a < 1e-4
-    a_safe = np.where(small, 1.0, a)
-    c1 = np.where(small, 0.5 - a**2 / 24.0, (1.0 - np.cos(a_safe)) / a_safe**2)
-    c2 = np.where(small, 1.0 / 6.0 - a**2 / 120.0, (a_safe - np.sin(a_safe)) / a_safe**3)
-    S = _skew_rows(rvec)
-    return np.eye(3) - c1[:, None, None] * S + c2[:, None, None] * (S @ S)
-
-
-def _skew_rows(v: np.ndarray) -> np.ndarray:
-    """``(N, 3, 3)`` cross-product matrices of the rows of ``v (N, 3)``."""
-    S = np.zeros((len(v), 3, 3))
-    S[:, 0, 1], S[:, 0, 2] = -v[:, 2], v[:, 1]
-    S[:, 1, 0], S[:, 1, 2] = v[:, 2], -v[:, 0]
-    S[:, 2, 0], S[:, 2, 1] = -v[:, 1], v[:, 0]
-    return S
-
-
 def _jacobian_blocks(params, n_cameras, n_points, camera_idx, point_idx, K):
-    """``(K_obs, 2, 9)`` Jacobian blocks: columns 0-2 rotation vector, 3-5 t, 6-8 the point."""
+    """``(K_obs, 2, 9)`` Jacobian blocks: columns 0-2 rotation vector, 3-5 t, 6-8 the point.
+
+    Computed by :meth:`course_lib.sfm.lm.PinholeCamera.project_jacobian` (see the module
+    docstring for the formulas).
+    """
     cams = params[: 6 * n_cameras].reshape(n_cameras, 6)
-    R = Rotation.from_rotvec(cams[:, :3]).as_matrix().reshape(n_cameras, 3, 3)
     X = params[6 * n_cameras :].reshape(n_points, 3)
-    Rk = R[camera_idx]
-    RX = (Rk * X[point_idx][:, None, :]).sum(axis=2)
-    xc = RX + cams[camera_idx, 3:]
-    x, y, z = xc[:, 0], xc[:, 1], xc[:, 2]
-    fx, s, fy = K[0, 0], K[0, 1], K[1, 1]
-    iz = 1.0 / z
-    dp = np.zeros((len(z), 2, 3))  # d(u, v) / d x_c
-    dp[:, 0, 0] = fx * iz
-    dp[:, 0, 1] = s * iz
-    dp[:, 0, 2] = -(fx * x + s * y) * iz**2
-    dp[:, 1, 1] = fy * iz
-    dp[:, 1, 2] = -fy * y * iz**2
-    RJ = (R @ _right_jacobian_so3(cams[:, :3]))[camera_idx]  # (K, 3, 3)
-    d_rot = -_skew_rows(RX) @ RJ  # d x_c / d r
-    blocks = np.empty((len(z), 2, 9))
-    blocks[:, :, 0:3] = dp @ d_rot
-    blocks[:, :, 3:6] = dp
-    blocks[:, :, 6:9] = dp @ Rk
-    return blocks
+    _, J_cam, J_pt = lm.PinholeCamera(K).project_jacobian(cams, X[point_idx], camera_idx)
+    return np.concatenate([J_cam, J_pt], axis=2)
 
 
 def reprojection_jacobian(
@@ -283,152 +253,37 @@ def reprojection_error_stats(errors: np.ndarray) -> dict[str, float]:
 
 
 # ---------------------------------------------------------------------------------------------
-# Levenberg-Marquardt with the Schur complement (the classic sparse bundle adjuster)
+# Levenberg-Marquardt with the Schur complement: the kit's one sparse solver, course_lib.sfm.lm
 # ---------------------------------------------------------------------------------------------
 
 
-def _robust(loss: str, s: np.ndarray, f_scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """``(rho, weight)`` of squared residual norms ``s`` for a robust loss.
+def _schur_lm(x0_full, free, n_cameras, n_points, obs, K, loss, f_scale, max_iterations, ftol, xtol, record):
+    """Levenberg-Marquardt with the points eliminated by the Schur complement (:func:`course_lib.sfm.lm.solve`).
 
-    ``cost = 0.5 * sum(rho)`` with ``rho = f^2 * rho0(s / f^2)`` as in ``least_squares``; the
-    weight ``rho0'(s / f^2)`` scales each observation in the normal equations (IRLS).
+    The camera model is :class:`course_lib.sfm.lm.PinholeCamera` (``K`` fixed, 6 parameters, the
+    layout of :func:`pack_params`); the gauge arrives as the ``free`` mask. The same solver runs
+    the "Bundle Adjustment in the Large" problems (``python -m course_lib ba``).
     """
-    if loss == "linear":
-        return s, np.ones_like(s)
-    z = s / f_scale**2
-    if loss == "huber":
-        big = z > 1.0
-        rho0 = np.where(big, 2.0 * np.sqrt(z) - 1.0, z)
-        w = np.where(big, 1.0 / np.sqrt(np.maximum(z, 1.0)), 1.0)
-    elif loss == "soft_l1":
-        rho0 = 2.0 * (np.sqrt(1.0 + z) - 1.0)
-        w = 1.0 / np.sqrt(1.0 + z)
-    elif loss == "cauchy":
-        rho0 = np.log1p(z)
-        w = 1.0 / (1.0 + z)
-    else:
-        raise KitInputError(f"loss={loss!r}: expected 'linear', 'huber', 'soft_l1' or 'cauchy'")
-    return f_scale**2 * rho0, w
+    M, N = n_cameras, n_points
+    cams0 = x0_full[: 6 * M].reshape(M, 6)
+    X0 = x0_full[6 * M :].reshape(N, 3)
+
+    def on_step(it, cams, pts, cost):
+        if it > 0:  # bundle_adjust records the start itself
+            record(np.concatenate([cams.ravel(), pts.ravel()]), it)
+
+    res = lm.solve(
+        lm.PinholeCamera(K), cams0, X0, obs.camera_idx, obs.point_idx, obs.uv,
+        fixed_cameras=~free[: 6 * M].reshape(M, 6), loss=loss, f_scale=f_scale,
+        max_iterations=max_iterations, ftol=ftol, xtol=xtol, callback=on_step,
+    )
+    p = np.concatenate([res.cameras.ravel(), res.points.ravel()])
+    return p, res.iterations, res.n_solves, res.success, res.message
 
 
 def _single_threaded_blas():
-    """BLAS held to one thread: its threads only cost time on these small products (a lot on a busy machine)."""
-    try:
-        from course_lib.sfm.lm import single_threaded_blas
-    except ImportError:  # pragma: no cover - a kit without the LM module
-        import contextlib
-
-        return contextlib.nullcontext()
-    return single_threaded_blas()
-
-
-def _outer2(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
-    """``P_k^T Q_k`` for stacks of 2-row blocks ``P (K, 2, a)``, ``Q (K, 2, b)`` -> ``(K, a, b)``."""
-    return P[:, 0, :, None] * Q[:, 0, None, :] + P[:, 1, :, None] * Q[:, 1, None, :]
-
-
-def _schur_lm(x0_full, free, n_cameras, n_points, obs, K, loss, f_scale, max_iterations, ftol, xtol, record):
-    """Levenberg-Marquardt on the normal equations, points eliminated by the Schur complement.
-
-    Normal equations of one Gauss-Newton step (weights ``w`` from the robust loss, IRLS)::
-
-        [U   W] [dc]   [-g_c]       U = sum A^T w A (6x6 per camera),  V = sum B^T w B (3x3 per point)
-        [W^T V] [dp] = [-g_p]       W = A^T w B per observation,       g = J^T w r
-
-    with ``A`` the 2x6 camera block and ``B`` the 2x3 point block of an observation. ``V`` is
-    block diagonal, so the points are eliminated: ``(U - W V^-1 W^T) dc = -g_c + W V^-1 g_p`` (the
-    reduced camera system, 6M x 6M), then ``dp = -V^-1 (g_p + W^T dc)``. Damping:
-    ``U + lambda diag(U)``, ``V + lambda diag(V)`` (Marquardt), lambda adapted on success/failure.
-    """
-    M, N = n_cameras, n_points
-    cam, pt = obs.camera_idx, obs.point_idx
-    n_obs = len(cam)
-    free_cam = free[: 6 * M]
-    seen_pts = np.zeros(N, dtype=bool)
-    seen_pts[pt] = True
-    # scatter matrices: sums per camera / per point as sparse products (fast)
-    ones = np.ones(n_obs)
-    to_cam = sp.csr_matrix((ones, (cam, np.arange(n_obs))), shape=(M, n_obs))
-    to_pt = sp.csr_matrix((ones, (pt, np.arange(n_obs))), shape=(N, n_obs))
-    # W V^-1 W^T is summed over points: with W and Y = W V^-1 laid out as sparse (6M, 3N)
-    # matrices (block (camera, point) = W_k of the observation), it is one sparse product Y W^T.
-    w_rows = np.repeat((6 * cam[:, None] + np.arange(6)).ravel(), 3)
-    w_cols = (np.repeat(3 * pt, 6)[:, None] + np.arange(3)).ravel()
-    w_shape = (6 * M, 3 * N)
-
-    def evaluate(p):
-        r = reprojection_residuals(p, M, N, cam, pt, obs.uv, K).reshape(-1, 2)
-        s = (r**2).sum(axis=1)
-        rho, w = _robust(loss, s, f_scale)
-        return r, w, 0.5 * float(rho.sum())
-
-    p = x0_full.copy()
-    r, w, cost = evaluate(p)
-    lam = 1e-3
-    n_iter = n_eval = 0
-    message = "the maximum number of iterations is reached"
-    success = False
-    eye3 = np.eye(3)
-    while n_iter < max_iterations:
-        blocks = _jacobian_blocks(p, M, N, cam, pt, K)
-        A, B = blocks[:, :, :6], blocks[:, :, 6:]
-        Aw, Bw = A * w[:, None, None], B * w[:, None, None]
-        U = (to_cam @ _outer2(Aw, A).reshape(n_obs, 36)).reshape(M, 6, 6)
-        V = (to_pt @ _outer2(Bw, B).reshape(n_obs, 9)).reshape(N, 3, 3)
-        Wk = _outer2(Aw, B)  # (K, 6, 3)
-        g_c = to_cam @ (Aw[:, 0] * r[:, :1] + Aw[:, 1] * r[:, 1:])
-        g_p = to_pt @ (Bw[:, 0] * r[:, :1] + Bw[:, 1] * r[:, 1:])
-        g_c_flat = g_c.ravel()
-        if np.abs(g_c_flat[free_cam]).max(initial=0.0) + np.abs(g_p[seen_pts]).max(initial=0.0) < 1e-12:
-            message, success = "the gradient vanishes", True
-            break
-        improved = False
-        while not improved and lam < 1e16:
-            n_eval += 1
-            Vd = V + lam * V * eye3 + 1e-12 * eye3
-            Vd[~seen_pts] = eye3
-            Vinv = np.linalg.inv(Vd)
-            Y = Wk @ Vinv[pt]  # (K, 6, 3)
-            Wsp = sp.csr_matrix((Wk.ravel(), (w_rows, w_cols)), shape=w_shape)
-            Ysp = sp.csr_matrix((Y.ravel(), (w_rows, w_cols)), shape=w_shape)
-            S = -(Ysp @ Wsp.T).toarray().reshape(M, 6, M, 6).transpose(0, 2, 1, 3)
-            S = np.ascontiguousarray(S)
-            for i in range(M):
-                S[i, i] += U[i] + lam * U[i] * np.eye(6)
-            S = S.transpose(0, 2, 1, 3).reshape(6 * M, 6 * M)
-            rhs = (g_c - to_cam @ (Y * g_p[pt][:, None, :]).sum(axis=2)).ravel()
-            dc = np.zeros(6 * M)
-            Sf = S[np.ix_(free_cam, free_cam)]
-            try:
-                dc[free_cam] = np.linalg.solve(Sf, -rhs[free_cam])
-            except np.linalg.LinAlgError:
-                dc[free_cam] = np.linalg.lstsq(Sf, -rhs[free_cam], rcond=None)[0]
-            tmp = g_p + to_pt @ (Wk * dc.reshape(M, 6)[cam][:, :, None]).sum(axis=1)
-            dp = -(Vinv * tmp[:, None, :]).sum(axis=2)
-            dp[~seen_pts] = 0.0
-            step = np.concatenate([dc, dp.ravel()])
-            p_new = p + step
-            r_new, w_new, cost_new = evaluate(p_new)
-            if np.isfinite(cost_new) and cost_new < cost:
-                improved = True
-                rel = (cost - cost_new) / max(cost, 1e-300)
-                small_step = np.linalg.norm(step) < xtol * (xtol + np.linalg.norm(p))
-                p, r, w, cost = p_new, r_new, w_new, cost_new
-                lam = max(lam / 10.0, 1e-12)
-                n_iter += 1
-                record(p, n_iter)
-                if rel < ftol:
-                    message, success = "the relative decrease of the cost is below ftol", True
-                elif small_step:
-                    message, success = "the step is below xtol", True
-            else:
-                lam *= 10.0
-        if not improved:
-            message, success = "no step decreases the cost (converged to the precision available)", True
-            break
-        if success:
-            break
-    return p, n_iter, n_eval, success, message
+    """BLAS held to one thread (:func:`course_lib.sfm.lm.single_threaded_blas`)."""
+    return lm.single_threaded_blas()
 
 
 # ---------------------------------------------------------------------------------------------
