@@ -40,6 +40,15 @@ Images and intrinsics
     centre or ``fx != fy``, resampled by the homography ``K_blender K^-1`` (the same rays, a
     new pinhole). ``camera_angle_x = 2 atan(W / (2 f))``.
 
+Limits
+    The unit-sphere mapping suits *object-centred* captures (cameras around the object, outside
+    its sphere: the synthetic building, 2.9-3.1 units from the origin after the mapping). For a
+    *forward-facing* capture such as the WPI facade (5 photos from one side) the cameras end up
+    inside the points' sphere (0.43-0.51 from the origin) and far-away points dominate the
+    radius; the NeRF paper handles such scenes with normalized device coordinates (LLFF), which
+    the kit does not implement. The data set is still valid, but the fast preset's box will not
+    fit it well.
+
 Split
     Registered images in name order; every ``test_every``-th one (offset ``test_every // 2``) goes
     to ``test``, the others to ``train``. Unregistered images are left out (they have no pose).
