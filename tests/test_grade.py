@@ -12,6 +12,7 @@ The full 8-notebook grading is timed by benchmarks/grade_speed.py, not here.
 from __future__ import annotations
 
 import json
+import os
 import re
 import textwrap
 from pathlib import Path
@@ -344,3 +345,13 @@ def test_hidden_cases_on_disk_cannot_be_rewritten_by_a_notebook(tmp_path, hidden
         assert report["total"] == 54, [(g["name"], g["feedback"]) for g in report["exercises"]]
     finally:
         path.write_bytes(saved)
+
+
+@pytest.mark.skipif(not os.environ.get("GRADE_SLOW_TESTS"), reason="about a minute; set GRADE_SLOW_TESTS=1")
+def test_a_looping_exercise_under_nbval_does_not_cost_the_cells_after_it(tmp_path, hidden):
+    nbs = solved(bodies={"essential_from_fundamental": "while True:\n    pass"})
+    report = grade_submission(write_submission(tmp_path, nbs), notebooks=["02"], hidden=hidden, timeout=8.0,
+                              run_nbval=True, cell_timeout=10)
+    g = by_name(report)
+    assert g["essential_from_fundamental"]["status"] == "timeout" and g["essential_from_fundamental"]["nbval"] == "fail"
+    assert g["pose_candidates"]["points"] == 10 and g["pose_candidates"]["nbval"] == "pass", g["pose_candidates"]
