@@ -355,3 +355,34 @@ def test_a_looping_exercise_under_nbval_does_not_cost_the_cells_after_it(tmp_pat
     g = by_name(report)
     assert g["essential_from_fundamental"]["status"] == "timeout" and g["essential_from_fundamental"]["nbval"] == "fail"
     assert g["pose_candidates"]["points"] == 10 and g["pose_candidates"]["nbval"] == "pass", g["pose_candidates"]
+
+
+@pytest.mark.parametrize("code, phrase", [
+    ("import numpy as np\ndef f(x):\n    np.median = lambda a: 0.0\n    return x\n", "monkeypatching"),
+    ("import numpy as np\nclass A(np.ndarray):\n    def __array_ufunc__(self, *a, **k):\n        return True\n"
+     "def f(x):\n    return x\n", "special method __array_ufunc__"),
+    ("def f(x):\n    return eval('x')\n", "calls eval()"),
+    ("def f(x):\n    return x.__class__.__mro__\n", "attribute __mro__"),
+    ("import importlib\ndef f(x):\n    return importlib.import_module('course_lib.sfm.fundamental')\n", "imports importlib"),
+    ("from course_lib.sfm import fundamental as F\ndef f(x):\n    return F.eight_point(x, x)\n",
+     "calls the reference solution"),
+])
+def test_scan_flags_tricks_in_exercise_code(code, phrase):
+    import ast as _ast
+
+    from course_lib.grading.sandbox import scan_exercise
+
+    found = scan_exercise(_ast.parse(code), "course_lib.sfm.fundamental:eight_point", {"course_lib.sfm.fundamental"})
+    assert any(phrase in f for f in found), found
+
+
+def test_scan_accepts_ordinary_exercise_code():
+    import ast as _ast
+
+    from course_lib.grading.sandbox import scan_exercise
+
+    code = ("import numpy as np\nimport torch\nfrom torch import nn\nclass M(nn.Module):\n"
+            "    def __init__(self):\n        super().__init__()\n        self.l = nn.Linear(3, 3)\n"
+            "    def forward(self, x):\n        return self.l(x)\n"
+            "def f(x):\n    y = np.zeros(3)\n    y[0] = 1\n    return torch.as_tensor(y)\n")
+    assert scan_exercise(_ast.parse(code), "course_lib.nerf.model:NeRF", set()) == []

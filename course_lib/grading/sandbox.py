@@ -66,6 +66,9 @@ FORBIDDEN_CALLS = {"exec", "eval", "compile", "__import__", "globals", "locals",
 ALLOWED_DUNDERS = {"__init__", "__call__", "__len__", "__getitem__", "__setitem__", "__repr__", "__str__",
                    "__iter__", "__next__", "__enter__", "__exit__", "__name__", "__eq__", "__hash__",
                    "__post_init__", "__contains__", "__add__", "__mul__", "__matmul__", "__neg__", "__sub__"}
+#: Special methods exercise code may define (others, e.g. __eq__ or __array_ufunc__, could fool comparisons).
+ALLOWED_METHOD_DUNDERS = {"__init__", "__call__", "__repr__", "__str__", "__len__", "__iter__", "__next__",
+                          "__getitem__", "__post_init__", "__enter__", "__exit__"}
 #: Names of the check machinery a notebook must not import or rebind.
 CHECK_INTERNALS = {"Check", "CheckResult", "RESULTS", "FAILED", "load_fixture", "fixture_builder", "core",
                    "build_fixtures", "PASS", "FAIL"}
@@ -258,6 +261,18 @@ def scan_exercise(tree: ast.Module, reference: str | None, omitted: set[str]) ->
         elif isinstance(node, ast.Attribute):
             if re.fullmatch(r"__\w+__", node.attr) and node.attr not in ALLOWED_DUNDERS:
                 found.append(f"uses the attribute {node.attr} (line {node.lineno}), which exercise code may not use")
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and isinstance(node.ctx, (ast.Store, ast.Del)):
+            root = node.value
+            while isinstance(root, ast.Attribute):
+                root = root.value
+            if isinstance(root, ast.Name) and root.id in aliases:
+                found.append(f"assigns to {ast.unparse(node)} (line {node.lineno}): changing a library (monkeypatching) "
+                             "is not allowed in exercise code")
+        elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and re.fullmatch(r"__\w+__", node.name) \
+                and node.name not in ALLOWED_METHOD_DUNDERS:
+            found.append(f"defines the special method {node.name} (line {node.lineno}), which could change how the "
+                         "checks compare results")
     if ref_mod:
         for node in ast.walk(tree):
             if isinstance(node, ast.Attribute) and node.attr == ref_attr and isinstance(node.value, ast.Name) \
@@ -441,6 +456,12 @@ def _fingerprint(check_mod, check_fn_name: str) -> dict:
           f"{check_fn_name}.__code__": id(getattr(check_mod, check_fn_name).__code__),
           "core.load_fixture": id(core.load_fixture), "core.FIXTURES_DIR": id(core.FIXTURES_DIR),
           "np.allclose": id(np.allclose), "np.isclose": id(np.isclose)}
+    for lib in ("numpy", "numpy.linalg", "math", "torch", "torch.linalg", "cv2", "scipy.linalg"):
+        mod = sys.modules.get(lib)
+        if mod is not None:
+            for k, v in list(vars(mod).items()):
+                if callable(v):
+                    fp[f"{lib}.{k}"] = id(v)
     for k, v in vars(core.Check).items():
         if callable(v):
             fp[f"Check.{k}"] = id(v)
