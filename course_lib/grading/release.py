@@ -646,9 +646,10 @@ def student_readme(specs: list[NotebookSpec], plan: ReleasePlan) -> str:
             + ".\nIf a cell stops with `NotImplementedError: ... is an exercise of notebooks/...`, define your\n"
             "solution of that exercise in the notebook you are working on (paste its cell) and run it.\n"
         )
+    n_nb = sum(1 for s in specs if s.exercises)
     return f"""# SfM + NeRF course kit: student release
 
-Eight notebooks take you from two photos to a 3-D reconstruction (Structure from Motion) and then
+{n_nb} notebooks take you from two photos to a 3-D reconstruction (Structure from Motion) and then
 to a neural radiance field (NeRF). In each notebook you write a few functions; a **check cell**
 after each exercise runs your function on test cases and prints what is right and, when something
 is wrong, the likely mistake.
@@ -691,8 +692,9 @@ pytest notebooks/01_fundamental_matrix.ipynb
 The grader runs your notebooks with nbval (check cells are restored to the original and must
 print the reference verdict) and, independently, runs each exercise function on *hidden* test
 cases (new synthetic scenes) with a time limit. Per exercise, 90 % of the points come from the
-hidden checks (the share of them that pass) and 10 % from a notebook whose check cell prints the
-reference verdict. There is no credit for an exercise that calls the kit's reference solution,
+hidden checks (the share of them that pass); the last 10 % come when all hidden checks pass and
+the check cell in your notebook prints the reference verdict (run it top to bottom before you
+hand in). There is no credit for an exercise that calls the kit's reference solution,
 whose check cell was edited or printed by hand, whose checks were patched, or whose cell was
 deleted or moved. Write your own code in the exercise cells; helper functions and imports in the
 notebook are fine.
