@@ -332,6 +332,8 @@ def test_ci_template_grades_and_publishes_feedback():
     assert "python -m course_lib grade ../submission" in run and "--json" in run and "--markdown" in run
     assert "GITHUB_STEP_SUMMARY" in run
     assert any(s.get("uses", "").startswith("actions/upload-artifact") for s in steps)
+    checkouts = [s for s in steps if s.get("uses", "").startswith("actions/checkout")]
+    assert len(checkouts) == 2 and all(s["with"].get("persist-credentials") is False for s in checkouts)
     assert "push" in wf[True] if True in wf else "push" in wf["on"]  # YAML 1.1 reads the key `on` as True
 
 
