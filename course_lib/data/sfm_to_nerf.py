@@ -278,6 +278,8 @@ def orbit_c2w(n: int, elevations_deg=(25.0, 50.0), radius: float | None = None, 
         ``c2w (n', 4, 4)`` camera-to-world, OpenCV axes, in the NeRF frame of
         :func:`course_lib.data.building.make_nerf_dataset` (z up); ``n'`` is ``n`` rounded down
         to a multiple of the number of rings.
+
+    Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
     """
     from course_lib.conventions import invert_pose
     from course_lib.data.building import NERF_RADIUS
@@ -311,6 +313,8 @@ def render_building_views(c2w: np.ndarray, size: int, supersample: int = 2, seed
     Returns:
         ``images (N, size, size, 4)`` uint8 RGBA (transparent background) and ``K (3, 3)``
         (:data:`course_lib.data.building.NERF_CAMERA_ANGLE_X`).
+
+    Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
     """
     from course_lib.data import building as b
     from course_lib.data.blender import intrinsics_from_fov
