@@ -1,1 +1,11 @@
-"""NeRF, one module per component (notebooks 06-08): rays, encoding, model, render, train."""
+"""NeRF, one module per component (notebooks 06-09).
+
+* :mod:`course_lib.nerf.rays` - one ray per pixel, stratified samples, query points (06).
+* :mod:`course_lib.nerf.encoding` - positional encoding (06).
+* :mod:`course_lib.nerf.model` - the paper's MLP (07).
+* :mod:`course_lib.nerf.render` - volume rendering, hierarchical sampling, chunked image rendering (08).
+* :mod:`course_lib.nerf.grid` - the voxel-grid field of the ``fast`` preset (09).
+* :mod:`course_lib.nerf.presets` - :class:`TrainConfig` and the presets ``paper`` and ``fast``.
+* :mod:`course_lib.nerf.train` - training, checkpoints, evaluation, novel-view paths.
+* :mod:`course_lib.nerf.cli` - ``python -m course_lib nerf train|render``.
+"""
