@@ -2,6 +2,7 @@
 run resumes to exactly the same state, metrics/snapshots/checkpoints are written; the CLI."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -147,3 +148,23 @@ def test_grid_resume_across_rebox_and_upsample(scene, tmp_path):
     assert resumed.bounds == full.bounds
     assert resumed.history["loss"] == pytest.approx(full.history["loss"], rel=1e-5)
     torch.testing.assert_close(resumed.model.density_grid, full.model.density_grid)
+
+
+def test_grid_box_bounds_switch(scene):
+    # box_bounds=False (notebook 09's ablation): the grid's rays are sampled between the scene's
+    # near and far like the MLP's; the default samples only the stretch inside the grid's box
+    from course_lib.nerf.train import _bounds_fn, build_model
+
+    cfg = preset("fast", grid_schedule=(), grid_resolution=12)
+    bounds = scene_bounds(scene.c2w, scene.K, scene.W)
+    model, _ = build_model(cfg, bounds)
+    o = torch.tensor([[0.0, 0.0, 3.0]]).repeat(2, 1)
+    d = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])
+    n_box, f_box = _bounds_fn(model, cfg, bounds)(o, d)
+    n_all, f_all = _bounds_fn(model, replace(cfg, box_bounds=False), bounds)(o, d)
+    assert (n_all, f_all) == (bounds["near"], bounds["far"])
+    assert torch.all(n_box >= bounds["near"] - 1e-6) and torch.all(f_box <= bounds["far"] + 1e-6)
+    assert torch.all(f_box - n_box < 0.9 * (f_all - n_all))
+    res = train(scene, None, replace(cfg, iters=3, minutes=None, batch_rays=64, n_samples=16, box_bounds=False,
+                                     snapshot_every=0, checkpoint_every=0, threads=1), progress=False)
+    assert res.metrics["iterations"] == 3 and res.metrics["config"]["box_bounds"] is False

@@ -54,6 +54,9 @@ class TrainConfig:
         n_samples: coarse samples per ray. n_importance: fine samples per ray (0: none).
         near, far: ray bounds (None: from the cameras, see :func:`course_lib.nerf.train.scene_bounds`).
         white_background: composite onto white (Blender scenes).
+        box_bounds: grid models sample each ray only between its entry into and exit from the
+            grid's box (ray-box bounds); False: between the scene's near and far, as the MLP does
+            (an ablation switch, notebook 09).
         color_threshold: compute colours only where the weight exceeds it (grid models).
         occupancy_every, occupancy_threshold, occupancy_start: refresh the grid's occupancy.
     Optimisation
@@ -96,6 +99,7 @@ class TrainConfig:
     near: float | None = None
     far: float | None = None
     white_background: bool = True
+    box_bounds: bool = True
     perturb: bool = True
     color_threshold: float = 0.0
     occupancy_every: int = 0

@@ -167,10 +167,10 @@ def _set_lr(opt: torch.optim.Optimizer, cfg: TrainConfig, progress: float) -> No
 
 
 def _bounds_fn(model, cfg: TrainConfig, bounds: dict):
-    """Per-ray (near, far): the grid's box, or the config's/scene's near and far."""
+    """Per-ray (near, far): the grid's box (``cfg.box_bounds``), or the config's/scene's near and far."""
     near = cfg.near if cfg.near is not None else bounds["near"]
     far = cfg.far if cfg.far is not None else bounds["far"]
-    if isinstance(model, GridField):
+    if isinstance(model, GridField) and cfg.box_bounds:
         return lambda o, d: model.ray_bounds(o, d, near=near)
     return lambda o, d: (near, far)
 
