@@ -51,6 +51,7 @@ API (all arrays may be numpy arrays, lists or torch tensors; every function retu
 
     scene_size(X (N,3)) -> float     robust diameter (2nd..98th percentile box) of points.
     write_html(fig, path) -> Path    standalone HTML with plotly.js embedded (opens offline).
+    set_axis_box(fig, lo (3,), hi (3,))   fix the 3-D axes to a box with equal scales.
 
 Example::
 
@@ -86,6 +87,7 @@ __all__ = [
     "camera_frustum",
     "scene_size",
     "write_html",
+    "set_axis_box",
     "PALETTE",
 ]
 
@@ -267,6 +269,18 @@ def _existing_points(fig: go.Figure) -> np.ndarray:
     return np.concatenate(pts) if pts else np.zeros((0, 3))
 
 
+def set_axis_box(fig: go.Figure, lo: np.ndarray, hi: np.ndarray) -> None:
+    """Fix the 3-D axes to the box ``[lo, hi]`` (each ``(3,)``) with equal scales on all axes."""
+    ext = hi - lo
+    fig.update_layout(scene=dict(
+        xaxis=dict(range=[float(lo[0]), float(hi[0])], autorange=False),
+        yaxis=dict(range=[float(lo[1]), float(hi[1])], autorange=False),
+        zaxis=dict(range=[float(lo[2]), float(hi[2])], autorange=False),
+        aspectmode="manual",
+        aspectratio=dict(x=float(ext[0] / ext.max()), y=float(ext[1] / ext.max()), z=float(ext[2] / ext.max())),
+    ))
+
+
 def _fit_view(fig: go.Figure) -> None:
     """Keep a few far-away points from shrinking the scene to a dot.
 
@@ -292,14 +306,7 @@ def _fit_view(fig: go.Figure) -> None:
         lo, hi = np.minimum(lo, C.min(0)), np.maximum(hi, C.max(0))
     pad = 0.05 * float((hi - lo).max()) + 1e-9
     lo, hi = lo - pad, hi + pad
-    ext = hi - lo
-    fig.update_layout(scene=dict(
-        xaxis=dict(range=[float(lo[0]), float(hi[0])], autorange=False),
-        yaxis=dict(range=[float(lo[1]), float(hi[1])], autorange=False),
-        zaxis=dict(range=[float(lo[2]), float(hi[2])], autorange=False),
-        aspectmode="manual",
-        aspectratio=dict(x=float(ext[0] / ext.max()), y=float(ext[1] / ext.max()), z=float(ext[2] / ext.max())),
-    ))
+    set_axis_box(fig, lo, hi)
 
 
 # ----------------------------------------------------------------------------- figure

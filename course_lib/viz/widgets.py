@@ -59,7 +59,7 @@ import plotly.io as pio
 
 from course_lib.validate import KitInputError, intrinsics, matching_points
 from course_lib.viz.figures import draw_matches
-from course_lib.viz.scene3d import _poses, add_cameras, add_points, scene_figure
+from course_lib.viz.scene3d import _poses, add_cameras, add_points, scene_figure, set_axis_box
 
 __all__ = ["ransac_threshold_widget", "ba_iterations_widget", "nerf_snapshot_slider", "novel_view_widget"]
 
@@ -247,13 +247,7 @@ def ba_iterations_widget(
                         legend_group="reference", show_names=False)
         add_points(fig, X, name="points", max_points=point_budget, color="#1f77b4", legend_group="estimate")
         add_cameras(fig, R, t, K, image_size, color="#d62728", scale=scale, legend_group="estimate", show_names=False)
-        fig.update_layout(scene=dict(
-            xaxis=dict(range=[float(lo[0]), float(hi[0])], autorange=False),
-            yaxis=dict(range=[float(lo[1]), float(hi[1])], autorange=False),
-            zaxis=dict(range=[float(lo[2]), float(hi[2])], autorange=False),
-            aspectmode="manual",
-            aspectratio=dict(x=float(ext[0] / ext.max()), y=float(ext[1] / ext.max()), z=float(ext[2] / ext.max())),
-        ))
+        set_axis_box(fig, lo, hi)
         return fig
 
     def redraw(change=None):
