@@ -56,6 +56,7 @@ __all__ = [
     "cast_rays",
     "sfm_cameras",
     "nerf_cameras",
+    "orbit_camera",
     "detect_and_match",
     "sfm_photos",
     "tracks_from_images",
@@ -465,6 +466,19 @@ def sfm_cameras(rng: np.random.Generator, n_cameras: int = 6) -> tuple[np.ndarra
     return np.stack(Rs), np.stack(ts)
 
 
+def orbit_camera(radius: float, azimuth: float, elevation: float) -> np.ndarray:
+    """The ``(4, 4)`` camera-to-world matrix (OpenCV axes) of a camera on a sphere around the origin.
+
+    The camera sits at ``radius`` from the origin at ``azimuth`` / ``elevation`` (radians, world z
+    up) and looks at the origin with world +z up in the image.
+    """
+    C = radius * np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
+    R_cw, t_cw = look_at(C, np.zeros(3), up=(0.0, 0.0, 1.0))
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = invert_pose(R_cw, t_cw)
+    return M
+
+
 def nerf_cameras(rng: np.random.Generator, n: int, kind: str = "random") -> np.ndarray:
     """Camera-to-world matrices (OpenCV axes) in the NeRF frame, all looking at the origin.
 
@@ -489,11 +503,7 @@ def nerf_cameras(rng: np.random.Generator, n: int, kind: str = "random") -> np.n
         raise KitInputError(f"kind = {kind!r}: expected 'random' or 'ring'")
     out = []
     for a, e in zip(az, el):
-        C = NERF_RADIUS * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
-        R_cw, t_cw = look_at(C, np.zeros(3), up=(0.0, 0.0, 1.0))
-        M = np.eye(4)
-        M[:3, :3], M[:3, 3] = invert_pose(R_cw, t_cw)
-        out.append(M)
+        out.append(orbit_camera(NERF_RADIUS, a, e))
     return np.stack(out)
 
 

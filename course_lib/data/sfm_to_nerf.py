@@ -281,9 +281,7 @@ def orbit_c2w(n: int, elevations_deg=(25.0, 50.0), radius: float | None = None, 
 
     Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
     """
-    from course_lib.conventions import invert_pose
-    from course_lib.data.building import NERF_RADIUS
-    from course_lib.data.synthetic import look_at
+    from course_lib.data.building import NERF_RADIUS, orbit_camera
 
     radius = NERF_RADIUS if radius is None else float(radius)
     per = int(n) // len(elevations_deg)
@@ -295,11 +293,7 @@ def orbit_c2w(n: int, elevations_deg=(25.0, 50.0), radius: float | None = None, 
         step = span / per
         az = -0.5 * np.pi - 0.5 * span + (np.arange(per) + 0.5) * step if span_deg < 360 else np.arange(per) * step
         for a in az + (k - 0.5 * (len(elevations_deg) - 1)) * 0.5 * step * (span_deg < 360) + k * 0.5 * step * (span_deg >= 360):
-            C = radius * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
-            R_cw, t_cw = look_at(C, np.zeros(3), up=(0.0, 0.0, 1.0))
-            M = np.eye(4)
-            M[:3, :3], M[:3, 3] = invert_pose(R_cw, t_cw)
-            out.append(M)
+            out.append(orbit_camera(radius, a, e))
     return np.stack(out)
 
 
