@@ -18,6 +18,7 @@ COMMANDS = {
     "sfm": ("course_lib.sfm.cli", "run the incremental SfM pipeline on a P3 folder (default: the embedded scene)"),
     "nerf": ("course_lib.nerf.cli", "train a NeRF or render novel views from a checkpoint"),
     "fixtures": ("course_lib.grading.cli", "rebuild (or --check) the stored expected results behind the check cells"),
+    "refresh-checks": ("course_lib.grading.refresh", "re-run notebooks in quick mode and store their check cells' new verdicts (only those cells)"),
     "make-data": ("course_lib.data.cli", "regenerate the embedded synthetic data sets under data/"),
     "release": ("course_lib.grading.cli_release", "write the student kit: notebooks with solution stubs, no reference solutions"),
     "grade": ("course_lib.grading.cli_grade", "grade a student's kit: nbval against the reference verdicts + hidden checks"),
