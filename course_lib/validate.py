@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["KitInputError", "points", "matching_points", "intrinsics", "rotation", "vector3", "existing_path"]
+__all__ = ["KitInputError", "points", "matching_points", "intrinsics", "rotation", "vector3", "existing_path", "output_dir"]
 
 
 class KitInputError(ValueError):
@@ -115,4 +115,25 @@ def existing_path(path, what: str) -> Path:
     p = Path(path)
     if not p.exists():
         raise KitInputError(f"{what} not found: {p} (check the path; it is resolved from {Path.cwd()})")
+    return p
+
+
+def output_dir(path, option: str = "--out") -> Path:
+    """Create (if needed) and return the output folder ``path`` of a command.
+
+    Every command that writes a folder calls this first, so that a wrong ``--out`` gets one line
+    that says what to do, and nothing is half-written.
+
+    Raises:
+        KitInputError: ``path`` is an existing file, or lies under one, or cannot be created.
+    """
+    p = Path(path)
+    for q in (p, *p.parents):
+        if q.exists() and not q.is_dir():
+            raise KitInputError(f"{option} {p}: {q} is a file, not a folder; give a folder path "
+                                "(a new one, or one the command wrote before)")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise KitInputError(f"{option} {p}: cannot create the folder ({exc.strerror}); choose a folder you can write to") from None
     return p
