@@ -39,6 +39,7 @@ from course_lib.paths import FIXTURES_DIR
 __all__ = [
     "Check",
     "CheckResult",
+    "score",
     "RESULTS",
     "FAILED",
     "fixture_builder",
@@ -90,6 +91,15 @@ class CheckResult:
 
     def __repr__(self) -> str:  # deterministic, in case a cell displays it
         return f"CheckResult({self.exercise!r}, {self.passed}/{self.total})"
+
+
+def score(result: CheckResult) -> float:
+    """The fraction (0..1) of an exercise's hidden-check points that ``result`` earns.
+
+    The one scoring rule of the grader (:mod:`course_lib.grading.grade` calls it on the result of
+    the hidden checks, computed in the grader's own process).
+    """
+    return result.passed / result.total if result.total else 0.0
 
 
 #: Results of the check cells run in this process, by exercise name (the grader reads it).
