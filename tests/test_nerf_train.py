@@ -61,8 +61,8 @@ def test_scene_bounds(scene):
 def test_grid_training_lowers_the_loss(scene, tmp_path):
     cfg = preset("fast", iters=60, minutes=None, batch_rays=512, n_samples=48, snapshot_every=30, checkpoint_every=0,
                  occupancy_start=20, occupancy_every=10, grid_schedule=((0, 16), (20, 24)), grid_resolution=24,
-                 shrink_box_at=20, threads=1, grid_lr=0.3, grid_lr_final=0.1)
-    res = train(scene.subset(slice(0, 6)), scene.subset([6, 7]), cfg, out_dir=tmp_path, progress=False)
+                 shrink_box_at=20, threads=1, grid_lr=0.3, grid_lr_final=0.1, overhead_budget=0)
+    res = train(scene.subset(slice(0, 6)), scene.subset([6, 7]), cfg, out_dir=tmp_path, progress=False, device="cpu")
     loss = res.history["loss"]
     assert np.mean(loss[-10:]) < 0.3 * np.mean(loss[:5])
     assert res.metrics["final_train_psnr"] > 17
@@ -76,6 +76,30 @@ def test_grid_training_lowers_the_loss(scene, tmp_path):
     # the box was fitted around the ball (radius 0.8, plus a margin) and the grid refined
     assert res.bounds["shrunk"] and res.model.resolution == 24
     assert np.all(np.array(res.bounds["box_max"]) > 0.75) and np.all(np.array(res.bounds["box_min"]) < -0.75)
+    # the device and the time outside training are recorded
+    assert m["device"] == "cpu" and load_checkpoint(tmp_path)["device"] == "cpu"
+    assert m["wall_seconds"] >= m["train_seconds"] and 0 < m["overhead_fraction"] < 1
+    assert {"setup", "snapshots", "checkpoints", "final_evaluation"} <= set(m["overhead_breakdown"])
+
+
+def test_overhead_budget_defers_snapshots(scene):
+    # a snapshot due every step would cost more than training: with a 5 % budget most of them wait
+    cfg = tiny_nerf_config(iters=30, snapshot_every=1, overhead_budget=0.05)
+    res = train(scene, scene.subset([0]), cfg, progress=False, device="cpu")
+    steps = [s for s, _ in res.snapshots]
+    assert steps[0] == 0 and steps[-1] == 30 and len(steps) < 15
+    unlimited = train(scene, scene.subset([0]), replace(cfg, overhead_budget=0), progress=False, device="cpu")
+    assert [s for s, _ in unlimited.snapshots] == list(range(31))
+    assert res.metrics["overhead_breakdown"]["snapshots"] < unlimited.metrics["overhead_breakdown"]["snapshots"]
+
+
+def test_progress_bar_counts_time_or_steps(scene, capsys):
+    train(scene, None, tiny_nerf_config(iters=10**6, minutes=0.01), progress=True, device="cpu")
+    err = capsys.readouterr().err
+    assert "/1 s trained" in err and "1000000" not in err  # seconds trained of the 0.6 s allowed, not steps
+    train(scene, None, tiny_nerf_config(iters=7), progress=True, device="cpu")
+    err = capsys.readouterr().err
+    assert "7/7" in err and "s trained" not in err
 
 
 def test_nerf_training_lowers_the_loss(scene):
@@ -133,6 +157,71 @@ def test_cli_train_and_render(scene, tmp_path):
     assert rc == 0 and (tmp_path / "views" / "path.gif").exists() and (tmp_path / "views" / "frame_002.png").exists()
     assert main(["nerf", "train", str(tmp_path / "nope"), "--out", str(out)]) == 2
     assert main(["nerf", "render", str(tmp_path / "nope.pt"), "--out", str(out)]) == 2
+
+
+
+def test_cli_out_is_a_file_and_missing_device(scene, tmp_path, capsys):
+    from course_lib.__main__ import main
+
+    folder = tmp_path / "scene"
+    u8 = (scene.images * 255).round().astype(np.uint8)
+    write_blender(folder, "train", u8[:6], scene.c2w[:6], scene.camera_angle_x)
+    a_file = tmp_path / "a_file.txt"
+    a_file.write_text("not a folder")
+    capsys.readouterr()
+    assert main(["nerf", "train", str(folder), "--out", str(a_file), "--iters", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --out") and "is a file, not a folder" in err and len(err.strip().splitlines()) == 1
+    out = tmp_path / "out"
+    assert main(["nerf", "train", str(folder), "--out", str(out), "--iters", "2", "--quiet", "--threads", "1",
+                 "--samples", "8", "--batch", "64", "--device", "cpu"]) == 0
+    assert main(["nerf", "render", str(out), "--out", str(a_file), "--frames", "1"]) == 2
+    assert "is a file, not a folder" in capsys.readouterr().err
+    if not torch.cuda.is_available():
+        assert main(["nerf", "train", str(folder), "--out", str(out), "--device", "cuda"]) == 2
+        err = capsys.readouterr().err
+        assert "no CUDA GPU" in err and "--device auto" in err
+        assert main(["nerf", "render", str(out), "--out", str(tmp_path / "v"), "--device", "cuda"]) == 2
+
+
+def test_ctrl_c_saves_a_checkpoint_and_resumes(scene, tmp_path):
+    import os
+    import re
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    folder = tmp_path / "scene"
+    u8 = (scene.images * 255).round().astype(np.uint8)
+    write_blender(folder, "train", u8[:6], scene.c2w[:6], scene.camera_angle_x)
+    out = tmp_path / "out"
+    repo = Path(__file__).resolve().parents[1]
+    cmd = [sys.executable, "-m", "course_lib", "nerf", "train", str(folder), "--out", str(out), "--quiet", "--threads",
+           "1", "--samples", "16", "--batch", "128", "--device", "cpu"]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(cmd + ["--iters", "1000000"], cwd=repo, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while not (out / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.2)  # the first checkpoint: training is under way
+    assert (out / "checkpoint.pt").exists(), proc.communicate()
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 130, (stdout, stderr)
+    assert "Traceback" not in stderr, stderr
+    found = re.search(r"interrupted at step (\d+); checkpoint saved; run the same command to resume", stdout)
+    assert found, stdout
+    n = int(found.group(1))
+    assert n > 0 and load_checkpoint(out)["step"] == n
+    # the same command (with a reachable total) resumes at step n
+    done = subprocess.run(cmd + ["--iters", str(n + 5)], cwd=repo, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "resuming from" in done.stdout
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["iterations"] == n + 5 and m["resumed_from"]["step"] == n
+    assert m["history"]["iterations"][-6:] == list(range(n, n + 6))
 
 
 def test_grid_resume_across_rebox_and_upsample(scene, tmp_path):

@@ -5,12 +5,17 @@ Examples::
     python -m course_lib nerf train --out outputs/nerf-fast --minutes 5 --preset fast
     python -m course_lib nerf train ../shared/data/nerf-lego-100 --out outputs/lego-paper --minutes 5 --preset paper
     python -m course_lib nerf render outputs/nerf-fast/checkpoint.pt --out outputs/nerf-fast/path
+    python -m course_lib nerf train --device cuda --minutes 1 --out outputs/nerf-gpu     # an NVIDIA GPU
 
 ``train`` writes ``OUT/metrics.json`` (test PSNR, iterations, seconds, preset, loss/PSNR history),
 ``OUT/test/<view>.png`` (renders of the test views), ``OUT/snapshots/step_XXXXXX.png`` (the held-out
 view during training) and ``OUT/checkpoint.pt``; run it again with the same ``--out`` to resume
 (``--minutes`` and ``--iters`` are totals). ``render`` writes ``OUT/path.gif`` and
 ``OUT/frame_XXX.png`` along a circle around the scene.
+
+``--device auto`` (the default) trains and renders on a CUDA GPU if there is one, else on an Apple
+GPU (MPS), else on the CPU, and says which; a checkpoint written on one device loads on any other.
+Ctrl-C during ``train`` saves a checkpoint and says how to resume (exit status 130).
 """
 
 from __future__ import annotations
@@ -20,8 +25,11 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
+from course_lib.nerf.device import DEVICE_CHOICES
 from course_lib.paths import EMBEDDED_NERF
-from course_lib.validate import KitInputError
+from course_lib.validate import KitInputError, output_dir
+
+DEVICE_HELP = "cpu, cuda (NVIDIA GPU), mps (Apple GPU) or auto: CUDA, then MPS, then the CPU (default: auto)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,6 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     t.add_argument("--fine", action="store_true", help="train a separate fine network (paper preset)")
     t.add_argument("--near", type=float, default=None, help="near bound of the rays (default: from the cameras)")
     t.add_argument("--far", type=float, default=None, help="far bound of the rays (default: from the cameras)")
+    t.add_argument("--device", default="auto", metavar="{" + ",".join(DEVICE_CHOICES) + "}", help=DEVICE_HELP)
     t.add_argument("--threads", type=int, default=None, help="torch threads (-1: auto, 1 on a busy machine)")
     t.add_argument("--snapshot-every", type=int, default=None, help="render the held-out view every N steps")
     t.add_argument("--black-background", action="store_true", help="composite RGBA onto black instead of white")
@@ -53,6 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     r.add_argument("--frames", type=int, default=40, help="number of views on the circle (default 40)")
     r.add_argument("--elevation", type=float, default=None, help="elevation in degrees (default: the training cameras')")
     r.add_argument("--fps", type=float, default=12.0, help="GIF frames per second")
+    r.add_argument("--device", default="auto", metavar="{" + ",".join(DEVICE_CHOICES) + "}", help=DEVICE_HELP)
     parser.set_defaults(_parser=parser)
 
 
@@ -74,14 +84,17 @@ def _load_scene(folder, downscale: int, white: bool):
 
 
 def _train(args) -> int:
+    from course_lib.nerf.device import device_name, pick_device
     from course_lib.nerf.presets import preset
-    from course_lib.nerf.train import circular_path, render_path, save_gif, train
+    from course_lib.nerf.train import CHECKPOINT, TrainingInterrupted, circular_path, render_path, save_gif, train
 
+    device = pick_device(args.device)
     data = Path(args.data) if args.data else EMBEDDED_NERF
     if args.data is None and not (data / "transforms_train.json").exists():
         raise KitInputError(f"the embedded NeRF scene {data} is not there (run `python -m course_lib make-data`) "
                             "or pass a scene folder, e.g. ../shared/data/nerf-lego-100")
     train_data, test_data = _load_scene(data, args.downscale, not args.black_background)
+    out = output_dir(args.out)
     over = {"seed": args.seed, "white_background": not args.black_background}
     if args.minutes is not None:
         if args.minutes <= 0:
@@ -100,13 +113,28 @@ def _train(args) -> int:
     if args.minutes is None and args.iters is None:
         over["minutes"] = 5.0
     cfg = preset(args.preset, **over)
-    out = Path(args.out)
+    if device.type == "cpu":
+        from course_lib.nerf.train import _set_threads
+
+        _set_threads(cfg.threads)
+    budget = f"{cfg.minutes:g} min" if cfg.minutes else f"{cfg.iters} steps"
     print(f"training {cfg.preset} on {data} ({len(train_data)} views {train_data.W}x{train_data.H}, "
-          f"{len(test_data) if test_data else 0} test views) -> {out}")
-    res = train(train_data, test_data, cfg, out_dir=out, resume=not args.no_resume, progress=not args.quiet)
+          f"{len(test_data) if test_data else 0} test views) for {budget} on {device_name(device)} -> {out}")
+    if not args.no_resume and (out / CHECKPOINT).exists():
+        print(f"resuming from {out / CHECKPOINT} (--no-resume starts afresh)")
+    try:
+        res = train(train_data, test_data, cfg, out_dir=out, resume=not args.no_resume, progress=not args.quiet,
+                    device=device)
+    except TrainingInterrupted as exc:
+        print(f"\ninterrupted at step {exc.step}; checkpoint saved; run the same command to resume", flush=True)
+        return 130
+    except KeyboardInterrupt:
+        print("\ninterrupted before training started; nothing saved", flush=True)
+        return 130
     m = res.metrics
     tp = f"{m['test_psnr']:.2f} dB" if m.get("test_psnr") is not None else "n/a (no test split)"
-    print(f"{m['iterations']} steps in {m['train_seconds']:.0f} s ({m['stopped_by']}); test PSNR {tp}; "
+    print(f"{m['iterations']} steps in {m['train_seconds']:.0f} s of training on {m['device']} ({m['stopped_by']}), "
+          f"{m['wall_seconds']:.0f} s wall ({100 * m['overhead_fraction']:.0f} % outside training); test PSNR {tp}; "
           f"metrics: {out / 'metrics.json'}")
     if args.gif:
         path = circular_path(train_data.c2w, res.bounds["center"], n_frames=40)
@@ -117,9 +145,12 @@ def _train(args) -> int:
 
 
 def _render(args) -> int:
+    from course_lib.nerf.device import device_name, pick_device
     from course_lib.nerf.train import _save_png, circular_path, load_checkpoint, render_path, save_gif
 
-    ck = load_checkpoint(args.checkpoint)
+    device = pick_device(args.device)
+    ck = load_checkpoint(args.checkpoint, device)
+    out = output_dir(args.out)
     cam = ck.get("camera")
     if cam is None:
         raise KitInputError(f"{args.checkpoint} has no camera information (written by an older version): retrain")
@@ -131,13 +162,13 @@ def _render(args) -> int:
         raise KitInputError(f"--frames {args.frames}: expected at least 1")
     path = circular_path(c2w_train, ck["bounds"]["center"], n_frames=args.frames, elevation_deg=args.elevation)
     frames = render_path(ck["model"], ck["model_fine"], ck["cfg"], ck["bounds"], cam["H"], cam["W"], K, path, progress=True)
-    out = Path(args.out)
     for i, f in enumerate(frames):
         _save_png(out / f"frame_{i:03d}.png", f / 255.0)
     gif = save_gif(out / "path.gif", frames, fps=args.fps)
     (out / "path.json").write_text(json.dumps({"checkpoint": str(args.checkpoint), "K": K.tolist(), "H": cam["H"],
                                                "W": cam["W"], "c2w": path.tolist()}))
-    print(f"{len(frames)} views of step {ck['step']}: {gif} and {out}/frame_*.png")
+    print(f"{len(frames)} views of step {ck['step']} (trained on {ck.get('device') or 'cpu'}, rendered on "
+          f"{device_name(device)}): {gif} and {out}/frame_*.png")
     return 0
 
 

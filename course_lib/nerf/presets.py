@@ -70,7 +70,11 @@ class TrainConfig:
         snapshot_every: render the held-out view every N steps (0: never).
         checkpoint_every: save a checkpoint every N steps (0: only at the end).
         eval_every: test PSNR on ``n_eval_views`` test views every N steps (0: only at the end).
-        chunk: rays per forward pass when rendering images.
+        chunk: rays per forward pass when rendering images (0: from the device,
+            :func:`course_lib.nerf.device.render_chunk`).
+        overhead_budget: snapshots, evaluations and checkpoints that come due wait while the time
+            spent on them exceeds this fraction of the training time so far (0: never wait). The
+            snapshot at step 0 and the final checkpoint, snapshot and evaluation always run.
     """
 
     preset: str = "custom"
@@ -121,7 +125,8 @@ class TrainConfig:
     checkpoint_every: int = 0
     eval_every: int = 0
     n_eval_views: int = 2
-    chunk: int = 4096
+    chunk: int = 0
+    overhead_budget: float = 0.05
 
     def to_dict(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in fields(self)}

@@ -15,7 +15,8 @@ last sample stops the ray.
 
 :func:`sample_pdf` draws the fine samples of hierarchical sampling from the coarse weights;
 :func:`render_rays` runs coarse (+ fine) sampling, the network and volume rendering for a batch of
-rays; :func:`render_image` renders a whole view in chunks without gradients. Devices follow the inputs.
+rays; :func:`render_chunked` renders any number of rays (several views at once) in chunks without gradients,
+:func:`render_image` one whole view. Devices follow the inputs.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import torch
 from course_lib.nerf.rays import get_rays, query_points, stratified_samples
 from course_lib.validate import KitInputError
 
-__all__ = ["volume_render", "sample_pdf", "render_rays", "render_image"]
+__all__ = ["volume_render", "sample_pdf", "render_rays", "render_chunked", "render_image"]
 
 LAST_DELTA = 1e10
 
@@ -190,6 +191,40 @@ def render_rays(model, rays_o: torch.Tensor, rays_d: torch.Tensor, near, far, n_
 
 
 @torch.no_grad()
+def render_chunked(model, rays_o: torch.Tensor, rays_d: torch.Tensor, near, far, n_samples: int, n_importance: int = 0,
+                   model_fine=None, white_background: bool = True, chunk: int = 4096, color_threshold: float = 0.0,
+                   ray_bounds=None, last_delta: float | None = LAST_DELTA) -> dict[str, torch.Tensor]:
+    """Render many rays (any number of views at once) in chunks of ``chunk`` rays, without gradients.
+
+    Args:
+        model, n_samples, n_importance, model_fine, white_background, color_threshold, last_delta: as
+            :func:`render_rays`.
+        rays_o, rays_d: ``(R, 3)`` on the model's device.
+        near, far: floats (or None when ``ray_bounds`` is given).
+        chunk: rays per forward pass (:func:`course_lib.nerf.device.render_chunk` picks it per device).
+        ray_bounds: optional callable ``(rays_o, rays_d) -> (near (R,), far (R,))`` (e.g. a box).
+
+    Returns:
+        dict with ``rgb_map (R, 3)`` (clamped to [0, 1]), ``depth_map (R,)``, ``acc_map (R,)`` on the
+        rays' device (no copy to the host).
+
+    Introduced in ``notebooks/08_nerf_rendering_and_training.ipynb``.
+    """
+    if chunk < 1:
+        raise KitInputError(f"chunk {chunk}: expected a positive number of rays")
+    rgb, depth, acc = [], [], []
+    for i in range(0, rays_o.shape[0], chunk):
+        o, d = rays_o[i:i + chunk], rays_d[i:i + chunk]
+        n, f = ray_bounds(o, d) if ray_bounds is not None else (near, far)
+        out = render_rays(model, o, d, n, f, n_samples, n_importance, model_fine, perturb=False,
+                          white_background=white_background, color_threshold=color_threshold, last_delta=last_delta)
+        rgb.append(out["rgb_map"])
+        depth.append(out["depth_map"])
+        acc.append(out["acc_map"])
+    return dict(rgb_map=torch.cat(rgb).clamp(0, 1), depth_map=torch.cat(depth), acc_map=torch.cat(acc))
+
+
+@torch.no_grad()
 def render_image(model, H: int, W: int, K, c2w, near, far, n_samples: int, n_importance: int = 0, model_fine=None,
                  white_background: bool = True, chunk: int = 4096, color_threshold: float = 0.0,
                  ray_bounds=None, last_delta: float | None = LAST_DELTA) -> dict[str, torch.Tensor]:
@@ -215,15 +250,8 @@ def render_image(model, H: int, W: int, K, c2w, near, far, n_samples: int, n_imp
         device, dtype = torch.device("cpu"), torch.float32
     c2w_t = torch.as_tensor(c2w, dtype=dtype, device=device) if not isinstance(c2w, torch.Tensor) else c2w.to(device, dtype)
     rays_o, rays_d = get_rays(H, W, K, c2w_t)
-    rays_o, rays_d = rays_o.reshape(-1, 3), rays_d.reshape(-1, 3)
-    rgb, depth, acc = [], [], []
-    for i in range(0, rays_o.shape[0], chunk):
-        o, d = rays_o[i:i + chunk], rays_d[i:i + chunk]
-        n, f = ray_bounds(o, d) if ray_bounds is not None else (near, far)
-        out = render_rays(model, o, d, n, f, n_samples, n_importance, model_fine, perturb=False,
-                          white_background=white_background, color_threshold=color_threshold, last_delta=last_delta)
-        rgb.append(out["rgb_map"])
-        depth.append(out["depth_map"])
-        acc.append(out["acc_map"])
-    return dict(rgb=torch.cat(rgb).reshape(H, W, 3).clamp(0, 1), depth=torch.cat(depth).reshape(H, W),
-                acc=torch.cat(acc).reshape(H, W))
+    out = render_chunked(model, rays_o.reshape(-1, 3), rays_d.reshape(-1, 3), near, far, n_samples, n_importance,
+                         model_fine, white_background=white_background, chunk=chunk, color_threshold=color_threshold,
+                         ray_bounds=ray_bounds, last_delta=last_delta)
+    return dict(rgb=out["rgb_map"].reshape(H, W, 3), depth=out["depth_map"].reshape(H, W),
+                acc=out["acc_map"].reshape(H, W))

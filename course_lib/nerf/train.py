@@ -29,15 +29,16 @@ import torch
 from torch.nn import functional as F
 
 from course_lib.data.blender import BlenderData
+from course_lib.nerf.device import device_name, pick_device, render_chunk
 from course_lib.nerf.grid import GridField
 from course_lib.nerf.model import NeRF
 from course_lib.nerf.presets import TrainConfig, preset
 from course_lib.nerf.rays import get_rays
-from course_lib.nerf.render import LAST_DELTA, render_image, render_rays
+from course_lib.nerf.render import LAST_DELTA, render_chunked, render_image, render_rays
 from course_lib.validate import KitInputError
 
 __all__ = [
-    "TrainResult", "train", "scene_bounds", "surface_box", "build_model", "psnr", "evaluate", "render_view", "load_checkpoint",
+    "TrainResult", "TrainingInterrupted", "train", "scene_bounds", "surface_box", "build_model", "psnr", "evaluate", "render_view", "load_checkpoint",
     "render_path", "circular_path", "save_gif",
 ]
 
@@ -117,12 +118,13 @@ def surface_box(model: GridField, cfg: TrainConfig, rays_o: torch.Tensor, rays_d
     o, d = rays_o[idx], rays_d[idx]
     near, far = model.ray_bounds(o, d)
     pts_all = []
-    for i in range(0, o.shape[0], cfg.chunk):
-        out = render_rays(model, o[i:i + cfg.chunk], d[i:i + cfg.chunk], near[i:i + cfg.chunk], far[i:i + cfg.chunk],
+    chunk = _chunk(cfg, model)
+    for i in range(0, o.shape[0], chunk):
+        out = render_rays(model, o[i:i + chunk], d[i:i + chunk], near[i:i + chunk], far[i:i + chunk],
                           cfg.n_samples, white_background=cfg.white_background, last_delta=None)
         w, z = out["weights"], out["z_vals"]
         keep = w > min_weight
-        pts = o[i:i + cfg.chunk, None, :] + z[..., None] * d[i:i + cfg.chunk, None, :]
+        pts = o[i:i + chunk, None, :] + z[..., None] * d[i:i + chunk, None, :]
         pts_all.append(pts[keep])
     pts = torch.cat(pts_all)
     if pts.shape[0] < 100:
@@ -180,25 +182,67 @@ def _last_delta(model):
     return None if isinstance(model, GridField) else LAST_DELTA
 
 
+def _chunk(cfg: TrainConfig, model) -> int:
+    """Rays per render chunk: ``cfg.chunk``, or (0) what the model's device takes."""
+    if cfg.chunk:
+        return int(cfg.chunk)
+    return render_chunk(next(model.parameters()).device, cfg.n_samples + cfg.n_importance)
+
+
 def render_view(model, model_fine, cfg: TrainConfig, bounds: dict, H: int, W: int, K, c2w) -> dict:
-    """Render one view with a trained model (no gradients, chunks of ``cfg.chunk`` rays)."""
+    """Render one view with a trained model (no gradients, chunks of rays sized to the device).
+
+    Returns:
+        dict with ``rgb (H, W, 3)``, ``depth (H, W)``, ``acc (H, W)`` tensors on the model's device.
+    """
     was = model.training
     model.eval()
     out = render_image(model, H, W, K, c2w, None, None, cfg.n_samples, cfg.n_importance, model_fine,
-                       white_background=cfg.white_background, chunk=cfg.chunk, color_threshold=cfg.color_threshold,
-                       ray_bounds=_bounds_fn(model, cfg, bounds), last_delta=_last_delta(model))
+                       white_background=cfg.white_background, chunk=_chunk(cfg, model),
+                       color_threshold=cfg.color_threshold, ray_bounds=_bounds_fn(model, cfg, bounds),
+                       last_delta=_last_delta(model))
     model.train(was)
     return out
 
 
-def evaluate(model, model_fine, cfg: TrainConfig, bounds: dict, data: BlenderData, views=None) -> tuple[float, list, list]:
-    """Mean PSNR over views of ``data`` (all by default); returns ``(mean, per_view, renders)``."""
-    views = range(len(data)) if views is None else views
-    vals, renders = [], []
-    for i in views:
-        img = render_view(model, model_fine, cfg, bounds, data.H, data.W, data.K, data.c2w[i])["rgb"].cpu()
-        vals.append(psnr(F.mse_loss(img, torch.as_tensor(data.images[i])).item()))
-        renders.append(img.numpy())
+def evaluate(model, model_fine, cfg: TrainConfig, bounds: dict, data: BlenderData, views=None,
+             return_renders: bool = True) -> tuple[float, list, list]:
+    """Mean PSNR over views of ``data`` (all by default); returns ``(mean, per_view, renders)``.
+
+    The views are rendered together, several per batch where the device's chunk holds more rays
+    than one view, and compared with the ground truth on the device; only the per-view PSNRs (and
+    the renders, if ``return_renders``) come back to the host.
+
+    Returns:
+        ``(mean PSNR, [PSNR per view], [(H, W, 3) float32 numpy renders] or [])``.
+    """
+    views = list(range(len(data)) if views is None else views)
+    if not views:
+        raise KitInputError("evaluate: no views to render")
+    device = next(model.parameters()).device
+    chunk = _chunk(cfg, model)
+    H, W = data.H, data.W
+    per_batch = max(1, chunk // (H * W))
+    ray_bounds = _bounds_fn(model, cfg, bounds)
+    was = model.training
+    model.eval()
+    mse_all, renders = [], []
+    for b in range(0, len(views), per_batch):
+        vb = views[b:b + per_batch]
+        c2w = torch.as_tensor(np.asarray(data.c2w)[vb], dtype=torch.float32, device=device)
+        rays = [get_rays(H, W, data.K, c2w[k]) for k in range(len(vb))]
+        rays_o = torch.cat([r[0].reshape(-1, 3) for r in rays])
+        rays_d = torch.cat([r[1].reshape(-1, 3) for r in rays])
+        out = render_chunked(model, rays_o, rays_d, None, None, cfg.n_samples, cfg.n_importance, model_fine,
+                             white_background=cfg.white_background, chunk=chunk, color_threshold=cfg.color_threshold,
+                             ray_bounds=ray_bounds, last_delta=_last_delta(model))
+        img = out["rgb_map"].reshape(len(vb), H, W, 3)
+        gt = torch.as_tensor(np.asarray(data.images)[vb], dtype=img.dtype).to(device)
+        mse_all.append(((img - gt) ** 2).mean(dim=(1, 2, 3)))
+        if return_renders:
+            renders.extend(img.cpu().numpy())
+    model.train(was)
+    vals = [psnr(m) for m in torch.cat(mse_all).cpu().tolist()]
     return float(np.mean(vals)), vals, renders
 
 
@@ -238,6 +282,7 @@ class TrainResult:
 
 
 def _progress(cfg: TrainConfig, step: int, elapsed: float) -> float:
+    """Fraction of the run done (for the learning-rate decay): steps of ``iters`` or seconds of ``minutes``."""
     p = step / max(cfg.iters, 1)
     if cfg.minutes:
         p = max(p, elapsed / (60.0 * cfg.minutes))
@@ -252,9 +297,22 @@ def _target_resolution(cfg: TrainConfig, step: int) -> int:
     return int(res)
 
 
-def _save_checkpoint(path: Path, model, model_fine, opt, cfg, bounds, step, elapsed, history, gen, camera=None) -> None:
+class TrainingInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`train`: raised after the checkpoint was written (a ``KeyboardInterrupt``).
+
+    Attributes:
+        step: the last completed step. checkpoint: the checkpoint's path (None without ``out_dir``).
+    """
+
+    def __init__(self, step: int, checkpoint: Path | None):
+        super().__init__(f"interrupted at step {step}")
+        self.step, self.checkpoint = step, checkpoint
+
+
+def _save_checkpoint(path: Path, model, model_fine, opt, cfg, bounds, step, elapsed, history, gen, camera=None,
+                     device=None) -> None:
     torch.save({
-        "camera": camera,
+        "camera": camera, "device": str(device) if device is not None else None,
         "model": model.state_dict(), "model_config": model.config(), "model_kind": cfg.model,
         "model_fine": model_fine.state_dict() if model_fine is not None else None,
         "optimizer": opt.state_dict(), "step": step, "train_seconds": elapsed, "config": cfg.to_dict(),
@@ -265,14 +323,25 @@ def _save_checkpoint(path: Path, model, model_fine, opt, cfg, bounds, step, elap
 
 
 def load_checkpoint(path, device="cpu") -> dict:
-    """Load a checkpoint written by :func:`train`: the dict plus rebuilt ``model``, ``model_fine``, ``cfg``."""
+    """Load a checkpoint written by :func:`train` onto any device, whichever device wrote it.
+
+    Args:
+        path: ``checkpoint.pt`` or the training output folder.
+        device: where the rebuilt models go (``"auto"``, ``"cpu"``, ``"cuda"``, ``"mps"``, a torch.device).
+
+    Returns:
+        The stored dict (``step``, ``config``, ``bounds``, ``history``, ``device`` it was written on, ...)
+        plus the rebuilt ``model``, ``model_fine`` (on ``device``) and ``cfg``.
+    """
     path = Path(path)
     if path.is_dir():
         path = path / CHECKPOINT
     if not path.exists():
         raise KitInputError(f"checkpoint {path} not found: pass a checkpoint.pt (or the training output folder)")
+    device = pick_device(device)
     try:
-        ck = torch.load(path, map_location=device, weights_only=False)
+        # everything to the CPU first: RNG states must stay CPU tensors, the models move afterwards
+        ck = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:  # noqa: BLE001 -- any unreadable file
         raise KitInputError(f"{path} is not a readable checkpoint ({exc})") from None
     cfg = TrainConfig.from_dict(ck["config"])
@@ -291,12 +360,76 @@ def load_checkpoint(path, device="cpu") -> dict:
     model.to(device)
     if model_fine is not None:
         model_fine.to(device)
+    ck.setdefault("device", None)
     ck.update(model=model, model_fine=model_fine, cfg=cfg)
     return ck
 
 
+class _Clock:
+    """Wall time outside the training steps, by kind, and the rule that keeps it small.
+
+    ``due(kind)`` is True when a snapshot/evaluation/checkpoint may run now: while the time spent
+    outside training exceeds ``budget`` x the training time of this call, due work waits.
+    """
+
+    def __init__(self, budget: float):
+        self.budget = float(budget)
+        self.seconds: dict[str, float] = {}
+        self.pending: set[str] = set()
+
+    @property
+    def total(self) -> float:
+        return sum(self.seconds.values())
+
+    def allowed(self, train_seconds: float) -> bool:
+        return self.budget <= 0 or self.total <= self.budget * train_seconds
+
+    def timed(self, kind: str, fn, *args):
+        t = time.perf_counter()
+        try:
+            return fn(*args)
+        finally:
+            self.seconds[kind] = self.seconds.get(kind, 0.0) + time.perf_counter() - t
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    elif device.type == "mps":
+        torch.mps.synchronize()
+
+
+class _Bar:
+    """The progress bar: seconds trained of seconds allowed (a time budget), else steps of steps."""
+
+    def __init__(self, cfg: TrainConfig, step: int, elapsed: float, enabled: bool, device: torch.device):
+        from tqdm.auto import tqdm
+
+        self.by_time = bool(cfg.minutes)
+        desc = f"nerf {cfg.preset} on {device.type}"
+        if self.by_time:
+            self.bar = tqdm(total=round(60.0 * cfg.minutes, 1), initial=round(min(elapsed, 60.0 * cfg.minutes), 1),
+                            disable=not enabled, desc=desc, mininterval=1.0, unit="s",
+                            bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s trained "
+                                       "[{elapsed} wall{postfix}]")
+        else:
+            self.bar = tqdm(total=cfg.iters, initial=step, disable=not enabled, desc=desc, mininterval=1.0,
+                            unit="step")
+        self.shown = elapsed if self.by_time else step
+
+    def update(self, step: int, elapsed: float, info: dict | None) -> None:
+        now = min(elapsed, self.bar.total) if self.by_time else step
+        if info is not None:
+            self.bar.set_postfix(info, refresh=False)
+        self.bar.update(now - self.shown)
+        self.shown = now
+
+    def close(self) -> None:
+        self.bar.close()
+
+
 def train(train_data: BlenderData, test_data: BlenderData | None = None, config: TrainConfig | str = "fast",
-          out_dir=None, resume: bool = True, progress: bool = True, device=None, callback=None,
+          out_dir=None, resume: bool = True, progress: bool = True, device="auto", callback=None,
           snapshot_view: int = 0) -> TrainResult:
     """Train a NeRF (or the grid field of the "fast" preset) on one scene.
 
@@ -308,9 +441,13 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
         out_dir: folder for ``metrics.json``, ``snapshots/step_XXXXXX.png``, ``test/<name>.png``
             and ``checkpoint.pt`` (None: write nothing, e.g. in a notebook).
         resume: continue from ``out_dir/checkpoint.pt`` if there is one (same step, optimizer,
-            RNG states; the time already trained counts against ``minutes``).
-        progress: show a tqdm.auto progress bar.
-        device: torch device (default: CPU).
+            RNG states; the time already trained counts against ``minutes``). A checkpoint resumes
+            on any device; the ray sampler's random stream continues exactly only on the device
+            type that wrote it (elsewhere it is reseeded from the seed and the step).
+        progress: show a tqdm.auto progress bar: with a time budget (``minutes``) it counts seconds
+            trained of seconds allowed, else steps of ``iters``; loss, PSNR and step beside it.
+        device: ``"auto"`` (CUDA, then MPS, then the CPU), ``"cpu"``, ``"cuda"``, ``"mps"`` or a
+            torch.device (:func:`course_lib.nerf.device.pick_device`).
         callback: optional ``callback(step, info: dict) -> bool``, called after each step with
             ``loss, psnr, seconds`` (training time so far), ``model, model_fine, config, bounds``;
             return True to stop (a checkpoint is written). Its own time is not training time.
@@ -319,19 +456,22 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
     Returns:
         :class:`TrainResult` (model, metrics, history, snapshots, test renders).
 
+    Raises:
+        TrainingInterrupted: Ctrl-C (a ``KeyboardInterrupt``), after the checkpoint was written.
+
     Introduced in ``notebooks/08_nerf_rendering_and_training.ipynb``.
     """
-    from tqdm.auto import tqdm
-
     cfg = preset(config) if isinstance(config, str) else config
     if not isinstance(train_data, BlenderData) or len(train_data) == 0:
         raise KitInputError("train_data must be a non-empty BlenderData (course_lib.data.blender.load_blender)")
-    _set_threads(cfg.threads)
-    device = torch.device(device or "cpu")
+    device = pick_device(device)
+    if device.type == "cpu":
+        _set_threads(cfg.threads)
     out = Path(out_dir) if out_dir is not None else None
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     t_wall = time.perf_counter()
+    clock = _Clock(cfg.overhead_budget)
 
     # ---------------------------------------------------------------- all rays of all training images
     H, W = train_data.H, train_data.W
@@ -339,7 +479,8 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
     rays = [get_rays(H, W, train_data.K, c2w_all[i]) for i in range(len(train_data))]
     rays_o = torch.stack([r[0] for r in rays]).reshape(-1, 3)
     rays_d = torch.stack([r[1] for r in rays]).reshape(-1, 3)
-    target = torch.as_tensor(train_data.images, device=device).reshape(-1, 3)
+    target = torch.as_tensor(train_data.images).to(device).reshape(-1, 3)
+    del rays
     n_rays = rays_o.shape[0]
     bounds = scene_bounds(train_data.c2w, train_data.K, W)
     if cfg.near is not None:
@@ -352,6 +493,7 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
     ckpt_path = out / CHECKPOINT if out is not None else None
     history = {"iterations": [], "loss": [], "psnr": [], "seconds": [], "test_iterations": [], "test_psnr": []}
     step, elapsed = 0, 0.0
+    resumed_from = None
     if resume and ckpt_path is not None and ckpt_path.exists():
         ck = load_checkpoint(ckpt_path, device)
         model, model_fine = ck["model"], ck["model_fine"]
@@ -362,8 +504,13 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
         opt = _optimizer(cfg, model, model_fine)
         opt.load_state_dict(ck["optimizer"])
         step, elapsed, history = ck["step"], ck["train_seconds"], ck["history"]
-        gen.set_state(ck["generator_state"])
+        written_on = torch.device(ck["device"]).type if ck.get("device") else "cpu"
+        if written_on == device.type:
+            gen.set_state(ck["generator_state"])
+        else:  # another device's generator state does not fit: a new, reproducible stream
+            gen.manual_seed(cfg.seed + 1_000_003 * step)
         torch.set_rng_state(ck["torch_rng_state"])
+        resumed_from = {"step": step, "train_seconds": round(elapsed, 2), "device": ck.get("device")}
     else:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(cfg.seed)
@@ -382,6 +529,19 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
     snapshots: list = []
     budget_s = 60.0 * cfg.minutes if cfg.minutes else None
     eval_views = list(range(min(cfg.n_eval_views, len(test_data)))) if test_data is not None else []
+    # history on a GPU: losses stay on the device and come to the host every `sync_every` steps
+    sync_every = 1 if device.type == "cpu" else 25
+    pending: list = []  # (step, seconds, loss tensor, mse tensor) not yet in the history
+
+    def flush():
+        if pending:
+            vals = torch.stack([torch.stack([lo.detach(), ms.detach()]) for _, _, lo, ms in pending]).cpu().tolist()
+            for (st, sec, _, _), (lo, ms) in zip(pending, vals):
+                history["iterations"].append(st)
+                history["loss"].append(float(lo))
+                history["psnr"].append(psnr(ms))
+                history["seconds"].append(round(sec, 3))
+            pending.clear()
 
     def snapshot():
         img = render_view(model, model_fine, cfg, bounds, snap_data.H, snap_data.W, snap_data.K, snap_data.c2w[snap_i])["rgb"]
@@ -390,15 +550,22 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
         if out is not None:
             _save_png(out / "snapshots" / f"step_{step:06d}.png", img)
 
+    def test_eval():
+        history["test_iterations"].append(step)
+        history["test_psnr"].append(evaluate(model, model_fine, cfg, bounds, test_data, eval_views, return_renders=False)[0])
+
     def checkpoint():
         if ckpt_path is not None:
-            _save_checkpoint(ckpt_path, model, model_fine, opt, cfg, bounds, step, elapsed, history, gen, camera)
+            flush()
+            _save_checkpoint(ckpt_path, model, model_fine, opt, cfg, bounds, step, elapsed, history, gen, camera, device)
 
-    bar = tqdm(total=cfg.iters, initial=step, disable=not progress, desc=f"nerf {cfg.preset}", mininterval=1.0)
+    clock.seconds["setup"] = time.perf_counter() - t_wall
+    bar = _Bar(cfg, step, elapsed, progress, device)
     if cfg.snapshot_every and step == 0:
-        snapshot()
+        clock.timed("snapshots", snapshot)
     samples_done, run_seconds = 0, 0.0  # this call only (a resumed run has trained before)
     stopped_by = "iterations"
+    last = {}
     try:
         while step < cfg.iters:
             if budget_s is not None and elapsed >= budget_s:
@@ -439,40 +606,48 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
             samples_done += cfg.batch_rays * (cfg.n_samples + cfg.n_importance)
             if is_grid and cfg.occupancy_every and step >= cfg.occupancy_start and step % cfg.occupancy_every == 0:
                 model.update_occupancy(cfg.occupancy_threshold)
+            pending.append((step, 0.0, loss, mse))
+            synced = step % sync_every == 0 or step == 1 or callback is not None
+            if synced:
+                _sync(device)
             dt = time.perf_counter() - t0
             elapsed += dt
             run_seconds += dt
+            pending[-1] = (step, elapsed, loss, mse)
+            if synced:
+                flush()
+                last = {"loss": history["loss"][-1], "psnr": history["psnr"][-1]}
+            show = synced and last and (step % 10 == 0 or step == 1)
+            bar.update(step, elapsed, {"step": step, "loss": f"{last['loss']:.4f}", "psnr": f"{last['psnr']:.2f}"}
+                       if show else None)
 
-            p = psnr(mse.item())
-            history["iterations"].append(step)
-            history["loss"].append(float(loss.item()))
-            history["psnr"].append(p)
-            history["seconds"].append(round(elapsed, 3))
-            bar.update(1)
-            if step % 10 == 0 or step == 1:
-                bar.set_postfix(loss=f"{loss.item():.4f}", psnr=f"{p:.2f}", s=f"{elapsed:.0f}")
-            if cfg.snapshot_every and step % cfg.snapshot_every == 0:
-                snapshot()
-            if cfg.eval_every and eval_views and step % cfg.eval_every == 0:
-                history["test_iterations"].append(step)
-                history["test_psnr"].append(evaluate(model, model_fine, cfg, bounds, test_data, eval_views)[0])
-            if cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
-                checkpoint()
-            if callback is not None and callback(step, {"loss": loss.item(), "psnr": p, "seconds": elapsed,
-                                                        "model": model, "model_fine": model_fine, "config": cfg,
-                                                        "bounds": bounds}):
-                stopped_by = "callback"
-                break
+            for kind, every, fn in (("snapshots", cfg.snapshot_every, snapshot),
+                                    ("evaluations", cfg.eval_every if eval_views else 0, test_eval),
+                                    ("checkpoints", cfg.checkpoint_every, checkpoint)):
+                if every and step % every == 0:
+                    clock.pending.add(kind)
+                if kind in clock.pending and clock.allowed(run_seconds):
+                    clock.pending.discard(kind)
+                    clock.timed(kind, fn)
+            if callback is not None:
+                t_cb = time.perf_counter()
+                stop = callback(step, {"loss": last.get("loss"), "psnr": last.get("psnr"), "seconds": elapsed,
+                                       "model": model, "model_fine": model_fine, "config": cfg, "bounds": bounds})
+                clock.seconds["callback"] = clock.seconds.get("callback", 0.0) + time.perf_counter() - t_cb
+                if stop:
+                    stopped_by = "callback"
+                    break
     except KeyboardInterrupt:
         bar.close()
         checkpoint()
-        raise
+        raise TrainingInterrupted(step, ckpt_path) from None
     bar.close()
+    flush()
     if budget_s is not None and elapsed >= budget_s and stopped_by == "iterations" and step < cfg.iters:
         stopped_by = "time"
-    checkpoint()
+    clock.timed("checkpoints", checkpoint)
     if cfg.snapshot_every and (not snapshots or snapshots[-1][0] != step):
-        snapshot()
+        clock.timed("snapshots", snapshot)
 
     # ---------------------------------------------------------------- final evaluation and metrics
     metrics = {
@@ -483,6 +658,7 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
         "n_parameters": int(sum(p.numel() for p in model.parameters())
                             + (sum(p.numel() for p in model_fine.parameters()) if model_fine is not None else 0)),
         "n_train_views": len(train_data), "image_size": [W, H], "bounds": bounds, "device": str(device),
+        "device_name": device_name(device), "render_chunk": _chunk(cfg, model), "resumed_from": resumed_from,
         "threads": torch.get_num_threads(), "torch": torch.__version__, "config": cfg.to_dict(),
         "data": str(train_data.folder) if train_data.folder is not None else None,
     }
@@ -491,17 +667,26 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
         t = time.perf_counter()
         mean, per_view, renders = evaluate(model, model_fine, cfg, bounds, test_data)
         test_renders = np.stack(renders)
+        clock.seconds["final_evaluation"] = time.perf_counter() - t
         metrics.update(test_psnr=round(mean, 3), test_psnr_per_view=[round(v, 3) for v in per_view],
-                       n_test_views=len(test_data), eval_seconds=round(time.perf_counter() - t, 2))
+                       n_test_views=len(test_data), eval_seconds=round(clock.seconds["final_evaluation"], 2))
         history["test_iterations"].append(step)
         history["test_psnr"].append(mean)
         if out is not None:
-            for name, img in zip(test_data.names, renders):
-                _save_png(out / "test" / f"{name}.png", img)
+            clock.timed("final_evaluation", lambda: [_save_png(out / "test" / f"{name}.png", img)
+                                                    for name, img in zip(test_data.names, renders)])
     else:
         metrics["test_psnr"] = None
+    if device.type == "cuda":
+        metrics["peak_gpu_memory_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
     metrics["peak_memory_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
-    metrics["wall_seconds"] = round(time.perf_counter() - t_wall, 2)
+    wall = time.perf_counter() - t_wall
+    # wall time of this call = training steps of this call + everything else (setup, snapshots, evaluations,
+    # checkpoints, the caller's callback, the final evaluation): the overhead, with its parts
+    metrics["wall_seconds"] = round(wall, 2)
+    metrics["overhead_seconds"] = round(wall - run_seconds, 2)
+    metrics["overhead_fraction"] = round((wall - run_seconds) / max(wall, 1e-9), 4)
+    metrics["overhead_breakdown"] = {k: round(v, 2) for k, v in clock.seconds.items()}
     metrics["history"] = history
     if out is not None:
         (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
@@ -553,7 +738,7 @@ def render_path(model, model_fine, cfg: TrainConfig, bounds: dict, H: int, W: in
     from tqdm.auto import tqdm
 
     frames = []
-    for M in tqdm(c2w_path, disable=not progress, desc="render"):
+    for M in tqdm(c2w_path, disable=not progress, desc=f"render on {next(model.parameters()).device.type}"):
         frames.append(_to_uint8(render_view(model, model_fine, cfg, bounds, H, W, K, M)["rgb"].cpu().numpy()))
     return np.stack(frames)
 
