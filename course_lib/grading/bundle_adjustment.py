@@ -386,6 +386,15 @@ def check_jacobian_sparsity(fn, exercise: str = "jacobian_sparsity") -> None:
             c.fail(f"{case}: the camera columns are right but not the point columns: point j's columns are "
                    "6M + 3j, 6M + 3j + 1, 6M + 3j + 2 (after all the camera columns)")
             return
+        no_offset = np.zeros_like(exp)
+        no_offset[:, : 6 * M] = exp[:, : 6 * M]
+        rows = np.repeat(np.arange(len(pt)), 2)
+        for dj in range(3):
+            no_offset[np.arange(K2), 3 * np.asarray(pt)[rows] + dj] = True
+        if np.array_equal(A, no_offset):
+            c.fail(f"{case}: the point columns start at 0 and overlap the camera columns: point j's columns are "
+                   "6M + 3j, 6M + 3j + 1, 6M + 3j + 2 (after all the camera columns; add the offset 6M)")
+            return
         inter = np.concatenate([exp[0::2], exp[1::2]])
         if np.array_equal(A, inter):
             c.fail(f"{case}: the rows are not interleaved: rows 2k and 2k+1 are the u and v residuals of observation k")

@@ -39,7 +39,11 @@ from course_lib.paths import FIXTURES_DIR
 __all__ = [
     "Check",
     "CheckResult",
+    "Verdict",
     "score",
+    "declare_defining",
+    "DEFINING",
+    "DEFINING_CAP",
     "RESULTS",
     "FAILED",
     "fixture_builder",
@@ -76,18 +80,82 @@ class _Failed:
 FAILED = _Failed()
 
 
+#: The most a result with a failed defining property can score (a fraction of the exercise's points).
+DEFINING_CAP = 0.5
+
+#: Defining properties per exercise: ``{exercise: {property: what it means}}`` (see :func:`declare_defining`).
+DEFINING: dict[str, dict[str, str]] = {}
+
+
+def declare_defining(exercise: str, properties: dict[str, str]) -> None:
+    """Declare the defining properties of an exercise (called once by its check module).
+
+    A defining property is what makes the result the thing it is named after: rank 2 for a
+    fundamental matrix, det R = +1 for a rotation, the interval length Δ in α for volume
+    rendering. A check that tests one passes ``defining=<property>`` to :meth:`Check.expect`;
+    failing it caps the exercise's score at :data:`DEFINING_CAP` (see :func:`score`), and the
+    printed verdict leads with it.
+
+    Args:
+        exercise: the exercise name (the name given to :class:`Check`).
+        properties: ``{short name: one line that says why it is defining}``.
+    """
+    DEFINING[exercise] = dict(properties)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """One recorded check.
+
+    Attributes:
+        ok: whether it passed.
+        text: the printed line without its mark.
+        kind: ``"points"`` (earns points) or ``"gate"`` (shape, dtype: a precondition that earns
+            nothing when it passes, and counts as a failed check when it fails, since the checks
+            it guards could not run).
+        defining: the defining property it tests (see :func:`declare_defining`), or None.
+    """
+
+    ok: bool
+    text: str
+    kind: str = "points"
+    defining: str | None = None
+
+
 @dataclass
 class CheckResult:
-    """The outcome of one check cell: which exercise, how many checks passed, and the lines."""
+    """The outcome of one check cell: which exercise, how many checks passed, and the lines.
+
+    ``passed`` and ``total`` count every recorded check (gates included), as printed in the
+    summary line; ``verdicts`` says which of them earn points and which test a defining property,
+    which is what :func:`score` uses.
+    """
 
     exercise: str
     passed: int
     total: int
     lines: list[str] = field(default_factory=list)
+    verdicts: list[Verdict] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
         return self.total > 0 and self.passed == self.total
+
+    @property
+    def defining_failed(self) -> list[str]:
+        """The defining properties that failed, in the order of their first failure."""
+        out: list[str] = []
+        for v in self.verdicts:
+            if v.defining and not v.ok and v.defining not in out:
+                out.append(v.defining)
+        return out
+
+    @property
+    def points(self) -> tuple[int, int]:
+        """``(passed, counted)``: passed point checks, and point checks plus failed gates."""
+        pts = [v for v in self.verdicts if v.kind == "points"]
+        failed_gates = sum(1 for v in self.verdicts if v.kind == "gate" and not v.ok)
+        return sum(v.ok for v in pts), len(pts) + failed_gates
 
     def __repr__(self) -> str:  # deterministic, in case a cell displays it
         return f"CheckResult({self.exercise!r}, {self.passed}/{self.total})"
@@ -97,9 +165,24 @@ def score(result: CheckResult) -> float:
     """The fraction (0..1) of an exercise's hidden-check points that ``result`` earns.
 
     The one scoring rule of the grader (:mod:`course_lib.grading.grade` calls it on the result of
-    the hidden checks, computed in the grader's own process).
+    the hidden checks, computed in the grader's own process):
+
+    * only point checks earn: a gate (shape, dtype) that passes earns nothing, a gate that fails
+      counts as one failed check (the checks behind it could not run);
+    * the fraction is passed point checks / counted checks;
+    * a failed defining property caps the fraction at :data:`DEFINING_CAP` (one half): a result
+      without the property that defines it earns at most half of the points, however many other
+      checks pass.
+
+    A result without verdicts (made by hand) scores ``passed / total``.
     """
-    return result.passed / result.total if result.total else 0.0
+    if not result.verdicts:
+        return result.passed / result.total if result.total else 0.0
+    passed, counted = result.points
+    frac = passed / counted if counted else 0.0
+    if result.defining_failed:
+        frac = min(frac, DEFINING_CAP)
+    return frac
 
 
 #: Results of the check cells run in this process, by exercise name (the grader reads it).
@@ -121,23 +204,47 @@ class Check:
     def __init__(self, exercise: str):
         self.exercise = exercise
         self.lines: list[str] = []
+        self.verdicts: list[Verdict] = []
         self.passed = 0
         self.total = 0
 
     # -- recording ---------------------------------------------------------------------------
-    def expect(self, condition: bool, pass_msg: str, fail_msg: str) -> bool:
-        """Record one check; ``pass_msg`` must be deterministic, ``fail_msg`` should name the likely mistake."""
+    def expect(self, condition: bool, pass_msg: str, fail_msg: str, defining: str | None = None,
+               kind: str = "points") -> bool:
+        """Record one check; ``pass_msg`` must be deterministic, ``fail_msg`` should name the likely mistake.
+
+        Args:
+            condition: whether the check passed.
+            pass_msg: the line printed when it passed (no floating-point numbers: nbval compares it).
+            fail_msg: the line printed when it failed: the likely mistake, and what to change.
+            defining: the defining property this check tests (declared with :func:`declare_defining`
+                for this exercise); failing it caps the score at one half and leads the verdict.
+            kind: ``"points"`` or ``"gate"`` (see :class:`Verdict`); :meth:`shape` and :meth:`gate`
+                record gates.
+        """
+        if defining is not None and defining not in DEFINING.get(self.exercise, {}):
+            raise ValueError(f"{defining!r} is not a declared defining property of {self.exercise!r} "
+                             f"(declared: {sorted(DEFINING.get(self.exercise, {}))}); use declare_defining")
+        if kind not in ("points", "gate"):
+            raise ValueError(f"kind must be 'points' or 'gate', got {kind!r}")
         self.total += 1
-        if bool(condition):
+        ok = bool(condition)
+        text = pass_msg if ok else fail_msg
+        self.verdicts.append(Verdict(ok, text, kind, defining))
+        if ok:
             self.passed += 1
             self.lines.append(f"  {PASS} {pass_msg}")
             return True
         self.lines.append(f"  {FAIL} {fail_msg}")
         return False
 
-    def fail(self, msg: str) -> bool:
-        """Record a failed check."""
-        return self.expect(False, "", msg)
+    def fail(self, msg: str, defining: str | None = None) -> bool:
+        """Record a failed check (of ``defining`` when it is a defining property's)."""
+        return self.expect(False, "", msg, defining=defining)
+
+    def gate(self, condition: bool, pass_msg: str, fail_msg: str) -> bool:
+        """Record a precondition (shape, dtype, type): no points when it passes, a failed check when not."""
+        return self.expect(condition, pass_msg, fail_msg, kind="gate")
 
     def call(self, fn: Callable, *args, case: str, **kwargs) -> Any:
         """Call the student's function; on an exception record a failure and return :data:`FAILED`.
@@ -164,10 +271,10 @@ class Check:
         ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape))
         want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
         if not ok:
-            return self.fail(f"{what} has shape {tuple(arr.shape)}, expected {want}")
+            return self.gate(False, "", f"{what} has shape {tuple(arr.shape)}, expected {want}")
         if np.issubdtype(arr.dtype, np.number) and not np.isfinite(arr).all():
-            return self.fail(f"{what} contains NaN or inf")
-        return self.expect(True, f"{what} has shape {want}", "")
+            return self.gate(False, "", f"{what} contains NaN or inf")
+        return self.gate(True, f"{what} has shape {want}", "")
 
     # -- context manager -----------------------------------------------------------------------
     def __enter__(self) -> "Check":
@@ -180,11 +287,26 @@ class Check:
         return True  # the verdict is the output; never a traceback in a check cell
 
     def report(self) -> CheckResult:
-        result = CheckResult(self.exercise, self.passed, self.total, list(self.lines))
+        """Print the verdict and store the :class:`CheckResult` in :data:`RESULTS`.
+
+        A failed defining property leads: a first line names it (and that it caps the points at
+        one half), followed by the failed checks that test it; then the other lines in order.
+        """
+        result = CheckResult(self.exercise, self.passed, self.total, list(self.lines), list(self.verdicts))
         RESULTS[self.exercise] = result
         print(self.exercise)
-        for line in self.lines:
-            print(line)
+        broken = result.defining_failed
+        lead = [i for i, v in enumerate(self.verdicts) if v.defining in broken and not v.ok]
+        if broken:
+            what = DEFINING.get(self.exercise, {})
+            for name in broken:
+                print(f"  {FAIL} the defining property fails: {name} ({what.get(name, '')}); "
+                      f"this costs at least half of the points")
+            for i in lead:
+                print(self.lines[i])
+        for i, line in enumerate(self.lines):
+            if i not in lead:
+                print(line)
         if result.ok:
             print(f"  all {self.total} checks passed")
         else:

@@ -8,7 +8,12 @@ compares with the stored reference results and with properties, and names the li
   ``Kᵀ F K``, ``K⁻ᵀ F K⁻¹`` (that maps E to F, not F to E), singular values ``(s, s, 0)`` with s ≠ 1;
 * ``pose_candidates``: ``R`` with det -1 (not flipped), ``C`` not of unit length, ``t = ±U[:, 2]``
   returned in place of the centre ``C = -Rᵀ t``, only one rotation (W and Wᵀ), candidates that
-  do not factor E.
+  do not factor E, candidates in another order than the docstring's.
+
+Defining properties (failing one costs at least half of the points): E's singular values
+(1, 1, 0); every candidate R a rotation (det +1), checked on E and on -E of every pair (for one of
+the two the SVD gives det U det V = -1, so a missing flip shows on every pair); the documented
+candidate order.
 
 Cases: E from a noiseless and from a noisy synthetic pair (with the true relative pose) and from
 the embedded scene's pair (1, 2) (the reference F of notebook 01) when it is present.
@@ -22,17 +27,30 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.grading.core import FAILED, Check, fixture_builder, load_fixture
+from course_lib.grading.core import FAILED, Check, declare_defining, fixture_builder, load_fixture
 
 __all__ = ["check_essential_from_fundamental", "check_pose_candidates", "match_candidates"]
 
 FIXTURE = "essential"
 
+declare_defining("essential_from_fundamental", {
+    "singular values (1, 1, 0)": "an essential matrix has two equal singular values and a zero one",
+})
+declare_defining("pose_candidates", {
+    "det R = +1": "a rotation has det +1; det -1 is a reflection, no camera pose",
+    "documented order": "the docstring fixes the order (U W Vᵀ, +), (U W Vᵀ, -), (U Wᵀ Vᵀ, +), (U Wᵀ Vᵀ, -)",
+})
+
+#: The documented candidate order, as a sentence for the verdicts.
+ORDER_TEXT = "k = 0: (U W Vᵀ, +), 1: (U W Vᵀ, -), 2: (U Wᵀ Vᵀ, +), 3: (U Wᵀ Vᵀ, -)"
+
 _CASE_TEXT = {
     "noiseless": "noiseless synthetic pair",
     "noisy": "noisy synthetic pair",
     "building": "embedded building pair",
-    "signflip": "noisy synthetic pair, E with the opposite sign",
+    "noiseless_neg": "noiseless synthetic pair, -E",
+    "noisy_neg": "noisy synthetic pair, -E",
+    "building_neg": "embedded building pair, -E",
 }
 
 
@@ -76,6 +94,18 @@ def match_candidates(R, C, R_ref, C_ref, rot_deg: float = 1e-4, cos_min: float =
     return hits
 
 
+def _documented_order(R, C, tol: float = 1e-6) -> bool:
+    """True if ``(R, C)`` has the documented structure (U W Vᵀ, ±), (U Wᵀ Vᵀ, ±).
+
+    Candidates 0 and 1 share one rotation, 2 and 3 the other, and each pair has opposite centres.
+    (Which rotation is U W Vᵀ, and which sign is "+", depend on the signs the SVD picks for U and
+    V, which are not unique; so only this structure is checked, never the reference's exact order.)
+    """
+    return bool(np.allclose(R[0], R[1], atol=tol) and np.allclose(R[2], R[3], atol=tol)
+                and not np.allclose(R[0], R[2], atol=1e-4)
+                and np.allclose(C[1], -C[0], atol=tol) and np.allclose(C[3], -C[2], atol=tol))
+
+
 # --------------------------------------------------------------------------- fixtures
 
 
@@ -116,11 +146,18 @@ def _build() -> dict[str, np.ndarray]:
         E = ref.essential_from_fundamental(out[f"{name}_F"], out[f"{name}_K"])
         R, C = ref.pose_candidates(E)
         out[f"{name}_E"], out[f"{name}_R"], out[f"{name}_C"] = E, R, C
-    # E and -E are the same essential matrix; one of the two makes the SVD give det(U) det(V) = -1,
-    # so that a missing det flip shows (pose_candidates only)
-    E = -out["noisy_E"]
-    out["signflip_E"] = E
-    out["signflip_R"], out["signflip_C"] = ref.pose_candidates(E)
+    # E and -E are the same essential matrix; for one of the two the SVD gives det(U) det(V) = -1, so
+    # a missing det flip shows on every pair (pose_candidates only)
+    exposing = 0
+    for name in cases:
+        E = -out[f"{name}_E"]
+        out[f"{name}_neg_E"] = E
+        out[f"{name}_neg_R"], out[f"{name}_neg_C"] = ref.pose_candidates(E)
+        for M in (E, -E):
+            U, _, Vt = np.linalg.svd(M)
+            exposing += int(np.linalg.det(U) * np.linalg.det(Vt) < 0)
+    assert exposing >= 3, "the pose_candidates cases must expose a missing det flip at least 3 times"
+    out["pose_cases"] = np.array([n for name in cases for n in (name, f"{name}_neg")])
     return out
 
 
@@ -145,16 +182,18 @@ def check_essential_from_fundamental(essential_from_fundamental: Callable) -> No
                 continue
             s = np.linalg.svd(E, compute_uv=False)
             raw = K.T @ F @ K
+            sv = "singular values (1, 1, 0)"
             if np.allclose(s, [1.0, 1.0, 0.0], atol=1e-6):
-                c.expect(True, f"{case}: E has singular values (1, 1, 0)", "")
+                c.expect(True, f"{case}: E has singular values (1, 1, 0)", "", defining=sv)
             elif _same_up_to_sign(_unit(E), _unit(raw), 1e-6) and not np.isclose(s[0], s[1], rtol=1e-4):
                 c.fail(f"{case}: E = Kᵀ F K is not corrected (singular values {np.round(s / s[0], 3).tolist()} relative): "
-                       "set them to (1, 1, 0), E = U diag(1, 1, 0) Vᵀ from the SVD of Kᵀ F K")
+                       "set them to (1, 1, 0), E = U diag(1, 1, 0) Vᵀ from the SVD of Kᵀ F K", defining=sv)
             elif np.isclose(s[0], s[1], rtol=1e-6) and s[2] < 1e-6 * s[0]:
-                c.fail(f"{case}: E has singular values ({s[0]:.4g}, {s[1]:.4g}, 0): use exactly diag(1, 1, 0)")
+                c.fail(f"{case}: E has singular values ({s[0]:.4g}, {s[1]:.4g}, 0): divide by s1 or use exactly "
+                       "diag(1, 1, 0)", defining=sv)
             else:
                 c.fail(f"{case}: E has singular values {np.round(s, 4).tolist()}, expected (1, 1, 0): "
-                       "E = U diag(1, 1, 0) Vᵀ from the SVD of Kᵀ F K")
+                       "E = U diag(1, 1, 0) Vᵀ from the SVD of Kᵀ F K", defining=sv)
             if _same_up_to_sign(E, E_ref, 1e-6) or _same_up_to_sign(_unit(E), _unit(E_ref), 1e-6):
                 c.expect(True, f"{case}: E matches the reference Kᵀ F K (up to sign)", "")
                 continue
@@ -182,11 +221,12 @@ def check_pose_candidates(pose_candidates: Callable) -> None:
     """Check ``pose_candidates(E (3, 3)) -> (R (4, 3, 3), C (4, 3))`` (notebook 02).
 
     Every R must be a rotation (det +1), every C of unit length, every (R, C) must factor E as
-    ``E ∝ [t]ₓ R`` with ``t = -R C``, and the four candidates must equal the reference's (in any order).
+    ``E ∝ [t]ₓ R`` with ``t = -R C``, and the four candidates must equal the reference's, in the
+    documented order ``(U W Vᵀ, +), (U W Vᵀ, -), (U Wᵀ Vᵀ, +), (U Wᵀ Vᵀ, -)``.
     """
     f = load_fixture(FIXTURE)
     with Check("pose_candidates") as c:
-        for name in [str(n) for n in f["cases"]] + ["signflip"]:
+        for name in [str(n) for n in f["pose_cases"]]:
             E, R_ref, C_ref = f[f"{name}_E"], f[f"{name}_R"], f[f"{name}_C"]
             case = _CASE_TEXT[name]
             out = c.call(pose_candidates, E, case=case)
@@ -206,14 +246,15 @@ def check_pose_candidates(pose_candidates: Callable) -> None:
                 continue
             dets = np.linalg.det(R)
             orth = all(np.allclose(Rk @ Rk.T, np.eye(3), atol=1e-6) for Rk in R)
+            det1 = "det R = +1"
             if orth and np.allclose(dets, 1.0, atol=1e-6):
-                c.expect(True, f"{case}: every R is a rotation (orthonormal, det +1)", "")
+                c.expect(True, f"{case}: every R is a rotation (orthonormal, det +1)", "", defining=det1)
             elif orth:
                 bad = [k for k in range(4) if dets[k] < 0]
                 c.fail(f"{case}: R[{', '.join(map(str, bad))}] has det -1 (a reflection): when det(R) < 0, "
-                       "flip the sign of both R and C")
+                       "flip the sign of both R and C", defining=det1)
             else:
-                c.fail(f"{case}: R is not orthonormal: R = U W Vᵀ or U Wᵀ Vᵀ with U, V from the SVD of E")
+                c.fail(f"{case}: R is not orthonormal: R = U W Vᵀ or U Wᵀ Vᵀ with U, V from the SVD of E", defining=det1)
             norms = np.linalg.norm(C, axis=1)
             c.expect(np.allclose(norms, 1.0, atol=1e-6), f"{case}: every C has unit length",
                      f"{case}: C does not have unit length (|C| = {np.round(norms, 3).tolist()}): the scale is unknown, "
@@ -225,7 +266,11 @@ def check_pose_candidates(pose_candidates: Callable) -> None:
             ) and np.allclose(E @ Cn.T, 0.0, atol=1e-6)
             hits = match_candidates(R, Cn, R_ref, C_ref)
             if factors and -1 not in hits and len(set(hits)) == 4:
-                c.expect(True, f"{case}: the four candidates factor E and match the reference (in any order)", "")
+                c.expect(True, f"{case}: the four candidates factor E and match the reference", "")
+                c.expect(_documented_order(R, Cn), f"{case}: the candidates come in the documented order",
+                         f"{case}: the right four candidates in another order (the reference's candidates appear at "
+                         f"{hits}): the docstring fixes {ORDER_TEXT}, i.e. R[0] = R[1], R[2] = R[3], C[1] = -C[0], "
+                         "C[3] = -C[2]", defining="documented order")
                 continue
             # diagnose: C holds t = ±U[:, 2] instead of the centre -Rᵀ t
             Ct = np.stack([-(R[k].T @ Cn[k]) for k in range(4)])

@@ -30,7 +30,7 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.grading.core import FAILED, Check, fixture_builder, load_fixture
+from course_lib.grading.core import FAILED, Check, declare_defining, fixture_builder, load_fixture
 from course_lib.paths import EMBEDDED_SFM
 
 __all__ = [
@@ -52,6 +52,11 @@ STEP_THRESHOLD_PX = 1.0
 STEP_SEED = 0
 #: RANSAC threshold used by the check on the synthetic pair with outliers (noise 0.5 px).
 CHECK_THRESHOLD_PX = 1.5
+
+
+declare_defining("eight_point", {
+    "rank 2": "a fundamental matrix is singular, so that all epipolar lines meet in the epipole",
+})
 
 
 # --------------------------------------------------------------------------- small helpers
@@ -393,10 +398,10 @@ def check_eight_point(eight_point: Callable) -> None:
                 else:
                     c.fail(f"{case}: {_diagnose_F(F, F_ref, F_un, x1, x2)} (median Sampson distance {d:.3g} px, "
                            f"reference {d_ref:.3g} px)")
+            c.expect(_rank(F, x1, x2) == 2, f"{case}: F has rank 2",
+                     f"{case}: F has rank 3: enforce rank 2 by zeroing the smallest singular value, "
+                     "F = U diag(s1, s2, 0) Vᵀ", defining="rank 2")
             if name in ("noiseless", "noisy"):
-                c.expect(_rank(F, x1, x2) == 2, f"{case}: F has rank 2",
-                         f"{case}: F has rank 3: enforce rank 2 by zeroing the smallest singular value, "
-                         "F = U diag(s1, s2, 0) Vᵀ")
                 c.expect(np.isclose(np.linalg.norm(F), 1.0, rtol=1e-6), f"{case}: F has unit Frobenius norm",
                          f"{case}: |F| = {np.linalg.norm(F):.4g}: scale F to unit Frobenius norm, F / np.linalg.norm(F)")
 
@@ -465,6 +470,37 @@ def _unpack_ransac(out, c: Check, case: str):
     return F, inl, n
 
 
+def _jaccard(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def _inlier_rule(F, x1, x2, inl, thr: float) -> str | None:
+    """The wrong inlier rule that explains the mask ``inl`` (for the returned F), or None.
+
+    Compares the mask with the rules 'algebraic error |x2ᵀ F x1| < thr' and 'squared Sampson
+    distance < thr', evaluated with the student's final F: when one of them explains the mask
+    clearly better than the right rule (Sampson distance < thr), that is the mistake.
+    """
+    F = np.asarray(F, float)
+    if F.shape != (3, 3) or not np.isfinite(F).all() or np.linalg.norm(F) == 0 or inl.shape != (len(x1),):
+        return None
+    Fu = _unit(F)
+    e = np.abs(np.sum(_h(x2) * (_h(x1) @ Fu.T), axis=1))
+    d = sampson(Fu, x1, x2)
+    right = _jaccard(inl, d < thr)
+    for rule, mask in (
+        ("inliers are counted with the algebraic error |x2ᵀ F x1|, which has no unit: compare the Sampson "
+         "distance with the threshold, sampson_distance(F, x1, x2) < threshold_px", e < thr),
+        ("inliers are counted with the squared Sampson distance: compare the distance itself (pixels), "
+         "sampson_distance(F, x1, x2) < threshold_px", d**2 < thr),
+    ):
+        if np.array_equal(mask, d < thr):
+            continue
+        if _jaccard(inl, mask) >= 0.97 and _jaccard(inl, mask) > right + 0.02:
+            return rule
+    return None
+
+
 def check_ransac_fundamental(ransac_fundamental: Callable) -> None:
     """Check ``ransac_fundamental(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000)`` (notebook 01).
 
@@ -487,8 +523,11 @@ def check_ransac_fundamental(ransac_fundamental: Callable) -> None:
             if ok_shapes:
                 prec = float(true_inl[inl].mean()) if inl.any() else 0.0
                 rec = float(inl[true_inl].mean())
-                if prec >= 0.9 and rec >= 0.9:
+                named = _inlier_rule(F, x1, x2, inl, thr)
+                if prec >= 0.9 and rec >= 0.9 and named is None:
                     c.expect(True, f"{case}: finds the true inliers (precision and recall >= 90 %)", "")
+                elif named is not None:
+                    c.fail(f"{case}: {named}")
                 elif inl.mean() > 0.97:
                     c.fail(f"{case}: almost every match is an inlier ({int(inl.sum())}/{len(inl)}): is the threshold "
                            "compared with the algebraic error |x2ᵀ F x1| (tiny for a unit-norm F)? compare "
@@ -545,6 +584,10 @@ def check_ransac_fundamental(ransac_fundamental: Callable) -> None:
             if out is not None and c.shape(out[1], (len(x1),), f"{case}: inliers"):
                 inl = out[1]
                 jac = (inl & ref_inl).sum() / max((inl | ref_inl).sum(), 1)
-                c.expect(jac >= 0.9, f"{case}: the inliers agree with the reference's",
-                         f"{case}: {int(inl.sum())} inliers, the reference has {int(ref_inl.sum())} "
-                         f"({int((inl & ref_inl).sum())} in common): check the threshold on the Sampson distance")
+                named = _inlier_rule(out[0], x1, x2, inl, thr_b) if out[0].shape == (3, 3) else None
+                if named is not None:
+                    c.fail(f"{case}: {named}")
+                else:
+                    c.expect(jac >= 0.9, f"{case}: the inliers agree with the reference's",
+                             f"{case}: {int(inl.sum())} inliers, the reference has {int(ref_inl.sum())} "
+                             f"({int((inl & ref_inl).sum())} in common): check the threshold on the Sampson distance")

@@ -10,6 +10,10 @@ configuration, and compares with the reference stored in fixture ``nerf_model``
   connection, a missing view-direction branch, a missing positional encoding, one output head;
 * the forward pass: shapes ``rgb (..., 3)``, ``sigma (...)``; rgb in [0, 1] (sigmoid), sigma >= 0
   (ReLU); sigma independent of the viewing direction, rgb dependent on it;
+* defining properties (failing one costs at least half of the points): the skip input
+  ``[γ(x), h]`` (checked in the layer table of three configurations, and in the wiring), and the
+  ReLU density (sigma >= 0, and with the reference's weights exactly ReLU of the density head, so
+  that a sigmoid, softplus, exp or no activation on the density is named);
 * with the reference's weights copied in (matched layer by layer in order of definition) the
   outputs equal the reference's, which pins down the wiring (ReLU after every layer, the order
   of concatenations, where the heads branch off).
@@ -25,7 +29,7 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.grading.core import FAILED, Check, fixture_builder, load_fixture
+from course_lib.grading.core import FAILED, Check, declare_defining, fixture_builder, load_fixture
 from course_lib.grading.nerf_data import close, to_numpy
 
 __all__ = ["check_nerf_model", "check_psnr", "layer_table", "set_test_weights"]
@@ -36,6 +40,23 @@ FIXTURE = "nerf_model"
 CONFIGS = (
     ("default", {}),
     ("small", {"depth": 4, "width": 32, "skips": (2,), "pos_freqs": 3, "dir_freqs": 2}),
+    ("tiny", {"depth": 3, "width": 16, "skips": (1,), "pos_freqs": 2, "dir_freqs": 1}),
+)
+
+declare_defining("NeRF", {
+    "skip input": "the encoded position γ(x) is concatenated again, as torch.cat([γ(x), h], -1), after the skip layer",
+    "ReLU density": "the density is ReLU(raw) >= 0, unbounded above (a sigmoid caps it at 1: nothing is opaque)",
+})
+
+#: Wrong density activations, applied to the raw density output: (mistake, function).
+DENSITY_VARIANTS = (
+    ("the density goes through a sigmoid, which caps it at 1 so that nothing becomes opaque: use "
+     "torch.relu on the density head (sigmoid belongs on the RGB head only)", lambda r: 1.0 / (1.0 + np.exp(-r))),
+    ("the density head has no activation, so sigma can be negative: apply torch.relu to it", lambda r: r),
+    ("the density goes through exp: use torch.relu (the paper) on the density head", np.exp),
+    ("the density goes through softplus: the kit's network uses torch.relu on the density head",
+     lambda r: np.logaddexp(0.0, r)),
+    ("the density is |raw|: use torch.relu on the density head", np.abs),
 )
 
 
@@ -111,9 +132,29 @@ def _build() -> dict[str, np.ndarray]:
         set_test_weights(m, shapes)
         with torch.no_grad():
             rgb, sigma = m(torch.as_tensor(pts), torch.as_tensor(dirs))
+            raw = m.sigma_head(m.trunk_features(torch.as_tensor(pts)))[..., 0]
         out[f"{name}_rgb"], out[f"{name}_sigma"] = rgb.numpy(), sigma.numpy()
+        out[f"{name}_sigma_raw"] = raw.numpy()
+        out[f"{name}_sigma_skip_hx"] = _sigma_skip_swapped(m, torch.as_tensor(pts)).numpy()
     out["pts"], out["dirs"] = pts, dirs
     return out
+
+
+def _sigma_skip_swapped(m, pts):
+    """The density of the reference model when the skip concatenates [h, γ(x)] (the mistake)."""
+    import torch
+    from torch.nn import functional as F
+
+    from course_lib.nerf.encoding import positional_encoding
+
+    with torch.no_grad():
+        x = positional_encoding(pts, m.pos_freqs)
+        h = x
+        for i, layer in enumerate(m.trunk):
+            h = F.relu(layer(h))
+            if i in m.skips:
+                h = torch.cat([h, x], dim=-1)
+        return F.relu(m.sigma_head(h)[..., 0])
 
 
 def _shapes(f, name) -> list[tuple[int, ...]]:
@@ -161,6 +202,19 @@ def check_nerf_model(NeRF: Callable) -> None:
                 continue
             ref_layers = [tuple(int(v) for v in r) for r in f[f"{name}_layers"]]
             mine = layer_table(model)
+            enc_x = 3 * (1 + 2 * kw.get("pos_freqs", 10))
+            W = kw.get("width", 256)
+            n_skip = Counter(ref_layers)[(W + enc_x, W)]
+            got_skip = Counter(mine)[(W + enc_x, W)]
+            if got_skip >= n_skip:
+                c.expect(True, f"{case}: the layer after the skip takes [γ(x), h]", "", defining="skip input")
+            elif Counter(mine)[(W + 3, W)] > Counter(ref_layers)[(W + 3, W)]:
+                c.fail(f"{case}: the skip concatenates the raw position x (3 values): concatenate the ENCODED "
+                       f"position, torch.cat([γ(x), h], -1) ({enc_x} + {W} inputs)", defining="skip input")
+            else:
+                c.fail(f"{case}: no skip connection: after trunk layer {tuple(kw.get('skips', (4,)))} concatenate the "
+                       f"encoded input again, h = torch.cat([γ(x), h], -1), so the next layer takes {enc_x} + {W} "
+                       "inputs", defining="skip input")
             c.expect(sorted(mine) == sorted(ref_layers),
                      f"{case}: {len(ref_layers)} linear layers with the reference's sizes",
                      f"{case}: {_layer_hint(mine, ref_layers, kw)}")
@@ -187,7 +241,7 @@ def check_nerf_model(NeRF: Callable) -> None:
                          f"{case}: rgb ranges over [{rgb.min():.3g}, {rgb.max():.3g}]: no sigmoid on the RGB head")
                 c.expect(sigma.min() >= 0, f"{case}: sigma >= 0",
                          f"{case}: sigma has negative values (min {sigma.min():.3g}): the density must be non-negative, "
-                         "apply a ReLU to the density head")
+                         "apply a ReLU to the density head", defining="ReLU density")
                 other = torch.flip(dirs, dims=(0,))
                 with torch.no_grad():
                     out2 = c.call(model, pts, other, case=f"{case} forward")
@@ -211,6 +265,16 @@ def check_nerf_model(NeRF: Callable) -> None:
             rgb, sigma = to_numpy(out[0]), to_numpy(out[1]).reshape(lead)
             ok_rgb = close(rgb, f[f"{name}_rgb"].astype(float))
             ok_sig = close(sigma, f[f"{name}_sigma"].astype(float))
+            raw = f[f"{name}_sigma_raw"].astype(float)
+            act = next((why for why, g in DENSITY_VARIANTS if close(sigma, g(raw))), None)
+            c.expect(act is None and (ok_sig or sigma.min() >= 0),
+                     f"{case}: with the reference's weights, sigma = ReLU(density head)",
+                     f"{case}: {act or 'sigma is negative: apply torch.relu to the density head'}",
+                     defining="ReLU density")
+            if not ok_sig and f"{name}_sigma_skip_hx" in f and close(sigma, f[f"{name}_sigma_skip_hx"].astype(float)):
+                c.fail(f"{case}: the skip concatenates [h, γ(x)]: the order is torch.cat([γ(x), h], -1) (the "
+                       "reference's weights expect γ(x) first)", defining="skip input")
+                continue
             if ok_rgb and ok_sig:
                 c.expect(True, f"{case}: with the reference's weights, rgb and sigma equal the reference's", "")
             else:

@@ -11,7 +11,10 @@
 and names the likely mistake: alpha = 1 - exp(-sigma) without the interval length delta, delta
 not scaled by |d|, inclusive instead of exclusive cumulative product in the transmittance, the
 last interval, no white background (or one where black was asked for), depth or accumulation
-computed differently.
+computed differently, weights that forget alpha (w = T) or the transmittance (w = alpha).
+
+Defining property (failing it costs at least half of the points): Δ in α, the interval length in
+the opacity, checked on the slabs and on the random rays with both backgrounds.
 
 The reference :func:`course_lib.nerf.render.volume_render` is imported only inside the builder.
 """
@@ -23,13 +26,26 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.grading.core import FAILED, Check, fixture_builder, load_fixture
+from course_lib.grading.core import FAILED, Check, declare_defining, fixture_builder, load_fixture
 from course_lib.grading.nerf_data import close, to_numpy
 
 __all__ = ["check_volume_render", "render_variant"]
 
 FIXTURE = "nerf_rendering"
 KEYS = ("rgb_map", "depth_map", "acc_map", "weights")
+
+declare_defining("volume_render", {
+    "Δ in α": "alpha_i = 1 - exp(-sigma_i delta_i): the opacity of a sample depends on the length of its interval",
+})
+DELTA = "Δ in α"
+
+#: Weights that are not alpha_i T_i: (mistake, form) for :func:`render_variant`.
+FORM_HINTS = {
+    "T": "the weights forget alpha: w_i = T_i alpha_i (the light that reaches sample i times the share it absorbs), "
+         "not T_i alone",
+    "alpha": "the weights forget the transmittance: w_i = T_i alpha_i with T_i = prod_{j<i} (1 - alpha_j), "
+             "not alpha_i alone (samples behind opaque matter must not count)",
+}
 
 
 def _random_case():
@@ -79,13 +95,14 @@ def _build() -> dict[str, np.ndarray]:
 
 
 def render_variant(rgb, sigma, z, d, white: bool = True, delta: str = "norm", last: str = "1e10",
-                   cumprod: str = "exclusive", depth: str = "sum") -> dict[str, np.ndarray]:
+                   cumprod: str = "exclusive", depth: str = "sum", form: str = "alpha_T") -> dict[str, np.ndarray]:
     """One way of writing volume rendering (the reference is one of them, the others are mistakes).
 
     delta: "norm" (dists * |d|), "plain" (dists, no |d|), "none" (alpha = 1 - exp(-sigma)).
     last: the last interval: "1e10" (NeRF's), "zero" (ignored), "repeat" (the previous one).
     cumprod: "exclusive" (T_i = prod_{j<i}), "inclusive" (prod_{j<=i}).
     depth: "sum" (sum w z), "normalized" (sum w z / acc).
+    form: the weights: "alpha_T" (alpha_i T_i), "T" (T_i, alpha forgotten), "alpha" (alpha_i, T forgotten).
     """
     rgb, sigma, z, d = (np.asarray(a, float) for a in (rgb, sigma, z, d))
     dists = np.diff(z, axis=-1)
@@ -99,7 +116,7 @@ def render_variant(rgb, sigma, z, d, white: bool = True, delta: str = "norm", la
     keep = np.cumprod(1.0 - alpha + 1e-10, axis=-1)
     if cumprod == "exclusive":
         keep = np.concatenate([np.ones_like(keep[:, :1]), keep[:, :-1]], axis=-1)
-    w = alpha * keep
+    w = {"alpha_T": alpha * keep, "T": keep, "alpha": alpha}[form]
     acc = w.sum(-1)
     rgb_map = (w[..., None] * rgb).sum(-2)
     if white:
@@ -183,17 +200,23 @@ def check_volume_render(volume_render: Callable) -> None:
             acc = res["acc_map"]
             ok = np.allclose(acc, 1.0 - trans, atol=1e-4)
             if ok:
-                c.expect(True, f"{case}: the light that gets through is exp(-sigma L)", "")
+                c.expect(True, f"{case}: the light that gets through is exp(-sigma L)", "", defining=DELTA)
             else:
-                no_delta = render_variant(rgb, sigma, z, d, delta="none")["acc_map"]
-                incl = render_variant(rgb, sigma, z, d, cumprod="inclusive")["acc_map"]
+                slab = (rgb, sigma, z, d)
+                no_delta = render_variant(*slab, delta="none")["acc_map"]
+                incl = render_variant(*slab, cumprod="inclusive")["acc_map"]
+                form = next((k for k in FORM_HINTS if close(res["weights"], render_variant(*slab, form=k)["weights"],
+                                                                rtol=1e-3, atol=1e-5)), None)
+                prop = None
                 if close(acc, no_delta, atol=1e-4):
-                    hint = "forgot delta: alpha_i = 1 - exp(-sigma_i * delta_i), not 1 - exp(-sigma_i)"
+                    hint, prop = "forgot delta: alpha_i = 1 - exp(-sigma_i * delta_i), not 1 - exp(-sigma_i)", DELTA
+                elif form is not None:
+                    hint = FORM_HINTS[form]
                 elif close(acc, incl, atol=1e-4):
                     hint = "inclusive cumprod: T_i = prod_{j<i} (1 - alpha_j) must exclude sample i"
                 else:
                     hint = f"acc_map = {np.round(acc, 3).tolist()}, expected 1 - exp(-sigma L) = {np.round(1 - trans, 3).tolist()}"
-                c.fail(f"{case}: {hint}")
+                c.fail(f"{case}: {hint}", defining=prop)
             c.expect(np.allclose(res["weights"].sum(-1), acc, atol=1e-4), f"{case}: acc_map is the sum of the weights",
                      f"{case}: acc_map must be the sum of the weights along each ray")
             if ok:  # the colour only makes sense once the opacity is right
@@ -214,12 +237,18 @@ def check_volume_render(volume_render: Callable) -> None:
                 continue
             ref = {k: f[f"{bg}_{k}"].astype(float) for k in KEYS}
             if close(res["weights"], ref["weights"], rtol=1e-3, atol=1e-5):
-                c.expect(True, f"{case}: weights match the reference", "")
+                c.expect(True, f"{case}: weights match the reference", "", defining=DELTA)
             else:
                 mine = _weights_params(args, res["weights"])
-                c.fail(f"{case}: " + (_weights_hint(mine, ref_params) if mine and ref_params else
-                                      "weights differ from the reference: w_i = T_i (1 - exp(-sigma_i delta_i)), "
-                                      "T_i = prod_{j<i} exp(-sigma_j delta_j)"))
+                form = next((k for k in FORM_HINTS if close(res["weights"], render_variant(*args, form=k, **{
+                    k2: v for k2, v in (ref_params or {}).items()})["weights"], rtol=1e-3, atol=1e-5)), None)
+                if form is not None:
+                    c.fail(f"{case}: {FORM_HINTS[form]}")
+                else:
+                    c.fail(f"{case}: " + (_weights_hint(mine, ref_params) if mine and ref_params else
+                                          "weights differ from the reference: w_i = T_i (1 - exp(-sigma_i delta_i)), "
+                                          "T_i = prod_{j<i} exp(-sigma_j delta_j)"),
+                           defining=DELTA if mine and mine["delta"] == "none" else None)
                 continue
             c.expect(close(res["acc_map"], ref["acc_map"], rtol=1e-3), f"{case}: acc_map matches the reference",
                      f"{case}: acc_map must be the sum of the weights along each ray")

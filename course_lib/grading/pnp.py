@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from course_lib.conventions import project, rotation_angle_deg, world_to_camera
-from course_lib.grading.core import FAILED, Check, fixture_builder, load_fixture
+from course_lib.grading.core import FAILED, Check, declare_defining, fixture_builder, load_fixture
 from course_lib.paths import EMBEDDED_SFM
 
 __all__ = [
@@ -248,14 +248,24 @@ def _rms(e) -> float:
     return float(np.sqrt(np.mean(np.square(e)))) if np.isfinite(e).all() else float("inf")
 
 
-def _rotation_verdict(c: Check, R, case: str) -> bool:
-    """Orthonormal with det +1, or a failure that names the mistake."""
+declare_defining("pnp_linear", {
+    "R is a rotation": "R_cw is orthonormal with det +1 (not a reflection, not a scaled matrix)",
+})
+
+
+def _rotation_verdict(c: Check, R, case: str, defining: str | None = None) -> bool:
+    """Orthonormal with det +1, or a failure that names the mistake.
+
+    With ``defining`` (pnp_linear) a pass is recorded too, as a check of that defining property.
+    """
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
         return c.fail(f"{case}: R_cw is not orthonormal (R Rᵀ ≠ I): you forgot to orthogonalize R; with "
-                      "P[:, :3] = U S Vᵀ take R = U Vᵀ")
+                      "P[:, :3] = U S Vᵀ take R = U Vᵀ", defining=defining)
     if np.linalg.det(R) < 0:
         return c.fail(f"{case}: det R = -1 (a reflection): P is known only up to sign; when det P[:, :3] < 0 "
-                      "flip the sign of P (R and t together)")
+                      "flip the sign of P (R and t together)", defining=defining)
+    if defining is not None:
+        c.expect(True, f"{case}: R_cw is a rotation (orthonormal, det +1)", "", defining=defining)
     return True
 
 
@@ -290,7 +300,7 @@ def check_pnp_linear(fn, exercise: str = "pnp_linear") -> None:
         # noiseless: exact
         K, X, x, R_t, t_t = (f[f"lin_noiseless_{s}"] for s in ("K", "X", "x", "R", "t"))
         out = _pose(c.call(fn, X, x, K, case="noiseless synthetic view"), c, "noiseless synthetic view")
-        if out is not None and _rotation_verdict(c, out[0], "noiseless synthetic view"):
+        if out is not None and _rotation_verdict(c, out[0], "noiseless synthetic view", defining="R is a rotation"):
             R, t = out
             ok = rotation_angle_deg(R, R_t) < 1e-4 and np.linalg.norm(t - t_t) < 1e-6 * max(1.0, np.linalg.norm(t_t))
             if ok:
@@ -307,7 +317,7 @@ def check_pnp_linear(fn, exercise: str = "pnp_linear") -> None:
                 continue
             K, X, x, R_r, t_r = (f[f"{key}_{s}"] for s in ("K", "X", "x", "R", "t"))
             out = _pose(c.call(fn, X, x, K, case=case), c, case)
-            if out is None or not _rotation_verdict(c, out[0], case):
+            if out is None or not _rotation_verdict(c, out[0], case, defining="R is a rotation"):
                 continue
             R, t = out
             e_s, e_r = _rms(_errors(K, R, t, X, x)), _rms(_errors(K, R_r, t_r, X, x))
@@ -396,9 +406,17 @@ def check_pnp_ransac(fn, exercise: str = "pnp_ransac") -> None:
                 c.fail(f"{case}: {int(inl.sum())} inliers, the reference finds {n_r} ({below} points are within "
                        f"{THRESHOLD_PX:g} px of your pose): {hint}")
             else:
+                squared = e**2 < THRESHOLD_PX
+                right = e < THRESHOLD_PX
+                if agree <= 0.9 and not np.array_equal(squared, right) and float((inl == squared).mean()) > 0.97 \
+                        and float((inl == squared).mean()) > float((inl == right).mean()) + 0.02:
+                    why = (f"the inliers are the points whose SQUARED error is below threshold_px: compare the "
+                           f"reprojection error itself (pixels) with threshold_px = {THRESHOLD_PX:g}")
+                else:
+                    why = (f"inliers are the points with reprojection error below threshold_px = {THRESHOLD_PX:g} "
+                           "(in front of the camera)")
                 c.expect(agree > 0.9, f"{case}: the inliers agree with the reference",
-                         f"{case}: only {agree:.0%} of the inlier labels agree with the reference: inliers are the "
-                         f"points with reprojection error below threshold_px = {THRESHOLD_PX:g} (in front of the camera)")
+                         f"{case}: only {agree:.0%} of the inlier labels agree with the reference: {why}")
             if f"{key}_outlier" in f:
                 outl = f[f"{key}_outlier"]
                 c.expect((inl & outl).sum() <= 0.02 * len(X), f"{case}: rejects the outliers",
@@ -437,8 +455,9 @@ def check_pnp_nonlinear(fn, exercise: str = "pnp_nonlinear") -> None:
                 continue
             if e_s > e0 * (1 + 1e-9) + 1e-9:
                 why = _pose_mistake(R, t, R_r, t_r, 0.5, 0.05) or (
-                    "check the residual (projection with the parameters being optimized, minus the observed pixels) "
-                    "and convert the rotation vector back with Rotation.from_rotvec(...).as_matrix()")
+                    "check the residual: the projection K (R X + t) divided by its depth z (the usual slip is a "
+                    "residual without that division), minus the observed pixels; and convert the rotation vector "
+                    "back with Rotation.from_rotvec(...).as_matrix()")
                 c.fail(f"{case}: the non-linear step increased the reprojection error ({e0:.3g} -> {e_s:.3g} px): {why}")
                 continue
             c.expect(True, f"{case}: lowers the reprojection error", "")

@@ -8,10 +8,13 @@ embedded scene (``data/synthetic-building``, ground truth from
 results and with properties, and names the likely mistake:
 
 * ``triangulate_linear``: homogeneous points returned (no division by ``X_h[3]``), points as
-  columns, wrong equations or the wrong singular vector.
+  columns, the cameras swapped in the rows of A, u and v swapped, the singular vector of the
+  largest singular value, a single point (N = 1) that loses its axis.
 * ``choose_pose``: a cheirality test that checks only one camera, forgets ``- C``, uses ``t``
   where ``C`` belongs or the third column of ``R`` instead of its third row; ``R_cw`` returned
-  transposed (``R_wc``); the centre ``C`` returned as ``t_cw``.
+  transposed (``R_wc``); the centre ``C`` returned as ``t_cw``. Defining property: the points in
+  front of BOTH cameras; two pairs (camera 2 moving forward, backward) are built so that a test
+  on one camera only picks the wrong candidate, and the counts expose it on every pair.
 * ``triangulate_nonlinear``: an optimization that increases the error, does not move the
   points, stops early, or uses only two of the views.
 
@@ -29,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from course_lib.conventions import project
-from course_lib.grading.core import FAILED, Check, fixture_builder, load_fixture
+from course_lib.grading.core import FAILED, Check, declare_defining, fixture_builder, load_fixture
 from course_lib.paths import EMBEDDED_SFM
 
 __all__ = [
@@ -50,6 +53,10 @@ EMBEDDED_PAIR = (0, 1)
 STEP_SEED = 0
 #: The most matches stored per embedded case (keeps the fixture small).
 MAX_EMBEDDED = 300
+
+declare_defining("choose_pose", {
+    "in front of both cameras": "the right candidate is the one with the points in front of camera 1 AND camera 2",
+})
 
 
 # --------------------------------------------------------------------------- step input
@@ -203,6 +210,14 @@ def _build() -> dict[str, np.ndarray]:
     _store_pose_case(out, "pose_syn_wide", Rc, Cc, K, x1, x2, tri)
     out["pose_syn_wide_true_R"], out["pose_syn_wide_true_t"] = R, t / np.linalg.norm(t)
 
+    # -- camera 2 moves forward (towards the scene) or backward: here one of the "twisted" candidates
+    #    puts every point in front of camera 1 (or of camera 2) and comes first, so a cheirality test on
+    #    one camera only picks the wrong pose (in the sideways pairs above it only changes the counts)
+    for name, forward in (("fwd", True), ("back", False)):
+        Rc, Cc, x1, x2, R, t = _moving_pair(K, forward)
+        _store_pose_case(out, f"pose_syn_{name}", Rc, Cc, K, x1, x2, tri)
+        out[f"pose_syn_{name}_true_R"], out[f"pose_syn_{name}_true_t"] = R, t / np.linalg.norm(t)
+
     # -- triangulate_nonlinear: three views, some points unseen in view 2, noisy; X0 from the linear DLT
     sc = make_nl_scene()
     R_cws, t_cws, uv = sc.R_cw, sc.t_cw, sc.uv
@@ -230,6 +245,28 @@ def _build() -> dict[str, np.ndarray]:
         uv = np.stack([x1[keep], x2[keep]], axis=1)
         _store_nl_case(out, "nl_embedded", Ke, R_cws, t_cws, uv, out["lin_embedded_X"][keep], tri)
     return out
+
+
+def _moving_pair(K, forward: bool, seed: int = 0):
+    """Candidates and matches of a pair whose camera 2 moves 1.5 units along the optical axis.
+
+    Returns ``(R (4, 3, 3), C (4, 3), x1, x2, R_true, t_true)``; camera 1 is ``[I | 0]``, the
+    60 points lie 5 to 9 units in front of it, 0.3 px noise.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from course_lib.conventions import skew
+    from course_lib.sfm import essential
+
+    rng = np.random.default_rng(seed)
+    X = np.column_stack([rng.uniform(-2, 2, 60), rng.uniform(-1.5, 1.5, 60), rng.uniform(5, 9, 60)])
+    C2 = np.array([rng.uniform(-0.4, 0.4), rng.uniform(-0.3, 0.3), 1.5 if forward else -1.5])
+    R2 = Rotation.from_rotvec(rng.normal(0, 0.05, 3)).as_matrix()
+    t2 = -R2 @ C2
+    x1 = project(K, np.eye(3), np.zeros(3), X) + rng.normal(0, 0.3, (60, 2))
+    x2 = project(K, R2, t2, X) + rng.normal(0, 0.3, (60, 2))
+    Rc, Cc = essential.pose_candidates(skew(t2) @ R2)
+    return Rc, Cc, x1, x2, R2, t2
 
 
 def make_nl_scene():
@@ -293,7 +330,32 @@ def _scale(X) -> float:
     return float(max(np.linalg.norm(X.max(0) - X.min(0)), 1e-9))
 
 
-def _points_verdict(c: Check, X, ref, case: str, tol: float, P1=None, P2=None, x1=None, x2=None) -> bool:
+def _dlt(P1, P2, x1, x2, rows=(0, 1), smallest: bool = True) -> np.ndarray:
+    """The check's own DLT, with switches for the classic mistakes (see :func:`_dlt_variants`)."""
+    out = []
+    for a, b in zip(np.asarray(x1, float), np.asarray(x2, float)):
+        A = np.stack([a[0] * P1[2] - P1[rows[0]], a[1] * P1[2] - P1[rows[1]],
+                      b[0] * P2[2] - P2[rows[0]], b[1] * P2[2] - P2[rows[1]]])
+        Xh = np.linalg.svd(A)[2][-1 if smallest else 0]
+        out.append(Xh[:3] / Xh[3] if Xh[3] != 0 else np.full(3, np.nan))
+    return np.array(out).reshape(-1, 3)
+
+
+def _dlt_variants(P1, P2, x1, x2) -> list[tuple[str, np.ndarray]]:
+    """``(mistake, points that mistake gives)`` for the classic mistakes of the linear triangulation."""
+    with np.errstate(all="ignore"):
+        return [
+            ("the cameras are swapped in the rows of A: the rows of x1 use P2 and those of x2 use P1; build "
+             "u1 p3ᵀ - p1ᵀ, v1 p3ᵀ - p2ᵀ from P1 and the same two rows with x2 from P2", _dlt(P2, P1, x1, x2)),
+            ("u and v are swapped in the rows of A: u goes with the first row of P (u p3ᵀ - p1ᵀ) and v with the "
+             "second (v p3ᵀ - p2ᵀ)", _dlt(P1, P2, x1, x2, rows=(1, 0))),
+            ("you took the singular vector of the LARGEST singular value: X_h is the last row of Vt (Vt[-1]), "
+             "the least-squares null vector of A", _dlt(P1, P2, x1, x2, smallest=False)),
+        ]
+
+
+def _points_verdict(c: Check, X, ref, case: str, tol: float, P1=None, P2=None, x1=None, x2=None,
+                    pass_msg: str = "matches the reference") -> bool:
     """Shape and closeness of triangulated points, with the typical mistakes named."""
     if X is FAILED:
         return False
@@ -313,7 +375,7 @@ def _points_verdict(c: Check, X, ref, case: str, tol: float, P1=None, P2=None, x
     d = np.linalg.norm(A - ref, axis=1)
     scale = _scale(ref)
     if np.median(d) <= tol * scale:
-        return c.expect(True, f"{case}: matches the reference", "")
+        return c.expect(True, f"{case}: {pass_msg}", "")
     # not divided by the homogeneous coordinate: each row parallel to the right point, other length
     cos = (A * ref).sum(1) / (np.linalg.norm(A, axis=1) * np.linalg.norm(ref, axis=1) + 1e-300)
     if np.median(np.abs(cos)) > 1 - 1e-6 and np.median(np.abs(np.linalg.norm(A, axis=1) / np.linalg.norm(ref, axis=1) - 1)) > 1e-3:
@@ -325,6 +387,9 @@ def _points_verdict(c: Check, X, ref, case: str, tol: float, P1=None, P2=None, x
     if P1 is not None:
         from course_lib.conventions import from_homogeneous, to_homogeneous
 
+        for why, Y in _dlt_variants(P1, P2, x1, x2):
+            if np.median(np.linalg.norm(A - Y, axis=1)) <= max(tol, 1e-6) * scale:
+                return c.fail(f"{case}: {why}")
         Xh = to_homogeneous(A)
         e = np.concatenate([np.linalg.norm(from_homogeneous(Xh @ P.T) - x, axis=1) for P, x in ((P1, x1), (P2, x2))])
         hint = f" (median reprojection error {np.median(e):.3g} px)"
@@ -350,9 +415,8 @@ def check_triangulate_linear(fn, exercise: str = "triangulate_linear") -> None:
             if X is FAILED:
                 continue
             if name == "noiseless":
-                ok = _points_verdict(c, X, f[f"{k}_Xtrue"], case, tol, P1, P2, x1, x2)
-                if ok:
-                    c.lines[-1] = c.lines[-1].replace("matches the reference", "recovers the true points exactly")
+                _points_verdict(c, X, f[f"{k}_Xtrue"], case, tol, P1, P2, x1, x2,
+                                pass_msg="recovers the true points exactly")
             else:
                 _points_verdict(c, X, f[f"{k}_X"], case, tol, P1, P2, x1, x2)
         # one point at a time must work too (N = 1)
@@ -360,9 +424,18 @@ def check_triangulate_linear(fn, exercise: str = "triangulate_linear") -> None:
         X1 = c.call(fn, P1, P2, f["lin_noiseless_x1"][:1], f["lin_noiseless_x2"][:1], case="a single point (N = 1)")
         if X1 is not FAILED:
             A = _arr(X1)
-            c.expect(A is not None and A.shape == (1, 3) and np.allclose(A, f["lin_noiseless_Xtrue"][:1], rtol=1e-6, atol=1e-6),
-                     "a single point (N = 1) works",
-                     f"a single point (N = 1): expected shape (1, 3) and the true point, got shape {None if A is None else A.shape}")
+            want = f["lin_noiseless_Xtrue"][:1]
+            case = "a single point (N = 1)"
+            if A is None or A.size != 3:
+                c.fail(f"{case}: expected an array of shape (1, 3), got "
+                       f"{type(X1).__name__ if A is None else 'shape ' + str(A.shape)}")
+            elif A.shape != (1, 3):
+                c.fail(f"{case}: returned shape {A.shape}: keep the points axis for N = 1 (shape (1, 3)); "
+                       "np.squeeze or X[0] drops it")
+            else:
+                c.expect(np.allclose(A, want, rtol=1e-6, atol=1e-6), f"{case} works",
+                         f"{case}: the right shape (1, 3) but not the true point ({np.round(A[0], 3).tolist()} instead "
+                         f"of {np.round(want[0], 3).tolist()}): build A from this one point as for N points")
 
 
 # --------------------------------------------------------------------------- choose_pose
@@ -446,12 +519,13 @@ def _pose_case(c: Check, fn, f, key, case) -> None:
                                        "of BOTH cameras (z > 0 in camera 1 and r3ᵀ (X - C) > 0 in camera 2)")
         ref_counts = f[f"{key}_counts"]
         c.fail(f"{case}: chose candidate {k} ({int(ref_counts[k])} points in front of both cameras) instead of "
-               f"candidate {ref_k} ({int(ref_counts[ref_k])}): {why}")
+               f"candidate {ref_k} ({int(ref_counts[ref_k])}): {why}", defining="in front of both cameras")
         return
     if confusion:
         c.fail(f"{case}: the right candidate, but {confusion}")
         return
-    c.expect(True, f"{case}: picks the candidate with the points in front of both cameras", "")
+    c.expect(True, f"{case}: picks the candidate with the points in front of both cameras", "",
+             defining="in front of both cameras")
     if X_s is None or X_s.shape != f[f"{key}_X"].shape:
         c.fail(f"{case}: X must have shape {f[f'{key}_X'].shape}, got {None if X_s is None else X_s.shape}")
     else:
@@ -471,7 +545,8 @@ def _pose_case(c: Check, fn, f, key, case) -> None:
         why = named[0] if named else ("count, for each candidate, the points with z > 0 in camera 1 AND "
                                       "r3ᵀ (X - C) > 0 in camera 2")
         c.expect(close, f"{case}: in_front and counts agree with the reference",
-                 f"{case}: counts {counts_s.astype(int).tolist()}, expected about {ref_counts.tolist()}: {why}")
+                 f"{case}: counts {counts_s.astype(int).tolist()}, expected about {ref_counts.tolist()}: {why}",
+                 defining="in front of both cameras" if named else None)
     if f"{key}_true_R" in f:
         ok = np.allclose(R_s, f[f"{key}_true_R"], atol=1e-6) and np.allclose(t_s, f[f"{key}_true_t"], atol=1e-6)
         c.expect(ok, f"{case}: equals the true relative pose", f"{case}: differs from the true relative pose")
@@ -488,7 +563,10 @@ def check_choose_pose(fn, exercise: str = "choose_pose") -> None:
     f = load_fixture(FIXTURE)
     with Check(exercise) as c:
         for key, case in (("pose_syn_a", "synthetic pair A"), ("pose_syn_b", "synthetic pair B"),
-                          ("pose_syn_wide", "wide-baseline synthetic pair"), ("pose_embedded", "embedded scene")):
+                          ("pose_syn_wide", "wide-baseline synthetic pair"),
+                          ("pose_syn_fwd", "synthetic pair, camera 2 moves forward"),
+                          ("pose_syn_back", "synthetic pair, camera 2 moves backward"),
+                          ("pose_embedded", "embedded scene")):
             if f"{key}_R" in f:
                 _pose_case(c, fn, f, key, case)
 
@@ -521,7 +599,8 @@ def check_triangulate_nonlinear(fn, exercise: str = "triangulate_nonlinear") -> 
                 continue
             if e_s > e0 * (1 + 1e-9) + 1e-9:
                 c.fail(f"{case}: the non-linear step increased the reprojection error ({e0:.3g} -> {e_s:.3g} px): "
-                       "check the residual (projection divided by z, minus the observed pixel) and return the optimum")
+                       "check the residual: the projection K (R X + t) divided by its depth z (the usual slip is a "
+                       "residual without that division), minus the observed pixel; and return the optimum")
                 continue
             c.expect(True, f"{case}: lowers the reprojection error", "")
             if f"{key}_X_2views" in f and np.median(np.linalg.norm(A - f[f"{key}_X_2views"], axis=1)) < 1e-4 * _scale(ref):
