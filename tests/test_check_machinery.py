@@ -65,3 +65,59 @@ def test_fixtures_are_current():
         pytest.skip("no fixture builders registered")
     stale = {k: v for k, v in diffs.items() if v}
     assert not stale, f"stale fixtures (run: python -m course_lib fixtures): {stale}"
+
+
+# --------------------------------------------------------------------------- severity in the score
+
+
+def test_shape_is_a_gate_that_earns_no_points(capsys):
+    with Check("gate demo") as c:
+        c.shape(np.zeros((3, 3)), (3, 3), "F")
+        c.expect(True, "value right", "")
+        c.expect(False, "", "value wrong")
+    r = core.RESULTS["gate demo"]
+    assert (r.passed, r.total) == (2, 3)  # the printed count keeps every check
+    assert r.points == (1, 2) and core.score(r) == 0.5  # the passing gate earns nothing
+    with Check("gate only") as c:
+        c.shape(np.zeros((3, 3)), (3, 3), "F")
+    assert core.score(core.RESULTS["gate only"]) == 0.0  # no points for shape alone
+    with Check("gate fails") as c:
+        c.shape(np.zeros((3, 4)), (3, 3), "F")
+        c.expect(True, "other case right", "")
+    assert core.score(core.RESULTS["gate fails"]) == 0.5  # a failed gate counts as a failed check
+    assert "expected (3, 3)" in capsys.readouterr().out
+
+
+def test_a_failed_defining_property_caps_the_score_and_leads_the_verdict(capsys):
+    core.declare_defining("defining demo", {"rank 2": "what makes F a fundamental matrix"})
+    with Check("defining demo") as c:
+        for k in range(9):
+            c.expect(True, f"case {k} fits", "")
+        c.expect(False, "", "case 9: F has rank 3: enforce rank 2", defining="rank 2")
+        c.expect(True, "case 10: F has rank 2", "", defining="rank 2")
+    r = core.RESULTS["defining demo"]
+    assert r.passed == 10 and r.total == 11 and r.defining_failed == ["rank 2"]
+    assert core.score(r) == core.DEFINING_CAP == 0.5  # 10/11 without the cap
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "defining demo"
+    assert "defining property fails: rank 2" in lines[1] and "half of the points" in lines[1]
+    assert lines[2] == "  ✘ case 9: F has rank 3: enforce rank 2"  # the failing check follows it
+    assert lines[-1] == "  10 of 11 checks passed"
+
+
+def test_a_defining_property_must_be_declared():
+    with pytest.raises(ValueError, match="not a declared defining property"):
+        Check("undeclared").expect(True, "x", "y", defining="rank 2")
+
+
+def test_passing_defining_checks_print_as_before(capsys):
+    core.declare_defining("defining pass", {"det R = +1": "a rotation"})
+    with Check("defining pass") as c:
+        c.expect(True, "R is a rotation", "", defining="det R = +1")
+    assert capsys.readouterr().out.splitlines() == ["defining pass", "  ✔ R is a rotation", "  all 1 checks passed"]
+    assert core.score(core.RESULTS["defining pass"]) == 1.0
+
+
+def test_score_of_a_result_without_verdicts_is_passed_over_total():
+    assert core.score(core.CheckResult("by hand", 3, 4)) == 0.75
+    assert core.score(core.CheckResult("empty", 0, 0)) == 0.0
