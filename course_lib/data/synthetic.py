@@ -16,7 +16,14 @@ import numpy as np
 
 from course_lib.conventions import camera_center, project, world_to_camera
 
-__all__ = ["SyntheticScene", "make_scene", "look_at", "WPI_LIKE_K"]
+__all__ = ["SyntheticScene", "make_scene", "look_at", "write_scene_p3", "WPI_LIKE_K", "OUTLIER_KINDS"]
+
+#: How :func:`make_scene` corrupts an outlier observation: ``"random"`` puts it at a uniform random
+#: pixel; ``"swap"`` puts it exactly on the observation of *another* point in the same image (a
+#: real feature matched to the wrong point, as repetitive facades produce). Written to a P3
+#: folder, a swapped observation joins two tracks through that image (features are identified by
+#: equal pixels), which is what makes it hard.
+OUTLIER_KINDS = ("random", "swap")
 
 #: Intrinsics like the WPI Unity Hall camera (800x600 after resizing), in pixels.
 WPI_LIKE_K = np.array([[531.12, 0.0, 407.19], [0.0, 531.54, 313.31], [0.0, 0.0, 1.0]])
@@ -54,7 +61,8 @@ class SyntheticScene:
         X: ``(N, 3)`` true 3-D points.
         uv: ``(N, M, 2)`` observed pixels (noise and outliers included), NaN where not seen.
         uv_true: ``(N, M, 2)`` noiseless projections, NaN where not seen.
-        outlier: ``(N, M)`` True where the observation was replaced by a random pixel.
+        outlier: ``(N, M)`` True where the observation was replaced by a wrong pixel (a random one
+            or another point's observation, see ``outlier_kind``).
         image_size: ``(W, H)`` in pixels.
         noise_px: standard deviation of the Gaussian pixel noise per coordinate.
     """
@@ -110,6 +118,7 @@ def make_scene(
     K: np.ndarray | None = None,
     image_size: tuple[int, int] = (800, 600),
     dropout: float = 0.15,
+    outlier_kind: str = "random",
 ) -> SyntheticScene:
     """A small facade-like scene seen by cameras on an arc, with noise and outliers.
 
@@ -122,7 +131,10 @@ def make_scene(
         n_cameras: M, at least 2.
         n_points: N.
         noise_px: Gaussian noise (pixels, per coordinate) added to every observation.
-        outlier_fraction: fraction of observations replaced by uniform random pixels.
+        outlier_fraction: fraction of observations replaced by wrong pixels.
+        outlier_kind: ``"random"`` (uniform random pixels) or ``"swap"`` (the observation of
+            another point in the same image, a correct observation of that point; see
+            :data:`OUTLIER_KINDS`).
         K: ``(3, 3)`` intrinsics; default :data:`WPI_LIKE_K`.
         image_size: ``(W, H)``.
         dropout: probability that a visible point is nevertheless not observed in an image
@@ -133,6 +145,8 @@ def make_scene(
     """
     if n_cameras < 2:
         raise ValueError(f"n_cameras={n_cameras}: a scene needs at least 2 cameras")
+    if outlier_kind not in OUTLIER_KINDS:
+        raise ValueError(f"outlier_kind={outlier_kind!r}: expected one of {OUTLIER_KINDS}")
     K = WPI_LIKE_K.copy() if K is None else np.asarray(K, float)
     W, H = image_size
     target = np.array([0.0, 0.0, 10.0])
@@ -157,6 +171,41 @@ def make_scene(
     uv = uv_true + rng.normal(0.0, noise_px, uv_true.shape)
     visible = ~np.isnan(uv[..., 0])
     outlier = visible & (rng.random(visible.shape) < outlier_fraction)
-    n_out = int(outlier.sum())
-    uv[outlier] = rng.uniform([0.0, 0.0], [W - 1.0, H - 1.0], size=(n_out, 2))
+    if outlier_kind == "random":
+        n_out = int(outlier.sum())
+        uv[outlier] = rng.uniform([0.0, 0.0], [W - 1.0, H - 1.0], size=(n_out, 2))
+    else:
+        for i in range(n_cameras):
+            bad = np.flatnonzero(outlier[:, i])
+            donors = np.flatnonzero(visible[:, i] & ~outlier[:, i])
+            if len(bad) == 0 or len(donors) == 0:
+                continue
+            # each wrong observation takes the (noisy) pixel of a different point's correct one
+            pick = rng.choice(donors, size=len(bad), replace=len(bad) > len(donors))
+            uv[bad, i] = uv[pick, i]
     return SyntheticScene(K, R_cw, t_cw, X, uv, uv_true, outlier, (W, H), float(noise_px))
+
+
+def write_scene_p3(scene: SyntheticScene, folder):
+    """Write a scene's observations as a P3 folder (no images) and read it back.
+
+    Only points seen in two or more images are written (a P3 file holds matches). The scene's
+    arrays are *not* changed; the P3 reader joins tracks by equal pixels, so with
+    ``outlier_kind="swap"`` the tracks read back are chains of several points, as real matching
+    files with repeated structures give.
+
+    Args:
+        scene: a :class:`SyntheticScene`.
+        folder: output folder (created).
+
+    Returns:
+        ``(P3Data, keep)``: the data read back with :func:`course_lib.data.p3.read_p3` and ``keep
+        (N,)`` bool, the points that were written.
+    """
+    from course_lib.data.p3 import read_p3, write_p3
+
+    keep = scene.visible.sum(axis=1) >= 2
+    M = scene.n_cameras
+    rgb = np.full((int(keep.sum()), 3), 128, np.uint8)
+    write_p3(folder, [f"{i + 1}.png" for i in range(M)], scene.K, scene.uv[keep], rgb)
+    return read_p3(folder, require_images=False), keep

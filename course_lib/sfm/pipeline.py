@@ -5,9 +5,13 @@
 report of every stage. The stages are the notebooks' exercises, called from the reference
 library:
 
-1. **Outlier matches** (notebook 01): RANSAC on F for every image pair
-   (:func:`~course_lib.sfm.fundamental.ransac_fundamental`). An observation of a track in an image
-   is kept only if at least one of its correspondences is a RANSAC inlier.
+1. **Verified tracks** (notebook 01, :mod:`course_lib.sfm.tracks`): RANSAC on F for every image
+   pair (the 8-point algorithm and the Sampson distance of
+   :func:`~course_lib.sfm.fundamental.ransac_fundamental`, samples solved in batches), then the
+   tracks are joined from the *inlier* matches only, by union-find, trusted pairs first; a link
+   that would put two features of one image into one track is refused, so the track is split
+   there instead of being dropped. (The P3 reader's tracks, joined from the raw matches, are
+   not used: a few wrong matches that are real features of other points chain unrelated tracks.)
 2. **Initial pair** (notebooks 02, 03): among the pairs with many inliers, the one whose
    triangulated points have the widest triangulation angles (a long baseline): score =
    number of inlier points triangulated in front of both cameras with an angle above
@@ -26,12 +30,13 @@ library:
    This is how UPenn images 5 and 6, which share no matches with images 1 and 2, come in.
 5. **Bundle adjustment** (notebook 05, :func:`~course_lib.sfm.bundle_adjustment.bundle_adjust`):
    after every registration (robust Huber loss, then observations beyond ``max_reproj_px`` are
-   removed); at the end observations beyond ``final_max_reproj_px`` are removed and a final BA
-   (Cauchy loss at 0.3 px by default) polishes the result.
+   removed); at the end the noise level ``sigma`` is estimated from the median reprojection
+   error, observations beyond ``4 sigma`` (within [1, 4] px) are removed and a final BA with a
+   Cauchy loss at ``2 sigma`` (at least 0.3 px) polishes the result.
 
-P3 data quirks handled upstream by the reader (:mod:`course_lib.data.p3`): tracks across
-matching files are joined by equal coordinates, duplicate rows are merged, inconsistent tracks
-are split. Matches contain outliers on purpose (step 1).
+P3 data quirks handled upstream by the reader (:mod:`course_lib.data.p3`): duplicate rows are
+merged, features are identified by equal coordinates. Matches contain outliers on purpose
+(step 1). ``Reconstruction.track_uv`` holds the verified tracks (not ``P3Data.track_uv``).
 
 Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
 """
@@ -208,9 +213,9 @@ def _image_size(data) -> tuple[int, int]:
 class _State:
     """Arrays the stages share (all indexed by track j and image i)."""
 
-    def __init__(self, data, K):
+    def __init__(self, track_uv, K):
         self.K = K
-        self.uv = np.asarray(data.track_uv, float)
+        self.uv = np.asarray(track_uv, float)
         T, M = self.uv.shape[:2]
         self.T, self.M = T, M
         self.visible = np.isfinite(self.uv).all(axis=2)
@@ -241,33 +246,29 @@ class _State:
         return _stats(self.errors())
 
 
-def _reject_outlier_matches(data, st: _State, rng, threshold_px: float, min_matches: int, report: dict):
-    """RANSAC on F for every pair; keep an observation only if one of its correspondences is an inlier."""
-    from course_lib.sfm.fundamental import ransac_fundamental
+def _verified_tracks(data, rng, threshold_px: float, min_matches: int, report: dict):
+    """RANSAC on F for every pair, then tracks from the inlier matches only (:mod:`course_lib.sfm.tracks`)."""
+    from course_lib.sfm.tracks import verified_tracks, verify_pairs
 
-    good = np.zeros((st.T, st.M), dtype=int)
-    pairs = {}
-    rows = []
-    for (i, j) in sorted(data.matches):
-        pm = data.matches[(i, j)]
-        n = len(pm)
-        if n < max(8, min_matches):
-            rows.append({"pair": [i, j], "matches": n, "inliers": 0, "note": "too few matches for RANSAC"})
-            continue
-        res = ransac_fundamental(pm.x1, pm.x2, rng, threshold_px=threshold_px)
-        inl = np.asarray(res.inliers, bool)
-        tid = np.asarray(pm.track_ids)
-        ok = inl & (tid >= 0)
-        np.add.at(good, (tid[ok], np.full(ok.sum(), i)), 1)
-        np.add.at(good, (tid[ok], np.full(ok.sum(), j)), 1)
-        pairs[(i, j)] = (res.F, inl)
-        rows.append({"pair": [i, j], "names": [data.image_names[i], data.image_names[j]], "matches": n,
-                     "inliers": int(inl.sum()), "ransac_iterations": int(res.n_iters)})
-    st.candidate &= good > 0
+    ver = verify_pairs(data.matches, rng, threshold_px)
+    pairs, rows = {}, []
+    for (i, j), v in ver.items():
+        row = {"pair": [i, j], "names": [data.image_names[i], data.image_names[j]], "matches": len(v.inliers),
+               "inliers": v.n_inliers, "ransac_iterations": int(v.n_iters)}
+        if v.F is None or v.n_inliers < min_matches:
+            row["note"] = v.note or f"{v.n_inliers} inliers: too few to trust F"
+        else:
+            pairs[(i, j)] = (v.F, v.inliers)
+        rows.append(row)
+    tracks = verified_tracks(data, ver, min_inliers=min_matches)
     report["pairs"] = rows
-    report["observations_kept_after_ransac"] = int(st.candidate.sum())
-    report["observations_before_ransac"] = int(st.visible.sum())
-    return pairs
+    report["tracks"] = {"raw_tracks": int(data.n_tracks) if hasattr(data, "n_tracks") else None,
+                        "raw_observations": int(np.isfinite(np.asarray(data.track_uv, float)[..., 0]).sum()),
+                        "verified_tracks": tracks.stats["tracks"],
+                        "verified_observations": int(np.isfinite(tracks.uv[..., 0]).sum()),
+                        "verified_matches": tracks.stats["edges"],
+                        "refused_links": tracks.stats["refused_edges"]}
+    return pairs, tracks
 
 
 def _two_view(data, st: _State, i: int, j: int, F: np.ndarray, inl: np.ndarray):
@@ -413,14 +414,36 @@ def _bundle(st: _State, ref: int, loss: str, f_scale: float, max_iterations: int
     }
 
 
+#: Median of the Rayleigh distribution over sigma: the reprojection error (a 2-D distance) of
+#: observations with Gaussian noise sigma per coordinate has median sigma * sqrt(2 ln 2).
+_RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
+
+
+def _final_thresholds(st: _State, max_reproj_px, f_scale) -> tuple[float, float, float]:
+    """Threshold and robust-loss scale of the final BA: given, or from the noise level (``None``).
+
+    The noise ``sigma`` (pixels per coordinate) is estimated robustly from the median
+    reprojection error of the current inlier observations. ``None`` threshold: ``4 sigma`` within
+    [1, 4] px (about 1 in 3000 good observations is beyond 4 sigma). ``None`` scale: ``2 sigma``,
+    at least 0.3 px: the Cauchy loss then flattens only for errors well beyond the noise (SIFT's
+    heavy tail), and Gaussian noise keeps nearly the weight of plain least squares.
+    """
+    e = st.errors()
+    e = e[np.isfinite(e)]
+    sigma = float(np.median(e) / _RAYLEIGH_MEDIAN) if len(e) else 1.0
+    thr = float(np.clip(4.0 * sigma, 1.0, 4.0)) if max_reproj_px is None else float(max_reproj_px)
+    fs = max(0.3, 2.0 * sigma) if f_scale is None else float(f_scale)
+    return thr, fs, sigma
+
+
 def run_sfm(
     data,
     rng: np.random.Generator,
     *,
-    f_threshold_px: float = 1.0,
+    f_threshold_px: float = 2.0,
     pnp_threshold_px: float = 8.0,
     max_reproj_px: float = 4.0,
-    final_max_reproj_px: float = 2.0,
+    final_max_reproj_px: float | None = None,
     min_angle_deg: float = 1.0,
     init_min_angle_deg: float = 2.0,
     min_pair_inliers: int = 50,
@@ -430,7 +453,7 @@ def run_sfm(
     ba_f_scale: float = 1.0,
     ba_max_iterations: int = 10,
     final_ba_loss: str = "cauchy",
-    final_ba_f_scale: float = 0.3,
+    final_ba_f_scale: float | None = None,
     initial_pair: tuple[int, int] | None = None,
     verbose: bool = False,
 ) -> Reconstruction:
@@ -440,10 +463,13 @@ def run_sfm(
         data: a :class:`course_lib.data.p3.P3Data` (``K``, ``image_names``, ``track_uv``,
             ``track_rgb``, ``matches``; ``image_size`` if the images are present).
         rng: seeded ``numpy.random.Generator`` (RANSAC on F and PnP draw from it).
-        f_threshold_px: RANSAC threshold on the Sampson distance for the pairs (pixels).
+        f_threshold_px: RANSAC threshold on the Sampson distance for the pairs (pixels); only
+            matches within it join tracks.
         pnp_threshold_px: PnP RANSAC threshold on the reprojection error (pixels).
         max_reproj_px: observations reprojecting farther than this are dropped during the run.
-        final_max_reproj_px: the stricter threshold of the last filtering before the final BA.
+        final_max_reproj_px: the threshold of the last filtering before the final BA; ``None``
+            (default): 4 times the noise level estimated from the median reprojection error,
+            within [1, 4] px.
         min_angle_deg: smallest triangulation angle for a point to be kept.
         init_min_angle_deg: angle a point of the initial pair must have to count in its score.
         min_pair_inliers: pairs with fewer RANSAC inliers cannot be the initial pair.
@@ -454,9 +480,11 @@ def run_sfm(
         ba_loss, ba_f_scale: robust loss of the intermediate bundle adjustments.
         ba_max_iterations: iteration cap of each bundle adjustment (twice that for the final one).
         final_ba_loss, final_ba_f_scale: loss of the final bundle adjustment, run after the
-            observations beyond ``final_max_reproj_px`` were removed. The default, Cauchy at 0.3 px,
-            down-weights the heavy tail of SIFT localization errors (on the embedded scene it
-            halves the rotation error against the ground truth compared with plain least squares).
+            observations beyond ``final_max_reproj_px`` were removed. The default, Cauchy at
+            ``None`` = twice the estimated noise (at least 0.3 px), down-weights the heavy tail of
+            SIFT localization errors (on the embedded scene it halves the rotation error against
+            the ground truth compared with plain least squares) and keeps nearly the efficiency
+            of least squares on Gaussian noise.
         initial_pair: force the initial pair ``(i, j)`` (0-based) instead of choosing it.
         verbose: print one line per stage.
 
@@ -510,19 +538,22 @@ def _run_sfm(
         raise KitInputError(f"data has {M} image(s): SfM needs at least two")
     say = print if verbose else (lambda *a, **k: None)
 
-    st = _State(data, K)
-    report: dict = {"n_images": M, "n_tracks": st.T, "options": {
+    report: dict = {"n_images": M, "options": {
         "f_threshold_px": f_threshold_px, "pnp_threshold_px": pnp_threshold_px, "max_reproj_px": max_reproj_px,
         "final_max_reproj_px": final_max_reproj_px, "min_angle_deg": min_angle_deg,
         "bundle_adjustment": bundle_adjustment, "ba_loss": ba_loss, "ba_f_scale": ba_f_scale,
         "final_ba_loss": final_ba_loss, "final_ba_f_scale": final_ba_f_scale}}
     seconds: dict[str, float] = {}
 
-    # 1. outlier matches -----------------------------------------------------------------------
+    # 1. verified matches and their tracks ---------------------------------------------------------
     t0 = time.perf_counter()
-    pairs = _reject_outlier_matches(data, st, rng, f_threshold_px, 8, report)
+    pairs, tracks = _verified_tracks(data, rng, f_threshold_px, 16, report)
+    st = _State(tracks.uv, K)
+    report["n_tracks"] = st.T
     seconds["ransac_F"] = time.perf_counter() - t0
-    say(f"RANSAC on F: {len(pairs)} pairs, {report['observations_kept_after_ransac']}/{report['observations_before_ransac']} observations kept")
+    tr = report["tracks"]
+    say(f"RANSAC on F: {len(pairs)} pairs verified; {tr['verified_tracks']} tracks from {tr['verified_matches']} inlier matches "
+        f"({tr['refused_links']} links refused: they joined two features of one image)")
 
     # 2. initial pair ----------------------------------------------------------------------------
     t0 = time.perf_counter()
@@ -600,9 +631,12 @@ def _run_sfm(
     if bundle_adjustment != "none":
         if bundle_adjustment == "final":
             final_stage["ba_robust"] = _bundle(st, a, ba_loss, ba_f_scale, 2 * ba_max_iterations)
-        final_stage["filter"] = _filter(st, final_max_reproj_px, min_angle_deg)
-        final_stage["ba"] = _bundle(st, a, final_ba_loss, final_ba_f_scale, 2 * ba_max_iterations, ftol=1e-6)
-        final_stage["filter_after"] = _filter(st, final_max_reproj_px, min_angle_deg)
+        thr, fs, sigma = _final_thresholds(st, final_max_reproj_px, final_ba_f_scale)
+        final_stage["noise_sigma_px"] = round(sigma, 4)
+        final_stage["max_reproj_px"], final_stage["ba_f_scale"] = round(thr, 4), round(fs, 4)
+        final_stage["filter"] = _filter(st, thr, min_angle_deg)
+        final_stage["ba"] = _bundle(st, a, final_ba_loss, fs, 2 * ba_max_iterations, ftol=1e-6)
+        final_stage["filter_after"] = _filter(st, thr, min_angle_deg)
         final_stage["reprojection_after_ba"] = st.observation_stats()
     final_stage["seconds"] = round(time.perf_counter() - t0, 3)
     stages.append(final_stage)
@@ -617,7 +651,7 @@ def _run_sfm(
         R_cw=st.R.copy(),
         t_cw=st.t.copy(),
         X=st.X.copy(),
-        rgb=np.asarray(data.track_rgb, dtype=np.uint8).copy(),
+        rgb=tracks.rgb.copy(),
         track_uv=st.uv.copy(),
         inlier=st.inlier.copy(),
         report=report,

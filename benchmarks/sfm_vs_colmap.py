@@ -1,0 +1,224 @@
+"""The kit's SfM pipeline side by side with COLMAP (pycolmap), on the same P3 matches.
+
+For every scene both get the same correspondences (a P3 folder, read once with
+:func:`course_lib.data.p3.read_p3`):
+
+* **kit**: :func:`course_lib.sfm.pipeline.run_sfm` (RANSAC on F per pair, verified tracks,
+  incremental mapping, bundle adjustment), default options, ``rng`` seeded with 0;
+* **COLMAP**: a COLMAP database built from the same matches (one PINHOLE camera with the P3
+  ``K``, the distinct pixels of each image as keypoints, the raw matches of each pair), then
+  ``pycolmap.geometric_verification`` and ``pycolmap.incremental_mapping`` with the intrinsics
+  held fixed. Its time includes writing the database (both start from the P3 matches in memory).
+
+Printed per scene and method: registered images, 3-D points, mean reprojection error (pixels),
+mean and max rotation error (degrees) and mean centre error (% of the scene size) against the
+ground truth after a similarity alignment on rotations and centres
+(:func:`course_lib.sfm.evaluate.pose_errors`), and seconds. For the course data (no ground
+truth) the pose columns compare the kit with COLMAP instead (marked ``vs COLMAP``).
+
+Scenes: the embedded rendered scene (``data/synthetic-building``), synthetic scenes
+(:func:`course_lib.data.synthetic.make_scene`) of 5, 8 and 12 cameras with 10-30 % wrong
+observations of both kinds (``random``: uniform random pixels; ``swap``: the pixel of another
+point's feature), and WPI / UPenn where the course data is present.
+
+Usage::
+
+    python benchmarks/sfm_vs_colmap.py                  # every scene
+    python benchmarks/sfm_vs_colmap.py --scenes syn     # only the synthetic ones
+    python benchmarks/sfm_vs_colmap.py --json out.json  # also write the rows
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from course_lib.data.p3 import read_p3  # noqa: E402
+from course_lib.data.synthetic import make_scene, write_scene_p3  # noqa: E402
+from course_lib.paths import EMBEDDED_SFM, course_data  # noqa: E402
+from course_lib.sfm.evaluate import pose_errors  # noqa: E402
+from course_lib.sfm.pipeline import run_sfm  # noqa: E402
+
+#: (name, n_cameras, noise_px, outlier_fraction, outlier_kind, seed)
+SYNTHETIC = [
+    ("syn-5-10%-random", 5, 0.5, 0.10, "random", 5),
+    ("syn-5-10%-swap", 5, 0.5, 0.10, "swap", 5),
+    ("syn-8-30%-random", 8, 1.0, 0.30, "random", 8),
+    ("syn-8-30%-swap", 8, 1.0, 0.30, "swap", 8),
+    ("syn-12-20%-random", 12, 0.5, 0.20, "random", 12),
+    ("syn-12-20%-swap", 12, 0.5, 0.20, "swap", 12),
+]
+
+
+def _keypoints_and_matches(data):
+    """Distinct pixels of each image (COLMAP keypoints) and each pair's matches as keypoint indices."""
+    M = len(data.image_names)
+    ends = [[] for _ in range(M)]
+    for (i, j), pm in data.matches.items():
+        ends[i].append(pm.x1)
+        ends[j].append(pm.x2)
+    kps = [np.unique(np.concatenate(e), axis=0) if e else np.zeros((0, 2)) for e in ends]
+    index = [{(float(u), float(v)): k for k, (u, v) in enumerate(kp)} for kp in kps]
+    matches = {}
+    for (i, j), pm in data.matches.items():
+        a = [index[i][(float(u), float(v))] for u, v in pm.x1]
+        b = [index[j][(float(u), float(v))] for u, v in pm.x2]
+        matches[(i, j)] = np.array([a, b], dtype=np.uint32).T.reshape(-1, 2)
+    return kps, matches
+
+
+def run_colmap(data, image_size, workdir: Path, seed: int = 0):
+    """COLMAP's geometric verification and incremental mapping on the P3 matches.
+
+    Returns:
+        dict with ``R_cw (M, 3, 3)``, ``t_cw (M, 3)`` (NaN where unregistered), ``registered (M,)``,
+        ``points``, ``mean_reprojection_error_px``, ``seconds``.
+    """
+    import pycolmap
+
+    pycolmap.logging.minloglevel = 2  # warnings and errors only
+    t0 = time.perf_counter()
+    M = len(data.image_names)
+    K = data.K
+    W, H = image_size
+    kps, matches = _keypoints_and_matches(data)
+    db_path = workdir / "database.db"
+    with pycolmap.Database.open(str(db_path)) as db:
+        cam = pycolmap.Camera(model="PINHOLE", width=int(W), height=int(H), params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+        cid = db.write_camera(cam)
+        ids = []
+        for i in range(M):
+            ids.append(db.write_image(pycolmap.Image(name=data.image_names[i], camera_id=cid)))
+            db.write_keypoints(ids[-1], kps[i].astype(np.float32))
+        for (i, j), m in matches.items():
+            db.write_matches(ids[i], ids[j], m)
+    pycolmap.geometric_verification(str(db_path))
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.ba_refine_focal_length = False
+    opts.ba_refine_principal_point = False
+    opts.ba_refine_extra_params = False
+    opts.random_seed = seed
+    recs = pycolmap.incremental_mapping(str(db_path), str(workdir), str(workdir / "sparse"), opts)
+    seconds = time.perf_counter() - t0
+    R = np.full((M, 3, 3), np.nan)
+    t = np.full((M, 3), np.nan)
+    reg = np.zeros(M, bool)
+    if not recs:
+        return {"R_cw": R, "t_cw": t, "registered": reg, "points": 0, "mean_reprojection_error_px": float("nan"), "seconds": seconds}
+    rec = max(recs.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
+    name_to_i = {n: i for i, n in enumerate(data.image_names)}
+    for im in rec.images.values():
+        if not im.has_pose:
+            continue
+        i = name_to_i[im.name]
+        pose = im.cam_from_world()
+        R[i], t[i] = pose.rotation.matrix(), pose.translation
+        reg[i] = True
+    return {"R_cw": R, "t_cw": t, "registered": reg, "points": int(rec.num_points3D()),
+            "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()), "seconds": seconds}
+
+
+def run_kit(data):
+    t0 = time.perf_counter()
+    rec = run_sfm(data, np.random.default_rng(0))
+    seconds = time.perf_counter() - t0
+    return {"R_cw": rec.R_cw, "t_cw": rec.t_cw, "registered": rec.registered, "points": rec.n_points,
+            "mean_reprojection_error_px": rec.report["final"]["mean_reprojection_error_px"], "seconds": seconds,
+            "report": rec.report}
+
+
+def _pose_columns(res, R_ref, t_ref, scene_size):
+    both = res["registered"] & np.isfinite(R_ref).all(axis=(1, 2))
+    if both.sum() < 2:
+        return float("nan"), float("nan"), float("nan")
+    pe = pose_errors(res["R_cw"][both], res["t_cw"][both], R_ref[both], t_ref[both])
+    return float(pe.rotation_deg.mean()), float(pe.rotation_deg.max()), float(100 * pe.center.mean() / scene_size)
+
+
+def scenes(which: str):
+    """Yield ``(name, data, R_true, t_true, scene_size, image_size)``; truth None for the course data."""
+    tmp = Path(tempfile.mkdtemp(prefix="sfm_vs_colmap_"))
+    if which in ("all", "embedded"):
+        from course_lib.data.building import load_ground_truth
+
+        data = read_p3(EMBEDDED_SFM)
+        _, names, R, t = load_ground_truth(EMBEDDED_SFM)
+        gt = json.loads((EMBEDDED_SFM / "ground_truth.json").read_text())
+        assert names == data.image_names
+        yield "embedded", data, R, t, float(gt["scene_size"]), data.image_size
+    if which in ("all", "syn"):
+        for name, M, noise, frac, kind, seed in SYNTHETIC:
+            sc = make_scene(np.random.default_rng(seed), n_cameras=M, n_points=400, noise_px=noise,
+                            outlier_fraction=frac, outlier_kind=kind)
+            data, _ = write_scene_p3(sc, tmp / name)
+            yield name, data, sc.R_cw, sc.t_cw, sc.scene_size, sc.image_size
+    if which in ("all", "course"):
+        for key in ("wpi", "upenn"):
+            folder = course_data(key)
+            if folder is None:
+                print(f"# {key}: course data not found (set COURSE_DATA); skipped")
+                continue
+            data = read_p3(folder)
+            yield key, data, None, None, None, data.image_size
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scenes", choices=["all", "embedded", "syn", "course"], default="all")
+    ap.add_argument("--json", help="write the rows to this JSON file")
+    args = ap.parse_args(argv)
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"# load average (1 min) at start: {load:.2f}; cores: {os.cpu_count()}")
+    hdr = f"{'scene':20s} {'method':7s} {'reg':>6s} {'points':>6s} {'reproj px':>9s} {'rot mean':>9s} {'rot max':>8s} {'C err %':>8s} {'seconds':>8s}"
+    print(hdr)
+    rows = []
+    for name, data, R_true, t_true, size, image_size in scenes(args.scenes):
+        M = len(data.image_names)
+        with tempfile.TemporaryDirectory() as d:
+            col = run_colmap(data, image_size, Path(d))
+        kit = run_kit(data)
+        for method, res in (("kit", kit), ("colmap", col)):
+            if R_true is not None:
+                rot, rmax, cerr = _pose_columns(res, R_true, t_true, size)
+                ref = "truth"
+            elif method == "kit":
+                C = np.stack([-R.T @ t for R, t in zip(col["R_cw"], col["t_cw"])])
+                ok = np.isfinite(C).all(axis=1)
+                ref_size = float(np.linalg.norm(C[ok].max(0) - C[ok].min(0))) if ok.sum() >= 2 else 1.0
+                rot, rmax, cerr = _pose_columns(res, col["R_cw"], col["t_cw"], ref_size)
+                ref = "vs COLMAP (C err in % of the camera path)"
+            else:
+                rot = rmax = cerr = float("nan")
+                ref = ""
+            row = {"scene": name, "method": method, "registered": int(res["registered"].sum()), "images": M,
+                   "points": int(res["points"]), "mean_reprojection_error_px": round(res["mean_reprojection_error_px"], 4),
+                   "rotation_error_mean_deg": round(rot, 4), "rotation_error_max_deg": round(rmax, 4),
+                   "center_error_mean_pct": round(cerr, 4), "pose_reference": ref, "seconds": round(res["seconds"], 3)}
+            rows.append(row)
+            print(f"{name:20s} {method:7s} {row['registered']:>2d}/{M:<3d} {row['points']:>6d} {row['mean_reprojection_error_px']:>9.3f} "
+                  f"{rot:>9.4f} {rmax:>8.4f} {cerr:>8.3f} {res['seconds']:>8.2f}" + (f"  ({ref})" if ref and ref != "truth" else ""))
+        k, c = rows[-2], rows[-1]
+        if R_true is not None:
+            print(f"{'':20s} ratio   rotation error kit/COLMAP {k['rotation_error_mean_deg'] / max(c['rotation_error_mean_deg'], 1e-12):.2f}x, "
+                  f"time kit/COLMAP {k['seconds'] / max(c['seconds'], 1e-12):.2f}x")
+        else:
+            print(f"{'':20s} ratio   time kit/COLMAP {k['seconds'] / max(c['seconds'], 1e-12):.2f}x")
+        sys.stdout.flush()
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"# load average (1 min) at end: {load:.2f}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

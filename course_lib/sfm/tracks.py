@@ -1,0 +1,337 @@
+"""Tracks from *verified* matches: RANSAC on every image pair first, then join the inliers.
+
+A track is one 3-D point seen in several images. Joining raw matches into tracks (as the P3
+reader does for the file, :mod:`course_lib.data.p3`) lets a few wrong matches chain unrelated
+points together: if feature A of image 1 is wrongly matched to feature B of image 3, which is
+a real feature of another point, the two points' tracks become one, and a track with two
+features in one image is useless. So the pipeline builds its tracks in two steps:
+
+1. **Verify every pair** (notebook 01): RANSAC on F with the normalized 8-point algorithm and
+   the Sampson distance, exactly as :func:`course_lib.sfm.fundamental.ransac_fundamental`
+   teaches, but with the random samples drawn and solved in batches (:func:`verify_pair`): one
+   batched SVD for many 8-point problems instead of a Python loop over them. Only the inlier
+   matches go on.
+2. **Join the inliers** (:func:`join_tracks`): features are nodes ``(image, u, v)`` (equal
+   pixels are the same feature) and verified matches are edges. Edges are added by
+   union-find, the most trustworthy first (pairs with more inliers first, then by Sampson
+   distance), and an edge that would put two different features of one image into one track is
+   *refused*: the track is split at the conflicting link instead of being dropped whole.
+
+Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from course_lib.sfm.fundamental import _eight_point_core, _sampson_core, ransac_iterations
+from course_lib.validate import KitInputError
+
+__all__ = ["PairVerification", "Tracks", "verify_pair", "verify_pairs", "join_tracks", "verified_tracks"]
+
+
+@dataclass
+class PairVerification:
+    """RANSAC on F for one image pair.
+
+    Attributes:
+        F: ``(3, 3)`` fundamental matrix (``x2ᵀ F x1 = 0``), None if the pair was not verified.
+        inliers: ``(N,)`` bool, the matches that agree with F.
+        sampson: ``(N,)`` Sampson distance of every match to F, pixels (inf if no F).
+        n_iters: RANSAC samples drawn.
+        note: why the pair was not verified ("" if it was).
+    """
+
+    F: np.ndarray | None
+    inliers: np.ndarray
+    sampson: np.ndarray
+    n_iters: int
+    note: str = ""
+
+    @property
+    def n_inliers(self) -> int:
+        return int(self.inliers.sum())
+
+
+def _eight_point_batch(x1: np.ndarray, x2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The normalized 8-point algorithm on ``B`` samples at once.
+
+    The same steps as :func:`course_lib.sfm.fundamental._eight_point_core` (Hartley
+    normalization, null vector of ``A``, rank 2, undo the normalization), each as one
+    batched numpy call.
+
+    Args:
+        x1, x2: ``(B, 8, 2)`` pixels of B minimal samples.
+
+    Returns:
+        ``F (B, 3, 3)`` (unit Frobenius norm) and ``ok (B,)`` bool (False for a degenerate sample).
+    """
+    B = x1.shape[0]
+
+    def normalize(x):
+        c = x.mean(axis=1, keepdims=True)
+        d = np.linalg.norm(x - c, axis=2).mean(axis=1)
+        s = np.sqrt(2.0) / np.maximum(d, 1e-300)
+        T = np.zeros((B, 3, 3))
+        T[:, 0, 0] = T[:, 1, 1] = s
+        T[:, :2, 2] = -s[:, None] * c[:, 0]
+        T[:, 2, 2] = 1.0
+        return (x - c) * s[:, None, None], T, d > 1e-12
+
+    n1, T1, ok1 = normalize(x1)
+    n2, T2, ok2 = normalize(x2)
+    u1, v1 = n1[..., 0], n1[..., 1]
+    u2, v2 = n2[..., 0], n2[..., 1]
+    A = np.stack([u2 * u1, u2 * v1, u2, v2 * u1, v2 * v1, v2, u1, v1, np.ones_like(u1)], axis=2)  # (B, 8, 9)
+    # The null vector of A (8 x 9): the last column of the complete QR factor Q of Aᵀ (orthogonal
+    # to the 8 rows of A). It is the SVD's last right singular vector when A has rank 8, at a
+    # quarter of the cost; rank < 8 (a degenerate sample) shows as a vanishing R[7, 7].
+    Q, Rq = np.linalg.qr(np.transpose(A, (0, 2, 1)), mode="complete")
+    diag = np.abs(np.diagonal(Rq, axis1=1, axis2=2))
+    ok = ok1 & ok2 & (diag[:, 7] > 1e-10 * diag.max(axis=1))
+    F_n = Q[:, :, -1].reshape(B, 3, 3)
+    U, s, Vt = np.linalg.svd(F_n)
+    s[:, 2] = 0.0
+    F_n = (U * s[:, None, :]) @ Vt
+    F = np.transpose(T2, (0, 2, 1)) @ F_n @ T1
+    F /= np.linalg.norm(F, axis=(1, 2), keepdims=True)
+    return F, ok
+
+
+def _sampson_batch(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """``(B, N)`` Sampson distances (pixels) of N matches to B fundamental matrices ``F (B, 3, 3)``."""
+    h1 = np.concatenate([x1, np.ones((len(x1), 1))], axis=1).T  # (3, N)
+    h2 = np.concatenate([x2, np.ones((len(x2), 1))], axis=1).T
+    Fx1 = F @ h1  # (B, 3, N): epipolar lines in image 2
+    Ftx2 = np.transpose(F, (0, 2, 1)) @ h2  # lines in image 1
+    num = (Fx1 * h2).sum(axis=1)  # x2ᵀ F x1
+    den = Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.abs(num) / np.sqrt(den)
+
+
+def verify_pair(
+    x1: np.ndarray,
+    x2: np.ndarray,
+    rng: np.random.Generator,
+    threshold_px: float = 1.0,
+    confidence: float = 0.999,
+    max_iters: int = 2000,
+    batch: int = 256,
+) -> PairVerification:
+    """RANSAC on F (8-point samples, Sampson distance, adaptive stop), samples solved in batches.
+
+    The algorithm of :func:`course_lib.sfm.fundamental.ransac_fundamental` (notebook 01): draw
+    8 matches, fit F, count the matches within ``threshold_px``, stop after
+    ``log(1 - confidence) / log(1 - w⁸)`` samples for the best inlier ratio ``w``; then refit F on
+    the inliers while the inlier set grows. Here ``batch`` samples are drawn and solved at once,
+    and the best is scored MSAC-style (inlier count, ties broken by the truncated error sum).
+
+    Args:
+        x1, x2: ``(N, 2)`` matching pixels of the two images.
+        rng: seeded ``numpy.random.Generator``.
+        threshold_px: inlier threshold on the Sampson distance (pixels).
+        confidence: desired probability of one outlier-free sample.
+        max_iters: the most samples.
+        batch: samples solved per batched call.
+
+    Returns:
+        :class:`PairVerification` (``note`` says why not, where fewer than 8 matches or only
+        degenerate samples).
+    """
+    x1 = np.asarray(x1, float).reshape(-1, 2)
+    x2 = np.asarray(x2, float).reshape(-1, 2)
+    n = len(x1)
+    if len(x2) != n:
+        raise KitInputError(f"x1 has {n} rows but x2 has {len(x2)}: the matches must be paired row by row")
+    none = PairVerification(None, np.zeros(n, bool), np.full(n, np.inf), 0)
+    if n < 8:
+        none.note = f"{n} matches: the 8-point algorithm needs at least 8"
+        return none
+    best_key, best_F = (-1, 0.0), None
+    needed, it = float(max_iters), 0
+    while it < min(needed, max_iters):
+        b = int(min(batch, max_iters - it))
+        # b samples of 8 distinct matches: the first 8 of a random permutation (argsort of noise)
+        idx = np.argpartition(rng.random((b, n)), 7, axis=1)[:, :8] if n > 8 else np.tile(np.arange(8), (b, 1))
+        it += b
+        F, ok = _eight_point_batch(x1[idx], x2[idx])
+        if not ok.any():
+            continue
+        F = F[ok]
+        d = _sampson_batch(F, x1, x2)
+        d = np.where(np.isfinite(d), d, np.inf)
+        inl = d < threshold_px
+        count = inl.sum(axis=1)
+        trunc = np.minimum(d, threshold_px).sum(axis=1)
+        k = int(np.lexsort((trunc, -count))[0])
+        key = (int(count[k]), -float(trunc[k]))
+        if key > best_key:
+            best_key, best_F = key, F[k]
+            needed = ransac_iterations(best_key[0] / n, confidence, 8)
+    if best_F is None:
+        none.n_iters, none.note = it, "only degenerate 8-point samples (all matches on a line or repeated?)"
+        return none
+    F = best_F
+    d = _sampson_core(F, x1, x2)
+    inliers = d < threshold_px
+    for _ in range(5):  # refit on the inliers while the set grows (as ransac_fundamental does)
+        if inliers.sum() < 8:
+            break
+        F_new = _eight_point_core(x1[inliers], x2[inliers])
+        if F_new is None:
+            break
+        d_new = _sampson_core(F_new, x1, x2)
+        inl_new = d_new < threshold_px
+        if inl_new.sum() < inliers.sum():
+            break
+        done = np.array_equal(inl_new, inliers)
+        F, d, inliers = F_new, d_new, inl_new
+        if done:
+            break
+    return PairVerification(F, inliers, d, it)
+
+
+def verify_pairs(matches: dict, rng: np.random.Generator, threshold_px: float = 1.0, **kw) -> dict:
+    """:func:`verify_pair` for every pair of a P3 ``matches`` dict ``{(i, j): PairMatches}``, in sorted order.
+
+    Returns:
+        ``{(i, j): PairVerification}``.
+    """
+    return {key: verify_pair(matches[key].x1, matches[key].x2, rng, threshold_px, **kw) for key in sorted(matches)}
+
+
+@dataclass
+class Tracks:
+    """Tracks joined from verified matches.
+
+    Attributes:
+        uv: ``(T, M, 2)`` pixels of each track in each image, NaN where unseen.
+        rgb: ``(T, 3)`` uint8 colour (of the feature in the lower-numbered image of its first edge).
+        stats: ``edges`` (verified matches used), ``refused_edges`` (links refused because they
+            would put two features of one image into one track), ``tracks``.
+    """
+
+    uv: np.ndarray
+    rgb: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+
+def join_tracks(n_images: int, edges: list) -> Tracks:
+    """Union-find over verified matches; a link that joins two features of one image is refused.
+
+    Args:
+        n_images: M.
+        edges: list of ``(i, j, x1 (N, 2), x2 (N, 2), rgb (N, 3) or None)`` verified matches
+            between images ``i != j``, **in order of trust** (the first are joined first).
+            Features are identified by equal pixels within an image.
+
+    Returns:
+        :class:`Tracks` with every track of two or more features.
+    """
+    M = int(n_images)
+    # one node per distinct (image, u, v): np.unique over each image's endpoints of all edges
+    ends = [[] for _ in range(M)]  # per image: (edge number, side, pixels)
+    for e, (i, j, x1, x2, _) in enumerate(edges):
+        if not (0 <= i < M and 0 <= j < M) or i == j:
+            raise KitInputError(f"pair ({i}, {j}) is not a pair of two different images among 0..{M - 1}")
+        ends[i].append((e, 0, np.asarray(x1, float).reshape(-1, 2)))
+        ends[j].append((e, 1, np.asarray(x2, float).reshape(-1, 2)))
+    node_of = [[None, None] for _ in edges]  # node ids of both ends of every edge list
+    node_img, node_uv, n_nodes = [], [], 0
+    for i in range(M):
+        if not ends[i]:
+            continue
+        u, inv = np.unique(np.concatenate([x for _, _, x in ends[i]]), axis=0, return_inverse=True)
+        inv = inv.ravel() + n_nodes
+        start = 0
+        for e, side, x in ends[i]:
+            node_of[e][side] = inv[start:start + len(x)]
+            start += len(x)
+        node_img.append(np.full(len(u), i))
+        node_uv.append(u)
+        n_nodes += len(u)
+    node_img = np.concatenate(node_img) if node_img else np.zeros(0, int)
+    node_uv = np.concatenate(node_uv) if node_uv else np.zeros((0, 2))
+
+    node_rgb = np.zeros((n_nodes, 3), np.uint8)
+    has_rgb = np.zeros(n_nodes, bool)
+    for e, (i, j, x1, x2, rgb) in enumerate(edges):
+        a = node_of[e][0]
+        if rgb is not None and len(a):
+            new = ~has_rgb[a]
+            node_rgb[a[new]] = np.asarray(rgb, np.uint8).reshape(-1, 3)[new]
+            has_rgb[a[new]] = True
+    A = np.concatenate([n[0] for n in node_of]) if edges else np.zeros(0, int)
+    Bn = np.concatenate([n[1] for n in node_of]) if edges else np.zeros(0, int)
+
+    parent = list(range(n_nodes))
+    images = [1 << int(m) for m in node_img]  # bit mask of the images in each root's track
+
+    def find(x):
+        root = x
+        while parent[root] != root:
+            root = parent[root]
+        while parent[x] != root:
+            parent[x], x = root, parent[x]
+        return root
+
+    refused = 0
+    for a, b in zip(A.tolist(), Bn.tolist()):
+        ra, rb = find(a), find(b)
+        if ra == rb:
+            continue
+        if images[ra] & images[rb]:
+            refused += 1  # the two tracks share an image (with different features): split here
+            continue
+        if ra > rb:
+            ra, rb = rb, ra
+        parent[rb] = ra
+        images[ra] |= images[rb]
+    roots = np.array([find(x) for x in range(n_nodes)], dtype=int)
+    linked = np.zeros(n_nodes, bool)
+    linked[A] = linked[Bn] = True
+    _, track_of, sizes = np.unique(roots, return_inverse=True, return_counts=True)
+    keep_track = sizes >= 2
+    new_id = np.cumsum(keep_track) - 1
+    T = int(keep_track.sum())
+    uv = np.full((T, M, 2), np.nan)
+    rgb = np.zeros((T, 3), np.uint8)
+    sel = keep_track[track_of] & linked
+    t_of = new_id[track_of[sel]]
+    uv[t_of, node_img[sel]] = node_uv[sel]
+    # colour: of the first node (lowest id = lowest image) that has one
+    for n in np.flatnonzero(sel)[::-1]:
+        if has_rgb[n]:
+            rgb[new_id[track_of[n]]] = node_rgb[n]
+    return Tracks(uv, rgb, {"edges": int(len(A)), "refused_edges": refused, "tracks": T})
+
+
+def verified_tracks(data, verifications: dict, min_inliers: int = 8) -> Tracks:
+    """Tracks of a P3 data set from its verified pairs, trusted pairs first.
+
+    Args:
+        data: :class:`course_lib.data.p3.P3Data` (its ``matches``).
+        verifications: ``{(i, j): PairVerification}`` from :func:`verify_pairs`.
+        min_inliers: pairs with fewer inliers contribute no edges (too few to trust their F).
+
+    Returns:
+        :class:`Tracks`; ``stats['pairs_used']`` counts the pairs that gave edges.
+    """
+    edges = []
+    order = sorted(verifications, key=lambda k: (-verifications[k].n_inliers, k))
+    used = 0
+    for key in order:
+        v = verifications[key]
+        if v.F is None or v.n_inliers < min_inliers:
+            continue
+        used += 1
+        pm = data.matches[key]
+        inl = np.flatnonzero(v.inliers)
+        inl = inl[np.argsort(v.sampson[inl], kind="stable")]  # best matches first
+        edges.append((key[0], key[1], pm.x1[inl], pm.x2[inl], pm.rgb[inl]))
+    tr = join_tracks(len(data.image_names), edges)
+    tr.stats["pairs_used"] = used
+    return tr

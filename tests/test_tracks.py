@@ -1,0 +1,139 @@
+"""Verified tracks (course_lib.sfm.tracks), the feature-swap scene generator and the camera alignment."""
+
+import numpy as np
+import pytest
+
+from course_lib.data.synthetic import make_scene, write_scene_p3
+from course_lib.sfm.evaluate import align_cameras, pose_errors
+from course_lib.sfm.fundamental import _eight_point_core, sampson_distance
+from course_lib.sfm.tracks import _eight_point_batch, join_tracks, verify_pair, verified_tracks
+from course_lib.validate import KitInputError
+
+
+def _p(*xy):
+    return np.array(xy, float).reshape(-1, 2)
+
+
+def test_join_tracks_chains_matches_across_pairs():
+    # feature a of image 0 -- b of image 1 -- c of image 2: one track of three observations
+    edges = [(0, 1, _p(10, 10), _p(20, 20), None), (1, 2, _p(20, 20), _p(30, 30), None)]
+    tr = join_tracks(3, edges)
+    assert tr.uv.shape == (1, 3, 2) and tr.stats["refused_edges"] == 0
+    np.testing.assert_array_equal(tr.uv[0], [[10, 10], [20, 20], [30, 30]])
+
+
+def test_join_tracks_splits_at_the_conflicting_link():
+    """Two true tracks P = (p0, p1, p2) and Q = (q0, q1, q2), and one wrong match p1 -- q2.
+
+    Raw union-find would make one component with two features in images 1 and 2 (the P3 reader
+    then drops the conflicting observations). Joined in order of trust, the wrong link comes last
+    and is refused: both tracks come back whole.
+    """
+    p = [_p(100, 100), _p(110, 100), _p(120, 100)]
+    q = [_p(300, 200), _p(310, 200), _p(320, 200)]
+    edges = [
+        (0, 1, np.vstack([p[0], q[0]]), np.vstack([p[1], q[1]]), np.array([[255, 0, 0], [0, 0, 255]])),
+        (1, 2, np.vstack([p[1], q[1]]), np.vstack([p[2], q[2]]), None),
+        (0, 2, np.vstack([p[0], q[0]]), np.vstack([p[2], q[2]]), None),
+        (1, 2, p[1], q[2], None),  # the wrong match, least trusted
+    ]
+    tr = join_tracks(3, edges)
+    assert tr.stats["refused_edges"] == 1
+    assert tr.uv.shape == (2, 3, 2)
+    got = sorted(tuple(map(tuple, t)) for t in tr.uv)
+    want = sorted(tuple(map(tuple, np.vstack(x))) for x in (p, q))
+    assert got == want
+    assert {tuple(c) for c in tr.rgb} == {(255, 0, 0), (0, 0, 255)}
+
+
+def test_join_tracks_split_keeps_both_pieces_of_a_chain():
+    # a chain a0 - a1 - b0' where b0' is a second feature of image 0: the last link is refused,
+    # and b0' -- b2 still forms its own track
+    edges = [(0, 1, _p(1, 1), _p(2, 2), None), (1, 2, _p(2, 2), _p(3, 3), None),
+             (0, 2, _p(5, 5), _p(6, 6), None), (2, 0, _p(3, 3), _p(5, 5), None)]
+    tr = join_tracks(3, edges)
+    assert tr.stats["refused_edges"] == 1 and len(tr.uv) == 2
+    assert (np.isfinite(tr.uv[..., 0]).sum(axis=1) == [3, 2]).all()
+
+
+def test_join_tracks_bad_pair():
+    with pytest.raises(KitInputError, match="two different images"):
+        join_tracks(2, [(0, 0, _p(1, 1), _p(2, 2), None)])
+
+
+def test_eight_point_batch_equals_the_textbook_one():
+    rng = np.random.default_rng(1)
+    x1, x2 = rng.uniform(0, 800, (20, 8, 2)), rng.uniform(0, 600, (20, 8, 2))
+    F, ok = _eight_point_batch(x1, x2)
+    assert ok.all()
+    for b in range(20):
+        G = _eight_point_core(x1[b], x2[b])
+        assert min(np.abs(G - F[b]).max(), np.abs(G + F[b]).max()) < 1e-9
+    x1[3, :, 1] = 2.0 * x1[3, :, 0]  # all on a line: degenerate
+    x1[3, :, 0] = x1[3, 0, 0]
+    assert not _eight_point_batch(x1, x2)[1][3]
+
+
+def test_verify_pair_finds_the_inliers():
+    sc = make_scene(np.random.default_rng(2), n_cameras=3, n_points=300, noise_px=0.5, outlier_fraction=0.25)
+    x1, x2, inlier, _ = sc.pair(0, 2)
+    v = verify_pair(x1, x2, np.random.default_rng(0), threshold_px=2.0)
+    assert v.F is not None and v.n_iters >= 8
+    recall = (v.inliers & inlier).sum() / inlier.sum()
+    wrong = (v.inliers & ~inlier).sum() / max((~inlier).sum(), 1)
+    assert recall > 0.97 and wrong < 0.05, (recall, wrong)
+    np.testing.assert_allclose(v.sampson, sampson_distance(v.F, x1, x2), rtol=1e-9)
+    few = verify_pair(x1[:7], x2[:7], np.random.default_rng(0))
+    assert few.F is None and "at least 8" in few.note
+
+
+def test_swap_outliers_are_real_features_of_other_points():
+    sc = make_scene(np.random.default_rng(8), n_cameras=4, n_points=100, outlier_fraction=0.2, outlier_kind="swap")
+    good = sc.visible & ~sc.outlier
+    assert sc.outlier.any()
+    for j, i in zip(*np.nonzero(sc.outlier)):
+        donors = np.flatnonzero(good[:, i] & (np.abs(sc.uv[:, i] - sc.uv[j, i]).max(axis=1) == 0))
+        assert len(donors) and j not in donors
+    with pytest.raises(ValueError, match="outlier_kind"):
+        make_scene(np.random.default_rng(0), outlier_kind="wrong")
+
+
+def test_verified_tracks_of_a_feature_swap_scene(tmp_path):
+    sc = make_scene(np.random.default_rng(8), n_cameras=8, n_points=400, noise_px=1.0, outlier_fraction=0.3, outlier_kind="swap")
+    data, keep = write_scene_p3(sc, tmp_path)
+    assert data.n_tracks < 10  # the raw tracks chain everything together
+    from course_lib.sfm.tracks import verify_pairs
+
+    tr = verified_tracks(data, verify_pairs(data.matches, np.random.default_rng(0), 2.0))
+    assert 0.9 * keep.sum() <= len(tr.uv) <= 1.1 * keep.sum()
+    assert tr.stats["refused_edges"] > 0
+    # every track holds at most one feature per image by construction; most observations are correct
+    good = sc.visible & ~sc.outlier
+    correct = 0
+    n_obs = int(np.isfinite(tr.uv[..., 0]).sum())
+    for t in range(len(tr.uv)):
+        owners = [np.flatnonzero(good[:, i] & (np.abs(sc.uv[:, i] - tr.uv[t, i]).max(axis=1) < 1e-5)) for i in
+                  np.flatnonzero(np.isfinite(tr.uv[t, :, 0]))]
+        ids = [o[0] for o in owners if len(o)]
+        if ids:
+            correct += np.bincount(ids).max()
+    assert correct >= 0.95 * n_obs, (correct, n_obs)
+
+
+def test_align_cameras_recovers_a_similarity_of_a_collinear_path():
+    from scipy.spatial.transform import Rotation
+
+    sc = make_scene(np.random.default_rng(0), n_cameras=6)
+    R_cw, t_cw = sc.R_cw.copy(), sc.t_cw.copy()
+    C = np.stack([-R.T @ t for R, t in zip(R_cw, t_cw)])
+    C[:, 1:] = C[0, 1:]  # all centres on one line: a centre-only alignment is undetermined
+    t_cw = np.stack([-R @ c for R, c in zip(R_cw, C)])
+    Ra = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    s, ta = 2.5, np.array([1.0, 2.0, 3.0])
+    R2 = R_cw @ Ra.T  # world' = s Ra X + ta
+    t2 = np.stack([s * t - R @ ta for R, t in zip(R2, t_cw)])
+    s_, R_, t_ = align_cameras(R2, t2, R_cw, t_cw)
+    np.testing.assert_allclose(R_, Ra.T, atol=1e-9)
+    np.testing.assert_allclose(s_, 1 / s, rtol=1e-9)
+    pe = pose_errors(R2, t2, R_cw, t_cw)
+    assert pe.rotation_deg.max() < 1e-5 and pe.center.max() < 1e-9
