@@ -148,17 +148,22 @@ def _build() -> dict[str, np.ndarray]:
         out[f"{name}_E"], out[f"{name}_R"], out[f"{name}_C"] = E, R, C
     # E and -E are the same essential matrix; for one of the two the SVD gives det(U) det(V) = -1, so
     # a missing det flip shows on every pair (pose_candidates only)
-    exposing = 0
+    # (with np.linalg.svd; the multiple of E that exposes it is searched for, -E first)
     for name in cases:
-        E = -out[f"{name}_E"]
-        out[f"{name}_neg_E"] = E
-        out[f"{name}_neg_R"], out[f"{name}_neg_C"] = ref.pose_candidates(E)
-        for M in (E, -E):
-            U, _, Vt = np.linalg.svd(M)
-            exposing += int(np.linalg.det(U) * np.linalg.det(Vt) < 0)
-    assert exposing >= 3, "the pose_candidates cases must expose a missing det flip at least 3 times"
+        E0 = out[f"{name}_E"]
+        flips = [m for m in (-1.0, 2.0, -2.0, 0.5, -0.5, 3.0, -3.0) if _svd_det_sign(m * E0) != _svd_det_sign(E0)]
+        m = flips[0] if flips else -1.0
+        out[f"{name}_neg_E"] = m * E0
+        out[f"{name}_neg_factor"] = np.array(m)
+        out[f"{name}_neg_R"], out[f"{name}_neg_C"] = ref.pose_candidates(m * E0)
     out["pose_cases"] = np.array([n for name in cases for n in (name, f"{name}_neg")])
     return out
+
+
+def _svd_det_sign(E) -> float:
+    """det(U) det(V) of ``np.linalg.svd(E)``: -1 means that R = U W Vᵀ comes out as a reflection."""
+    U, _, Vt = np.linalg.svd(E)
+    return float(np.sign(np.linalg.det(U) * np.linalg.det(Vt)))
 
 
 # --------------------------------------------------------------------------- essential_from_fundamental
@@ -229,6 +234,8 @@ def check_pose_candidates(pose_candidates: Callable) -> None:
         for name in [str(n) for n in f["pose_cases"]]:
             E, R_ref, C_ref = f[f"{name}_E"], f[f"{name}_R"], f[f"{name}_C"]
             case = _CASE_TEXT[name]
+            if f"{name}_factor" in f and float(f[f"{name}_factor"]) != -1.0:
+                case = case.replace("-E", f"{float(f[f'{name}_factor']):g} E")
             out = c.call(pose_candidates, E, case=case)
             if out is FAILED:
                 continue
