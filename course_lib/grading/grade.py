@@ -31,6 +31,7 @@ import json
 import os
 import re
 import secrets
+import shutil
 import signal
 import subprocess
 import sys
@@ -44,15 +45,19 @@ from pathlib import Path
 import nbformat
 
 from course_lib.grading.release import NOTEBOOKS_DIR, ExerciseSpec, NotebookSpec, kit_specs, release_plan
+from course_lib.grading.core import score
+from course_lib.grading.proxy import CHILD_SCRIPT, SKIP_COPY, Isolation, student_library
 from course_lib.grading.sandbox import (
     HiddenJob,
     build_hidden_fixtures,
     code_cells,
     extract_exercise,
     run_hidden,
+    run_reference,
     scan_exercise,
     scan_notebook,
 )
+from course_lib.paths import REPO_ROOT
 from course_lib.validate import KitInputError
 
 __all__ = ["HiddenCases", "prepare_hidden", "grade_submission", "to_markdown", "HIDDEN_SHARE"]
@@ -70,6 +75,8 @@ class HiddenCases:
     fixtures_dir: Path
     reference_passing: dict[str, list[str]]  # "notebook::exercise" -> passing verdicts of the reference
     reference_notes: dict[str, str] = field(default_factory=dict)
+    reference_score: dict[str, float] = field(default_factory=dict)  # "notebook::exercise" -> core.score of the reference
+    library: Path | None = None  # the student release's course_lib + data, imported by the student's processes
 
 
 def _key(e: ExerciseSpec) -> str:
@@ -105,18 +112,24 @@ def _select(specs: list[NotebookSpec], exercises: list[str] | None) -> list[Note
 
 def prepare_hidden(specs: list[NotebookSpec], salt: int, workdir: Path, notebooks_dir: Path = NOTEBOOKS_DIR,
                    timeout: float = 120.0) -> HiddenCases:
-    """Build the hidden fixtures for a grading-time seed and run the instructor's solutions on them."""
+    """Build the hidden fixtures for a grading-time seed and run the instructor's solutions on them.
+
+    The reference runs in this process (the expected results never leave it). The student release's
+    library, which the student's processes import, is written next to the fixtures' folder.
+    """
     _preload(specs)
     fdir = Path(workdir) / "hidden-fixtures"
     build_hidden_fixtures(fdir, [e.check_module for s in specs for e in s.exercises], salt)
     cases = HiddenCases(int(salt), fdir, {})
+    cases.library = student_library(Path(tempfile.mkdtemp(prefix="course-student-kit-")), notebooks_dir)
     for s in specs:
         nb = nbformat.read(Path(notebooks_dir) / s.name, as_version=4)
         for e in s.exercises:
             ex = extract_exercise(nb, e.name, e.check_cell)
-            out = run_hidden(HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(fdir), e.reference,
-                                       allow_reference=True), timeout)
+            out = run_reference(HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(fdir), e.reference,
+                                          allow_reference=True))
             cases.reference_passing[_key(e)] = out.passing
+            cases.reference_score[_key(e)] = score(out.result) if out.result is not None else 0.0
             if out.failing or out.status != "ok":
                 cases.reference_notes[_key(e)] = (f"the reference fails {len(out.failing)} hidden check(s) for this "
                                                   f"seed ({out.status} {out.message}); they are not counted")
@@ -237,51 +250,84 @@ def _restored(nb, spec: NotebookSpec, places: dict[str, Placement]):
 
 
 class NbvalRun:
-    """pytest --nbval over some notebooks, one pytest process per notebook, ``jobs`` at a time, in the background."""
+    """pytest --nbval over notebooks, one sandboxed pytest process per notebook, ``jobs`` at a time, in the background.
 
-    def __init__(self, notebooks: dict[str, object], workdir: Path, cell_timeout: float, jobs: int = 2,
+    Each notebook runs in a fresh temporary copy of the submission (its working directory), with the
+    student release's ``course_lib`` first on ``PYTHONPATH``, resource limits, and (where Linux
+    allows it) the namespaces of :mod:`course_lib.grading.child`: no network, the instructor's kit
+    and the grader's scratch folder hidden, everything read-only but the copy.
+    """
+
+    def __init__(self, submission: Path, isolation: Isolation, cell_timeout: float, jobs: int = 2,
                  timeout: float = 1800.0):
         from concurrent.futures import ThreadPoolExecutor
 
-        self.dir = Path(workdir) / "nbval"
-        self.dir.mkdir(parents=True, exist_ok=True)
-        for name, nb in notebooks.items():
-            nbformat.write(nb, self.dir / name)
+        self.submission, self.iso = Path(submission), isolation
         self.cell_timeout, self.timeout = cell_timeout, timeout
         self.pool = ThreadPoolExecutor(max_workers=max(1, jobs))
-        self.futures = {name: self.pool.submit(self._one, name) for name in sorted(notebooks)}
+        self.futures: dict[str, object] = {}
+        self.sandbox: dict = {}
 
-    def _one(self, name: str) -> tuple[dict[tuple[str, int], str], str]:
+    def submit(self, name: str, nb) -> None:
+        self.futures[name] = self.pool.submit(self._one, name, nb)
+
+    def _one(self, name: str, nb) -> tuple[dict[tuple[str, int], str], str]:
         """Run one notebook; after a cell that timed out (nbval skips the rest), run the rest again."""
-        results: dict[tuple[str, int], str] = {}
-        done_upto = -1
-        for attempt in range(MAX_NBVAL_RERUNS + 1):
-            res, note = self._pytest(name, attempt)
-            if note:
-                return results, note
-            results.update({k: v for k, v in res.items() if k[1] > done_upto})
-            timed_out = sorted(k[1] for k, v in res.items() if k[1] > done_upto and "timeout" in v.lower()
-                               and not v.startswith("not run"))
-            if not timed_out or not any(v.startswith("not run") for k, v in res.items() if k[1] > timed_out[0]):
-                break
-            done_upto = timed_out[0]
-            # the rerun: the cell that timed out raises at once, the cells after it run again
-            nb = nbformat.read(self.dir / name, as_version=4)
-            code = [c for c in nb.cells if c.cell_type == "code"]
-            code[done_upto].source = f"raise TimeoutError('this cell did not finish within {self.cell_timeout:g} s')"
-            code[done_upto].outputs = []
-            nbformat.write(nb, self.dir / name)
-        return results, ""
+        tmp = Path(tempfile.mkdtemp(prefix="course-nbval-"))
+        try:
+            os.chmod(tmp, 0o755)
+            work = tmp / "work"
+            if self.submission.is_dir():
+                shutil.copytree(self.submission, work, ignore=SKIP_COPY, symlinks=True)
+            nb_dir = work / "notebooks"
+            nb_dir.mkdir(parents=True, exist_ok=True)
+            for old in nb_dir.glob("*.ipynb"):
+                old.unlink()  # only the notebook under test, restored by the grader
+            nbformat.write(nb, nb_dir / name)
+            results: dict[tuple[str, int], str] = {}
+            done_upto = -1
+            for attempt in range(MAX_NBVAL_RERUNS + 1):
+                res, note = self._pytest(tmp, work, nb_dir, name, attempt)
+                if note:
+                    return results, note
+                results.update({k: v for k, v in res.items() if k[1] > done_upto})
+                timed_out = sorted(k[1] for k, v in res.items() if k[1] > done_upto and "timeout" in v.lower()
+                                   and not v.startswith("not run"))
+                if not timed_out or not any(v.startswith("not run") for k, v in res.items() if k[1] > timed_out[0]):
+                    break
+                done_upto = timed_out[0]
+                # the rerun: the cell that timed out raises at once, the cells after it run again
+                nb = nbformat.read(nb_dir / name, as_version=4)
+                code = [c for c in nb.cells if c.cell_type == "code"]
+                code[done_upto].source = f"raise TimeoutError('this cell did not finish within {self.cell_timeout:g} s')"
+                code[done_upto].outputs = []
+                nbformat.write(nb, nb_dir / name)
+            return results, ""
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
 
-    def _pytest(self, name: str, attempt: int) -> tuple[dict[tuple[str, int], str], str]:
-        junit = self.dir / f"{name}.{attempt}.junit.xml"
-        env = dict(os.environ, COURSE_LIB_QUICK="1", PYTHONDONTWRITEBYTECODE="1")
-        cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-c", os.devnull, "--rootdir",
-               str(self.dir), "--nbval-lax", "--nbval-current-env", f"--nbval-cell-timeout={int(self.cell_timeout)}",
+    def _pytest(self, tmp: Path, work: Path, nb_dir: Path, name: str, attempt: int):
+        junit = work / f".nbval-{attempt}.junit.xml"
+        stage = tmp / f"stage{attempt}"
+        stage.mkdir()
+        report = work / f".sandbox-{attempt}.json"
+        cfg = {"sandbox": self.iso.sandbox_config(stage, [work]), "cwd": str(nb_dir), "report": str(report)}
+        (tmp / f"sandbox{attempt}.json").write_text(json.dumps(cfg))
+        home = work / ".home"
+        env = {k: v for k, v in os.environ.items() if k in ("PATH", "LANG", "LC_ALL", "TZ")}
+        env.update(COURSE_LIB_QUICK="1", PYTHONDONTWRITEBYTECODE="1", PYTHONPATH=str(self.iso.library),
+                   HOME=str(home), JUPYTER_RUNTIME_DIR=str(home / "runtime"), JUPYTER_DATA_DIR=str(home / "data"),
+                   IPYTHONDIR=str(home / "ipython"), MPLCONFIGDIR=str(home / "mpl"), MPLBACKEND="Agg",
+                   OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONNOUSERSITE="1")
+        if os.environ.get("COURSE_DATA"):
+            env["COURSE_DATA"] = os.environ["COURSE_DATA"]
+        cmd = [sys.executable, "-S", "-E", str(CHILD_SCRIPT), "exec", str(tmp / f"sandbox{attempt}.json"), "--",
+               sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-c", os.devnull, "--rootdir",
+               str(nb_dir), "--nbval-lax", "--nbval-current-env", f"--nbval-cell-timeout={int(self.cell_timeout)}",
                f"--junitxml={junit}", name]
         # its own session, so that whatever the notebook started is stopped with it
-        proc = subprocess.Popen(cmd, cwd=self.dir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                start_new_session=True)
+        proc = subprocess.Popen(cmd, cwd=nb_dir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                start_new_session=True, preexec_fn=self.iso.preexec())
         try:
             proc.wait(timeout=self.timeout)
         except subprocess.TimeoutExpired:
@@ -292,6 +338,11 @@ class NbvalRun:
             except (ProcessLookupError, PermissionError):
                 pass
             proc.wait()
+        if report.exists() and not self.sandbox:
+            try:
+                self.sandbox = json.loads(report.read_text())
+            except ValueError:
+                pass
         return _read_junit(junit, name)
 
     def results(self) -> tuple[dict[tuple[str, int], str], dict[str, str]]:
@@ -335,7 +386,7 @@ class ExerciseGrade:
     points: float
     max_points: float
     feedback: list[str]
-    status: str  # full, partial, zero, flagged, timeout, error, missing, deleted, reordered, check-edited, tampered
+    status: str  # full, partial, zero, flagged, timeout, exit, error, missing, deleted, reordered, check-edited, tampered
     hidden: dict = field(default_factory=dict)
     nbval: str = "not run"
 
@@ -401,6 +452,10 @@ def grade_submission(
         else:
             _preload(specs)
         nb_dir = _find_notebooks(submission)
+        if hidden.library is None:
+            hidden.library = student_library(work / "student-kit", notebooks_dir)
+        iso = Isolation.for_grading(hidden.library if not allow_reference else REPO_ROOT,
+                                    [work, Path(hidden.fixtures_dir)], notebooks_dir, self_test=allow_reference)
         grades: list[ExerciseGrade] = []
         plans = []  # (spec, nb or None, placements, tamper reasons)
         to_nbval = {}
@@ -420,8 +475,8 @@ def grade_submission(
             tamper = scan_notebook(nb, intact, check_names, [e.verdict for e in s.exercises])
             plans.append((s, nb, places, tamper))
             to_nbval[s.name] = _restored(nb, s, places)
-        nbval_run = NbvalRun(to_nbval, work, cell_timeout, jobs=nbval_jobs) if run_nbval and to_nbval else None
-        pending = []  # (grade, spec, outcome placeholder)
+        nbval_run = NbvalRun(submission, iso, cell_timeout, jobs=nbval_jobs) if run_nbval and to_nbval else None
+        pending: dict[str, list] = {}  # notebook -> [(grade, spec, extracted code)]
         for s, nb, places, tamper in plans:
             for e in s.exercises:
                 g = ExerciseGrade(s.name, e.name, 0.0, e.points, [], "zero")
@@ -471,46 +526,21 @@ def grade_submission(
                                       "and the kit's non-solution modules")
                     continue
                 g.feedback += [f"note: your {e.name} {pr}" for pr in ex.problems]
-                pending.append((g, e, ex))
-        for g, e, ex in pending:
-            out = run_hidden(HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(hidden.fixtures_dir),
-                                       e.reference, allow_reference), timeout)
-            ref = hidden.reference_passing.get(_key(e), [])
-            matched = sum((Counter(out.passing) & Counter(ref)).values())
-            g.hidden = {"passed": matched, "total": len(ref), "seconds": round(out.seconds, 1)}
-            if out.status == "timeout":
-                g.status = "timeout"
-                g.feedback.append(f"{e.name} did not finish on the hidden cases: {out.message}. No credit; "
-                                  "the other exercises were graded.")
-                continue
-            if out.status != "ok":
-                g.status = "error"
-                g.feedback.append(f"{e.name}: {out.message}")
-                continue
-            if out.reference_called and not allow_reference:
-                g.status = "flagged"
-                g.feedback.append(f"your {e.name} called the reference solution while it was graded; no credit")
-                continue
-            if out.tampered:
-                g.status = "tampered"
-                g.feedback.append(f"running your {e.name} changed the check machinery ({', '.join(out.tampered[:3])}); "
-                                  "no credit")
-                continue
-            frac = matched / len(ref) if ref else 0.0
-            g.points = round(e.points * HIDDEN_SHARE * frac, 2)
-            g.status = "full" if frac == 1 else ("partial" if matched else "zero")
-            if not ref:
-                g.feedback.append("no hidden check could be calibrated for this exercise (instructor: see the notes)")
-            elif frac == 1:
-                g.feedback.append(f"all {len(ref)} hidden checks pass")
-            else:
-                g.feedback.append(f"{matched} of {len(ref)} hidden checks pass (new synthetic cases). What failed:")
-                fails = out.failing or [f"{ln}: not passed" for ln in sorted((Counter(ref) - Counter(out.passing)))]
-                g.feedback += [f"✘ {ln}" for ln in fails[:MAX_FEEDBACK_LINES]]
-                if len(fails) > MAX_FEEDBACK_LINES:
-                    g.feedback.append(f"... and {len(fails) - MAX_FEEDBACK_LINES} more")
-            if _key(e) in hidden.reference_notes:
-                g.feedback.append("note: " + hidden.reference_notes[_key(e)])
+                pending.setdefault(s.name, []).append((g, e, ex))
+        sandbox_seen: dict = {}
+        for s, nb, places, _ in plans:
+            ended = {}  # exercises whose process ran out of time or ended: their check cells are not run again
+            for g, e, ex in pending.get(s.name, []):
+                seen = _grade_hidden(g, e, ex, hidden, timeout, iso, allow_reference, submission)
+                sandbox_seen = sandbox_seen or seen
+                if g.status in ("timeout", "exit"):
+                    ended[e.name] = g.feedback[-1]
+            if nbval_run is not None and s.name in to_nbval:
+                nbv = to_nbval[s.name]
+                for name, why in ended.items():
+                    cell = nbv.cells[places[name].check_cell]
+                    cell.source = f"raise RuntimeError({('not run again: ' + why)!r})"
+                nbval_run.submit(s.name, nbv)
         results, nbval_notes = nbval_run.results() if nbval_run is not None else ({}, {})
         by_key = {(g.notebook, g.name): g for g in grades}
         for s, nb, places, _ in plans:
@@ -535,10 +565,57 @@ def grade_submission(
                                           f"verdict when the notebook runs top to bottom ({_short(why)}); restart the "
                                           f"kernel, run all cells, and fix what differs (−{(1 - HIDDEN_SHARE) * 100:.0f} %)")
         report = _report(grades, hidden, time.perf_counter() - t0, allow_reference)
+        report["isolation"] = {"hidden checks": sandbox_seen,
+                               "nbval": nbval_run.sandbox if nbval_run is not None else {}}
         return report
     finally:
         if tmp is not None:
             tmp.cleanup()
+
+
+def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, hidden: HiddenCases, timeout: float, iso: Isolation,
+                  allow_reference: bool, submission: Path) -> dict:
+    """Run the hidden checks of one exercise (its function in a sandboxed process) and fill in its grade.
+
+    Returns what the student's process was confined by.
+    """
+    out = run_hidden(HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(hidden.fixtures_dir),
+                               e.reference, allow_reference, str(submission)), timeout, iso)
+    ref = hidden.reference_passing.get(_key(e), [])
+    matched = sum((Counter(out.passing) & Counter(ref)).values())
+    g.hidden = {"passed": matched, "total": len(ref), "seconds": round(out.seconds, 1)}
+    if out.status == "timeout":
+        g.status = "timeout"
+        g.feedback.append(f"{e.name} did not finish on the hidden cases: {out.message}. No credit; "
+                          "the other exercises were graded.")
+        return out.sandbox
+    if out.status == "exit":
+        g.status = "exit"
+        g.feedback.append(f"{e.name}: {out.message} while its hidden checks ran. No credit; the other exercises "
+                          "were graded.")
+        return out.sandbox
+    if out.status != "ok" or out.result is None:
+        g.status = "error"
+        g.feedback.append(f"{e.name}: {out.message}")
+        return out.sandbox
+    ref_score = hidden.reference_score.get(_key(e), 1.0 if ref else 0.0)
+    frac = min(1.0, score(out.result) / ref_score) if ref_score > 0 else 0.0
+    g.points = round(e.points * HIDDEN_SHARE * frac, 2)
+    g.status = "full" if frac >= 1 else ("partial" if frac > 0 else "zero")
+    if not ref:
+        g.feedback.append("no hidden check could be calibrated for this exercise (instructor: see the notes)")
+    elif frac >= 1:
+        g.feedback.append(f"all {len(ref)} hidden checks pass")
+    else:
+        g.feedback.append(f"{matched} of {len(ref)} hidden checks pass (new synthetic cases), "
+                          f"{frac * 100:.0f} % of the hidden-check points. What failed:")
+        fails = out.failing or [f"{ln}: not passed" for ln in sorted((Counter(ref) - Counter(out.passing)))]
+        g.feedback += [f"✘ {ln}" for ln in fails[:MAX_FEEDBACK_LINES]]
+        if len(fails) > MAX_FEEDBACK_LINES:
+            g.feedback.append(f"... and {len(fails) - MAX_FEEDBACK_LINES} more")
+    if _key(e) in hidden.reference_notes:
+        g.feedback.append("note: " + hidden.reference_notes[_key(e)])
+    return out.sandbox
 
 
 def _short(text: str, n: int = 160) -> str:

@@ -55,6 +55,7 @@ __all__ = [
     "solution_modules",
     "release_plan",
     "write_release",
+    "release_files",
 ]
 
 BEGIN, END = "# BEGIN SOLUTION", "# END SOLUTION"
@@ -67,6 +68,8 @@ INSTRUCTOR_ONLY = (
     "course_lib/grading/release.py",
     "course_lib/grading/grade.py",
     "course_lib/grading/sandbox.py",
+    "course_lib/grading/proxy.py",
+    "course_lib/grading/child.py",
     "course_lib/grading/cli_release.py",
     "course_lib/grading/cli_grade.py",
 )
@@ -550,10 +553,24 @@ def imported_names(module: str) -> set[str]:
     for m, p in course_lib_modules().items():
         if m == module:
             continue
-        for node in ast.walk(ast.parse(p.read_text())):
-            if isinstance(node, ast.ImportFrom) and node.module == module:
-                out.update(a.name for a in node.names)
+        out.update(_from_imports(p).get(module, ()))
     return out
+
+
+_FROM_CACHE: dict[tuple, dict[str, set[str]]] = {}
+
+
+def _from_imports(path: Path) -> dict[str, set[str]]:
+    """``{module: names}`` of the ``from module import names`` statements of a file (cached by size and mtime)."""
+    st = Path(path).stat()
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    if key not in _FROM_CACHE:
+        found: dict[str, set[str]] = {}
+        for node in ast.walk(ast.parse(Path(path).read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                found.setdefault(node.module, set()).update(a.name for a in node.names)
+        _FROM_CACHE[key] = found
+    return _FROM_CACHE[key]
 
 
 def _bound_name(node: ast.AST) -> str | None:
@@ -726,13 +743,28 @@ def write_release(out_dir: Path, notebooks_dir: Path = NOTEBOOKS_DIR, force: boo
     out_dir = Path(out_dir).resolve()
     if out_dir == REPO_ROOT or REPO_ROOT.is_relative_to(out_dir) or out_dir.is_relative_to(REPO_ROOT / "course_lib"):
         raise ReleaseError(f"refusing to write the release into {out_dir}: choose a folder outside the kit's sources")
-    specs = kit_specs(notebooks_dir)
-    plan = release_plan(specs)
     if out_dir.exists() and any(out_dir.iterdir()):
         if not (out_dir / "RELEASE_MANIFEST.json").exists() and not force:
             raise ReleaseError(f"{out_dir} is not empty and not an earlier release; use --force to replace it")
+    files = release_files(notebooks_dir)
+    if out_dir.exists() and any(out_dir.iterdir()):
         shutil.rmtree(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    for rel, data in sorted(files.items()):
+        dst = out_dir / rel
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        dst.write_bytes(data)
+    return json.loads(files["RELEASE_MANIFEST.json"])
+
+
+def release_files(notebooks_dir: Path = NOTEBOOKS_DIR) -> dict[str, bytes]:
+    """``{path inside the kit: content}`` of the student kit (what :func:`write_release` writes).
+
+    Raises:
+        ReleaseError: a notebook cannot be released (the message names it).
+    """
+    specs = kit_specs(notebooks_dir)
+    plan = release_plan(specs)
     files: dict[str, bytes] = {}
 
     # notebooks
@@ -781,11 +813,7 @@ def write_release(out_dir: Path, notebooks_dir: Path = NOTEBOOKS_DIR, force: boo
         "files": {k: _sha(v) for k, v in sorted(files.items())},
     }
     files["RELEASE_MANIFEST.json"] = (json.dumps(manifest, indent=1, sort_keys=True, ensure_ascii=False) + "\n").encode()
-    for rel, data in sorted(files.items()):
-        dst = out_dir / rel
-        dst.parent.mkdir(parents=True, exist_ok=True)
-        dst.write_bytes(data)
-    return manifest
+    return files
 
 
 # ---------------------------------------------------------------------------------------------

@@ -315,12 +315,24 @@ def scan_notebook(nb, intact_check_cells: set[int], check_names: set[str],
             targets = []
             if isinstance(node, (ast.Assign, ast.AugAssign, ast.AnnAssign)):
                 targets = node.targets if isinstance(node, ast.Assign) else [node.target]
-            elif isinstance(node, (ast.FunctionDef, ast.ClassDef)) and node.name in check_names | {"print"}:
+            elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and \
+                    node.name in check_names | {"print"}:
                 found.append((i, f"redefines {node.name}"))
+            protected = check_names | {"print"}
+            # any other binding of a check's name: for / with / except targets, :=, del, and import aliases
+            if isinstance(node, ast.Name) and isinstance(node.ctx, (ast.Store, ast.Del)) and node.id in protected:
+                found.append((i, f"rebinds {node.id}"))
+            elif isinstance(node, ast.ExceptHandler) and node.name in protected:
+                found.append((i, f"rebinds {node.name}"))
+            elif isinstance(node, (ast.Import, ast.ImportFrom)):
+                for a in node.names:
+                    bound = (a.asname or a.name).split(".")[0]
+                    legit = (isinstance(node, ast.ImportFrom) and (node.module or "").startswith("course_lib.grading")
+                             and a.asname in (None, a.name) and a.name in check_names)
+                    if bound in protected and not legit:
+                        found.append((i, f"rebinds {bound} (by an import alias)"))
             for t in targets:
                 for n in ast.walk(t):
-                    if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store) and n.id in check_names | {"print"}:
-                        found.append((i, f"rebinds {n.id}"))
                     if isinstance(n, ast.Attribute) and isinstance(n.ctx, ast.Store):
                         root = n.value
                         while isinstance(root, ast.Attribute):
@@ -423,16 +435,17 @@ class HiddenJob:
     fixtures_dir: str
     reference: str | None = None  # "module:attr" of the graded exercise's reference
     allow_reference: bool = False  # the instructor's self-test
+    submission: str | None = None  # the student's folder (its copy is the working directory)
 
 
 @dataclass
 class HiddenOutcome:
-    status: str  # "ok", "timeout", "error", "crashed"
+    status: str  # "ok", "timeout", "exit", "error"
     lines: list[str] = field(default_factory=list)  # the verdict lines ("  ✔ ..." / "  ✘ ...")
-    reference_called: bool = False
-    tampered: list[str] = field(default_factory=list)
     message: str = ""
     seconds: float = 0.0
+    result: object = None  # the CheckResult of the hidden checks (computed in the grader's process)
+    sandbox: dict = field(default_factory=dict)  # what the student's process was confined by
 
     @property
     def passing(self) -> list[str]:
@@ -443,33 +456,108 @@ class HiddenOutcome:
         return [ln.strip()[2:] for ln in self.lines if ln.strip().startswith("✘")]
 
 
-class ReferenceSolutionCalled(Exception):
-    """Raised by the trap that replaces the graded exercise's reference while its hidden checks run."""
-
-
-def _fingerprint(check_mod, check_fn_name: str) -> dict:
+@contextlib.contextmanager
+def hidden_fixtures(fixtures_dir: str):
+    """Within the block, the check modules of this process read the hidden cases (from memory when held)."""
     from course_lib.grading import core
 
-    fp = {"core.RESULTS": id(core.RESULTS), "print": id(builtins.print), "core.Check": id(core.Check),
-          "check module Check": id(getattr(check_mod, "Check", None)),
-          f"{check_fn_name}": id(getattr(check_mod, check_fn_name)),
-          f"{check_fn_name}.__code__": id(getattr(check_mod, check_fn_name).__code__),
-          "core.load_fixture": id(core.load_fixture), "core.FIXTURES_DIR": id(core.FIXTURES_DIR),
-          "np.allclose": id(np.allclose), "np.isclose": id(np.isclose)}
-    for lib in ("numpy", "numpy.linalg", "math", "torch", "torch.linalg", "cv2", "scipy.linalg"):
-        mod = sys.modules.get(lib)
-        if mod is not None:
-            for k, v in list(vars(mod).items()):
-                if callable(v):
-                    fp[f"{lib}.{k}"] = id(v)
-    for k, v in vars(core.Check).items():
-        if callable(v):
-            fp[f"Check.{k}"] = id(v)
-            fp[f"Check.{k}.__code__"] = id(getattr(v, "__code__", None))
-    for k, v in vars(check_mod).items():
-        if callable(v) and getattr(v, "__module__", None) == check_mod.__name__:
-            fp[f"{check_mod.__name__}.{k}"] = id(v)
-    return fp
+    if fixtures_dir not in _MEMORY:
+        hold_in_memory(Path(fixtures_dir))
+    stored = _MEMORY[fixtures_dir]
+
+    def load_fixture(name: str) -> dict[str, np.ndarray]:
+        if name not in stored:
+            raise FileNotFoundError(f"fixture {name!r} is not among the hidden cases")
+        return {k: v.copy() for k, v in stored[name].items()}
+
+    saved = []
+    for m in list(sys.modules.values()):
+        if getattr(m, "__name__", "").startswith("course_lib.grading") and hasattr(m, "load_fixture"):
+            saved.append((m, m.load_fixture))
+            m.load_fixture = load_fixture
+    try:
+        yield
+    finally:
+        for m, fn in saved:
+            m.load_fixture = fn
+
+
+def run_check(check_module: str, check_function: str, fixtures_dir: str, obj) -> tuple[object, str]:
+    """Run a check function in this process on the hidden cases; ``(CheckResult or None, printed text)``."""
+    from course_lib.grading import core
+
+    check_fn = getattr(importlib.import_module(check_module), check_function)
+    saved = dict(core.RESULTS)
+    core.RESULTS.clear()
+    out = io.StringIO()
+    try:
+        with hidden_fixtures(fixtures_dir), contextlib.redirect_stdout(out):
+            check_fn(obj)
+        results = list(core.RESULTS.values())
+    finally:
+        core.RESULTS.clear()
+        core.RESULTS.update(saved)
+    return (results[-1] if results else None), out.getvalue()
+
+
+def run_reference(job: HiddenJob) -> HiddenOutcome:
+    """The instructor's solution on the hidden cases, in the grader's own process (the calibration)."""
+    import time
+
+    t0 = time.perf_counter()
+    module = types.ModuleType("__reference__")
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            exec(compile(job.code, "<instructor notebook>", "exec"), module.__dict__)  # noqa: S102 - the instructor's
+        result, _ = run_check(job.check_module, job.check_function, job.fixtures_dir, module.__dict__.get(job.name))
+    except Exception as exc:  # noqa: BLE001
+        return HiddenOutcome("error", message=f"the reference run failed: {type(exc).__name__}: {exc}",
+                             seconds=time.perf_counter() - t0)
+    lines = list(result.lines) if result is not None else []
+    return HiddenOutcome("ok" if result is not None else "error", lines=lines, result=result,
+                         message="" if result is not None else "the check recorded no verdict",
+                         seconds=time.perf_counter() - t0)
+
+
+def run_hidden(job: HiddenJob, timeout: float = 60.0, isolation=None) -> HiddenOutcome:
+    """Run the hidden checks of one exercise: the check here, the student's function in its own process.
+
+    Args:
+        job: the exercise, its extracted code and its check.
+        timeout: wall-clock seconds for everything the student's process does for this exercise.
+        isolation: the grading run's :class:`course_lib.grading.proxy.Isolation`.
+    """
+    import time
+
+    from course_lib.grading.proxy import RemoteFunction, StudentProcess
+
+    t0 = time.perf_counter()
+    torch = job.check_module.startswith("course_lib.grading.nerf")
+    with StudentProcess(isolation, job.code, job.name, job.submission, timeout, torch=torch) as proc:
+        hello = proc.hello
+        if proc.ended:
+            return HiddenOutcome("timeout" if proc.event == "timeout" else "exit", message=proc.ended,
+                                 seconds=time.perf_counter() - t0)
+        if not hello.get("ok"):
+            return HiddenOutcome("error", message=f"defining {job.name} failed: {hello.get('type')}: "
+                                 f"{hello.get('message')}{hello.get('where', '')}", seconds=time.perf_counter() - t0,
+                                 sandbox=hello.get("sandbox", {}))
+        if not hello.get("found"):
+            return HiddenOutcome("error", message=f"the exercise code does not define {job.name}",
+                                 seconds=time.perf_counter() - t0, sandbox=hello.get("sandbox", {}))
+        try:
+            result, _ = run_check(job.check_module, job.check_function, job.fixtures_dir, RemoteFunction(proc, job.name))
+        except Exception as exc:  # noqa: BLE001 - a check that cannot finish is the grader's problem, reported
+            return HiddenOutcome("error", message=f"the grader failed: {type(exc).__name__}: {exc}",
+                                 seconds=time.perf_counter() - t0, sandbox=hello.get("sandbox", {}))
+        dt = time.perf_counter() - t0
+        if proc.ended:
+            status = "timeout" if proc.event == "timeout" else "exit"
+            return HiddenOutcome(status, lines=list(result.lines) if result else [], message=proc.ended, seconds=dt,
+                                 result=result, sandbox=hello.get("sandbox", {}))
+    if result is None:
+        return HiddenOutcome("error", message="the check recorded no verdict", seconds=dt)
+    return HiddenOutcome("ok", lines=list(result.lines), result=result, seconds=dt, sandbox=hello.get("sandbox", {}))
 
 
 def single_thread_math() -> None:
@@ -491,68 +579,6 @@ def single_thread_math() -> None:
                 getattr(lib, sym)(1)
     if "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(1)
-
-
-def _run_job(job: HiddenJob) -> dict:
-    single_thread_math()
-    from course_lib.grading import core
-
-    core.FIXTURES_DIR = Path(job.fixtures_dir)
-    core.RESULTS.clear()
-    check_mod = importlib.import_module(job.check_module)
-    if job.fixtures_dir in _MEMORY:  # serve the hidden cases from memory, not from files a notebook could rewrite
-        stored = _MEMORY[job.fixtures_dir]
-
-        def load_fixture(name: str) -> dict[str, np.ndarray]:
-            if name not in stored:
-                raise FileNotFoundError(f"fixture {name!r} is not among the hidden cases")
-            return {k: v.copy() for k, v in stored[name].items()}
-
-        for m in list(sys.modules.values()):
-            if getattr(m, "__name__", "").startswith("course_lib.grading") and hasattr(m, "load_fixture"):
-                m.load_fixture = load_fixture
-    check_fn = getattr(check_mod, job.check_function)
-    fired: list[str] = []
-    if job.reference and not job.allow_reference:
-        mod_name, attr = job.reference.split(":")
-        ref_mod = importlib.import_module(mod_name)
-        original = getattr(ref_mod, attr)
-
-        def trap(*args, **kwargs):
-            fired.append(attr)
-            raise ReferenceSolutionCalled(f"the reference solution {mod_name}.{attr} is not available while grading")
-
-        for m in list(sys.modules.values()):
-            d = getattr(m, "__dict__", None)
-            if not isinstance(d, dict):
-                continue
-            for k, v in list(d.items()):
-                if v is original:
-                    d[k] = trap
-    before = _fingerprint(check_mod, job.check_function)
-    out = io.StringIO()
-    module = types.ModuleType("__submission__")
-    sys.modules["__submission__"] = module  # dataclasses and pickling look the module up
-    ns = module.__dict__
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
-        try:
-            exec(compile(job.code, "<your notebook>", "exec"), ns)  # noqa: S102 - the sandboxed student code
-        except BaseException as exc:  # noqa: BLE001
-            return {"status": "error", "message": f"defining {job.name} failed: {type(exc).__name__}: {exc}",
-                    "reference_called": bool(fired)}
-        obj = ns.get(job.name)
-        try:
-            check_fn(obj)
-        except BaseException as exc:  # noqa: BLE001 - the check itself never raises; a student's exit might
-            return {"status": "error", "message": f"the check stopped: {type(exc).__name__}: {exc}",
-                    "reference_called": bool(fired)}
-    after = _fingerprint(check_mod, job.check_function)
-    tampered = sorted(k for k in before if after.get(k) != before[k])
-    results = list(core.RESULTS.values())
-    if len(results) != 1:
-        tampered.append(f"{len(results)} verdicts recorded instead of 1")
-    lines = list(results[0].lines) if results else []
-    return {"status": "ok", "lines": lines, "reference_called": bool(fired), "tampered": tampered}
 
 
 def _child_main(conn, fn, args):
@@ -588,23 +614,3 @@ def _in_child(fn, args, timeout: float) -> dict:
             p.kill()
         p.join(5)
         parent.close()
-
-
-def run_hidden(job: HiddenJob, timeout: float = 60.0) -> HiddenOutcome:
-    """Run the hidden checks of one exercise in a forked process with a time limit."""
-    import time
-
-    t0 = time.perf_counter()
-    res = _in_child(_run_job, (job,), timeout)
-    dt = time.perf_counter() - t0
-    if res.get("timeout"):
-        return HiddenOutcome("timeout", message=f"stopped after {timeout:g} s: an endless loop, or far too slow",
-                             seconds=dt)
-    if res.get("crashed"):
-        return HiddenOutcome("crashed", message="the process running your function ended without a verdict",
-                             seconds=dt)
-    if "error" in res:
-        return HiddenOutcome("error", message=f"the grader failed: {res['error']}", seconds=dt)
-    v = res["value"]
-    return HiddenOutcome(v["status"], lines=v.get("lines", []), reference_called=v.get("reference_called", False),
-                         tampered=v.get("tampered", []), message=v.get("message", ""), seconds=dt)

@@ -1,0 +1,479 @@
+"""The grader's side of the separation: the student's functions run in another process, called as data.
+
+The check function of an exercise runs in the grader's own process, with the full library and the
+hidden cases. The student's function it receives is a :class:`RemoteFunction`: each call encodes
+the arguments as data (:mod:`course_lib.grading.child`'s wire format: JSON and ``np.save``
+arrays, never pickle), sends them to a :class:`StudentProcess` that holds only the student's
+extracted code and the *student release* of ``course_lib`` (:func:`student_library`), and
+decodes the result. An ``nn.Module`` the student's class builds stays in that process; the grader
+gets a :class:`RemoteModule` with the module's parameters and linear layers, whose forward pass
+sends the (possibly replaced) parameters and the inputs back to the student's process.
+
+The student's process (see :mod:`course_lib.grading.child` for the sandbox itself):
+
+* starts with ``python -S -E`` (no ``site``: the instructor's editable install is not on its
+  path) and ``sys.path`` = the student release, then the standard library and site-packages;
+* works in a fresh temporary copy of the submission; its output goes to a file there;
+* has resource limits (:class:`Limits`: CPU seconds, address space, file size, processes);
+* on Linux with unprivileged user namespaces: no network, its own PID namespace and ``/proc``,
+  the instructor's kit and the grader's scratch folder (with the hidden cases) covered by empty
+  mounts, everything read-only but its temporary folder;
+* has one wall-clock budget per exercise (start, definitions and every call together): when it
+  runs out, the process is killed and every later call fails at once, so a looping exercise
+  costs at most its own limit. ``os._exit`` is reported as such before the process ends.
+"""
+
+from __future__ import annotations
+
+import builtins
+import json
+import os
+import resource
+import select
+import shutil
+import signal
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from course_lib.grading import child as wire
+from course_lib.paths import REPO_ROOT
+
+__all__ = ["Limits", "Isolation", "StudentProcess", "RemoteFunction", "RemoteModule", "StudentProcessEnded",
+           "student_library", "CHILD_SCRIPT"]
+
+CHILD_SCRIPT = Path(wire.__file__).resolve()
+SKIP_COPY = shutil.ignore_patterns(".git", "__pycache__", ".ipynb_checkpoints", ".venv", "outputs", "*.egg-info")
+
+
+@dataclass
+class Limits:
+    """Resource limits of a student's process (``setrlimit`` in the child before it starts)."""
+
+    cpu_seconds: int = 300  # RLIMIT_CPU (the wall-clock budget of an exercise is usually shorter)
+    memory_bytes: int = 8 << 30  # RLIMIT_AS (torch needs a few GiB of address space)
+    file_bytes: int = 256 << 20  # RLIMIT_FSIZE: largest file it may write
+    processes: int = 512  # RLIMIT_NPROC (threads count; not enforced by Linux for uid 0)
+
+    def apply(self) -> None:
+        resource.setrlimit(resource.RLIMIT_CPU, (int(self.cpu_seconds), int(self.cpu_seconds) + 5))
+        resource.setrlimit(resource.RLIMIT_AS, (int(self.memory_bytes), int(self.memory_bytes)))
+        resource.setrlimit(resource.RLIMIT_FSIZE, (int(self.file_bytes), int(self.file_bytes)))
+        resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
+        try:
+            resource.setrlimit(resource.RLIMIT_NPROC, (int(self.processes), int(self.processes)))
+        except (ValueError, OSError):
+            pass
+
+
+@dataclass
+class Isolation:
+    """Where a grading run's student processes get their library, and what they must not see.
+
+    Attributes:
+        library: the folder whose ``course_lib`` the student's code imports (the student release).
+        hide: folders covered by empty mounts in the student's view (the instructor's kit, the
+            grader's scratch folder).
+        keep: folders inside ``hide`` that stay visible read-only (the Python environment).
+        namespaces: use Linux user namespaces where the kernel allows them.
+        limits: resource limits.
+    """
+
+    library: Path
+    hide: list[Path] = field(default_factory=list)
+    keep: list[Path] = field(default_factory=list)
+    namespaces: bool = True
+    limits: Limits = field(default_factory=Limits)
+
+    @classmethod
+    def for_grading(cls, library: Path, secret: list[Path], notebooks_dir: Path, self_test: bool = False,
+                    namespaces: bool = True) -> "Isolation":
+        """The isolation of a grading run: hide the kit and the notebooks (unless ``self_test``) and ``secret``
+        (the grader's scratch folder, the hidden cases)."""
+        hide = [Path(p).resolve() for p in secret]
+        if not self_test:
+            hide += [REPO_ROOT.resolve(), Path(notebooks_dir).resolve()]
+        hide = sorted({h for h in hide if not any(h != o and h.is_relative_to(o) for o in hide)})
+        keep = [Path(p).resolve() for p in {sys.prefix, sys.base_prefix, os.path.dirname(os.path.realpath(sys.executable))}]
+        keep = [k for k in keep if any(k.is_relative_to(h) for h in hide)]
+        return cls(Path(library), hide, keep, namespaces)
+
+    def sandbox_config(self, stage: Path, writable: list[Path]) -> dict:
+        return {"namespaces": self.namespaces, "hide": [str(h) for h in self.hide], "keep": [str(k) for k in self.keep],
+                "stage": str(stage), "writable": [str(w) for w in writable]}
+
+    def python_path(self) -> list[str]:
+        """The student's ``sys.path`` after the library: the grader's, minus the kit and ``''``."""
+        out = []
+        for p in sys.path:
+            if not p or p in out:
+                continue
+            rp = Path(p).resolve()
+            if any(rp.is_relative_to(h) for h in self.hide) and not any(rp.is_relative_to(k) for k in self.keep):
+                continue
+            if (rp / "course_lib").is_dir():
+                continue
+            out.append(p)
+        return out
+
+    def preexec(self):
+        limits = self.limits
+
+        def run() -> None:
+            limits.apply()
+
+        return run
+
+
+def student_library(out_dir: Path, notebooks_dir: Path | None = None) -> Path:
+    """Write the student release's ``course_lib`` and ``data`` into ``out_dir`` (what a student's code may import)."""
+    from course_lib.grading.release import NOTEBOOKS_DIR, release_files
+
+    files = release_files(Path(notebooks_dir or NOTEBOOKS_DIR))
+    out_dir = Path(out_dir)
+    for rel, data in sorted(files.items()):
+        if rel.startswith(("course_lib/", "data/")):
+            dst = out_dir / rel
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            dst.write_bytes(data)
+    return out_dir
+
+
+class StudentProcessEnded(Exception):
+    """Raised by a remote call once the student's process has ended (time limit, exit, crash)."""
+
+
+class StudentError(Exception):
+    """An exception of a type the grader does not import, raised by the student's code."""
+
+
+_EXC_TYPES: dict[str, type] = {}
+
+
+def _student_exception(reply: dict) -> BaseException:
+    name = wire._ident(reply.get("type", "Exception"), "Exception")
+    msg = str(reply.get("message", "")) + str(reply.get("where", ""))
+    cls = getattr(builtins, name, None) if reply.get("builtin") else None
+    if not (isinstance(cls, type) and issubclass(cls, Exception)) or cls is StopIteration:
+        cls = _EXC_TYPES.setdefault(name, type(name, (StudentError,), {}))
+    try:
+        return cls(msg)
+    except Exception:  # noqa: BLE001 - exception types with other constructors (UnicodeDecodeError)
+        return _EXC_TYPES.setdefault(name, type(name, (StudentError,), {}))(msg)
+
+
+def _signal_name(num: int) -> str:
+    try:
+        return signal.Signals(num).name
+    except ValueError:
+        return f"signal {num}"
+
+
+class StudentProcess:
+    """One student's exercise code in its own sandboxed process, called by the grader with data.
+
+    Args:
+        iso: the grading run's :class:`Isolation`.
+        code: the extracted exercise code (imports, helpers and the def).
+        name: the exercise (the name the code defines).
+        submission: the student's folder (copied; the copy is the process's working directory).
+        budget: wall-clock seconds for everything this process does for the grader.
+        torch: import torch at start (the NeRF exercises).
+    """
+
+    def __init__(self, iso: Isolation, code: str, name: str, submission: Path | None, budget: float,
+                 torch: bool = False):
+        self.iso, self.name, self.budget = iso, name, float(budget)
+        self.t0 = time.monotonic()
+        self.deadline = self.t0 + self.budget
+        self.ended: str | None = None  # why the process is gone (feedback for the student)
+        self.event: str | None = None  # "timeout", "exit", "crash", "protocol"
+        self.hello: dict = {}
+        self.tmp = Path(tempfile.mkdtemp(prefix="course-student-"))
+        os.chmod(self.tmp, 0o755)
+        self.cwd = self.tmp / "work"
+        if submission is not None and Path(submission).is_dir():
+            shutil.copytree(submission, self.cwd, ignore=SKIP_COPY, symlinks=True)
+        else:
+            self.cwd.mkdir()
+        stage = self.tmp / "stage"
+        stage.mkdir()
+        req_r, self.req_w = os.pipe()
+        self.rep_r, rep_w = os.pipe()
+        cfg = {"sandbox": iso.sandbox_config(stage, [self.cwd]), "cwd": str(self.cwd), "path": str(iso.library),
+               "sys_path": iso.python_path(), "code": code, "name": name, "torch": bool(torch),
+               "req_fd": req_r, "rep_fd": rep_w}
+        (self.tmp / "config.json").write_text(json.dumps(cfg))
+        env = {k: v for k, v in os.environ.items() if k in ("PATH", "LANG", "LC_ALL", "TZ", "TMPDIR")}
+        env.update(HOME=str(self.cwd), OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1",
+                   PYTHONDONTWRITEBYTECODE="1", MPLBACKEND="Agg", COURSE_LIB_QUICK="1")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-S", "-E", str(CHILD_SCRIPT), "serve", str(self.tmp / "config.json")],
+            cwd=self.cwd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            pass_fds=(req_r, rep_w), start_new_session=True, preexec_fn=iso.preexec())
+        os.close(req_r)
+        os.close(rep_w)
+        reply = self._receive()
+        if reply is not None:
+            self.hello = reply[0]
+
+    # -- the connection ------------------------------------------------------------------------
+    def _remaining(self) -> float:
+        return self.deadline - time.monotonic()
+
+    def _read_exact(self, n: int) -> bytes:
+        chunks, left = [], n
+        while left:
+            wait = self._remaining()
+            if wait <= 0 or not select.select([self.rep_r], [], [], wait)[0]:
+                raise TimeoutError
+            b = os.read(self.rep_r, min(left, 1 << 24))
+            if not b:
+                raise EOFError
+            chunks.append(b)
+            left -= len(b)
+        return b"".join(chunks)
+
+    def _receive(self) -> tuple[dict, list] | None:
+        """The next reply; None (and :attr:`ended` set) when the process ended or ran out of time."""
+        try:
+            (n,) = struct.unpack("<Q", self._read_exact(8))
+            if n > wire.MAX_FRAME:
+                raise wire.WireError(f"a reply of {n} bytes")
+            head, arrays = wire.unpack(self._read_exact(n))
+        except TimeoutError:
+            self._end("timeout", f"stopped after {self.budget:g} s: an endless loop, or far too slow "
+                                 f"(the time limit of one exercise is {self.budget:g} s)")
+            return None
+        except EOFError:
+            self._end_from_exit()
+            return None
+        except (wire.WireError, ValueError, UnicodeDecodeError, struct.error) as exc:
+            self._end("protocol", f"the process running your function sent something that is not a reply ({exc})")
+            return None
+        if head.get("event") == "exit":
+            code = head.get("code")
+            self._end("exit", f"your function ended the process with os._exit({code})")
+            return None
+        return head, arrays
+
+    def _end_from_exit(self) -> None:
+        try:
+            rc = self.proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            rc = None
+        if rc is not None and rc > 128 and rc - 128 in (signal.SIGXCPU, signal.SIGKILL):
+            why = f"the process running your function used up its CPU time limit ({self.iso.limits.cpu_seconds} s)"
+        elif rc is not None and (rc < 0 or rc > 128):
+            why = f"the process running your function was stopped by {_signal_name(abs(rc) if rc < 0 else rc - 128)}"
+        else:
+            why = f"the process running your function ended (exit code {rc}) before it replied: sys.exit, os._exit " \
+                  "or a crash"
+        self._end("exit", why)
+
+    def _end(self, event: str, why: str) -> None:
+        if self.ended is None:
+            self.event, self.ended = event, why
+        self.kill()
+
+    def _send(self, head: dict, arrays: list) -> bool:
+        data = wire.pack(head, arrays)
+        view = memoryview(struct.pack("<Q", len(data)) + data)
+        try:
+            while view:
+                wait = self._remaining()
+                if wait <= 0 or not select.select([], [self.req_w], [], wait)[1]:
+                    raise TimeoutError
+                view = view[os.write(self.req_w, view[: 1 << 16]):]
+        except TimeoutError:
+            self._end("timeout", f"stopped after {self.budget:g} s: an endless loop, or far too slow")
+            return False
+        except (BrokenPipeError, OSError):
+            self._end_from_exit()
+            return False
+        return True
+
+    # -- calls ------------------------------------------------------------------------------------
+    def call(self, args: tuple, kwargs: dict, handle: int | None = None, params: list | None = None):
+        """Call the student's object (or handle) with data; the result as data, or the student's exception raised."""
+        import numpy as np
+
+        if self.ended:
+            raise StudentProcessEnded(self.ended)
+        arrays: list = []
+        callbacks: list = []
+        head = {"op": "call", "h": handle, "args": wire.encode(tuple(args), arrays, callbacks),
+                "kwargs": wire.encode(dict(kwargs), arrays, callbacks), "rng": self._rng_out(arrays),
+                "grad": _grad_enabled()}
+        if params:
+            head["params"] = []
+            for name, value in params:
+                arrays.append(np.ascontiguousarray(value))
+                head["params"].append([name, len(arrays) - 1])
+        if not self._send(head, arrays):
+            raise StudentProcessEnded(self.ended)
+        got = self._receive()
+        if got is None:
+            raise StudentProcessEnded(self.ended)
+        reply, out = got
+        try:
+            if not reply.get("ok"):
+                if reply.get("wire"):
+                    raise TypeError(reply.get("message", "the result cannot be sent to the grader"))
+                raise _student_exception(reply)
+            value = wire.decode(reply["value"], out, module_proxy=lambda tree, arrs: RemoteModule.make(self, tree, arrs))
+            for i, a, k in wire.decode(reply.get("callbacks"), out) or []:
+                callbacks[int(i)](*a, **k)  # replayed in order, after the call (the grader's callbacks)
+            self._rng_in(reply.get("rng"), out)
+        except (wire.WireError, KeyError, TypeError, ValueError, IndexError) as exc:
+            if isinstance(exc, (TypeError, ValueError)) and reply.get("ok") is False:
+                raise
+            if isinstance(exc, TypeError) and reply.get("wire"):
+                raise
+            self._end("protocol", f"the process running your function sent a malformed reply ({exc})")
+            raise StudentProcessEnded(self.ended) from None
+        return value
+
+    @staticmethod
+    def _rng_out(arrays: list) -> dict:
+        import numpy as np
+
+        out = {"np": wire.encode(list(np.random.get_state()), arrays)}
+        torch = sys.modules.get("torch")
+        if torch is not None:
+            out["torch"] = wire.encode(torch.get_rng_state(), arrays)
+        return out
+
+    @staticmethod
+    def _rng_in(state, arrays) -> None:
+        import numpy as np
+
+        if not state:
+            return
+        if state.get("np") is not None:
+            np.random.set_state(tuple(wire.decode(state["np"], arrays)))
+        torch = sys.modules.get("torch")
+        if torch is not None and state.get("torch") is not None:
+            torch.set_rng_state(wire.decode(state["torch"], arrays))
+
+    # -- the end ------------------------------------------------------------------------------------
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            try:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+        try:
+            self.proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:  # pragma: no cover
+            pass
+
+    def close(self) -> None:
+        if self.proc.poll() is None and not self.ended:
+            try:
+                os.set_blocking(self.req_w, False)
+                os.write(self.req_w, struct.pack("<Q", len(b := wire.pack({"op": "bye"}, []))) + b)
+            except OSError:
+                pass
+            try:
+                self.proc.wait(timeout=2)
+            except subprocess.TimeoutExpired:
+                pass
+        self.kill()
+        for fd in (self.req_w, self.rep_r):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        shutil.rmtree(self.tmp, ignore_errors=True)
+
+    def __enter__(self) -> "StudentProcess":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def seconds(self) -> float:
+        return time.monotonic() - self.t0
+
+
+def _grad_enabled() -> bool:
+    torch = sys.modules.get("torch")
+    return bool(torch.is_grad_enabled()) if torch is not None else True
+
+
+class RemoteFunction:
+    """The student's function (or class) as the check sees it: each call goes to the student's process."""
+
+    def __init__(self, proc: StudentProcess, name: str):
+        self._proc = proc
+        self.__name__ = self.__qualname__ = name
+
+    def __call__(self, *args, **kwargs):
+        return self._proc.call(args, kwargs)
+
+    def __repr__(self) -> str:
+        return f"<your {self.__name__}, running in its own process>"
+
+
+class RemoteModule:
+    """Placeholder; :meth:`make` builds the ``torch.nn.Module`` subclass (torch is imported lazily)."""
+
+    _cls = None
+
+    @classmethod
+    def make(cls, proc: StudentProcess, tree: dict, arrays: list):
+        if RemoteModule._cls is None:
+            RemoteModule._cls = _remote_module_class()
+        name = wire._ident(tree.get("n", "Module"), "Module")
+        sub = type(name, (RemoteModule._cls,), {})
+        return sub(proc, tree, arrays)
+
+
+def _remote_module_class():
+    import torch
+
+    class _Remote(torch.nn.Module):
+        """A student's ``nn.Module`` living in the student's process: its parameters and linear layers are mirrored here;
+        ``forward`` sends the current parameters and the inputs there and returns the result."""
+
+        def __init__(self, proc: StudentProcess, tree: dict, arrays: list):
+            super().__init__()
+            names, mirror = [], []
+            for name, k in tree["params"]:
+                names.append(str(name))
+                mirror.append(torch.nn.Parameter(torch.from_numpy(arrays[int(k)].copy())))
+            linear = [torch.nn.Linear(int(i), int(o), bias=bool(b), device="meta") for i, o, b in tree["linear"]]
+            object.__setattr__(self, "_r", {"proc": proc, "h": int(tree["h"]), "names": names, "mirror": mirror,
+                                            "linear": linear})
+
+        def parameters(self, recurse: bool = True):
+            yield from self._r["mirror"]
+
+        def named_parameters(self, prefix: str = "", recurse: bool = True, remove_duplicate: bool = True):
+            for n, p in zip(self._r["names"], self._r["mirror"]):
+                yield (f"{prefix}.{n}" if prefix else n), p
+
+        def modules(self):
+            yield self
+            yield from self._r["linear"]
+
+        def named_modules(self, memo=None, prefix: str = "", remove_duplicate: bool = True):
+            yield prefix, self
+            for i, m in enumerate(self._r["linear"]):
+                yield f"{prefix}.linear{i}" if prefix else f"linear{i}", m
+
+        def forward(self, *args, **kwargs):
+            r = self._r
+            params = [(n, p.detach().cpu().numpy()) for n, p in zip(r["names"], r["mirror"])]
+            return r["proc"].call(args, kwargs, handle=r["h"], params=params)
+
+        def extra_repr(self) -> str:
+            return "running in the student's process"
+
+    return _Remote
