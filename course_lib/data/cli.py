@@ -13,10 +13,9 @@ from __future__ import annotations
 
 import shutil
 import time
-from pathlib import Path
 
 from course_lib.paths import DATA_DIR, EMBEDDED_NERF, EMBEDDED_SFM
-from course_lib.validate import KitInputError
+from course_lib.validate import output_dir
 
 
 def add_arguments(parser) -> None:
@@ -29,9 +28,7 @@ def run(args) -> int:
     from course_lib.data import building
 
     seed = building.DEFAULT_SEED if args.seed is None else int(args.seed)
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise KitInputError(f"--out {out} is a file: give a folder")
+    out = output_dir(args.out)
     todo = ["sfm", "nerf"] if args.which == "all" else [args.which]
     for what in todo:
         name = (EMBEDDED_SFM if what == "sfm" else EMBEDDED_NERF).name

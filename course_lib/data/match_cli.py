@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from course_lib.validate import KitInputError, intrinsics
+from course_lib.validate import KitInputError, intrinsics, output_dir
 
 __all__ = ["IMAGE_SUFFIXES", "MatchResult", "list_images", "load_images", "scale_intrinsics", "downscale_images",
            "verify_pairs", "match_images", "match_folder", "add_arguments", "run"]
@@ -293,6 +293,7 @@ def match_folder(images_dir, K, out, downscale: float = 1.0, ratio: float = 0.8,
     out = Path(out)
     if out.resolve() == Path(images_dir).resolve():
         raise KitInputError(f"--out {out} is the image folder itself: write the P3 folder somewhere else")
+    out = output_dir(out)
     images = load_images(paths)
     H0, W0 = images[0].shape[:2]
     images, K2 = downscale_images(images, K, downscale)

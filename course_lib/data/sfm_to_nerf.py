@@ -65,7 +65,7 @@ from pathlib import Path
 
 import numpy as np
 
-from course_lib.validate import KitInputError, intrinsics
+from course_lib.validate import KitInputError, intrinsics, output_dir
 
 __all__ = ["NerfFrame", "normalization", "to_nerf_frame", "resample_images", "sfm_to_nerf", "orbit_c2w", "render_building_views",
            "add_arguments", "run"]
@@ -210,6 +210,7 @@ def sfm_to_nerf(sfm_out, images_dir, out, size: int = 100, test_every: int = 8, 
         raise KitInputError(f"image folder not found: {images_dir}")
     if int(test_every) < 0 or int(test_every) == 1:
         raise KitInputError(f"test_every = {test_every}: expected 0 (no test split) or >= 2")
+    out = output_dir(out)
     model = read_colmap_text(_find_model(sfm_out))
     M = len(model.image_names)
     if M < 2:
@@ -239,7 +240,6 @@ def sfm_to_nerf(sfm_out, images_dir, out, size: int = 100, test_every: int = 8, 
     if test.all() or not (~test).any():
         raise KitInputError("no training views left: use a larger test_every")
     stems = [Path(n).stem for n in model.image_names]
-    out.mkdir(parents=True, exist_ok=True)
     write_blender(out, "train", imgs[~test], c2w[~test], angle, names=[f"r_{s}" for s, t in zip(stems, test) if not t])
     if test.any():
         write_blender(out, "test", imgs[test], c2w[test], angle, names=[f"r_{s}" for s, t in zip(stems, test) if t])

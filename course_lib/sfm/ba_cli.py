@@ -21,7 +21,7 @@ from pathlib import Path
 from course_lib.data.bal import load_bal
 from course_lib.paths import course_data
 from course_lib.sfm import lm
-from course_lib.validate import KitInputError
+from course_lib.validate import KitInputError, output_dir
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -48,6 +48,11 @@ def run(args: argparse.Namespace) -> int:
             raise KitInputError("no PROBLEM_FILE given and the course data 'bal-ladybug' is not on this machine (set COURSE_DATA)")
     if args.ftol <= 0 or args.max_iterations < 1 or args.f_scale <= 0:
         raise KitInputError("--ftol and --f-scale must be positive and --max-iterations at least 1")
+    if args.json is not None:  # checked before the optimization, which may take minutes
+        if args.json.is_dir():
+            raise KitInputError(f"--json {args.json} is a folder: give the path of a file to write "
+                                f"(e.g. {args.json / 'ba.json'})")
+        output_dir(args.json.parent, "--json")
     t0 = time.perf_counter()
     problem = load_bal(path)
     load_seconds = time.perf_counter() - t0
@@ -91,7 +96,6 @@ def run(args: argparse.Namespace) -> int:
         f"iterations {res.iterations}  seconds {res.seconds:.3f}  ({res.message})"
     )
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(out, indent=2) + "\n")
         if not args.quiet:
             print(f"wrote {args.json}")
