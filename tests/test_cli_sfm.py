@@ -92,3 +92,28 @@ def test_non_invertible_K(tmp_path, capsys):
     (d / "calibration.txt").write_text("0 0 400\n0 0 300\n0 0 1\n")
     assert main(["sfm", str(d), "--out", str(tmp_path / "o")]) == 2
     assert "not invertible" in _error_line(capsys)
+
+
+def test_out_is_a_file(tmp_path, capsys):
+    f = tmp_path / "taken.txt"
+    f.write_text("x")
+    assert main(["sfm", "--out", str(f), "--quiet"]) == 2
+    assert "is a file, not a folder" in _error_line(capsys)
+
+
+def test_left_out_image_is_printed_by_name(tmp_path, capsys):
+    from course_lib.data.synthetic import make_scene, write_scene_p3
+
+    sc = make_scene(np.random.default_rng(3), n_cameras=5, n_points=300, outlier_fraction=0.0)
+    seen = np.flatnonzero(np.isfinite(sc.uv[:, 4, 0]))
+    sc.uv[seen[10:], 4] = np.nan  # image 5 shares only 10 points with the others
+    write_scene_p3(sc, tmp_path / "p3")
+    import cv2
+
+    for i in range(5):  # the command reads P3 folders with their images
+        cv2.imwrite(str(tmp_path / "p3" / f"{i + 1}.png"), np.full((600, 800, 3), 128, np.uint8))
+    assert main(["sfm", str(tmp_path / "p3"), "--out", str(tmp_path / "o"), "--quiet", "--no-html"]) == 0
+    out = capsys.readouterr().out
+    assert "4/5 images registered" in out and "left out: 5.png: no verified matches" in out
+    report = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert report["left_out"][0]["name"] == "5.png"

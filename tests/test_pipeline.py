@@ -178,3 +178,81 @@ def test_bad_inputs(embedded):
         run_sfm(data, np.random.default_rng(0), bundle_adjustment="sometimes")
     with pytest.raises(KitInputError, match="has no attribute"):
         run_sfm(object(), np.random.default_rng(0))
+
+
+# --- degenerate input: named in the report (or in the error), never a traceback -------------------
+
+
+def _observe(K, R_cw, t_cw, X, seed, noise=0.5, W=800, H=600):
+    """A SyntheticScene of given cameras and points (no outliers, every point in view observed)."""
+    from course_lib.conventions import project, world_to_camera
+    from course_lib.data.synthetic import SyntheticScene
+
+    M = len(R_cw)
+    uv = np.full((len(X), M, 2), np.nan)
+    for i in range(M):
+        x = project(K, R_cw[i], t_cw[i], X)
+        z = world_to_camera(R_cw[i], t_cw[i], X)[:, 2]
+        ok = (z > 0) & (x[:, 0] >= 0) & (x[:, 0] <= W - 1) & (x[:, 1] >= 0) & (x[:, 1] <= H - 1)
+        uv[ok, i] = x[ok]
+    noisy = uv + np.random.default_rng(seed).normal(0.0, noise, uv.shape)
+    return SyntheticScene(K, R_cw, t_cw, X, noisy, uv, np.zeros(uv.shape[:2], bool), (W, H), noise)
+
+
+@pytest.fixture(scope="module")
+def base_scene():
+    return make_scene(np.random.default_rng(3), n_cameras=5, n_points=300, outlier_fraction=0.0)
+
+
+def _pure_rotation_cameras(sc):
+    """The scene's cameras plus a 6th one at the centre of camera 3, turned by 4 degrees."""
+    from scipy.spatial.transform import Rotation
+
+    R6 = Rotation.from_euler("y", 4, degrees=True).as_matrix() @ sc.R_cw[2]
+    C3 = -sc.R_cw[2].T @ sc.t_cw[2]
+    return np.concatenate([sc.R_cw, R6[None]]), np.concatenate([sc.t_cw, (-R6 @ C3)[None]])
+
+
+def test_pure_rotation_pair_is_named_and_the_rest_reconstructed(base_scene, tmp_path):
+    R, t = _pure_rotation_cameras(base_scene)
+    data, _ = write_scene_p3(_observe(base_scene.K, R, t, base_scene.X, 4), tmp_path)
+    rec = run_sfm(data, np.random.default_rng(0))
+    _check_consistent(rec)
+    deg = rec.report["degenerate_pairs"]
+    assert [(d["names"], d["kind"]) for d in deg] == [(["3.png", "6.png"], "pure rotation")]
+    assert sorted(rec.report["initial_pair"]["images"]) != [2, 5]
+    assert rec.n_registered == 6  # the turned camera still comes in by PnP
+    pe = pose_errors(rec.R_cw, rec.t_cw, R, t)
+    assert pe.rotation_deg.max() < 0.2
+
+
+def test_only_a_pure_rotation_pair_is_a_named_error(base_scene, tmp_path):
+    R, t = _pure_rotation_cameras(base_scene)
+    data, _ = write_scene_p3(_observe(base_scene.K, R[[2, 5]], t[[2, 5]], base_scene.X, 4), tmp_path)
+    with pytest.raises(KitInputError, match=r"1.png-2.png: pure rotation .*different positions"):
+        run_sfm(data, np.random.default_rng(0))
+
+
+def test_planar_scene_is_a_named_error(base_scene, tmp_path):
+    X = base_scene.X.copy()
+    X[:, 2] = 10.0  # every point on the plane z = 10
+    data, _ = write_scene_p3(_observe(base_scene.K, base_scene.R_cw, base_scene.t_cw, X, 4), tmp_path)
+    with pytest.raises(KitInputError, match=r"1.png-2.png: planar \(a homography explains"):
+        run_sfm(data, np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("n_seen, reason", [
+    (18, "too few 2D-3D matches: 18 of its features see triangulated points, PnP needs 20"),
+    (10, "no verified matches with any other image"),
+])
+def test_image_with_too_few_matches_is_left_out_by_name(base_scene, tmp_path, n_seen, reason):
+    sc = _observe(base_scene.K, base_scene.R_cw, base_scene.t_cw, base_scene.X, 4)
+    seen = np.flatnonzero(np.isfinite(sc.uv[:, 4, 0]))
+    sc.uv[seen[n_seen:], 4] = np.nan  # image 5 sees only n_seen points
+    data, _ = write_scene_p3(sc, tmp_path)
+    rec = run_sfm(data, np.random.default_rng(0))
+    _check_consistent(rec)
+    assert rec.n_registered == 4
+    assert [d["name"] for d in rec.report["left_out"]] == ["5.png"]
+    assert rec.report["left_out"][0]["reason"].startswith(reason)
+    assert rec.report["final"]["left_out"] == {"5.png": rec.report["left_out"][0]["reason"]}

@@ -5,8 +5,9 @@ Without ``DATA_DIR`` the embedded scene (``data/synthetic-building``) is used. W
 
 * ``colmap/cameras.txt``, ``colmap/images.txt``, ``colmap/points3D.txt``: the model as COLMAP text
   files (open it with ``pycolmap.Reconstruction(OUT_DIR / "colmap")`` or COLMAP's GUI);
-* ``report.json``: the pipeline's per-stage report (pairs and RANSAC inliers, initial pair, every
-  registration, reprojection errors before and after bundle adjustment, seconds) plus totals;
+* ``report.json``: the pipeline's per-stage report (pairs and RANSAC inliers, verified tracks,
+  degenerate pairs, initial pair, every registration, images left out and why, reprojection
+  errors before and after bundle adjustment, seconds) plus totals;
 * ``scene.html``: the cameras and points in an interactive 3-D plot that opens offline.
 
 Bad input (a missing folder or image, a truncated matching file, a K that is not invertible)
@@ -22,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from course_lib.validate import KitInputError
+from course_lib.validate import KitInputError, output_dir
 
 #: Default output folder, relative to the working directory (``outputs/`` is git-ignored).
 DEFAULT_OUT = Path("outputs") / "sfm"
@@ -73,12 +74,8 @@ def run(args) -> int:
     data_dir = Path(args.data_dir) if args.data_dir else EMBEDDED_SFM
     if not data_dir.is_dir():
         raise KitInputError(f"P3 folder not found: {data_dir} (expected a folder with calibration.txt, matching1.txt, ... and 1.png, ...)")
+    out = output_dir(args.out)  # before the work: a wrong --out costs nothing
     data = read_p3(data_dir)
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise KitInputError(f"cannot create the output folder {out}: {exc}") from None
     rec = run_sfm(data, np.random.default_rng(args.seed), bundle_adjustment=args.ba, verbose=not args.quiet)
 
     colmap_dir = rec.write_colmap(out / "colmap")
@@ -106,5 +103,9 @@ def run(args) -> int:
         f"{fin['observations']} observations, mean reprojection error {fin['mean_reprojection_error_px']:.3f} px "
         f"(median {fin['median_reprojection_error_px']:.3f}), {report['totals']['wall_seconds']:.1f} s"
     )
+    for d in report.get("left_out", []):
+        print(f"left out: {d['name']}: {d['reason']}")
+    for d in report.get("degenerate_pairs", []):
+        print(f"degenerate pair (not used to start): {d['names'][0]}, {d['names'][1]}: {d['kind']}")
     print(f"outputs: {colmap_dir}/ (COLMAP text model), {out / 'report.json'}" + (f", {html}" if html else ""))
     return 0

@@ -289,11 +289,51 @@ def _two_view(data, st: _State, i: int, j: int, F: np.ndarray, inl: np.ndarray):
     return choice, ang
 
 
-def _choose_initial_pair(data, st: _State, pairs: dict, min_inliers: int, min_angle_deg: float):
-    scored = []
+#: A pair whose F inliers a homography explains this well is degenerate for a two-view start.
+H_INLIER_RATIO = 0.8
+
+
+def pair_degeneracy(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px: float) -> tuple[str, float]:
+    """Is a pair's geometry a homography (pure rotation or a planar scene), where F and E are ill-defined?
+
+    A homography ``H`` (OpenCV's RANSAC, ``threshold_px``) is fitted to the pair's F inliers. If it
+    explains more than :data:`H_INLIER_RATIO` of them, the pair cannot start a reconstruction:
+    if ``K⁻¹ H K`` is a rotation (equal singular values), the camera only turned (no baseline,
+    nothing to triangulate), otherwise the points lie on a plane (F is not unique).
+
+    Args:
+        x1, x2: ``(N, 2)`` inlier matches. K: ``(3, 3)``. threshold_px: pixels.
+
+    Returns:
+        ``(kind, ratio)``: kind ``""`` (fine), ``"pure rotation"`` or ``"planar"``; the share of the
+        matches the homography explains.
+    """
+    import cv2
+
+    if len(x1) < 8:
+        return "", 0.0
+    H, mask = cv2.findHomography(x1.astype(np.float64), x2.astype(np.float64), cv2.RANSAC, threshold_px)
+    if H is None:
+        return "", 0.0
+    ratio = float(mask.ravel().astype(bool).mean())
+    if ratio <= H_INLIER_RATIO:
+        return "", ratio
+    s = np.linalg.svd(np.linalg.inv(K) @ H @ K, compute_uv=False)
+    return ("pure rotation" if s[0] / s[2] < 1.02 else "planar"), ratio
+
+
+def _choose_initial_pair(data, st: _State, pairs: dict, min_inliers: int, min_angle_deg: float, threshold_px: float,
+                         report: dict):
+    scored, degenerate = [], []
     for (i, j), (F, inl) in pairs.items():
         n = int(inl.sum())
         if n < min_inliers:
+            continue
+        pm = data.matches[(i, j)]
+        kind, ratio = pair_degeneracy(pm.x1[inl], pm.x2[inl], st.K, threshold_px)
+        if kind:
+            degenerate.append({"pair": [i, j], "names": [data.image_names[i], data.image_names[j]], "kind": kind,
+                               "homography_share": round(ratio, 3), "f_inliers": n})
             continue
         try:
             choice, ang = _two_view(data, st, i, j, F, inl)
@@ -302,9 +342,17 @@ def _choose_initial_pair(data, st: _State, pairs: dict, min_inliers: int, min_an
         good = choice.in_front & (ang >= min_angle_deg)
         med = float(np.median(ang[choice.in_front])) if choice.in_front.any() else 0.0
         scored.append((int(good.sum()), n, med, (i, j), choice))
+    report["degenerate_pairs"] = degenerate
+    scored = [sc for sc in scored if sc[0] >= 10]
     if not scored:
+        why = "; ".join(f"{d['names'][0]}-{d['names'][1]}: {d['kind']} (a homography explains {100 * d['homography_share']:.0f} % "
+                        "of the matches)" for d in degenerate[:6])
         raise KitInputError(
-            f"no image pair has {min_inliers} or more RANSAC inliers: the matches are too few or too noisy to start a reconstruction"
+            f"no image pair can start the reconstruction: none has {min_inliers} or more RANSAC inliers with 10 or more "
+            f"points triangulated at {min_angle_deg} degrees or more"
+            + (f". Degenerate pairs: {why}. Take photos from different positions (not only turning the camera) "
+               "and of a scene that is not a single plane" if degenerate else
+               ": the matches are too few or too noisy")
         )
     scored.sort(key=lambda s: (s[0], s[1]), reverse=True)
     return scored
@@ -366,20 +414,25 @@ def _refine_and_accept(st: _State, js, X0, min_angle_deg, max_reproj_px, triangu
 
 
 def _register(st: _State, i: int, rng, threshold_px: float, min_inliers: int):
+    """PnP RANSAC + non-linear PnP for image ``i``: ``(info, None)`` or ``(None, why it failed)``."""
     from course_lib.sfm.pnp import pnp_nonlinear, pnp_ransac
 
     js = np.flatnonzero(st.has_X & st.candidate[:, i])
-    if len(js) < max(6, min_inliers):
-        return None
-    res = pnp_ransac(st.X[js], st.uv[js, i], st.K, rng, threshold_px=threshold_px)
+    need = max(6, min_inliers)
+    if len(js) < need:
+        return None, f"too few 2D-3D matches: {len(js)} of its features see triangulated points, PnP needs {need}"
+    try:
+        res = pnp_ransac(st.X[js], st.uv[js, i], st.K, rng, threshold_px=threshold_px)
+    except KitInputError as exc:
+        return None, f"PnP RANSAC failed on {len(js)} 2D-3D matches ({exc})"
     inl = np.asarray(res.inliers, bool)
     if inl.sum() < min_inliers:
-        return None
+        return None, f"too few PnP inliers: {int(inl.sum())} of {len(js)} 2D-3D matches within {threshold_px} px, need {min_inliers}"
     R, t = pnp_nonlinear(st.X[js[inl]], st.uv[js[inl], i], st.K, res.R_cw, res.t_cw)
     st.R[i], st.t[i] = R, t
     st.registered[i] = True
     st.candidate[js[~inl], i] = False
-    return {"correspondences": int(len(js)), "pnp_inliers": int(inl.sum()), "ransac_iterations": int(res.n_iters)}
+    return {"correspondences": int(len(js)), "pnp_inliers": int(inl.sum()), "ransac_iterations": int(res.n_iters)}, None
 
 
 def _filter(st: _State, max_reproj_px: float, min_angle_deg: float) -> dict:
@@ -490,7 +543,9 @@ def run_sfm(
 
     Returns:
         :class:`Reconstruction`; ``report`` holds ``pairs`` (matches / RANSAC inliers per pair),
-        ``initial_pair``, ``stages`` (one entry per registered image: PnP inliers, new points,
+        ``tracks`` (raw and verified tracks, refused links), ``degenerate_pairs`` (pairs left out of
+        the initial-pair choice: ``"pure rotation"`` or ``"planar"``), ``left_out`` (each
+        unregistered image with the reason), ``initial_pair``, ``stages`` (one entry per registered image: PnP inliers, new points,
         points, reprojection error before and after BA, seconds), ``final`` (registered images,
         points, observations, mean / median / rms reprojection error) and ``seconds`` per stage.
 
@@ -563,8 +618,9 @@ def _run_sfm(
             raise KitInputError(f"initial_pair={initial_pair}: that pair has no RANSAC result (too few matches?)")
         choice, ang = _two_view(data, st, a, b, *pairs[(a, b)])
         scored = [(int((choice.in_front & (ang >= init_min_angle_deg)).sum()), int(pairs[(a, b)][1].sum()), 0.0, (a, b), choice)]
+        report["degenerate_pairs"] = []
     else:
-        scored = _choose_initial_pair(data, st, pairs, min_pair_inliers, init_min_angle_deg)
+        scored = _choose_initial_pair(data, st, pairs, min_pair_inliers, init_min_angle_deg, f_threshold_px, report)
     score, n_inl, _, (a, b), choice = scored[0]
     st.R[a], st.t[a] = np.eye(3), np.zeros(3)
     st.R[b], st.t[b] = choice.R_cw, choice.t_cw
@@ -597,6 +653,7 @@ def _run_sfm(
     # 3-5. register the other images --------------------------------------------------------------
     t_reg = time.perf_counter()
     failed: set[int] = set()
+    reasons: dict[int, str] = {}
     while True:
         todo = [i for i in range(M) if not st.registered[i] and i not in failed]
         if not todo:
@@ -604,11 +661,13 @@ def _run_sfm(
         counts = {i: int((st.has_X & st.candidate[:, i]).sum()) for i in todo}
         i = max(todo, key=lambda k: (counts[k], -k))
         t0 = time.perf_counter()
-        info = _register(st, i, rng, pnp_threshold_px, min_pnp_inliers)
+        info, why = _register(st, i, rng, pnp_threshold_px, min_pnp_inliers)
         if info is None:
             failed.add(i)
+            reasons[i] = why
             stages.append({"stage": "register", "image": i, "name": data.image_names[i], "registered": False,
-                           "correspondences": counts[i], "note": "too few 2D-3D correspondences / PnP inliers"})
+                           "correspondences": counts[i], "note": why})
+            say(f"not registered (yet): {data.image_names[i]}: {why}")
             continue
         n_new = _triangulate_new(st, i, min_angle_deg, max_reproj_px, refine=bundle_adjustment != "incremental")
         stage = {"stage": "register", "image": i, "name": data.image_names[i], "registered": True, **info,
@@ -624,6 +683,13 @@ def _run_sfm(
         say(f"registered {data.image_names[i]}: {info['pnp_inliers']}/{info['correspondences']} PnP inliers, "
             f"{n_new} new points, {int(st.has_X.sum())} points")
     seconds["registration"] = time.perf_counter() - t_reg
+    verified = {k for key in pairs for k in key}
+    for i in np.flatnonzero(~st.registered):
+        if i not in verified:
+            reasons[i] = "no verified matches with any other image (no pair passed RANSAC on F with enough inliers)"
+        report.setdefault("left_out", []).append({"image": int(i), "name": data.image_names[i], "reason": reasons.get(i, "not registered")})
+        say(f"left out: {data.image_names[i]}: {reasons.get(i, 'not registered')}")
+    report.setdefault("left_out", [])
 
     # final bundle adjustment ------------------------------------------------------------------------
     t0 = time.perf_counter()
@@ -661,6 +727,7 @@ def _run_sfm(
     report["final"] = {
         "registered_images": rec.n_registered,
         "registered": [data.image_names[i] for i in np.flatnonzero(rec.registered)],
+        "left_out": {d["name"]: d["reason"] for d in report["left_out"]},
         "points": rec.n_points,
         "observations": int(rec.inlier.sum()),
         "mean_track_length": round(float(rec.inlier.sum() / max(rec.n_points, 1)), 3),
