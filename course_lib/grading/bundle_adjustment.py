@@ -13,7 +13,7 @@ likely mistake:
   all v's, ``R_wc`` instead of ``R_cw``, no division by the depth, a parameter layout other than
   ``[r_0, t_0, r_1, t_1, ..., X_0, X_1, ...]``, K applied twice or not at all.
 * ``jacobian_sparsity``: 9 parameters per camera (the SciPy cookbook's cameras carry f, k1, k2;
-  here K is fixed), point columns without the ``6M`` offset, rows of u and v not interleaved,
+  here K is fixed), point columns without the ``6M`` offset (named), rows of u and v not interleaved,
   the matrix transposed.
 * ``bundle_adjust``: the cost does not reach the reference minimum, cameras far from the
   reference solution (after a similarity alignment), rotations that are no rotations, NaNs, a

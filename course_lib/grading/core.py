@@ -18,6 +18,12 @@ properties (rank 2, det R = +1, points in front), and prints short verdicts thro
 Lines of passing checks are deterministic (no floating-point numbers), so nbval can compare
 them; failing lines may carry numbers, since they never appear in a reference run.
 
+Checks are weighed by what they test (:func:`score`, the grader's one rule): shape and dtype
+checks are gates that earn no points; a check of a *defining* property (rank 2 for F, det +1 for
+a rotation, Δ in α; declared per exercise with :func:`declare_defining`) caps the score at one
+half when it fails, and the printed verdict then leads with it. docs/mistakes.md documents the
+defining properties and the catalogue of classic mistakes that the checks name.
+
 Fixtures are stored expected results in ``data/fixtures/<name>.npz``, made from the reference
 solutions by one command, ``python -m course_lib fixtures``; the test suite rebuilds them and
 compares, to prove they are current. Check cells and step inputs read fixtures only, so a student

@@ -10,8 +10,12 @@ compares with the stored reference results and with properties, and names the li
   transposed (``x1ᵀ F x2 = 0``), rank 3, not denormalized, not unit norm;
 * ``sampson_distance``: squared distance, algebraic error, one-sided point-to-line distance, F
   transposed, depends on the scale of F;
-* ``ransac_fundamental``: threshold on the algebraic error or on the squared distance, no
+* ``ransac_fundamental``: inliers counted with the algebraic error or the squared distance
+  (recognized by comparing the inlier mask with each rule evaluated on the returned F), no
   adaptive iteration count, no final refit, randomness not taken from ``rng``.
+
+Defining property (failing it costs at least half of the points): ``eight_point``'s F has rank 2,
+checked on all four cases.
 
 The cases: a noiseless synthetic pair, a noisy one (1 px), a pair with outliers (all from
 :func:`course_lib.data.synthetic.make_scene`, seeded), and the embedded scene's image pair

@@ -9,10 +9,15 @@ and with properties, and names the likely mistake:
 * ``pnp_linear``: R not orthogonalized, det R = -1, ``R_cw`` vs ``R_wc`` (transposed), the centre
   ``C`` returned as ``t``, ``t`` not divided by the scale of ``R``, the sign of ``P`` not fixed
   (points behind the camera), the DLT on pixel instead of normalized coordinates.
-* ``pnp_ransac``: inverted inlier mask, squared error compared with the pixel threshold,
+* ``pnp_ransac``: inverted inlier mask, squared error compared with the pixel threshold (named
+  also when it only shifts a few inlier labels),
   a pose that is not refit on the inliers, too few or too many iterations.
-* ``pnp_nonlinear``: a step that increases the error, points that do not move, a rotation that
-  is no rotation (optimizing the 9 entries), stopping early.
+* ``pnp_nonlinear``: a step that increases the error (a residual without the division by the
+  depth), points that do not move, a rotation that is no rotation (optimizing the 9 entries),
+  stopping early.
+
+Defining property (failing it costs at least half of the points): ``pnp_linear``'s R_cw is a
+rotation (orthonormal, det +1), on the noiseless, noisy and embedded views.
 
 Step input: :func:`step_input` gives notebook 04 the reference result of step 3 (the two-view
 reconstruction: poses, triangulated points and their track ids) and the 2D-3D correspondences
