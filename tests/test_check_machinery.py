@@ -103,6 +103,7 @@ def test_a_failed_defining_property_caps_the_score_and_leads_the_verdict(capsys)
     assert "defining property fails: rank 2" in lines[1] and "half of the points" in lines[1]
     assert lines[2] == "  ✘ case 9: F has rank 3: enforce rank 2"  # the failing check follows it
     assert lines[-1] == "  10 of 11 checks passed"
+    assert r.lines == lines[1:-1]  # the result holds the lines as printed (the grader's feedback uses them)
 
 
 def test_a_defining_property_must_be_declared():

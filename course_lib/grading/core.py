@@ -298,21 +298,19 @@ class Check:
         A failed defining property leads: a first line names it (and that it caps the points at
         one half), followed by the failed checks that test it; then the other lines in order.
         """
-        result = CheckResult(self.exercise, self.passed, self.total, list(self.lines), list(self.verdicts))
-        RESULTS[self.exercise] = result
-        print(self.exercise)
+        result = CheckResult(self.exercise, self.passed, self.total, [], list(self.verdicts))
         broken = result.defining_failed
         lead = [i for i, v in enumerate(self.verdicts) if v.defining in broken and not v.ok]
-        if broken:
-            what = DEFINING.get(self.exercise, {})
-            for name in broken:
-                print(f"  {FAIL} the defining property fails: {name} ({what.get(name, '')}); "
-                      f"this costs at least half of the points")
-            for i in lead:
-                print(self.lines[i])
-        for i, line in enumerate(self.lines):
-            if i not in lead:
-                print(line)
+        what = DEFINING.get(self.exercise, {})
+        printed = [f"  {FAIL} the defining property fails: {name} ({what.get(name, '')}); "
+                   "this costs at least half of the points" for name in broken]
+        printed += [self.lines[i] for i in lead]
+        printed += [line for i, line in enumerate(self.lines) if i not in lead]
+        result.lines = printed  # as printed, so that the grader's feedback leads with the property too
+        RESULTS[self.exercise] = result
+        print(self.exercise)
+        for line in printed:
+            print(line)
         if result.ok:
             print(f"  all {self.total} checks passed")
         else:
