@@ -39,3 +39,54 @@ def test_errors():
         NeRF(depth=2, width=8)(torch.zeros(3, 3))
     with pytest.raises(KitInputError):
         NeRF(density="exp")
+
+
+# ------------------------------------------------------------------ the grid field of the fast preset
+
+
+def test_grid_total_variation_gradient_written_out_equals_autograd():
+    from course_lib.nerf.grid import GridField
+
+    g = GridField([-1, -1, -1], [1, 2, 1], resolution=9)
+    with torch.no_grad():
+        g.density_grid.normal_(generator=torch.Generator().manual_seed(0))
+    (0.3 * g.total_variation()).backward()
+    ref = g.density_grid.grad.clone()
+    g.density_grid.grad = None
+    tv = g.add_total_variation_grad(0.3)
+    torch.testing.assert_close(tv, g.total_variation().detach())
+    torch.testing.assert_close(g.density_grid.grad, ref, rtol=1e-5, atol=1e-9)
+
+
+def test_grid_spherical_harmonics_colour():
+    from course_lib.nerf.grid import GridField, sh_basis
+    from course_lib.validate import KitInputError
+
+    d = torch.nn.functional.normalize(torch.randn(500, 3, generator=torch.Generator().manual_seed(1)), dim=-1)
+    Y = sh_basis(d, 2)
+    assert Y.shape == (500, 9) and torch.all(Y[:, 0] == 1)
+    # orthogonal on the sphere: the mean of Y_i Y_j over uniform directions is diagonal (Monte Carlo)
+    big = torch.nn.functional.normalize(torch.randn(200_000, 3, generator=torch.Generator().manual_seed(2)), dim=-1)
+    gram = (sh_basis(big, 2).T @ sh_basis(big, 2)) / big.shape[0]
+    off = gram - torch.diag(torch.diag(gram))
+    assert off.abs().max() < 0.02
+    rgb_grid = GridField([-1, -1, -1], [1, 1, 1], resolution=6)
+    sh_grid = GridField([-1, -1, -1], [1, 1, 1], resolution=6, sh_degree=1)
+    assert sh_grid.feature_grid.shape[1] == 12
+    with torch.no_grad():
+        rgb_grid.feature_grid.normal_(generator=torch.Generator().manual_seed(3))
+        sh_grid.feature_grid.zero_()
+        sh_grid.feature_grid[:, :3] = rgb_grid.feature_grid  # only the view-independent term
+    pts = torch.rand(100, 3) * 1.6 - 0.8
+    torch.testing.assert_close(sh_grid.color(pts, d[:100]), rgb_grid.color(pts))
+    with torch.no_grad():
+        sh_grid.feature_grid[:, 3:6] = 1.0  # Y_1 (-y) term: the colour now depends on the direction
+    up, down = torch.tensor([[0.0, 1.0, 0.0]]).expand(100, 3), torch.tensor([[0.0, -1.0, 0.0]]).expand(100, 3)
+    assert torch.all(sh_grid.color(pts, down)[:, 0] > sh_grid.color(pts, up)[:, 0])
+    with pytest.raises(KitInputError, match="pass viewdirs"):
+        sh_grid.color(pts)
+    with pytest.raises(KitInputError, match="choose spherical harmonics or the colour MLP"):
+        GridField([-1, -1, -1], [1, 1, 1], resolution=6, sh_degree=1, mlp_width=16)
+    # the resampling keeps all channels
+    sh_grid.upsample(8)
+    assert sh_grid.feature_grid.shape[1] == 12 and sh_grid.config()["sh_degree"] == 1
