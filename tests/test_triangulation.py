@@ -326,6 +326,18 @@ def test_checks_name_the_mistake(check, fn, words, capsys):
     assert words in text, text
 
 
+def test_single_point_message_is_not_self_contradictory(capsys):
+    """A (1, 3) answer with the wrong value is told so, never 'expected shape (1, 3) ..., got shape (1, 3)'."""
+    def wrong_for_one_point(P1, P2, x1, x2):
+        X = tri.triangulate_linear(P1, P2, x1, x2)
+        return X + 1.0 if len(X) == 1 else X
+
+    text, result = run_check(gtri.check_triangulate_linear, wrong_for_one_point, capsys)
+    assert not result.ok
+    assert "the right shape (1, 3) but not the true point" in text, text
+    assert "expected shape (1, 3)" not in text, text
+
+
 def test_check_reports_not_implemented(capsys):
     def todo(*args):
         raise NotImplementedError
