@@ -2,25 +2,49 @@
 
     python benchmarks/grade_speed.py                 # the instructor notebooks as the submission
     python benchmarks/grade_speed.py --submission DIR
+    python benchmarks/grade_speed.py --loop eight_point   # the same, with one exercise that loops forever
 
 The default submission is a copy of the instructor notebooks graded in the instructor's self-test
 mode (``--allow-reference``): every exercise is complete, so every hidden check, every calibration
 run and every notebook under nbval runs in full, as for a student who solved everything. The
 script prints the time and the score and writes the report to outputs/benchmarks/ (git-ignored).
+With ``--loop NAME`` the solution of exercise NAME is replaced by ``while True: pass``: that
+exercise must get 0 and cost at most its own time limit (target: total <= 1.5x the honest run).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import shutil
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+import nbformat
+
 from course_lib.grading.grade import grade_submission, to_markdown
+from course_lib.grading.release import BEGIN, END
 from course_lib.paths import REPO_ROOT
+
+
+def make_loop(notebooks: Path, name: str) -> str:
+    """Replace the solution of exercise ``name`` in the copied notebooks by an endless loop; the notebook's name."""
+    for path in sorted(notebooks.glob("*.ipynb")):
+        nb = nbformat.read(path, as_version=4)
+        for cell in nb.cells:
+            if cell.cell_type == "code" and re.search(rf"^(def|class) {re.escape(name)}\b", cell.source, re.M) \
+                    and BEGIN in cell.source:
+                lines = cell.source.splitlines()
+                a = next(i for i, ln in enumerate(lines) if ln.strip() == BEGIN)
+                b = next(i for i, ln in enumerate(lines) if ln.strip() == END)
+                indent = lines[a][: len(lines[a]) - len(lines[a].lstrip())]
+                cell.source = "\n".join(lines[:a + 1] + [f"{indent}while True:", f"{indent}    pass"] + lines[b:])
+                nbformat.write(nb, path)
+                return path.name
+    raise SystemExit(f"no exercise {name} with solution markers in the notebooks")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -29,6 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--hidden-seed", type=int, default=2026)
     ap.add_argument("--nbval-jobs", type=int, default=2)
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "outputs" / "benchmarks")
+    ap.add_argument("--loop", default=None, metavar="EXERCISE", help="make this exercise loop forever")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="grade-speed-") as tmp:
         sub = args.submission
@@ -36,6 +61,11 @@ def main(argv: list[str] | None = None) -> int:
         if sub is None:
             sub = Path(tmp) / "submission"
             shutil.copytree(REPO_ROOT / "notebooks", sub / "notebooks", ignore=shutil.ignore_patterns(".ipynb_checkpoints"))
+        if args.loop:
+            if self_test is False:
+                sub = Path(shutil.copytree(sub, Path(tmp) / "submission"))
+            where = make_loop(sub / "notebooks" if (sub / "notebooks").is_dir() else sub, args.loop)
+            print(f"{args.loop} of {where} loops forever in this run")
         t0 = time.perf_counter()
         report = grade_submission(sub, salt=args.hidden_seed, allow_reference=self_test, nbval_jobs=args.nbval_jobs)
         dt = time.perf_counter() - t0
@@ -48,6 +78,10 @@ def main(argv: list[str] | None = None) -> int:
     slow = sorted(report["exercises"], key=lambda g: -g.get("hidden", {}).get("seconds", 0))[:3]
     print(f"graded {n_nb} notebooks, {n_ex} exercises in {dt:.0f} s (target <= 300 s): "
           f"{report['total']:g} / {report['max']:g} points")
+    if args.loop:
+        g = next(g for g in report["exercises"] if g["name"] == args.loop)
+        print(f"looping {args.loop}: {g['points']:g} points, {g['status']}, hidden checks stopped after "
+              f"{g.get('hidden', {}).get('seconds', 0):g} s: {g['feedback'][0]}")
     print("slowest hidden checks: " + ", ".join(f"{g['name']} {g.get('hidden', {}).get('seconds', 0):g} s" for g in slow))
     not_full = [f"{g['notebook']}::{g['name']} ({g['status']}, nbval {g['nbval']})" for g in report["exercises"]
                 if g["points"] < g["max_points"]]

@@ -33,7 +33,8 @@ The sandbox (``CONFIG["sandbox"]``), entered before any student code runs:
 The wire format never unpickles: a frame is a JSON header plus numpy arrays written with
 ``np.save`` and read with ``np.load(allow_pickle=False)``. Values: None, bool, int, float,
 complex, str, tuple, list, dict, namedtuple, dataclass-like records (their public attributes),
-numpy arrays and scalars, torch tensors, numpy and torch random generators (their state).
+numpy arrays and scalars, scipy sparse matrices, torch tensors, numpy and torch random
+generators (their state).
 """
 
 from __future__ import annotations
@@ -94,7 +95,7 @@ def encode(obj, arrays: list, callbacks: list | None = None, handles: dict | Non
             arr = np.asarray(obj)
             if arr.dtype.hasobject:
                 raise WireError("an array of Python objects (dtype=object) cannot be sent; use a numeric array")
-            arrays.append(np.ascontiguousarray(arr))
+            arrays.append(np.asarray(arr))
             return {"$": "nd" if isinstance(obj, np.ndarray) else "npscalar", "a": len(arrays) - 1}
         if isinstance(obj, np.random.Generator):
             return {"$": "rng", "s": encode(obj.bit_generator.state, arrays, depth=depth + 1)}
@@ -103,13 +104,20 @@ def encode(obj, arrays: list, callbacks: list | None = None, handles: dict | Non
             t = obj.detach().cpu()
             if t.dtype == torch.bfloat16:
                 t = t.float()
-            arrays.append(np.ascontiguousarray(t.numpy()))
+            arrays.append(np.asarray(t.numpy()))
             return {"$": "torch", "a": len(arrays) - 1, "grad": bool(obj.requires_grad)}
         if isinstance(obj, torch.Generator):
             arrays.append(obj.get_state().numpy().copy())
             return {"$": "tgen", "a": len(arrays) - 1}
         if handles is not None and isinstance(obj, torch.nn.Module):
             return _module_handle(obj, arrays, handles)
+    sparse = sys.modules.get("scipy.sparse")
+    if sparse is not None and sparse.issparse(obj):
+        coo = obj.tocoo()
+        for a in (coo.row, coo.col, coo.data):
+            arrays.append(np.asarray(a))
+        return {"$": "sparse", "fmt": _ident(obj.format, "coo"), "shape": [int(n) for n in coo.shape],
+                "array": not isinstance(obj, sparse.spmatrix), "a": len(arrays) - 3}
     if isinstance(obj, tuple) and hasattr(obj, "_fields"):
         return {"$": "ntuple", "n": _ident(type(obj).__name__), "f": [_ident(f, "field") for f in obj._fields],
                 "v": [encode(v, arrays, callbacks, handles, depth + 1) for v in obj]}
@@ -123,9 +131,9 @@ def encode(obj, arrays: list, callbacks: list | None = None, handles: dict | Non
         callbacks.append(obj)
         return {"$": "cb", "i": len(callbacks) - 1}
     fields = getattr(obj, "__dataclass_fields__", None)
-    attrs = {k: getattr(obj, k) for k in fields} if isinstance(fields, dict) else None
-    if attrs is None and isinstance(getattr(obj, "__dict__", None), dict) and not isinstance(obj, type) \
-            and not callable(obj):
+    attrs = {k: getattr(obj, k) for k in fields} if isinstance(fields, dict) and not isinstance(obj, type) else None
+    if attrs is None and type(obj).__module__ == "__main__" and isinstance(getattr(obj, "__dict__", None), dict) \
+            and not isinstance(obj, type) and not callable(obj):  # a plain class of the student's own notebook
         attrs = {k: v for k, v in vars(obj).items() if not k.startswith("_")}
     if attrs is not None:
         return {"$": "record", "n": _ident(type(obj).__name__),
@@ -212,6 +220,15 @@ def decode(tree, arrays: list, callback=None, module_proxy=None):
         return {sub(k): sub(v) for k, v in zip(tree["k"], tree["v"])}
     if kind == "record":
         return _record_type(_ident(tree["n"]))(**{_ident(k, "field"): sub(v) for k, v in tree["f"].items()})
+    if kind == "sparse":
+        import scipy.sparse as sp
+
+        k = int(tree["a"])
+        row, col, data = arrays[k], arrays[k + 1], arrays[k + 2]
+        shape = tuple(int(n) for n in tree["shape"])
+        m = (sp.coo_array if tree.get("array") else sp.coo_matrix)((data, (row, col)), shape=shape)
+        fmt = _ident(tree.get("fmt", "coo"), "coo")
+        return m.asformat(fmt) if fmt in ("csr", "csc", "coo", "lil", "dok", "bsr", "dia") else m
     if kind == "cb":
         if callback is None:
             raise WireError("a callback where none is expected")

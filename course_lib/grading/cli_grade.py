@@ -17,7 +17,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--exercises", nargs="+", default=None, metavar="NAME", help="grade only these exercises")
     parser.add_argument("--hidden-seed", type=int, default=None,
                         help="seed of the hidden cases (default: random, written into the report)")
-    parser.add_argument("--timeout", type=float, default=60.0, help="seconds for the hidden checks of one exercise")
+    parser.add_argument("--timeout", type=float, default=20.0,
+                        help="wall-clock seconds for the hidden checks of one exercise (default 20; at least 10x "
+                             "the reference's time + 5 s)")
     parser.add_argument("--cell-timeout", type=float, default=120.0, help="seconds for one notebook cell under nbval")
     parser.add_argument("--nbval-jobs", type=int, default=2, help="notebooks run under nbval at the same time")
     parser.add_argument("--no-nbval", action="store_true", help="skip the nbval run (hidden checks only)")

@@ -26,6 +26,7 @@ pass *and* the notebook's check cell printed the reference verdict under nbval.
 
 from __future__ import annotations
 
+import copy
 import importlib
 import json
 import os
@@ -36,6 +37,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import xml.etree.ElementTree as ET
 from collections import Counter
@@ -65,6 +67,7 @@ __all__ = ["HiddenCases", "prepare_hidden", "grade_submission", "to_markdown", "
 HIDDEN_SHARE = 0.9  # of an exercise's points: the hidden checks; the rest: nbval verdict (with all hidden passing)
 MAX_FEEDBACK_LINES = 6
 MAX_NBVAL_RERUNS = 3  # reruns of a notebook after cells that timed out
+DEFAULT_TIMEOUT = 20.0  # s for the hidden checks of one exercise (the reference needs at most ~1 s; see grade_speed)
 
 
 @dataclass
@@ -76,6 +79,7 @@ class HiddenCases:
     reference_passing: dict[str, list[str]]  # "notebook::exercise" -> passing verdicts of the reference
     reference_notes: dict[str, str] = field(default_factory=dict)
     reference_score: dict[str, float] = field(default_factory=dict)  # "notebook::exercise" -> core.score of the reference
+    reference_seconds: dict[str, float] = field(default_factory=dict)  # "notebook::exercise" -> the reference's time
     library: Path | None = None  # the student release's course_lib + data, imported by the student's processes
 
 
@@ -130,6 +134,7 @@ def prepare_hidden(specs: list[NotebookSpec], salt: int, workdir: Path, notebook
                                           allow_reference=True))
             cases.reference_passing[_key(e)] = out.passing
             cases.reference_score[_key(e)] = score(out.result) if out.result is not None else 0.0
+            cases.reference_seconds[_key(e)] = out.seconds
             if out.failing or out.status != "ok":
                 cases.reference_notes[_key(e)] = (f"the reference fails {len(out.failing)} hidden check(s) for this "
                                                   f"seed ({out.status} {out.message}); they are not counted")
@@ -267,9 +272,36 @@ class NbvalRun:
         self.pool = ThreadPoolExecutor(max_workers=max(1, jobs))
         self.futures: dict[str, object] = {}
         self.sandbox: dict = {}
+        self._lock = threading.Lock()
+        self._procs: dict[str, subprocess.Popen] = {}
+        self._replace: dict[str, object] = {}
 
     def submit(self, name: str, nb) -> None:
-        self.futures[name] = self.pool.submit(self._one, name, nb)
+        self.futures[name] = self.pool.submit(self._run, name, nb)
+
+    def restart(self, name: str, nb) -> None:
+        """Run notebook ``name`` again from the start with ``nb`` (stopping the run in progress, if any)."""
+        with self._lock:
+            fut = self.futures.get(name)
+            if fut is None or fut.done():
+                self.futures[name] = self.pool.submit(self._run, name, nb)
+                return
+            self._replace[name] = nb
+            proc = self._procs.get(name)
+        if proc is not None:
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+
+    def _run(self, name: str, nb) -> tuple[dict[tuple[str, int], str], str]:
+        while True:
+            with self._lock:
+                nb = self._replace.pop(name, nb)
+            out = self._one(name, nb)
+            with self._lock:
+                if name not in self._replace:
+                    return out
 
     def _one(self, name: str, nb) -> tuple[dict[tuple[str, int], str], str]:
         """Run one notebook; after a cell that timed out (nbval skips the rest), run the rest again."""
@@ -287,6 +319,9 @@ class NbvalRun:
             results: dict[tuple[str, int], str] = {}
             done_upto = -1
             for attempt in range(MAX_NBVAL_RERUNS + 1):
+                with self._lock:
+                    if name in self._replace:
+                        return results, "replaced"
                 res, note = self._pytest(tmp, work, nb_dir, name, attempt)
                 if note:
                     return results, note
@@ -326,8 +361,12 @@ class NbvalRun:
                str(nb_dir), "--nbval-lax", "--nbval-current-env", f"--nbval-cell-timeout={int(self.cell_timeout)}",
                f"--junitxml={junit}", name]
         # its own session, so that whatever the notebook started is stopped with it
-        proc = subprocess.Popen(cmd, cwd=nb_dir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                start_new_session=True, preexec_fn=self.iso.preexec())
+        with self._lock:
+            if name in self._replace:
+                return {}, "replaced"
+            proc = subprocess.Popen(cmd, cwd=nb_dir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                    start_new_session=True, preexec_fn=self.iso.preexec())
+            self._procs[name] = proc
         try:
             proc.wait(timeout=self.timeout)
         except subprocess.TimeoutExpired:
@@ -338,6 +377,8 @@ class NbvalRun:
             except (ProcessLookupError, PermissionError):
                 pass
             proc.wait()
+            with self._lock:
+                self._procs.pop(name, None)
         if report.exists() and not self.sandbox:
             try:
                 self.sandbox = json.loads(report.read_text())
@@ -348,8 +389,12 @@ class NbvalRun:
     def results(self) -> tuple[dict[tuple[str, int], str], dict[str, str]]:
         """``{(notebook, code cell index): "pass" or a failure text}`` and ``{notebook: note}`` for runs that failed."""
         out, notes = {}, {}
-        for name, fut in self.futures.items():
-            res, note = fut.result()
+        for name in list(self.futures):
+            while True:  # a restart may replace the future while we wait for it
+                fut = self.futures[name]
+                res, note = fut.result()
+                if self.futures[name] is fut:
+                    break
             out.update(res)
             if note:
                 notes[name] = note
@@ -404,7 +449,7 @@ def grade_submission(
     exercises: list[str] | None = None,
     hidden: HiddenCases | None = None,
     salt: int | None = None,
-    timeout: float = 60.0,
+    timeout: float = DEFAULT_TIMEOUT,
     cell_timeout: float = 120.0,
     run_nbval: bool = True,
     allow_reference: bool = False,
@@ -420,7 +465,8 @@ def grade_submission(
         exercises: grade only these exercises.
         hidden: hidden cases prepared by :func:`prepare_hidden` (made here when None).
         salt: the hidden seed (random when None; it is written into the report).
-        timeout: seconds for the hidden checks of one exercise.
+        timeout: wall-clock seconds for the hidden checks of one exercise (the process start, the definitions
+            and every call together); at least 10 times the reference's time on the same cases plus 5 s.
         cell_timeout: seconds for one notebook cell under nbval.
         run_nbval: run the notebooks under nbval.
         allow_reference: the instructor's self-test: calls of the reference solution are allowed.
@@ -476,6 +522,9 @@ def grade_submission(
             plans.append((s, nb, places, tamper))
             to_nbval[s.name] = _restored(nb, s, places)
         nbval_run = NbvalRun(submission, iso, cell_timeout, jobs=nbval_jobs) if run_nbval and to_nbval else None
+        if nbval_run is not None:  # nbval starts at once; a notebook whose exercise loops is restarted below
+            for name, nbv in to_nbval.items():
+                nbval_run.submit(name, nbv)
         pending: dict[str, list] = {}  # notebook -> [(grade, spec, extracted code)]
         for s, nb, places, tamper in plans:
             for e in s.exercises:
@@ -534,13 +583,9 @@ def grade_submission(
                 seen = _grade_hidden(g, e, ex, hidden, timeout, iso, allow_reference, submission)
                 sandbox_seen = sandbox_seen or seen
                 if g.status in ("timeout", "exit"):
-                    ended[e.name] = g.feedback[-1]
-            if nbval_run is not None and s.name in to_nbval:
-                nbv = to_nbval[s.name]
-                for name, why in ended.items():
-                    cell = nbv.cells[places[name].check_cell]
-                    cell.source = f"raise RuntimeError({('not run again: ' + why)!r})"
-                nbval_run.submit(s.name, nbv)
+                    ended[e.name] = (g.feedback[-1], ex.def_cell)
+            if nbval_run is not None and s.name in to_nbval and ended:
+                nbval_run.restart(s.name, _without_ended(copy.deepcopy(to_nbval[s.name]), places, ended))
         results, nbval_notes = nbval_run.results() if nbval_run is not None else ({}, {})
         by_key = {(g.notebook, g.name): g for g in grades}
         for s, nb, places, _ in plans:
@@ -573,14 +618,29 @@ def grade_submission(
             tmp.cleanup()
 
 
+def _without_ended(nb, places: dict[str, Placement], ended: dict[str, tuple[str, int]]):
+    """The notebook for nbval, with the exercises that looped or ended the process in the hidden run cut short.
+
+    Their check cells raise at once, and their function is replaced (after its own cell) by one that
+    raises, so that no later cell loops on it again: a looping exercise costs its time limit once.
+    """
+    for name, (why, def_cell) in ended.items():
+        msg = f"not run again by the grader: {why}"
+        nb.cells[places[name].check_cell].source = f"raise RuntimeError({msg!r})"
+        nb.cells[def_cell].source += (f"\n\n\ndef {name}(*args, **kwargs):  # added by the grader\n"
+                                      f"    raise RuntimeError({msg!r})\n")
+    return nb
+
+
 def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, hidden: HiddenCases, timeout: float, iso: Isolation,
                   allow_reference: bool, submission: Path) -> dict:
     """Run the hidden checks of one exercise (its function in a sandboxed process) and fill in its grade.
 
     Returns what the student's process was confined by.
     """
+    budget = max(timeout, 10 * hidden.reference_seconds.get(_key(e), 0.0) + 5)
     out = run_hidden(HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(hidden.fixtures_dir),
-                               e.reference, allow_reference, str(submission)), timeout, iso)
+                               e.reference, allow_reference, str(submission)), budget, iso)
     ref = hidden.reference_passing.get(_key(e), [])
     matched = sum((Counter(out.passing) & Counter(ref)).values())
     g.hidden = {"passed": matched, "total": len(ref), "seconds": round(out.seconds, 1)}

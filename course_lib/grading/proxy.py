@@ -312,7 +312,7 @@ class StudentProcess:
         if params:
             head["params"] = []
             for name, value in params:
-                arrays.append(np.ascontiguousarray(value))
+                arrays.append(np.asarray(value))
                 head["params"].append([name, len(arrays) - 1])
         if not self._send(head, arrays):
             raise StudentProcessEnded(self.ended)
@@ -320,22 +320,19 @@ class StudentProcess:
         if got is None:
             raise StudentProcessEnded(self.ended)
         reply, out = got
+        if not reply.get("ok"):
+            if reply.get("wire"):
+                raise TypeError(reply.get("message", "the result cannot be sent to the grader"))
+            raise _student_exception(reply)
         try:
-            if not reply.get("ok"):
-                if reply.get("wire"):
-                    raise TypeError(reply.get("message", "the result cannot be sent to the grader"))
-                raise _student_exception(reply)
             value = wire.decode(reply["value"], out, module_proxy=lambda tree, arrs: RemoteModule.make(self, tree, arrs))
-            for i, a, k in wire.decode(reply.get("callbacks"), out) or []:
-                callbacks[int(i)](*a, **k)  # replayed in order, after the call (the grader's callbacks)
+            replay = wire.decode(reply.get("callbacks"), out) or []
             self._rng_in(reply.get("rng"), out)
-        except (wire.WireError, KeyError, TypeError, ValueError, IndexError) as exc:
-            if isinstance(exc, (TypeError, ValueError)) and reply.get("ok") is False:
-                raise
-            if isinstance(exc, TypeError) and reply.get("wire"):
-                raise
+        except (wire.WireError, KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
             self._end("protocol", f"the process running your function sent a malformed reply ({exc})")
             raise StudentProcessEnded(self.ended) from None
+        for i, a, k in replay:
+            callbacks[int(i)](*a, **k)  # the grader's callbacks, replayed in order after the call
         return value
 
     @staticmethod

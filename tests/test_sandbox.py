@@ -1,0 +1,199 @@
+"""The separation of grading (issue 14): the wire format and the student's process, without the notebooks.
+
+* The wire format carries data only (JSON + ``np.save`` arrays read with ``allow_pickle=False``):
+  every kind of value the checks exchange survives a round trip with its type; an object array
+  is refused; a numpy generator continues the same stream on the other side.
+* A :class:`~course_lib.grading.proxy.StudentProcess` imports the student release's
+  ``course_lib`` (the reference solutions are not there), sees neither the instructor's kit nor
+  the grader's secret folders (where Linux user namespaces are available: they are here in CI),
+  cannot write outside its temporary folder or reach the network, and answers by handle for an
+  ``nn.Module``, whose forward pass uses the parameters the grader sets.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import io
+import os
+
+import numpy as np
+import pytest
+
+from course_lib.grading import child as wire
+from course_lib.grading.proxy import Isolation, RemoteFunction, StudentProcess, StudentProcessEnded, student_library
+from course_lib.paths import REPO_ROOT
+from course_lib.grading.release import NOTEBOOKS_DIR
+
+
+@dataclasses.dataclass
+class Result:
+    F: np.ndarray
+    n_iters: int
+
+
+Pose = collections.namedtuple("Pose", "R_cw t_cw")
+
+
+def round_trip(value):
+    arrays: list = []
+    tree = wire.encode(value, arrays)
+    head, arrs = wire.unpack(wire.pack({"v": tree}, arrays))
+    return wire.decode(head["v"], arrs)
+
+
+@pytest.mark.parametrize("value", [
+    3, -2**70, 2.5, float("inf"), 1 - 2j, "text", None, False, (1, [2.0, "x"]), {"a": 1, (2, 3): None},
+    np.arange(6.0).reshape(2, 3), np.array(7.0), np.float32(1.5), np.array([True, False]),
+    Pose(np.eye(3), np.zeros(3)), Result(np.ones((3, 3)), 12),
+])
+def test_round_trip_keeps_values_and_types(value):
+    out = round_trip(value)
+    assert type(out).__name__ == type(value).__name__
+    if isinstance(value, np.ndarray) or isinstance(value, np.generic):
+        assert out.dtype == value.dtype and np.shape(out) == np.shape(value) and np.array_equal(out, value)
+    elif isinstance(value, Result):
+        assert np.array_equal(out.F, value.F) and out.n_iters == 12
+    elif isinstance(value, Pose):
+        assert out._fields == ("R_cw", "t_cw") and np.array_equal(out.R_cw, value.R_cw)
+    elif isinstance(value, float) or isinstance(value, complex) or value is None or isinstance(value, (int, str)):
+        assert out == value
+    else:
+        assert repr(out) == repr(value)
+
+
+def test_tensors_sparse_and_generators_round_trip():
+    torch = pytest.importorskip("torch")
+    import scipy.sparse as sp
+
+    t = round_trip(torch.arange(4.0).requires_grad_(True))
+    assert isinstance(t, torch.Tensor) and t.requires_grad and t.tolist() == [0, 1, 2, 3]
+    m = round_trip(sp.csr_matrix(np.eye(3)))
+    assert sp.issparse(m) and m.format == "csr" and np.array_equal(m.toarray(), np.eye(3))
+    g = np.random.default_rng(5)
+    g2 = round_trip(g)
+    assert np.array_equal(g.integers(0, 10**6, 5), g2.integers(0, 10**6, 5))
+    tg = torch.Generator().manual_seed(3)
+    tg2 = round_trip(tg)
+    assert torch.equal(torch.rand(3, generator=tg), torch.rand(3, generator=tg2))
+
+
+def test_object_arrays_and_pickles_are_refused():
+    with pytest.raises(wire.WireError, match="dtype=object"):
+        wire.encode(np.array([object()]), [])
+    with pytest.raises(wire.WireError, match="cannot be sent"):
+        wire.encode(object(), [])
+    buf = io.BytesIO()
+    np.save(buf, np.array([{"a": 1}], dtype=object), allow_pickle=True)  # a pickle inside an .npy
+    raw = buf.getvalue()
+    import json
+    import struct
+
+    head = json.dumps({"v": {"$": "nd", "a": 0}}).encode()
+    msg = struct.pack("<II", len(head), 1) + head + struct.pack("<Q", len(raw)) + raw
+    with pytest.raises(ValueError, match="allow_pickle"):
+        wire.unpack(msg)
+
+
+@pytest.fixture(scope="module")
+def iso(tmp_path_factory):
+    lib = student_library(tmp_path_factory.mktemp("student-kit"))
+    secret = tmp_path_factory.mktemp("grader-secret")
+    (secret / "answers.txt").write_text("42")
+    return Isolation.for_grading(lib, [secret], NOTEBOOKS_DIR)
+
+
+PROBE = """
+import os, socket
+
+def probe(secret_file, outside_file):
+    out = {}
+    for key, path in (("reference", os.path.join(%r, "course_lib", "sfm", "fundamental.py")), ("secret", secret_file)):
+        try:
+            open(path).read()
+            out[key] = "read"
+        except OSError as exc:
+            out[key] = type(exc).__name__
+    try:
+        with open(outside_file, "w") as f:
+            f.write("x")
+        out["write outside"] = "written"
+    except OSError as exc:
+        out["write outside"] = str(exc)
+    with open("mine.txt", "w") as f:
+        out["write own folder"] = f.write("ok")
+    try:
+        socket.create_connection(("1.1.1.1", 53), timeout=2)
+        out["network"] = "connected"
+    except OSError as exc:
+        out["network"] = type(exc).__name__
+    try:
+        import course_lib.sfm.fundamental  # noqa: F401
+        out["import reference"] = "imported"
+    except ImportError as exc:
+        out["import reference"] = type(exc).__name__
+    import course_lib
+    out["course_lib"] = course_lib.__file__
+    out["processes"] = len([d for d in os.listdir("/proc") if d.isdigit()])
+    return out
+""" % str(REPO_ROOT)
+
+
+def test_the_student_process_sees_only_the_release_and_its_folder(iso, tmp_path):
+    outside = tmp_path / "outside.txt"
+    with StudentProcess(iso, PROBE, "probe", None, 60) as proc:
+        box = proc.hello["sandbox"]
+        out = RemoteFunction(proc, "probe")(str(iso.hide[0] / "answers.txt"), str(outside))
+    assert out["course_lib"].startswith(str(iso.library)), out
+    assert out["import reference"] == "ModuleNotFoundError"
+    assert out["write own folder"] == 2
+    if not box["namespaces"]:
+        pytest.skip(f"no user namespaces on this machine ({box['note']}): only the import path and limits apply")
+    assert box["read_only"] and box["proc"] == "own PID namespace", box
+    assert out["reference"] == out["secret"] == "FileNotFoundError", out
+    assert "Read-only file system" in out["write outside"] and not outside.exists(), out
+    assert out["network"] != "connected" and out["processes"] <= 2, out
+
+
+def test_exceptions_exit_and_time_limit(iso):
+    code = ("import os, time\n"
+            "def f(kind):\n"
+            "    if kind == 'raise':\n        raise KeyError('k')\n"
+            "    if kind == 'exit':\n        os._exit(3)\n"
+            "    while True:\n        time.sleep(0.01)\n")
+    with StudentProcess(iso, code, "f", None, 30) as proc:
+        with pytest.raises(KeyError, match="line 4 of your exercise code"):
+            RemoteFunction(proc, "f")("raise")
+        with pytest.raises(StudentProcessEnded, match=r"your function ended the process with os._exit\(3\)"):
+            RemoteFunction(proc, "f")("exit")
+        with pytest.raises(StudentProcessEnded):  # every later call fails at once
+            RemoteFunction(proc, "f")("raise")
+    with StudentProcess(iso, code, "f", None, 3) as proc:
+        with pytest.raises(StudentProcessEnded, match="stopped after 3 s"):
+            RemoteFunction(proc, "f")("loop")
+        assert proc.seconds < 3 + 3
+
+
+def test_a_module_stays_in_the_student_process_and_uses_the_graders_parameters(iso):
+    torch = pytest.importorskip("torch")
+    code = ("import torch\n"
+            "class Net(torch.nn.Module):\n"
+            "    def __init__(self, width=4):\n"
+            "        super().__init__()\n"
+            "        self.a = torch.nn.Linear(3, width)\n"
+            "        self.b = torch.nn.Linear(width, 1)\n"
+            "    def forward(self, x):\n"
+            "        return self.b(torch.relu(self.a(x)))[..., 0]\n")
+    with StudentProcess(iso, code, "Net", None, 60, torch=True) as proc:
+        torch.manual_seed(0)
+        net = RemoteFunction(proc, "Net")(width=5)
+        assert isinstance(net, torch.nn.Module) and type(net).__name__ == "Net"
+        layers = [(m.in_features, m.out_features) for m in net.modules() if isinstance(m, torch.nn.Linear)]
+        assert layers == [(3, 5), (5, 1)] and sum(p.numel() for p in net.parameters()) == 3 * 5 + 5 + 5 + 1
+        local = torch.nn.Sequential(torch.nn.Linear(3, 5), torch.nn.ReLU(), torch.nn.Linear(5, 1))
+        with torch.no_grad():
+            for p, q in zip(net.parameters(), local.parameters()):
+                p.copy_(torch.randn_like(p))
+                q.copy_(p)
+            x = torch.randn(7, 3)
+            assert torch.allclose(net(x), local(x)[..., 0], atol=1e-6)
