@@ -86,6 +86,7 @@ def run_colmap(data, image_size, workdir: Path, seed: int = 0):
     import pycolmap
 
     pycolmap.logging.minloglevel = 2  # warnings and errors only
+    pycolmap.set_random_seed(seed)
     t0 = time.perf_counter()
     M = len(data.image_names)
     K = data.K
@@ -101,7 +102,9 @@ def run_colmap(data, image_size, workdir: Path, seed: int = 0):
             db.write_keypoints(ids[-1], kps[i].astype(np.float32))
         for (i, j), m in matches.items():
             db.write_matches(ids[i], ids[j], m)
-    pycolmap.geometric_verification(str(db_path))
+    tvg = pycolmap.TwoViewGeometryOptions()
+    tvg.ransac.random_seed = seed  # COLMAP's RANSAC is seeded only where asked (else it varies run to run)
+    pycolmap.geometric_verification(str(db_path), two_view_geometry_options=tvg)
     opts = pycolmap.IncrementalPipelineOptions()
     opts.ba_refine_focal_length = False
     opts.ba_refine_principal_point = False

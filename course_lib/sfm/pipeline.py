@@ -31,8 +31,11 @@ library:
 5. **Bundle adjustment** (notebook 05, :func:`~course_lib.sfm.bundle_adjustment.bundle_adjust`):
    after every registration (robust Huber loss, then observations beyond ``max_reproj_px`` are
    removed); at the end the noise level ``sigma`` is estimated from the median reprojection
-   error, observations beyond ``4 sigma`` (within [1, 4] px) are removed and a final BA with a
-   Cauchy loss at ``2 sigma`` (at least 0.3 px) polishes the result.
+   error, observations beyond ``4 sigma`` (within [1, 4] px) are removed and a final BA polishes
+   the result: plain least squares where the errors look Gaussian, a Cauchy loss at ``2 sigma``
+   (at least 0.3 px) where they have a heavy tail (SIFT). Points seen in only two images cannot
+   reveal a wrong match, so the cameras are refined first with the points seen three or more
+   times, and the two-view points after them.
 
 P3 data quirks handled upstream by the reader (:mod:`course_lib.data.p3`): duplicate rows are
 merged, features are identified by equal coordinates. Matches contain outliers on purpose
@@ -447,9 +450,47 @@ def _filter(st: _State, max_reproj_px: float, min_angle_deg: float) -> dict:
     return {"observations_removed": int(bad.sum()), "points_removed": int(drop.sum())}
 
 
-def _bundle(st: _State, ref: int, loss: str, f_scale: float, max_iterations: int, ftol: float = 1e-4) -> dict:
+#: The final BA leaves out two-view points when every camera keeps this many observations of points seen three or more times.
+MIN_MULTIVIEW_OBSERVATIONS = 30
+
+
+def _multiview_points(st: _State) -> np.ndarray | None:
+    """``(T,)`` points seen in 3+ images, or None when some camera has too few of them.
+
+    A point seen in two images cannot reveal a wrong match: any pixel near the epipolar line
+    triangulates to a point that fits both exactly (on synthetic scenes with 30 % random outliers,
+    a third of the two-view points hold one). So where every camera has at least
+    :data:`MIN_MULTIVIEW_OBSERVATIONS` observations of points seen three or more times, the final
+    BA refines the cameras with those only, and the two-view points are refined afterwards with
+    the cameras fixed (they stay in the model). With a robust loss (heavy-tailed errors, as on
+    real photos, where most points are two-view points) a last BA over all points follows.
+    """
+    n = st.inlier.sum(axis=1)
+    multi = n >= 3
     cams = np.flatnonzero(st.registered)
-    pts = np.flatnonzero(st.has_X)
+    if not (st.inlier[multi][:, cams].sum(axis=0) >= MIN_MULTIVIEW_OBSERVATIONS).all() or multi[st.has_X].all():
+        return None
+    return multi
+
+
+def _refine_points(st: _State, points: np.ndarray) -> int:
+    """Non-linear triangulation of the ``(T,)`` bool ``points`` with the cameras fixed; returns how many."""
+    from course_lib.sfm.triangulation import triangulate_nonlinear
+
+    js = np.flatnonzero(points & st.has_X)
+    if len(js) == 0:
+        return 0
+    regs = np.flatnonzero(st.registered)
+    uv = np.where(st.inlier[js][:, regs][..., None], st.uv[js][:, regs], np.nan)
+    st.X[js] = triangulate_nonlinear(st.K, st.R[regs], st.t[regs], uv, st.X[js])
+    return int(len(js))
+
+
+def _bundle(st: _State, ref: int, loss: str, f_scale: float, max_iterations: int, ftol: float = 1e-4,
+            points: np.ndarray | None = None) -> dict:
+    """Bundle adjustment of the registered cameras and the points (all, or the ``(T,)`` bool ``points``)."""
+    cams = np.flatnonzero(st.registered)
+    pts = np.flatnonzero(st.has_X if points is None else st.has_X & points)
     inl = st.inlier
     uv = np.where(inl[np.ix_(pts, cams)][..., None], st.uv[np.ix_(pts, cams)], np.nan)
     ref_local = int(np.flatnonzero(cams == ref)[0])
@@ -472,21 +513,33 @@ def _bundle(st: _State, ref: int, loss: str, f_scale: float, max_iterations: int
 _RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
 
 
-def _final_thresholds(st: _State, max_reproj_px, f_scale) -> tuple[float, float, float]:
-    """Threshold and robust-loss scale of the final BA: given, or from the noise level (``None``).
+#: Share of observations beyond 3 sigma above which the errors count as heavy-tailed (Gaussian
+#: noise puts about 1 % there, SIFT matches 10-16 % on the course data and the embedded scene).
+HEAVY_TAIL_SHARE = 0.08
+
+
+def _final_thresholds(st: _State, max_reproj_px, f_scale, loss: str) -> tuple[float, float, float, float, str]:
+    """Threshold, loss and loss scale of the final BA: as given, or from the error distribution.
 
     The noise ``sigma`` (pixels per coordinate) is estimated robustly from the median
     reprojection error of the current inlier observations. ``None`` threshold: ``4 sigma`` within
-    [1, 4] px (about 1 in 3000 good observations is beyond 4 sigma). ``None`` scale: ``2 sigma``,
-    at least 0.3 px: the Cauchy loss then flattens only for errors well beyond the noise (SIFT's
-    heavy tail), and Gaussian noise keeps nearly the weight of plain least squares.
+    [1, 4] px (about 1 in 3000 good observations is beyond 4 sigma). ``loss="auto"``: the Cauchy
+    loss where the errors have a heavy tail (more than :data:`HEAVY_TAIL_SHARE` of them beyond
+    ``3 sigma``, as SIFT's have), plain least squares (``"linear"``, the most accurate for
+    Gaussian noise) otherwise. ``None`` scale: ``2 sigma``, at least 0.3 px.
+
+    Returns:
+        ``(threshold_px, f_scale_px, sigma_px, tail_share, loss)``.
     """
     e = st.errors()
     e = e[np.isfinite(e)]
     sigma = float(np.median(e) / _RAYLEIGH_MEDIAN) if len(e) else 1.0
+    tail = float(np.mean(e > 3.0 * sigma)) if len(e) else 0.0
     thr = float(np.clip(4.0 * sigma, 1.0, 4.0)) if max_reproj_px is None else float(max_reproj_px)
     fs = max(0.3, 2.0 * sigma) if f_scale is None else float(f_scale)
-    return thr, fs, sigma
+    if loss == "auto":
+        loss = "cauchy" if tail > HEAVY_TAIL_SHARE else "linear"
+    return thr, fs, sigma, tail, loss
 
 
 def run_sfm(
@@ -505,7 +558,7 @@ def run_sfm(
     ba_loss: str = "huber",
     ba_f_scale: float = 1.0,
     ba_max_iterations: int = 10,
-    final_ba_loss: str = "cauchy",
+    final_ba_loss: str = "auto",
     final_ba_f_scale: float | None = None,
     initial_pair: tuple[int, int] | None = None,
     verbose: bool = False,
@@ -533,11 +586,12 @@ def run_sfm(
         ba_loss, ba_f_scale: robust loss of the intermediate bundle adjustments.
         ba_max_iterations: iteration cap of each bundle adjustment (twice that for the final one).
         final_ba_loss, final_ba_f_scale: loss of the final bundle adjustment, run after the
-            observations beyond ``final_max_reproj_px`` were removed. The default, Cauchy at
-            ``None`` = twice the estimated noise (at least 0.3 px), down-weights the heavy tail of
-            SIFT localization errors (on the embedded scene it halves the rotation error against
-            the ground truth compared with plain least squares) and keeps nearly the efficiency
-            of least squares on Gaussian noise.
+            observations beyond ``final_max_reproj_px`` were removed. ``"auto"`` (default): the
+            Cauchy loss at ``f_scale`` (``None``: twice the estimated noise, at least 0.3 px) when
+            the errors have a heavy tail, as SIFT localization errors do (on the embedded scene it
+            halves the rotation error against the ground truth compared with plain least
+            squares), and plain least squares for Gaussian-like errors, where it is the most
+            accurate; or any loss of :func:`~course_lib.sfm.bundle_adjustment.bundle_adjust`.
         initial_pair: force the initial pair ``(i, j)`` (0-based) instead of choosing it.
         verbose: print one line per stage.
 
@@ -697,11 +751,19 @@ def _run_sfm(
     if bundle_adjustment != "none":
         if bundle_adjustment == "final":
             final_stage["ba_robust"] = _bundle(st, a, ba_loss, ba_f_scale, 2 * ba_max_iterations)
-        thr, fs, sigma = _final_thresholds(st, final_max_reproj_px, final_ba_f_scale)
-        final_stage["noise_sigma_px"] = round(sigma, 4)
+        thr, fs, sigma, tail, loss = _final_thresholds(st, final_max_reproj_px, final_ba_f_scale, final_ba_loss)
+        final_stage["noise_sigma_px"], final_stage["tail_share"] = round(sigma, 4), round(tail, 4)
+        final_stage["ba_loss"] = loss
         final_stage["max_reproj_px"], final_stage["ba_f_scale"] = round(thr, 4), round(fs, 4)
         final_stage["filter"] = _filter(st, thr, min_angle_deg)
-        final_stage["ba"] = _bundle(st, a, final_ba_loss, fs, 2 * ba_max_iterations, ftol=1e-6)
+        multi = _multiview_points(st)
+        final_stage["ba"] = _bundle(st, a, loss, fs, 2 * ba_max_iterations, ftol=1e-6, points=multi)
+        if multi is not None:
+            final_stage["ba"]["two_view_points_refined_after"] = _refine_points(st, ~multi)
+            if loss != "linear":
+                # a robust loss bounds the pull of a wrong two-view point: let them all take part at the end
+                final_stage["filter_mid"] = _filter(st, thr, min_angle_deg)
+                final_stage["ba_all_points"] = _bundle(st, a, loss, fs, 2 * ba_max_iterations, ftol=1e-6)
         final_stage["filter_after"] = _filter(st, thr, min_angle_deg)
         final_stage["reprojection_after_ba"] = st.observation_stats()
     final_stage["seconds"] = round(time.perf_counter() - t0, 3)
