@@ -277,6 +277,9 @@ def check_nerf_model(NeRF: Callable) -> None:
                 continue
             if ok_rgb and ok_sig:
                 c.expect(True, f"{case}: with the reference's weights, rgb and sigma equal the reference's", "")
+            elif ok_rgb and act is not None:  # the one mistake is named above: no list of suspects
+                c.fail(f"{case}: with the reference's weights rgb equals the reference's and sigma differs only by "
+                       "its activation (see above)")
             else:
                 what = " and ".join(w for w, ok in (("rgb", ok_rgb), ("sigma", ok_sig)) if not ok)
                 hint = ("check the ReLU after every layer, the skip input torch.cat([γ(x), h], -1), that sigma comes "
