@@ -86,7 +86,8 @@ def test_reference_solutions_are_left_out_or_redacted(kit):
                 "course_lib.sfm.pnp"):
         assert mod in manifest["omitted_modules"]
         assert not (out / (mod.replace(".", "/") + ".py")).exists()
-    assert not (out / "course_lib/grading/grade.py").exists() and not (out / "course_lib/grading/sandbox.py").exists()
+    for instructor_only in ("grade.py", "sandbox.py", "proxy.py", "child.py"):
+        assert not (out / "course_lib/grading" / instructor_only).exists(), instructor_only
     for mod, names in manifest["redacted"].items():
         src = (out / (mod.replace(".", "/") + ".py")).read_text()
         for n in names:

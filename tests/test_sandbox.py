@@ -197,3 +197,11 @@ def test_a_module_stays_in_the_student_process_and_uses_the_graders_parameters(i
                 q.copy_(p)
             x = torch.randn(7, 3)
             assert torch.allclose(net(x), local(x)[..., 0], atol=1e-6)
+
+
+def test_without_namespaces_the_import_path_and_limits_still_apply(iso):
+    plain = Isolation(iso.library, iso.hide, iso.keep, namespaces=False)
+    code = "import course_lib\ndef where():\n    return course_lib.__file__\n"
+    with StudentProcess(plain, code, "where", None, 30) as proc:
+        assert proc.hello["sandbox"]["namespaces"] is False and proc.hello["sandbox"]["note"]
+        assert RemoteFunction(proc, "where")().startswith(str(iso.library))

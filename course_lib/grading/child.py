@@ -372,16 +372,26 @@ def enter_sandbox(cfg: dict) -> dict:
     except OSError as exc:
         done["note"] = f"no user namespaces here ({exc.strerror if hasattr(exc, 'strerror') else exc})"
         return done
-    with open("/proc/self/setgroups", "w") as f:
-        f.write("deny")
-    with open("/proc/self/uid_map", "w") as f:
-        f.write(f"{uid} {uid} 1")
-    with open("/proc/self/gid_map", "w") as f:
-        f.write(f"{gid} {gid} 1")
+    try:
+        for name, text in (("setgroups", "deny"), ("uid_map", f"{uid} {uid} 1"), ("gid_map", f"{gid} {gid} 1")):
+            with open(f"/proc/self/{name}", "w") as f:
+                f.write(text)
+    except OSError as exc:
+        done["note"] = f"the user namespace could not be set up ({exc})"
+        return done
     done["namespaces"] = True
     done["network"] = "none: a new network namespace with only the loopback device"
     _loopback_up()
     _become_pid_one()
+    try:
+        _mounts(ctypes, libc, cfg, done)
+    except OSError as exc:  # reported (the grader warns); the namespaces stay
+        done["note"] = f"the file system view could not be restricted ({exc})"
+    return done
+
+
+def _mounts(ctypes, libc, cfg: dict, done: dict) -> None:
+    """Private mounts, a /proc of the new PID namespace, hidden folders, a read-only view but ``writable``."""
     _mount(ctypes, libc, None, "/", None, MS_REC | MS_PRIVATE)
     try:  # a /proc of the new PID namespace: other processes (and their views of the files) are not visible
         _mount(ctypes, libc, "proc", "/proc", "proc", MS_NOSUID | MS_NODEV | 8)
@@ -413,7 +423,6 @@ def enter_sandbox(cfg: dict) -> dict:
         done["read_only"] = True
     except OSError as exc:
         done["note"] = f"the file system stays writable ({exc})"
-    return done
 
 
 def _loopback_up() -> None:

@@ -45,6 +45,11 @@ def run(args: argparse.Namespace) -> int:
     if args.markdown:
         args.markdown.parent.mkdir(parents=True, exist_ok=True)
         args.markdown.write_text(md)
+    box = report.get("isolation", {}).get("hidden checks", {})
+    if box and not (box.get("namespaces") and box.get("read_only")):
+        print(f"warning: the sandbox ran without Linux user namespaces ({box.get('note') or 'not available'}): the "
+              "students' code had the student release on its path and resource limits, but could read what this user "
+              "can read. Grade on a machine that allows unprivileged user namespaces.", file=sys.stderr)
     for g in report["exercises"]:
         print(f"{g['notebook']:40s} {g['name']:28s} {g['points']:6g} / {g['max_points']:g}  {g['status']}")
     print(f"total {report['total']:g} / {report['max']:g} points (hidden seed {report['hidden_seed']}, "

@@ -8,20 +8,29 @@ reference verdicts and check cells come from the instructor's side, never from t
 1. **Structure.** The submitted notebook must still hold the exercise's ``def`` before its check
    cell, in the original order, and the check cell unedited. A deleted or moved exercise, or an
    edited or deleted check cell, gets no credit (and the report says which).
-2. **Scans.** The exercise's code (cut out with its imports and helpers,
-   :func:`course_lib.grading.sandbox.extract_exercise`) must not import the reference solutions,
-   the check machinery, or reach them through the interpreter; the notebook must not patch,
-   rebind or imitate the checks (:func:`course_lib.grading.sandbox.scan_notebook`).
-3. **Hidden checks.** The exercise's own check function runs on *hidden* cases (the fixtures
-   rebuilt with a grading-time seed) in a separate process with a time limit, with the reference
-   of the exercise trapped. The same run with the instructor's solution calibrates the cases:
-   the share of the reference's passing verdicts that the student's function also passes is
-   the hidden score.
-4. **nbval.** The notebooks run under nbval in the current environment, with a per-cell time
-   limit, after their check cells are restored to the reference source and outputs.
+2. **Scans** (a second line of defence). The exercise's code (cut out with its imports and
+   helpers, :func:`course_lib.grading.sandbox.extract_exercise`) must not import the reference
+   solutions or the check machinery; the notebook must not patch, rebind (by assignment, import
+   alias, loop or ``with`` target) or imitate the checks (:func:`course_lib.grading.sandbox.scan_notebook`).
+3. **Hidden checks, sealed by design.** The exercise's check function runs *here*, in the
+   grader's process, on hidden cases (the fixtures rebuilt with a grading-time seed), and the
+   reference's verdicts on the same cases are computed here too. The student's function is a
+   proxy (:mod:`course_lib.grading.proxy`): each call sends the inputs as data to a sandboxed
+   process that holds only the student's extracted code and the *student release* of
+   ``course_lib`` (no reference solution on its path or in its view of the disk), and the
+   outputs come back as data (JSON and ``np.save`` arrays, never pickle). That process has a
+   wall-clock budget per exercise: a looping exercise is stopped at its limit, an exercise that
+   ends the process is named (``os._exit``), and either costs only itself. Its score is
+   :func:`course_lib.grading.core.score` of its hidden checks relative to the reference's.
+4. **nbval.** The notebooks run under nbval, with a per-cell time limit, after their check cells
+   are restored to the reference source and outputs, in the same sandbox (the student release on
+   ``PYTHONPATH``, a temporary copy of the submission as working directory, resource limits,
+   namespaces). A notebook whose exercise looped or exited in its hidden run is run again with
+   that exercise cut short, so the loop costs its time limit once.
 
 Points per exercise (default 10): 90 % times the hidden score, plus 10 % when all hidden checks
-pass *and* the notebook's check cell printed the reference verdict under nbval.
+pass *and* the notebook's check cell printed the reference verdict under nbval. What the sandbox
+enforced on this machine is written into the report (``isolation``).
 """
 
 from __future__ import annotations
@@ -365,7 +374,7 @@ class NbvalRun:
             if name in self._replace:
                 return {}, "replaced"
             proc = subprocess.Popen(cmd, cwd=nb_dir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                    start_new_session=True, preexec_fn=self.iso.preexec())
+                                    start_new_session=True, preexec_fn=self.iso.preexec(self.timeout))
             self._procs[name] = proc
         try:
             proc.wait(timeout=self.timeout)
@@ -717,5 +726,8 @@ def to_markdown(report: dict) -> str:
             if g["nbval"] != "not run":
                 lines.append(f"- nbval check cell: {g['nbval']}")
             lines.append("")
-    lines.append(f"<sub>hidden seed {report['hidden_seed']}, graded in {report['seconds']:g} s</sub>")
+    box = report.get("isolation", {}).get("hidden checks", {})
+    sandbox = "" if not box else ("; sandbox: namespaces, no network, kit hidden, read-only" if box.get("namespaces")
+                                  and box.get("read_only") else "; sandbox: resource limits and import path only")
+    lines.append(f"<sub>hidden seed {report['hidden_seed']}, graded in {report['seconds']:g} s{sandbox}</sub>")
     return "\n".join(lines) + "\n"

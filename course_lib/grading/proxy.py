@@ -37,6 +37,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -54,20 +55,25 @@ SKIP_COPY = shutil.ignore_patterns(".git", "__pycache__", ".ipynb_checkpoints", 
 class Limits:
     """Resource limits of a student's process (``setrlimit`` in the child before it starts)."""
 
-    cpu_seconds: int = 300  # RLIMIT_CPU (the wall-clock budget of an exercise is usually shorter)
+    cpu_seconds: int = 300  # RLIMIT_CPU (an exercise's process gets its wall-clock budget + 10 s; nbval its timeout)
     memory_bytes: int = 8 << 30  # RLIMIT_AS (torch needs a few GiB of address space)
     file_bytes: int = 256 << 20  # RLIMIT_FSIZE: largest file it may write
     processes: int = 512  # RLIMIT_NPROC (threads count; not enforced by Linux for uid 0)
 
     def apply(self) -> None:
-        resource.setrlimit(resource.RLIMIT_CPU, (int(self.cpu_seconds), int(self.cpu_seconds) + 5))
-        resource.setrlimit(resource.RLIMIT_AS, (int(self.memory_bytes), int(self.memory_bytes)))
-        resource.setrlimit(resource.RLIMIT_FSIZE, (int(self.file_bytes), int(self.file_bytes)))
-        resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
-        try:
-            resource.setrlimit(resource.RLIMIT_NPROC, (int(self.processes), int(self.processes)))
-        except (ValueError, OSError):
-            pass
+        """Set the limits in this process (a limit the platform refuses is left as it is)."""
+        for name, value in (("RLIMIT_CPU", (int(self.cpu_seconds), int(self.cpu_seconds) + 5)),
+                            ("RLIMIT_AS", (int(self.memory_bytes),) * 2), ("RLIMIT_FSIZE", (int(self.file_bytes),) * 2),
+                            ("RLIMIT_CORE", (0, 0)), ("RLIMIT_NPROC", (int(self.processes),) * 2)):
+            which = getattr(resource, name, None)
+            if which is None:
+                continue
+            try:
+                soft, hard = resource.getrlimit(which)
+                cap = lambda v: v if hard == resource.RLIM_INFINITY else min(v, hard)  # noqa: E731
+                resource.setrlimit(which, (cap(value[0]), cap(value[1])))
+            except (ValueError, OSError):
+                pass
 
 
 @dataclass
@@ -120,8 +126,10 @@ class Isolation:
             out.append(p)
         return out
 
-    def preexec(self):
-        limits = self.limits
+    def preexec(self, cpu_seconds: float | None = None):
+        """The ``preexec_fn`` that sets the limits (``cpu_seconds`` replaces the CPU limit)."""
+        limits = self.limits if cpu_seconds is None else dataclasses.replace(self.limits,
+                                                                              cpu_seconds=int(cpu_seconds) + 1)
 
         def run() -> None:
             limits.apply()
@@ -214,7 +222,7 @@ class StudentProcess:
         self.proc = subprocess.Popen(
             [sys.executable, "-S", "-E", str(CHILD_SCRIPT), "serve", str(self.tmp / "config.json")],
             cwd=self.cwd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-            pass_fds=(req_r, rep_w), start_new_session=True, preexec_fn=iso.preexec())
+            pass_fds=(req_r, rep_w), start_new_session=True, preexec_fn=iso.preexec(self.budget + 10))
         os.close(req_r)
         os.close(rep_w)
         reply = self._receive()
@@ -267,7 +275,7 @@ class StudentProcess:
         except subprocess.TimeoutExpired:
             rc = None
         if rc is not None and rc > 128 and rc - 128 in (signal.SIGXCPU, signal.SIGKILL):
-            why = f"the process running your function used up its CPU time limit ({self.iso.limits.cpu_seconds} s)"
+            why = f"the process running your function used up its CPU time limit ({int(self.budget) + 11} s)"
         elif rc is not None and (rc < 0 or rc > 128):
             why = f"the process running your function was stopped by {_signal_name(abs(rc) if rc < 0 else rc - 128)}"
         else:

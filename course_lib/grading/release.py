@@ -708,7 +708,10 @@ pytest notebooks/01_fundamental_matrix.ipynb
 
 The grader runs your notebooks with nbval (check cells are restored to the original and must
 print the reference verdict) and, independently, runs each exercise function on *hidden* test
-cases (new synthetic scenes) with a time limit. Per exercise, 90 % of the points come from the
+cases (new synthetic scenes) with a time limit, in a separate process that holds your code and this
+kit's `course_lib` only, works in a copy of your folder, has no network and may write only there.
+A function that loops is stopped at the limit and one that ends its process is named in the
+feedback; either costs that exercise only. Per exercise, 90 % of the points come from the
 hidden checks (the share of them that pass); the last 10 % come when all hidden checks pass and
 the check cell in your notebook prints the reference verdict (run it top to bottom before you
 hand in). There is no credit for an exercise that calls the kit's reference solution,

@@ -1,4 +1,4 @@
-"""Hidden checks: an exercise cut out of a submitted notebook, run in a separate process on new cases.
+"""Hidden checks: an exercise cut out of a submitted notebook, checked here on new cases while it runs elsewhere.
 
 * :func:`extract_exercise` cuts the exercise out of the notebook: the top-level ``def`` (or
   ``class``) of its name in the cells before its check cell, plus the imports, helper functions
@@ -14,11 +14,12 @@
   (the instructor's full library) run again with every seeded ``numpy.random.default_rng`` salted
   by a grading-time seed, so the synthetic scenes are new; seed 0, which the checks reuse for the
   student's own RANSAC calls, is kept.
-* :func:`run_hidden` runs the check function of the exercise on those cases in a forked process
-  with a time limit. In that process the reference of the graded exercise is replaced, wherever
-  the library holds it, by a trap that records a call; the check machinery is fingerprinted before
-  the student's code runs and compared afterwards, so a patched check is detected, and the verdict
-  travels back through a pipe, never through printed text.
+* :func:`run_hidden` runs the check function of the exercise *in this process* on those cases;
+  the student's function it receives is a proxy for the same function in a sandboxed process
+  (:class:`course_lib.grading.proxy.StudentProcess`) that holds only the student's code and the
+  student release of ``course_lib``. :func:`run_reference` runs the instructor's solution here,
+  for the expected verdicts. The scans are a second line of defence: what the student's code can
+  reach is decided by that process, not by what the scans recognise.
 """
 
 from __future__ import annotations
@@ -51,6 +52,9 @@ __all__ = [
     "HiddenJob",
     "HiddenOutcome",
     "run_hidden",
+    "run_check",
+    "run_reference",
+    "hidden_fixtures",
 ]
 
 #: Modules exercise code may not import (they reach the interpreter, the files or the checks).
