@@ -205,3 +205,29 @@ def test_without_namespaces_the_import_path_and_limits_still_apply(iso):
     with StudentProcess(plain, code, "where", None, 30) as proc:
         assert proc.hello["sandbox"]["namespaces"] is False and proc.hello["sandbox"]["note"]
         assert RemoteFunction(proc, "where")().startswith(str(iso.library))
+
+
+def test_nothing_of_the_student_survives_its_process(iso):
+    """A student's process that leaves its process group (setsid) and forks a looping child is still gone at the end."""
+    code = ("import os, time\n"
+            "def f():\n"
+            "    os.setsid()\n"
+            "    if os.fork() == 0:\n"
+            "        while True:\n            pass\n"
+            "    while True:\n        time.sleep(0.1)\n")
+    proc = StudentProcess(iso, code, "f", None, 3)
+    marker = str(proc.tmp)
+    with pytest.raises(StudentProcessEnded, match="stopped after 3 s"):
+        RemoteFunction(proc, "f")()
+    proc.close()
+    import time
+
+    time.sleep(0.5)
+    left = []
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            if marker in open(f"/proc/{pid}/cmdline").read().replace("\0", " "):
+                left.append(pid)
+        except OSError:
+            pass
+    assert not left, f"processes of the student still running: {left}"

@@ -443,6 +443,11 @@ def _become_pid_one() -> None:
     """Fork into the new PID namespace: the child goes on as its process 1, this process waits and exits with it."""
     pid = os.fork()
     if pid == 0:
+        try:  # if the waiting parent is killed, so is this process (and with it the namespace)
+            ctypes, libc = _libc()
+            libc.prctl(1, 9)  # PR_SET_PDEATHSIG, SIGKILL
+        except (OSError, AttributeError):
+            pass
         return
     for fd in (REQ_FD, REP_FD) if REQ_FD >= 0 else ():
         try:

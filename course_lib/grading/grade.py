@@ -42,7 +42,6 @@ import os
 import re
 import secrets
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
@@ -57,7 +56,7 @@ import nbformat
 
 from course_lib.grading.release import NOTEBOOKS_DIR, ExerciseSpec, NotebookSpec, kit_specs, release_plan
 from course_lib.grading.core import score
-from course_lib.grading.proxy import CHILD_SCRIPT, SKIP_COPY, Isolation, student_library
+from course_lib.grading.proxy import CHILD_SCRIPT, SKIP_COPY, Isolation, kill_tree, student_library
 from course_lib.grading.sandbox import (
     HiddenJob,
     build_hidden_fixtures,
@@ -298,10 +297,7 @@ class NbvalRun:
             self._replace[name] = nb
             proc = self._procs.get(name)
         if proc is not None:
-            try:
-                os.killpg(proc.pid, signal.SIGKILL)
-            except (ProcessLookupError, PermissionError):
-                pass
+            kill_tree(proc.pid)
 
     def _run(self, name: str, nb) -> tuple[dict[tuple[str, int], str], str]:
         while True:
@@ -381,10 +377,7 @@ class NbvalRun:
         except subprocess.TimeoutExpired:
             return {}, f"nbval did not finish {name} within {self.timeout:g} s"
         finally:
-            try:
-                os.killpg(proc.pid, signal.SIGKILL)
-            except (ProcessLookupError, PermissionError):
-                pass
+            kill_tree(proc.pid)
             proc.wait()
             with self._lock:
                 self._procs.pop(name, None)

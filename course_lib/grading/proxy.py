@@ -18,6 +18,9 @@ The student's process (see :mod:`course_lib.grading.child` for the sandbox itsel
 * on Linux with unprivileged user namespaces: no network, its own PID namespace and ``/proc``,
   the instructor's kit and the grader's scratch folder (with the hidden cases) covered by empty
   mounts, everything read-only but its temporary folder;
+* receives the grader's global numpy and torch random states with every call (so that
+  ``torch.manual_seed(0)`` in a check seeds the student's initialisation as it would in the
+  notebook); nothing of the student's process flows back but the results (not its random state);
 * has one wall-clock budget per exercise (start, definitions and every call together): when it
   runs out, the process is killed and every later call fails at once, so a looping exercise
   costs at most its own limit. ``os._exit`` is reported as such before the process ends.
@@ -100,9 +103,11 @@ class Isolation:
                     namespaces: bool = True) -> "Isolation":
         """The isolation of a grading run: hide the kit and the notebooks (unless ``self_test``) and ``secret``
         (the grader's scratch folder, the hidden cases)."""
+        import course_lib
+
         hide = [Path(p).resolve() for p in secret]
-        if not self_test:
-            hide += [REPO_ROOT.resolve(), Path(notebooks_dir).resolve()]
+        if not self_test:  # the kit, and the instructor's library wherever it is installed
+            hide += [REPO_ROOT.resolve(), Path(notebooks_dir).resolve(), Path(course_lib.__file__).resolve().parent]
         hide = sorted({h for h in hide if not any(h != o and h.is_relative_to(o) for o in hide)})
         keep = [Path(p).resolve() for p in {sys.prefix, sys.base_prefix, os.path.dirname(os.path.realpath(sys.executable))}]
         keep = [k for k in keep if any(k.is_relative_to(h) for h in hide)]
@@ -121,7 +126,7 @@ class Isolation:
             rp = Path(p).resolve()
             if any(rp.is_relative_to(h) for h in self.hide) and not any(rp.is_relative_to(k) for k in self.keep):
                 continue
-            if (rp / "course_lib").is_dir():
+            if rp == REPO_ROOT.resolve():
                 continue
             out.append(p)
         return out
@@ -335,7 +340,6 @@ class StudentProcess:
         try:
             value = wire.decode(reply["value"], out, module_proxy=lambda tree, arrs: RemoteModule.make(self, tree, arrs))
             replay = wire.decode(reply.get("callbacks"), out) or []
-            self._rng_in(reply.get("rng"), out)
         except (wire.WireError, KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
             self._end("protocol", f"the process running your function sent a malformed reply ({exc})")
             raise StudentProcessEnded(self.ended) from None
@@ -353,25 +357,10 @@ class StudentProcess:
             out["torch"] = wire.encode(torch.get_rng_state(), arrays)
         return out
 
-    @staticmethod
-    def _rng_in(state, arrays) -> None:
-        import numpy as np
-
-        if not state:
-            return
-        if state.get("np") is not None:
-            np.random.set_state(tuple(wire.decode(state["np"], arrays)))
-        torch = sys.modules.get("torch")
-        if torch is not None and state.get("torch") is not None:
-            torch.set_rng_state(wire.decode(state["torch"], arrays))
-
     # -- the end ------------------------------------------------------------------------------------
     def kill(self) -> None:
         if self.proc.poll() is None:
-            try:
-                os.killpg(self.proc.pid, signal.SIGKILL)
-            except (ProcessLookupError, PermissionError):
-                pass
+            kill_tree(self.proc.pid)
         try:
             self.proc.wait(timeout=5)
         except subprocess.TimeoutExpired:  # pragma: no cover
@@ -405,6 +394,29 @@ class StudentProcess:
     @property
     def seconds(self) -> float:
         return time.monotonic() - self.t0
+
+
+def kill_tree(pid: int) -> None:
+    """SIGKILL a sandbox launcher, its process group and its direct children.
+
+    The launcher's child is process 1 of the sandbox's PID namespace: when it dies, Linux kills
+    every process in that namespace, including those that left the process group (``setsid``).
+    """
+    try:
+        kids = [int(k) for t in os.listdir(f"/proc/{pid}/task")
+                for k in open(f"/proc/{pid}/task/{t}/children").read().split()]
+    except OSError:
+        kids = []
+    for k in kids:
+        try:
+            os.kill(k, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+    for kill, target in ((os.killpg, pid), (os.kill, pid)):
+        try:
+            kill(target, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
 
 
 def _grad_enabled() -> bool:
