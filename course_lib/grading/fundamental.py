@@ -115,13 +115,20 @@ def _rank(F: np.ndarray, x1: np.ndarray | None = None, x2: np.ndarray | None = N
     """Numerical rank of F, measured in the normalized coordinates of the points when given.
 
     A pixel-scale F has singular values spread over many orders of magnitude, so a full-rank F
-    can look rank 2 in pixels; in Hartley-normalized coordinates the test is reliable.
+    (the 8-point result without the rank-2 step) can look rank 2 in pixels; in Hartley-normalized
+    coordinates that test is reliable. The other way round, the normalizing similarities of the
+    points are far from the identity, so a matrix such as np.eye(3), full rank in pixels, can look
+    rank 2 in normalized coordinates. So rank 2 must hold in both.
     """
     F = np.asarray(F, float)
+
+    def rank(M):
+        s = np.linalg.svd(M, compute_uv=False)
+        return int(np.sum(s > 1e-7 * s[0]))
+
     if x1 is not None and x2 is not None:
-        F = np.linalg.inv(_hartley(x2)).T @ F @ np.linalg.inv(_hartley(x1))
-    s = np.linalg.svd(F, compute_uv=False)
-    return int(np.sum(s > 1e-7 * s[0]))
+        return max(rank(F), rank(np.linalg.inv(_hartley(x2)).T @ F @ np.linalg.inv(_hartley(x1))))
+    return rank(F)
 
 
 def _cases(f: dict) -> list[str]:
