@@ -26,6 +26,7 @@ Usage::
     python benchmarks/sfm_vs_colmap.py                  # every scene
     python benchmarks/sfm_vs_colmap.py --scenes syn     # only the synthetic ones
     python benchmarks/sfm_vs_colmap.py --json out.json  # also write the rows
+    python benchmarks/sfm_vs_colmap.py --scenes none --p3 /tmp/bldg12/p3   # any P3 folder
 """
 
 from __future__ import annotations
@@ -147,8 +148,23 @@ def _pose_columns(res, R_ref, t_ref, scene_size):
     return float(pe.rotation_deg.mean()), float(pe.rotation_deg.max()), float(100 * pe.center.mean() / scene_size)
 
 
-def scenes(which: str):
+def _p3_scene(folder: Path):
+    """A P3 folder, with its ``ground_truth.json`` where there is one (:func:`course_lib.data.building.load_ground_truth`)."""
+    from course_lib.data.building import load_ground_truth
+
+    data = read_p3(folder)
+    if not (folder / "ground_truth.json").is_file():
+        return folder.name, data, None, None, None, data.image_size
+    _, names, R, t = load_ground_truth(folder)
+    order = [names.index(n) for n in data.image_names]
+    size = json.loads((folder / "ground_truth.json").read_text()).get("scene_size", 1.0)
+    return folder.name, data, R[order], t[order], float(size), data.image_size
+
+
+def scenes(which: str, extra=()):
     """Yield ``(name, data, R_true, t_true, scene_size, image_size)``; truth None for the course data."""
+    for folder in extra:
+        yield _p3_scene(Path(folder))
     tmp = Path(tempfile.mkdtemp(prefix="sfm_vs_colmap_"))
     if which in ("all", "embedded"):
         from course_lib.data.building import load_ground_truth
@@ -176,7 +192,8 @@ def scenes(which: str):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--scenes", choices=["all", "embedded", "syn", "course"], default="all")
+    ap.add_argument("--scenes", choices=["all", "embedded", "syn", "course", "none"], default="all")
+    ap.add_argument("--p3", nargs="*", default=[], help="more P3 folders (compared with their ground_truth.json if present)")
     ap.add_argument("--json", help="write the rows to this JSON file")
     args = ap.parse_args(argv)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
@@ -184,7 +201,7 @@ def main(argv=None) -> int:
     hdr = f"{'scene':20s} {'method':7s} {'reg':>6s} {'points':>6s} {'reproj px':>9s} {'rot mean':>9s} {'rot max':>8s} {'C err %':>8s} {'seconds':>8s}"
     print(hdr)
     rows = []
-    for name, data, R_true, t_true, size, image_size in scenes(args.scenes):
+    for name, data, R_true, t_true, size, image_size in scenes(args.scenes, args.p3):
         M = len(data.image_names)
         with tempfile.TemporaryDirectory() as d:
             col = run_colmap(data, image_size, Path(d))

@@ -294,6 +294,8 @@ def _two_view(data, st: _State, i: int, j: int, F: np.ndarray, inl: np.ndarray):
 
 #: A pair whose F inliers a homography explains this well is degenerate for a two-view start.
 H_INLIER_RATIO = 0.8
+#: How many pairs (those with the most inliers) are scored as the initial pair.
+MAX_INITIAL_CANDIDATES = 20
 
 
 def pair_degeneracy(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px: float) -> tuple[str, float]:
@@ -315,7 +317,10 @@ def pair_degeneracy(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px:
 
     if len(x1) < 8:
         return "", 0.0
-    H, mask = cv2.findHomography(x1.astype(np.float64), x2.astype(np.float64), cv2.RANSAC, threshold_px)
+    # 200 samples of 4 find a homography that explains 80 % of the matches with certainty
+    # (1 - 0.8^4)^200 < 1e-40; OpenCV's default of 2000 costs 10x more on the pairs where none does
+    H, mask = cv2.findHomography(x1.astype(np.float64), x2.astype(np.float64), cv2.RANSAC, threshold_px,
+                                 maxIters=200, confidence=0.999)
     if H is None:
         return "", 0.0
     ratio = float(mask.ravel().astype(bool).mean())
@@ -328,7 +333,10 @@ def pair_degeneracy(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px:
 def _choose_initial_pair(data, st: _State, pairs: dict, min_inliers: int, min_angle_deg: float, threshold_px: float,
                          report: dict):
     scored, degenerate = [], []
-    for (i, j), (F, inl) in pairs.items():
+    # the MAX_INITIAL_CANDIDATES pairs with the most inliers are candidates (as COLMAP tries them)
+    ranked = sorted(pairs, key=lambda k: (-int(pairs[k][1].sum()), k))[:MAX_INITIAL_CANDIDATES]
+    for (i, j) in ranked:
+        F, inl = pairs[(i, j)]
         n = int(inl.sum())
         if n < min_inliers:
             continue

@@ -104,9 +104,11 @@ def _sampson_batch(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """``(B, N)`` Sampson distances (pixels) of N matches to B fundamental matrices ``F (B, 3, 3)``."""
     h1 = np.concatenate([x1, np.ones((len(x1), 1))], axis=1).T  # (3, N)
     h2 = np.concatenate([x2, np.ones((len(x2), 1))], axis=1).T
-    Fx1 = F @ h1  # (B, 3, N): epipolar lines in image 2
-    Ftx2 = np.transpose(F, (0, 2, 1)) @ h2  # lines in image 1
-    num = (Fx1 * h2).sum(axis=1)  # x2ᵀ F x1
+    B, N = len(F), h1.shape[1]
+    # one matrix product each for all B models: (3B, 3) @ (3, N)
+    Fx1 = (F.reshape(3 * B, 3) @ h1).reshape(B, 3, N)  # epipolar lines in image 2
+    Ftx2 = (np.transpose(F, (0, 2, 1)).reshape(3 * B, 3) @ h2).reshape(B, 3, N)  # lines in image 1
+    num = Fx1[:, 0] * h2[0] + Fx1[:, 1] * h2[1] + Fx1[:, 2]  # x2ᵀ F x1
     den = Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.abs(num) / np.sqrt(den)
