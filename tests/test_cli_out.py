@@ -1,8 +1,9 @@
 """Issue 14: an existing file given as a command's output gets one line that says what to do (exit 2).
 
-One case per command whose output handling this file pins (``nerf train/render`` are tested with
-the NeRF commands): ``match --out``, ``sfm-to-nerf --out``, ``make-data --out`` and ``ba --json``.
-Each fails before any work is done, with ``error: ...`` on one line and no traceback.
+One case per command whose output handling this file pins (``nerf train/render`` and ``sfm`` are
+tested with their own commands): ``match --out``, ``sfm-to-nerf --out``, ``make-data --out``,
+``ba --json``, ``grade --json/--markdown`` and ``release OUT_DIR``. Each fails before any work is
+done, with ``error: ...`` on one line and no traceback.
 """
 
 from __future__ import annotations
@@ -61,3 +62,17 @@ def test_ba_json_is_a_folder_or_under_a_file(a_file, tmp_path, capsys):
     assert_one_line(rc, err, f"--json {tmp_path} is a folder", "ba.json")
     rc, err = run(["ba", str(tmp_path / "problem.txt"), "--json", str(a_file / "ba.json")], capsys)
     assert_one_line(rc, err, "--json", "is a file, not a folder")
+
+
+def test_grade_report_paths_are_checked_before_grading(a_file, tmp_path, capsys):
+    rc, err = run(["grade", str(tmp_path), "--json", str(a_file / "report.json")], capsys)
+    assert_one_line(rc, err, "--json", "is a file, not a folder")
+    rc, err = run(["grade", str(tmp_path), "--markdown", str(tmp_path)], capsys)
+    assert_one_line(rc, err, f"--markdown {tmp_path} is a folder", "feedback.md")
+
+
+def test_release_into_an_existing_file(a_file, capsys):
+    rc = main(["release", str(a_file)])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and err.startswith("error: ") and "is a file, not a folder" in err and "Traceback" not in err, err
+    assert a_file.read_text() == "not a folder"

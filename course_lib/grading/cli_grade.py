@@ -31,6 +31,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from course_lib.grading.grade import grade_submission, to_markdown
     from course_lib.grading.release import NOTEBOOKS_DIR
+    from course_lib.validate import KitInputError, output_dir
+
+    for opt, path, example in (("--json", args.json, "report.json"), ("--markdown", args.markdown, "feedback.md")):
+        if path is not None:  # checked before the grading, which takes minutes
+            if path.is_dir():
+                raise KitInputError(f"{opt} {path} is a folder: give the path of a file to write (e.g. {path / example})")
+            output_dir(path.parent, opt)
 
     report = grade_submission(
         args.submission, notebooks=args.notebooks, exercises=args.exercises, salt=args.hidden_seed,
@@ -40,10 +47,8 @@ def run(args: argparse.Namespace) -> int:
     )
     md = to_markdown(report)
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(report, indent=1, ensure_ascii=False) + "\n")
     if args.markdown:
-        args.markdown.parent.mkdir(parents=True, exist_ok=True)
         args.markdown.write_text(md)
     box = report.get("isolation", {}).get("hidden checks", {})
     if box and not (box.get("namespaces") and box.get("read_only")):

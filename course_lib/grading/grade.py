@@ -35,6 +35,7 @@ enforced on this machine is written into the report (``isolation``).
 
 from __future__ import annotations
 
+import atexit
 import copy
 import importlib
 import json
@@ -122,6 +123,14 @@ def _select(specs: list[NotebookSpec], exercises: list[str] | None) -> list[Note
     return out
 
 
+def _temporary_student_library(notebooks_dir: Path) -> Path:
+    """The student release's library in a temporary folder outside every folder the sandbox hides (removed at exit)."""
+    lib = Path(tempfile.mkdtemp(prefix="course-student-kit-"))
+    atexit.register(shutil.rmtree, lib, True)
+    os.chmod(lib, 0o755)
+    return student_library(lib, notebooks_dir)
+
+
 def prepare_hidden(specs: list[NotebookSpec], salt: int, workdir: Path, notebooks_dir: Path = NOTEBOOKS_DIR,
                    timeout: float = 120.0) -> HiddenCases:
     """Build the hidden fixtures for a grading-time seed and run the instructor's solutions on them.
@@ -133,7 +142,7 @@ def prepare_hidden(specs: list[NotebookSpec], salt: int, workdir: Path, notebook
     fdir = Path(workdir) / "hidden-fixtures"
     build_hidden_fixtures(fdir, [e.check_module for s in specs for e in s.exercises], salt)
     cases = HiddenCases(int(salt), fdir, {})
-    cases.library = student_library(Path(tempfile.mkdtemp(prefix="course-student-kit-")), notebooks_dir)
+    cases.library = _temporary_student_library(notebooks_dir)
     for s in specs:
         nb = nbformat.read(Path(notebooks_dir) / s.name, as_version=4)
         for e in s.exercises:
@@ -501,7 +510,7 @@ def grade_submission(
             _preload(specs)
         nb_dir = _find_notebooks(submission)
         if hidden.library is None:
-            hidden.library = student_library(work / "student-kit", notebooks_dir)
+            hidden.library = _temporary_student_library(notebooks_dir)
         iso = Isolation.for_grading(hidden.library if not allow_reference else REPO_ROOT,
                                     [work, Path(hidden.fixtures_dir)], notebooks_dir, self_test=allow_reference)
         grades: list[ExerciseGrade] = []

@@ -744,6 +744,10 @@ def write_release(out_dir: Path, notebooks_dir: Path = NOTEBOOKS_DIR, force: boo
         ReleaseError: a notebook cannot be released (the message names it), or ``out_dir`` is not safe to replace.
     """
     out_dir = Path(out_dir).resolve()
+    for q in (out_dir, *out_dir.parents):
+        if q.exists() and not q.is_dir():
+            raise ReleaseError(f"{out_dir}: {q} is a file, not a folder; give a folder path (a new one, or an earlier "
+                               "release)")
     if out_dir == REPO_ROOT or REPO_ROOT.is_relative_to(out_dir) or out_dir.is_relative_to(REPO_ROOT / "course_lib"):
         raise ReleaseError(f"refusing to write the release into {out_dir}: choose a folder outside the kit's sources")
     if out_dir.exists() and any(out_dir.iterdir()):
