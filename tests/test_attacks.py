@@ -177,11 +177,6 @@ def test_looping_exercise_is_stopped_at_its_own_limit(tmp_path, hidden):
     assert g["hidden"]["seconds"] < 6.0 + 5
 
 
-EYE_XFAIL = ("check_eight_point's rank test (fundamental._rank, in Hartley-normalized coordinates) counts np.eye(3) "
-             "as rank 2 on the inliers-only case, so eye(3) keeps 1 of 10 points: a check-module fix")
-
-
-@pytest.mark.xfail(reason=EYE_XFAIL, strict=False)
 def test_shape_alone_earns_nothing(tmp_path, hidden):
     g = grade_eight_point(submission(tmp_path, EYE), hidden)
     assert g["points"] == 0, g
@@ -217,6 +212,7 @@ def test_attack_table(tmp_path, hidden, capsys):
         ("untouched release", None, None),
         ("stealth route: importlib via numpy.testing..sys -> _eight_point_core", STEALTH, None),
         ("os._exit via the same route", OS_EXIT, None),
+        ("sys.exit() via the same route", f"\n    {SYS}['sys'].exit(0)\n", None),
         ("builtins.open + exec of the reference source", READ_REFERENCE, None),
         ("write outside the temporary folder", write_outside(tmp_path / "outside.txt"), None),
         ("looping exercise (limit 6 s)", LOOP, None),
@@ -236,7 +232,4 @@ def test_attack_table(tmp_path, hidden, capsys):
         print("\n| attack | points | status | feedback | s |\n|---|---:|---|---|---:|")
         for what, pts, mx, status, fb, sec in rows:
             print(f"| {what} | {pts:g} / {mx:g} | {status} | {fb} | {sec:g} |")
-    eye = [r for r in rows if r[0] == "return np.eye(3)"][0]
-    assert eye[1] <= 1.0, eye  # shape checks are gates; 0 once the rank false positive is fixed (see EYE_XFAIL)
-    assert rows[0][1] == 9 and all(r[1] == 0 for r in rows[1:] if r is not eye), \
-        json.dumps(rows, indent=1, ensure_ascii=False)
+    assert rows[0][1] == 9 and all(r[1] == 0 for r in rows[1:]), json.dumps(rows, indent=1, ensure_ascii=False)
