@@ -151,14 +151,16 @@ def _pose_columns(res, R_ref, t_ref, scene_size):
 def _p3_scene(folder: Path):
     """A P3 folder, with its ``ground_truth.json`` where there is one (:func:`course_lib.data.building.load_ground_truth`)."""
     from course_lib.data.building import load_ground_truth
+    from course_lib.sfm.pipeline import _image_size  # from the images, or the extent of the pixels without them
 
-    data = read_p3(folder)
+    data = read_p3(folder, require_images=False)
+    size_px = _image_size(data)
     if not (folder / "ground_truth.json").is_file():
-        return folder.name, data, None, None, None, data.image_size
+        return folder.name, data, None, None, None, size_px
     _, names, R, t = load_ground_truth(folder)
     order = [names.index(n) for n in data.image_names]
     size = json.loads((folder / "ground_truth.json").read_text()).get("scene_size", 1.0)
-    return folder.name, data, R[order], t[order], float(size), data.image_size
+    return folder.name, data, R[order], t[order], float(size), size_px
 
 
 def scenes(which: str, extra=()):
