@@ -836,6 +836,69 @@ def test_reference_scores_full_and_tests_each_defining_property_three_times(chec
         assert n >= 3, f"{result.exercise}: defining property '{prop}' is tested on {n} cases, expected >= 3\n{out}"
 
 
+# ============================================================================ trivial answers
+# Constants of the right shape: they satisfy every shape check and many properties (rank 2, a
+# rotation, unit norm, the same result for the same seed), and must earn nothing.
+
+def _trivial():
+    torch = _torch()
+
+    def ba_identity(K, R, t, X, uv, callback=None):
+        if callback is not None:
+            callback(R, t, X)
+        return R, t, X
+
+    class ConstantNeRF(torch.nn.Module):
+        def __init__(self, **kw):
+            super().__init__()
+            self.layer = torch.nn.Linear(3, 4)
+
+        def forward(self, pts, viewdirs):
+            return torch.full((*pts.shape[:-1], 3), 0.5), torch.zeros(pts.shape[:-1])
+
+    z = np.zeros
+    return [
+        (gfu.check_normalize_points, lambda x: (z(x.shape), np.eye(3))),
+        (gfu.check_normalize_points, lambda x: (x.copy(), np.eye(3))),
+        (gfu.check_eight_point, lambda x1, x2: np.eye(3)),
+        (gfu.check_eight_point, lambda x1, x2: np.diag([1.0, 1.0, 0.0]) / np.sqrt(2)),
+        (gfu.check_sampson_distance, lambda F, x1, x2: np.ones(len(x1))),
+        (gfu.check_ransac_fundamental, lambda x1, x2, rng, threshold_px=1.0, **k: (np.eye(3), np.ones(len(x1), bool), 1)),
+        (ges.check_essential_from_fundamental, lambda F, K: np.diag([1.0, 1.0, 0.0])),
+        (ges.check_pose_candidates, lambda E: (np.stack([np.eye(3)] * 4), np.tile([1.0, 0.0, 0.0], (4, 1)))),
+        (gtr.check_triangulate_linear, lambda P1, P2, x1, x2: z((len(x1), 3))),
+        (gtr.check_choose_pose, lambda R, C, K, x1, x2: (R[0], -R[0] @ C[0], z((len(x1), 3)), np.ones(len(x1), bool),
+                                                         np.array([len(x1), 0, 0, 0]))),
+        (gtr.check_triangulate_nonlinear, lambda K, R, t, uv, X0: X0 * 1.0001),
+        (gpn.check_pnp_linear, lambda X, x, K: (np.eye(3), z(3))),
+        (gpn.check_pnp_ransac, lambda X, x, K, rng, **k: (np.eye(3), z(3), np.ones(len(X), bool), 1)),
+        (gpn.check_pnp_nonlinear, lambda X, x, K, R, t: (np.eye(3), t)),
+        (gba.check_visibility_matrix, lambda track_uv: z(track_uv.shape[:2], bool)),
+        (gba.check_reprojection_residuals, lambda p, M, N, ci, pi, uv, K: z(2 * len(ci))),
+        (gba.check_jacobian_sparsity, lambda M, N, ci, pi: np.ones((2 * len(ci), 6 * M + 3 * N))),
+        (gba.check_bundle_adjustment, ba_identity),
+        (gnd.check_get_rays, lambda H, W, K, c2w: (torch.zeros(H, W, 3), torch.zeros(H, W, 3))),
+        (gnd.check_stratified_samples, lambda near, far, S, R, perturb, generator=None: torch.zeros(R, S)),
+        (gnd.check_query_points, lambda o, d, zv: torch.zeros(*zv.shape, 3)),
+        (gnd.check_positional_encoding, lambda x, L, include_input=True: torch.zeros(
+            *x.shape[:-1], x.shape[-1] * (int(include_input) + 2 * L))),
+        (gnm.check_nerf_model, ConstantNeRF),
+        (gnm.check_psnr, lambda mse: torch.tensor(0.0)),
+        (gnr.check_volume_render, lambda rgb, sigma, zv, d, white_background=True: {
+            "rgb_map": torch.zeros(rgb.shape[0], 3), "depth_map": torch.zeros(sigma.shape[0]),
+            "acc_map": torch.zeros(sigma.shape[0]), "weights": torch.zeros_like(sigma)}),
+    ]
+
+
+TRIVIAL = _trivial()
+
+
+@pytest.mark.parametrize("check, fn", TRIVIAL, ids=[f"{c.__name__}-{k}" for k, (c, _) in enumerate(TRIVIAL)])
+def test_a_trivial_answer_earns_nothing(check, fn):
+    result, out = run_check(check, fn)
+    assert core.score(result) == 0.0, out
+
+
 def main() -> None:
     """Print the catalogue table: caught, named, points (of the grader's 10 per exercise)."""
     rows, caught_n, named_n = [], 0, 0

@@ -303,7 +303,7 @@ def check_reprojection_residuals(fn, exercise: str = "reprojection_residuals") -
         r = _as_array(c.call(fn, p_t, M, N, cam_t, pt_t, uv_t, K, case=case), c, case)
         if r is not None and np.size(r) == 2 * len(cam_t):
             r = np.asarray(r, float).ravel()
-            c.expect(np.isfinite(r).all() and np.abs(r).max() < 1e-6, f"{case}: all residuals are zero",
+            c.gate(np.isfinite(r).all() and np.abs(r).max() < 1e-6, f"{case}: all residuals are zero",
                      f"{case}: residuals up to {np.nanmax(np.abs(r)):.3g} px where the projection is exact: "
                      "check the projection x = K (R X + t) / z")
         # the embedded reconstruction before BA
@@ -477,8 +477,8 @@ def check_bundle_adjustment(fn, exercise: str = "bundle_adjust") -> None:
                      f"{case}: the same cameras as the reference (after a similarity alignment: the gauge is free)",
                      f"{case}: cameras differ from the reference by {rot:.3g}° and {cen:.3g} (scene size {size:.3g}) "
                      "after a similarity alignment: not converged, or a different cost")
-            c.expect(all(np.allclose(Ri @ Ri.T, np.eye(3), atol=1e-6) and np.linalg.det(Ri) > 0 for Ri in R),
+            c.gate(all(np.allclose(Ri @ Ri.T, np.eye(3), atol=1e-6) and np.linalg.det(Ri) > 0 for Ri in R),
                      f"{case}: every R_cw is a rotation", f"{case}: some R_cw is not a rotation: optimize rotation vectors, "
                      "not the 9 entries of R")
-            c.expect(len(states) >= 1, f"{case}: callback is called during the optimization",
+            c.gate(len(states) >= 1, f"{case}: callback is called during the optimization",
                      f"{case}: callback was never called: call callback(R_cw, t_cw, X) after every iteration (the slider needs it)")

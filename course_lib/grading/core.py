@@ -248,9 +248,14 @@ class Check:
         """Record a failed check (of ``defining`` when it is a defining property's)."""
         return self.expect(False, "", msg, defining=defining)
 
-    def gate(self, condition: bool, pass_msg: str, fail_msg: str) -> bool:
-        """Record a precondition (shape, dtype, type): no points when it passes, a failed check when not."""
-        return self.expect(condition, pass_msg, fail_msg, kind="gate")
+    def gate(self, condition: bool, pass_msg: str, fail_msg: str, defining: str | None = None) -> bool:
+        """Record a precondition: no points when it passes, a failed check when not.
+
+        For shape, dtype and type, and for properties that a trivial answer satisfies as well as a
+        right one (rank 2, a rotation, unit norm, the same result for the same seed): passing them
+        alone must earn nothing (``np.eye(3)`` or a constant is no solution), failing them costs.
+        """
+        return self.expect(condition, pass_msg, fail_msg, defining=defining, kind="gate")
 
     def call(self, fn: Callable, *args, case: str, **kwargs) -> Any:
         """Call the student's function; on an exception record a failure and return :data:`FAILED`.

@@ -189,7 +189,7 @@ def check_essential_from_fundamental(essential_from_fundamental: Callable) -> No
             raw = K.T @ F @ K
             sv = "singular values (1, 1, 0)"
             if np.allclose(s, [1.0, 1.0, 0.0], atol=1e-6):
-                c.expect(True, f"{case}: E has singular values (1, 1, 0)", "", defining=sv)
+                c.gate(True, f"{case}: E has singular values (1, 1, 0)", "", defining=sv)
             elif _same_up_to_sign(_unit(E), _unit(raw), 1e-6) and not np.isclose(s[0], s[1], rtol=1e-4):
                 c.fail(f"{case}: E = Kᵀ F K is not corrected (singular values {np.round(s / s[0], 3).tolist()} relative): "
                        "set them to (1, 1, 0), E = U diag(1, 1, 0) Vᵀ from the SVD of Kᵀ F K", defining=sv)
@@ -255,7 +255,7 @@ def check_pose_candidates(pose_candidates: Callable) -> None:
             orth = all(np.allclose(Rk @ Rk.T, np.eye(3), atol=1e-6) for Rk in R)
             det1 = "det R = +1"
             if orth and np.allclose(dets, 1.0, atol=1e-6):
-                c.expect(True, f"{case}: every R is a rotation (orthonormal, det +1)", "", defining=det1)
+                c.gate(True, f"{case}: every R is a rotation (orthonormal, det +1)", "", defining=det1)
             elif orth:
                 bad = [k for k in range(4) if dets[k] < 0]
                 c.fail(f"{case}: R[{', '.join(map(str, bad))}] has det -1 (a reflection): when det(R) < 0, "
@@ -263,7 +263,7 @@ def check_pose_candidates(pose_candidates: Callable) -> None:
             else:
                 c.fail(f"{case}: R is not orthonormal: R = U W Vᵀ or U Wᵀ Vᵀ with U, V from the SVD of E", defining=det1)
             norms = np.linalg.norm(C, axis=1)
-            c.expect(np.allclose(norms, 1.0, atol=1e-6), f"{case}: every C has unit length",
+            c.gate(np.allclose(norms, 1.0, atol=1e-6), f"{case}: every C has unit length",
                      f"{case}: C does not have unit length (|C| = {np.round(norms, 3).tolist()}): the scale is unknown, "
                      "return C / np.linalg.norm(C)")
             # factoring E: E ∝ [t]ₓ R with t = -R C, and E C = 0

@@ -309,7 +309,7 @@ def check_normalize_points(normalize_points: Callable) -> None:
         mapped = _h(x) @ T.T
         mapped = mapped[:, :2] / mapped[:, 2:]
         if np.allclose(mapped, xn, atol=1e-8):
-            c.expect(True, "x_n = T x (in homogeneous coordinates)", "")
+            c.gate(True, "x_n = T x (in homogeneous coordinates)", "")
         else:
             back = _h(xn) @ T.T
             back = back[:, :2] / back[:, 2:]
@@ -318,7 +318,7 @@ def check_normalize_points(normalize_points: Callable) -> None:
             else:
                 c.fail("x_n is not T applied to x: T must be the similarity that maps every pixel x to x_n")
         centroid = xn.mean(0)
-        c.expect(np.allclose(centroid, 0.0, atol=1e-8), "the centroid of x_n is at the origin",
+        c.gate(np.allclose(centroid, 0.0, atol=1e-8), "the centroid of x_n is at the origin",
                  f"the centroid of x_n is {np.round(centroid, 3).tolist()}, not (0, 0): subtract the mean of the points")
         d = np.linalg.norm(xn - centroid, axis=1)
         mean_d, rms_d = d.mean(), np.sqrt((d**2).mean())
@@ -409,11 +409,11 @@ def check_eight_point(eight_point: Callable) -> None:
                 else:
                     c.fail(f"{case}: {_diagnose_F(F, F_ref, F_un, x1, x2)} (median Sampson distance {d:.3g} px, "
                            f"reference {d_ref:.3g} px)")
-            c.expect(_rank(F, x1, x2) == 2, f"{case}: F has rank 2",
+            c.gate(_rank(F, x1, x2) == 2, f"{case}: F has rank 2",
                      f"{case}: F has rank 3: enforce rank 2 by zeroing the smallest singular value, "
                      "F = U diag(s1, s2, 0) Vᵀ", defining="rank 2")
             if name in ("noiseless", "noisy"):
-                c.expect(np.isclose(np.linalg.norm(F), 1.0, rtol=1e-6), f"{case}: F has unit Frobenius norm",
+                c.gate(np.isclose(np.linalg.norm(F), 1.0, rtol=1e-6), f"{case}: F has unit Frobenius norm",
                          f"{case}: |F| = {np.linalg.norm(F):.4g}: scale F to unit Frobenius norm, F / np.linalg.norm(F)")
 
 
@@ -453,7 +453,7 @@ def check_sampson_distance(sampson_distance: Callable) -> None:
             c.fail(f"{case}: {hint or 'distances differ from the reference: d = |x2ᵀ F x1| / sqrt(sum of the squared first two entries of F x1 and Fᵀ x2)'}")
         d10 = _as_array(c.call(sampson_distance, -10.0 * F, x1, x2, case=case), c, f"{case}: d")
         if d10 is not None and d10.shape == d.shape:
-            c.expect(np.allclose(d10, d, rtol=1e-6, atol=1e-9), f"{case}: the distance does not depend on the scale of F",
+            c.gate(np.allclose(d10, d, rtol=1e-6, atol=1e-9), f"{case}: the distance does not depend on the scale of F",
                      f"{case}: the result changes when F is multiplied by -10: a distance in pixels must not depend on "
                      "the scale (or sign) of F")
 
@@ -575,14 +575,14 @@ def check_ransac_fundamental(ransac_fundamental: Callable) -> None:
             if n_iters is None:
                 c.fail(f"{case}: n_iters is missing: return the number of samples drawn")
             else:
-                c.expect(0 < n_iters < 2000, f"{case}: the number of iterations adapts to the inlier ratio",
+                c.gate(0 < n_iters < 2000, f"{case}: the number of iterations adapts to the inlier ratio",
                          f"{case}: n_iters = {n_iters}: update the number of iterations after each better sample, "
                          "N = log(1 - confidence) / log(1 - w⁸) with w the best inlier ratio so far, and stop there")
             again = _unpack_ransac(c.call(ransac_fundamental, x1, x2, np.random.default_rng(0), threshold_px=thr,
                                           case=case), c, case)
             if again is not None and ok_shapes:
                 same = np.array_equal(again[1], inl) and np.allclose(again[0], F) and str(again[2]) == str(out[2])
-                c.expect(same, f"{case}: the same seed gives the same result",
+                c.gate(same, f"{case}: the same seed gives the same result",
                          f"{case}: two runs with the same seeded rng differ: draw every sample from the rng argument "
                          "(rng.choice(N, 8, replace=False)), never from np.random")
         if "building_x1" in f:

@@ -237,9 +237,9 @@ def check_nerf_model(NeRF: Callable) -> None:
             if not (c.shape(rgb, (*lead, 3), f"{case}: rgb") & c.shape(sigma, lead, f"{case}: sigma")):
                 continue
             if name == "default":
-                c.expect(rgb.min() >= 0 and rgb.max() <= 1, f"{case}: rgb in [0, 1]",
+                c.gate(rgb.min() >= 0 and rgb.max() <= 1, f"{case}: rgb in [0, 1]",
                          f"{case}: rgb ranges over [{rgb.min():.3g}, {rgb.max():.3g}]: no sigmoid on the RGB head")
-                c.expect(sigma.min() >= 0, f"{case}: sigma >= 0",
+                c.gate(sigma.min() >= 0, f"{case}: sigma >= 0",
                          f"{case}: sigma has negative values (min {sigma.min():.3g}): the density must be non-negative, "
                          "apply a ReLU to the density head", defining="ReLU density")
                 other = torch.flip(dirs, dims=(0,))
@@ -247,10 +247,10 @@ def check_nerf_model(NeRF: Callable) -> None:
                     out2 = c.call(model, pts, other, case=f"{case} forward")
                 if out2 is not FAILED:
                     rgb2, sigma2 = to_numpy(out2[0]), to_numpy(out2[1])
-                    c.expect(close(sigma2, sigma), f"{case}: sigma does not depend on the viewing direction",
+                    c.gate(close(sigma2, sigma), f"{case}: sigma does not depend on the viewing direction",
                              f"{case}: sigma changes with the viewing direction: the density head must branch off "
                              "before the view direction is concatenated")
-                    c.expect(not close(rgb2, rgb, rtol=1e-6, atol=1e-7), f"{case}: rgb depends on the viewing direction",
+                    c.gate(not close(rgb2, rgb, rtol=1e-6, atol=1e-7), f"{case}: rgb depends on the viewing direction",
                              f"{case}: rgb ignores viewdirs: concatenate γ(d) with the feature vector before the colour layer")
             # forward with the reference's test weights: pins the wiring
             shapes = _shapes(f, name)

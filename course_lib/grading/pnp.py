@@ -270,7 +270,7 @@ def _rotation_verdict(c: Check, R, case: str, defining: str | None = None) -> bo
         return c.fail(f"{case}: det R = -1 (a reflection): P is known only up to sign; when det P[:, :3] < 0 "
                       "flip the sign of P (R and t together)", defining=defining)
     if defining is not None:
-        c.expect(True, f"{case}: R_cw is a rotation (orthonormal, det +1)", "", defining=defining)
+        c.gate(True, f"{case}: R_cw is a rotation (orthonormal, det +1)", "", defining=defining)
     return True
 
 
@@ -465,7 +465,7 @@ def check_pnp_nonlinear(fn, exercise: str = "pnp_nonlinear") -> None:
                     "back with Rotation.from_rotvec(...).as_matrix()")
                 c.fail(f"{case}: the non-linear step increased the reprojection error ({e0:.3g} -> {e_s:.3g} px): {why}")
                 continue
-            c.expect(True, f"{case}: lowers the reprojection error", "")
+            c.gate(True, f"{case}: lowers the reprojection error", "")
             c.expect(e_s <= e_r * (1 + 1e-3) + 1e-6 and rotation_angle_deg(R, R_r) < 0.05,
                      f"{case}: reaches the least-squares optimum",
                      f"{case}: RMS reprojection error {e_s:.4g} px, the optimum is {e_r:.4g} px: run the solver to convergence")
