@@ -6,6 +6,7 @@
 * :mod:`course_lib.nerf.render` - volume rendering, hierarchical sampling, chunked image rendering (08).
 * :mod:`course_lib.nerf.grid` - the voxel-grid field of the ``fast`` preset (09).
 * :mod:`course_lib.nerf.presets` - :class:`TrainConfig` and the presets ``paper`` and ``fast``.
+* :mod:`course_lib.nerf.device` - where it runs: ``pick_device()`` (CUDA, then MPS, then the CPU), render chunks.
 * :mod:`course_lib.nerf.train` - training, checkpoints, evaluation, novel-view paths.
 * :mod:`course_lib.nerf.cli` - ``python -m course_lib nerf train|render``.
 """

@@ -15,8 +15,13 @@
     per ray), a coarse 40-voxel grid first; at step 200 the grid is resampled into the box around
     the surfaces the rays hit (:func:`course_lib.nerf.train.surface_box`) at 80 voxels, at step 450
     refined to 100 voxels; an occupancy grid skips empty space; colours only where the weight is
-    > 1e-4; a small density total-variation prior; Adam at a high learning rate (0.1 decaying to
-    0.01) on 2048-ray batches.
+    > 1e-4; a small density total-variation prior (its gradient written out); fused Adam at a high
+    learning rate (0.1 decaying to 0.01) on 2048-ray batches. Colour is view-independent;
+    ``grid_sh_degree=1`` stores spherical harmonics instead (view-dependent, notebook 09's 7b:
+    4x the colour channels, slower per step on a CPU).
+
+Snapshots, evaluations and checkpoints take at most ``overhead_budget`` (5 %) of the training
+time (due ones wait); render chunks come from the device (``chunk=0``).
 
 Both use ``threads=-1``: ``torch.set_num_threads(1)`` when the machine is busy (load average above
 3/4 of the cores), else all cores -- on a shared machine several torch threads wait for each

@@ -7,11 +7,15 @@ One step::
     loss  <- mean((out.rgb_map - pixel colours)^2)                     (+ coarse loss, + TV prior)
     Adam step;  PSNR = -10 log10(MSE)
 
-:func:`train` runs steps until the time budget or the number of steps is reached (whichever comes
-first), shows a ``tqdm.auto`` bar with loss and PSNR, renders a held-out view every
-``snapshot_every`` steps (PNG), saves checkpoints (model + optimizer + step + config + RNG states)
-that a stopped run resumes from, evaluates the test views in chunks and writes ``metrics.json``.
-Time spent on snapshots, evaluation and checkpoints is not counted as training time.
+:func:`train` runs steps on the chosen device (:func:`course_lib.nerf.device.pick_device`) until the
+time budget or the number of steps is reached (whichever comes first), shows a ``tqdm.auto`` bar
+(seconds trained of seconds allowed for a time budget, else steps; loss and PSNR beside it),
+renders a held-out view every ``snapshot_every`` steps (PNG), saves checkpoints (model + optimizer
++ step + config + RNG states + device) that a stopped run resumes from on any device, evaluates
+the test views in device-sized batches and writes ``metrics.json``. Time spent on snapshots,
+evaluation and checkpoints is not training time: it is recorded (``overhead_seconds``,
+``overhead_fraction`` of the wall time, per kind in ``overhead_breakdown``) and kept below
+``overhead_budget`` of the training time by letting due snapshots/checkpoints wait.
 :func:`render_path` renders novel views along a circle around the scene (GIF).
 """
 
