@@ -73,7 +73,8 @@ class Reconstruction:
         t_cw: ``(M, 3)`` translations, NaN for unregistered images.
         X: ``(T, 3)`` one point per track, NaN where the track was not triangulated.
         rgb: ``(T, 3)`` uint8 colour of each track.
-        track_uv: ``(T, M, 2)`` all observations of the tracks (as read), NaN where unseen.
+        track_uv: ``(T, M, 2)`` all observations of the verified tracks
+            (:mod:`course_lib.sfm.tracks`, not the reader's ``P3Data.track_uv``), NaN where unseen.
         inlier: ``(T, M)`` bool, the observations the reconstruction uses (registered image,
             triangulated point, not rejected as an outlier).
         report: per-stage numbers (see :func:`run_sfm`), JSON-serializable.
