@@ -30,7 +30,9 @@ library:
    This is how UPenn images 5 and 6, which share no matches with images 1 and 2, come in.
 5. **Bundle adjustment** (notebook 05, :func:`~course_lib.sfm.bundle_adjustment.bundle_adjust`):
    after every registration (robust Huber loss, then observations beyond ``max_reproj_px`` are
-   removed); at the end the noise level ``sigma`` is estimated from the median reprojection
+   removed); at the end, tracks that failed earlier are triangulated again and rejected
+   observations that now fit are used again (:func:`_retriangulate_and_complete`), the noise
+   level ``sigma`` is estimated from the median reprojection
    error, observations beyond ``4 sigma`` (within [1, 4] px) are removed and a final BA polishes
    the result: plain least squares where the errors look Gaussian, a Cauchy loss at ``2 sigma``
    (at least 0.3 px) where they have a heavy tail (SIFT). Points seen in only two images cannot
@@ -390,6 +392,42 @@ def _triangulate_new(st: _State, new: int, min_angle_deg: float, max_reproj_px: 
     if len(js) == 0:
         return 0
     return _refine_and_accept(st, js, X0[js], min_angle_deg, max_reproj_px, triangulate_nonlinear if refine else None)
+
+
+def _retriangulate_and_complete(st: _State, min_angle_deg: float, max_reproj_px: float) -> dict:
+    """After the last registration: triangulate tracks that failed earlier, and give back rejected observations that fit.
+
+    * **Re-triangulation**: a track without a point that is seen in two or more registered images
+      gets all its observations back and is triangulated again (linear from its two observing
+      cameras farthest apart, then non-linear, with the angle and reprojection tests of
+      :func:`_refine_and_accept`): early on, its cameras may have been poorly placed.
+    * **Track completion**: an observation of a triangulated point that was rejected earlier
+      (it reprojected badly from a point or camera that has moved since) is used again if it now
+      reprojects within ``max_reproj_px``.
+    """
+    from course_lib.sfm.triangulation import triangulate_linear, triangulate_nonlinear
+
+    regs = np.flatnonzero(st.registered)
+    seen = st.visible & st.registered[None, :]
+    # track completion
+    rejected = seen & ~st.candidate & st.has_X[:, None]
+    E = reprojection_error_matrix(st.K, st.R, st.t, st.X, np.where(rejected[..., None], st.uv, np.nan))
+    back = rejected & (E <= max_reproj_px)
+    st.candidate |= back
+    # re-triangulation
+    todo = ~st.has_X & (seen.sum(axis=1) >= 2)
+    st.candidate[np.ix_(todo, regs)] |= st.visible[np.ix_(todo, regs)]
+    C = st.centers()
+    X0 = np.full((st.T, 3), np.nan)
+    pairs = sorted(((a, b) for ia, a in enumerate(regs) for b in regs[ia + 1:]), key=lambda ab: -np.linalg.norm(C[ab[0]] - C[ab[1]]))
+    for a, b in pairs:  # widest baseline first
+        js = np.flatnonzero(todo & seen[:, a] & seen[:, b] & ~np.isfinite(X0).all(axis=1))
+        if len(js):
+            X0[js] = triangulate_linear(projection_matrix(st.K, st.R[a], st.t[a]), projection_matrix(st.K, st.R[b], st.t[b]),
+                                        st.uv[js, a], st.uv[js, b])
+    js = np.flatnonzero(np.isfinite(X0).all(axis=1))
+    n_new = _refine_and_accept(st, js, X0[js], min_angle_deg, max_reproj_px, triangulate_nonlinear) if len(js) else 0
+    return {"observations_back": int(back.sum()), "tracks_tried": int(todo.sum()), "points_new": int(n_new)}
 
 
 def _refine_and_accept(st: _State, js, X0, min_angle_deg, max_reproj_px, triangulate_nonlinear) -> int:
@@ -760,6 +798,7 @@ def _run_sfm(
     if bundle_adjustment != "none":
         if bundle_adjustment == "final":
             final_stage["ba_robust"] = _bundle(st, a, ba_loss, ba_f_scale, 2 * ba_max_iterations)
+        final_stage["retriangulation"] = _retriangulate_and_complete(st, min_angle_deg, max_reproj_px)
         thr, fs, sigma, tail, loss = _final_thresholds(st, final_max_reproj_px, final_ba_f_scale, final_ba_loss)
         final_stage["noise_sigma_px"], final_stage["tail_share"] = round(sigma, 4), round(tail, 4)
         final_stage["ba_loss"] = loss
