@@ -399,13 +399,13 @@ def _retriangulate_and_complete(st: _State, min_angle_deg: float, max_reproj_px:
 
     * **Re-triangulation**: a track without a point that is seen in two or more registered images
       gets all its observations back and is triangulated again (linear from its two observing
-      cameras farthest apart, then non-linear, with the angle and reprojection tests of
-      :func:`_refine_and_accept`): early on, its cameras may have been poorly placed.
+      cameras farthest apart, with the angle and reprojection tests of :func:`_refine_and_accept`;
+      the final BA refines it): early on, its cameras may have been poorly placed.
     * **Track completion**: an observation of a triangulated point that was rejected earlier
       (it reprojected badly from a point or camera that has moved since) is used again if it now
       reprojects within ``max_reproj_px``.
     """
-    from course_lib.sfm.triangulation import triangulate_linear, triangulate_nonlinear
+    from course_lib.sfm.triangulation import triangulate_linear
 
     regs = np.flatnonzero(st.registered)
     seen = st.visible & st.registered[None, :]
@@ -426,7 +426,8 @@ def _retriangulate_and_complete(st: _State, min_angle_deg: float, max_reproj_px:
             X0[js] = triangulate_linear(projection_matrix(st.K, st.R[a], st.t[a]), projection_matrix(st.K, st.R[b], st.t[b]),
                                         st.uv[js, a], st.uv[js, b])
     js = np.flatnonzero(np.isfinite(X0).all(axis=1))
-    n_new = _refine_and_accept(st, js, X0[js], min_angle_deg, max_reproj_px, triangulate_nonlinear) if len(js) else 0
+    # linear points only: the final BA refines them with everything else
+    n_new = _refine_and_accept(st, js, X0[js], min_angle_deg, max_reproj_px, None) if len(js) else 0
     return {"observations_back": int(back.sum()), "tracks_tried": int(todo.sum()), "points_new": int(n_new)}
 
 
