@@ -576,7 +576,9 @@ def write_p3(folder, image_names, K, track_uv, track_rgb, images=None) -> Path:
             ``"{i+1}.png"`` / ``".jpg"`` for the folder to be a valid P3 folder.
         K: ``(3, 3)`` intrinsics, written to ``calibration.txt``.
         track_uv: ``(T, M, 2)`` pixels, NaN where unseen. Two different tracks must not share a
-            pixel in the same image (the reader joins tracks by equal coordinates).
+            pixel in the same image if they are to come back as written (the reader joins tracks
+            by equal coordinates; :func:`course_lib.data.synthetic.write_scene_p3` uses that on
+            purpose for wrong matches that are features of other points).
         track_rgb: ``(T, 3)`` uint8 colours.
         images: optional list of ``M`` ``(H, W, 3)`` uint8 RGB images, written under ``image_names``
             (the extension picks PNG or JPEG; JPEG quality 90).
