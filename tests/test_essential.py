@@ -165,7 +165,9 @@ def test_wpi_pair_1_2_pose():
     E = essential_from_fundamental(res.F, K)
     R, C = pose_candidates(E)
     _, R_cv, t_cv, _ = cv2.recoverPose(E, x1[res.inliers], x2[res.inliers], K)
-    assert len(matching_candidates(R, C, R_cv, -R_cv.T @ t_cv.ravel(), 1e-6, 1 - 1e-9)) == 1
+    # Same E on both sides, so the match is exact up to rounding; arccos near 1 resolves angles only
+    # to ~1e-6 degrees (sqrt of machine epsilon), so the rotation tolerance sits above that.
+    assert len(matching_candidates(R, C, R_cv, -R_cv.T @ t_cv.ravel(), 1e-4, 1 - 1e-9)) == 1
 
 
 # -- the check cells name typical mistakes ------------------------------------------------------
