@@ -44,6 +44,28 @@ def test_errors():
 # ------------------------------------------------------------------ the grid field of the fast preset
 
 
+@pytest.mark.parametrize("shape", [(1, 1, 7, 5, 3), (1, 3, 10, 12, 9), (1, 12, 4, 6, 5), (1, 2, 1, 4, 4)])
+def test_trilinear_written_out_equals_grid_sample(shape):
+    """The grid's gather-based trilinear interpolation: grid_sample's values and gradients (corners, faces, inside)."""
+    from torch.nn import functional as F
+
+    from course_lib.nerf.grid import Trilinear
+
+    gen = torch.Generator().manual_seed(0)
+    grid = torch.randn(*shape, dtype=torch.float64, generator=gen, requires_grad=True)
+    xyz = torch.rand(300, 3, dtype=torch.float64, generator=gen) * 2 - 1
+    xyz[:6] = torch.tensor([[-1, -1, -1], [1, 1, 1], [1, -1, 1], [0, 0, 0], [-1, 1, -1], [1, 0.3, -0.2]], dtype=torch.float64)
+    ref = F.grid_sample(grid, xyz.reshape(1, -1, 1, 1, 3), mode="bilinear", align_corners=True).reshape(shape[1], -1).T
+    out = Trilinear.apply(grid, xyz)
+    torch.testing.assert_close(out, ref, rtol=1e-12, atol=1e-12)
+    w = torch.randn(out.shape, dtype=torch.float64, generator=gen)
+    g_ref, = torch.autograd.grad((ref * w).sum(), grid)
+    g_out, = torch.autograd.grad((out * w).sum(), grid)
+    torch.testing.assert_close(g_out, g_ref, rtol=1e-12, atol=1e-12)
+    # points outside the grid read 0
+    assert Trilinear.apply(grid, torch.tensor([[1.5, 0.0, 0.0], [0.0, -3.0, 0.0]], dtype=torch.float64)).abs().max() == 0
+
+
 def test_grid_total_variation_gradient_written_out_equals_autograd():
     from course_lib.nerf.grid import GridField
 
