@@ -112,3 +112,21 @@ def test_grid_spherical_harmonics_colour():
     # the resampling keeps all channels
     sh_grid.upsample(8)
     assert sh_grid.feature_grid.shape[1] == 12 and sh_grid.config()["sh_degree"] == 1
+
+
+def test_grid_enable_sh_keeps_the_colours():
+    """RGB grid -> spherical harmonics mid-training (``grid_sh_start``): the same colours, then room for view dependence."""
+    from course_lib.nerf.grid import GridField
+    from course_lib.validate import KitInputError
+
+    g = GridField([-1, -1, -1], [1, 1, 1], resolution=6)
+    with torch.no_grad():
+        g.feature_grid.normal_(generator=torch.Generator().manual_seed(4))
+    pts = torch.rand(50, 3, generator=torch.Generator().manual_seed(5)) * 1.6 - 0.8
+    d = torch.nn.functional.normalize(torch.randn(50, 3, generator=torch.Generator().manual_seed(6)), dim=-1)
+    before = g.color(pts)
+    g.enable_sh(1)
+    assert g.feature_grid.shape[1] == 12 and g.config()["sh_degree"] == 1 and g.config()["feature_dim"] == 12
+    torch.testing.assert_close(g.color(pts, d), before)
+    with pytest.raises(KitInputError, match="only an RGB colour grid"):
+        g.enable_sh(1)

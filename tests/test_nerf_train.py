@@ -224,12 +224,15 @@ def test_ctrl_c_saves_a_checkpoint_and_resumes(scene, tmp_path):
     assert m["history"]["iterations"][-6:] == list(range(n, n + 6))
 
 
-def test_grid_resume_across_rebox_and_upsample(scene, tmp_path):
+@pytest.mark.parametrize("sh", [{}, {"grid_sh_degree": 1, "grid_sh_start": 5}, {"grid_sh_degree": 1, "grid_sh_start": 7}],
+                         ids=["rgb", "sh-before-checkpoint", "sh-after-checkpoint"])
+def test_grid_resume_across_rebox_and_upsample(scene, tmp_path, sh):
     # stop after the box was shrunk (step 4) and before the upsampling (step 8): the resumed run
-    # must rebuild the re-boxed grid, keep it, upsample at step 8 and end where the full run ends
+    # must rebuild the re-boxed grid, keep it, upsample at step 8 and end where the full run ends;
+    # the same when the colour grid turns into spherical harmonics before or after the checkpoint
     cfg = preset("fast", iters=10, minutes=None, batch_rays=128, n_samples=24, snapshot_every=0, checkpoint_every=6,
                  occupancy_start=2, occupancy_every=2, grid_schedule=((0, 12), (4, 16), (8, 20)), grid_resolution=20,
-                 shrink_box_at=4, threads=1)
+                 shrink_box_at=4, threads=1, **sh)
     full = train(scene, None, cfg, out_dir=tmp_path / "full", progress=False)
     train(scene, None, cfg, out_dir=tmp_path / "part", progress=False, callback=lambda step, info: step == 6)
     resumed = train(scene, None, cfg, out_dir=tmp_path / "part", progress=False)
@@ -237,6 +240,8 @@ def test_grid_resume_across_rebox_and_upsample(scene, tmp_path):
     assert resumed.bounds == full.bounds
     assert resumed.history["loss"] == pytest.approx(full.history["loss"], rel=1e-5)
     torch.testing.assert_close(resumed.model.density_grid, full.model.density_grid)
+    torch.testing.assert_close(resumed.model.feature_grid, full.model.feature_grid)
+    assert resumed.model.sh_degree == full.model.sh_degree == sh.get("grid_sh_degree", 0)
 
 
 def test_grid_box_bounds_switch(scene):

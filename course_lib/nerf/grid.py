@@ -288,6 +288,22 @@ class GridField(nn.Module):
         self.feature_grid = nn.Parameter(feats.T.reshape(1, -1, *shape).contiguous())
         self.occupancy = torch.ones(shape, dtype=torch.bool, device=new_min.device)
 
+    @torch.no_grad()
+    def enable_sh(self, degree: int) -> None:
+        """Switch the RGB colour grid to spherical harmonics of ``degree`` (1 or 2), colours unchanged.
+
+        The constant term takes the RGB values and the higher terms start at 0, so the field renders
+        exactly as before; from here on each voxel can learn view-dependent colour. The parameters
+        are replaced: build a new optimizer.
+        """
+        if self.mlp_width > 0 or self.sh_degree != 0:
+            raise KitInputError("enable_sh: only an RGB colour grid (no colour MLP, sh_degree 0) can be switched")
+        sh_basis(torch.zeros(1, 3), degree)  # checks the degree
+        feats = self.feature_grid.data
+        extra = torch.zeros(1, 3 * ((degree + 1) ** 2 - 1), *feats.shape[2:], dtype=feats.dtype, device=feats.device)
+        self.feature_grid = nn.Parameter(torch.cat([feats, extra], dim=1))
+        self.sh_degree, self.feature_dim = int(degree), 3 * (degree + 1) ** 2
+
     def upsample(self, resolution: int) -> None:
         """:meth:`rebox` into the same box at a finer ``resolution``."""
         self.rebox(self.box_min.tolist(), self.box_max.tolist(), resolution)

@@ -55,6 +55,8 @@ class TrainConfig:
             so far (:func:`course_lib.nerf.train.surface_box`; 0: never).
         grid_mlp_width, grid_feature_dim, grid_dir_freqs: optional tiny colour MLP of the grid.
         grid_sh_degree: view-dependent colour of the grid from spherical harmonics (0: none, 1, 2).
+        grid_sh_start: step from which the colour grid holds spherical harmonics (0: from the start);
+            before it an RGB grid, whose steps are cheaper (:meth:`GridField.enable_sh`).
         alpha_init: initial per-voxel opacity of the grid.
     Sampling
         n_samples: coarse samples per ray. n_importance: fine samples per ray (0: none).
@@ -103,6 +105,7 @@ class TrainConfig:
     grid_feature_dim: int = 12
     grid_dir_freqs: int = 2
     grid_sh_degree: int = 0
+    grid_sh_start: int = 0
     alpha_init: float = 1e-2
     # sampling
     n_samples: int = 64

@@ -151,7 +151,7 @@ def build_model(cfg: TrainConfig, bounds: dict, resolution: int | None = None):
         res = resolution or (cfg.grid_schedule[0][1] if cfg.grid_schedule else cfg.grid_resolution)
         return GridField(bounds["box_min"], bounds["box_max"], resolution=res, mlp_width=cfg.grid_mlp_width,
                          feature_dim=cfg.grid_feature_dim, dir_freqs=cfg.grid_dir_freqs, alpha_init=cfg.alpha_init,
-                         sh_degree=cfg.grid_sh_degree), None
+                         sh_degree=cfg.grid_sh_degree if not cfg.grid_sh_start else 0), None
     raise KitInputError(f"model {cfg.model!r}: expected 'nerf' or 'grid'")
 
 
@@ -600,6 +600,9 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
                     model.upsample(res)
                     model.update_occupancy(cfg.occupancy_threshold)
                     opt = _optimizer(cfg, model, model_fine)
+            if is_grid and cfg.grid_sh_degree and model.sh_degree == 0 and step >= cfg.grid_sh_start:
+                model.enable_sh(cfg.grid_sh_degree)  # RGB first (cheap steps), view-dependent colour from here
+                opt = _optimizer(cfg, model, model_fine)
             _set_lr(opt, cfg, frac)
             idx = torch.randint(0, n_rays, (cfg.batch_rays,), generator=gen, device=device)
             o, d, rgb_true = rays_o[idx], rays_d[idx], target[idx]
