@@ -16,9 +16,11 @@
     the surfaces the rays hit (:func:`course_lib.nerf.train.surface_box`) at 80 voxels, at step 450
     refined to 100 voxels; an occupancy grid skips empty space; colours only where the weight is
     > 1e-4; a small density total-variation prior (its gradient written out); fused Adam at a high
-    learning rate (0.1 decaying to 0.01) on 2048-ray batches. Colour is view-independent;
-    ``grid_sh_degree=1`` stores spherical harmonics instead (view-dependent, notebook 09's 7b:
-    4x the colour channels, slower per step on a CPU).
+    learning rate (0.1 decaying to 0.01) on 2048-ray batches. Colour is an RGB grid
+    (view-independent, cheap steps) until step 1500, then spherical harmonics of degree 1
+    (``grid_sh_degree=1, grid_sh_start=1500``: view-dependent, for shiny surfaces; 4x the colour
+    channels, so each step costs about twice as much on a CPU; notebook 09's 7b). On lego-100
+    (2 CPU cores, 5 min) the switch takes the test PSNR from 30.9 dB to 32.6 dB.
 
 Snapshots, evaluations and checkpoints take at most ``overhead_budget`` (5 %) of the training
 time (due ones wait); render chunks come from the device (``chunk=0``).
@@ -167,6 +169,7 @@ PRESETS: dict[str, TrainConfig] = {
     "fast": TrainConfig(
         preset="fast", model="grid", grid_resolution=100, grid_schedule=((0, 40), (200, 80), (450, 100)),
         shrink_box_at=200, grid_mlp_width=0, alpha_init=1e-2, n_samples=80, color_threshold=1e-4,
+        grid_sh_degree=1, grid_sh_start=1500,
         occupancy_every=50, occupancy_start=100, occupancy_threshold=1e-3, batch_rays=2048, lr=1e-3, lr_final=1e-4,
         grid_lr=0.1, grid_lr_final=0.01, tv_weight=1e-4, threads=-1, snapshot_every=100, checkpoint_every=200,
         eval_every=0,
