@@ -130,3 +130,5 @@ def test_grid_enable_sh_keeps_the_colours():
     torch.testing.assert_close(g.color(pts, d), before)
     with pytest.raises(KitInputError, match="only an RGB colour grid"):
         g.enable_sh(1)
+    with pytest.raises(KitInputError, match="expected degree 1 or 2"):
+        GridField([-1, -1, -1], [1, 1, 1], resolution=6).enable_sh(3)

@@ -298,7 +298,8 @@ class GridField(nn.Module):
         """
         if self.mlp_width > 0 or self.sh_degree != 0:
             raise KitInputError("enable_sh: only an RGB colour grid (no colour MLP, sh_degree 0) can be switched")
-        sh_basis(torch.zeros(1, 3), degree)  # checks the degree
+        if degree not in (1, 2):
+            raise KitInputError(f"enable_sh({degree}): expected degree 1 or 2")
         feats = self.feature_grid.data
         extra = torch.zeros(1, 3 * ((degree + 1) ** 2 - 1), *feats.shape[2:], dtype=feats.dtype, device=feats.device)
         self.feature_grid = nn.Parameter(torch.cat([feats, extra], dim=1))
