@@ -85,7 +85,8 @@ def _server_hiccup(line: str) -> bool:
     the notebooks. Reported, not failed. A 5xx on any other resource (a notebook's output, an
     extension's script) still fails.
     """
-    return "status of 5" in line and ("/api/" in line.split("[", 1)[-1])
+    url = line.rsplit(" [", 1)[1] if line.endswith("]") and " [" in line else ""  # as _console_line appends it
+    return "status of 5" in line and "/api/" in url
 
 
 def _playwright():
