@@ -2,8 +2,9 @@
 
 Renders a fresh photo set of the synthetic building (:func:`course_lib.data.building.sfm_photos`:
 another seed gives another walk past the building -- other distances, heights, aim and roll; the
-same textured building), writes ``1.jpg ... N.jpg``, ``calibration.txt`` and the true cameras, then
-runs the two commands of the README as separate processes::
+same textured building), writes ``1.jpg ... N.jpg`` and ``calibration.txt`` into a temporary
+folder (the true cameras stay in memory), then runs the two commands of the README as separate
+processes::
 
     python -m course_lib match PHOTOS --K PHOTOS/calibration.txt --out P3
     python -m course_lib sfm P3 --out SFM
