@@ -325,20 +325,3 @@ def test_sparse_and_dense_reduced_systems_agree():
     b = lm.solve(lm.BALCamera(), cams, X, p.cam_idx, p.pt_idx, p.obs, ftol=1e-10, dense_limit=0)
     assert a.iterations == b.iterations
     assert b.final_cost == pytest.approx(a.final_cost, rel=1e-9)
-
-
-def test_blas_threads_are_restored():
-    controls = lm._openblas_thread_controls()
-    before = [get() for get, _ in controls]
-    with lm.single_threaded_blas():
-        if controls and not _has_threadpoolctl():
-            assert all(get() == 1 for get, _ in controls)
-    assert [get() for get, _ in controls] == before
-
-
-def _has_threadpoolctl():
-    try:
-        import threadpoolctl  # noqa: F401
-    except ImportError:
-        return False
-    return True

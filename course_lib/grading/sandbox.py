@@ -566,21 +566,9 @@ def run_hidden(job: HiddenJob, timeout: float = 60.0, isolation=None) -> HiddenO
 
 def single_thread_math() -> None:
     """One thread for OpenBLAS (numpy, scipy) and torch in this process: the same numbers on every run."""
-    import ctypes
+    from course_lib.threads import set_blas_threads
 
-    try:
-        libs = sorted({ln.split()[-1] for ln in open("/proc/self/maps") if "openblas" in ln.lower()})
-    except OSError:  # not Linux
-        libs = []
-    for path in libs:
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        for sym in ("openblas_set_num_threads", "scipy_openblas_set_num_threads64_", "openblas_set_num_threads64_",
-                    "scipy_openblas_set_num_threads"):
-            if hasattr(lib, sym):
-                getattr(lib, sym)(1)
+    set_blas_threads(1)
     if "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(1)
 

@@ -114,9 +114,9 @@ def _train(args) -> int:
         over["minutes"] = 5.0
     cfg = preset(args.preset, **over)
     if device.type == "cpu":
-        from course_lib.nerf.train import _set_threads
+        from course_lib.threads import set_torch_threads
 
-        _set_threads(cfg.threads)
+        set_torch_threads(cfg.threads)
     budget = f"{cfg.minutes:g} min" if cfg.minutes else f"{cfg.iters} steps"
     print(f"training {cfg.preset} on {data} ({len(train_data)} views {train_data.W}x{train_data.H}, "
           f"{len(test_data) if test_data else 0} test views) for {budget} on {device_name(device)} -> {out}")

@@ -39,6 +39,7 @@ from course_lib.nerf.model import NeRF
 from course_lib.nerf.presets import TrainConfig, preset
 from course_lib.nerf.rays import get_rays
 from course_lib.nerf.render import LAST_DELTA, render_chunked, render_image, render_rays
+from course_lib.threads import set_torch_threads
 from course_lib.validate import KitInputError
 
 __all__ = [
@@ -47,25 +48,6 @@ __all__ = [
 ]
 
 CHECKPOINT = "checkpoint.pt"
-
-
-def _set_threads(threads: int) -> None:
-    """``threads`` > 0: that many; 0: torch's default; -1 ("auto"): 1 if the machine is busy.
-
-    On a machine whose cores are already taken by other processes, several torch threads wait
-    for each other at every operation and run many times slower than one thread.
-    """
-    import os
-
-    if threads > 0:
-        torch.set_num_threads(threads)
-    elif threads < 0:
-        cores = os.cpu_count() or 1
-        try:
-            busy = os.getloadavg()[0] > 0.75 * cores
-        except OSError:
-            busy = False
-        torch.set_num_threads(1 if busy else cores)
 
 
 def psnr(mse) -> float:
@@ -480,7 +462,7 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
         raise KitInputError("train_data must be a non-empty BlenderData (course_lib.data.blender.load_blender)")
     device = pick_device(device)
     if device.type == "cpu":
-        _set_threads(cfg.threads)
+        set_torch_threads(cfg.threads)
     out = Path(out_dir) if out_dir is not None else None
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)

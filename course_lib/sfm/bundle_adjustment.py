@@ -68,6 +68,7 @@ from scipy.spatial.transform import Rotation
 from course_lib.conventions import camera_center
 from course_lib.sfm import lm
 from course_lib.sfm.visibility import observation_list
+from course_lib.threads import single_threaded_blas
 from course_lib.validate import KitInputError, intrinsics, rotation
 
 __all__ = [
@@ -279,11 +280,6 @@ def _schur_lm(x0_full, free, n_cameras, n_points, obs, K, loss, f_scale, max_ite
     )
     p = np.concatenate([res.cameras.ravel(), res.points.ravel()])
     return p, res.iterations, res.n_solves, res.success, res.message
-
-
-def _single_threaded_blas():
-    """BLAS held to one thread (:func:`course_lib.sfm.lm.single_threaded_blas`)."""
-    return lm.single_threaded_blas()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -537,7 +533,7 @@ def bundle_adjust(
 
     t0 = time.perf_counter()
     if method == "lm":
-        with _single_threaded_blas():
+        with single_threaded_blas():
             p_out, n_iter, n_eval, success, message = _schur_lm(
                 x0_full, free, M, N, obs, K, loss, f_scale, max_iterations, ftol, xtol, record
             )

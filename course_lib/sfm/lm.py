@@ -36,7 +36,7 @@ Schur complement (why BA scales)
     ``scipy.sparse.linalg.spsolve`` (SuperLU). On Ladybug an iteration costs about 50 ms of CPU:
     a third for the Jacobian and the blocks of the normal equations, half for ``W V^-1 W^T``, and
     4 ms for the Cholesky factorization. BLAS is held to one thread meanwhile
-    (:func:`single_threaded_blas`): its threads only cost time on products this small.
+    (:func:`course_lib.threads.single_threaded_blas`): its threads only cost time on products this small.
 
 Damping strategy
     Nielsen's (the one in Ceres): the gain ratio ``rho = actual / predicted decrease``; a step is
@@ -65,10 +65,6 @@ Introduced in ``notebooks/05_bundle_adjustment.ipynb`` ("How does this scale?").
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
-import glob
-import os
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Protocol
@@ -79,6 +75,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg
 from scipy.spatial.transform import Rotation
 
+from course_lib.threads import single_threaded_blas
 from course_lib.validate import KitInputError, intrinsics
 
 __all__ = [
@@ -96,81 +93,12 @@ __all__ = [
     "reduced_camera_sparsity",
     "LMResult",
     "solve",
-    "single_threaded_blas",
 ]
 
-
-# ---------------------------------------------------------------------------------------------
-# BLAS threads
-# ---------------------------------------------------------------------------------------------
-
-_BLAS_HANDLES: list | None = None
 
 #: Bounds of the damping (Ceres: 1 / max_trust_region_radius and 1 / min_trust_region_radius,
 #: with a larger floor so that a point seen once keeps a well-conditioned 3x3 block).
 LAM_MIN, LAM_MAX = 1e-10, 1e16
-
-
-def _openblas_thread_controls() -> list:
-    """``(get, set)`` thread-count functions of the OpenBLAS libraries that numpy and scipy load.
-
-    This is what ``threadpoolctl`` does (it is used when installed); without it the kit looks for
-    the OpenBLAS builds bundled with the numpy and scipy wheels. Anything unexpected: no control.
-    """
-    global _BLAS_HANDLES
-    if _BLAS_HANDLES is not None:
-        return _BLAS_HANDLES
-    handles = []
-    try:
-        import scipy
-
-        for pkg in (np, scipy):
-            libdir = os.path.join(os.path.dirname(os.path.dirname(pkg.__file__)), pkg.__name__ + ".libs")
-            for path in glob.glob(os.path.join(libdir, "*openblas*.so*")):
-                lib = ctypes.CDLL(path)
-                for prefix in ("scipy_openblas", "openblas"):
-                    for suffix in ("64_", ""):
-                        get = getattr(lib, f"{prefix}_get_num_threads{suffix}", None)
-                        set_ = getattr(lib, f"{prefix}_set_num_threads{suffix}", None)
-                        if get is not None and set_ is not None:
-                            set_.argtypes = [ctypes.c_int]
-                            handles.append((get, set_))
-                            break
-                    else:
-                        continue
-                    break
-    except Exception:  # pragma: no cover - platform specific
-        handles = []
-    _BLAS_HANDLES = handles
-    return handles
-
-
-@contextlib.contextmanager
-def single_threaded_blas():
-    """Hold BLAS to one thread inside the ``with`` block (restored afterwards).
-
-    The dense work of :func:`solve` is many small products and one small Cholesky
-    factorization; OpenBLAS's threads cost more than they save there, and on a busy machine a
-    lot more (measured on a loaded 2-core machine: the 441 x 441 Cholesky of the Ladybug problem
-    took 4 ms on one thread, 80-400 ms on two).
-    """
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        threadpool_limits = None
-    if threadpool_limits is not None:
-        with threadpool_limits(limits=1, user_api="blas"):
-            yield
-        return
-    controls = _openblas_thread_controls()
-    old = [get() for get, _ in controls]
-    for _, set_ in controls:
-        set_(1)
-    try:
-        yield
-    finally:
-        for (_, set_), n in zip(controls, old):
-            set_(int(n))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -48,7 +48,6 @@ Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
 
 from __future__ import annotations
 
-import contextlib
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,6 +56,7 @@ import numpy as np
 
 from course_lib.conventions import camera_center, projection_matrix
 from course_lib.sfm.bundle_adjustment import bundle_adjust, reprojection_error_stats
+from course_lib.threads import single_threaded_blas
 from course_lib.validate import KitInputError, intrinsics
 
 __all__ = ["Reconstruction", "run_sfm", "triangulation_angles_deg", "reprojection_error_matrix"]
@@ -656,21 +656,12 @@ def run_sfm(
 
     Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
     """
-    with _single_threaded_blas():
+    with single_threaded_blas():
         return _run_sfm(
             data, rng, f_threshold_px, pnp_threshold_px, max_reproj_px, final_max_reproj_px, min_angle_deg,
             init_min_angle_deg, min_pair_inliers, min_pnp_inliers, bundle_adjustment, ba_loss, ba_f_scale,
             ba_max_iterations, final_ba_loss, final_ba_f_scale, initial_pair, verbose,
         )
-
-
-def _single_threaded_blas():
-    """BLAS held to one thread (its threads only cost time on the kit's small products, a lot on a busy machine)."""
-    try:
-        from course_lib.sfm.lm import single_threaded_blas
-    except ImportError:  # pragma: no cover - a kit without the LM module
-        return contextlib.nullcontext()
-    return single_threaded_blas()
 
 
 def _run_sfm(

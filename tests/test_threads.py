@@ -1,0 +1,48 @@
+"""course_lib.threads: the one place that sets BLAS and torch threads."""
+
+import os
+
+import numpy as np
+
+from course_lib import threads
+
+
+def _has_threadpoolctl():
+    try:
+        import threadpoolctl  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def test_blas_threads_are_restored():
+    np.linalg.svd(np.eye(3))  # numpy's OpenBLAS is loaded
+    controls = threads.blas_thread_controls()
+    before = [get() for get, _ in controls]
+    with threads.single_threaded_blas():
+        if controls and not _has_threadpoolctl():
+            assert all(get() == 1 for get, _ in controls)
+    assert [get() for get, _ in controls] == before
+
+
+def test_set_blas_threads():
+    controls = threads.blas_thread_controls()
+    before = [get() for get, _ in controls]
+    try:
+        threads.set_blas_threads(1)
+        assert all(get() == 1 for get, _ in controls)
+    finally:
+        for (_, set_), n in zip(controls, before):
+            set_(int(n))
+
+
+def test_set_torch_threads():
+    import torch
+
+    old = torch.get_num_threads()
+    try:
+        assert threads.set_torch_threads(1) == 1
+        assert threads.set_torch_threads(0) == 1  # 0: unchanged
+        assert 1 <= threads.set_torch_threads(-1) <= (os.cpu_count() or 1)
+    finally:
+        torch.set_num_threads(old)
