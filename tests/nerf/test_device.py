@@ -14,7 +14,7 @@ from course_lib.nerf.presets import preset
 from course_lib.nerf.train import load_checkpoint, render_view, train
 from course_lib.validate import KitInputError
 
-from test_nerf_train import make_scene
+from tests.nerf.test_train import make_scene
 
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU on this machine")
 

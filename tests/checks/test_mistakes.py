@@ -9,7 +9,7 @@ that breaks a defining property (see :func:`course_lib.grading.core.declare_defi
 verdict leads with the property. The honest reference solutions must score 1, and every
 declared defining property must be tested on at least three cases.
 
-Run ``python tests/test_mistakes.py`` for the table: caught N/N, named N/N, and the points per
+Run ``python tests/checks/test_mistakes.py`` for the table: caught N/N, named N/N, and the points per
 mistake (out of the grader's 10 per exercise: 90 % from this score, 10 % from the nbval verdict,
 which a failing check never earns). docs/mistakes.md explains how to add a mistake.
 """
@@ -27,7 +27,7 @@ from typing import Callable
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from course_lib.grading import core  # noqa: E402
 from course_lib.grading import bundle_adjustment as gba  # noqa: E402

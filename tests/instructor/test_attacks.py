@@ -1,7 +1,7 @@
 """Issue 14: an adversarial student's submissions, built here, and the points each must get.
 
 Every attack targets ``eight_point`` of notebook 01 (the issue's own run) and is graded with the
-hidden checks only (nbval is covered by tests/test_grade.py). The attacks that reach the
+hidden checks only (nbval is covered by tests/instructor/test_grade.py). The attacks that reach the
 interpreter through an allowed module (``numpy.testing._private.utils.sys``) pass the static scans
 on purpose: what stops them is the separation (the student's code runs in a process that holds
 only the student release of ``course_lib``, sees neither the instructor's kit nor the hidden

@@ -197,7 +197,7 @@ def test_ctrl_c_saves_a_checkpoint_and_resumes(scene, tmp_path):
     u8 = (scene.images * 255).round().astype(np.uint8)
     write_blender(folder, "train", u8[:6], scene.c2w[:6], scene.camera_angle_x)
     out = tmp_path / "out"
-    repo = Path(__file__).resolve().parents[1]
+    repo = Path(__file__).resolve().parents[2]
     cmd = [sys.executable, "-m", "course_lib", "nerf", "train", str(folder), "--out", str(out), "--quiet", "--threads",
            "1", "--samples", "16", "--batch", "128", "--device", "cpu"]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
