@@ -25,8 +25,8 @@ from pathlib import Path
 
 import nbformat
 
-from course_lib.grading.grade import grade_submission, to_markdown
-from course_lib.grading.release import BEGIN, END
+from course_lib.instructor.grade import grade_submission, to_markdown
+from course_lib.instructor.notebooks import BEGIN, END
 from course_lib.paths import REPO_ROOT
 
 

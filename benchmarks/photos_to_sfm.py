@@ -10,7 +10,7 @@ processes::
     python -m course_lib sfm P3 --out SFM
 
 and reports the registered images and the rotation / centre errors of the COLMAP model it wrote
-after a similarity alignment on rotations and centres (:func:`course_lib.sfm.evaluate.pose_errors`),
+after a similarity alignment on rotations and centres (:func:`course_lib.evaluate.pose_errors`),
 with the seconds of each command (process start included).
 
 A folder of real photos works too (``--photos DIR --K calibration.txt``); without ground truth only
@@ -40,7 +40,7 @@ sys.path.insert(0, str(REPO_ROOT))
 
 from course_lib.data.building import sfm_photos  # noqa: E402
 from course_lib.data.colmap import read_colmap_text  # noqa: E402
-from course_lib.sfm.evaluate import pose_errors  # noqa: E402
+from course_lib.evaluate import pose_errors  # noqa: E402
 
 
 def render_photos(folder: Path, views: int, seed: int) -> dict:

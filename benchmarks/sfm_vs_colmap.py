@@ -13,7 +13,7 @@ For every scene both get the same correspondences (a P3 folder, read once with
 Printed per scene and method: registered images, 3-D points, mean reprojection error (pixels),
 mean and max rotation error (degrees) and mean centre error (% of the scene size) against the
 ground truth after a similarity alignment on rotations and centres
-(:func:`course_lib.sfm.evaluate.pose_errors`), and seconds. For the course data (no ground
+(:func:`course_lib.evaluate.pose_errors`), and seconds. For the course data (no ground
 truth) the pose columns compare the kit with COLMAP instead (marked ``vs COLMAP``).
 
 Scenes: the embedded rendered scene (``data/synthetic-building``), synthetic scenes
@@ -46,7 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from course_lib.data.p3 import read_p3  # noqa: E402
 from course_lib.data.synthetic import make_scene, write_scene_p3  # noqa: E402
 from course_lib.paths import EMBEDDED_SFM, course_data  # noqa: E402
-from course_lib.sfm.evaluate import pose_errors  # noqa: E402
+from course_lib.evaluate import pose_errors  # noqa: E402
 from course_lib.sfm.pipeline import run_sfm  # noqa: E402
 
 #: (name, n_cameras, noise_px, outlier_fraction, outlier_kind, seed)

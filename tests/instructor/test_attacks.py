@@ -20,8 +20,9 @@ from pathlib import Path
 import nbformat
 import pytest
 
-from course_lib.grading.grade import grade_submission, prepare_hidden
-from course_lib.grading.release import NOTEBOOKS_DIR, kit_specs, stub_notebook
+from course_lib.instructor.grade import grade_submission, prepare_hidden
+from course_lib.instructor.notebooks import NOTEBOOKS_DIR, kit_specs
+from course_lib.instructor.release import stub_notebook
 from course_lib.paths import REPO_ROOT
 
 NB01 = "01_fundamental_matrix.ipynb"
@@ -119,18 +120,18 @@ def grade_eight_point(path: Path, hidden, timeout: float = 20.0) -> dict:
 
 def test_the_stealth_route_would_work_without_the_separation(hidden):
     """Run as the grader used to (student code in a process with the instructor's library): full marks."""
-    from course_lib.grading import core
-    from course_lib.grading.sandbox import run_check
+    from course_lib.checks import core
+    from course_lib.instructor.hidden import run_check
 
     import numpy as np
 
     code = "import numpy as np\n\ndef eight_point(x1, x2):\n" + textwrap.indent(textwrap.dedent(STEALTH), "    ")
     ns: dict = {}
     exec(compile(code, "<attack>", "exec"), ns)  # noqa: S102 - the attack, in the test's own process
-    result, _ = run_check("course_lib.grading.fundamental", "check_eight_point", str(hidden.fixtures_dir),
+    result, _ = run_check("course_lib.checks.fundamental", "check_eight_point", str(hidden.fixtures_dir),
                           ns["eight_point"])
     assert result is not None and core.score(result) == 1.0 and np is not None
-    from course_lib.grading.sandbox import scan_exercise
+    from course_lib.instructor.scan import scan_exercise
 
     assert scan_exercise(ast.parse(code), "course_lib.sfm.fundamental:eight_point",
                          {"course_lib.sfm.fundamental"}) == [], "the stealth route passes the static scans"

@@ -20,8 +20,9 @@ from pathlib import Path
 import nbformat
 import pytest
 
-from course_lib.grading.grade import grade_submission, prepare_hidden, to_markdown
-from course_lib.grading.release import NOTEBOOKS_DIR, kit_specs, stub_notebook
+from course_lib.instructor.grade import grade_submission, prepare_hidden, to_markdown
+from course_lib.instructor.notebooks import NOTEBOOKS_DIR, kit_specs
+from course_lib.instructor.release import stub_notebook
 
 NOTEBOOKS = ["01", "02"]
 NB01, NB02 = "01_fundamental_matrix.ipynb", "02_essential_matrix_and_pose.ipynb"
@@ -251,7 +252,7 @@ def test_verdict_printed_by_hand_gets_nothing(tmp_path, hidden):
 def test_monkeypatched_checks_get_nothing(tmp_path, hidden):
     nbs = solved()
     patch = nbformat.v4.new_code_cell(
-        "import course_lib.grading.core as core\n"
+        "import course_lib.checks.core as core\n"
         "_expect = core.Check.expect\n"
         "core.Check.expect = lambda self, condition, ok, bad: _expect(self, True, ok, bad)\n")
     nbs[NB01].cells.insert(2, patch)
@@ -262,7 +263,7 @@ def test_monkeypatched_checks_get_nothing(tmp_path, hidden):
         else:
             assert g["points"] == 9
     # a patch hidden inside the exercise function itself is flagged too
-    body = textwrap.dedent(SOLUTIONS["normalize_points"]) + "\nimport course_lib.grading.core as c\nc.RESULTS.clear()\n"
+    body = textwrap.dedent(SOLUTIONS["normalize_points"]) + "\nimport course_lib.checks.core as c\nc.RESULTS.clear()\n"
     report = grade(write_submission(tmp_path / "inner", solved(bodies={"normalize_points": body})), hidden)
     g = by_name(report)["normalize_points"]
     assert g["points"] == 0 and g["status"] in ("flagged", "tampered"), g
@@ -306,7 +307,7 @@ def test_deleted_and_reordered_cells_are_reported(tmp_path, hidden):
 
 def test_missing_notebook_and_cli_reports(tmp_path, hidden, monkeypatch):
     from course_lib.__main__ import main
-    from course_lib.grading import grade as grade_mod
+    from course_lib.instructor import grade as grade_mod
 
     write_submission(tmp_path / "sub", {NB01: released(NB01)})
     monkeypatch.setattr(grade_mod, "prepare_hidden", lambda *a, **k: hidden)
@@ -372,7 +373,7 @@ def test_a_looping_exercise_under_nbval_does_not_cost_the_cells_after_it(tmp_pat
 def test_scan_flags_tricks_in_exercise_code(code, phrase):
     import ast as _ast
 
-    from course_lib.grading.sandbox import scan_exercise
+    from course_lib.instructor.scan import scan_exercise
 
     found = scan_exercise(_ast.parse(code), "course_lib.sfm.fundamental:eight_point", {"course_lib.sfm.fundamental"})
     assert any(phrase in f for f in found), found
@@ -381,7 +382,7 @@ def test_scan_flags_tricks_in_exercise_code(code, phrase):
 def test_scan_accepts_ordinary_exercise_code():
     import ast as _ast
 
-    from course_lib.grading.sandbox import scan_exercise
+    from course_lib.instructor.scan import scan_exercise
 
     code = ("import numpy as np\nimport torch\nfrom torch import nn\nclass M(nn.Module):\n"
             "    def __init__(self):\n        super().__init__()\n        self.l = nn.Linear(3, 3)\n"

@@ -12,15 +12,8 @@ from pathlib import Path
 import nbformat
 import pytest
 
-from course_lib.grading.release import (
-    NOTEBOOKS_DIR,
-    ReleaseError,
-    kit_specs,
-    marker_regions,
-    stub_source,
-    verify_release,
-    write_release,
-)
+from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ReleaseError, kit_specs, marker_regions
+from course_lib.instructor.release import stub_source, verify_release, write_release
 from course_lib.paths import REPO_ROOT
 
 
@@ -86,8 +79,8 @@ def test_reference_solutions_are_left_out_or_redacted(kit):
                 "course_lib.sfm.pnp"):
         assert mod in manifest["omitted_modules"]
         assert not (out / (mod.replace(".", "/") + ".py")).exists()
-    for instructor_only in ("grade.py", "sandbox.py", "proxy.py", "child.py"):
-        assert not (out / "course_lib/grading" / instructor_only).exists(), instructor_only
+    assert not (out / "course_lib/instructor").exists(), "the instructor package never ships"
+    assert (out / "course_lib/checks/core.py").exists() and (out / "course_lib/steps.py").exists()
     for mod, names in manifest["redacted"].items():
         src = (out / (mod.replace(".", "/") + ".py")).read_text()
         for n in names:
@@ -112,7 +105,7 @@ def test_released_library_imports_without_the_solutions(kit):
         "    importlib.import_module(m.name)\n"
         "try:\n    import course_lib.sfm.fundamental\nexcept ImportError:\n    pass\n"
         "else:\n    raise SystemExit('the reference solution is importable')\n"
-        "from course_lib.grading.fundamental import check_eight_point, two_view_step\n"
+        "from course_lib.checks.fundamental import check_eight_point\nfrom course_lib.steps import two_view_step\n"
         "assert two_view_step().F.shape == (3, 3)\n"
         "from course_lib.nerf.render import volume_render\n"
         "try:\n    volume_render(None, None, None, None)\nexcept NotImplementedError as e:\n"
@@ -138,7 +131,7 @@ def _notebook(tmp_path: Path, name: str, source: str) -> Path:
     d.mkdir(exist_ok=True)
     nb = nbformat.v4.new_notebook()
     nb.cells = [
-        nbformat.v4.new_code_cell("from course_lib.grading.fundamental import check_eight_point"),
+        nbformat.v4.new_code_cell("from course_lib.checks.fundamental import check_eight_point"),
         nbformat.v4.new_code_cell(source),
         nbformat.v4.new_code_cell("# NBVAL_CHECK_OUTPUT\ncheck_eight_point(eight_point)",
                                   outputs=[nbformat.v4.new_output("stream", name="stdout", text="eight_point\n")]),

@@ -3,7 +3,7 @@
 * The wire format carries data only (JSON + ``np.save`` arrays read with ``allow_pickle=False``):
   every kind of value the checks exchange survives a round trip with its type; an object array
   is refused; a numpy generator continues the same stream on the other side.
-* A :class:`~course_lib.grading.proxy.StudentProcess` imports the student release's
+* A :class:`~course_lib.instructor.student_process.StudentProcess` imports the student release's
   ``course_lib`` (the reference solutions are not there), sees neither the instructor's kit nor
   the grader's secret folders (where Linux user namespaces are available: they are here in CI),
   cannot write outside its temporary folder or reach the network, and answers by handle for an
@@ -20,10 +20,10 @@ import os
 import numpy as np
 import pytest
 
-from course_lib.grading import child as wire
-from course_lib.grading.proxy import Isolation, RemoteFunction, StudentProcess, StudentProcessEnded, student_library
+from course_lib.instructor import sandbox as wire
+from course_lib.instructor.student_process import Isolation, RemoteFunction, StudentProcess, StudentProcessEnded, student_library
 from course_lib.paths import REPO_ROOT
-from course_lib.grading.release import NOTEBOOKS_DIR
+from course_lib.instructor.notebooks import NOTEBOOKS_DIR
 
 
 @dataclasses.dataclass

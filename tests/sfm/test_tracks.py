@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from course_lib.data.synthetic import make_scene, write_scene_p3
-from course_lib.sfm.evaluate import align_cameras, pose_errors
+from course_lib.evaluate import align_cameras, pose_errors
 from course_lib.sfm.fundamental import _eight_point_core, sampson_distance
 from course_lib.sfm.tracks import _eight_point_batch, join_tracks, verify_pair, verified_tracks
 from course_lib.validate import KitInputError

@@ -1,4 +1,4 @@
-"""``python -m course_lib grade SUBMISSION_DIR``: grade a student's kit (see :mod:`course_lib.grading.grade`)."""
+"""``python -m course_lib grade SUBMISSION_DIR``: grade a student's kit (see :mod:`course_lib.instructor.grade`)."""
 
 from __future__ import annotations
 
@@ -29,8 +29,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from course_lib.grading.grade import grade_submission, to_markdown
-    from course_lib.grading.release import NOTEBOOKS_DIR
+    from course_lib.instructor.grade import grade_submission, to_markdown
+    from course_lib.instructor.notebooks import NOTEBOOKS_DIR
     from course_lib.validate import KitInputError, output_dir
 
     for opt, path, example in (("--json", args.json, "report.json"), ("--markdown", args.markdown, "feedback.md")):

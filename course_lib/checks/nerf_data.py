@@ -15,7 +15,9 @@ properties, and names the likely mistake when something is off:
   wrong frequencies.
 
 The helpers ``to_numpy`` and ``match_variant`` are shared with the other NeRF check modules.
-The reference solutions are imported only inside the fixture builder.
+The cases and the reference's results on them are stored arrays, made on the instructor's side
+by :mod:`course_lib.instructor.cases.nerf_data`; this module imports no reference solution and ships
+to students.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.grading.core import FAILED, Check, fixture_builder, load_fixture
+from course_lib.checks.core import FAILED, Check, load_fixture
 
 __all__ = [
     "check_get_rays",
@@ -80,7 +82,8 @@ def _torch():
     return torch
 
 
-def _t(a, dtype="float32"):
+def as_tensor(a, dtype="float32"):
+    """``a`` as a torch tensor of ``dtype`` (float32 by default), on the CPU."""
     torch = _torch()
     return torch.as_tensor(np.asarray(a), dtype=getattr(torch, dtype))
 
@@ -101,62 +104,7 @@ def _as_pair(out, c: Check, case: str, names=("rays_o", "rays_d")):
 # --------------------------------------------------------------------------- fixtures
 
 
-def _look_at_c2w(center, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """Camera-to-world (OpenCV axes) of a camera at ``center`` looking at ``target`` (world z up)."""
-    center, target, up = (np.asarray(v, float) for v in (center, target, up))
-    z = target - center
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    M = np.eye(4)
-    M[:3, 0], M[:3, 1], M[:3, 2], M[:3, 3] = x, y, z, center
-    return M
-
-
 RAY_CASES = ("tiny", "orbit")
-
-
-@fixture_builder(FIXTURE)
-def _build() -> dict[str, np.ndarray]:
-    import torch
-
-    from course_lib.nerf import encoding, rays
-
-    out: dict[str, np.ndarray] = {}
-    # get_rays: a tiny 3x4 camera with fx != fy and an off-centre principal point, and a
-    # lego-like camera on an orbit (W != H so that a transposed grid shows in the shape).
-    cams = {
-        "tiny": (3, 4, [[2.0, 0.0, 1.3], [0.0, 2.5, 0.8], [0.0, 0.0, 1.0]], _look_at_c2w([1.0, -2.0, 0.5], [0.2, 0.3, 0.0])),
-        "orbit": (6, 8, [[9.0, 0.0, 3.5], [0.0, 9.0, 2.5], [0.0, 0.0, 1.0]], _look_at_c2w([2.5, 3.0, 1.8], [0.0, 0.0, 0.0])),
-    }
-    for name, (H, W, K, c2w) in cams.items():
-        o, d = rays.get_rays(H, W, _t(K), _t(c2w))
-        out[f"rays_{name}_HW"] = np.array([H, W])
-        out[f"rays_{name}_K"] = np.array(K, dtype=np.float32)
-        out[f"rays_{name}_c2w"] = c2w.astype(np.float32)
-        out[f"rays_{name}_o"] = o.numpy()
-        out[f"rays_{name}_d"] = d.numpy()
-    # stratified samples: evaluation depths (perturb=False)
-    out["strat_args"] = np.array([2.0, 6.0, 16, 5])
-    out["strat_z"] = rays.stratified_samples(2.0, 6.0, 16, 5, perturb=False).numpy()
-    # query points
-    g = np.random.default_rng(6)
-    ro, rd = g.normal(size=(4, 3)), g.normal(size=(4, 3))
-    zv = np.sort(g.uniform(1.0, 3.0, size=(4, 5)), axis=1)
-    out["query_o"], out["query_d"], out["query_z"] = ro.astype(np.float32), rd.astype(np.float32), zv.astype(np.float32)
-    out["query_pts"] = rays.query_points(_t(ro), _t(rd), _t(zv)).numpy()
-    # positional encoding: positions (L=10), directions (L=4), without identity, batched
-    x = g.uniform(-1.5, 1.5, size=(6, 3)).astype(np.float32)
-    dirs = g.normal(size=(6, 3))
-    dirs = (dirs / np.linalg.norm(dirs, axis=1, keepdims=True)).astype(np.float32)
-    out["enc_x"], out["enc_dirs"] = x, dirs
-    out["enc_x_10"] = encoding.positional_encoding(_t(x), 10).numpy()
-    out["enc_dirs_4"] = encoding.positional_encoding(_t(dirs), 4).numpy()
-    out["enc_x_3_noid"] = encoding.positional_encoding(_t(x), 3, include_input=False).numpy()
-    out["enc_batch_2"] = encoding.positional_encoding(_t(x.reshape(2, 3, 3)), 2).numpy()
-    del torch
-    return out
 
 
 # --------------------------------------------------------------------------- get_rays
@@ -211,7 +159,7 @@ def check_get_rays(get_rays: Callable) -> None:
             K, c2w = f[f"rays_{name}_K"].astype(float), f[f"rays_{name}_c2w"].astype(float)
             o_ref, d_ref = f[f"rays_{name}_o"].astype(float), f[f"rays_{name}_d"].astype(float)
             case = f"{H}x{W} camera ({name})"
-            pair = _as_pair(c.call(get_rays, H, W, _t(K), _t(c2w), case=case), c, case)
+            pair = _as_pair(c.call(get_rays, H, W, as_tensor(K), as_tensor(c2w), case=case), c, case)
             if pair is None:
                 continue
             o, d = pair
@@ -318,7 +266,7 @@ def check_query_points(query_points: Callable) -> None:
     R, S = zv.shape
     with Check("query_points") as c:
         case = f"{R} rays, {S} samples"
-        p = to_numpy(c.call(query_points, _t(ro), _t(rd), _t(zv), case=case))
+        p = to_numpy(c.call(query_points, as_tensor(ro), as_tensor(rd), as_tensor(zv), case=case))
         if p is None:
             return
         if p.shape == (R, R, S) or (p.ndim == 3 and p.shape[-1] != 3):
@@ -406,7 +354,7 @@ def check_positional_encoding(positional_encoding: Callable) -> None:
     with Check("positional_encoding") as c:
         for case, xin, L, inc, ref in cases:
             ref = ref.astype(float)
-            out = to_numpy(c.call(positional_encoding, _t(xin), L, include_input=inc, case=case))
+            out = to_numpy(c.call(positional_encoding, as_tensor(xin), L, include_input=inc, case=case))
             if out is None:
                 continue
             D = xin.shape[-1]

@@ -2,26 +2,26 @@
 
 ``python -m course_lib grade SUBMISSION_DIR [--json REPORT.json] [--markdown FEEDBACK.md]``
 
-For every exercise of the instructor notebooks (:func:`course_lib.grading.release.kit_specs`; the
+For every exercise of the instructor notebooks (:func:`course_lib.instructor.release.kit_specs`; the
 reference verdicts and check cells come from the instructor's side, never from the submission):
 
 1. **Structure.** The submitted notebook must still hold the exercise's ``def`` before its check
    cell, in the original order, and the check cell unedited. A deleted or moved exercise, or an
    edited or deleted check cell, gets no credit (and the report says which).
 2. **Scans** (a second line of defence). The exercise's code (cut out with its imports and
-   helpers, :func:`course_lib.grading.sandbox.extract_exercise`) must not import the reference
+   helpers, :func:`course_lib.instructor.hidden.extract_exercise`) must not import the reference
    solutions or the check machinery; the notebook must not patch, rebind (by assignment, import
-   alias, loop or ``with`` target) or imitate the checks (:func:`course_lib.grading.sandbox.scan_notebook`).
+   alias, loop or ``with`` target) or imitate the checks (:func:`course_lib.instructor.hidden.scan_notebook`).
 3. **Hidden checks, sealed by design.** The exercise's check function runs *here*, in the
    grader's process, on hidden cases (the fixtures rebuilt with a grading-time seed), and the
    reference's verdicts on the same cases are computed here too. The student's function is a
-   proxy (:mod:`course_lib.grading.proxy`): each call sends the inputs as data to a sandboxed
+   proxy (:mod:`course_lib.instructor.student_process`): each call sends the inputs as data to a sandboxed
    process that holds only the student's extracted code and the *student release* of
    ``course_lib`` (no reference solution on its path or in its view of the disk), and the
    outputs come back as data (JSON and ``np.save`` arrays, never pickle). That process has a
    wall-clock budget per exercise: a looping exercise is stopped at its limit, an exercise that
    ends the process is named (``os._exit``), and either costs only itself. Its score is
-   :func:`course_lib.grading.core.score` of its hidden checks relative to the reference's.
+   :func:`course_lib.checks.core.score` of its hidden checks relative to the reference's.
 4. **nbval.** The notebooks run under nbval, with a per-cell time limit, after their check cells
    are restored to the reference source and outputs, in the same sandbox (the student release on
    ``PYTHONPATH``, a temporary copy of the submission as working directory, resource limits,
@@ -38,36 +38,26 @@ from __future__ import annotations
 import atexit
 import copy
 import importlib
-import json
 import os
-import re
 import secrets
 import shutil
-import subprocess
-import sys
 import tempfile
-import threading
 import time
-import xml.etree.ElementTree as ET
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import nbformat
 
-from course_lib.grading.release import NOTEBOOKS_DIR, ExerciseSpec, NotebookSpec, kit_specs, release_plan
-from course_lib.grading.core import score
-from course_lib.grading.proxy import CHILD_SCRIPT, SKIP_COPY, Isolation, kill_tree, student_library
-from course_lib.grading.sandbox import (
-    HiddenJob,
-    build_hidden_fixtures,
-    code_cells,
-    extract_exercise,
-    run_hidden,
-    run_reference,
-    scan_exercise,
-    scan_notebook,
-)
+from course_lib.checks.core import score
+from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ExerciseSpec, NotebookSpec, kit_specs
+from course_lib.instructor.plan import release_plan
+from course_lib.instructor.nbval_run import NbvalRun
+from course_lib.instructor.placement import Placement, place_exercises, restored
+from course_lib.instructor.student_process import Isolation, student_library
+from course_lib.instructor.extract import extract_exercise
+from course_lib.instructor.hidden import HiddenJob, build_hidden_fixtures, run_hidden, run_reference
+from course_lib.instructor.scan import scan_exercise, scan_notebook
 from course_lib.paths import REPO_ROOT
 from course_lib.validate import KitInputError
 
@@ -75,7 +65,6 @@ __all__ = ["HiddenCases", "prepare_hidden", "grade_submission", "to_markdown", "
 
 HIDDEN_SHARE = 0.9  # of an exercise's points: the hidden checks; the rest: nbval verdict (with all hidden passing)
 MAX_FEEDBACK_LINES = 6
-MAX_NBVAL_RERUNS = 3  # reruns of a notebook after cells that timed out
 DEFAULT_TIMEOUT = 20.0  # s for the hidden checks of one exercise (the reference needs at most ~1 s; see grade_speed)
 
 
@@ -156,278 +145,6 @@ def prepare_hidden(specs: list[NotebookSpec], salt: int, workdir: Path, notebook
                 cases.reference_notes[_key(e)] = (f"the reference fails {len(out.failing)} hidden check(s) for this "
                                                   f"seed ({out.status} {out.message}); they are not counted")
     return cases
-
-
-# ---------------------------------------------------------------------------------------------
-# Structure of a submitted notebook
-# ---------------------------------------------------------------------------------------------
-
-
-@dataclass
-class Placement:
-    check_cell: int | None
-    check_state: str  # "intact", "edited", "deleted"
-    issue: str | None = None  # "deleted", "reordered: ..."
-
-
-def _lis_members(seq: list[int], orig: list[int] | None = None) -> set[int]:
-    """Positions (into seq) of a longest strictly increasing subsequence.
-
-    Among the longest ones, the one whose members moved least from ``orig`` (their original
-    positions) is chosen, so that the cells reported as moved are the ones that moved.
-    """
-    n = len(seq)
-    orig = orig or seq
-    best = [(1, -abs(seq[i] - orig[i])) for i in range(n)]
-    prev = [-1] * n
-    for i in range(n):
-        for j in range(i):
-            cand = (best[j][0] + 1, best[j][1] - abs(seq[i] - orig[i]))
-            if seq[j] < seq[i] and cand > best[i]:
-                best[i], prev[i] = cand, j
-    if not n:
-        return set()
-    k = max(range(n), key=lambda i: best[i])
-    out = set()
-    while k != -1:
-        out.add(k)
-        k = prev[k]
-    return out
-
-
-def place_exercises(nb, spec: NotebookSpec) -> dict[str, Placement]:
-    """Where each exercise and its check cell are in the submitted notebook, and what is wrong with them."""
-    cells = [(i, c.source) for i, c in enumerate(nb.cells) if c.cell_type == "code"]
-    defs: dict[str, list[int]] = {}
-    broken: dict[str, int] = {}
-    names = {e.name for e in spec.exercises}
-    for i, src, tree in code_cells(nb):
-        if tree is None:
-            for n in names:
-                if re.search(rf"^\s*(def|class) {re.escape(n)}\b", src, re.M):
-                    broken.setdefault(n, i)
-            continue
-        for node in tree.body:
-            if getattr(node, "name", None) in names and node.__class__.__name__ in ("FunctionDef", "ClassDef",
-                                                                                   "AsyncFunctionDef"):
-                defs.setdefault(node.name, []).append(i)
-    out: dict[str, Placement] = {}
-    used: set[int] = set()
-    for e in spec.exercises:  # intact check cells first: they are unambiguous
-        intact = [i for i, src in cells if src == e.check_source and i not in used]
-        if intact:
-            out[e.name] = Placement(intact[0], "intact")
-            used.add(intact[0])
-    for e in spec.exercises:
-        if e.name in out:
-            continue
-        edited = [i for i, src in cells if f"{e.check_function}(" in src and i not in used]
-        start = min(defs.get(e.name, [broken.get(e.name, -1)]))
-        marked = [i for i, src in cells if i > start >= 0 and i not in used
-                  and src.lstrip().startswith("# NBVAL_CHECK_OUTPUT")]
-        pick = edited or marked[:1]
-        out[e.name] = Placement(pick[0], "edited") if pick else Placement(None, "deleted")
-        if pick:
-            used.add(pick[0])
-    for e in spec.exercises:
-        p = out[e.name]
-        where = defs.get(e.name, [])
-        if e.name in broken and not [c for c in where if p.check_cell is None or c < p.check_cell]:
-            p.issue = (f"error: the cell defining {e.name} (cell {broken[e.name]}) is not valid Python; "
-                       "fix the syntax error")
-        elif not where:
-            p.issue = f"deleted: no cell defines {e.name} any more"
-        elif p.check_cell is not None and min(where) > p.check_cell:
-            p.issue = f"reordered: {e.name} is defined after its check cell"
-    # order of the exercises (by check cell, then by def) must be the original order
-    present = [e for e in spec.exercises if out[e.name].check_cell is not None and out[e.name].issue is None]
-    for key in ("check", "def"):
-        seq = [out[e.name].check_cell if key == "check" else
-               max(c for c in defs[e.name] if c < out[e.name].check_cell) for e in present]
-        orig = [e.check_cell if key == "check" else e.cell for e in present]
-        keep = _lis_members(seq, orig)
-        for k, e in enumerate(present):
-            if k not in keep and out[e.name].issue is None:
-                out[e.name].issue = f"reordered: the {'check' if key == 'check' else 'exercise'} cell of {e.name} " \
-                                    "was moved out of the original order"
-    return out
-
-
-# ---------------------------------------------------------------------------------------------
-# nbval
-# ---------------------------------------------------------------------------------------------
-
-
-def _restored(nb, spec: NotebookSpec, places: dict[str, Placement]):
-    """The notebook with its check cells restored to the reference source and verdict outputs."""
-    nb = nbformat.from_dict(json.loads(json.dumps(nb)))
-    for e in spec.exercises:
-        p = places[e.name]
-        if p.check_cell is None:
-            continue
-        cell = nb.cells[p.check_cell]
-        cell.source = e.check_source
-        cell.outputs = [nbformat.v4.new_output("stream", name="stdout", text=e.verdict)]
-    return nb
-
-
-class NbvalRun:
-    """pytest --nbval over notebooks, one sandboxed pytest process per notebook, ``jobs`` at a time, in the background.
-
-    Each notebook runs in a fresh temporary copy of the submission (its working directory), with the
-    student release's ``course_lib`` first on ``PYTHONPATH``, resource limits, and (where Linux
-    allows it) the namespaces of :mod:`course_lib.grading.child`: no network, the instructor's kit
-    and the grader's scratch folder hidden, everything read-only but the copy.
-    """
-
-    def __init__(self, submission: Path, isolation: Isolation, cell_timeout: float, jobs: int = 2,
-                 timeout: float = 1800.0):
-        from concurrent.futures import ThreadPoolExecutor
-
-        self.submission, self.iso = Path(submission), isolation
-        self.cell_timeout, self.timeout = cell_timeout, timeout
-        self.pool = ThreadPoolExecutor(max_workers=max(1, jobs))
-        self.futures: dict[str, object] = {}
-        self.sandbox: dict = {}
-        self._lock = threading.Lock()
-        self._procs: dict[str, subprocess.Popen] = {}
-        self._replace: dict[str, object] = {}
-
-    def submit(self, name: str, nb) -> None:
-        self.futures[name] = self.pool.submit(self._run, name, nb)
-
-    def restart(self, name: str, nb) -> None:
-        """Run notebook ``name`` again from the start with ``nb`` (stopping the run in progress, if any)."""
-        with self._lock:
-            fut = self.futures.get(name)
-            if fut is None or fut.done():
-                self.futures[name] = self.pool.submit(self._run, name, nb)
-                return
-            self._replace[name] = nb
-            proc = self._procs.get(name)
-        if proc is not None:
-            kill_tree(proc.pid)
-
-    def _run(self, name: str, nb) -> tuple[dict[tuple[str, int], str], str]:
-        while True:
-            with self._lock:
-                nb = self._replace.pop(name, nb)
-            out = self._one(name, nb)
-            with self._lock:
-                if name not in self._replace:
-                    return out
-
-    def _one(self, name: str, nb) -> tuple[dict[tuple[str, int], str], str]:
-        """Run one notebook; after a cell that timed out (nbval skips the rest), run the rest again."""
-        tmp = Path(tempfile.mkdtemp(prefix="course-nbval-"))
-        try:
-            os.chmod(tmp, 0o755)
-            work = tmp / "work"
-            if self.submission.is_dir():
-                shutil.copytree(self.submission, work, ignore=SKIP_COPY, symlinks=True)
-            nb_dir = work / "notebooks"
-            nb_dir.mkdir(parents=True, exist_ok=True)
-            for old in nb_dir.glob("*.ipynb"):
-                old.unlink()  # only the notebook under test, restored by the grader
-            nbformat.write(nb, nb_dir / name)
-            results: dict[tuple[str, int], str] = {}
-            done_upto = -1
-            for attempt in range(MAX_NBVAL_RERUNS + 1):
-                with self._lock:
-                    if name in self._replace:
-                        return results, "replaced"
-                res, note = self._pytest(tmp, work, nb_dir, name, attempt)
-                if note:
-                    return results, note
-                results.update({k: v for k, v in res.items() if k[1] > done_upto})
-                timed_out = sorted(k[1] for k, v in res.items() if k[1] > done_upto and "timeout" in v.lower()
-                                   and not v.startswith("not run"))
-                if not timed_out or not any(v.startswith("not run") for k, v in res.items() if k[1] > timed_out[0]):
-                    break
-                done_upto = timed_out[0]
-                # the rerun: the cell that timed out raises at once, the cells after it run again
-                nb = nbformat.read(nb_dir / name, as_version=4)
-                code = [c for c in nb.cells if c.cell_type == "code"]
-                code[done_upto].source = f"raise TimeoutError('this cell did not finish within {self.cell_timeout:g} s')"
-                code[done_upto].outputs = []
-                nbformat.write(nb, nb_dir / name)
-            return results, ""
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
-
-    def _pytest(self, tmp: Path, work: Path, nb_dir: Path, name: str, attempt: int):
-        junit = work / f".nbval-{attempt}.junit.xml"
-        stage = tmp / f"stage{attempt}"
-        stage.mkdir()
-        report = work / f".sandbox-{attempt}.json"
-        cfg = {"sandbox": self.iso.sandbox_config(stage, [work]), "cwd": str(nb_dir), "report": str(report)}
-        (tmp / f"sandbox{attempt}.json").write_text(json.dumps(cfg))
-        home = work / ".home"
-        env = {k: v for k, v in os.environ.items() if k in ("PATH", "LANG", "LC_ALL", "TZ")}
-        env.update(COURSE_LIB_QUICK="1", PYTHONDONTWRITEBYTECODE="1", PYTHONPATH=str(self.iso.library),
-                   HOME=str(home), JUPYTER_RUNTIME_DIR=str(home / "runtime"), JUPYTER_DATA_DIR=str(home / "data"),
-                   IPYTHONDIR=str(home / "ipython"), MPLCONFIGDIR=str(home / "mpl"), MPLBACKEND="Agg",
-                   OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONNOUSERSITE="1")
-        if os.environ.get("COURSE_DATA"):
-            env["COURSE_DATA"] = os.environ["COURSE_DATA"]
-        cmd = [sys.executable, "-S", "-E", str(CHILD_SCRIPT), "exec", str(tmp / f"sandbox{attempt}.json"), "--",
-               sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-c", os.devnull, "--rootdir",
-               str(nb_dir), "--nbval-lax", "--nbval-current-env", f"--nbval-cell-timeout={int(self.cell_timeout)}",
-               f"--junitxml={junit}", name]
-        # its own session, so that whatever the notebook started is stopped with it
-        with self._lock:
-            if name in self._replace:
-                return {}, "replaced"
-            proc = subprocess.Popen(cmd, cwd=nb_dir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                    start_new_session=True, preexec_fn=self.iso.preexec(self.timeout))
-            self._procs[name] = proc
-        try:
-            proc.wait(timeout=self.timeout)
-        except subprocess.TimeoutExpired:
-            return {}, f"nbval did not finish {name} within {self.timeout:g} s"
-        finally:
-            kill_tree(proc.pid)
-            proc.wait()
-            with self._lock:
-                self._procs.pop(name, None)
-        if report.exists() and not self.sandbox:
-            try:
-                self.sandbox = json.loads(report.read_text())
-            except ValueError:
-                pass
-        return _read_junit(junit, name)
-
-    def results(self) -> tuple[dict[tuple[str, int], str], dict[str, str]]:
-        """``{(notebook, code cell index): "pass" or a failure text}`` and ``{notebook: note}`` for runs that failed."""
-        out, notes = {}, {}
-        for name in list(self.futures):
-            while True:  # a restart may replace the future while we wait for it
-                fut = self.futures[name]
-                res, note = fut.result()
-                if self.futures[name] is fut:
-                    break
-            out.update(res)
-            if note:
-                notes[name] = note
-        self.pool.shutdown()
-        return out, notes
-
-
-def _read_junit(junit: Path, name: str) -> tuple[dict[tuple[str, int], str], str]:
-    if not junit.exists():
-        return {}, f"nbval did not run {name}"
-    results = {}
-    for tc in ET.parse(junit).iter("testcase"):
-        cell = tc.attrib.get("name", "")
-        if not cell.startswith("Cell "):
-            continue
-        bad = [c for c in tc if c.tag in ("failure", "error", "skipped")]
-        text = "pass"
-        if bad:  # nbval skips the cells after one that timed out
-            text = (bad[0].attrib.get("message") or bad[0].text or "failed").strip()
-            text = ("not run: " if bad[0].tag == "skipped" else "") + re.sub(r"\x1b\[[0-9;]*m", "", text)
-        results[(name, int(cell.split()[1]))] = text
-    return results, ""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -531,7 +248,7 @@ def grade_submission(
             check_names = {e.check_function for e in s.exercises}
             tamper = scan_notebook(nb, intact, check_names, [e.verdict for e in s.exercises])
             plans.append((s, nb, places, tamper))
-            to_nbval[s.name] = _restored(nb, s, places)
+            to_nbval[s.name] = restored(nb, s, places)
         nbval_run = NbvalRun(submission, iso, cell_timeout, jobs=nbval_jobs) if run_nbval and to_nbval else None
         if nbval_run is not None:  # nbval starts at once; a notebook whose exercise loops is restarted below
             for name, nbv in to_nbval.items():

@@ -16,7 +16,9 @@ computed differently, weights that forget alpha (w = T) or the transmittance (w 
 Defining property (failing it costs at least half of the points): Δ in α, the interval length in
 the opacity, checked on the slabs and on the random rays with both backgrounds.
 
-The reference :func:`course_lib.nerf.render.volume_render` is imported only inside the builder.
+The cases and the reference's results on them are stored arrays, made on the instructor's side
+by :mod:`course_lib.instructor.cases.nerf_rendering`; this module imports no reference solution and ships
+to students.
 """
 
 from __future__ import annotations
@@ -26,8 +28,8 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.grading.core import FAILED, Check, declare_defining, fixture_builder, load_fixture
-from course_lib.grading.nerf_data import close, to_numpy
+from course_lib.checks.core import FAILED, Check, declare_defining, load_fixture
+from course_lib.checks.nerf_data import close, to_numpy
 
 __all__ = ["check_volume_render", "render_variant"]
 
@@ -48,20 +50,6 @@ FORM_HINTS = {
 }
 
 
-def _random_case():
-    g = np.random.default_rng(8)
-    R, S = 6, 12
-    rgb = g.uniform(0, 1, size=(R, S, 3))
-    sigma = g.exponential(2.0, size=(R, S)) * (g.uniform(size=(R, S)) > 0.3)
-    sigma[0] = 0.0  # an empty ray: all background
-    sigma[1, :-1], sigma[1, -1] = 0.0, 3.0  # density only in the last sample: shows the last interval
-    sigma[2] *= 0.05  # a half-transparent ray: acc well below 1 (nothing in the last sample)
-    sigma[2, -1] = 0.0
-    z = np.sort(g.uniform(2.0, 6.0, size=(R, S)), axis=1)
-    d = np.concatenate([g.normal(scale=0.4, size=(R, 2)), np.ones((R, 1))], axis=1)  # z_cam = 1, |d| > 1
-    return rgb.astype(np.float32), sigma.astype(np.float32), z.astype(np.float32), d.astype(np.float32)
-
-
 def _slab_case():
     """Rays along +z (|d| = 1) through slabs of constant density; empty space elsewhere."""
     z = np.tile(np.linspace(2.0, 6.0, 41), (3, 1))  # delta = 0.1
@@ -74,21 +62,6 @@ def _slab_case():
     d = np.tile([0.0, 0.0, 1.0], (3, 1))
     trans = np.array([np.exp(-s * (b - a)) for a, b, s in slabs])
     return rgb.astype(np.float32), sigma.astype(np.float32), z.astype(np.float32), d.astype(np.float32), trans
-
-
-@fixture_builder(FIXTURE)
-def _build() -> dict[str, np.ndarray]:
-    import torch
-
-    from course_lib.nerf.render import volume_render
-
-    rgb, sigma, z, d = _random_case()
-    out = {"rgb": rgb, "sigma": sigma, "z_vals": z, "rays_d": d}
-    for bg in (True, False):
-        res = volume_render(*(torch.as_tensor(a) for a in (rgb, sigma, z, d)), white_background=bg)
-        for k in KEYS:
-            out[f"{'white' if bg else 'black'}_{k}"] = res[k].numpy()
-    return out
 
 
 # --------------------------------------------------------------------------- variants

@@ -21,39 +21,28 @@ The cases: a noiseless synthetic pair, a noisy one (1 px), a pair with outliers 
 :func:`course_lib.data.synthetic.make_scene`, seeded), and the embedded scene's image pair
 (1, 2) (``data/synthetic-building``) when it is present.
 
-:func:`two_view_step` gives notebook 02 the reference result of this step (F and the inliers
-of the embedded pair) from the fixture, so notebook 02 works even if notebook 01 is unfinished.
-
-The reference solutions are imported only inside the fixture builder.
+The cases and the reference's results on them are stored arrays, made on the instructor's side
+by :mod:`course_lib.instructor.cases.fundamental`; this module imports no reference solution and ships
+to students.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from course_lib.grading.core import FAILED, Check, declare_defining, fixture_builder, load_fixture
-from course_lib.paths import EMBEDDED_SFM
+from course_lib.checks.core import FAILED, Check, declare_defining, load_fixture
+from course_lib.steps import STEP_SEED
 
 __all__ = [
     "check_normalize_points",
     "check_eight_point",
     "check_sampson_distance",
     "check_ransac_fundamental",
-    "two_view_step",
-    "TwoViewStep",
-    "STEP_PAIR",
-    "STEP_THRESHOLD_PX",
 ]
 
 FIXTURE = "fundamental"
-#: The image pair of the embedded scene that notebooks 01 and 02 work on (0-based: images 1 and 2).
-STEP_PAIR = (0, 1)
-#: RANSAC threshold (pixels) and seed for the step result of the embedded pair.
-STEP_THRESHOLD_PX = 1.0
-STEP_SEED = 0
 #: RANSAC threshold used by the check on the synthetic pair with outliers (noise 0.5 px).
 CHECK_THRESHOLD_PX = 1.5
 
@@ -138,145 +127,7 @@ def _cases(f: dict) -> list[str]:
 # --------------------------------------------------------------------------- fixtures
 
 
-def _synthetic_cases() -> dict[str, np.ndarray]:
-    from course_lib.data.synthetic import make_scene
-
-    out: dict[str, np.ndarray] = {}
-    # normalize_points: an anisotropic cloud far from the origin (a strip of a building)
-    g = np.random.default_rng(101)
-    out["norm_x"] = np.column_stack([g.uniform(150.0, 700.0, 40), g.uniform(380.0, 520.0, 40)])
-    # noiseless pair: exact projections
-    sc = make_scene(np.random.default_rng(3), n_cameras=2, n_points=120, noise_px=0.0, outlier_fraction=0.0)
-    x1, x2, _, _ = sc.pair(0, 1)
-    out["noiseless_x1"], out["noiseless_x2"] = x1, x2
-    # noisy pair: 1 px noise, no outliers; the unnormalized 8-point is clearly worse here
-    sc = make_scene(np.random.default_rng(3), n_cameras=2, n_points=120, noise_px=1.0, outlier_fraction=0.0)
-    x1, x2, _, ids = sc.pair(0, 1)
-    out["noisy_x1"], out["noisy_x2"] = x1, x2
-    # pair with outliers (about 20 % of the correspondences), 0.5 px noise
-    sc = make_scene(np.random.default_rng(5), n_cameras=2, n_points=250, noise_px=0.5, outlier_fraction=0.1)
-    x1, x2, inl, ids = sc.pair(0, 1)
-    out["outliers_x1"], out["outliers_x2"], out["outliers_true_inliers"] = x1, x2, inl
-    out["outliers_x1_true"], out["outliers_x2_true"] = sc.uv_true[ids, 0], sc.uv_true[ids, 1]
-    return out
-
-
-def _embedded_pair():
-    """``(x1, x2, K)`` of the embedded pair, or None when data/synthetic-building is not there."""
-    if not (Path(EMBEDDED_SFM) / "matching1.txt").exists():
-        return None
-    from course_lib.data.p3 import read_p3
-
-    data = read_p3(EMBEDDED_SFM)
-    m = data.matches[STEP_PAIR]
-    return m.x1, m.x2, data.K
-
-
-def _unnormalized_eight_point(x1, x2) -> np.ndarray:
-    """The typical mistake 'not normalized', kept to recognize it (fixture build time only)."""
-    u1, v1 = x1.T
-    u2, v2 = x2.T
-    A = np.stack([u2 * u1, u2 * v1, u2, v2 * u1, v2 * v1, v2, u1, v1, np.ones_like(u1)], axis=1)
-    F = np.linalg.svd(A)[2][-1].reshape(3, 3)
-    U, s, Vt = np.linalg.svd(F)
-    return _unit(U @ np.diag([s[0], s[1], 0.0]) @ Vt)
-
-
-@fixture_builder(FIXTURE)
-def _build() -> dict[str, np.ndarray]:
-    from course_lib.sfm import fundamental as ref
-
-    out = _synthetic_cases()
-    out["norm_xn"], out["norm_T"] = ref.normalize_points(out["norm_x"])
-    cases = ["noiseless", "noisy", "outliers"]
-    emb = _embedded_pair()
-    if emb is not None:
-        x1, x2, K = emb
-        out["building_x1"], out["building_x2"], out["building_K"] = x1, x2, K
-        res = ref.ransac_fundamental(x1, x2, np.random.default_rng(STEP_SEED), threshold_px=STEP_THRESHOLD_PX)
-        out["building_F_ransac"], out["building_inliers"] = res.F, res.inliers
-        out["building_n_iters"] = np.array(res.n_iters)
-        out["building_pair"] = np.array(STEP_PAIR)
-        out["building_threshold_px"] = np.array(STEP_THRESHOLD_PX)
-        cases.append("building")
-    out["cases"] = np.array(cases)
-    for name in cases:
-        x1, x2 = out[f"{name}_x1"], out[f"{name}_x2"]
-        if name == "outliers":
-            inl = out["outliers_true_inliers"]
-        elif name == "building":
-            inl = out["building_inliers"]
-        else:
-            inl = np.ones(len(x1), bool)
-        # eight_point on the inliers of the case; its Sampson distances there
-        F = ref.eight_point(x1[inl], x2[inl])
-        out[f"{name}_F"] = F
-        out[f"{name}_F_unnormalized"] = _unnormalized_eight_point(x1[inl], x2[inl])
-        out[f"{name}_sampson"] = ref.sampson_distance(F, x1, x2)
-    # RANSAC on the pair with outliers, as the check calls it
-    res = ref.ransac_fundamental(
-        out["outliers_x1"], out["outliers_x2"], np.random.default_rng(0), threshold_px=CHECK_THRESHOLD_PX
-    )
-    out["outliers_F_ransac"], out["outliers_inliers"] = res.F, res.inliers
-    out["outliers_n_iters"] = np.array(res.n_iters)
-    return out
-
-
 # --------------------------------------------------------------------------- step input for notebook 02
-
-
-class TwoViewStep(dict):
-    """The reference result of notebook 01 for one image pair (a dict with attribute access).
-
-    Keys: ``x1 (N, 2)``, ``x2 (N, 2)`` (all unique correspondences of the pair), ``F (3, 3)``
-    (RANSAC + refit on the inliers), ``inliers (N,)`` bool, ``K (3, 3)``, ``pair`` (i, j), ``source``.
-    """
-
-    __getattr__ = dict.__getitem__
-
-
-def two_view_step(data_folder=None, pair: tuple[int, int] = STEP_PAIR) -> TwoViewStep:
-    """The reference F and inlier mask of notebook 01 for an image pair, to start notebook 02 from.
-
-    For the embedded scene (``data/synthetic-building``, the default) the result is read from the
-    stored fixture, so it works without the reference solutions. For another P3 folder (e.g.
-    ``course_data("wpi")``) it is computed with the reference RANSAC (seed 0, threshold 1 px);
-    that needs the full kit.
-
-    Args:
-        data_folder: a P3 folder; default the embedded scene.
-        pair: 0-based image indices ``(i, j)``, ``i < j``.
-
-    Returns:
-        :class:`TwoViewStep` with ``x1, x2, F, inliers, K, pair, source``.
-
-    Introduced in notebooks/02_essential_matrix_and_pose.ipynb.
-    """
-    folder = Path(EMBEDDED_SFM if data_folder is None else data_folder)
-    pair = (int(pair[0]), int(pair[1]))
-    if folder.resolve() == Path(EMBEDDED_SFM).resolve() and pair == STEP_PAIR:
-        f = load_fixture(FIXTURE)
-        if "building_F_ransac" not in f:
-            raise FileNotFoundError(
-                "the fundamental fixture has no result for the embedded scene; rebuild it with: "
-                "python -m course_lib fixtures fundamental"
-            )
-        return TwoViewStep(
-            x1=f["building_x1"], x2=f["building_x2"], F=f["building_F_ransac"], inliers=f["building_inliers"].astype(bool),
-            K=f["building_K"], pair=pair, source="stored reference result (fixture 'fundamental')",
-        )
-    try:
-        from course_lib.data.p3 import read_p3
-        from course_lib.sfm.fundamental import ransac_fundamental
-    except ImportError as exc:  # a student release without the reference solutions
-        raise FileNotFoundError(
-            f"no stored step result for {folder} pair {pair}: use your own ransac_fundamental from notebook 01 ({exc})"
-        ) from None
-    data = read_p3(folder, require_images=False)
-    m = data.matches[pair]
-    res = ransac_fundamental(m.x1, m.x2, np.random.default_rng(STEP_SEED), threshold_px=STEP_THRESHOLD_PX)
-    return TwoViewStep(x1=m.x1, x2=m.x2, F=res.F, inliers=res.inliers, K=data.K, pair=pair,
-                       source="computed with the reference ransac_fundamental (seed 0, threshold 1 px)")
 
 
 # --------------------------------------------------------------------------- normalize_points

@@ -2,14 +2,14 @@
 
 The check function of an exercise runs in the grader's own process, with the full library and the
 hidden cases. The student's function it receives is a :class:`RemoteFunction`: each call encodes
-the arguments as data (:mod:`course_lib.grading.child`'s wire format: JSON and ``np.save``
+the arguments as data (:mod:`course_lib.instructor.sandbox`'s wire format: JSON and ``np.save``
 arrays, never pickle), sends them to a :class:`StudentProcess` that holds only the student's
 extracted code and the *student release* of ``course_lib`` (:func:`student_library`), and
 decodes the result. An ``nn.Module`` the student's class builds stays in that process; the grader
 gets a :class:`RemoteModule` with the module's parameters and linear layers, whose forward pass
 sends the (possibly replaced) parameters and the inputs back to the student's process.
 
-The student's process (see :mod:`course_lib.grading.child` for the sandbox itself):
+The student's process (see :mod:`course_lib.instructor.sandbox` for the sandbox itself):
 
 * starts with ``python -S -E`` (no ``site``: the instructor's editable install is not on its
   path) and ``sys.path`` = the student release, then the standard library and site-packages;
@@ -44,7 +44,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from course_lib.grading import child as wire
+from course_lib.instructor import sandbox as wire
 from course_lib.paths import REPO_ROOT
 
 __all__ = ["Limits", "Isolation", "StudentProcess", "RemoteFunction", "RemoteModule", "StudentProcessEnded",
@@ -144,7 +144,8 @@ class Isolation:
 
 def student_library(out_dir: Path, notebooks_dir: Path | None = None) -> Path:
     """Write the student release's ``course_lib`` and ``data`` into ``out_dir`` (what a student's code may import)."""
-    from course_lib.grading.release import NOTEBOOKS_DIR, release_files
+    from course_lib.instructor.notebooks import NOTEBOOKS_DIR
+    from course_lib.instructor.release import release_files
 
     files = release_files(Path(notebooks_dir or NOTEBOOKS_DIR))
     out_dir = Path(out_dir)

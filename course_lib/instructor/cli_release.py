@@ -1,4 +1,4 @@
-"""``python -m course_lib release OUT_DIR``: write the student kit (see :mod:`course_lib.grading.release`)."""
+"""``python -m course_lib release OUT_DIR``: write the student kit (see :mod:`course_lib.instructor.release`)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from course_lib.grading.release import NOTEBOOKS_DIR, ReleaseError, write_release
+    from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ReleaseError
+    from course_lib.instructor.release import write_release
 
     try:
         manifest = write_release(args.out_dir, args.notebooks_dir or NOTEBOOKS_DIR, force=args.force)
@@ -35,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     for note in manifest["notes"]:
         print(f"note: {note}")
     if args.verify:
-        from course_lib.grading.release import verify_release
+        from course_lib.instructor.release import verify_release
 
         problems = verify_release(args.out_dir)
         for name, found in problems.items():

@@ -1,7 +1,7 @@
 """The check machinery shared by every notebook: verdicts, fixtures, and safe calls.
 
 A check cell in a notebook calls one function of a check module of
-:mod:`course_lib.grading` (one per notebook topic, e.g. :mod:`course_lib.grading.fundamental`)
+:mod:`course_lib.checks` (one per notebook topic, e.g. :mod:`course_lib.checks.fundamental`)
 with the student's function. That check function runs the
 student's code on stored cases (fixtures), compares with the stored reference results and with
 properties (rank 2, det R = +1, points in front), and prints short verdicts through a
@@ -24,15 +24,17 @@ a rotation, Δ in α; declared per exercise with :func:`declare_defining`) caps 
 half when it fails, and the printed verdict then leads with it. docs/mistakes.md documents the
 defining properties and the catalogue of classic mistakes that the checks name.
 
-Fixtures are stored expected results in ``data/fixtures/<name>.npz``, made from the reference
-solutions by one command, ``python -m course_lib fixtures``; the test suite rebuilds them and
-compares, to prove they are current. Check cells and step inputs read fixtures only, so a student
-release without the reference solutions still runs and checks.
+Fixtures are stored cases in ``data/fixtures/<name>.npz`` (inputs, the reference's results, the
+results of classic mistakes), made from the reference solutions on the instructor's side by one
+command, ``python -m course_lib fixtures`` (:mod:`course_lib.instructor.cases`); the test suite
+rebuilds them and compares, to prove they are current. Check cells and step inputs read fixtures
+only (:func:`load_fixture`), so a student release without the reference solutions still runs and
+checks; the grader runs the same checks on hidden cases (:func:`using_cases`).
 """
 
 from __future__ import annotations
 
-import importlib
+import contextlib
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,25 +54,11 @@ __all__ = [
     "DEFINING_CAP",
     "RESULTS",
     "FAILED",
-    "fixture_builder",
     "load_fixture",
-    "build_fixtures",
-    "FIXTURE_MODULES",
+    "using_cases",
 ]
 
 PASS, FAIL = "✔", "✘"
-
-#: Check modules, one per notebook topic; importing them registers their fixture builders.
-FIXTURE_MODULES = (
-    "course_lib.grading.fundamental",
-    "course_lib.grading.essential",
-    "course_lib.grading.triangulation",
-    "course_lib.grading.pnp",
-    "course_lib.grading.bundle_adjustment",
-    "course_lib.grading.nerf_data",
-    "course_lib.grading.nerf_model",
-    "course_lib.grading.nerf_rendering",
-)
 
 
 class _Failed:
@@ -170,7 +158,7 @@ class CheckResult:
 def score(result: CheckResult) -> float:
     """The fraction (0..1) of an exercise's hidden-check points that ``result`` earns.
 
-    The one scoring rule of the grader (:mod:`course_lib.grading.grade` calls it on the result of
+    The one scoring rule of the grader (:mod:`course_lib.instructor.grade` calls it on the result of
     the hidden checks, computed in the grader's own process):
 
     * only point checks earn: a gate (shape, dtype) that passes earns nothing, a gate that fails
@@ -335,24 +323,22 @@ def _student_frame(exc: BaseException) -> str:
 
 
 # ---------------------------------------------------------------------------------------------
-# Fixtures: stored expected results, made from the reference by one command.
+# Cases: the stored public fixtures, or the hidden cases of a grading run
 # ---------------------------------------------------------------------------------------------
 
-_BUILDERS: dict[str, Callable[[], dict[str, np.ndarray]]] = {}
-
-
-def fixture_builder(name: str):
-    """Register ``fn() -> dict[str, np.ndarray]`` as the builder of fixture ``name``."""
-
-    def register(fn):
-        _BUILDERS[name] = fn
-        return fn
-
-    return register
+#: The cases that :func:`load_fixture` serves instead of the stored files (see :func:`using_cases`).
+_CASES: dict[str, dict[str, np.ndarray]] | None = None
 
 
 def load_fixture(name: str) -> dict[str, np.ndarray]:
-    """Load ``data/fixtures/<name>.npz`` as a dict of arrays."""
+    """The cases of fixture ``name``: ``data/fixtures/<name>.npz`` as a dict of arrays.
+
+    Inside :func:`using_cases` (the grader's hidden checks), the cases given there instead.
+    """
+    if _CASES is not None:
+        if name not in _CASES:
+            raise FileNotFoundError(f"fixture {name!r} is not among the cases of this run")
+        return {k: v.copy() for k, v in _CASES[name].items()}
     path = FIXTURES_DIR / f"{name}.npz"
     if not path.exists():
         raise FileNotFoundError(
@@ -362,52 +348,16 @@ def load_fixture(name: str) -> dict[str, np.ndarray]:
         return {k: z[k] for k in z.files}
 
 
-def _register_all() -> None:
-    for mod in FIXTURE_MODULES:
-        try:
-            importlib.import_module(mod)
-        except ModuleNotFoundError as exc:
-            if exc.name != mod:
-                raise
+@contextlib.contextmanager
+def using_cases(cases: dict[str, dict[str, np.ndarray]]):
+    """Within the block, the checks of this process read ``cases`` (``{fixture name: arrays}``), not the stored files.
 
-
-def build_fixtures(names: list[str] | None = None, write: bool = True) -> dict[str, list[str]]:
-    """Rebuild fixtures from the reference solutions.
-
-    Args:
-        names: fixtures to build (default all registered).
-        write: write ``data/fixtures/<name>.npz``; with False only compare with the stored files.
-
-    Returns:
-        ``{name: [keys that differ from the stored file]}``; an empty list means up to date.
+    The grader runs the check functions on the hidden cases of a grading run this way; the
+    student's code never runs in the process that holds them.
     """
-    _register_all()
-    todo = list(_BUILDERS) if names is None else names  # registration order: later fixtures may read earlier ones
-    diffs: dict[str, list[str]] = {}
-    for name in todo:
-        new = _BUILDERS[name]()
-        try:
-            old = load_fixture(name)
-        except FileNotFoundError:
-            old = {}
-        changed = [k for k in sorted(set(new) | set(old)) if not _same(new.get(k), old.get(k))]
-        diffs[name] = changed
-        if write and changed:
-            FIXTURES_DIR.mkdir(parents=True, exist_ok=True)
-            np.savez_compressed(FIXTURES_DIR / f"{name}.npz", **{k: np.asarray(v) for k, v in new.items()})
-    return diffs
-
-
-def _same(a, b) -> bool:
-    if a is None or b is None:
-        return False
-    a, b = np.asarray(a), np.asarray(b)
-    if a.shape != b.shape or a.dtype.kind != b.dtype.kind:
-        return False
-    if a.dtype.kind in "fc":
-        # to rounding: float32 results (torch's CPU kernels) differ in the last bits between CPUs
-        # (AVX2 vs AVX-512 code paths), float64 results far less
-        single = np.float32 in (a.dtype, b.dtype) or np.complex64 in (a.dtype, b.dtype)
-        rtol, atol = (1e-4, 1e-6) if single else (1e-6, 1e-8)
-        return bool(np.allclose(a, b, rtol=rtol, atol=atol, equal_nan=True))
-    return bool(np.array_equal(a, b))
+    global _CASES
+    saved, _CASES = _CASES, cases
+    try:
+        yield
+    finally:
+        _CASES = saved

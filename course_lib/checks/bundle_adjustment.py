@@ -19,53 +19,30 @@ likely mistake:
   reference solution (after a similarity alignment), rotations that are no rotations, NaNs, a
   callback that is never called.
 
-Step input: :func:`step_input` gives notebook 05 the reference result of steps 1-4 on the
-embedded scene (the incremental reconstruction *before* any bundle adjustment: PnP poses,
-triangulated points, inlier observations), from fixture ``bundle_adjustment_step``; for other P3
-folders it runs :func:`course_lib.sfm.pipeline.run_sfm` with ``bundle_adjustment="none"``.
-
-The reference solutions are imported only inside the fixture builders and :func:`reconstruction_before_ba`.
+The cases and the reference's results on them are stored arrays, made on the instructor's side
+by :mod:`course_lib.instructor.cases.bundle_adjustment`; this module imports no reference solution and ships
+to students.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from course_lib.conventions import camera_center, rotation_angle_deg
-from course_lib.grading.core import FAILED, Check, fixture_builder, load_fixture
-from course_lib.paths import EMBEDDED_SFM
+from course_lib.checks.core import FAILED, Check, load_fixture
+from course_lib.steps import observation_arrays
 
 __all__ = [
     "check_visibility_matrix",
     "check_reprojection_residuals",
     "check_jacobian_sparsity",
     "check_bundle_adjustment",
-    "step_input",
-    "reconstruction_before_ba",
-    "observation_arrays",
-    "STEP_SEED",
 ]
 
 FIXTURE = "bundle_adjustment"
-STEP_FIXTURE = "bundle_adjustment_step"
-#: Seed of the RANSAC generator of the step input (the reference pipeline up to before BA).
-STEP_SEED = 0
 
 
 # --------------------------------------------------------------------------- helpers (no reference needed)
-
-
-def observation_arrays(uv: np.ndarray):
-    """``camera_idx (K,)``, ``point_idx (K,)``, ``uv_obs (K, 2)`` of the finite entries of ``uv (N, M, 2)``.
-
-    The same order as :func:`course_lib.sfm.visibility.observation_list` (point by point), written
-    out here so that the notebook runs without the reference library.
-    """
-    uv = np.asarray(uv, float)
-    j, i = np.nonzero(np.isfinite(uv).all(axis=2))
-    return i.astype(np.int64), j.astype(np.int64), uv[j, i]
 
 
 def _rotvec(R: np.ndarray) -> np.ndarray:
@@ -113,126 +90,7 @@ def _as_array(out, c: Check, case: str):
 # --------------------------------------------------------------------------- step input
 
 
-def reconstruction_before_ba(folder, seed: int = STEP_SEED) -> dict[str, np.ndarray]:
-    """Steps 1-4 on a P3 folder: the incremental reconstruction before bundle adjustment.
-
-    Runs :func:`course_lib.sfm.pipeline.run_sfm` with ``bundle_adjustment="none"`` (RANSAC on F,
-    the initial pair, PnP registration, triangulation; no BA).
-
-    Returns:
-        dict with ``K (3, 3)``, ``image_size (2,)`` = (W, H), ``image_names (M,)`` str,
-        ``registered (M,)`` bool, ``R_cw (M, 3, 3)``, ``t_cw (M, 3)`` (NaN where unregistered),
-        ``X (T, 3)`` (NaN where not triangulated), ``rgb (T, 3)`` uint8, ``track_uv (T, M, 2)``,
-        ``inlier (T, M)`` bool (the observations in use), ``initial_pair (2,)``.
-    """
-    try:
-        from course_lib.data.p3 import read_p3
-        from course_lib.sfm.pipeline import run_sfm
-    except ModuleNotFoundError as exc:
-        raise RuntimeError(
-            f"computing the step input for {folder} needs the reference library ({exc.name}); "
-            "use the embedded data (DATA = EMBEDDED_SFM)"
-        ) from None
-    data = read_p3(folder)
-    rec = run_sfm(data, np.random.default_rng(seed), bundle_adjustment="none")
-    return {
-        "K": rec.K,
-        "image_size": np.array(rec.image_size, dtype=np.int64),
-        "image_names": np.array(rec.image_names),
-        "registered": rec.registered,
-        "R_cw": rec.R_cw,
-        "t_cw": rec.t_cw,
-        "X": rec.X,
-        "rgb": rec.rgb,
-        "track_uv": rec.track_uv,
-        "inlier": rec.inlier,
-        "initial_pair": np.array(rec.report["initial_pair"]["images"], dtype=np.int64),
-    }
-
-
-@fixture_builder(STEP_FIXTURE)
-def _build_step() -> dict[str, np.ndarray]:
-    if not (EMBEDDED_SFM / "ground_truth.json").exists():
-        return {}
-    return reconstruction_before_ba(EMBEDDED_SFM)
-
-
-def step_input(folder=None) -> dict[str, np.ndarray]:
-    """Notebook 05's starting point: the reconstruction of steps 1-4, before bundle adjustment.
-
-    Args:
-        folder: ``None`` or the embedded scene: the stored fixture (no reference needed); another
-            P3 folder (e.g. ``course_data("wpi")``): computed with :func:`reconstruction_before_ba`.
-
-    Returns:
-        the dict of :func:`reconstruction_before_ba`.
-    """
-    if folder is None or Path(folder).resolve() == EMBEDDED_SFM.resolve():
-        return load_fixture(STEP_FIXTURE)
-    return reconstruction_before_ba(folder)
-
-
 # --------------------------------------------------------------------------- fixtures
-
-
-def _scene(seed, n_cameras, n_points, noise_px, outlier_fraction):
-    from course_lib.data.synthetic import make_scene
-
-    return make_scene(np.random.default_rng(seed), n_cameras=n_cameras, n_points=n_points, noise_px=noise_px,
-                      outlier_fraction=outlier_fraction)
-
-
-def _perturb(sc, seed, rot_deg=1.0, trans=0.2, pts=0.2):
-    from scipy.spatial.transform import Rotation
-
-    rng = np.random.default_rng(seed)
-    R, t = sc.R_cw.copy(), sc.t_cw.copy()
-    for i in range(1, sc.n_cameras):
-        R[i] = Rotation.from_rotvec(np.radians(rot_deg) * rng.normal(size=3) / np.sqrt(3)).as_matrix() @ R[i]
-        t[i] = t[i] + rng.normal(0, trans, 3)
-    return R, t, sc.X + rng.normal(0, pts, sc.X.shape)
-
-
-@fixture_builder(FIXTURE)
-def _build() -> dict[str, np.ndarray]:
-    from course_lib.sfm import bundle_adjustment as ba
-    from course_lib.sfm import visibility as vis
-
-    out: dict[str, np.ndarray] = {}
-    # visibility: a small synthetic case (more points than cameras, so a transpose shows)
-    sc = _scene(51, 4, 30, 0.5, 0.0)
-    out["vis_track_uv"] = sc.uv
-    out["vis_expected"] = vis.visibility_matrix(sc.uv)
-
-    # residuals: a perturbed synthetic scene (rotation vectors of every size, skew-free K)
-    sc = _scene(52, 4, 40, 0.5, 0.0)
-    R0, t0, X0 = _perturb(sc, 53, rot_deg=5.0)
-    obs = vis.observation_list(sc.uv)
-    p = ba.pack_params(R0, t0, X0)
-    out.update({"res_syn_params": p, "res_syn_M": np.array(4), "res_syn_N": np.array(40),
-                "res_syn_camera_idx": obs.camera_idx, "res_syn_point_idx": obs.point_idx, "res_syn_uv": obs.uv,
-                "res_syn_K": sc.K,
-                "res_syn_expected": ba.reprojection_residuals(p, 4, 40, obs.camera_idx, obs.point_idx, obs.uv, sc.K)})
-    # the true parameters and the noiseless pixels: residuals vanish
-    obs_t = vis.observation_list(sc.uv_true)
-    out.update({"res_true_params": ba.pack_params(sc.R_cw, sc.t_cw, sc.X), "res_true_camera_idx": obs_t.camera_idx,
-                "res_true_point_idx": obs_t.point_idx, "res_true_uv": obs_t.uv})
-
-    # sparsity
-    sc = _scene(54, 3, 12, 0.5, 0.0)
-    obs = vis.observation_list(sc.uv)
-    S = ba.jacobian_sparsity(3, 12, obs.camera_idx, obs.point_idx)
-    out.update({"sp_M": np.array(3), "sp_N": np.array(12), "sp_camera_idx": obs.camera_idx,
-                "sp_point_idx": obs.point_idx, "sp_expected": S.toarray().astype(bool)})
-
-    # bundle adjustment: a synthetic scene, well conditioned so that any correct solver is quick
-    sc = _scene(55, 5, 150, 0.5, 0.0)
-    R0, t0, X0 = _perturb(sc, 56, rot_deg=0.5, trans=0.05, pts=0.05)
-    res = ba.bundle_adjust(sc.K, R0, t0, X0, sc.uv)
-    out.update({"ba_K": sc.K, "ba_R0": R0, "ba_t0": t0, "ba_X0": X0, "ba_uv": sc.uv, "ba_R_true": sc.R_cw,
-                "ba_t_true": sc.t_cw, "ba_X_true": sc.X, "ba_R": res.R_cw, "ba_t": res.t_cw, "ba_X": res.X,
-                "ba_final_rms": np.array(res.final_rms), "ba_initial_rms": np.array(res.initial_rms)})
-    return out
 
 
 # --------------------------------------------------------------------------- visibility_matrix
@@ -243,7 +101,7 @@ def check_visibility_matrix(fn, exercise: str = "visibility_matrix") -> None:
     f = load_fixture(FIXTURE)
     cases = [("synthetic tracks", f["vis_track_uv"], f["vis_expected"])]
     try:
-        st = load_fixture(STEP_FIXTURE)
+        st = load_fixture("bundle_adjustment_step")
         if "track_uv" in st:
             cases.append(("embedded scene tracks", st["track_uv"], np.isfinite(st["track_uv"]).all(axis=2)))
     except FileNotFoundError:
@@ -308,7 +166,7 @@ def check_reprojection_residuals(fn, exercise: str = "reprojection_residuals") -
                      "check the projection x = K (R X + t) / z")
         # the embedded reconstruction before BA
         try:
-            st = load_fixture(STEP_FIXTURE)
+            st = load_fixture("bundle_adjustment_step")
         except FileNotFoundError:
             st = {}
         if "track_uv" in st:
@@ -442,7 +300,7 @@ def _rms(K, R, t, X, uv, mask=None) -> float:
 
 def _pose_error(R, t, X, R_true, t_true, X_true):
     """Largest rotation difference (degrees) and centre distance after aligning the points (similarity)."""
-    from course_lib.sfm.evaluate import align_similarity
+    from course_lib.evaluate import align_similarity
 
     s, Ra, ta = align_similarity(X, X_true)
     rot = max(rotation_angle_deg(R[i] @ Ra.T, R_true[i]) for i in range(len(R)))

@@ -19,37 +19,25 @@ and with properties, and names the likely mistake:
 Defining property (failing it costs at least half of the points): ``pnp_linear``'s R_cw is a
 rotation (orthonormal, det +1), on the noiseless, noisy and embedded views.
 
-Step input: :func:`step_input` gives notebook 04 the reference result of step 3 (the two-view
-reconstruction: poses, triangulated points and their track ids) and the 2D-3D correspondences
-of the next image, from fixture ``pnp_step``.
-
-The reference solutions are imported only inside the fixture builders and :func:`two_view_reconstruction`.
+The cases and the reference's results on them are stored arrays, made on the instructor's side
+by :mod:`course_lib.instructor.cases.pnp`; this module imports no reference solution and ships
+to students.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from course_lib.conventions import project, rotation_angle_deg, world_to_camera
-from course_lib.grading.core import FAILED, Check, declare_defining, fixture_builder, load_fixture
-from course_lib.paths import EMBEDDED_SFM
+from course_lib.checks.core import FAILED, Check, declare_defining, load_fixture
 
 __all__ = [
     "check_pnp_linear",
     "check_pnp_ransac",
     "check_pnp_nonlinear",
-    "step_input",
-    "two_view_reconstruction",
-    "correspondences_2d3d",
-    "NEW_IMAGE",
 ]
 
 FIXTURE = "pnp"
-STEP_FIXTURE = "pnp_step"
-#: The image of the embedded scene registered in notebook 04 (0-based); the pair is (0, 1).
-NEW_IMAGE = 2
 RANSAC_SEED = 0
 THRESHOLD_PX = 2.0
 
@@ -57,162 +45,7 @@ THRESHOLD_PX = 2.0
 # --------------------------------------------------------------------------- step input
 
 
-def correspondences_2d3d(track_ids: np.ndarray, X: np.ndarray, track_uv: np.ndarray, image: int):
-    """2D-3D correspondences of one image: reconstructed points whose track is seen in it.
-
-    Args:
-        track_ids: ``(N,)`` track id of each reconstructed point (-1: not in a track).
-        X: ``(N, 3)`` reconstructed points.
-        track_uv: ``(T, M, 2)`` pixels of every track in every image, NaN where unseen
-            (:attr:`course_lib.data.p3.P3Data.track_uv`).
-        image: 0-based index of the image to register.
-
-    Returns:
-        ``X_new (K, 3)``, ``x_new (K, 2)`` and ``ids (K,)`` (their track ids).
-
-    Introduced in notebooks/04_pnp.ipynb
-    """
-    track_ids = np.asarray(track_ids, int)
-    ok = track_ids >= 0
-    uv = np.full((len(track_ids), 2), np.nan)
-    uv[ok] = track_uv[track_ids[ok], image]
-    seen = ok & np.isfinite(uv).all(axis=1)
-    return np.asarray(X, float)[seen], uv[seen], track_ids[seen]
-
-
-def two_view_reconstruction(folder, new_image: int = NEW_IMAGE) -> dict[str, np.ndarray]:
-    """Step 3's reference result: the two-view reconstruction of the pair, and the next image's 2D-3D matches.
-
-    Runs the reference chain on the pair of :func:`course_lib.grading.triangulation.step_input`:
-    :func:`~course_lib.sfm.triangulation.choose_pose`, then
-    :func:`~course_lib.sfm.triangulation.triangulate_nonlinear`, keeping the points in front of
-    both cameras.
-
-    Returns:
-        dict with ``K``, ``pair (2,)``, ``R_cws (2, 3, 3)``, ``t_cws (2, 3)`` (camera 1 at ``I, 0``,
-        ``|t_cws[1]| = 1``), ``X (N, 3)``, ``track_ids (N,)``, ``rgb (N, 3)`` uint8, ``x1, x2 (N, 2)``
-        (the pixels of the points in the pair), ``new_image``, ``X_new (K, 3)``,
-        ``x_new (K, 2)``, ``ids_new (K,)``.
-    """
-    from course_lib.grading import triangulation as gtri
-
-    try:
-        from course_lib.data.p3 import read_p3
-        from course_lib.sfm import triangulation as tri
-    except ModuleNotFoundError as exc:
-        raise RuntimeError(
-            f"computing the step input for {folder} needs the reference library ({exc.name}); "
-            "use the embedded data (DATA = EMBEDDED_SFM) or your own functions from notebook 03"
-        ) from None
-    st = gtri.step_input(folder)
-    K = st["K"]
-    ch = tri.choose_pose(st["R_candidates"], st["C_candidates"], K, st["x1"], st["x2"])
-    R_cws = np.stack([np.eye(3), ch.R_cw])
-    t_cws = np.stack([np.zeros(3), ch.t_cw])
-    keep = ch.in_front
-    uv = np.stack([st["x1"][keep], st["x2"][keep]], axis=1)
-    X = tri.triangulate_nonlinear(K, R_cws, t_cws, uv, ch.X[keep])
-    ids = st["track_ids"][keep]
-    data = read_p3(folder, require_images=False)
-    X_new, x_new, ids_new = correspondences_2d3d(ids, X, data.track_uv, new_image)
-    return {"K": K, "pair": st["pair"], "R_cws": R_cws, "t_cws": t_cws, "X": X, "track_ids": ids, "rgb": st["rgb"][keep],
-            "x1": uv[:, 0], "x2": uv[:, 1], "new_image": np.array(new_image),
-            "X_new": X_new, "x_new": x_new, "ids_new": ids_new}
-
-
-@fixture_builder(STEP_FIXTURE)
-def _build_step() -> dict[str, np.ndarray]:
-    if not (EMBEDDED_SFM / "ground_truth.json").exists():
-        return {}  # the embedded scene is not generated yet (python -m course_lib make-data): nothing to store
-    out = two_view_reconstruction(EMBEDDED_SFM)
-    if (EMBEDDED_SFM / "ground_truth.json").exists():
-        from course_lib.data.building import load_ground_truth
-
-        _, _, R_cw, t_cw = load_ground_truth(EMBEDDED_SFM)
-        i, j = (int(v) for v in out["pair"])
-        k = int(out["new_image"])
-        scale = np.linalg.norm(t_cw[j] - R_cw[j] @ R_cw[i].T @ t_cw[i])  # the true baseline of the pair
-        R = R_cw[k] @ R_cw[i].T
-        out["true_R_cw_new"] = R
-        out["true_t_cw_new"] = (t_cw[k] - R @ t_cw[i]) / scale
-    return out
-
-
-def step_input(folder=None) -> dict[str, np.ndarray]:
-    """Notebook 04's starting point: the two-view reconstruction and the next image's 2D-3D matches.
-
-    Args:
-        folder: ``None`` or the embedded scene: the stored fixture (no reference needed); another
-            P3 folder (e.g. ``course_data("wpi")``): computed with :func:`two_view_reconstruction`.
-
-    Returns:
-        the dict of :func:`two_view_reconstruction` (for the embedded scene also the true pose
-        ``true_R_cw_new, true_t_cw_new`` of the new image in the reconstruction's frame).
-    """
-    if folder is None or Path(folder).resolve() == EMBEDDED_SFM.resolve():
-        return load_fixture(STEP_FIXTURE)
-    return two_view_reconstruction(folder)
-
-
 # --------------------------------------------------------------------------- fixtures
-
-
-def _view(seed, noise_px, outlier_fraction, n_points, image=2):
-    from course_lib.data.synthetic import make_scene
-
-    sc = make_scene(np.random.default_rng(seed), n_cameras=4, n_points=n_points, noise_px=noise_px,
-                    outlier_fraction=outlier_fraction)
-    vis = sc.visible[:, image]
-    return sc.K, sc.X[vis], sc.uv[vis, image], sc.outlier[vis, image], sc.R_cw[image], sc.t_cw[image]
-
-
-def _pixel_dlt(X, x):
-    """A typical mistake: the DLT on pixel coordinates, then R = orthogonalized P[:, :3] (kept for its answer)."""
-    from course_lib.sfm import pnp
-
-    return pnp._dlt(X, x)
-
-
-@fixture_builder(FIXTURE)
-def _build() -> dict[str, np.ndarray]:
-    from course_lib.sfm import pnp
-
-    out: dict[str, np.ndarray] = {}
-    # pnp_linear: noiseless, noisy
-    K, X, x, _, R, t = _view(41, 0.0, 0.0, 80)
-    out.update({"lin_noiseless_K": K, "lin_noiseless_X": X[:40], "lin_noiseless_x": x[:40],
-                "lin_noiseless_R": R, "lin_noiseless_t": t})
-    K, X, x, _, R, t = _view(42, 1.0, 0.0, 200)
-    Rr, tr = pnp.pnp_linear(X, x, K)
-    Rp, tp = _pixel_dlt(X, x)
-    out.update({"lin_noisy_K": K, "lin_noisy_X": X, "lin_noisy_x": x, "lin_noisy_R": Rr, "lin_noisy_t": tr,
-                "lin_noisy_true_R": R, "lin_noisy_true_t": t, "lin_noisy_pixel_R": Rp, "lin_noisy_pixel_t": tp})
-    # pnp_ransac: outliers
-    K, X, x, outl, R, t = _view(43, 0.3, 0.2, 400)
-    res = pnp.pnp_ransac(X, x, K, np.random.default_rng(RANSAC_SEED), threshold_px=THRESHOLD_PX)
-    out.update({"ransac_syn_K": K, "ransac_syn_X": X, "ransac_syn_x": x, "ransac_syn_outlier": outl,
-                "ransac_syn_true_R": R, "ransac_syn_true_t": t, "ransac_syn_R": res.R_cw, "ransac_syn_t": res.t_cw,
-                "ransac_syn_inliers": res.inliers})
-    # pnp_nonlinear: from the linear estimate on the inliers
-    K, X, x, _, R, t = _view(44, 1.0, 0.0, 200)
-    R0, t0 = pnp.pnp_linear(X, x, K)
-    R1, t1 = pnp.pnp_nonlinear(X, x, K, R0, t0)
-    out.update({"nl_syn_K": K, "nl_syn_X": X, "nl_syn_x": x, "nl_syn_R0": R0, "nl_syn_t0": t0, "nl_syn_R": R1, "nl_syn_t": t1,
-                "nl_syn_true_R": R, "nl_syn_true_t": t})
-    # the embedded scene: register the new image against step 3's reconstruction
-    if (EMBEDDED_SFM / "ground_truth.json").exists():
-        st = two_view_reconstruction(EMBEDDED_SFM)
-        K, X, x = st["K"], st["X_new"], st["x_new"]
-        res = pnp.pnp_ransac(X, x, K, np.random.default_rng(RANSAC_SEED), threshold_px=THRESHOLD_PX)
-        out.update({"ransac_embedded_K": K, "ransac_embedded_X": X, "ransac_embedded_x": x,
-                    "ransac_embedded_R": res.R_cw, "ransac_embedded_t": res.t_cw, "ransac_embedded_inliers": res.inliers})
-        Xi, xi = X[res.inliers], x[res.inliers]
-        Rl, tl = pnp.pnp_linear(Xi, xi, K)
-        out.update({"lin_embedded_K": K, "lin_embedded_X": Xi, "lin_embedded_x": xi, "lin_embedded_R": Rl, "lin_embedded_t": tl})
-        R1, t1 = pnp.pnp_nonlinear(Xi, xi, K, Rl, tl)
-        out.update({"nl_embedded_K": K, "nl_embedded_X": Xi, "nl_embedded_x": xi, "nl_embedded_R0": Rl, "nl_embedded_t0": tl,
-                    "nl_embedded_R": R1, "nl_embedded_t": t1})
-    return out
 
 
 # --------------------------------------------------------------------------- helpers

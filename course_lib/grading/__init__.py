@@ -1,1 +1,0 @@
-"""Checks for the notebooks' exercises, fixtures, and (later) student release and grading."""

@@ -1,0 +1,15 @@
+"""The instructor's side of the kit: release, grading, the hidden cases (never shipped to students).
+
+* :mod:`~course_lib.instructor.notebooks` reads exercises, check cells and reference verdicts
+  from the instructor notebooks; :mod:`~course_lib.instructor.plan` decides what of ``course_lib``
+  ships; :mod:`~course_lib.instructor.release` writes the student kit.
+* :mod:`~course_lib.instructor.cases` builds the cases behind the checks from the reference
+  solutions: the public fixtures (:mod:`~course_lib.instructor.fixtures`) and the hidden cases of a
+  grading run (:mod:`~course_lib.instructor.hidden`).
+* :mod:`~course_lib.instructor.grade` grades a submission: :mod:`~course_lib.instructor.extract`
+  cuts each exercise out of its notebook, :mod:`~course_lib.instructor.scan` flags what gets no
+  credit, :mod:`~course_lib.instructor.student_process` runs it in a sandboxed process
+  (:mod:`~course_lib.instructor.sandbox`, a script of its own), and
+  :mod:`~course_lib.instructor.nbval_run` runs the notebooks under nbval in the same sandbox.
+* :mod:`~course_lib.instructor.refresh` stores new check verdicts in the notebooks.
+"""

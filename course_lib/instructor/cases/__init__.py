@@ -1,0 +1,60 @@
+"""The cases behind the checks, built from the reference solutions (instructor side only).
+
+One module per check module of :mod:`course_lib.checks`, with the same name. Each registers the
+builder of its fixture with :func:`builds`: ``build() -> {key: array}`` makes the inputs of the
+cases, the reference's results on them, and the results of the classic mistakes that the checks
+recognise. The same builders make
+
+* the **public fixtures** in ``data/fixtures/`` (``python -m course_lib fixtures``), which ship
+  with the student kit and feed the check cells of the notebooks, and
+* the **hidden cases** of a grading run (:mod:`course_lib.instructor.hidden`), with every seeded
+  random generator salted by a grading-time seed, which never leave the grader's process.
+
+The student kit holds none of this: the checks it ships compare with stored arrays only.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Callable
+
+import numpy as np
+
+__all__ = ["builds", "builders", "CASE_MODULES"]
+
+#: The case modules, in build order (a later fixture may read an earlier one).
+CASE_MODULES = (
+    "fundamental",
+    "essential",
+    "triangulation",
+    "pnp",
+    "bundle_adjustment",
+    "nerf_data",
+    "nerf_model",
+    "nerf_rendering",
+)
+
+_BUILDERS: dict[str, Callable[[], dict[str, np.ndarray]]] = {}
+#: fixture name -> the check module it feeds (``course_lib.checks.<module>``)
+CHECK_MODULE: dict[str, str] = {}
+
+
+def builds(name: str):
+    """Register ``fn() -> dict[str, np.ndarray]`` as the builder of fixture ``name``."""
+
+    def register(fn):
+        _BUILDERS[name] = fn
+        CHECK_MODULE[name] = "course_lib.checks." + fn.__module__.rsplit(".", 1)[-1]
+        return fn
+
+    return register
+
+
+def builders(modules: list[str] | None = None) -> dict[str, Callable[[], dict[str, np.ndarray]]]:
+    """``{fixture name: builder}`` of the case modules (all, or those feeding the check modules ``modules``)."""
+    for mod in CASE_MODULES:
+        importlib.import_module(f"{__name__}.{mod}")
+    if modules is None:
+        return dict(_BUILDERS)
+    wanted = {m.rsplit(".", 1)[-1] for m in modules}
+    return {k: fn for k, fn in _BUILDERS.items() if CHECK_MODULE[k].rsplit(".", 1)[-1] in wanted}

@@ -1,0 +1,69 @@
+"""Cases of notebook 02 (essential matrix, pose candidates): E from synthetic pairs and the embedded pair, and -E.
+
+Built from :mod:`course_lib.sfm.essential` (fixture ``essential``); the checks are in
+:mod:`course_lib.checks.essential`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from course_lib.checks.essential import FIXTURE
+from course_lib.instructor.cases import builds
+from course_lib.steps import STEP_PAIR, STEP_SEED, STEP_THRESHOLD_PX
+
+@builds(FIXTURE)
+def _build() -> dict[str, np.ndarray]:
+    from course_lib.data.synthetic import make_scene
+    from course_lib.sfm import essential as ref
+    from course_lib.sfm.fundamental import eight_point
+
+    out: dict[str, np.ndarray] = {}
+    cases = []
+    for name, noise, seed in (("noiseless", 0.0, 21), ("noisy", 0.7, 22)):
+        sc = make_scene(np.random.default_rng(seed), n_cameras=2, n_points=150, noise_px=noise, outlier_fraction=0.0)
+        x1, x2, _, _ = sc.pair(0, 1)
+        R_rel = sc.R_cw[1] @ sc.R_cw[0].T
+        t_rel = sc.t_cw[1] - R_rel @ sc.t_cw[0]
+        C_rel = -R_rel.T @ t_rel
+        out[f"{name}_F"] = eight_point(x1, x2)
+        out[f"{name}_K"] = sc.K
+        out[f"{name}_x1"], out[f"{name}_x2"] = x1, x2
+        out[f"{name}_R_true"], out[f"{name}_C_true"] = R_rel, C_rel / np.linalg.norm(C_rel)
+        cases.append(name)
+    # the embedded pair: the same reference result that two_view_step() serves to notebook 02
+    # (recomputed here, so that this fixture does not depend on the order fixtures are built in)
+    from course_lib.instructor.cases.fundamental import embedded_pair
+    from course_lib.sfm.fundamental import ransac_fundamental
+
+    emb = embedded_pair()
+    if emb is not None:
+        x1, x2, K = emb
+        res = ransac_fundamental(x1, x2, np.random.default_rng(STEP_SEED), threshold_px=STEP_THRESHOLD_PX)
+        out["building_F"], out["building_K"] = res.F, K
+        out["building_x1"], out["building_x2"] = x1[res.inliers], x2[res.inliers]
+        out["building_pair"] = np.array(STEP_PAIR)
+        cases.append("building")
+    out["cases"] = np.array(cases)
+    for name in cases:
+        E = ref.essential_from_fundamental(out[f"{name}_F"], out[f"{name}_K"])
+        R, C = ref.pose_candidates(E)
+        out[f"{name}_E"], out[f"{name}_R"], out[f"{name}_C"] = E, R, C
+    # E and -E are the same essential matrix; for one of the two the SVD gives det(U) det(V) = -1, so
+    # a missing det flip shows on every pair (pose_candidates only)
+    # (with np.linalg.svd; the multiple of E that exposes it is searched for, -E first)
+    for name in cases:
+        E0 = out[f"{name}_E"]
+        flips = [m for m in (-1.0, 2.0, -2.0, 0.5, -0.5, 3.0, -3.0) if _svd_det_sign(m * E0) != _svd_det_sign(E0)]
+        m = flips[0] if flips else -1.0
+        out[f"{name}_neg_E"] = m * E0
+        out[f"{name}_neg_factor"] = np.array(m)
+        out[f"{name}_neg_R"], out[f"{name}_neg_C"] = ref.pose_candidates(m * E0)
+    out["pose_cases"] = np.array([n for name in cases for n in (name, f"{name}_neg")])
+    return out
+
+
+def _svd_det_sign(E) -> float:
+    """det(U) det(V) of ``np.linalg.svd(E)``: -1 means that R = U W Vᵀ comes out as a reflection."""
+    U, _, Vt = np.linalg.svd(E)
+    return float(np.sign(np.linalg.det(U) * np.linalg.det(Vt)))

@@ -1,0 +1,171 @@
+"""Cases of notebook 03 (triangulation, cheirality, non-linear triangulation), and notebook 03's step input.
+
+Built from :mod:`course_lib.sfm.triangulation` (fixtures ``triangulation`` and
+``triangulation_step``); the checks are in :mod:`course_lib.checks.triangulation`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from course_lib.conventions import project
+from course_lib.checks.triangulation import FIXTURE
+from course_lib.instructor.cases import builds
+from course_lib.paths import EMBEDDED_SFM
+from course_lib.steps import STEP_PAIR, relative_truth, two_view_input
+
+#: The most matches stored per embedded case (keeps the fixture small).
+MAX_EMBEDDED = 300
+
+@builds("triangulation_step")
+def _build_step() -> dict[str, np.ndarray]:
+    if not (EMBEDDED_SFM / "ground_truth.json").exists():
+        return {}  # the embedded scene is not generated yet (python -m course_lib make-data): nothing to store
+    out = two_view_input(EMBEDDED_SFM)
+    truth = relative_truth(EMBEDDED_SFM, STEP_PAIR)
+    if truth is not None:
+        out["true_R_cw"], out["true_t_cw"] = truth
+    return out
+
+
+def _synthetic_two_view(seed: int, n_points: int, noise_px: float):
+    from course_lib.data.synthetic import make_scene
+
+    sc = make_scene(np.random.default_rng(seed), n_cameras=3, n_points=n_points, noise_px=noise_px,
+                    outlier_fraction=0.0, dropout=0.0)
+    return sc
+
+
+def _relative(sc, i, j):
+    R = sc.R_cw[j] @ sc.R_cw[i].T
+    t = sc.t_cw[j] - R @ sc.t_cw[i]
+    return R, t
+
+
+@builds(FIXTURE)
+def _build() -> dict[str, np.ndarray]:
+    from course_lib.conventions import projection_matrix, skew
+    from course_lib.sfm import essential
+    from course_lib.sfm import triangulation as tri
+
+    out: dict[str, np.ndarray] = {}
+    K = None
+
+    # -- triangulate_linear: noiseless and noisy synthetic pairs with general poses (camera 1 is not I)
+    for name, seed, n, noise in (("noiseless", 11, 40, 0.0), ("noisy", 12, 120, 1.0)):
+        sc = _synthetic_two_view(seed, n, noise)
+        K = sc.K
+        P1, P2 = projection_matrix(sc.K, sc.R_cw[0], sc.t_cw[0]), projection_matrix(sc.K, sc.R_cw[1], sc.t_cw[1])
+        x1, x2, _, ids = sc.pair(0, 1)
+        out.update({f"lin_{name}_P1": P1, f"lin_{name}_P2": P2, f"lin_{name}_x1": x1, f"lin_{name}_x2": x2,
+                    f"lin_{name}_X": tri.triangulate_linear(P1, P2, x1, x2), f"lin_{name}_Xtrue": sc.X[ids]})
+
+    # -- choose_pose: candidates from the true E; two scenes whose correct candidate has another index
+    for name, seed in (("syn_a", 21), ("syn_b", 24)):
+        sc = _synthetic_two_view(seed, 80, 0.5)
+        R, t = _relative(sc, 0, 1)
+        x1, x2, _, _ = sc.pair(0, 1)
+        Rc, Cc = essential.pose_candidates(skew(t) @ R)
+        _store_pose_case(out, f"pose_{name}", Rc, Cc, sc.K, x1, x2, tri)
+        out[f"pose_{name}_true_R"], out[f"pose_{name}_true_t"] = R, t / np.linalg.norm(t)
+
+    # -- a wide-baseline pair (135 degrees around a small object, close by): here forgetting "- C" or
+    #    using the third column of R changes the answer, unlike in the narrow pairs above
+    from course_lib.data.synthetic import look_at
+
+    rng = np.random.default_rng(27)
+    Xw = rng.uniform(-1.0, 1.0, size=(60, 3))
+    R1, t1 = look_at(np.array([0.0, 0.0, -4.0]), np.zeros(3))
+    R2, t2 = look_at(np.array([2.8, -0.5, 2.8]), np.zeros(3))
+    x1 = project(K, R1, t1, Xw) + rng.normal(0.0, 0.3, (60, 2))
+    x2 = project(K, R2, t2, Xw) + rng.normal(0.0, 0.3, (60, 2))
+    R = R2 @ R1.T
+    t = t2 - R @ t1
+    Rc, Cc = essential.pose_candidates(skew(t) @ R)
+    _store_pose_case(out, "pose_syn_wide", Rc, Cc, K, x1, x2, tri)
+    out["pose_syn_wide_true_R"], out["pose_syn_wide_true_t"] = R, t / np.linalg.norm(t)
+
+    # -- camera 2 moves forward (towards the scene) or backward: here one of the "twisted" candidates
+    #    puts every point in front of camera 1 (or of camera 2) and comes first, so a cheirality test on
+    #    one camera only picks the wrong pose (in the sideways pairs above it only changes the counts)
+    for name, forward in (("fwd", True), ("back", False)):
+        Rc, Cc, x1, x2, R, t = _moving_pair(K, forward)
+        _store_pose_case(out, f"pose_syn_{name}", Rc, Cc, K, x1, x2, tri)
+        out[f"pose_syn_{name}_true_R"], out[f"pose_syn_{name}_true_t"] = R, t / np.linalg.norm(t)
+
+    # -- triangulate_nonlinear: three views, some points unseen in view 2, noisy; X0 from the linear DLT
+    sc = make_nl_scene()
+    R_cws, t_cws, uv = sc.R_cw, sc.t_cw, sc.uv
+    X0 = tri.triangulate_linear(projection_matrix(sc.K, R_cws[0], t_cws[0]), projection_matrix(sc.K, R_cws[1], t_cws[1]),
+                                uv[:, 0], uv[:, 1])
+    _store_nl_case(out, "nl_syn", sc.K, R_cws, t_cws, uv, X0, tri)
+    out["nl_syn_Xtrue"] = sc.X
+
+    # -- the embedded scene: step 2's reference result for the pair
+    if (EMBEDDED_SFM / "ground_truth.json").exists():
+        st = two_view_input(EMBEDDED_SFM)
+        Ke, x1, x2 = st["K"], st["x1"][:MAX_EMBEDDED], st["x2"][:MAX_EMBEDDED]
+        ch = tri.choose_pose(st["R_candidates"], st["C_candidates"], Ke, st["x1"], st["x2"])
+        P1 = projection_matrix(Ke, np.eye(3), np.zeros(3))
+        P2 = projection_matrix(Ke, ch.R_cw, ch.t_cw)
+        out.update({"lin_embedded_P1": P1, "lin_embedded_P2": P2, "lin_embedded_x1": x1, "lin_embedded_x2": x2,
+                    "lin_embedded_X": tri.triangulate_linear(P1, P2, x1, x2)})
+        _store_pose_case(out, "pose_embedded", st["R_candidates"], st["C_candidates"], Ke, x1, x2, tri)
+        truth = relative_truth(EMBEDDED_SFM, STEP_PAIR)
+        if truth is not None:
+            out["pose_embedded_gt_R"], out["pose_embedded_gt_t"] = truth
+        keep = ch.in_front[:MAX_EMBEDDED]
+        R_cws = np.stack([np.eye(3), ch.R_cw])
+        t_cws = np.stack([np.zeros(3), ch.t_cw])
+        uv = np.stack([x1[keep], x2[keep]], axis=1)
+        _store_nl_case(out, "nl_embedded", Ke, R_cws, t_cws, uv, out["lin_embedded_X"][keep], tri)
+    return out
+
+
+def _moving_pair(K, forward: bool, seed: int = 0):
+    """Candidates and matches of a pair whose camera 2 moves 1.5 units along the optical axis.
+
+    Returns ``(R (4, 3, 3), C (4, 3), x1, x2, R_true, t_true)``; camera 1 is ``[I | 0]``, the
+    60 points lie 5 to 9 units in front of it, 0.3 px noise.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from course_lib.conventions import skew
+    from course_lib.sfm import essential
+
+    rng = np.random.default_rng(seed)
+    X = np.column_stack([rng.uniform(-2, 2, 60), rng.uniform(-1.5, 1.5, 60), rng.uniform(5, 9, 60)])
+    C2 = np.array([rng.uniform(-0.4, 0.4), rng.uniform(-0.3, 0.3), 1.5 if forward else -1.5])
+    R2 = Rotation.from_rotvec(rng.normal(0, 0.05, 3)).as_matrix()
+    t2 = -R2 @ C2
+    x1 = project(K, np.eye(3), np.zeros(3), X) + rng.normal(0, 0.3, (60, 2))
+    x2 = project(K, R2, t2, X) + rng.normal(0, 0.3, (60, 2))
+    Rc, Cc = essential.pose_candidates(skew(t2) @ R2)
+    return Rc, Cc, x1, x2, R2, t2
+
+
+def make_nl_scene():
+    """The synthetic scene of the non-linear triangulation case: 3 views, 150 points, 1 px noise."""
+    from course_lib.data.synthetic import make_scene
+
+    sc = make_scene(np.random.default_rng(31), n_cameras=3, n_points=150, noise_px=1.0, outlier_fraction=0.0, dropout=0.0)
+    both = sc.visible[:, 0] & sc.visible[:, 1]  # X0 comes from views 0 and 1
+    sc.X, sc.uv, sc.uv_true, sc.outlier = sc.X[both], sc.uv[both], sc.uv_true[both], sc.outlier[both]
+    sc.uv[::4, 2] = np.nan  # every 4th point is not seen in view 2
+    return sc
+
+
+def _store_pose_case(out, key, Rc, Cc, K, x1, x2, tri) -> None:
+    ch = tri.choose_pose(Rc, Cc, K, x1, x2)
+    P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
+    Xc = np.stack([tri.triangulate_linear(P1, K @ np.hstack([Rc[k], (-Rc[k] @ Cc[k])[:, None]]), x1, x2) for k in range(4)])
+    out.update({f"{key}_R": Rc, f"{key}_C": Cc, f"{key}_K": K, f"{key}_x1": x1, f"{key}_x2": x2,
+                f"{key}_R_cw": ch.R_cw, f"{key}_t_cw": ch.t_cw, f"{key}_X": ch.X, f"{key}_in_front": ch.in_front,
+                f"{key}_counts": ch.counts, f"{key}_index": np.array(ch.index), f"{key}_Xc": Xc})
+
+
+def _store_nl_case(out, key, K, R_cws, t_cws, uv, X0, tri) -> None:
+    out.update({f"{key}_K": K, f"{key}_R": R_cws, f"{key}_t": t_cws, f"{key}_uv": uv, f"{key}_X0": X0,
+                f"{key}_X": tri.triangulate_nonlinear(K, R_cws, t_cws, uv, X0)})
+    if R_cws.shape[0] > 2:  # the answer of a function that uses only the first two views
+        out[f"{key}_X_2views"] = tri.triangulate_nonlinear(K, R_cws[:2], t_cws[:2], uv[:, :2], X0)

@@ -1,0 +1,188 @@
+"""nbval over a submission's notebooks, each in its own sandboxed pytest process.
+
+Each notebook runs in a fresh temporary copy of the submission (its working directory), with the
+student release's ``course_lib`` first on ``PYTHONPATH``, resource limits and (where Linux allows
+it) the namespaces of :mod:`course_lib.instructor.sandbox`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import nbformat
+
+from course_lib.instructor.student_process import CHILD_SCRIPT, SKIP_COPY, Isolation, kill_tree
+
+__all__ = ["NbvalRun", "MAX_NBVAL_RERUNS"]
+
+MAX_NBVAL_RERUNS = 3  # reruns of a notebook after cells that timed out
+
+
+class NbvalRun:
+    """pytest --nbval over notebooks, one sandboxed pytest process per notebook, ``jobs`` at a time, in the background.
+
+    Each notebook runs in a fresh temporary copy of the submission (its working directory), with the
+    student release's ``course_lib`` first on ``PYTHONPATH``, resource limits, and (where Linux
+    allows it) the namespaces of :mod:`course_lib.instructor.sandbox`: no network, the instructor's kit
+    and the grader's scratch folder hidden, everything read-only but the copy.
+    """
+
+    def __init__(self, submission: Path, isolation: Isolation, cell_timeout: float, jobs: int = 2,
+                 timeout: float = 1800.0):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.submission, self.iso = Path(submission), isolation
+        self.cell_timeout, self.timeout = cell_timeout, timeout
+        self.pool = ThreadPoolExecutor(max_workers=max(1, jobs))
+        self.futures: dict[str, object] = {}
+        self.sandbox: dict = {}
+        self._lock = threading.Lock()
+        self._procs: dict[str, subprocess.Popen] = {}
+        self._replace: dict[str, object] = {}
+
+    def submit(self, name: str, nb) -> None:
+        self.futures[name] = self.pool.submit(self._run, name, nb)
+
+    def restart(self, name: str, nb) -> None:
+        """Run notebook ``name`` again from the start with ``nb`` (stopping the run in progress, if any)."""
+        with self._lock:
+            fut = self.futures.get(name)
+            if fut is None or fut.done():
+                self.futures[name] = self.pool.submit(self._run, name, nb)
+                return
+            self._replace[name] = nb
+            proc = self._procs.get(name)
+        if proc is not None:
+            kill_tree(proc.pid)
+
+    def _run(self, name: str, nb) -> tuple[dict[tuple[str, int], str], str]:
+        while True:
+            with self._lock:
+                nb = self._replace.pop(name, nb)
+            out = self._one(name, nb)
+            with self._lock:
+                if name not in self._replace:
+                    return out
+
+    def _one(self, name: str, nb) -> tuple[dict[tuple[str, int], str], str]:
+        """Run one notebook; after a cell that timed out (nbval skips the rest), run the rest again."""
+        tmp = Path(tempfile.mkdtemp(prefix="course-nbval-"))
+        try:
+            os.chmod(tmp, 0o755)
+            work = tmp / "work"
+            if self.submission.is_dir():
+                shutil.copytree(self.submission, work, ignore=SKIP_COPY, symlinks=True)
+            nb_dir = work / "notebooks"
+            nb_dir.mkdir(parents=True, exist_ok=True)
+            for old in nb_dir.glob("*.ipynb"):
+                old.unlink()  # only the notebook under test, restored by the grader
+            nbformat.write(nb, nb_dir / name)
+            results: dict[tuple[str, int], str] = {}
+            done_upto = -1
+            for attempt in range(MAX_NBVAL_RERUNS + 1):
+                with self._lock:
+                    if name in self._replace:
+                        return results, "replaced"
+                res, note = self._pytest(tmp, work, nb_dir, name, attempt)
+                if note:
+                    return results, note
+                results.update({k: v for k, v in res.items() if k[1] > done_upto})
+                timed_out = sorted(k[1] for k, v in res.items() if k[1] > done_upto and "timeout" in v.lower()
+                                   and not v.startswith("not run"))
+                if not timed_out or not any(v.startswith("not run") for k, v in res.items() if k[1] > timed_out[0]):
+                    break
+                done_upto = timed_out[0]
+                # the rerun: the cell that timed out raises at once, the cells after it run again
+                nb = nbformat.read(nb_dir / name, as_version=4)
+                code = [c for c in nb.cells if c.cell_type == "code"]
+                code[done_upto].source = f"raise TimeoutError('this cell did not finish within {self.cell_timeout:g} s')"
+                code[done_upto].outputs = []
+                nbformat.write(nb, nb_dir / name)
+            return results, ""
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+    def _pytest(self, tmp: Path, work: Path, nb_dir: Path, name: str, attempt: int):
+        junit = work / f".nbval-{attempt}.junit.xml"
+        stage = tmp / f"stage{attempt}"
+        stage.mkdir()
+        report = work / f".sandbox-{attempt}.json"
+        cfg = {"sandbox": self.iso.sandbox_config(stage, [work]), "cwd": str(nb_dir), "report": str(report)}
+        (tmp / f"sandbox{attempt}.json").write_text(json.dumps(cfg))
+        home = work / ".home"
+        env = {k: v for k, v in os.environ.items() if k in ("PATH", "LANG", "LC_ALL", "TZ")}
+        env.update(COURSE_LIB_QUICK="1", PYTHONDONTWRITEBYTECODE="1", PYTHONPATH=str(self.iso.library),
+                   HOME=str(home), JUPYTER_RUNTIME_DIR=str(home / "runtime"), JUPYTER_DATA_DIR=str(home / "data"),
+                   IPYTHONDIR=str(home / "ipython"), MPLCONFIGDIR=str(home / "mpl"), MPLBACKEND="Agg",
+                   OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONNOUSERSITE="1")
+        if os.environ.get("COURSE_DATA"):
+            env["COURSE_DATA"] = os.environ["COURSE_DATA"]
+        cmd = [sys.executable, "-S", "-E", str(CHILD_SCRIPT), "exec", str(tmp / f"sandbox{attempt}.json"), "--",
+               sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-c", os.devnull, "--rootdir",
+               str(nb_dir), "--nbval-lax", "--nbval-current-env", f"--nbval-cell-timeout={int(self.cell_timeout)}",
+               f"--junitxml={junit}", name]
+        # its own session, so that whatever the notebook started is stopped with it
+        with self._lock:
+            if name in self._replace:
+                return {}, "replaced"
+            proc = subprocess.Popen(cmd, cwd=nb_dir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                    start_new_session=True, preexec_fn=self.iso.preexec(self.timeout))
+            self._procs[name] = proc
+        try:
+            proc.wait(timeout=self.timeout)
+        except subprocess.TimeoutExpired:
+            return {}, f"nbval did not finish {name} within {self.timeout:g} s"
+        finally:
+            kill_tree(proc.pid)
+            proc.wait()
+            with self._lock:
+                self._procs.pop(name, None)
+        if report.exists() and not self.sandbox:
+            try:
+                self.sandbox = json.loads(report.read_text())
+            except ValueError:
+                pass
+        return _read_junit(junit, name)
+
+    def results(self) -> tuple[dict[tuple[str, int], str], dict[str, str]]:
+        """``{(notebook, code cell index): "pass" or a failure text}`` and ``{notebook: note}`` for runs that failed."""
+        out, notes = {}, {}
+        for name in list(self.futures):
+            while True:  # a restart may replace the future while we wait for it
+                fut = self.futures[name]
+                res, note = fut.result()
+                if self.futures[name] is fut:
+                    break
+            out.update(res)
+            if note:
+                notes[name] = note
+        self.pool.shutdown()
+        return out, notes
+
+
+def _read_junit(junit: Path, name: str) -> tuple[dict[tuple[str, int], str], str]:
+    if not junit.exists():
+        return {}, f"nbval did not run {name}"
+    results = {}
+    for tc in ET.parse(junit).iter("testcase"):
+        cell = tc.attrib.get("name", "")
+        if not cell.startswith("Cell "):
+            continue
+        bad = [c for c in tc if c.tag in ("failure", "error", "skipped")]
+        text = "pass"
+        if bad:  # nbval skips the cells after one that timed out
+            text = (bad[0].attrib.get("message") or bad[0].text or "failed").strip()
+            text = ("not run: " if bad[0].tag == "skipped" else "") + re.sub(r"\x1b\[[0-9;]*m", "", text)
+        results[(name, int(cell.split()[1]))] = text
+    return results, ""
+
+

@@ -1,0 +1,291 @@
+"""Reading the instructor notebooks: exercises, check cells, reference verdicts.
+
+An exercise is a function (or class) of a code cell whose body holds a solution region, the
+lines between ``# BEGIN SOLUTION`` and ``# END SOLUTION``; the check cell after it (first line
+``# NBVAL_CHECK_OUTPUT``) calls ``check_<exercise>(<exercise>)`` from a module of
+:mod:`course_lib.checks`, and its stored output is the reference verdict. :func:`notebook_spec`
+reads all of this from one notebook; the release (:mod:`course_lib.instructor.release`) and the
+grader (:mod:`course_lib.instructor.grade`) both read it from the instructor's notebooks, so the
+reference verdicts never come from a file the student can edit.
+"""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import nbformat
+
+from course_lib.paths import REPO_ROOT
+from course_lib.validate import KitInputError
+
+__all__ = [
+    "BEGIN",
+    "END",
+    "CHECK_MARK",
+    "NOTEBOOKS_DIR",
+    "ReleaseError",
+    "ExerciseSpec",
+    "NotebookSpec",
+    "notebook_spec",
+    "kit_specs",
+    "marker_regions",
+    "python_source",
+    "resolve_import",
+    "in_optional_import",
+    "stream_text",
+    "sha256",
+]
+
+BEGIN, END = "# BEGIN SOLUTION", "# END SOLUTION"
+CHECK_MARK = "# NBVAL_CHECK_OUTPUT"
+DEFAULT_POINTS = 10.0
+NOTEBOOKS_DIR = REPO_ROOT / "notebooks"
+
+
+class ReleaseError(KitInputError):
+    """A notebook cannot be released (unbalanced or missing solution markers, unexecuted check cell)."""
+
+
+@dataclass
+class ExerciseSpec:
+    """One exercise: a function (or class) of an exercise cell and the check cell after it."""
+
+    notebook: str
+    name: str
+    cell: int  # index (among all cells) of the exercise cell
+    check_cell: int  # index of its check cell
+    check_module: str  # e.g. course_lib.checks.fundamental
+    check_function: str  # e.g. check_eight_point
+    check_source: str
+    check_sha256: str
+    verdict: str  # the reference run's printed verdict (stdout of the check cell)
+    points: float = DEFAULT_POINTS
+    reference: str | None = None  # "module:attribute" of the reference solution, if any
+
+
+@dataclass
+class NotebookSpec:
+    name: str
+    exercises: list[ExerciseSpec] = field(default_factory=list)
+    solution_modules: list[str] = field(default_factory=list)
+    imports: list[str] = field(default_factory=list)  # course_lib modules imported outside solution regions
+
+    def exercise(self, name: str) -> ExerciseSpec:
+        return next(e for e in self.exercises if e.name == name)
+
+
+def sha256(text: str | bytes) -> str:
+    return hashlib.sha256(text.encode() if isinstance(text, str) else text).hexdigest()
+
+
+def python_source(source: str) -> str:
+    """Cell source with IPython magics and shell lines turned into ``pass`` (so ``ast`` can parse it)."""
+    out = []
+    for line in source.splitlines():
+        s = line.lstrip()
+        out.append(line[: len(line) - len(s)] + "pass  # " + s if s.startswith(("%", "!")) else line)
+    return "\n".join(out)
+
+
+def marker_regions(source: str, where: str) -> list[tuple[int, int]]:
+    """``[(begin_line, end_line)]`` (0-based, inclusive) of the solution regions in a cell.
+
+    Raises:
+        ReleaseError: when the markers are unbalanced or nested.
+    """
+    regions, start = [], None
+    for k, line in enumerate(source.splitlines()):
+        s = line.strip()
+        if s == BEGIN:
+            if start is not None:
+                raise ReleaseError(f"{where}: '{BEGIN}' at line {k + 1} before the '{END}' of line {start + 1}'s region")
+            start = k
+        elif s == END:
+            if start is None:
+                raise ReleaseError(f"{where}: '{END}' at line {k + 1} without a '{BEGIN}' before it")
+            regions.append((start, k))
+            start = None
+    if start is not None:
+        raise ReleaseError(f"{where}: '{BEGIN}' at line {start + 1} has no '{END}'")
+    return regions
+
+
+def stream_text(cell) -> str:
+    return "".join(o.get("text", "") for o in cell.get("outputs", []) if o.get("output_type") == "stream"
+                   and o.get("name") == "stdout")
+
+
+def _module_exists(name: str) -> bool:
+    parts = name.split(".")
+    base = REPO_ROOT.joinpath(*parts)
+    return base.with_suffix(".py").exists() or (base / "__init__.py").exists()
+
+
+def resolve_import(node: ast.AST) -> list[tuple[str, str | None]]:
+    """``[(module, imported name or None)]`` for an import statement, modules resolved to files of the kit.
+
+    ``from course_lib.sfm import fundamental`` gives ``("course_lib.sfm.fundamental", None)``;
+    ``from course_lib.nerf.rays import get_rays`` gives ``("course_lib.nerf.rays", "get_rays")``.
+    """
+    out: list[tuple[str, str | None]] = []
+    if isinstance(node, ast.Import):
+        out += [(a.name, None) for a in node.names]
+    elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+        for a in node.names:
+            sub = f"{node.module}.{a.name}"
+            if sub.startswith("course_lib") and _module_exists(sub):
+                out.append((sub, None))
+            else:
+                out.append((node.module, a.name))
+    return out
+
+
+def _top_defs(tree: ast.Module) -> list[ast.AST]:
+    return [n for n in tree.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef))]
+
+
+def notebook_spec(path: Path) -> NotebookSpec:
+    """Exercises, check cells and reference verdicts of one instructor notebook.
+
+    Raises:
+        ReleaseError: unbalanced markers, a check cell without an exercise with markers, a check
+            cell that was not executed, or a notebook without any solution region.
+    """
+    path = Path(path)
+    nb = nbformat.read(path, as_version=4)
+    spec = NotebookSpec(path.name)
+    defined: dict[str, tuple[int, list[str]]] = {}  # exercise name -> (cell, region texts)
+    check_imports: dict[str, str] = {}
+    any_region = False
+    sol_mods: set[str] = set()
+    mods: set[str] = set()
+    for i, cell in enumerate(nb.cells):
+        if cell.cell_type != "code":
+            continue
+        where = f"{path.name}, cell {i}"
+        regions = marker_regions(cell.source, where)
+        lines = cell.source.splitlines()
+        try:
+            tree = ast.parse(python_source(cell.source))
+        except SyntaxError as exc:
+            raise ReleaseError(f"{where}: not valid Python ({exc.msg}, line {exc.lineno})") from None
+        region_lines = {k for a, b in regions for k in range(a, b + 1)}
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                for mod, name in resolve_import(node):
+                    if not mod.startswith("course_lib"):
+                        continue
+                    if node.lineno - 1 in region_lines:
+                        sol_mods.add(mod)
+                    elif not in_optional_import(tree, node):
+                        mods.add(mod)
+                    if mod.startswith("course_lib.checks.") and name and name.startswith("check_"):
+                        check_imports[name] = mod
+        if regions:
+            any_region = True
+            for node in _top_defs(tree):
+                inside = [(a, b) for a, b in regions if node.lineno - 1 <= a <= node.end_lineno - 1]
+                if inside:
+                    texts = ["\n".join(lines[a:b + 1]) for a, b in inside]
+                    defined[node.name] = (i, texts)
+            outside = [r for r in regions if not any(
+                n.lineno - 1 <= r[0] <= n.end_lineno - 1 for n in _top_defs(tree))]
+            if outside:
+                raise ReleaseError(f"{where}: the solution region at line {outside[0][0] + 1} is not inside a function "
+                                   "or class definition (an exercise is a def with its signature and docstring)")
+        first = cell.source.lstrip().splitlines()[0].strip() if cell.source.strip() else ""
+        if first == CHECK_MARK:
+            call = next((n for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)
+                         and n.func.id.startswith("check_")), None)
+            if call is None:
+                continue  # nbval compares this cell's output, but it checks no exercise
+            if not call.args or not isinstance(call.args[0], ast.Name):
+                raise ReleaseError(f"{where}: a check cell must call check_<exercise>(<exercise>)")
+            fn, ex = call.func.id, call.args[0].id
+            if ex not in defined:
+                raise ReleaseError(f"{where}: the check cell calls {fn}({ex}) but no exercise cell before it defines "
+                                   f"{ex} with '{BEGIN}' / '{END}' markers (missing solution markers)")
+            verdict = stream_text(cell)
+            if not verdict.strip():
+                raise ReleaseError(f"{where}: the check cell has no stored verdict; execute the notebook before releasing")
+            if fn not in check_imports:
+                raise ReleaseError(f"{where}: {fn} is not imported from a course_lib.checks module in this notebook")
+            ex_cell, texts = defined[ex]
+            points = float(nb.cells[ex_cell].metadata.get("points", DEFAULT_POINTS))
+            spec.exercises.append(ExerciseSpec(
+                notebook=path.name, name=ex, cell=ex_cell, check_cell=i, check_module=check_imports[fn],
+                check_function=fn, check_source=cell.source, check_sha256=sha256(cell.source), verdict=verdict,
+                points=points, reference=_reference_of(ex, texts)))
+    spec.solution_modules = sorted(sol_mods)
+    spec.imports = sorted(mods)
+    if not any_region and not spec.exercises:
+        return spec  # a notebook without exercises (a demo): released as it is, not graded
+    if not spec.exercises:
+        raise ReleaseError(f"{path.name}: solution regions but no check cell ('{CHECK_MARK}' on its first line)")
+    spec.solution_modules = sorted(sol_mods)
+    spec.imports = sorted(mods)
+    return spec
+
+
+def _optional_ids(tree: ast.Module) -> set[int]:
+    """ids of the nodes inside ``try:`` blocks whose handlers catch ImportError (optional imports)."""
+    out: set[int] = set()
+    for t in ast.walk(tree):
+        if isinstance(t, ast.Try):
+            names = {getattr(h.type, "id", None) for h in t.handlers} | {
+                getattr(e, "id", None) for h in t.handlers if isinstance(h.type, ast.Tuple) for e in h.type.elts}
+            if names & {"ImportError", "ModuleNotFoundError", "Exception", None}:
+                out |= {id(n) for s in t.body for n in ast.walk(s)}
+    return out
+
+
+def in_optional_import(tree: ast.Module, node: ast.AST, _cache: dict = {}) -> bool:  # noqa: B006 - per-tree cache
+    """True if ``node`` sits in a ``try:`` whose handlers catch ImportError (an optional import)."""
+    key = id(tree)
+    if key not in _cache or _cache[key][0] is not tree:
+        _cache.clear()
+        _cache[key] = (tree, _optional_ids(tree))
+    return id(node) in _cache[key][1]
+
+
+def _reference_of(name: str, region_texts: list[str]) -> str | None:
+    """``"module:attribute"`` of the reference an instructor solution region calls, if any."""
+    for text in region_texts:
+        try:
+            tree = ast.parse("\n".join(line.strip() for line in text.splitlines()))
+        except SyntaxError:
+            continue
+        for node in ast.walk(tree):
+            for mod, attr in resolve_import(node) if isinstance(node, (ast.Import, ast.ImportFrom)) else []:
+                if not mod.startswith("course_lib"):
+                    continue
+                return f"{mod}:{attr or name}"
+    return None
+
+
+def kit_specs(notebooks_dir: Path = NOTEBOOKS_DIR, only: list[str] | None = None,
+              errors_out: list[str] | None = None) -> list[NotebookSpec]:
+    """:func:`notebook_spec` of every notebook (sorted by name), or of those whose name starts with one of ``only``.
+
+    Raises :class:`ReleaseError` naming every notebook that cannot be released, unless
+    ``errors_out`` is given: then those messages are appended to it and the others are returned.
+    """
+    paths = sorted(Path(notebooks_dir).glob("*.ipynb"))
+    if only:
+        paths = [p for p in paths if any(p.name.startswith(o) for o in only)]
+    errors, specs = [], []
+    for p in paths:
+        try:
+            specs.append(notebook_spec(p))
+        except ReleaseError as exc:
+            errors.append(str(exc))
+    if errors and errors_out is None:
+        raise ReleaseError("cannot release:\n  " + "\n  ".join(errors))
+    if errors_out is not None:
+        errors_out.extend(errors)
+    return specs
+
+

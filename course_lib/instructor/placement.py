@@ -1,0 +1,124 @@
+"""Where each exercise and its check cell are in a submitted notebook, and what is wrong with that.
+
+The grader gives no credit to an exercise whose cell was deleted or moved, or whose check cell
+was edited or deleted; :func:`place_exercises` finds them, and :func:`restored` puts the reference
+check cells back (source and verdict) before the notebook runs under nbval.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass
+
+import nbformat
+
+from course_lib.instructor.extract import code_cells
+from course_lib.instructor.notebooks import NotebookSpec
+
+__all__ = ["Placement", "place_exercises", "restored"]
+
+
+@dataclass
+class Placement:
+    check_cell: int | None
+    check_state: str  # "intact", "edited", "deleted"
+    issue: str | None = None  # "deleted", "reordered: ..."
+
+
+def _lis_members(seq: list[int], orig: list[int] | None = None) -> set[int]:
+    """Positions (into seq) of a longest strictly increasing subsequence.
+
+    Among the longest ones, the one whose members moved least from ``orig`` (their original
+    positions) is chosen, so that the cells reported as moved are the ones that moved.
+    """
+    n = len(seq)
+    orig = orig or seq
+    best = [(1, -abs(seq[i] - orig[i])) for i in range(n)]
+    prev = [-1] * n
+    for i in range(n):
+        for j in range(i):
+            cand = (best[j][0] + 1, best[j][1] - abs(seq[i] - orig[i]))
+            if seq[j] < seq[i] and cand > best[i]:
+                best[i], prev[i] = cand, j
+    if not n:
+        return set()
+    k = max(range(n), key=lambda i: best[i])
+    out = set()
+    while k != -1:
+        out.add(k)
+        k = prev[k]
+    return out
+
+
+def place_exercises(nb, spec: NotebookSpec) -> dict[str, Placement]:
+    """Where each exercise and its check cell are in the submitted notebook, and what is wrong with them."""
+    cells = [(i, c.source) for i, c in enumerate(nb.cells) if c.cell_type == "code"]
+    defs: dict[str, list[int]] = {}
+    broken: dict[str, int] = {}
+    names = {e.name for e in spec.exercises}
+    for i, src, tree in code_cells(nb):
+        if tree is None:
+            for n in names:
+                if re.search(rf"^\s*(def|class) {re.escape(n)}\b", src, re.M):
+                    broken.setdefault(n, i)
+            continue
+        for node in tree.body:
+            if getattr(node, "name", None) in names and node.__class__.__name__ in ("FunctionDef", "ClassDef",
+                                                                                   "AsyncFunctionDef"):
+                defs.setdefault(node.name, []).append(i)
+    out: dict[str, Placement] = {}
+    used: set[int] = set()
+    for e in spec.exercises:  # intact check cells first: they are unambiguous
+        intact = [i for i, src in cells if src == e.check_source and i not in used]
+        if intact:
+            out[e.name] = Placement(intact[0], "intact")
+            used.add(intact[0])
+    for e in spec.exercises:
+        if e.name in out:
+            continue
+        edited = [i for i, src in cells if f"{e.check_function}(" in src and i not in used]
+        start = min(defs.get(e.name, [broken.get(e.name, -1)]))
+        marked = [i for i, src in cells if i > start >= 0 and i not in used
+                  and src.lstrip().startswith("# NBVAL_CHECK_OUTPUT")]
+        pick = edited or marked[:1]
+        out[e.name] = Placement(pick[0], "edited") if pick else Placement(None, "deleted")
+        if pick:
+            used.add(pick[0])
+    for e in spec.exercises:
+        p = out[e.name]
+        where = defs.get(e.name, [])
+        if e.name in broken and not [c for c in where if p.check_cell is None or c < p.check_cell]:
+            p.issue = (f"error: the cell defining {e.name} (cell {broken[e.name]}) is not valid Python; "
+                       "fix the syntax error")
+        elif not where:
+            p.issue = f"deleted: no cell defines {e.name} any more"
+        elif p.check_cell is not None and min(where) > p.check_cell:
+            p.issue = f"reordered: {e.name} is defined after its check cell"
+    # order of the exercises (by check cell, then by def) must be the original order
+    present = [e for e in spec.exercises if out[e.name].check_cell is not None and out[e.name].issue is None]
+    for key in ("check", "def"):
+        seq = [out[e.name].check_cell if key == "check" else
+               max(c for c in defs[e.name] if c < out[e.name].check_cell) for e in present]
+        orig = [e.check_cell if key == "check" else e.cell for e in present]
+        keep = _lis_members(seq, orig)
+        for k, e in enumerate(present):
+            if k not in keep and out[e.name].issue is None:
+                out[e.name].issue = f"reordered: the {'check' if key == 'check' else 'exercise'} cell of {e.name} " \
+                                    "was moved out of the original order"
+    return out
+
+
+def restored(nb, spec: NotebookSpec, places: dict[str, Placement]):
+    """The notebook with its check cells restored to the reference source and verdict outputs."""
+    nb = nbformat.from_dict(json.loads(json.dumps(nb)))
+    for e in spec.exercises:
+        p = places[e.name]
+        if p.check_cell is None:
+            continue
+        cell = nb.cells[p.check_cell]
+        cell.source = e.check_source
+        cell.outputs = [nbformat.v4.new_output("stream", name="stdout", text=e.verdict)]
+    return nb
+
+

@@ -1,0 +1,269 @@
+"""Which parts of ``course_lib`` the student kit ships, leaves out, or ships redacted.
+
+A module is a *solution module* when a solution region of a notebook imports it. Solution modules
+that no released notebook needs are left out, with every module that imports them
+(:func:`release_plan`); solution modules that the kit itself builds on (the NeRF trainer imports
+:mod:`course_lib.nerf.render`) are shipped *redacted* (:func:`redact_module`): their exercise
+functions are replaced by a stand-in that calls the student's own function of the same name
+(:mod:`course_lib.student`). The instructor package never ships.
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from course_lib.instructor.notebooks import NotebookSpec, in_optional_import, resolve_import
+from course_lib.paths import REPO_ROOT
+
+__all__ = ["INSTRUCTOR_PACKAGE", "SKIP_NAMES", "ReleasePlan", "release_plan", "solution_modules", "redact_module",
+           "imported_names", "course_lib_modules", "module_name"]
+
+#: The package that only the instructor needs (release, grading, the hidden cases); it never ships.
+INSTRUCTOR_PACKAGE = "course_lib.instructor"
+SKIP_NAMES = {"__pycache__", ".ipynb_checkpoints", ".pytest_cache", ".DS_Store"}
+
+
+def _module_file(mod: str) -> Path | None:
+    base = REPO_ROOT.joinpath(*mod.split("."))
+    if base.with_suffix(".py").exists():
+        return base.with_suffix(".py")
+    if (base / "__init__.py").exists():
+        return base / "__init__.py"
+    return None
+
+
+def module_name(path: Path) -> str:
+    rel = path.relative_to(REPO_ROOT).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+_IMPORTS_CACHE: dict[tuple, dict[str, set[str]]] = {}
+
+
+def module_imports(path: Path) -> dict[str, set[str]]:
+    """Cached :func:`_module_imports` (keyed by the file's path, size and modification time)."""
+    st = Path(path).stat()
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    if key not in _IMPORTS_CACHE:
+        _IMPORTS_CACHE[key] = _module_imports(Path(path))
+    return {k: set(v) for k, v in _IMPORTS_CACHE[key].items()}
+
+
+def _module_imports(path: Path) -> dict[str, set[str]]:
+    """``{"top": modules imported when the module loads, "lazy": imported inside functions}`` (course_lib only).
+
+    Imports inside ``try`` blocks that catch ImportError count as neither (they are optional).
+    """
+    tree = ast.parse(path.read_text())
+    out: dict[str, set[str]] = {"top": set(), "lazy": set()}
+    func_nodes = {id(n) for f in ast.walk(tree) if isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef))
+                  for n in ast.walk(f) if n is not f}
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            if in_optional_import(tree, node):
+                continue
+            for mod, _ in resolve_import(node):
+                if mod.startswith("course_lib"):
+                    # importing a.b.c imports the packages a and a.b first
+                    kind = "lazy" if id(node) in func_nodes else "top"
+                    out[kind].add(mod)
+    return out
+
+
+def course_lib_modules() -> dict[str, Path]:
+    """``{module name: file}`` of the course_lib modules that may ship (everything but the instructor package)."""
+    files = sorted(p for p in (REPO_ROOT / "course_lib").rglob("*.py") if not SKIP_NAMES & set(p.parts))
+    mods = {module_name(p): p for p in files}
+    return {m: p for m, p in mods.items() if m != INSTRUCTOR_PACKAGE and not m.startswith(INSTRUCTOR_PACKAGE + ".")}
+
+
+def solution_modules(specs: list[NotebookSpec]) -> dict[str, list[str]]:
+    """``{module: [exercise names it holds the reference of]}`` over all notebooks."""
+    out: dict[str, list[str]] = {}
+    for s in specs:
+        for m in s.solution_modules:
+            out.setdefault(m, [])
+        for e in s.exercises:
+            if e.reference:
+                mod, attr = e.reference.split(":")
+                out.setdefault(mod, []).append(attr)
+    return {m: sorted(set(v)) for m, v in sorted(out.items())}
+
+
+@dataclass
+class ReleasePlan:
+    omit: list[str]  # modules left out of the kit
+    redact: dict[str, list[str]]  # module -> exercise names replaced by stand-ins
+    exercise_notebook: dict[str, str]  # exercise name -> notebook that teaches it
+    notes: list[str] = field(default_factory=list)
+    left_out_notebooks: list[str] = field(default_factory=list)  # demos that need the reference solutions
+
+
+def release_plan(specs: list[NotebookSpec]) -> ReleasePlan:
+    """Decide which course_lib modules the student kit leaves out and which it ships redacted.
+
+    A solution module that a notebook needs outside its solution regions (directly or through
+    the modules it loads) is redacted; any other solution module is left out, and so is every
+    module that imports a left-out module (at load time or inside a function; imports inside a
+    ``try`` that catches ImportError are optional and do not count). The instructor package
+    (:data:`INSTRUCTOR_PACKAGE`) never ships; the checks (``course_lib.checks``) import no solution
+    module, so they always ship (a test enforces it).
+    """
+    mods = course_lib_modules()
+    imports = {m: module_imports(p) for m, p in mods.items()}
+    demos = [s for s in specs if not s.exercises]
+    specs = [s for s in specs if s.exercises]
+    sol = solution_modules(specs)
+    needed: set[str] = set()
+    todo = [m for s in specs for m in s.imports]
+    while todo:
+        m = todo.pop()
+        if m in needed or m not in mods:
+            continue
+        needed.add(m)
+        todo += sorted(imports[m]["top"])
+        parts = m.split(".")
+        todo += [".".join(parts[:k]) for k in range(1, len(parts))]
+    omit = {m for m in sol if m not in needed and m in mods}
+    grown = True
+    while grown:
+        grown = False
+        for m in mods:
+            if m in omit or m in needed or m == "course_lib.__main__":
+                continue
+            if (imports[m]["top"] | imports[m]["lazy"]) & omit:
+                omit.add(m)
+                grown = True
+    notes = []
+    for m in sorted(needed):
+        lazy = imports[m]["lazy"] & omit
+        if lazy:
+            notes.append(f"{m} is needed by a notebook but calls left-out {sorted(lazy)} inside functions")
+    redact = {m: names for m, names in sol.items() if m in needed and m in mods}
+    ex_nb = {e.name: e.notebook for s in specs for e in s.exercises}
+    left_out = []
+    for d in demos:
+        reach, todo = set(), list(d.imports)
+        while todo:
+            m = todo.pop()
+            if m in reach or m not in mods:
+                continue
+            reach.add(m)
+            todo += sorted(imports[m]["top"] | imports[m]["lazy"])
+        if reach & omit:
+            left_out.append(d.name)
+            notes.append(f"notebooks/{d.name} has no exercises and needs {sorted(reach & omit)[0]} (a reference "
+                         "solution): it is not part of the student kit")
+    return ReleasePlan(sorted(omit), redact, ex_nb, notes, left_out)
+
+
+def redact_module(path: Path, names: list[str], exercise_notebook: dict[str, str], keep: set[str] = frozenset()) -> str:
+    """The module's source with the top-level defs of ``names`` replaced by student stand-ins.
+
+    Private helpers (``_name``) that only the removed code used are removed too, unless another
+    module imports them (``keep``).
+    """
+    text = path.read_text()
+    names = [n for n in names if n in exercise_notebook]
+    for _ in range(20):  # remove defs, then helpers that became unused, until nothing changes
+        tree = ast.parse(text)
+        lines = text.splitlines()
+        spans = []
+        for node in tree.body:
+            target = _bound_name(node)
+            if target in names:
+                spans.append((node, "stand_in", target))
+        if not spans:
+            used = _names_used(tree)
+            for node in tree.body:
+                target = _bound_name(node)
+                if target and target.startswith("_") and not target.startswith("__") and target not in keep \
+                        and target not in used[target]:
+                    spans.append((node, "drop", target))
+        if not spans:
+            break
+        for node, kind, target in sorted(spans, key=lambda s: -s[0].lineno):
+            start = min([node.lineno] + [d.lineno for d in getattr(node, "decorator_list", [])]) - 1
+            end = node.end_lineno
+            if kind == "stand_in":
+                nb = exercise_notebook[target]
+                new = [
+                    f"# {target}: an exercise of notebooks/{nb}; the student kit leaves its reference solution out.",
+                    "# This stand-in calls your own " + target + " from the running notebook.",
+                    "from course_lib.student import stand_in as _kit_stand_in  # noqa: E402",
+                    "",
+                    f"{target} = _kit_stand_in({target!r}, {nb!r})",
+                ]
+            else:
+                new = []
+            lines[start:end] = new
+        names = [n for n in names if n not in {t for _, k, t in spans if k == "stand_in"}]
+        text = "\n".join(lines) + "\n"
+        text = re.sub(r"\n{4,}", "\n\n\n", text)
+    return text
+
+
+def imported_names(module: str) -> set[str]:
+    """Names that other course_lib modules import from ``module`` (``from module import a, b``)."""
+    out: set[str] = set()
+    for m, p in course_lib_modules().items():
+        if m == module:
+            continue
+        out.update(_from_imports(p).get(module, ()))
+    return out
+
+
+_FROM_CACHE: dict[tuple, dict[str, set[str]]] = {}
+
+
+def _from_imports(path: Path) -> dict[str, set[str]]:
+    """``{module: names}`` of the ``from module import names`` statements of a file (cached by size and mtime)."""
+    st = Path(path).stat()
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    if key not in _FROM_CACHE:
+        found: dict[str, set[str]] = {}
+        for node in ast.walk(ast.parse(Path(path).read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                found.setdefault(node.module, set()).update(a.name for a in node.names)
+        _FROM_CACHE[key] = found
+    return _FROM_CACHE[key]
+
+
+def _bound_name(node: ast.AST) -> str | None:
+    if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+        return node.name
+    if isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name):
+        return node.targets[0].id
+    if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+        return node.target.id
+    return None
+
+
+def _names_used(tree: ast.Module) -> dict[str, set[str]]:
+    """For each top-level name: the names used anywhere *outside* its own definition."""
+
+    class Uses(dict):
+        def __missing__(self, key):
+            found = set()
+            for node in tree.body:
+                if _bound_name(node) == key:
+                    continue
+                for n in ast.walk(node):
+                    if isinstance(n, ast.Name):
+                        found.add(n.id)
+                    elif isinstance(n, ast.Attribute):
+                        found.add(n.attr)
+                    elif isinstance(n, ast.Constant) and isinstance(n.value, str):
+                        found.update(re.findall(r"\w+", n.value))
+            self[key] = found
+            return found
+
+    return Uses()
+
+

@@ -1,0 +1,379 @@
+"""The student release: notebooks with their solutions taken out, and the kit they need to run.
+
+``python -m course_lib release OUT_DIR`` writes the student kit:
+
+* ``notebooks/*.ipynb``: every instructor notebook with each solution region (the lines between
+  ``# BEGIN SOLUTION`` and ``# END SOLUTION`` of an exercise cell) replaced by a stub
+  (``# YOUR CODE HERE`` + ``raise NotImplementedError``; lines of the region that start with
+  ``# HINT`` are kept), the signature and docstring untouched. Check cells keep their source and
+  their stored reference verdicts (nbval compares the student's run with them), markdown and
+  figures stay, the outputs of exercise cells are cleared, execution timestamps are dropped.
+* ``course_lib/`` without the reference solutions. A module is a *solution module* when a
+  solution region imports it (:func:`solution_modules`). Solution modules that no released
+  notebook needs are left out, with every module that imports them (:func:`release_plan`); solution
+  modules that the kit itself builds on (the NeRF trainer imports :mod:`course_lib.nerf.render`)
+  are shipped *redacted*: their exercise functions are replaced by a stand-in that calls the
+  student's own function of the same name (:mod:`course_lib.student`).
+* ``data/`` (the embedded scenes and the fixtures behind the check cells), ``environment.txt``,
+  ``conftest.py``, a ``pyproject.toml`` whose pytest runs the notebooks, a ``README.md`` for
+  students, and ``RELEASE_MANIFEST.json`` (exercises, their check cells, reference verdicts,
+  points, and the SHA-256 of every released file).
+
+Releasing twice gives byte-identical files (sorted walks, no timestamps). A notebook whose
+solution markers are unbalanced, or whose check cell names an exercise without markers, stops the
+release with an error that names the notebook and the cell.
+
+The grader (:mod:`course_lib.instructor.grade`) reads the same :func:`notebook_spec` from the
+instructor's notebooks, so the reference verdicts it compares with never come from a file the
+student can edit.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import asdict
+from pathlib import Path
+
+import nbformat
+
+from course_lib.instructor.notebooks import (
+    CHECK_MARK,
+    NOTEBOOKS_DIR,
+    NotebookSpec,
+    ReleaseError,
+    kit_specs,
+    marker_regions,
+    sha256,
+    stream_text,
+)
+from course_lib.instructor.plan import INSTRUCTOR_PACKAGE, SKIP_NAMES, ReleasePlan, course_lib_modules, imported_names, \
+    module_name, redact_module, release_plan
+from course_lib.paths import REPO_ROOT
+
+__all__ = ["stub_source", "stub_notebook", "student_readme", "write_release", "release_files", "verify_release"]
+
+#: Top-level files copied as they are, when present.
+COPIED_FILES = ("environment.txt", "conftest.py")
+
+
+# ---------------------------------------------------------------------------------------------
+# Stubs
+# ---------------------------------------------------------------------------------------------
+
+
+def stub_source(source: str, where: str = "cell") -> str:
+    """The cell source with every solution region replaced by a stub (hints kept)."""
+    regions = marker_regions(source, where)
+    if not regions:
+        return source
+    lines = source.splitlines()
+    out, k = [], 0
+    for a, b in regions:
+        out += lines[k:a]
+        indent = lines[a][: len(lines[a]) - len(lines[a].lstrip())]
+        out += [ln for ln in lines[a + 1:b] if ln.strip().startswith("# HINT")]
+        out += [f"{indent}# YOUR CODE HERE", f"{indent}raise NotImplementedError(\"your code here\")"]
+        k = b + 1
+    out += lines[k:]
+    return "\n".join(out) + ("\n" if source.endswith("\n") else "")
+
+
+def stub_notebook(nb: nbformat.NotebookNode, name: str = "notebook") -> nbformat.NotebookNode:
+    """A copy of ``nb`` for students: stubs for solutions, exercise outputs cleared, no timestamps."""
+    nb = nbformat.from_dict(json.loads(json.dumps(nb)))
+    for i, cell in enumerate(nb.cells):
+        cell.metadata.pop("execution", None)
+        if cell.cell_type != "code":
+            continue
+        if marker_regions(cell.source, f"{name}, cell {i}"):
+            cell.source = stub_source(cell.source, f"{name}, cell {i}")
+            cell.outputs = []
+            cell.execution_count = None
+    return nb
+
+
+# ---------------------------------------------------------------------------------------------
+# Writing the kit
+# ---------------------------------------------------------------------------------------------
+
+STUDENT_PYPROJECT = """\
+[build-system]
+requires = ["setuptools>=64"]
+build-backend = "setuptools.build_meta"
+
+[project]
+name = "course_lib"
+version = "{version}"
+description = "Student kit of the SfM + NeRF course"
+requires-python = ">=3.10"
+
+[tool.setuptools.packages.find]
+include = ["course_lib*"]
+
+[tool.pytest.ini_options]
+# `pytest` runs your notebooks with nbval: every check cell must print the reference verdict
+# stored in the notebook. conftest.py sets COURSE_LIB_QUICK=1 (short training runs).
+testpaths = ["notebooks"]
+addopts = "--nbval-lax --nbval-current-env -p no:cacheprovider"
+filterwarnings = ["ignore::DeprecationWarning:jupyter_client.*", "ignore::DeprecationWarning:zmq.*"]
+"""
+
+STUDENT_GITIGNORE = """\
+.venv/
+__pycache__/
+*.pyc
+.pytest_cache/
+.ipynb_checkpoints/
+outputs/
+*.egg-info/
+"""
+
+
+def student_readme(specs: list[NotebookSpec], plan: ReleasePlan) -> str:
+    rows = []
+    for s in specs:
+        if not s.exercises:
+            continue
+        names = ", ".join(f"`{e.name}`" for e in s.exercises)
+        pts = sum(e.points for e in s.exercises)
+        rows.append(f"| `notebooks/{s.name}` | {names} | {pts:g} |")
+    total = sum(e.points for s in specs for e in s.exercises)
+    redacted = sorted({n for names in plan.redact.values() for n in names})
+    carry = ""
+    if redacted:
+        carry = (
+            "\n## Using your earlier solutions\n\n"
+            "Some parts of the kit build on functions that are exercises themselves (for example the NeRF\n"
+            "trainer renders with `volume_render`). In this kit those library functions call **your own**\n"
+            "function of the same name from the running notebook: "
+            + ", ".join(f"`{n}`" for n in redacted)
+            + ".\nIf a cell stops with `NotImplementedError: ... is an exercise of notebooks/...`, define your\n"
+            "solution of that exercise in the notebook you are working on (paste its cell) and run it.\n"
+        )
+    n_nb = sum(1 for s in specs if s.exercises)
+    return f"""# SfM + NeRF course kit: student release
+
+{n_nb} notebooks take you from two photos to a 3-D reconstruction (Structure from Motion) and then
+to a neural radiance field (NeRF). In each notebook you write a few functions; a **check cell**
+after each exercise runs your function on test cases and prints what is right and, when something
+is wrong, the likely mistake.
+
+## Set up (once)
+
+```bash
+python -m venv .venv && . .venv/bin/activate
+pip install -r environment.txt && pip install -e .
+jupyter lab notebooks/
+```
+
+## Work on an exercise
+
+1. Open the notebook and run it from the top.
+2. Find the cells with `# YOUR CODE HERE` / `raise NotImplementedError`: replace those two lines
+   with your code. Keep the function's name, its arguments and its docstring.
+3. Run the check cell below it (`# NBVAL_CHECK_OUTPUT`). It prints ✔ for each passing check and
+   ✘ with a hint otherwise. Do not edit check cells: the grader restores them and compares
+   their output with the reference.
+4. Every notebook starts from the reference result of the step before, so you can do them in any
+   order.
+
+## Check your whole kit
+
+```bash
+pytest            # runs every notebook with nbval; a check cell passes when it prints the reference verdict
+pytest notebooks/01_fundamental_matrix.ipynb
+```
+
+## Exercises and points
+
+| notebook | exercises | points |
+|---|---|---|
+{chr(10).join(rows)}
+| **total** | | **{total:g}** |
+
+## How your work is graded
+
+The grader runs your notebooks with nbval (check cells are restored to the original and must
+print the reference verdict) and, independently, runs each exercise function on *hidden* test
+cases (new synthetic scenes) with a time limit, in a separate process that holds your code and this
+kit's `course_lib` only, works in a copy of your folder, has no network and may write only there.
+A function that loops is stopped at the limit and one that ends its process is named in the
+feedback; either costs that exercise only. Per exercise, 90 % of the points come from the
+hidden checks (the share of them that pass); the last 10 % come when all hidden checks pass and
+the check cell in your notebook prints the reference verdict (run it top to bottom before you
+hand in). There is no credit for an exercise that calls the kit's reference solution,
+whose check cell was edited or printed by hand, whose checks were patched, or whose cell was
+deleted or moved. Write your own code in the exercise cells; helper functions and imports in the
+notebook are fine.
+{carry}
+## Data
+
+`data/synthetic-building` (SfM) and `data/synthetic-building-nerf` (NeRF) are small scenes with
+known ground truth, made by the kit. The course's own data sets are used with a one-line change in
+the first code cell of each notebook (`DATA = course_data("wpi")`, see `course_lib/paths.py`).
+"""
+
+
+def _walk(root: Path) -> list[Path]:
+    return sorted(p for p in root.rglob("*") if p.is_file() and not SKIP_NAMES & set(p.relative_to(root).parts)
+                  and p.suffix not in (".pyc",))
+
+
+def write_release(out_dir: Path, notebooks_dir: Path = NOTEBOOKS_DIR, force: bool = False) -> dict:
+    """Write the student kit into ``out_dir`` and return its manifest (also written as RELEASE_MANIFEST.json).
+
+    Args:
+        out_dir: an empty or missing folder, or an earlier release (it is replaced).
+        notebooks_dir: the instructor notebooks (default ``notebooks/`` of this repository).
+        force: replace a non-empty ``out_dir`` that is not an earlier release.
+
+    Raises:
+        ReleaseError: a notebook cannot be released (the message names it), or ``out_dir`` is not safe to replace.
+    """
+    out_dir = Path(out_dir).resolve()
+    for q in (out_dir, *out_dir.parents):
+        if q.exists() and not q.is_dir():
+            raise ReleaseError(f"{out_dir}: {q} is a file, not a folder; give a folder path (a new one, or an earlier "
+                               "release)")
+    if out_dir == REPO_ROOT or REPO_ROOT.is_relative_to(out_dir) or out_dir.is_relative_to(REPO_ROOT / "course_lib"):
+        raise ReleaseError(f"refusing to write the release into {out_dir}: choose a folder outside the kit's sources")
+    if out_dir.exists() and any(out_dir.iterdir()):
+        if not (out_dir / "RELEASE_MANIFEST.json").exists() and not force:
+            raise ReleaseError(f"{out_dir} is not empty and not an earlier release; use --force to replace it")
+    files = release_files(notebooks_dir)
+    if out_dir.exists() and any(out_dir.iterdir()):
+        shutil.rmtree(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for rel, data in sorted(files.items()):
+        dst = out_dir / rel
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        dst.write_bytes(data)
+    return json.loads(files["RELEASE_MANIFEST.json"])
+
+
+def release_files(notebooks_dir: Path = NOTEBOOKS_DIR) -> dict[str, bytes]:
+    """``{path inside the kit: content}`` of the student kit (what :func:`write_release` writes).
+
+    Raises:
+        ReleaseError: a notebook cannot be released (the message names it).
+    """
+    specs = kit_specs(notebooks_dir)
+    plan = release_plan(specs)
+    files: dict[str, bytes] = {}
+
+    # notebooks
+    for p in sorted(Path(notebooks_dir).glob("*.ipynb")):
+        if p.name in plan.left_out_notebooks:
+            continue
+        nb = stub_notebook(nbformat.read(p, as_version=4), p.name)
+        files[f"notebooks/{p.name}"] = nbformat.writes(nb).encode() + b"\n"
+    # course_lib
+    mods = course_lib_modules()
+    omit_files = {str(mods[m].relative_to(REPO_ROOT)) for m in plan.omit}
+    instructor_dir = REPO_ROOT.joinpath(*INSTRUCTOR_PACKAGE.split("."))
+    for p in _walk(REPO_ROOT / "course_lib"):
+        rel = str(p.relative_to(REPO_ROOT))
+        if p.is_relative_to(instructor_dir) or rel in omit_files or p.suffix != ".py" and p.suffix not in (".json", ".txt", ".md"):
+            continue
+        mod = module_name(p) if p.suffix == ".py" else None
+        if mod in plan.redact:
+            keep = imported_names(mod)
+            files[rel] = redact_module(p, plan.redact[mod], plan.exercise_notebook, keep).encode()
+        else:
+            files[rel] = p.read_bytes()
+    # data
+    for p in _walk(REPO_ROOT / "data"):
+        files[str(p.relative_to(REPO_ROOT))] = p.read_bytes()
+    for name in COPIED_FILES:
+        if (REPO_ROOT / name).exists():
+            files[name] = (REPO_ROOT / name).read_bytes()
+    from course_lib import __version__
+
+    files["pyproject.toml"] = STUDENT_PYPROJECT.format(version=__version__).encode()
+    files[".gitignore"] = STUDENT_GITIGNORE.encode()
+    files["README.md"] = student_readme(specs, plan).encode()
+
+    manifest = {
+        "kit_version": __version__,
+        "notebooks": [
+            {"name": s.name, "exercises": [asdict(e) for e in s.exercises]} for s in specs
+            if s.name not in plan.left_out_notebooks
+        ],
+        "left_out_notebooks": plan.left_out_notebooks,
+        "omitted_modules": plan.omit,
+        "redacted": plan.redact,
+        "notes": plan.notes,
+        "files": {k: sha256(v) for k, v in sorted(files.items())},
+    }
+    files["RELEASE_MANIFEST.json"] = (json.dumps(manifest, indent=1, sort_keys=True, ensure_ascii=False) + "\n").encode()
+    return files
+
+
+# ---------------------------------------------------------------------------------------------
+# Verification: the released notebooks run in the released kit
+# ---------------------------------------------------------------------------------------------
+
+ALLOWED_ERRORS = ("NotImplementedError",)
+#: Errors allowed after a cell that stopped: names it would have defined, files it would have written.
+CONSEQUENCES = ("NameError", "KitInputError", "FileNotFoundError")
+
+
+def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float = 300.0) -> dict[str, list[str]]:
+    """Execute the released notebooks inside the released kit and list what is wrong.
+
+    The kernel sees the kit's own ``course_lib`` (``PYTHONPATH=out_dir``), so the left-out reference
+    solutions are really absent. Allowed: cells that stop with ``NotImplementedError`` (an exercise
+    not written yet, or a kit function that needs it) and, after such a cell, its consequences
+    (``NameError`` for the names it would have defined, a missing file it would have written). Not allowed: any other error, an error in a check cell
+    (checks turn a student's error into a verdict), or a check cell that prints nothing.
+
+    Returns:
+        ``{notebook: [problems]}`` (empty lists when the release is sound).
+    """
+    import os
+
+    from nbclient import NotebookClient
+
+    out_dir = Path(out_dir).resolve()
+    problems: dict[str, list[str]] = {}
+    paths = sorted((out_dir / "notebooks").glob("*.ipynb"))
+    if only:
+        paths = [p for p in paths if any(p.name.startswith(o) for o in only)]
+    old_env = {k: os.environ.get(k) for k in ("PYTHONPATH", "COURSE_LIB_QUICK", "MPLBACKEND")}
+    os.environ["PYTHONPATH"] = str(out_dir) + (os.pathsep + old_env["PYTHONPATH"] if old_env["PYTHONPATH"] else "")
+    os.environ["COURSE_LIB_QUICK"] = "1"
+    os.environ["MPLBACKEND"] = "Agg"
+    try:
+        for p in paths:
+            nb = nbformat.read(p, as_version=4)
+            probe = nbformat.v4.new_code_cell("import course_lib\nprint(course_lib.__file__)")
+            nb.cells.insert(0, probe)
+            client = NotebookClient(nb, timeout=timeout, kernel_name="python3", allow_errors=True,
+                                    resources={"metadata": {"path": str(p.parent)}})
+            client.execute()
+            found, failed_before = [], False
+            where = stream_text(nb.cells.pop(0)).strip()
+            if not where.startswith(str(out_dir)):
+                found.append(f"the kernel imported course_lib from {where or '?'}, not from the kit")
+            for i, cell in enumerate(nb.cells):
+                if cell.cell_type != "code":
+                    continue
+                errors = [o for o in cell.outputs if o.output_type == "error"]
+                is_check = cell.source.lstrip().startswith(CHECK_MARK)
+                if is_check and (errors or not stream_text(cell).strip()):
+                    found.append(f"cell {i}: the check cell " + (f"raised {errors[0].ename}" if errors else "printed nothing"))
+                for e in errors:
+                    if e.ename in ALLOWED_ERRORS or (e.ename in CONSEQUENCES and failed_before):
+                        failed_before = True
+                        continue
+                    found.append(f"cell {i}: {e.ename}: {e.evalue}")
+                    failed_before = True
+            problems[p.name] = found
+    finally:
+        for k, v in old_env.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return problems

@@ -1,0 +1,180 @@
+"""Scans of submitted code: a second line of defence behind the sandbox.
+
+What the student's code can reach is decided by the process it runs in
+(:mod:`course_lib.instructor.sandbox`), not by what these scans recognise. They flag what gets no
+credit however it runs:
+
+* :func:`scan_exercise`: exercise code that imports the reference solutions (modules the student
+  kit leaves out, or the graded exercise's own reference), the check machinery or the instructor
+  package, or uses dynamic tricks that could reach them (``exec``, ``__import__``, ``importlib``,
+  ``sys``, ``gc``, ``inspect``, dunder attributes such as ``__globals__``...);
+* :func:`scan_notebook`: a notebook that patches or rebinds the checks, prints verdicts by hand
+  or swaps ``print``.
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+
+from course_lib.instructor.notebooks import resolve_import
+from course_lib.instructor.extract import code_cells
+
+__all__ = ["scan_exercise", "scan_notebook", "FORBIDDEN_MODULES", "FORBIDDEN_CALLS"]
+
+#: Modules exercise code may not import (they reach the interpreter, the files or the checks).
+FORBIDDEN_MODULES = {
+    "importlib", "gc", "inspect", "builtins", "ctypes", "sys", "subprocess", "signal", "pickle", "marshal",
+    "types", "code", "codeop", "runpy", "multiprocessing", "threading", "os", "glob", "pathlib", "shutil",
+    "tempfile", "io", "dill", "cloudpickle", "socket", "pty", "atexit", "faulthandler", "trace", "linecache",
+}
+#: Built-ins exercise code may not call.
+FORBIDDEN_CALLS = {"exec", "eval", "compile", "__import__", "globals", "locals", "vars", "setattr", "delattr",
+                   "open", "breakpoint", "input", "exit", "quit"}
+#: Dunder attributes that are fine in exercise code (classes, operators).
+ALLOWED_DUNDERS = {"__init__", "__call__", "__len__", "__getitem__", "__setitem__", "__repr__", "__str__",
+                   "__iter__", "__next__", "__enter__", "__exit__", "__name__", "__eq__", "__hash__",
+                   "__post_init__", "__contains__", "__add__", "__mul__", "__matmul__", "__neg__", "__sub__"}
+#: Special methods exercise code may define (others, e.g. __eq__ or __array_ufunc__, could fool comparisons).
+ALLOWED_METHOD_DUNDERS = {"__init__", "__call__", "__repr__", "__str__", "__len__", "__iter__", "__next__",
+                          "__getitem__", "__post_init__", "__enter__", "__exit__"}
+#: Names of the check machinery a notebook must not import or rebind.
+CHECK_INTERNALS = {"Check", "CheckResult", "RESULTS", "FAILED", "load_fixture", "fixture_builder", "core",
+                   "build_fixtures", "PASS", "FAIL"}
+
+
+#: Sub-packages of course_lib that hold the check machinery or the instructor's tools.
+CHECK_PACKAGES = ("checks", "instructor")
+
+
+def _is_check_module(mod: str, attr: str | None) -> bool:
+    """True for an import of the check machinery or the instructor package (``course_lib.checks...``)."""
+    return any(mod == f"course_lib.{p}" or mod.startswith(f"course_lib.{p}.") or (mod == "course_lib" and attr == p)
+               for p in CHECK_PACKAGES)
+
+
+def scan_exercise(tree: ast.Module, reference: str | None, omitted: set[str]) -> list[str]:
+    """Reasons why this exercise code gets no credit (empty list: nothing found).
+
+    Args:
+        tree: the extracted code.
+        reference: ``"module:attribute"`` of the graded exercise's reference solution, or None.
+        omitted: course_lib modules the student kit leaves out (reference solutions).
+    """
+    found: list[str] = []
+    ref_mod, ref_attr = reference.split(":") if reference else (None, None)
+    aliases: dict[str, str] = {}  # local name -> module
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            for mod, attr in resolve_import(node):
+                top = mod.split(".")[0]
+                if top in FORBIDDEN_MODULES:
+                    found.append(f"imports {mod} (line {node.lineno}): exercise code may not reach the interpreter, "
+                                 "files or other processes")
+                if mod.startswith("course_lib.grading") or mod == "course_lib" and attr == "grading":
+                    found.append(f"imports the check machinery {mod} (line {node.lineno})")
+                if mod in omitted:
+                    found.append(f"imports {mod} (line {node.lineno}), the instructor's reference solution, which is "
+                                 "not part of the student kit")
+                if ref_mod and mod == ref_mod and attr in (ref_attr, None, "*"):
+                    if attr == ref_attr or attr == "*":
+                        found.append(f"calls the reference solution {mod}.{ref_attr} (line {node.lineno})")
+                for a in node.names:
+                    aliases[(a.asname or a.name).split(".")[0]] = mod if attr is None else f"{mod}.{attr}"
+        elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in FORBIDDEN_CALLS:
+            found.append(f"calls {node.func.id}() (line {node.lineno}), which exercise code may not use")
+        elif isinstance(node, ast.Name) and node.id in FORBIDDEN_CALLS | {"__builtins__"}:
+            found.append(f"uses {node.id} (line {node.lineno}), which exercise code may not use")
+        elif isinstance(node, ast.Attribute):
+            if re.fullmatch(r"__\w+__", node.attr) and node.attr not in ALLOWED_DUNDERS:
+                found.append(f"uses the attribute {node.attr} (line {node.lineno}), which exercise code may not use")
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and isinstance(node.ctx, (ast.Store, ast.Del)):
+            root = node.value
+            while isinstance(root, ast.Attribute):
+                root = root.value
+            if isinstance(root, ast.Name) and root.id in aliases:
+                found.append(f"assigns to {ast.unparse(node)} (line {node.lineno}): changing a library (monkeypatching) "
+                             "is not allowed in exercise code")
+        elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and re.fullmatch(r"__\w+__", node.name) \
+                and node.name not in ALLOWED_METHOD_DUNDERS:
+            found.append(f"defines the special method {node.name} (line {node.lineno}), which could change how the "
+                         "checks compare results")
+    if ref_mod:
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Attribute) and node.attr == ref_attr and isinstance(node.value, ast.Name) \
+                    and aliases.get(node.value.id) == ref_mod:
+                found.append(f"calls the reference solution {ref_mod}.{ref_attr} (line {node.lineno})")
+    return sorted(set(found))
+
+
+def scan_notebook(nb, intact_check_cells: set[int], check_names: set[str],
+                  verdicts: list[str] = ()) -> list[tuple[int, str]]:
+    """``[(cell, reason)]``: code that tampers with the checks, anywhere in the notebook.
+
+    Args:
+        nb: the submitted notebook.
+        intact_check_cells: indices of check cells identical to the reference (not scanned).
+        check_names: the check functions the notebook's check cells call.
+        verdicts: the reference verdicts of the notebook's check cells; a string in the code that
+            holds one of their lines (or "checks passed") counts as a verdict printed by hand.
+    """
+    verdict_lines = {ln.strip() for v in verdicts for ln in v.splitlines() if "✔" in ln or "✘" in ln}
+    found: list[tuple[int, str]] = []
+    for i, src, tree in code_cells(nb):
+        if i in intact_check_cells:
+            continue
+        if tree is None:
+            continue
+        grading_aliases = set()
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                for mod, attr in resolve_import(node):
+                    if not _is_check_module(mod, attr):
+                        continue
+                    if isinstance(node, ast.Import) or attr is None or attr in CHECK_PACKAGES:
+                        found.append((i, f"imports the check module {mod} itself"))
+                        grading_aliases |= {(a.asname or a.name).split(".")[0] for a in node.names}
+                    elif attr in CHECK_INTERNALS or mod.endswith(".core"):
+                        found.append((i, f"imports {attr} from the check machinery"))
+                    elif attr.startswith("check_") and (attr not in check_names):
+                        pass
+            targets = []
+            if isinstance(node, (ast.Assign, ast.AugAssign, ast.AnnAssign)):
+                targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and \
+                    node.name in check_names | {"print"}:
+                found.append((i, f"redefines {node.name}"))
+            protected = check_names | {"print"}
+            # any other binding of a check's name: for / with / except targets, :=, del, and import aliases
+            if isinstance(node, ast.Name) and isinstance(node.ctx, (ast.Store, ast.Del)) and node.id in protected:
+                found.append((i, f"rebinds {node.id}"))
+            elif isinstance(node, ast.ExceptHandler) and node.name in protected:
+                found.append((i, f"rebinds {node.name}"))
+            elif isinstance(node, (ast.Import, ast.ImportFrom)):
+                for a in node.names:
+                    bound = (a.asname or a.name).split(".")[0]
+                    legit = (isinstance(node, ast.ImportFrom) and (node.module or "").startswith("course_lib.checks.")
+                             and a.asname in (None, a.name) and a.name in check_names)
+                    if bound in protected and not legit:
+                        found.append((i, f"rebinds {bound} (by an import alias)"))
+            for t in targets:
+                for n in ast.walk(t):
+                    if isinstance(n, ast.Attribute) and isinstance(n.ctx, ast.Store):
+                        root = n.value
+                        while isinstance(root, ast.Attribute):
+                            root = root.value
+                        if isinstance(root, ast.Name) and (root.id in check_names | grading_aliases | CHECK_INTERNALS
+                                                           | {"builtins", "sys"}):
+                            found.append((i, f"assigns to {ast.unparse(n)}"))
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in {"setattr", "delattr"}:
+                found.append((i, f"calls {node.func.id}()"))
+            if isinstance(node, ast.Attribute) and node.attr in {"__code__", "__globals__", "modules"} and \
+                    not (node.attr == "modules" and not (isinstance(node.value, ast.Name) and node.value.id == "sys")):
+                found.append((i, f"uses {ast.unparse(node)}"))
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and (
+                    "checks passed" in node.value or any(ln.strip() in verdict_lines for ln in node.value.splitlines())):
+                found.append((i, "prints a check verdict by hand"))
+    return sorted(set(found))
+
+
