@@ -49,6 +49,7 @@ __all__ = [
     "CheckResult",
     "Verdict",
     "score",
+    "score_against",
     "declare_defining",
     "DEFINING",
     "DEFINING_CAP",
@@ -179,6 +180,28 @@ def score(result: CheckResult) -> float:
     return frac
 
 
+def score_against(result: CheckResult, reference: CheckResult) -> float:
+    """The fraction (0..1) of the hidden-check points that ``result`` earns, measured on the reference's run.
+
+    The grader runs the same checks on the same hidden cases with the reference solution and with
+    the student's; the reference's passing point checks are what there is to earn. A check that
+    the reference passed and the student's run did not pass *or did not record at all* (a call that
+    returned nothing usable, so that the checks after it never ran) counts as failed: a missing
+    answer never makes a check disappear from the count. A failed defining property caps the
+    fraction at :data:`DEFINING_CAP`, as in :func:`score`.
+    """
+    from collections import Counter
+
+    want = Counter(v.text for v in reference.verdicts if v.ok and v.kind == "points")
+    if not want:
+        return 0.0
+    got = Counter(v.text for v in result.verdicts if v.ok and v.kind == "points")
+    frac = sum((got & want).values()) / sum(want.values())
+    if result.defining_failed:
+        frac = min(frac, DEFINING_CAP)
+    return frac
+
+
 #: Results of the check cells run in this process, by exercise name (the grader reads it).
 RESULTS: dict[str, CheckResult] = {}
 
@@ -198,6 +221,7 @@ class Check:
     def __init__(self, exercise: str):
         self.exercise = exercise
         self.lines: list[str] = []
+        self.notes: list[str] = []
         self.verdicts: list[Verdict] = []
         self.passed = 0
         self.total = 0
@@ -245,16 +269,41 @@ class Check:
         """
         return self.expect(condition, pass_msg, fail_msg, defining=defining, kind="gate")
 
+    def note(self, text: str) -> None:
+        """Print a line of advice under the verdict; it is no check and counts for nothing."""
+        self.notes.append(text)
+
+    def blame_earlier(self, *exercises: str) -> None:
+        """After a failure: point at earlier exercises (run in this notebook) that failed their own checks.
+
+        An exercise that calls a student's earlier function (``pnp_ransac`` calls ``pnp_linear``)
+        fails when that one is wrong; the note says which to fix first. The grader checks every
+        exercise with the reference's earlier steps, so there the mistake costs points once.
+        """
+        if self.passed == self.total:
+            return
+        bad = [e for e in exercises if e in RESULTS and not RESULTS[e].ok]
+        if bad:
+            names = " and ".join(bad)
+            self.note(f"your {names} failed {'its' if len(bad) == 1 else 'their'} own checks above and "
+                      f"{self.exercise} calls {'it' if len(bad) == 1 else 'them'}: fix {names} first")
+
     def call(self, fn: Callable, *args, case: str, **kwargs) -> Any:
         """Call the student's function; on an exception record a failure and return :data:`FAILED`.
 
-        ``NotImplementedError`` is reported as "not implemented yet" rather than as a crash.
+        ``NotImplementedError`` is reported as "not implemented yet" rather than as a crash. A
+        function that returns ``None`` fails the call too (every exercise returns a result), so a
+        missing answer is never a skipped case.
         Array arguments are copied so that a function that modifies its input cannot corrupt
         the next case.
         """
         args = tuple(a.copy() if isinstance(a, np.ndarray) else a for a in args)
         try:
-            return fn(*args, **kwargs)
+            out = fn(*args, **kwargs)
+            if out is None:
+                self.fail(f"{case}: your function returned None: return the result (a missing return statement?)")
+                return FAILED
+            return out
         except NotImplementedError:
             self.fail(f"{case}: not implemented yet (the function raises NotImplementedError)")
         except Exception as exc:  # noqa: BLE001 - any student error becomes a verdict
@@ -299,6 +348,7 @@ class Check:
                    "this costs at least half of the points" for name in broken]
         printed += [self.lines[i] for i in lead]
         printed += [line for i, line in enumerate(self.lines) if i not in lead]
+        printed += [f"  note: {text}" for text in self.notes]
         result.lines = printed  # as printed, so that the grader's feedback leads with the property too
         RESULTS[self.exercise] = result
         print(self.exercise)

@@ -49,7 +49,7 @@ from pathlib import Path
 
 import nbformat
 
-from course_lib.checks.core import score
+from course_lib.checks.core import score_against
 from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ExerciseSpec, NotebookSpec, kit_specs
 from course_lib.instructor.plan import release_plan
 from course_lib.instructor.nbval_run import NbvalRun
@@ -76,7 +76,7 @@ class HiddenCases:
     fixtures_dir: Path
     reference_passing: dict[str, list[str]]  # "notebook::exercise" -> passing verdicts of the reference
     reference_notes: dict[str, str] = field(default_factory=dict)
-    reference_score: dict[str, float] = field(default_factory=dict)  # "notebook::exercise" -> core.score of the reference
+    reference_results: dict[str, object] = field(default_factory=dict)  # "notebook::exercise" -> the reference's CheckResult
     reference_seconds: dict[str, float] = field(default_factory=dict)  # "notebook::exercise" -> the reference's time
     library: Path | None = None  # the student release's course_lib + data, imported by the student's processes
 
@@ -139,7 +139,8 @@ def prepare_hidden(specs: list[NotebookSpec], salt: int, workdir: Path, notebook
             out = run_reference(HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(fdir), e.reference,
                                           allow_reference=True))
             cases.reference_passing[_key(e)] = out.passing
-            cases.reference_score[_key(e)] = score(out.result) if out.result is not None else 0.0
+            if out.result is not None:
+                cases.reference_results[_key(e)] = out.result
             cases.reference_seconds[_key(e)] = out.seconds
             if out.failing or out.status != "ok":
                 cases.reference_notes[_key(e)] = (f"the reference fails {len(out.failing)} hidden check(s) for this "
@@ -386,8 +387,8 @@ def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, hidden: HiddenCases, ti
         g.status = "error"
         g.feedback.append(f"{e.name}: {out.message}")
         return out.sandbox
-    ref_score = hidden.reference_score.get(_key(e), 1.0 if ref else 0.0)
-    frac = min(1.0, score(out.result) / ref_score) if ref_score > 0 else 0.0
+    reference = hidden.reference_results.get(_key(e))
+    frac = score_against(out.result, reference) if reference is not None else 0.0
     g.points = round(e.points * HIDDEN_SHARE * frac, 2)
     g.status = "full" if frac >= 1 else ("partial" if frac > 0 else "zero")
     if not ref:
@@ -399,11 +400,23 @@ def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, hidden: HiddenCases, ti
                           f"{frac * 100:.0f} % of the hidden-check points. What failed:")
         fails = out.failing or [f"{ln}: not passed" for ln in sorted((Counter(ref) - Counter(out.passing)))]
         g.feedback += [f"✘ {ln}" for ln in fails[:MAX_FEEDBACK_LINES]]
+        missing = _not_run(out.result, reference)
+        if missing:
+            g.feedback.append(f"{missing} hidden check(s) did not run (a call returned nothing usable before them); "
+                              "they count as failed")
         if len(fails) > MAX_FEEDBACK_LINES:
             g.feedback.append(f"... and {len(fails) - MAX_FEEDBACK_LINES} more")
     if _key(e) in hidden.reference_notes:
         g.feedback.append("note: " + hidden.reference_notes[_key(e)])
     return out.sandbox
+
+
+def _not_run(result, reference) -> int:
+    """How many point checks the reference recorded on these cases and the student's run did not record at all."""
+    if reference is None:
+        return 0
+    points = sum(1 for v in reference.verdicts if v.kind == "points")
+    return max(0, points - sum(1 for v in result.verdicts if v.kind == "points"))
 
 
 def _short(text: str, n: int = 160) -> str:

@@ -110,3 +110,44 @@ def test_passing_defining_checks_print_as_before(capsys):
 def test_score_of_a_result_without_verdicts_is_passed_over_total():
     assert core.score(core.CheckResult("by hand", 3, 4)) == 0.75
     assert core.score(core.CheckResult("empty", 0, 0)) == 0.0
+
+
+# --------------------------------------------------------------------------- missing answers, notes, the reference's count
+
+
+def test_a_function_that_returns_none_fails_its_call(capsys):
+    with Check("returns_none") as c:
+        out = c.call(lambda x: None, 1, case="a case")
+        assert out is FAILED
+    text = capsys.readouterr().out
+    assert "returned None" in text and "0 of 1 checks passed" in text
+
+
+def test_blame_earlier_names_the_failed_earlier_exercise(capsys):
+    with Check("earlier_one") as c:
+        c.expect(False, "", "wrong")
+    with Check("later_one") as c:
+        c.expect(False, "", "also wrong")
+        c.blame_earlier("earlier_one", "never_run")
+    text = capsys.readouterr().out
+    assert "note: your earlier_one failed its own checks above and later_one calls it" in text
+    with Check("later_two") as c:
+        c.expect(True, "fine", "")
+        c.blame_earlier("earlier_one")
+    assert "note:" not in capsys.readouterr().out  # nothing to blame when the exercise passes
+
+
+def test_score_against_counts_checks_that_did_not_run(capsys):
+    from course_lib.checks.core import RESULTS, score_against
+
+    with Check("counted") as c:
+        for k in range(4):
+            c.expect(True, f"case {k} ok", "")
+    reference = RESULTS["counted"]
+    with Check("counted") as c:  # the student's run stopped after two cases
+        c.expect(True, "case 0 ok", "")
+        c.expect(True, "case 1 ok", "")
+    student = RESULTS["counted"]
+    capsys.readouterr()
+    assert student.ok and core.score(student) == 1.0  # on its own it looks perfect
+    assert score_against(student, reference) == 0.5  # against the reference's count it is not
