@@ -19,7 +19,6 @@ import importlib
 import io
 import multiprocessing as mp
 import os
-import shutil
 import sys
 import traceback
 import types
@@ -32,6 +31,7 @@ from course_lib.checks import core
 
 __all__ = [
     "build_hidden_fixtures",
+    "build_in_process",
     "HiddenJob",
     "HiddenOutcome",
     "run_hidden",
@@ -59,18 +59,25 @@ def _salted_rng_factory(salt: int):
     return original, default_rng
 
 
+def build_in_process(name: str, salt: int) -> dict[str, np.ndarray]:
+    """The hidden cases of fixture ``name`` for a grading ``salt``, built in this process."""
+    from course_lib.instructor.cases import builders
+
+    original, salted = _salted_rng_factory(salt)
+    np.random.default_rng = salted
+    try:
+        return builders()[name]()
+    finally:
+        np.random.default_rng = original
+
+
 def _build_hidden(out_dir: str, check_modules: list[str], salt: int) -> dict:
     from course_lib.instructor.cases import builders
 
     single_thread_math()
     built = {}
-    original, salted = _salted_rng_factory(salt)
-    for name, build in builders(check_modules).items():
-        np.random.default_rng = salted
-        try:
-            arrays = build()
-        finally:
-            np.random.default_rng = original
+    for name in builders(check_modules, steps=False):
+        arrays = build_in_process(name, salt)
         np.savez_compressed(Path(out_dir) / f"{name}.npz", **{k: np.asarray(v) for k, v in arrays.items()})
         built[name] = sorted(arrays)
     return built
@@ -90,16 +97,13 @@ def hold_in_memory(fixtures_dir: Path) -> None:
 
 
 def build_hidden_fixtures(out_dir: Path, check_modules: list[str], salt: int, timeout: float = 600) -> dict:
-    """Write the hidden fixtures of ``check_modules`` into ``out_dir`` (public fixtures copied first).
+    """Write the hidden cases of ``check_modules`` into ``out_dir`` (no step fixture: they are no cases).
 
     Runs in a forked process (the reference library builds them; torch stays out of this process).
     """
-    from course_lib.paths import FIXTURES_DIR
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    for p in sorted(Path(FIXTURES_DIR).glob("*.npz")):
-        shutil.copyfile(p, out_dir / p.name)
     res = _in_child(_build_hidden, (str(out_dir), sorted(set(check_modules)), int(salt)), timeout)
     if "error" in res or "value" not in res:
         raise RuntimeError(f"building the hidden cases failed: {res.get('error', res)}")

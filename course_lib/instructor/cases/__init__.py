@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["builds", "builders", "CASE_MODULES"]
+__all__ = ["builds", "builders", "CASE_MODULES", "STEP_FIXTURES"]
 
 #: The case modules, in build order (a later fixture may read an earlier one).
 CASE_MODULES = (
@@ -35,26 +35,40 @@ CASE_MODULES = (
 )
 
 _BUILDERS: dict[str, Callable[[], dict[str, np.ndarray]]] = {}
+#: Fixtures that are a notebook's starting point (:mod:`course_lib.steps`), not cases of a check:
+#: public by design, and never built for (or read by) the hidden checks.
+STEP_FIXTURES: set[str] = set()
 #: fixture name -> the check module it feeds (``course_lib.checks.<module>``)
 CHECK_MODULE: dict[str, str] = {}
 
 
-def builds(name: str):
-    """Register ``fn() -> dict[str, np.ndarray]`` as the builder of fixture ``name``."""
+def builds(name: str, step: bool = False):
+    """Register ``fn() -> dict[str, np.ndarray]`` as the builder of fixture ``name``.
+
+    Args:
+        name: the fixture (``data/fixtures/<name>.npz``).
+        step: the fixture is a notebook's starting point (:data:`STEP_FIXTURES`), not check cases.
+    """
 
     def register(fn):
         _BUILDERS[name] = fn
+        if step:
+            STEP_FIXTURES.add(name)
         CHECK_MODULE[name] = "course_lib.checks." + fn.__module__.rsplit(".", 1)[-1]
         return fn
 
     return register
 
 
-def builders(modules: list[str] | None = None) -> dict[str, Callable[[], dict[str, np.ndarray]]]:
-    """``{fixture name: builder}`` of the case modules (all, or those feeding the check modules ``modules``)."""
+def builders(modules: list[str] | None = None, steps: bool = True) -> dict[str, Callable[[], dict[str, np.ndarray]]]:
+    """``{fixture name: builder}`` of the case modules.
+
+    Args:
+        modules: only those feeding these check modules (``course_lib.checks.<name>``); default all.
+        steps: include the step fixtures (:data:`STEP_FIXTURES`); the hidden checks leave them out.
+    """
     for mod in CASE_MODULES:
         importlib.import_module(f"{__name__}.{mod}")
-    if modules is None:
-        return dict(_BUILDERS)
-    wanted = {m.rsplit(".", 1)[-1] for m in modules}
-    return {k: fn for k, fn in _BUILDERS.items() if CHECK_MODULE[k].rsplit(".", 1)[-1] in wanted}
+    wanted = None if modules is None else {m.rsplit(".", 1)[-1] for m in modules}
+    return {k: fn for k, fn in _BUILDERS.items() if (steps or k not in STEP_FIXTURES)
+            and (wanted is None or CHECK_MODULE[k].rsplit(".", 1)[-1] in wanted)}

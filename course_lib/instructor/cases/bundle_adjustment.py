@@ -14,7 +14,7 @@ from course_lib.instructor.cases import builds
 from course_lib.paths import EMBEDDED_SFM
 from course_lib.steps import reconstruction_before_ba
 
-@builds("bundle_adjustment_step")
+@builds("bundle_adjustment_step", step=True)
 def _build_step() -> dict[str, np.ndarray]:
     if not (EMBEDDED_SFM / "ground_truth.json").exists():
         return {}
@@ -78,4 +78,8 @@ def _build() -> dict[str, np.ndarray]:
     out.update({"ba_K": sc.K, "ba_R0": R0, "ba_t0": t0, "ba_X0": X0, "ba_uv": sc.uv, "ba_R_true": sc.R_cw,
                 "ba_t_true": sc.t_cw, "ba_X_true": sc.X, "ba_R": res.R_cw, "ba_t": res.t_cw, "ba_X": res.X,
                 "ba_final_rms": np.array(res.final_rms), "ba_initial_rms": np.array(res.initial_rms)})
+    # the embedded reconstruction before BA (notebook 05's starting point) as a case of its own
+    if (EMBEDDED_SFM / "ground_truth.json").exists():
+        st = reconstruction_before_ba(EMBEDDED_SFM)
+        out.update({f"emb_{k}": st[k] for k in ("K", "registered", "R_cw", "t_cw", "X", "track_uv", "inlier")})
     return out

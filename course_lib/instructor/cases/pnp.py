@@ -13,7 +13,7 @@ from course_lib.instructor.cases import builds
 from course_lib.paths import EMBEDDED_SFM
 from course_lib.steps import two_view_reconstruction
 
-@builds("pnp_step")
+@builds("pnp_step", step=True)
 def _build_step() -> dict[str, np.ndarray]:
     if not (EMBEDDED_SFM / "ground_truth.json").exists():
         return {}  # the embedded scene is not generated yet (python -m course_lib make-data): nothing to store

@@ -17,7 +17,7 @@ from course_lib.steps import STEP_PAIR, relative_truth, two_view_input
 #: The most matches stored per embedded case (keeps the fixture small).
 MAX_EMBEDDED = 300
 
-@builds("triangulation_step")
+@builds("triangulation_step", step=True)
 def _build_step() -> dict[str, np.ndarray]:
     if not (EMBEDDED_SFM / "ground_truth.json").exists():
         return {}  # the embedded scene is not generated yet (python -m course_lib make-data): nothing to store
