@@ -1,0 +1,138 @@
+"""The student kit holds no implementation of any exercise, in any module.
+
+Every function and class that the student release of ``course_lib`` defines (public or private,
+in the checks, the step inputs, the loaders, the figures, the redacted modules...) is tried as
+every exercise whose arguments it accepts (keyword arguments it does not know are passed by
+position), through the exercise's own check on the public cases.
+None may earn half of the exercise's points: pasted into an exercise cell, it would otherwise be a
+working answer that the student did not write.
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import os
+import subprocess
+import sys
+
+import nbformat
+import pytest
+
+from course_lib.instructor.notebooks import NOTEBOOKS_DIR, kit_specs, python_source
+from course_lib.instructor.release import write_release
+
+#: Exercises for which a function of the student kit still passes (issue 18, item 3); each is fixed by
+#: moving that function to the instructor side (or making the check's yardstick something else).
+STILL_SHIPPED = {"sampson_distance", "triangulate_linear", "reprojection_residuals", "positional_encoding", "psnr", "volume_render"}
+
+TRY_ALL = r"""
+import contextlib, importlib, inspect, io, json, pkgutil, signal, sys
+import course_lib
+from course_lib.checks import core
+
+exercises = json.loads(sys.argv[1])
+objs = {}
+for m in pkgutil.walk_packages(course_lib.__path__, "course_lib."):
+    try:
+        mod = importlib.import_module(m.name)
+    except Exception:
+        continue
+    for name, obj in vars(mod).items():
+        if (inspect.isfunction(obj) or inspect.isclass(obj)) and getattr(obj, "__module__", "") == m.name:
+            if getattr(obj, "__kit_stand_in__", False):
+                continue
+            objs[f"{m.name}.{name}"] = obj
+
+def adapt(obj):
+    # obj as a drop-in: called as the check calls the exercise, or with the keyword values passed by position
+    if inspect.isclass(obj):
+        return obj
+
+    def call(*args, **kwargs):
+        try:
+            return obj(*args, **kwargs)
+        except TypeError:
+            return obj(*args, *kwargs.values())
+
+    return call
+
+def accepts(obj, n_args, is_class):
+    if is_class != inspect.isclass(obj):
+        return False
+    if is_class:
+        import torch
+        return issubclass(obj, torch.nn.Module)
+    try:
+        inspect.signature(obj).bind(*range(n_args))
+        return True
+    except (TypeError, ValueError):
+        return False
+
+class Timeout(Exception):
+    pass
+
+def alarm(*_):
+    raise Timeout()
+
+signal.signal(signal.SIGALRM, alarm)
+best = {}
+for ex in exercises:
+    check = getattr(importlib.import_module(ex["check_module"]), ex["check_function"])
+    top = (0.0, None)
+    for qual, obj in objs.items():
+        if not accepts(obj, ex["n_args"], ex["is_class"]):
+            continue
+        core.RESULTS.pop(ex["name"], None)
+        signal.alarm(20)
+        try:
+            with contextlib.redirect_stdout(io.StringIO()):
+                check(adapt(obj))
+        except BaseException:
+            pass
+        finally:
+            signal.alarm(0)
+        res = core.RESULTS.get(ex["name"])
+        s = core.score(res) if res is not None else 0.0
+        if s > top[0]:
+            top = (s, qual)
+    best[ex["name"]] = top
+print(json.dumps(best))
+"""
+
+
+def _exercises() -> list[dict]:
+    """Every exercise with its check and the number of required positional arguments of its def."""
+    out = []
+    for spec in kit_specs():
+        nb = nbformat.read(NOTEBOOKS_DIR / spec.name, as_version=4)
+        for e in spec.exercises:
+            node = next(n for n in ast.parse(python_source(nb.cells[e.cell].source)).body
+                        if getattr(n, "name", None) == e.name)
+            is_class = isinstance(node, ast.ClassDef)
+            n_args = 0 if is_class else len(node.args.posonlyargs + node.args.args) - len(node.args.defaults)
+            out.append({"name": e.name, "check_module": e.check_module, "check_function": e.check_function,
+                        "n_args": n_args, "is_class": is_class})
+    return out
+
+
+EXERCISES = _exercises()
+
+
+@pytest.fixture(scope="module")
+def best(tmp_path_factory):
+    kit = tmp_path_factory.mktemp("kit") / "student-kit"
+    write_release(kit)
+    env = dict(os.environ, PYTHONPATH=str(kit), COURSE_LIB_QUICK="1", MPLBACKEND="Agg")
+    res = subprocess.run([sys.executable, "-c", TRY_ALL, json.dumps(EXERCISES)], cwd=kit, env=env,
+                         capture_output=True, text=True, timeout=1200)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("exercise", [pytest.param(e["name"], marks=pytest.mark.xfail(
+    reason="a function of the student kit still passes this exercise", strict=True))
+    if e["name"] in STILL_SHIPPED else e["name"] for e in EXERCISES])
+def test_no_function_of_the_student_kit_passes_an_exercise(exercise, best):
+    score, where = best[exercise]
+    assert score < 0.5, f"{where} (in the student kit) earns {score:.0%} of {exercise}'s checks"
