@@ -129,6 +129,50 @@ def ransac_fixed_iterations(x1, x2, rng, threshold_px=1.0, confidence=0.999, max
 def ransac_global_rng(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
     return _ransac(x1, x2, rng, threshold_px, confidence, max_iters, own_rng=True)
 
+# ============================================================================ honest solutions
+# Written from the textbook (Hartley & Zisserman), not from course_lib; calls of other exercises by name.
+
+def normalize_points(x):
+    c = x.mean(axis=0)
+    s = np.sqrt(2.0) / np.linalg.norm(x - c, axis=1).mean()
+    T = np.array([[s, 0.0, -s * c[0]], [0.0, s, -s * c[1]], [0.0, 0.0, 1.0]])
+    return (x - c) * s, T
+
+
+def eight_point(x1, x2):
+    a, T1 = normalize_points(x1)
+    b, T2 = normalize_points(x2)
+    A = np.stack([b[:, 0] * a[:, 0], b[:, 0] * a[:, 1], b[:, 0], b[:, 1] * a[:, 0], b[:, 1] * a[:, 1],
+                  b[:, 1], a[:, 0], a[:, 1], np.ones(len(a))], axis=1)
+    F = np.linalg.svd(A)[2][-1].reshape(3, 3)
+    U, s, Vt = np.linalg.svd(F)
+    F = T2.T @ (U @ np.diag([s[0], s[1], 0.0]) @ Vt) @ T1
+    return F / np.linalg.norm(F)
+
+
+def sampson_distance(F, x1, x2):
+    x1h = np.column_stack([x1, np.ones(len(x1))])
+    x2h = np.column_stack([x2, np.ones(len(x2))])
+    Fx1, Ftx2 = x1h @ F.T, x2h @ F
+    e = np.sum(x2h * Fx1, axis=1)
+    return np.abs(e) / np.sqrt(Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2)
+
+
+def ransac_fundamental(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
+    n = len(x1)
+    best = np.zeros(n, bool)
+    n_iters, needed = 0, max_iters
+    while n_iters < min(needed, max_iters):
+        idx = rng.choice(n, 8, replace=False)
+        inl = sampson_distance(eight_point(x1[idx], x2[idx]), x1, x2) < threshold_px
+        n_iters += 1
+        if inl.sum() > best.sum():
+            best = inl
+            w = inl.mean()
+            needed = np.log(1 - confidence) / np.log(1 - w**8) if w < 1 else 0
+    return eight_point(x1[best], x2[best]), best, n_iters
+
+
 # ============================================================================ the catalogue
 
 M = Mistake
@@ -158,6 +202,10 @@ MISTAKES = [
 
 #: Correct solutions: they must score full marks.
 HONEST = [
+    Honest("normalize_points", "textbook", gfu.check_normalize_points, normalize_points),
+    Honest("eight_point", "textbook", gfu.check_eight_point, eight_point),
+    Honest("sampson_distance", "textbook", gfu.check_sampson_distance, sampson_distance),
+    Honest("ransac_fundamental", "textbook, returns a tuple", gfu.check_ransac_fundamental, ransac_fundamental),
     Honest("normalize_points", "the reference solution", gfu.check_normalize_points, rfu.normalize_points),
     Honest("eight_point", "the reference solution", gfu.check_eight_point, rfu.eight_point),
     Honest("sampson_distance", "the reference solution", gfu.check_sampson_distance, rfu.sampson_distance),
