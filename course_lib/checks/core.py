@@ -105,9 +105,12 @@ class Verdict:
     Attributes:
         ok: whether it passed.
         text: the printed line without its mark.
-        kind: ``"points"`` (earns points) or ``"gate"`` (shape, dtype: a precondition that earns
+        kind: ``"points"`` (earns points), ``"gate"`` (shape, dtype: a precondition that earns
             nothing when it passes, and counts as a failed check when it fails, since the checks
-            it guards could not run).
+            it guards could not run) or ``"detail"`` (correct maths in another documented form than
+            the docstring asks for, e.g. another order: it neither earns nor costs hidden-check
+            points, but the exercise is no longer perfect, which costs the last 10 % of the grade:
+            one point of ten).
         defining: the defining property it tests (see :func:`declare_defining`), or None.
     """
 
@@ -144,6 +147,11 @@ class CheckResult:
             if v.defining and not v.ok and v.defining not in out:
                 out.append(v.defining)
         return out
+
+    @property
+    def details_failed(self) -> list[str]:
+        """The failed details (see :class:`Verdict`): correct maths, not in the documented form."""
+        return [v.text for v in self.verdicts if v.kind == "detail" and not v.ok]
 
     @property
     def points(self) -> tuple[int, int]:
@@ -237,14 +245,14 @@ class Check:
             fail_msg: the line printed when it failed: the likely mistake, and what to change.
             defining: the defining property this check tests (declared with :func:`declare_defining`
                 for this exercise); failing it caps the score at one half and leads the verdict.
-            kind: ``"points"`` or ``"gate"`` (see :class:`Verdict`); :meth:`shape` and :meth:`gate`
-                record gates.
+            kind: ``"points"``, ``"gate"`` or ``"detail"`` (see :class:`Verdict`); :meth:`shape` and
+                :meth:`gate` record gates, :meth:`detail` details.
         """
         if defining is not None and defining not in DEFINING.get(self.exercise, {}):
             raise ValueError(f"{defining!r} is not a declared defining property of {self.exercise!r} "
                              f"(declared: {sorted(DEFINING.get(self.exercise, {}))}); use declare_defining")
-        if kind not in ("points", "gate"):
-            raise ValueError(f"kind must be 'points' or 'gate', got {kind!r}")
+        if kind not in ("points", "gate", "detail"):
+            raise ValueError(f"kind must be 'points', 'gate' or 'detail', got {kind!r}")
         self.total += 1
         ok = bool(condition)
         text = pass_msg if ok else fail_msg
@@ -268,6 +276,15 @@ class Check:
         alone must earn nothing (``np.eye(3)`` or a constant is no solution), failing them costs.
         """
         return self.expect(condition, pass_msg, fail_msg, defining=defining, kind="gate")
+
+    def detail(self, condition: bool, pass_msg: str, fail_msg: str) -> bool:
+        """Record a detail: correct maths, but maybe not the documented form (an order, a layout).
+
+        Failing it costs no hidden-check points, only the exercise's "perfect" share (one point of
+        ten); the verdict should say so plainly, e.g. "correct maths, but not the order the
+        docstring asks for".
+        """
+        return self.expect(condition, pass_msg, fail_msg, kind="detail")
 
     def note(self, text: str) -> None:
         """Print a line of advice under the verdict; it is no check and counts for nothing."""

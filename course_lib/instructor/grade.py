@@ -160,7 +160,7 @@ class ExerciseGrade:
     points: float
     max_points: float
     feedback: list[str]
-    status: str  # full, partial, zero, flagged, timeout, exit, error, missing, deleted, reordered, check-edited, tampered
+    status: str  # full, detail, partial, zero, flagged, timeout, exit, error, missing, deleted, reordered, check-edited, tampered
     hidden: dict = field(default_factory=dict)
     nbval: str = "not run"
 
@@ -391,8 +391,13 @@ def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, hidden: HiddenCases, ti
     frac = score_against(out.result, reference) if reference is not None else 0.0
     g.points = round(e.points * HIDDEN_SHARE * frac, 2)
     g.status = "full" if frac >= 1 else ("partial" if frac > 0 else "zero")
+    details = out.result.details_failed
     if not ref:
         g.feedback.append("no hidden check could be calibrated for this exercise (instructor: see the notes)")
+    elif frac >= 1 and details:
+        g.status = "detail"
+        g.feedback.append(f"the hidden checks pass, but not in the documented form (−{(1 - HIDDEN_SHARE) * 10:g} "
+                          "point: the share of a perfect exercise): " + "; ".join(details[:MAX_FEEDBACK_LINES]))
     elif frac >= 1:
         g.feedback.append(f"all {len(ref)} hidden checks pass")
     else:

@@ -151,3 +151,15 @@ def test_score_against_counts_checks_that_did_not_run(capsys):
     capsys.readouterr()
     assert student.ok and core.score(student) == 1.0  # on its own it looks perfect
     assert score_against(student, reference) == 0.5  # against the reference's count it is not
+
+
+def test_a_failed_detail_costs_no_hidden_points_but_the_exercise_is_not_perfect(capsys):
+    from course_lib.checks.core import RESULTS
+
+    with Check("with_detail") as c:
+        c.expect(True, "the maths is right", "")
+        c.detail(False, "", "correct maths, but not the order the docstring asks for")
+    result = RESULTS["with_detail"]
+    capsys.readouterr()
+    assert core.score(result) == 1.0 and not result.ok
+    assert result.details_failed == ["correct maths, but not the order the docstring asks for"]
