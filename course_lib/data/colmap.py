@@ -35,7 +35,7 @@ from scipy.spatial.transform import Rotation
 
 from course_lib.validate import KitInputError, existing_path, intrinsics, rotation
 
-__all__ = ["ColmapModel", "write_colmap_text", "read_colmap_text"]
+__all__ = ["ColmapModel", "read_colmap_text", "write_colmap_text"]
 
 #: Added to kit pixel coordinates to get COLMAP's (centre of the top-left pixel at 0.5, 0.5).
 PIXEL_OFFSET = 0.5
@@ -130,6 +130,27 @@ def write_colmap_text(
     K = intrinsics(K)
     W, H = (int(v) for v in image_size)
     names = [str(n) for n in image_names]
+    registered, R_cw, t_cw = _checked_poses(names, registered, R_cw, t_cw)
+    X, rgb, uv = _checked_points(len(names), X, rgb, observations)
+    has_X = np.isfinite(X).all(axis=1)
+    seen = np.isfinite(uv).all(axis=2) & registered[None, :]  # the observations written (2-D points)
+    point_id = np.full(len(X), -1, dtype=np.int64)
+    point_id[has_X] = np.arange(1, int(has_X.sum()) + 1)
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    _write_cameras(folder / "cameras.txt", K, W, H)
+    point2d_idx = _write_images(folder / "images.txt", names, R_cw, t_cw, registered, uv, seen, point_id)
+    R_safe = np.where(registered[:, None, None], R_cw, np.eye(3))
+    t_safe = np.where(registered[:, None], t_cw, 0.0)
+    in_track = seen & has_X[:, None]
+    errors = _mean_errors(K, R_safe, t_safe, np.where(has_X[:, None], X, 0.0), uv, in_track)
+    _write_points(folder / "points3D.txt", X, rgb, errors, in_track, point_id, point2d_idx)
+    return folder
+
+
+def _checked_poses(names, registered, R_cw, t_cw):
+    """``registered`` (M,) bool, ``R_cw`` (M, 3, 3), ``t_cw`` (M, 3), checked for the registered images."""
     M = len(names)
     registered = np.asarray(registered, dtype=bool)
     if registered.shape != (M,):
@@ -142,6 +163,11 @@ def write_colmap_text(
         rotation(R_cw[i], f"R_cw[{i}]", atol=1e-5)
         if not np.isfinite(t_cw[i]).all():
             raise KitInputError(f"t_cw[{i}] of registered image {names[i]} contains NaN")
+    return registered, R_cw, t_cw
+
+
+def _checked_points(M: int, X, rgb, observations):
+    """``X`` (T, 3) float, ``rgb`` (T, 3) uint8, observations (T, M, 2) float, checked."""
     X = np.asarray(X, float)
     if X.ndim != 2 or X.shape[1] != 3:
         raise KitInputError(f"X has shape {X.shape}: expected (T, 3)")
@@ -152,63 +178,56 @@ def write_colmap_text(
     uv = np.asarray(observations, float)
     if uv.shape != (T, M, 2):
         raise KitInputError(f"observations has shape {uv.shape}: expected ({T}, {M}, 2), NaN where not observed")
-    rgb = np.clip(np.round(rgb.astype(float)), 0, 255).astype(np.uint8)
+    return X, np.clip(np.round(rgb.astype(float)), 0, 255).astype(np.uint8), uv
 
-    has_X = np.isfinite(X).all(axis=1)
-    seen = np.isfinite(uv).all(axis=2) & registered[None, :]
-    point_id = np.full(T, -1, dtype=np.int64)
-    point_id[has_X] = np.arange(1, int(has_X.sum()) + 1)
-    R_safe = np.where(registered[:, None, None], R_cw, np.eye(3))
-    t_safe = np.where(registered[:, None], t_cw, 0.0)
-    errors = _mean_errors(K, R_safe, t_safe, np.where(has_X[:, None], X, 0.0), uv, seen & has_X[:, None])
 
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+def _write_cameras(path: Path, K: np.ndarray, W: int, H: int) -> None:
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2] + PIXEL_OFFSET, K[1, 2] + PIXEL_OFFSET
-    with open(folder / "cameras.txt", "w") as f:
+    with open(path, "w") as f:
         f.write("# Camera list with one line of data per camera:\n")
         f.write("#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n")
         f.write("# Number of cameras: 1\n")
         f.write(f"1 PINHOLE {W} {H} {_num(fx)} {_num(fy)} {_num(cx)} {_num(cy)}\n")
 
-    # 2-D point index of each observation within its image's POINTS2D list
+
+def _write_images(path: Path, names, R_cw, t_cw, registered, uv, seen, point_id) -> np.ndarray:
+    """Write ``images.txt``; returns (T, M) the index of each observation in its image's POINTS2D list."""
+    T, M = seen.shape
     point2d_idx = np.full((T, M), -1, dtype=np.int64)
     lines = []
-    n_obs = 0
     for i in np.flatnonzero(registered):
         j = np.flatnonzero(seen[:, i])
         point2d_idx[j, i] = np.arange(len(j))
-        n_obs += len(j)
         q = Rotation.from_matrix(R_cw[i]).as_quat()  # x, y, z, w
-        if q[3] < 0:
-            q = -q
-        qw, qx, qy, qz = q[3], q[0], q[1], q[2]
+        qw, qx, qy, qz = (q if q[3] >= 0 else -q)[[3, 0, 1, 2]]
         tx, ty, tz = t_cw[i]
         lines.append(f"{i + 1} {_num(qw)} {_num(qx)} {_num(qy)} {_num(qz)} {_num(tx)} {_num(ty)} {_num(tz)} 1 {names[i]}\n")
         pts = uv[j, i] + PIXEL_OFFSET
         lines.append(" ".join(f"{_num(u)} {_num(v)} {int(point_id[jj])}" for (u, v), jj in zip(pts, j)) + "\n")
     n_reg = int(registered.sum())
-    with open(folder / "images.txt", "w") as f:
+    with open(path, "w") as f:
         f.write("# Image list with two lines of data per image:\n")
         f.write("#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n")
         f.write("#   POINTS2D[] as (X, Y, POINT3D_ID)\n")
-        f.write(f"# Number of images: {n_reg}, mean observations per image: {n_obs / max(n_reg, 1):.6f}\n")
+        f.write(f"# Number of images: {n_reg}, mean observations per image: {seen.sum() / max(n_reg, 1):.6f}\n")
         f.writelines(lines)
+    return point2d_idx
 
-    with open(folder / "points3D.txt", "w") as f:
-        n_pts = int(has_X.sum())
-        tracks = (seen & has_X[:, None]).sum(axis=1)
+
+def _write_points(path: Path, X, rgb, errors, in_track, point_id, point2d_idx) -> None:
+    has_X = np.isfinite(X).all(axis=1)
+    n_pts = int(has_X.sum())
+    tracks = in_track.sum(axis=1)
+    with open(path, "w") as f:
         f.write("# 3D point list with one line of data per point:\n")
         f.write("#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n")
         f.write(f"# Number of points: {n_pts}, mean track length: {tracks[has_X].mean() if n_pts else 0:.6f}\n")
         for j in np.flatnonzero(has_X):
-            imgs = np.flatnonzero(seen[j])
-            track = " ".join(f"{i + 1} {int(point2d_idx[j, i])}" for i in imgs)
+            track = " ".join(f"{i + 1} {int(point2d_idx[j, i])}" for i in np.flatnonzero(in_track[j]))
             e = errors[j] if np.isfinite(errors[j]) else 0.0
             x, y, z = X[j]
             r, g, b = (int(c) for c in rgb[j])
             f.write(f"{int(point_id[j])} {_num(x)} {_num(y)} {_num(z)} {r} {g} {b} {_num(e)} {track}\n")
-    return folder
 
 
 def _data_lines(path: Path) -> list[str]:

@@ -520,16 +520,9 @@ def add_cameras(
     """
     R, t = _poses(R_cw, t_cw)
     M = R.shape[0]
-    Kn = _np(K)
-    Ks = [intrinsics(Kn)] * M if Kn.shape == (3, 3) else None
-    if Ks is None:
-        if Kn.shape != (M, 3, 3):
-            raise KitInputError(f"K has shape {tuple(Kn.shape)}: expected (3, 3) or ({M}, 3, 3)")
-        Ks = [intrinsics(k, f"K[{i}]") for i, k in enumerate(Kn)]
+    Ks = _camera_intrinsics(K, M)
     W, H = _image_size(image_size)
-    if names is None:
-        names = [f"cam {i}" for i in range(M)]
-    names = [str(n) for n in names]
+    names = [f"cam {i}" for i in range(M)] if names is None else [str(n) for n in names]
     if len(names) != M:
         raise KitInputError(f"names has {len(names)} entries for {M} cameras")
     group = legend_group or "cameras"
@@ -543,6 +536,29 @@ def add_cameras(
         raise KitInputError(f"scale must be a positive number of world units, got {scale}")
     dec = _decimals(max(scale * 20, 1e-9))
     frusta = [camera_frustum(R[i], t[i], Ks[i], (W, H), scale) for i in range(M)]
+    _add_frustum_lines(fig, frusta, dec, col, group, f"{group} ({M})" if legend_group else f"cameras ({M})")
+    _add_apexes(fig, frusta, names, dec, col, group, M <= 12 if show_names is None else show_names)
+    if images is not None:
+        if len(images) != M:
+            raise KitInputError(f"images has {len(images)} entries for {M} cameras")
+        for i, (img, f) in enumerate(zip(images, frusta)):
+            _add_image_plane(fig, np.asarray(img), f["corners"], dec, group, f"{names[i]} image")
+    _fit_view(fig)
+    return fig
+
+
+def _camera_intrinsics(K, M: int) -> list[np.ndarray]:
+    """M checked ``(3, 3)`` intrinsics from one shared ``(3, 3)`` or ``(M, 3, 3)``."""
+    Kn = _np(K)
+    if Kn.shape == (3, 3):
+        return [intrinsics(Kn)] * M
+    if Kn.shape != (M, 3, 3):
+        raise KitInputError(f"K has shape {tuple(Kn.shape)}: expected (3, 3) or ({M}, 3, 3)")
+    return [intrinsics(k, f"K[{i}]") for i, k in enumerate(Kn)]
+
+
+def _add_frustum_lines(fig, frusta: list[dict], dec: int, col: str, group: str, name: str) -> None:
+    """One line trace: each frustum's far rectangle, its four edges to the apex and its "up" triangle."""
     segs = []
     for f in frusta:
         a, c = f["apex"], f["corners"]
@@ -558,15 +574,17 @@ def add_cameras(
             z=zs,
             mode="lines",
             line=dict(color=col, width=3),
-            name=f"{group} ({M})" if legend_group else f"cameras ({M})",
+            name=name,
             legendgroup=group,
             hoverinfo="skip",
             uid=_uid(fig, "frustums", group),
         )
     )
+
+
+def _add_apexes(fig, frusta: list[dict], names: list[str], dec: int, col: str, group: str, show_names: bool) -> None:
+    """One marker trace at the camera centres, named on hover (and as text when ``show_names``)."""
     apex = np.round(np.stack([f["apex"] for f in frusta]), dec)
-    if show_names is None:
-        show_names = M <= 12
     fig.add_trace(
         go.Scatter3d(
             x=apex[:, 0].tolist(),
@@ -585,13 +603,6 @@ def add_cameras(
             uid=_uid(fig, "centres", group),
         )
     )
-    if images is not None:
-        if len(images) != M:
-            raise KitInputError(f"images has {len(images)} entries for {M} cameras")
-        for i, (img, f) in enumerate(zip(images, frusta)):
-            _add_image_plane(fig, np.asarray(img), f["corners"], dec, group, f"{names[i]} image")
-    _fit_view(fig)
-    return fig
 
 
 def _add_image_plane(fig, img: np.ndarray, corners: np.ndarray, dec: int, group: str, name: str) -> None:
