@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["KitInputError", "points", "matching_points", "intrinsics", "rotation", "vector3", "existing_path", "output_dir"]
+__all__ = ["KitInputError", "points", "matching_points", "intrinsics", "rotation", "vector3", "camera_poses", "existing_path", "output_dir"]
 
 
 class KitInputError(ValueError):
@@ -108,6 +108,43 @@ def vector3(t, name: str = "t") -> np.ndarray:
     if not np.isfinite(t).all():
         raise KitInputError(f"{name} contains NaN or inf")
     return t.reshape(3)
+
+
+def camera_poses(R_cw, t_cw, atol: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
+    """Check and return the poses of ``M`` cameras as float arrays ``R_cw (M, 3, 3)``, ``t_cw (M, 3)``.
+
+    One camera may be given as ``R_cw (3, 3)``, ``t_cw (3,)``; ``t_cw (M, 3, 1)`` is accepted; torch
+    tensors are read without importing torch.
+
+    Raises:
+        KitInputError: wrong shapes, a matrix that is not a rotation, or a non-finite translation.
+    """
+    R, t = (_array(a, name) for a, name in ((R_cw, "R_cw"), (t_cw, "t_cw")))
+    if R.shape == (3, 3):
+        R = R[None]
+    if t.shape in ((3,), (3, 1)) and R.shape[0] == 1:
+        t = t.reshape(1, 3)
+    if R.ndim != 3 or R.shape[1:] != (3, 3):
+        raise KitInputError(f"R_cw has shape {_shape(R)}: expected (M, 3, 3) (one rotation per camera)")
+    if t.ndim == 3 and t.shape[1:] == (3, 1):
+        t = t[..., 0]
+    if t.shape != (R.shape[0], 3):
+        raise KitInputError(f"t_cw has shape {_shape(t)}: expected ({R.shape[0]}, 3) to match R_cw {_shape(R)}")
+    for i, Ri in enumerate(R):
+        rotation(Ri, name=f"R_cw[{i}]", atol=atol)
+    if not np.isfinite(t).all():
+        raise KitInputError("t_cw contains NaN or inf")
+    return R, t
+
+
+def _array(a, name: str) -> np.ndarray:
+    """Float numpy array from numpy / list / torch tensor (without importing torch)."""
+    if hasattr(a, "detach") and hasattr(a, "cpu"):
+        a = a.detach().cpu().numpy()
+    try:
+        return np.asarray(a, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise KitInputError(f"{name} must be a numeric array, got {type(a).__name__} ({exc})") from None
 
 
 def existing_path(path, what: str) -> Path:
