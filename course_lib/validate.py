@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["KitInputError", "points", "matching_points", "intrinsics", "rotation", "vector3", "camera_poses", "existing_path", "output_dir"]
+__all__ = ["KitInputError", "points", "matching_points", "intrinsics", "rotation", "vector3", "camera_poses", "generator", "positive", "probability",
+           "count", "choice", "existing_path", "output_dir"]
 
 
 class KitInputError(ValueError):
@@ -145,6 +146,56 @@ def _array(a, name: str) -> np.ndarray:
         return np.asarray(a, dtype=float)
     except (TypeError, ValueError) as exc:
         raise KitInputError(f"{name} must be a numeric array, got {type(a).__name__} ({exc})") from None
+
+
+def generator(rng, name: str = "rng") -> np.random.Generator:
+    """Check that ``rng`` is a ``numpy.random.Generator`` (every stochastic function takes one)."""
+    if not isinstance(rng, np.random.Generator):
+        raise KitInputError(
+            f"{name} must be a numpy.random.Generator (e.g. np.random.default_rng(0)), got {type(rng).__name__}"
+        )
+    return rng
+
+
+def positive(x, name: str, what: str = "a positive number") -> float:
+    """Check and return a finite number ``> 0`` (``what`` names it in the message: "a positive number of pixels")."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        raise KitInputError(f"{name}={x!r}: expected {what}") from None
+    if not (np.isfinite(v) and v > 0):
+        raise KitInputError(f"{name}={x}: expected {what}")
+    return v
+
+
+def probability(p, name: str = "confidence") -> float:
+    """Check and return a probability strictly between 0 and 1."""
+    try:
+        v = float(p)
+    except (TypeError, ValueError):
+        v = float("nan")
+    if not 0.0 < v < 1.0:
+        raise KitInputError(f"{name}={p}: expected a probability strictly between 0 and 1")
+    return v
+
+
+def count(n, name: str, minimum: int = 0) -> int:
+    """Check and return a whole number ``>= minimum`` (an iteration count, a size)."""
+    try:
+        v = int(n)
+    except (TypeError, ValueError):
+        raise KitInputError(f"{name}={n!r}: expected a whole number >= {minimum}") from None
+    if v < minimum:
+        raise KitInputError(f"{name}={n}: expected at least {minimum}")
+    return v
+
+
+def choice(value, name: str, options: dict):
+    """Check that ``value`` is one of ``options`` (``{value: what it means}``), with all of them in the message."""
+    if value not in options:
+        listed = ", ".join(f"{k!r} ({v})" for k, v in options.items())
+        raise KitInputError(f"{name}={value!r}: expected one of {listed}")
+    return value
 
 
 def existing_path(path, what: str) -> Path:

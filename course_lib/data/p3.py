@@ -53,7 +53,7 @@ import numpy as np
 
 from course_lib.validate import KitInputError, intrinsics
 
-__all__ = ["PairMatches", "P3Data", "read_calibration", "read_p3", "write_p3", "tracks_from_pairs", "IMAGE_EXTENSIONS"]
+__all__ = ["PairMatches", "P3Data", "read_calibration", "read_p3", "write_p3", "tracks_from_pairs", "UnionFind", "IMAGE_EXTENSIONS"]
 
 #: Image file extensions the reader looks for, in order of preference (``1.png`` before ``1.jpg``).
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp")
@@ -215,15 +215,30 @@ def read_calibration(path) -> np.ndarray:
 # matching files
 
 
-class _UnionFind:
-    def __init__(self):
-        self.parent: list[int] = []
+class UnionFind:
+    """Disjoint sets of the nodes ``0 .. n-1`` (union-find with path compression).
 
-    def add(self) -> int:
+    The root of a set is its smallest node, so sets come out in order of first appearance. With
+    ``groups`` (one integer per node, e.g. its image), two sets that hold nodes of the same group
+    are never joined: a track holds at most one feature per image.
+
+    Used by the P3 reader (tracks are the connected components of the correspondences) and by
+    :func:`course_lib.sfm.tracks.join_tracks` (verified matches, conflicting links refused).
+    """
+
+    def __init__(self, n: int = 0, groups=None):
+        self.parent: list[int] = list(range(int(n)))
+        self._groups = None if groups is None else [1 << int(g) for g in groups]  # bit mask per root
+
+    def add(self, group: int | None = None) -> int:
+        """A new node in a set of its own; returns its id."""
         self.parent.append(len(self.parent))
+        if self._groups is not None:
+            self._groups.append(1 << int(group))
         return len(self.parent) - 1
 
     def find(self, a: int) -> int:
+        """The root of ``a``'s set."""
         p = self.parent
         root = a
         while p[root] != root:
@@ -232,13 +247,19 @@ class _UnionFind:
             p[a], a = root, p[a]
         return root
 
-    def union(self, a: int, b: int) -> None:
+    def union(self, a: int, b: int) -> bool:
+        """Join the sets of ``a`` and ``b``; False (and nothing joined) if they share a group."""
         ra, rb = self.find(a), self.find(b)
-        if ra != rb:
-            if ra < rb:
-                self.parent[rb] = ra
-            else:
-                self.parent[ra] = rb
+        if ra == rb:
+            return True
+        if ra > rb:
+            ra, rb = rb, ra
+        if self._groups is not None:
+            if self._groups[ra] & self._groups[rb]:
+                return False
+            self._groups[ra] |= self._groups[rb]
+        self.parent[rb] = ra
+        return True
 
 
 def _parse_number(tok: str, where: str) -> float:
@@ -272,7 +293,7 @@ def _build_tracks(node_key, edges, M, uf=None):
         node_key: list of ``(image, u, v)`` per node.
         edges: iterable of unique ``(node_a, node_b)`` pairs.
         M: number of images.
-        uf: a :class:`_UnionFind` over the nodes with the edges already joined (built if None).
+        uf: a :class:`UnionFind` over the nodes with the edges already joined (built if None).
 
     Returns:
         ``track_uv (T, M, 2)``, ``node_track (n_nodes,)`` (-1: in no track), number of
@@ -280,7 +301,7 @@ def _build_tracks(node_key, edges, M, uf=None):
     """
     edges = list(edges)
     if uf is None:
-        uf = _UnionFind()
+        uf = UnionFind()
         for _ in node_key:
             uf.add()
         for a_, b_ in edges:
@@ -425,7 +446,7 @@ def read_p3(folder, require_images: bool = True) -> P3Data:
         raise KitInputError(f"no matching*.txt files in {folder}: is this a P3 folder (calibration.txt, matching1.txt, ..., 1.png, ...)?")
     K = read_calibration(folder / "calibration.txt")
 
-    uf = _UnionFind()
+    uf = UnionFind()
     node_id: dict[tuple[int, float, float], int] = {}
     node_key: list[tuple[int, float, float]] = []
 
