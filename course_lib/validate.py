@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["KitInputError", "points", "matching_points", "intrinsics", "rotation", "vector3", "camera_poses", "generator", "positive", "probability",
+__all__ = ["KitInputError", "points", "matching_points", "intrinsics", "rotation", "vector3", "matrix3x3", "as_array", "camera_poses", "generator", "positive", "probability",
            "count", "choice", "existing_path", "output_dir"]
 
 
@@ -111,6 +111,21 @@ def vector3(t, name: str = "t") -> np.ndarray:
     return t.reshape(3)
 
 
+def matrix3x3(M, name: str, what: str) -> np.ndarray:
+    """Check and return a finite, non-zero ``(3, 3)`` float matrix (``what``: "fundamental matrix", ...)."""
+    try:
+        M = np.asarray(M, dtype=float)
+    except (TypeError, ValueError):
+        raise KitInputError(f"{name} must be a numeric (3, 3) matrix, got {type(M).__name__}") from None
+    if M.shape != (3, 3):
+        raise KitInputError(f"{name} has shape {M.shape}: expected the (3, 3) {what}")
+    if not np.isfinite(M).all():
+        raise KitInputError(f"{name} contains NaN or inf")
+    if not np.abs(M).max() > 0:
+        raise KitInputError(f"{name} is all zeros: it is not a valid {what}")
+    return M
+
+
 def camera_poses(R_cw, t_cw, atol: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
     """Check and return the poses of ``M`` cameras as float arrays ``R_cw (M, 3, 3)``, ``t_cw (M, 3)``.
 
@@ -120,7 +135,7 @@ def camera_poses(R_cw, t_cw, atol: float = 1e-4) -> tuple[np.ndarray, np.ndarray
     Raises:
         KitInputError: wrong shapes, a matrix that is not a rotation, or a non-finite translation.
     """
-    R, t = (_array(a, name) for a, name in ((R_cw, "R_cw"), (t_cw, "t_cw")))
+    R, t = (as_array(a, name) for a, name in ((R_cw, "R_cw"), (t_cw, "t_cw")))
     if R.shape == (3, 3):
         R = R[None]
     if t.shape in ((3,), (3, 1)) and R.shape[0] == 1:
@@ -138,12 +153,12 @@ def camera_poses(R_cw, t_cw, atol: float = 1e-4) -> tuple[np.ndarray, np.ndarray
     return R, t
 
 
-def _array(a, name: str) -> np.ndarray:
-    """Float numpy array from numpy / list / torch tensor (without importing torch)."""
+def as_array(a, name: str = "the input", dtype=float) -> np.ndarray:
+    """Numpy array from numpy / list / torch tensor (without importing torch)."""
     if hasattr(a, "detach") and hasattr(a, "cpu"):
         a = a.detach().cpu().numpy()
     try:
-        return np.asarray(a, dtype=float)
+        return np.asarray(a, dtype=dtype)
     except (TypeError, ValueError) as exc:
         raise KitInputError(f"{name} must be a numeric array, got {type(a).__name__} ({exc})") from None
 

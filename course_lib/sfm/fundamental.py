@@ -202,20 +202,6 @@ def eight_point(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 
 
-def _check_F(F, name: str = "F") -> np.ndarray:
-    try:
-        F = np.asarray(F, dtype=float)
-    except (TypeError, ValueError):
-        raise KitInputError(f"{name} must be a numeric (3, 3) matrix, got {type(F).__name__}") from None
-    if F.shape != (3, 3):
-        raise KitInputError(f"{name} has shape {F.shape}: expected the (3, 3) fundamental matrix")
-    if not np.isfinite(F).all():
-        raise KitInputError(f"{name} contains NaN or inf")
-    if not np.abs(F).max() > 0:
-        raise KitInputError(f"{name} is all zeros: it is not a valid fundamental matrix")
-    return F
-
-
 def sampson_distance_batch(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """Sampson distances (pixels) of ``N`` matches to ``B`` fundamental matrices, without input checks.
 
@@ -267,7 +253,7 @@ def sampson_distance(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarra
 
     Introduced in notebooks/01_fundamental_matrix.ipynb.
     """
-    F = _check_F(F)
+    F = validate.matrix3x3(F, "F", "fundamental matrix")
     x1, x2 = validate.matching_points(x1, x2)
     return sampson_distance_batch(F[None], x1, x2)[0]
 

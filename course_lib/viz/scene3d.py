@@ -77,7 +77,7 @@ from pathlib import Path
 import numpy as np
 import plotly.graph_objects as go
 
-from course_lib.validate import KitInputError, camera_poses, intrinsics, rotation
+from course_lib.validate import KitInputError, as_array, camera_poses, intrinsics, rotation
 
 __all__ = [
     "scene_figure",
@@ -100,12 +100,7 @@ _POINT_META = "course_lib:points"
 # ----------------------------------------------------------------------------- input helpers
 def _np(a, dtype=float) -> np.ndarray:
     """numpy array from numpy / list / torch tensor (without importing torch)."""
-    if hasattr(a, "detach") and hasattr(a, "cpu"):
-        a = a.detach().cpu().numpy()
-    try:
-        return np.asarray(a, dtype=dtype)
-    except (TypeError, ValueError) as exc:
-        raise KitInputError(f"expected a numeric array, got {type(a).__name__} ({exc})") from None
+    return as_array(a, "the input", dtype)
 
 
 def _rows(a, name: str, dim: int = 3) -> np.ndarray:
