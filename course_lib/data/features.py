@@ -71,20 +71,24 @@ def root_sift(descriptors: np.ndarray) -> np.ndarray:
     return np.sqrt(d / np.maximum(d.sum(axis=1, keepdims=True), 1e-12))
 
 
-def detect_features(images: list[np.ndarray], max_features: int = 0, rootsift: bool = False) -> list[Features]:
+def detect_features(images: list[np.ndarray], max_features: int = 0, rootsift: bool = False,
+                    contrast_threshold: float = 0.04) -> list[Features]:
     """SIFT features of every image (OpenCV), sorted by position.
 
     Args:
         images: M ``(H, W, 3)`` uint8 RGB images.
         max_features: keep at most this many per image (the strongest; 0: all, OpenCV's default).
         rootsift: replace the descriptors by :func:`root_sift`.
+        contrast_threshold: OpenCV's ``contrastThreshold`` (its default 0.04 keeps extrema of
+            contrast >= 0.04 / 3 on a [0, 1] image; COLMAP's ``peak_threshold`` 0.02 / 3 is the
+            same rule at 0.02: more features on weak texture).
 
     Returns:
         M :class:`Features`.
     """
     import cv2
 
-    sift = cv2.SIFT_create(nfeatures=int(max_features))
+    sift = cv2.SIFT_create(nfeatures=int(max_features), contrastThreshold=float(contrast_threshold))
     out = []
     for img in images:
         gray = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
@@ -136,20 +140,20 @@ def match_descriptors(f1: Features, f2: Features, ratio: float = RATIO, matcher=
 
 
 def detect_and_match(images: list[np.ndarray], ratio: float = RATIO, max_features: int = 0,
-                     rootsift: bool = False) -> dict:
+                     rootsift: bool = False, contrast_threshold: float = 0.04) -> dict:
     """SIFT features of every image, matched across all pairs (ratio test + mutual nearest neighbour).
 
     Args:
         images: M ``(H, W, 3)`` uint8 RGB images.
         ratio: Lowe's ratio (the best match must be closer than ``ratio`` times the second best).
-        max_features, rootsift: see :func:`detect_features`.
+        max_features, rootsift, contrast_threshold: see :func:`detect_features`.
 
     Returns:
         ``{(i, j): (x1 (N, 2), x2 (N, 2))}`` for every pair ``i < j`` with matches (float64 pixels).
     """
     import cv2
 
-    feats = detect_features(images, max_features, rootsift)
+    feats = detect_features(images, max_features, rootsift, contrast_threshold)
     bf = cv2.BFMatcher(cv2.NORM_L2)
     pairs = {}
     for i in range(len(feats)):

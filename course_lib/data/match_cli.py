@@ -180,7 +180,8 @@ class MatchResult:
 
 
 def match_images(images: list[np.ndarray], ratio: float = 0.8, verify: bool = True, verify_px: float = 2.0,
-                 min_pair_matches: int = 15, rng: np.random.Generator | None = None) -> MatchResult:
+                 min_pair_matches: int = 15, rng: np.random.Generator | None = None, rootsift: bool = False,
+                 max_features: int = 0, contrast_threshold: float = 0.04) -> MatchResult:
     """SIFT matches of all pairs (ratio test), optionally verified by an F-RANSAC, joined into tracks.
 
     Args:
@@ -189,6 +190,7 @@ def match_images(images: list[np.ndarray], ratio: float = 0.8, verify: bool = Tr
         verify: geometric verification of each pair (:func:`course_lib.data.features.keep_geometric_inliers`).
         verify_px, min_pair_matches: its threshold and the fewest inliers a pair keeps.
         rng: generator for RANSAC (default: seed 0).
+        rootsift, max_features, contrast_threshold: see :func:`course_lib.data.features.detect_features`.
 
     Returns:
         :class:`MatchResult`.
@@ -209,7 +211,7 @@ def match_images(images: list[np.ndarray], ratio: float = 0.8, verify: bool = Tr
         if im.shape != np.shape(images[0]):
             raise KitInputError(f"image {k} is {im.shape[1]}x{im.shape[0]} but image 0 is {images[0].shape[1]}x{images[0].shape[0]}: one size (one K) for all")
     rng = np.random.default_rng(0) if rng is None else rng
-    pairs = detect_and_match(images, ratio)
+    pairs = detect_and_match(images, ratio, max_features, rootsift, contrast_threshold)
     raw = {k: len(v[0]) for k, v in pairs.items()}
     if verify:
         pairs, ver = keep_geometric_inliers(pairs, rng, verify_px, min_pair_matches)
