@@ -25,7 +25,8 @@ Usage::
 
     python benchmarks/match_vs_colmap.py                     # every set, default match settings
     python benchmarks/match_vs_colmap.py --sets wpi ring     # some of them
-    python benchmarks/match_vs_colmap.py --variants          # also the match settings that explain a gap
+    python benchmarks/match_vs_colmap.py --variants          # also every match setting that may explain a gap
+    python benchmarks/match_vs_colmap.py --variants RootSIFT "contrast 0.02"   # some of them
     python benchmarks/match_vs_colmap.py --cache /tmp/rings  # keep the rendered rings between runs
 """
 
@@ -249,12 +250,17 @@ def main(argv=None) -> int:
     ap.add_argument("--sets", nargs="*", default=["wpi", "upenn", "embedded", "ring", "ring-poor"],
                     help="photo sets: wpi upenn embedded ring ring-poor (default: all)")
     ap.add_argument("--views", type=int, default=16, help="views of the rendered rings (default 16)")
-    ap.add_argument("--variants", action="store_true", help="also run match with the settings of VARIANTS")
+    ap.add_argument("--variants", nargs="*", default=None, metavar="NAME",
+                    help=f"also run match with these settings (no name: all of them): {', '.join(map(repr, VARIANTS))}")
     ap.add_argument("--cache", type=Path, default=None, help="folder that keeps the rendered ring photos between runs")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = ap.parse_args(argv)
-    variants = VARIANTS if args.variants else {"kit default": {}}
+    names = ["kit default"] + ([v for v in VARIANTS if v != "kit default"] if args.variants == [] else list(args.variants or []))
+    unknown = [v for v in names if v not in VARIANTS]
+    if unknown:
+        ap.error(f"unknown variant(s) {unknown}; known: {list(VARIANTS)}")
+    variants = {v: VARIANTS[v] for v in dict.fromkeys(names)}
     rows = []
     for name in args.sets:
         if name in ("wpi", "upenn"):

@@ -30,7 +30,7 @@ from course_lib import validate
 from course_lib.validate import KitInputError
 
 __all__ = ["SIFT_OFFSET", "RATIO", "Features", "detect_features", "root_sift", "match_descriptors",
-           "detect_and_match", "keep_geometric_inliers", "track_colours", "tracks_from_images"]
+           "check_ratio", "detect_and_match", "keep_geometric_inliers", "track_colours", "tracks_from_images"]
 
 #: OpenCV SIFT's keypoint offset from the kit's pixel convention (subtracted; see :func:`detect_features`).
 SIFT_OFFSET = 0.25
@@ -139,6 +139,17 @@ def match_descriptors(f1: Features, f2: Features, ratio: float = RATIO, matcher=
     return np.array(sel, int).reshape(-1, 2)
 
 
+def check_ratio(ratio) -> float:
+    """Check Lowe's ratio: a number in (0, 1]."""
+    try:
+        r = float(ratio)
+    except (TypeError, ValueError):
+        r = float("nan")
+    if not 0.0 < r <= 1.0:
+        raise KitInputError(f"ratio = {ratio!r}: Lowe's ratio must be in (0, 1] (0.8 is usual; smaller is stricter)")
+    return r
+
+
 def detect_and_match(images: list[np.ndarray], ratio: float = RATIO, max_features: int = 0,
                      rootsift: bool = False, contrast_threshold: float = 0.04) -> dict:
     """SIFT features of every image, matched across all pairs (ratio test + mutual nearest neighbour).
@@ -153,6 +164,7 @@ def detect_and_match(images: list[np.ndarray], ratio: float = RATIO, max_feature
     """
     import cv2
 
+    check_ratio(ratio)
     feats = detect_features(images, max_features, rootsift, contrast_threshold)
     bf = cv2.BFMatcher(cv2.NORM_L2)
     pairs = {}
@@ -225,8 +237,6 @@ def tracks_from_images(images: list[np.ndarray], ratio: float = RATIO):
     """
     from course_lib.data.p3 import tracks_from_pairs
 
-    if not 0.0 < float(ratio) <= 1.0:
-        raise KitInputError(f"ratio = {ratio!r}: Lowe's ratio must be in (0, 1] (0.8 is usual; smaller is stricter)")
     pairs = detect_and_match(images, ratio)
     track_uv, _, tstats = tracks_from_pairs(len(images), pairs)
     return track_uv, track_colours(track_uv, images), pairs, tstats

@@ -197,13 +197,12 @@ def match_images(images: list[np.ndarray], ratio: float = 0.8, verify: bool = Tr
 
     Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
     """
-    from course_lib.data.features import detect_and_match, keep_geometric_inliers, track_colours
+    from course_lib.data.features import check_ratio, detect_and_match, keep_geometric_inliers, track_colours
     from course_lib.data.p3 import tracks_from_pairs
 
     if len(images) < 2:
         raise KitInputError(f"{len(images)} image(s): matching needs at least 2")
-    if not 0.0 < float(ratio) <= 1.0:
-        raise KitInputError(f"ratio = {ratio!r}: Lowe's ratio must be in (0, 1] (0.8 is usual; smaller is stricter)")
+    check_ratio(ratio)
     for k, im in enumerate(images):
         im = np.asarray(im)
         if im.dtype != np.uint8 or im.ndim != 3 or im.shape[2] != 3:
