@@ -1,17 +1,18 @@
 """Command line of the kit: ``python -m course_lib <command> ...``.
 
 Each command lives in a module that defines ``add_arguments(parser)`` and ``run(args) -> int``;
-this file only lists them. Bad input (a wrong path, a malformed file) ends with a one-line
-message that says what to fix and exit status 2, never a traceback.
+this file only lists them, and imports only the module of the command that runs (``--help``
+imports none of them: torch, nbformat and plotly are loaded by the commands that use them).
+Bad input (a wrong path, a malformed file) ends with a one-line message that says what to fix
+and exit status 2, never a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
 import sys
-
-from course_lib.validate import KitInputError
 
 #: command name -> (module, one-line help)
 COMMANDS = {
@@ -28,28 +29,42 @@ COMMANDS = {
 }
 
 
-def main(argv: list[str] | None = None) -> int:
+def available(module: str) -> bool:
+    """Whether ``module`` is part of this copy of the kit (the student release leaves some out), without importing it."""
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ModuleNotFoundError:  # its package is left out
+        return False
+
+
+def build_parser(command: str | None) -> argparse.ArgumentParser:
+    """The parser, with the arguments of ``command`` only (the others are listed by name and help)."""
     parser = argparse.ArgumentParser(prog="python -m course_lib", description="The SfM + NeRF course kit.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    runners = {}
     for name, (module, help_text) in COMMANDS.items():
+        if not available(module):
+            continue
         p = sub.add_parser(name, help=help_text, description=help_text)
-        try:
-            mod = importlib.import_module(module)
-        except ModuleNotFoundError as exc:
-            if exc.name != module:
-                raise
-            continue  # a command whose module is not part of this release
-        mod.add_arguments(p)
-        runners[name] = mod.run
+        if name == command:
+            importlib.import_module(module).add_arguments(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = argv[0] if argv and argv[0] in COMMANDS else None
+    parser = build_parser(command)
+    if command is not None and not available(COMMANDS[command][0]):
+        parser.error(f"the command {command!r} is not available in this copy of the kit")
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
         return 0
-    if args.command not in runners:
-        parser.error(f"the command {args.command!r} is not available in this copy of the kit")
+    from course_lib.validate import KitInputError
+
+    runner = importlib.import_module(COMMANDS[args.command][0]).run
     try:
-        return int(runners[args.command](args) or 0)
+        return int(runner(args) or 0)
     except (KitInputError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

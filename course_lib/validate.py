@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["KitInputError", "points", "matching_points", "intrinsics", "rotation", "vector3", "existing_path", "output_dir"]
+__all__ = ["KitInputError", "points", "matching_points", "intrinsics", "rotation", "vector3", "matrix3x3", "as_array", "camera_poses", "generator", "positive", "probability",
+           "count", "choice", "existing_path", "output_dir"]
 
 
 class KitInputError(ValueError):
@@ -108,6 +109,108 @@ def vector3(t, name: str = "t") -> np.ndarray:
     if not np.isfinite(t).all():
         raise KitInputError(f"{name} contains NaN or inf")
     return t.reshape(3)
+
+
+def matrix3x3(M, name: str, what: str) -> np.ndarray:
+    """Check and return a finite, non-zero ``(3, 3)`` float matrix (``what``: "fundamental matrix", ...)."""
+    try:
+        M = np.asarray(M, dtype=float)
+    except (TypeError, ValueError):
+        raise KitInputError(f"{name} must be a numeric (3, 3) matrix, got {type(M).__name__}") from None
+    if M.shape != (3, 3):
+        raise KitInputError(f"{name} has shape {M.shape}: expected the (3, 3) {what}")
+    if not np.isfinite(M).all():
+        raise KitInputError(f"{name} contains NaN or inf")
+    if not np.abs(M).max() > 0:
+        raise KitInputError(f"{name} is all zeros: it is not a valid {what}")
+    return M
+
+
+def camera_poses(R_cw, t_cw, atol: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
+    """Check and return the poses of ``M`` cameras as float arrays ``R_cw (M, 3, 3)``, ``t_cw (M, 3)``.
+
+    One camera may be given as ``R_cw (3, 3)``, ``t_cw (3,)``; ``t_cw (M, 3, 1)`` is accepted; torch
+    tensors are read without importing torch.
+
+    Raises:
+        KitInputError: wrong shapes, a matrix that is not a rotation, or a non-finite translation.
+    """
+    R, t = (as_array(a, name) for a, name in ((R_cw, "R_cw"), (t_cw, "t_cw")))
+    if R.shape == (3, 3):
+        R = R[None]
+    if t.shape in ((3,), (3, 1)) and R.shape[0] == 1:
+        t = t.reshape(1, 3)
+    if R.ndim != 3 or R.shape[1:] != (3, 3):
+        raise KitInputError(f"R_cw has shape {_shape(R)}: expected (M, 3, 3) (one rotation per camera)")
+    if t.ndim == 3 and t.shape[1:] == (3, 1):
+        t = t[..., 0]
+    if t.shape != (R.shape[0], 3):
+        raise KitInputError(f"t_cw has shape {_shape(t)}: expected ({R.shape[0]}, 3) to match R_cw {_shape(R)}")
+    for i, Ri in enumerate(R):
+        rotation(Ri, name=f"R_cw[{i}]", atol=atol)
+    if not np.isfinite(t).all():
+        raise KitInputError("t_cw contains NaN or inf")
+    return R, t
+
+
+def as_array(a, name: str = "the input", dtype=float) -> np.ndarray:
+    """Numpy array from numpy / list / torch tensor (without importing torch)."""
+    if hasattr(a, "detach") and hasattr(a, "cpu"):
+        a = a.detach().cpu().numpy()
+    try:
+        return np.asarray(a, dtype=dtype)
+    except (TypeError, ValueError) as exc:
+        raise KitInputError(f"{name} must be a numeric array, got {type(a).__name__} ({exc})") from None
+
+
+def generator(rng, name: str = "rng") -> np.random.Generator:
+    """Check that ``rng`` is a ``numpy.random.Generator`` (every stochastic function takes one)."""
+    if not isinstance(rng, np.random.Generator):
+        raise KitInputError(
+            f"{name} must be a numpy.random.Generator (e.g. np.random.default_rng(0)), got {type(rng).__name__}"
+        )
+    return rng
+
+
+def positive(x, name: str, what: str = "a positive number") -> float:
+    """Check and return a finite number ``> 0`` (``what`` names it in the message: "a positive number of pixels")."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        raise KitInputError(f"{name}={x!r}: expected {what}") from None
+    if not (np.isfinite(v) and v > 0):
+        raise KitInputError(f"{name}={x}: expected {what}")
+    return v
+
+
+def probability(p, name: str = "confidence") -> float:
+    """Check and return a probability strictly between 0 and 1."""
+    try:
+        v = float(p)
+    except (TypeError, ValueError):
+        v = float("nan")
+    if not 0.0 < v < 1.0:
+        raise KitInputError(f"{name}={p}: expected a probability strictly between 0 and 1")
+    return v
+
+
+def count(n, name: str, minimum: int = 0) -> int:
+    """Check and return a whole number ``>= minimum`` (an iteration count, a size)."""
+    try:
+        v = int(n)
+    except (TypeError, ValueError):
+        raise KitInputError(f"{name}={n!r}: expected a whole number >= {minimum}") from None
+    if v < minimum:
+        raise KitInputError(f"{name}={n}: expected at least {minimum}")
+    return v
+
+
+def choice(value, name: str, options: dict):
+    """Check that ``value`` is one of ``options`` (``{value: what it means}``), with all of them in the message."""
+    if value not in options:
+        listed = ", ".join(f"{k!r} ({v})" for k, v in options.items())
+        raise KitInputError(f"{name}={value!r}: expected one of {listed}")
+    return value
 
 
 def existing_path(path, what: str) -> Path:

@@ -5,8 +5,8 @@ course's own data:
 
 * ``data/synthetic-building/`` -- an SfM capture in the course's P3 format: 6 photos (800x600
   JPEG, K like the WPI camera) taken while walking past the building, SIFT features matched
-  across all pairs with OpenCV (ratio test, so there are real outliers, as in the course data),
-  joined into tracks and written with :func:`course_lib.data.p3.write_p3`, plus
+  across all pairs with OpenCV (ratio test, so there are real outliers, as in the course data;
+  :mod:`course_lib.data.features`), joined into tracks and written with :func:`course_lib.data.p3.write_p3`, plus
   ``ground_truth.json`` with the true cameras (read it with :func:`load_ground_truth`).
 * ``data/synthetic-building-nerf/`` -- the same building (on a bounded base slab, no infinite
   ground) seen from ~100 views on the upper hemisphere at 100x100, RGBA with a transparent
@@ -57,9 +57,7 @@ __all__ = [
     "sfm_cameras",
     "nerf_cameras",
     "orbit_camera",
-    "detect_and_match",
     "sfm_photos",
-    "tracks_from_images",
     "make_sfm_dataset",
     "make_nerf_dataset",
     "load_ground_truth",
@@ -72,10 +70,6 @@ DEFAULT_SEED = 2024
 GENERATOR = "course_lib.data.building v1"
 #: Image size of the SfM photos (W, H).
 SFM_IMAGE_SIZE = (800, 600)
-#: OpenCV SIFT's keypoint offset from the kit's pixel convention (subtracted; see detect_and_match).
-SIFT_OFFSET = 0.25
-#: Lowe's ratio for the SIFT matches.
-RATIO = 0.8
 #: NeRF: scene centre (world, metres) and scale into the NeRF frame, camera distance, field of view.
 NERF_CENTER = np.array([0.0, -1.0, 2.5])
 NERF_SCALE = 0.2
@@ -514,58 +508,6 @@ def _to_uint8(rgb: np.ndarray) -> np.ndarray:
     return np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
 
 
-def detect_and_match(images: list[np.ndarray], ratio: float = RATIO) -> dict:
-    """SIFT features of every image, matched across all pairs (ratio test + mutual nearest neighbour).
-
-    Keypoints are sorted by position so that the result does not depend on OpenCV's threading.
-
-    Args:
-        images: M ``(H, W, 3)`` uint8 RGB images.
-        ratio: Lowe's ratio (the best match must be closer than ``ratio`` times the second best).
-
-    Returns:
-        ``{(i, j): (x1 (N, 2), x2 (N, 2))}`` for every pair ``i < j`` with matches (float64 pixels).
-    """
-    import cv2
-
-    sift = cv2.SIFT_create()
-    feats = []
-    for img in images:
-        gray = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
-        kps, des = sift.detectAndCompute(gray, None)
-        # OpenCV's SIFT reports points 0.25 px right of and below the kit's pixel-centre convention
-        # (measured on Gaussian blobs at known sub-pixel positions: +0.250 +- 0.02 px at every
-        # scale; it comes from the doubled first octave). Left in, it acts like a principal point
-        # shifted by a quarter pixel and costs ~0.03 deg of rotation accuracy.
-        pts = np.array([k.pt for k in kps], np.float64).reshape(-1, 2) - SIFT_OFFSET
-        key = np.array([(k.pt[1], k.pt[0], k.size, k.angle, k.response) for k in kps]).reshape(-1, 5)
-        order = np.lexsort(key.T[::-1])
-        feats.append((pts[order], np.ascontiguousarray(des[order])))
-    bf = cv2.BFMatcher(cv2.NORM_L2)
-    pairs = {}
-    M = len(images)
-    for i in range(M):
-        for j in range(i + 1, M):
-            (p1, d1), (p2, d2) = feats[i], feats[j]
-            if len(p1) < 2 or len(p2) < 2:
-                continue
-            fwd = bf.knnMatch(d1, d2, k=2)
-            bwd = bf.match(d2, d1)
-            back = np.full(len(p2), -1)
-            for m in bwd:
-                back[m.queryIdx] = m.trainIdx
-            sel = []
-            for m in fwd:
-                if len(m) == 2 and m[0].distance < ratio * m[1].distance:
-                    q, tr = m[0].queryIdx, m[0].trainIdx
-                    if back[tr] == q or np.array_equal(p1[back[tr]], p1[q]):
-                        sel.append((q, tr))
-            if sel:
-                sel = np.array(sel)
-                pairs[(i, j)] = (p1[sel[:, 0]], p2[sel[:, 1]])
-    return pairs
-
-
 # ============================================================================ data sets
 
 
@@ -601,31 +543,6 @@ def sfm_photos(seed: int = DEFAULT_SEED, n_cameras: int = 6, quality: int = 88, 
         yield _jpeg_roundtrip(_to_uint8(rgb), quality)
 
 
-def tracks_from_images(images: list[np.ndarray], ratio: float = RATIO):
-    """SIFT matches of all pairs joined into tracks, with each track's colour.
-
-    Args:
-        images: M ``(H, W, 3)`` uint8 RGB images.
-        ratio: Lowe's ratio.
-
-    Returns:
-        ``track_uv (T, M, 2)``, ``track_rgb (T, 3)`` uint8 (colour at the first observation),
-        ``pairs`` (the raw matches of :func:`detect_and_match`) and the stats of
-        :func:`course_lib.data.p3.tracks_from_pairs`.
-    """
-    from course_lib.data.p3 import tracks_from_pairs
-
-    pairs = detect_and_match(images, ratio)
-    track_uv, _, tstats = tracks_from_pairs(len(images), pairs)
-    first = np.argmax(~np.isnan(track_uv[..., 0]), axis=1)
-    uv0 = track_uv[np.arange(len(track_uv)), first]
-    H, W = images[0].shape[:2]
-    cols = np.clip(np.round(uv0[:, 0]).astype(int), 0, W - 1)
-    rows = np.clip(np.round(uv0[:, 1]).astype(int), 0, H - 1)
-    track_rgb = np.stack([images[f][r, c] for f, r, c in zip(first, rows, cols)]) if len(first) else np.zeros((0, 3), np.uint8)
-    return track_uv, track_rgb, pairs, tstats
-
-
 def make_sfm_dataset(folder, seed: int = DEFAULT_SEED, n_cameras: int = 6, quality: int = 88, verbose: bool = False) -> dict:
     """Render the SfM photos, match SIFT features and write a P3 folder with ground truth.
 
@@ -639,6 +556,7 @@ def make_sfm_dataset(folder, seed: int = DEFAULT_SEED, n_cameras: int = 6, quali
     Returns:
         Summary dict (tracks, raw matches per pair, track-building stats).
     """
+    from course_lib.data.features import tracks_from_images
     from course_lib.data.p3 import write_p3
 
     folder = Path(folder)

@@ -15,10 +15,11 @@ SfM lessons read (:mod:`course_lib.data.p3`), so a student's own photos become c
    W' = round(W / F) pixels, ``s = W' / W`` and ``u' = s (u + 0.5) - 0.5``, so
    ``fx' = s fx`` and ``cx' = s (cx + 0.5) - 0.5`` (likewise ``fy, cy`` with H' / H).
 4. **SIFT + ratio test across all pairs**, with
-   :func:`course_lib.data.building.detect_and_match` (OpenCV SIFT, Lowe's ratio, mutual nearest
+   :func:`course_lib.data.features.detect_and_match` (OpenCV SIFT, Lowe's ratio, mutual nearest
    neighbour, the +0.25 px SIFT offset corrected) -- the same code that made the embedded scene.
 5. **Geometric verification** of every pair (new here): a fundamental matrix is fitted by
-   RANSAC (OpenCV's, seeded, threshold ``--verify-px``; see :func:`verify_pairs`) and only its
+   RANSAC (the kit's, seeded, Sampson threshold ``--verify-px``; see
+   :func:`course_lib.data.features.keep_geometric_inliers`) and only its
    inliers are kept; pairs with fewer than
    ``--min-pair-matches`` inliers are dropped. Without it, one wrong match between two
    otherwise separate features joins their tracks, and with many views the reader's
@@ -49,7 +50,7 @@ import numpy as np
 from course_lib.validate import KitInputError, intrinsics, output_dir
 
 __all__ = ["IMAGE_SUFFIXES", "MatchResult", "list_images", "load_images", "scale_intrinsics", "downscale_images",
-           "verify_pairs", "match_images", "match_folder", "add_arguments", "run"]
+           "match_images", "match_folder", "add_arguments", "run"]
 
 #: File suffixes read as images (case-insensitive).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -159,42 +160,6 @@ def downscale_images(images: list[np.ndarray], K, factor: float) -> tuple[list[n
     return out, scale_intrinsics(K, (W, H), (W2, H2))
 
 
-def verify_pairs(pairs: dict, rng: np.random.Generator, threshold_px: float = 2.0, min_matches: int = 15) -> tuple[dict, dict]:
-    """Keep the matches of each pair that fit one fundamental matrix (OpenCV's RANSAC, seeded).
-
-    This is plumbing, not the lesson (the lesson's RANSAC is
-    :func:`course_lib.sfm.fundamental.ransac_fundamental`, which the SfM pipeline runs again on
-    the written matches): OpenCV's ``findFundamentalMat(FM_RANSAC)`` (C++) is much faster on the
-    hundreds of mostly empty pairs of a 40-view capture. ``cv2.setRNGSeed`` with a seed drawn
-    from ``rng`` makes it repeatable.
-
-    Args:
-        pairs: ``{(i, j): (x1 (N, 2), x2 (N, 2))}`` (:func:`course_lib.data.building.detect_and_match`).
-        rng: seeded generator.
-        threshold_px: distance to the epipolar line, pixels.
-        min_matches: pairs with fewer inliers (or fewer matches) are dropped.
-
-    Returns:
-        ``(verified pairs, {(i, j): number of inliers})`` (the counts include dropped pairs).
-    """
-    import cv2
-
-    out, counts = {}, {}
-    for key in sorted(pairs):
-        x1, x2 = pairs[key]
-        if len(x1) < max(8, min_matches):
-            counts[key] = 0
-            continue
-        cv2.setRNGSeed(int(rng.integers(2**31 - 1)))
-        F, mask = cv2.findFundamentalMat(np.ascontiguousarray(x1, np.float64), np.ascontiguousarray(x2, np.float64),
-                                         cv2.FM_RANSAC, float(threshold_px), 0.999, 2000)
-        inl = mask.ravel().astype(bool) if mask is not None and F is not None and F.shape == (3, 3) else np.zeros(len(x1), bool)
-        counts[key] = int(inl.sum())
-        if inl.sum() >= min_matches:
-            out[key] = (x1[inl], x2[inl])
-    return out, counts
-
-
 @dataclass
 class MatchResult:
     """Tracks of a set of photos, ready for :func:`course_lib.data.p3.write_p3`.
@@ -215,28 +180,29 @@ class MatchResult:
 
 
 def match_images(images: list[np.ndarray], ratio: float = 0.8, verify: bool = True, verify_px: float = 2.0,
-                 min_pair_matches: int = 15, rng: np.random.Generator | None = None) -> MatchResult:
+                 min_pair_matches: int = 15, rng: np.random.Generator | None = None, rootsift: bool = False,
+                 max_features: int = 0, contrast_threshold: float = 0.04) -> MatchResult:
     """SIFT matches of all pairs (ratio test), optionally verified by an F-RANSAC, joined into tracks.
 
     Args:
         images: M >= 2 ``(H, W, 3)`` uint8 RGB images of one size.
         ratio: Lowe's ratio in (0, 1].
-        verify: geometric verification of each pair (:func:`verify_pairs`).
+        verify: geometric verification of each pair (:func:`course_lib.data.features.keep_geometric_inliers`).
         verify_px, min_pair_matches: its threshold and the fewest inliers a pair keeps.
         rng: generator for RANSAC (default: seed 0).
+        rootsift, max_features, contrast_threshold: see :func:`course_lib.data.features.detect_features`.
 
     Returns:
         :class:`MatchResult`.
 
     Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
     """
-    from course_lib.data.building import detect_and_match
+    from course_lib.data.features import check_ratio, detect_and_match, keep_geometric_inliers, track_colours
     from course_lib.data.p3 import tracks_from_pairs
 
     if len(images) < 2:
         raise KitInputError(f"{len(images)} image(s): matching needs at least 2")
-    if not 0.0 < float(ratio) <= 1.0:
-        raise KitInputError(f"ratio = {ratio!r}: Lowe's ratio must be in (0, 1] (0.8 is usual; smaller is stricter)")
+    check_ratio(ratio)
     for k, im in enumerate(images):
         im = np.asarray(im)
         if im.dtype != np.uint8 or im.ndim != 3 or im.shape[2] != 3:
@@ -244,24 +210,15 @@ def match_images(images: list[np.ndarray], ratio: float = 0.8, verify: bool = Tr
         if im.shape != np.shape(images[0]):
             raise KitInputError(f"image {k} is {im.shape[1]}x{im.shape[0]} but image 0 is {images[0].shape[1]}x{images[0].shape[0]}: one size (one K) for all")
     rng = np.random.default_rng(0) if rng is None else rng
-    pairs = detect_and_match(images, ratio)
+    pairs = detect_and_match(images, ratio, max_features, rootsift, contrast_threshold)
     raw = {k: len(v[0]) for k, v in pairs.items()}
     if verify:
-        pairs, ver = verify_pairs(pairs, rng, verify_px, min_pair_matches)
+        pairs, ver = keep_geometric_inliers(pairs, rng, verify_px, min_pair_matches)
     else:
         ver = dict(raw)
     M = len(images)
     track_uv, _, tstats = tracks_from_pairs(M, pairs)
-    # colour of each track at its first observation (as tracks_from_images does)
-    if len(track_uv):
-        first = np.argmax(~np.isnan(track_uv[..., 0]), axis=1)
-        uv0 = track_uv[np.arange(len(track_uv)), first]
-        H, W = images[0].shape[:2]
-        cols = np.clip(np.round(uv0[:, 0]).astype(int), 0, W - 1)
-        rows = np.clip(np.round(uv0[:, 1]).astype(int), 0, H - 1)
-        track_rgb = np.stack([images[f][r, c] for f, r, c in zip(first, rows, cols)]).astype(np.uint8)
-    else:
-        track_rgb = np.zeros((0, 3), np.uint8)
+    track_rgb = track_colours(track_uv, images)
     return MatchResult(track_uv, track_rgb, raw, ver, dict(tstats))
 
 

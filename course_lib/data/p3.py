@@ -53,7 +53,7 @@ import numpy as np
 
 from course_lib.validate import KitInputError, intrinsics
 
-__all__ = ["PairMatches", "P3Data", "read_calibration", "read_p3", "write_p3", "tracks_from_pairs", "IMAGE_EXTENSIONS"]
+__all__ = ["PairMatches", "P3Data", "read_calibration", "read_p3", "write_p3", "tracks_from_pairs", "UnionFind", "IMAGE_EXTENSIONS"]
 
 #: Image file extensions the reader looks for, in order of preference (``1.png`` before ``1.jpg``).
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp")
@@ -215,15 +215,30 @@ def read_calibration(path) -> np.ndarray:
 # matching files
 
 
-class _UnionFind:
-    def __init__(self):
-        self.parent: list[int] = []
+class UnionFind:
+    """Disjoint sets of the nodes ``0 .. n-1`` (union-find with path compression).
 
-    def add(self) -> int:
+    The root of a set is its smallest node, so sets come out in order of first appearance. With
+    ``groups`` (one integer per node, e.g. its image), two sets that hold nodes of the same group
+    are never joined: a track holds at most one feature per image.
+
+    Used by the P3 reader (tracks are the connected components of the correspondences) and by
+    :func:`course_lib.sfm.tracks.join_tracks` (verified matches, conflicting links refused).
+    """
+
+    def __init__(self, n: int = 0, groups=None):
+        self.parent: list[int] = list(range(int(n)))
+        self._groups = None if groups is None else [1 << int(g) for g in groups]  # bit mask per root
+
+    def add(self, group: int | None = None) -> int:
+        """A new node in a set of its own; returns its id."""
         self.parent.append(len(self.parent))
+        if self._groups is not None:
+            self._groups.append(1 << int(group))
         return len(self.parent) - 1
 
     def find(self, a: int) -> int:
+        """The root of ``a``'s set."""
         p = self.parent
         root = a
         while p[root] != root:
@@ -232,23 +247,40 @@ class _UnionFind:
             p[a], a = root, p[a]
         return root
 
-    def union(self, a: int, b: int) -> None:
+    def union(self, a: int, b: int) -> bool:
+        """Join the sets of ``a`` and ``b``; False (and nothing joined) if they share a group."""
         ra, rb = self.find(a), self.find(b)
-        if ra != rb:
-            if ra < rb:
-                self.parent[rb] = ra
-            else:
-                self.parent[ra] = rb
+        if ra == rb:
+            return True
+        if ra > rb:
+            ra, rb = rb, ra
+        if self._groups is not None:
+            if self._groups[ra] & self._groups[rb]:
+                return False
+            self._groups[ra] |= self._groups[rb]
+        self.parent[rb] = ra
+        return True
 
 
-def _parse_number(tok: str, where: str) -> float:
+def _parse_numbers(tokens: list[str], where: str) -> list[float]:
+    """The tokens of one row as finite floats (the message names the first bad token)."""
     try:
-        x = float(tok)
+        vals = [float(t) for t in tokens]
     except ValueError:
-        raise KitInputError(f"{where}: {tok!r} is not a number") from None
-    if not math.isfinite(x):
-        raise KitInputError(f"{where}: value {tok!r} is not finite (NaN or inf); fix or remove that row")
-    return x
+        bad = next(t for t in tokens if not _is_number(t))
+        raise KitInputError(f"{where}: {bad!r} is not a number") from None
+    if not all(map(math.isfinite, vals)):
+        bad = next(t for t, x in zip(tokens, vals) if not math.isfinite(x))
+        raise KitInputError(f"{where}: value {bad!r} is not finite (NaN or inf); fix or remove that row")
+    return vals
+
+
+def _is_number(tok: str) -> bool:
+    try:
+        float(tok)
+    except ValueError:
+        return False
+    return True
 
 
 def _parse_image_id(x: float, where: str, what: str) -> int:
@@ -265,86 +297,138 @@ def _find_image(folder: Path, image_id: int) -> str | None:
     return None
 
 
-def _build_tracks(node_key, edges, M, uf=None):
-    """Tracks from the correspondence graph, with the inconsistency rule of the module docstring.
+class _CorrespondenceGraph:
+    """Features ``(image, u, v)`` as nodes, the unique correspondences of every pair as edges.
 
-    Args:
-        node_key: list of ``(image, u, v)`` per node.
-        edges: iterable of unique ``(node_a, node_b)`` pairs.
-        M: number of images.
-        uf: a :class:`_UnionFind` over the nodes with the edges already joined (built if None).
+    What the P3 reader and :func:`tracks_from_pairs` build: equal pixels in one image are one
+    feature; the components (a :class:`UnionFind` kept as edges arrive) become the tracks, with
+    the inconsistency rule of the module docstring (:meth:`tracks`).
+    """
+
+    def __init__(self):
+        self.uf = UnionFind()
+        self.node_id: dict[tuple[int, float, float], int] = {}
+        self.node_key: list[tuple[int, float, float]] = []
+        self.pair_rows: dict[tuple[int, int], dict] = {}  # (i, j), i < j -> {(n_i, n_j): rgb} in insertion order
+        self.n_correspondences = self.n_duplicates = 0
+
+    def node(self, img: int, u: float, v: float) -> int:
+        key = (img, u, v)
+        n = self.node_id.get(key)
+        if n is None:
+            n = self.node_id[key] = self.uf.add()
+            self.node_key.append(key)
+        return n
+
+    def add(self, i: int, ni: int, j: int, nj: int, rgb=None) -> None:
+        """One correspondence between node ``ni`` of image ``i`` and node ``nj`` of image ``j``."""
+        self.uf.union(ni, nj)
+        self.n_correspondences += 1
+        a, b, na, nb = (i, j, ni, nj) if i < j else (j, i, nj, ni)
+        d = self.pair_rows.setdefault((a, b), {})
+        if (na, nb) in d:
+            self.n_duplicates += 1
+        else:
+            d[(na, nb)] = rgb
+
+    def tracks(self, M: int) -> tuple[np.ndarray, np.ndarray, int, int]:
+        """``track_uv (T, M, 2)``, ``node_track (n_nodes,)`` (-1: in no track), inconsistent components, dropped observations."""
+        neighbours: dict[int, set[int]] = {}
+        for d in self.pair_rows.values():
+            for a, b in d:
+                neighbours.setdefault(a, set()).add(b)
+                neighbours.setdefault(b, set()).add(a)
+        comps: dict[int, list[int]] = {}
+        for n in range(len(self.node_key)):
+            comps.setdefault(self.uf.find(n), []).append(n)
+        tracks, n_conflict, n_dropped = [], 0, 0
+        for root in sorted(comps):  # root = smallest node id = order of first appearance
+            pieces, dropped = _consistent_pieces(comps[root], self.node_key, neighbours)
+            tracks += [p for p in pieces if len(p) >= 2]
+            n_conflict += dropped >= 0
+            n_dropped += max(dropped, 0)
+        node_track = np.full(len(self.node_key), -1, dtype=int)
+        track_uv = np.full((len(tracks), M, 2), np.nan)
+        for t, nodes in enumerate(tracks):
+            node_track[nodes] = t
+            for n in nodes:
+                track_uv[t, self.node_key[n][0]] = self.node_key[n][1:]
+        return track_uv, node_track, n_conflict, n_dropped
+
+    def track_ids(self, node_track: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+        """``(N,)`` track of each correspondence ``nodes (N, 2)``, -1 where its features are not in one track."""
+        t1, t2 = node_track[nodes[:, 0]], node_track[nodes[:, 1]]
+        return np.where((t1 == t2) & (t1 >= 0), t1, -1)
+
+    def pair_matches(self, node_track: np.ndarray) -> dict:
+        """``{(i, j): PairMatches}`` of the unique correspondences, in sorted pair order."""
+        matches = {}
+        for (a, b) in sorted(self.pair_rows):
+            d = self.pair_rows[(a, b)]
+            ns = np.array(list(d.keys()), dtype=int).reshape(-1, 2)
+            x1 = np.array([self.node_key[n][1:] for n in ns[:, 0]], float).reshape(-1, 2)
+            x2 = np.array([self.node_key[n][1:] for n in ns[:, 1]], float).reshape(-1, 2)
+            rgb = np.array(list(d.values()), np.uint8).reshape(-1, 3)
+            matches[(a, b)] = PairMatches(x1, x2, rgb, self.track_ids(node_track, ns))
+        return matches
+
+    def track_colours(self, track_uv: np.ndarray, node_track: np.ndarray) -> np.ndarray:
+        """``(T, 3)`` uint8: the colour of each track's feature in its first image, from its first row."""
+        track_rgb = np.zeros((track_uv.shape[0], 3), np.uint8)
+        rgb_set = np.zeros(track_uv.shape[0], bool)
+        first_image = np.argmax(~np.isnan(track_uv[..., 0]), axis=1) if len(track_uv) else np.zeros(0, int)
+        for d in self.pair_rows.values():
+            for (na, _), rgb in d.items():
+                t = node_track[na]
+                if t >= 0 and not rgb_set[t] and self.node_key[na][0] == first_image[t]:
+                    track_rgb[t], rgb_set[t] = rgb, True
+        return track_rgb
+
+
+def _consistent_pieces(members: list[int], node_key, neighbours) -> tuple[list[list[int]], int]:
+    """The tracks of one connected component, by the inconsistency rule of the module docstring.
 
     Returns:
-        ``track_uv (T, M, 2)``, ``node_track (n_nodes,)`` (-1: in no track), number of
-        inconsistent components, number of dropped observations.
+        The pieces (sorted node lists; those of one node are not tracks) and the number of
+        dropped observations, -1 if the component was consistent (then it is the one piece).
     """
-    edges = list(edges)
-    if uf is None:
-        uf = _UnionFind()
-        for _ in node_key:
-            uf.add()
-        for a_, b_ in edges:
-            uf.union(a_, b_)
-    neighbours: dict[int, list[int]] = {}
-    for a_, b_ in edges:
-        neighbours.setdefault(a_, []).append(b_)
-        neighbours.setdefault(b_, []).append(a_)
-    comps: dict[int, list[int]] = {}
-    for n in range(len(node_key)):
-        comps.setdefault(uf.find(n), []).append(n)
-    track_uv_list = []
-    node_track = np.full(len(node_key), -1, dtype=int)
-    n_conflict_comps = n_dropped_obs = 0
+    per_image: dict[int, list[int]] = {}
+    for n in members:
+        per_image.setdefault(node_key[n][0], []).append(n)
+    if all(len(ns) == 1 for ns in per_image.values()):
+        return [members], -1
+    # per image keep the feature with strictly the most correspondences, drop the rest (all on a tie)
+    kept: set[int] = set()
+    dropped = 0
+    for ns in per_image.values():
+        deg = sorted(((len(neighbours.get(n, ())), n) for n in ns), reverse=True)
+        if len(ns) == 1 or deg[0][0] > deg[1][0]:
+            kept.add(deg[0][1])
+            dropped += len(ns) - 1
+        else:
+            dropped += len(ns)
+    pieces = _connected_pieces(kept, neighbours)
+    return pieces, dropped + sum(len(p) == 1 for p in pieces)
 
-    def add_track(nodes: list[int]) -> None:
-        uv = np.full((M, 2), np.nan)
-        for n in nodes:
-            uv[node_key[n][0]] = node_key[n][1:]
-            node_track[n] = len(track_uv_list)
-        track_uv_list.append(uv)
 
-    for root in sorted(comps):  # root = smallest node id = order of first appearance
-        members = comps[root]
-        per_image: dict[int, list[int]] = {}
-        for n in members:
-            per_image.setdefault(node_key[n][0], []).append(n)
-        if all(len(ns) == 1 for ns in per_image.values()):
-            if len(members) >= 2:
-                add_track(members)
+def _connected_pieces(kept: set[int], neighbours) -> list[list[int]]:
+    """The connected pieces of the nodes ``kept`` (edges between kept nodes only), each sorted."""
+    done: set[int] = set()
+    pieces = []
+    for start in sorted(kept):
+        if start in done:
             continue
-        # inconsistent: per image keep the feature with strictly the most correspondences, drop the rest
-        n_conflict_comps += 1
-        kept: set[int] = set()
-        for ns in per_image.values():
-            if len(ns) == 1:
-                kept.add(ns[0])
-                continue
-            deg = sorted(((len(set(neighbours.get(n, ()))), n) for n in ns), reverse=True)
-            if deg[0][0] > deg[1][0]:
-                kept.add(deg[0][1])
-                n_dropped_obs += len(ns) - 1
-            else:
-                n_dropped_obs += len(ns)
-        # what is left may fall apart: its connected pieces (edges between kept nodes) are the tracks
-        done: set[int] = set()
-        for start in sorted(kept):
-            if start in done:
-                continue
-            piece, stack = [], [start]
-            done.add(start)
-            while stack:
-                n = stack.pop()
-                piece.append(n)
-                for m_ in neighbours.get(n, ()):
-                    if m_ in kept and m_ not in done:
-                        done.add(m_)
-                        stack.append(m_)
-            if len(piece) >= 2:
-                add_track(sorted(piece))
-            else:
-                n_dropped_obs += 1
-    track_uv = np.stack(track_uv_list) if track_uv_list else np.zeros((0, M, 2))
-    return track_uv, node_track, n_conflict_comps, n_dropped_obs
+        piece, stack = [], [start]
+        done.add(start)
+        while stack:
+            n = stack.pop()
+            piece.append(n)
+            for m in neighbours.get(n, ()):
+                if m in kept and m not in done:
+                    done.add(m)
+                    stack.append(m)
+        pieces.append(sorted(piece))
+    return pieces
 
 
 def tracks_from_pairs(n_images: int, pairs: dict) -> tuple[np.ndarray, dict, dict]:
@@ -361,34 +445,100 @@ def tracks_from_pairs(n_images: int, pairs: dict) -> tuple[np.ndarray, dict, dic
         correspondence is in no track) and a stats dict (``inconsistent_components``,
         ``dropped_observations``).
     """
-    node_id: dict = {}
-    node_key: list = []
-
-    def node(img, u, v):
-        key = (int(img), float(u), float(v))
-        n = node_id.get(key)
-        if n is None:
-            n = node_id[key] = len(node_key)
-            node_key.append(key)
-        return n
-
+    graph = _CorrespondenceGraph()
     pair_nodes = {}
-    edges = {}
     for (i, j), (x1, x2) in pairs.items():
         if not (0 <= i < n_images and 0 <= j < n_images) or i == j:
             raise KitInputError(f"pair ({i}, {j}) is not a pair of two different images among 0..{n_images - 1}")
         x1, x2 = np.asarray(x1, float).reshape(-1, 2), np.asarray(x2, float).reshape(-1, 2)
-        ns = [(node(i, *a), node(j, *b)) for a, b in zip(x1, x2)]
-        pair_nodes[(i, j)] = ns
-        for e in ns:
-            edges.setdefault(e, None)
-    track_uv, node_track, n_conf, n_drop = _build_tracks(node_key, edges, n_images)
-    ids = {}
-    for key, ns in pair_nodes.items():
-        ns = np.array(ns, int).reshape(-1, 2)
-        t1, t2 = node_track[ns[:, 0]], node_track[ns[:, 1]]
-        ids[key] = np.where((t1 == t2) & (t1 >= 0), t1, -1)
+        ns = [(graph.node(int(i), float(a[0]), float(a[1])), graph.node(int(j), float(b[0]), float(b[1])))
+              for a, b in zip(x1, x2)]
+        for ni, nj in ns:
+            graph.add(i, ni, j, nj)
+        pair_nodes[(i, j)] = np.array(ns, int).reshape(-1, 2)
+    track_uv, node_track, n_conf, n_drop = graph.tracks(n_images)
+    ids = {key: graph.track_ids(node_track, ns) for key, ns in pair_nodes.items()}
     return track_uv, ids, {"inconsistent_components": n_conf, "dropped_observations": n_drop}
+
+
+def _matching_files(folder: Path) -> list[tuple[int, Path]]:
+    """``[(image id, matching{id}.txt)]`` in id order; the folder must exist and hold some."""
+    if not folder.is_dir():
+        raise KitInputError(f"P3 folder not found: {folder} (expected a folder with calibration.txt, matching1.txt, ... and 1.png, 2.png, ...)")
+    files = []
+    for p in folder.iterdir():
+        m = _MATCHING_RE.match(p.name)
+        if m and p.is_file():
+            files.append((int(m.group(1)), p))
+    files.sort()
+    if not files:
+        raise KitInputError(f"no matching*.txt files in {folder}: is this a P3 folder (calibration.txt, matching1.txt, ..., 1.png, ...)?")
+    for file_id, path in files:
+        if file_id < 1:
+            raise KitInputError(f"{path.name}: image ids are 1-based, so there is no matching{file_id}.txt (rename it?)")
+    return files
+
+
+def _parse_row(s: str, where: str, file_id: int):
+    """One row ``k R G B u v [j u_j v_j]*``: ``(rgb, u, v, [(j, u_j, v_j), ...])`` with 1-based ``j``."""
+    vals = _parse_numbers(s.split(), where)
+    k = _parse_image_id(vals[0], where, "the count k")
+    if k < 1:
+        raise KitInputError(f"{where}: k = {k}, but k counts the images the feature is seen in (including image {file_id}), so k >= 1")
+    expected, found = 5 + 3 * (k - 1), len(vals) - 1
+    if found != expected:
+        why = "is the file truncated?" if found < expected else "are two rows merged, or is k wrong?"
+        raise KitInputError(f"{where}: expected 5 + 3*(k-1) = {expected} numbers after k={k}, found {found} — {why}")
+    rgb_f = vals[1:4]
+    if any(c < 0 or c > 255 for c in rgb_f):
+        raise KitInputError(f"{where}: colour {rgb_f} is outside 0..255")
+    others = []
+    for t in range(k - 1):
+        jid = _parse_image_id(vals[6 + 3 * t], where, "image id")
+        if jid < 1:
+            raise KitInputError(f"{where}: image id {jid} out of range (ids are 1-based)")
+        if jid == file_id:
+            raise KitInputError(f"{where}: image id {jid} matches image {file_id} with itself")
+        others.append((jid, vals[7 + 3 * t], vals[8 + 3 * t]))
+    return tuple(int(round(c)) for c in rgb_f), vals[4], vals[5], others
+
+
+def _read_matching_file(path: Path, file_id: int, graph: _CorrespondenceGraph) -> tuple[int, int]:
+    """Add the rows of ``matching{file_id}.txt`` to ``graph``; returns (rows read, largest image id seen)."""
+    i, n_rows, max_id = file_id - 1, 0, file_id
+    text = path.read_text(encoding="utf-8", errors="replace")
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        s = line.strip()
+        if not s or _HEADER_RE.match(s):
+            continue
+        rgb, ui, vi, others = _parse_row(s, f"{path.name} line {lineno}", file_id)
+        n_rows += 1
+        ni = graph.node(i, ui, vi)
+        for jid, uj, vj in others:
+            max_id = max(max_id, jid)
+            graph.add(i, ni, jid - 1, graph.node(jid - 1, uj, vj), rgb)
+    return n_rows, max_id
+
+
+def _image_names(folder: Path, max_id: int, require_images: bool) -> tuple[list[str], list[int]]:
+    """Names of images ``1 .. M`` (M: the largest id in the matches or on disk) and the ids missing on disk."""
+    n_files = 0
+    while _find_image(folder, n_files + 1) is not None:
+        n_files += 1
+    names, missing = [], []
+    for iid in range(1, max(max_id, n_files) + 1):
+        nm = _find_image(folder, iid)
+        if nm is None:
+            missing.append(iid)
+            nm = f"{iid}.png"
+        names.append(nm)
+    if require_images and missing:
+        shown = ", ".join(f"{m}.png/.jpg" for m in missing[:6])
+        raise KitInputError(
+            f"{folder}: the matches refer to {len(names)} images but image file(s) {shown} are missing "
+            "(copy the images next to the matching files, or call read_p3(folder, require_images=False) to read only the matches)"
+        )
+    return names, missing
 
 
 def read_p3(folder, require_images: bool = True) -> P3Data:
@@ -413,142 +563,27 @@ def read_p3(folder, require_images: bool = True) -> P3Data:
     Introduced in ``notebooks/01_fundamental_matrix.ipynb``.
     """
     folder = Path(folder)
-    if not folder.is_dir():
-        raise KitInputError(f"P3 folder not found: {folder} (expected a folder with calibration.txt, matching1.txt, ... and 1.png, 2.png, ...)")
-    files = []
-    for p in folder.iterdir():
-        m = _MATCHING_RE.match(p.name)
-        if m and p.is_file():
-            files.append((int(m.group(1)), p))
-    files.sort()
-    if not files:
-        raise KitInputError(f"no matching*.txt files in {folder}: is this a P3 folder (calibration.txt, matching1.txt, ..., 1.png, ...)?")
+    files = _matching_files(folder)
     K = read_calibration(folder / "calibration.txt")
-
-    uf = _UnionFind()
-    node_id: dict[tuple[int, float, float], int] = {}
-    node_key: list[tuple[int, float, float]] = []
-
-    def node(img: int, u: float, v: float) -> int:
-        key = (img, u, v)
-        n = node_id.get(key)
-        if n is None:
-            n = uf.add()
-            node_id[key] = n
-            node_key.append(key)
-        return n
-
-    pair_rows: dict[tuple[int, int], dict] = {}  # (i, j) -> {(n_i, n_j): rgb} in insertion order
-    n_rows = n_corr = n_dup = 0
-    max_id = 0
+    graph = _CorrespondenceGraph()
+    n_rows = max_id = 0
     for file_id, path in files:
-        if file_id < 1:
-            raise KitInputError(f"{path.name}: image ids are 1-based, so there is no matching{file_id}.txt (rename it?)")
-        max_id = max(max_id, file_id)
-        i = file_id - 1
-        text = path.read_text(encoding="utf-8", errors="replace")
-        for lineno, line in enumerate(text.splitlines(), start=1):
-            s = line.strip()
-            if not s:
-                continue
-            if _HEADER_RE.match(s):
-                continue
-            where = f"{path.name} line {lineno}"
-            tokens = s.split()
-            vals = [_parse_number(t, where) for t in tokens]
-            k = _parse_image_id(vals[0], where, "the count k")
-            if k < 1:
-                raise KitInputError(f"{where}: k = {k}, but k counts the images the feature is seen in (including image {file_id}), so k >= 1")
-            expected = 5 + 3 * (k - 1)
-            found = len(vals) - 1
-            if found < expected:
-                raise KitInputError(
-                    f"{where}: expected 5 + 3*(k-1) = {expected} numbers after k={k}, found {found} — is the file truncated?"
-                )
-            if found > expected:
-                raise KitInputError(
-                    f"{where}: expected 5 + 3*(k-1) = {expected} numbers after k={k}, found {found} — "
-                    "are two rows merged, or is k wrong?"
-                )
-            n_rows += 1
-            rgb_f = vals[1:4]
-            if any(c < 0 or c > 255 for c in rgb_f):
-                raise KitInputError(f"{where}: colour {rgb_f} is outside 0..255")
-            rgb = tuple(int(round(c)) for c in rgb_f)
-            ui, vi = vals[4], vals[5]
-            ni = node(i, ui, vi)
-            for t in range(k - 1):
-                jid = _parse_image_id(vals[6 + 3 * t], where, "image id")
-                if jid < 1:
-                    raise KitInputError(f"{where}: image id {jid} out of range (ids are 1-based)")
-                if jid == file_id:
-                    raise KitInputError(f"{where}: image id {jid} matches image {file_id} with itself")
-                max_id = max(max_id, jid)
-                j = jid - 1
-                nj = node(j, vals[7 + 3 * t], vals[8 + 3 * t])
-                uf.union(ni, nj)
-                n_corr += 1
-                a, b = (i, j) if i < j else (j, i)
-                na, nb = (ni, nj) if i < j else (nj, ni)
-                d = pair_rows.setdefault((a, b), {})
-                if (na, nb) in d:
-                    n_dup += 1
-                else:
-                    d[(na, nb)] = rgb
-
-    # image names
-    M = max_id
-    names, missing = [], []
-    n_files = 0
-    while _find_image(folder, n_files + 1) is not None:
-        n_files += 1
-    M = max(M, n_files)
-    for iid in range(1, M + 1):
-        nm = _find_image(folder, iid)
-        if nm is None:
-            missing.append(iid)
-            nm = f"{iid}.png"
-        names.append(nm)
-    if require_images and missing:
-        shown = ", ".join(f"{m}.png/.jpg" for m in missing[:6])
-        raise KitInputError(
-            f"{folder}: the matches refer to {M} images but image file(s) {shown} are missing "
-            "(copy the images next to the matching files, or call read_p3(folder, require_images=False) to read only the matches)"
-        )
-
-    # tracks: connected components; apply the inconsistency rule (module docstring)
-    edges = [e for d in pair_rows.values() for e in d]
-    track_uv, node_track, n_conflict_comps, n_dropped_obs = _build_tracks(node_key, edges, M, uf)
-    track_rgb = np.zeros((track_uv.shape[0], 3), np.uint8)
-    rgb_set = np.zeros(track_uv.shape[0], bool)
-    first_image = np.argmax(~np.isnan(track_uv[..., 0]), axis=1) if len(track_uv) else np.zeros(0, int)
-    for d in pair_rows.values():  # colour of the track's feature in its first image, from its first row
-        for (na, nb), rgb in d.items():
-            t = node_track[na]
-            if t >= 0 and not rgb_set[t] and node_key[na][0] == first_image[t]:
-                track_rgb[t], rgb_set[t] = rgb, True
-
-    matches = {}
-    for (a, b) in sorted(pair_rows):
-        d = pair_rows[(a, b)]
-        ns = np.array(list(d.keys()), dtype=int).reshape(-1, 2)
-        x1 = np.array([node_key[n][1:] for n in ns[:, 0]], float).reshape(-1, 2)
-        x2 = np.array([node_key[n][1:] for n in ns[:, 1]], float).reshape(-1, 2)
-        t1, t2 = node_track[ns[:, 0]], node_track[ns[:, 1]]
-        tid = np.where((t1 == t2) & (t1 >= 0), t1, -1)
-        matches[(a, b)] = PairMatches(x1, x2, np.array(list(d.values()), np.uint8).reshape(-1, 3), tid)
-
+        rows, top = _read_matching_file(path, file_id, graph)
+        n_rows, max_id = n_rows + rows, max(max_id, top)
+    names, missing = _image_names(folder, max_id, require_images)
+    track_uv, node_track, n_conflict, n_dropped = graph.tracks(len(names))
     stats = {
         "rows": n_rows,
-        "correspondences": n_corr,
-        "duplicate_correspondences": n_dup,
-        "unique_correspondences": n_corr - n_dup,
+        "correspondences": graph.n_correspondences,
+        "duplicate_correspondences": graph.n_duplicates,
+        "unique_correspondences": graph.n_correspondences - graph.n_duplicates,
         "tracks": int(track_uv.shape[0]),
-        "inconsistent_components": n_conflict_comps,
-        "dropped_observations": n_dropped_obs,
+        "inconsistent_components": n_conflict,
+        "dropped_observations": n_dropped,
         "missing_images": missing,
     }
-    return P3Data(folder, names, K, track_uv, track_rgb, matches, stats)
+    return P3Data(folder, names, K, track_uv, graph.track_colours(track_uv, node_track),
+                  graph.pair_matches(node_track), stats)
 
 
 # --------------------------------------------------------------------------------------------

@@ -62,13 +62,13 @@ from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from course_lib.conventions import camera_center
 from course_lib.sfm import lm
 from course_lib.sfm.visibility import observation_list
 from course_lib.threads import single_threaded_blas
+from course_lib import validate
 from course_lib.validate import KitInputError, intrinsics, rotation
 
 __all__ = [
@@ -351,7 +351,8 @@ class BAResult:
         )
 
 
-def _check_ba_inputs(K, R_cw, t_cw, X, uv):
+def _check_ba_inputs(K, R_cw, t_cw, X, uv, method, loss, ref_camera):
+    """Checked ``K, R_cw, t_cw, X, uv`` as float arrays and the observations of ``uv``."""
     K = intrinsics(K)
     R_cw = np.asarray(R_cw, float)
     if R_cw.ndim != 3 or R_cw.shape[1:] != (3, 3):
@@ -372,7 +373,154 @@ def _check_ba_inputs(K, R_cw, t_cw, X, uv):
         raise KitInputError(
             f"uv has shape {uv.shape}: expected (N, M, 2) = ({X.shape[0]}, {M}, 2), the pixel of point j in image i at [j, i], NaN where unseen"
         )
-    return K, R_cw, t_cw, X, uv
+    validate.choice(method, "method", METHODS)
+    validate.choice(loss, "loss", LOSSES)
+    if not 0 <= ref_camera < M:
+        raise KitInputError(f"ref_camera={ref_camera} is not a camera index (0..{M - 1})")
+    return K, R_cw, t_cw, X, _observations(X, uv)
+
+
+def _observations(X: np.ndarray, uv: np.ndarray):
+    """The observations of ``uv (N, M, 2)``: at least one, of points with coordinates, in two cameras or more."""
+    obs = observation_list(uv)
+    if len(obs) == 0:
+        raise KitInputError("uv has no observations (all NaN): nothing to adjust")
+    bad_X = ~np.isfinite(X[obs.point_idx]).all(axis=1)
+    if bad_X.any():
+        j = int(obs.point_idx[bad_X][0])
+        raise KitInputError(f"X[{j}] is NaN but the point has observations in uv: triangulate it or drop its observations")
+    seen_cams = np.unique(obs.camera_idx)
+    if len(seen_cams) < 2:
+        raise KitInputError(f"only camera(s) {seen_cams.tolist()} have observations: bundle adjustment needs at least two")
+    return obs
+
+
+def _gauge(R_cw, t_cw, obs, n_points: int, ref_camera: int, scale_camera: int | None, fix_scale: bool):
+    """Which of the ``6M + 3N`` parameters are free, and a sentence that says how the gauge was fixed.
+
+    Held fixed: ``ref_camera`` (6 parameters), cameras and points without observations (their
+    columns are zero), and with ``fix_scale`` the coordinate of ``scale_camera``'s translation
+    that a change of scale about ``ref_camera`` would move most (module docstring).
+    """
+    M = len(R_cw)
+    seen_cams = np.zeros(M, bool)
+    seen_cams[obs.camera_idx] = True
+    seen_pts = np.zeros(n_points, dtype=bool)
+    seen_pts[obs.point_idx] = True
+    free = np.concatenate([np.repeat(seen_cams, 6), np.repeat(seen_pts, 3)])
+    free[6 * ref_camera : 6 * ref_camera + 6] = False
+    if not fix_scale:
+        return free, f"camera {ref_camera} fixed, scale free"
+    C = np.stack([camera_center(R, t) for R, t in zip(R_cw, t_cw)])
+    if scale_camera is None:
+        d = np.where(seen_cams, np.linalg.norm(C - C[ref_camera], axis=1), -1.0)
+        d[ref_camera] = -1.0
+        scale_camera = int(np.argmax(d))
+    if not 0 <= scale_camera < M or scale_camera == ref_camera:
+        raise KitInputError(f"scale_camera={scale_camera} must be a camera index other than ref_camera={ref_camera}")
+    direction = R_cw[scale_camera] @ (C[scale_camera] - C[ref_camera])
+    if np.linalg.norm(direction) < 1e-12:
+        raise KitInputError(
+            f"cameras {ref_camera} and {scale_camera} have the same centre: the scale cannot be fixed by their baseline"
+        )
+    k = int(np.argmax(np.abs(direction)))
+    free[6 * scale_camera + 3 + k] = False
+    return free, f"camera {ref_camera} fixed, t_cw[{scale_camera}][{k}] fixed (scale)"
+
+
+@dataclass
+class _Problem:
+    """Bundle adjustment over the free parameters: residuals and sparse Jacobian of the reduced vector.
+
+    ``x0_full (6M + 3N,)`` is the start (points without observations filled with 0), ``free`` the
+    mask of :func:`_gauge`; a reduced vector ``xr`` holds the free entries only.
+    """
+
+    K: np.ndarray
+    obs: object  # course_lib.sfm.visibility.ObservationList
+    n_cameras: int
+    n_points: int
+    x0_full: np.ndarray
+    free: np.ndarray
+
+    def __post_init__(self):
+        self.free_idx = np.flatnonzero(self.free)
+        # Column map full -> reduced (-1 = fixed); the kept pattern is the same at every evaluation.
+        col_map = -np.ones(self.free.size, dtype=np.int64)
+        col_map[self.free_idx] = np.arange(self.free_idx.size)
+        cols_red = col_map[_block_columns(self.n_cameras, self.obs.camera_idx, self.obs.point_idx)]
+        self.keep = cols_red >= 0
+        self.indptr = np.concatenate([[0], np.cumsum(self.keep.sum(axis=1))])
+        self.cols_kept = cols_red[self.keep]
+
+    def full(self, xr: np.ndarray) -> np.ndarray:
+        p = self.x0_full.copy()
+        p[self.free_idx] = xr
+        return p
+
+    def residuals_full(self, p: np.ndarray) -> np.ndarray:
+        o = self.obs
+        return reprojection_residuals(p, self.n_cameras, self.n_points, o.camera_idx, o.point_idx, o.uv, self.K)
+
+    def residuals(self, xr: np.ndarray) -> np.ndarray:
+        return self.residuals_full(self.full(xr))
+
+    def jacobian(self, xr: np.ndarray) -> sp.csr_matrix:
+        o = self.obs
+        blocks = _jacobian_blocks(self.full(xr), self.n_cameras, self.n_points, o.camera_idx, o.point_idx, self.K)
+        blocks = blocks.reshape(-1, 9)
+        return sp.csr_matrix((blocks[self.keep], self.cols_kept, self.indptr), shape=(2 * len(o), self.free_idx.size))
+
+    def errors(self, p: np.ndarray) -> np.ndarray:
+        """``(K_obs,)`` reprojection error of every observation (pixels) at the full vector ``p``."""
+        return np.linalg.norm(self.residuals_full(p).reshape(-1, 2), axis=1)
+
+
+class _Recorder:
+    """The cost after every iteration, and the iterates / the user's callback when asked for."""
+
+    def __init__(self, problem: _Problem, X0: np.ndarray, keep_iterates: bool, callback):
+        self.problem, self.X0 = problem, X0
+        self.keep_iterates, self.callback = keep_iterates, callback
+        self.history: list[float] = []
+        self.iterates: list = []
+
+    def __call__(self, p_full: np.ndarray, it: int) -> None:
+        r = self.problem.residuals_full(p_full)
+        cost = 0.5 * float(r @ r)
+        self.history.append(cost)
+        if self.keep_iterates or self.callback is not None:
+            Rk, tk, Xk = self.unpack(p_full)
+            if self.keep_iterates:
+                self.iterates.append((Rk, tk, Xk))
+            if self.callback is not None:
+                self.callback(it, Rk, tk, Xk, cost)
+
+    def unpack(self, p_full: np.ndarray):
+        """``R_cw, t_cw, X`` of a full vector, points without observations as given."""
+        Rk, tk, Xk = unpack_params(p_full, self.problem.n_cameras, self.problem.n_points)
+        unseen = ~self.problem.free[6 * self.problem.n_cameras :].reshape(-1, 3).any(axis=1)
+        Xk[unseen] = self.X0[unseen]
+        return Rk, tk, Xk
+
+
+def _solve_trf(problem: _Problem, record: _Recorder, loss, f_scale, max_iterations, ftol, xtol, verbose):
+    """:func:`scipy.optimize.least_squares` (trust region, ``lsmr``) on the reduced problem."""
+    from scipy.optimize import least_squares
+
+    res = least_squares(
+        problem.residuals, problem.x0_full[problem.free_idx], jac=problem.jacobian, method="trf", x_scale="jac",
+        loss=loss, f_scale=f_scale, max_nfev=max_iterations, ftol=ftol, xtol=xtol, gtol=1e-10,
+        tr_solver="lsmr", verbose=verbose,
+        callback=lambda intermediate_result: record(problem.full(intermediate_result.x), len(record.history)),
+    )
+    n_iter = int(res.njev if res.njev is not None else len(record.history) - 1)
+    return problem.full(res.x), n_iter, int(res.nfev), bool(res.success), str(res.message)
+
+
+#: Solvers of :func:`bundle_adjust` and robust losses, with what they are (for the messages).
+METHODS = {"lm": "the kit's Schur-complement Levenberg-Marquardt", "trf": "scipy's least_squares"}
+LOSSES = {"linear": "plain least squares", "huber": "robust", "soft_l1": "robust", "cauchy": "robust"}
 
 
 def bundle_adjust(
@@ -433,155 +581,28 @@ def bundle_adjust(
 
     Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
     """
-    K, R_cw, t_cw, X, uv = _check_ba_inputs(K, R_cw, t_cw, X, uv)
-    if method not in ("lm", "trf"):
-        raise KitInputError(f"method={method!r}: expected 'lm' (the kit's Schur-complement Levenberg-Marquardt) or 'trf' (scipy)")
-    if loss not in ("linear", "huber", "soft_l1", "cauchy"):
-        raise KitInputError(f"loss={loss!r}: expected 'linear', 'huber', 'soft_l1' or 'cauchy'")
+    K, R_cw, t_cw, X, obs = _check_ba_inputs(K, R_cw, t_cw, X, uv, method, loss, ref_camera)
     M, N = R_cw.shape[0], X.shape[0]
-    obs = observation_list(uv)
-    if len(obs) == 0:
-        raise KitInputError("uv has no observations (all NaN): nothing to adjust")
-    bad_X = ~np.isfinite(X[obs.point_idx]).all(axis=1)
-    if bad_X.any():
-        j = int(obs.point_idx[bad_X][0])
-        raise KitInputError(f"X[{j}] is NaN but the point has observations in uv: triangulate it or drop its observations")
-    seen_cams = np.unique(obs.camera_idx)
-    if len(seen_cams) < 2:
-        raise KitInputError(f"only camera(s) {seen_cams.tolist()} have observations: bundle adjustment needs at least two")
-    if not 0 <= ref_camera < M:
-        raise KitInputError(f"ref_camera={ref_camera} is not a camera index (0..{M - 1})")
-
-    X_fill = np.where(np.isfinite(X), X, 0.0)
-    x0_full = pack_params(R_cw, t_cw, X_fill)
-    n_full = x0_full.size
-
-    # --- gauge: fix ref_camera, and one translation coordinate of scale_camera ---------------
-    free = np.ones(n_full, dtype=bool)
-    free[6 * ref_camera : 6 * ref_camera + 6] = False
-    # cameras with no observation and points with no observation have zero columns: hold them fixed
-    for i in range(M):
-        if i not in seen_cams:
-            free[6 * i : 6 * i + 6] = False
-    seen_pts = np.zeros(N, dtype=bool)
-    seen_pts[obs.point_idx] = True
-    free[6 * M :] = np.repeat(seen_pts, 3)
-    gauge = f"camera {ref_camera} fixed"
-    if fix_scale:
-        C = np.stack([camera_center(R, t) for R, t in zip(R_cw, t_cw)])
-        if scale_camera is None:
-            d = np.linalg.norm(C - C[ref_camera], axis=1)
-            d[[i for i in range(M) if i not in seen_cams or i == ref_camera]] = -1.0
-            scale_camera = int(np.argmax(d))
-        if not 0 <= scale_camera < M or scale_camera == ref_camera:
-            raise KitInputError(f"scale_camera={scale_camera} must be a camera index other than ref_camera={ref_camera}")
-        direction = R_cw[scale_camera] @ (C[scale_camera] - C[ref_camera])
-        if np.linalg.norm(direction) < 1e-12:
-            raise KitInputError(
-                f"cameras {ref_camera} and {scale_camera} have the same centre: the scale cannot be fixed by their baseline"
-            )
-        k = int(np.argmax(np.abs(direction)))
-        free[6 * scale_camera + 3 + k] = False
-        gauge += f", t_cw[{scale_camera}][{k}] fixed (scale)"
-    else:
-        gauge += ", scale free"
-
-    free_idx = np.flatnonzero(free)
-    # Column map full -> reduced (-1 = fixed); the kept pattern is the same at every evaluation.
-    col_map = -np.ones(n_full, dtype=np.int64)
-    col_map[free_idx] = np.arange(free_idx.size)
-    cols_full = _block_columns(M, obs.camera_idx, obs.point_idx)
-    cols_red = col_map[cols_full]
-    keep = cols_red >= 0
-    counts = keep.sum(axis=1)
-    indptr = np.concatenate([[0], np.cumsum(counts)])
-    cols_kept = cols_red[keep]
-
-    def full(xr):
-        p = x0_full.copy()
-        p[free_idx] = xr
-        return p
-
-    def fun(xr):
-        return reprojection_residuals(full(xr), M, N, obs.camera_idx, obs.point_idx, obs.uv, K)
-
-    def jac(xr):
-        blocks = _jacobian_blocks(full(xr), M, N, obs.camera_idx, obs.point_idx, K).reshape(-1, 9)
-        return sp.csr_matrix((blocks[keep], cols_kept, indptr), shape=(2 * len(obs), free_idx.size))
-
-    history: list[float] = []
-    iterates: list = []
-
-    def record(p_full, it):
-        r = reprojection_residuals(p_full, M, N, obs.camera_idx, obs.point_idx, obs.uv, K)
-        cost = 0.5 * float(r @ r)
-        history.append(cost)
-        if keep_iterates or callback is not None:
-            Rk, tk, Xk = unpack_params(p_full, M, N)
-            Xk[~seen_pts] = X[~seen_pts]
-            if keep_iterates:
-                iterates.append((Rk, tk, Xk))
-            if callback is not None:
-                callback(it, Rk, tk, Xk, cost)
-
-    x0 = x0_full[free_idx]
-    r0 = fun(x0)
-    if not np.isfinite(r0).all():
+    free, gauge = _gauge(R_cw, t_cw, obs, N, ref_camera, scale_camera, fix_scale)
+    problem = _Problem(K, obs, M, N, pack_params(R_cw, t_cw, np.where(np.isfinite(X), X, 0.0)), free)
+    e0 = problem.errors(problem.x0_full)
+    if not np.isfinite(e0).all():
         raise KitInputError("some observed points project to infinity (depth 0 in a camera): check the initial poses and points")
-    e0 = np.linalg.norm(r0.reshape(-1, 2), axis=1)
-    record(x0_full, 0)
-
+    record = _Recorder(problem, X, keep_iterates, callback)
+    record(problem.x0_full, 0)
     t0 = time.perf_counter()
     if method == "lm":
         with single_threaded_blas():
             p_out, n_iter, n_eval, success, message = _schur_lm(
-                x0_full, free, M, N, obs, K, loss, f_scale, max_iterations, ftol, xtol, record
+                problem.x0_full, free, M, N, obs, K, loss, f_scale, max_iterations, ftol, xtol, record
             )
     else:
-
-        def ls_callback(intermediate_result):
-            record(full(intermediate_result.x), len(history))
-
-        res = least_squares(
-            fun,
-            x0,
-            jac=jac,
-            method="trf",
-            x_scale="jac",
-            loss=loss,
-            f_scale=f_scale,
-            max_nfev=max_iterations,
-            ftol=ftol,
-            xtol=xtol,
-            gtol=1e-10,
-            tr_solver="lsmr",
-            verbose=verbose,
-            callback=ls_callback,
-        )
-        p_out = full(res.x)
-        n_iter = int(res.njev if res.njev is not None else len(history) - 1)
-        n_eval, success, message = int(res.nfev), bool(res.success), str(res.message)
+        p_out, n_iter, n_eval, success, message = _solve_trf(problem, record, loss, f_scale, max_iterations, ftol, xtol, verbose)
     seconds = time.perf_counter() - t0
-    R_out, t_out, X_out = unpack_params(p_out, M, N)
-    X_out[~seen_pts] = X[~seen_pts]
-    e1 = np.linalg.norm(
-        reprojection_residuals(p_out, M, N, obs.camera_idx, obs.point_idx, obs.uv, K).reshape(-1, 2), axis=1
-    )
+    R_out, t_out, X_out = record.unpack(p_out)
     return BAResult(
-        R_cw=R_out,
-        t_cw=t_out,
-        X=X_out,
-        point_idx=obs.point_idx,
-        camera_idx=obs.camera_idx,
-        initial_errors=e0,
-        final_errors=e1,
-        n_iterations=n_iter,
-        n_evaluations=n_eval,
-        seconds=seconds,
-        cost_history=history,
-        iterates=iterates,
-        gauge=gauge,
-        success=success,
-        message=message,
-        method=method,
+        R_cw=R_out, t_cw=t_out, X=X_out, point_idx=obs.point_idx, camera_idx=obs.camera_idx,
+        initial_errors=e0, final_errors=problem.errors(p_out), n_iterations=n_iter, n_evaluations=n_eval,
+        seconds=seconds, cost_history=record.history, iterates=record.iterates, gauge=gauge,
+        success=success, message=message, method=method,
     )

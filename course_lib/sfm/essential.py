@@ -26,7 +26,6 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib import validate
-from course_lib.validate import KitInputError
 
 __all__ = ["essential_from_fundamental", "pose_candidates", "W"]
 
@@ -35,17 +34,7 @@ W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
 
 def _check_3x3(M, name: str, what: str) -> np.ndarray:
-    try:
-        M = np.asarray(M, dtype=float)
-    except (TypeError, ValueError):
-        raise KitInputError(f"{name} must be a numeric (3, 3) matrix, got {type(M).__name__}") from None
-    if M.shape != (3, 3):
-        raise KitInputError(f"{name} has shape {M.shape}: expected the (3, 3) {what}")
-    if not np.isfinite(M).all():
-        raise KitInputError(f"{name} contains NaN or inf")
-    if not np.abs(M).max() > 0:
-        raise KitInputError(f"{name} is all zeros: it is not a valid {what}")
-    return M
+    return validate.matrix3x3(M, name, what)
 
 
 def essential_from_fundamental(F: np.ndarray, K: np.ndarray) -> np.ndarray:

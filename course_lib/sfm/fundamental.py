@@ -18,7 +18,7 @@ Introduced in notebooks/01_fundamental_matrix.ipynb.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -27,8 +27,12 @@ from course_lib.validate import KitInputError
 
 __all__ = [
     "normalize_points",
+    "normalize_points_batch",
     "eight_point",
+    "eight_point_batch",
     "sampson_distance",
+    "sampson_distance_batch",
+    "ransac",
     "ransac_fundamental",
     "ransac_iterations",
     "RansacResult",
@@ -40,6 +44,31 @@ _WHY_8 = "the 8-point algorithm"
 # ---------------------------------------------------------------------------------------------
 # Normalization
 # ---------------------------------------------------------------------------------------------
+
+
+def normalize_points_batch(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Hartley normalization of ``B`` point sets at once, without input checks.
+
+    The one implementation behind :func:`normalize_points`, :func:`eight_point_batch` and so
+    every 8-point fit of the kit (see :func:`normalize_points` for the formula).
+
+    Args:
+        x: ``(B, N, 2)`` pixels.
+
+    Returns:
+        x_n: ``(B, N, 2)`` normalized points. T: ``(B, 3, 3)`` the normalizing similarities.
+        ok: ``(B,)`` bool, False where the points of a set are all identical (no normalization).
+    """
+    c = x.mean(axis=1, keepdims=True)
+    d = np.linalg.norm(x - c, axis=2).mean(axis=1)
+    scale = np.maximum(np.abs(x).max(axis=(1, 2)), 1.0) if x.shape[1] else np.ones(len(x))
+    ok = d > 1e-12 * scale
+    s = np.sqrt(2.0) / np.where(ok, d, 1.0)
+    T = np.zeros((len(x), 3, 3))
+    T[:, 0, 0] = T[:, 1, 1] = s
+    T[:, :2, 2] = -s[:, None] * c[:, 0]
+    T[:, 2, 2] = 1.0
+    return (x - c) * s[:, None, None], T, ok
 
 
 def normalize_points(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -66,17 +95,13 @@ def normalize_points(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Introduced in notebooks/01_fundamental_matrix.ipynb.
     """
     x = validate.points(x, "x", 2, min_count=2, why="normalization")
-    c = x.mean(axis=0)
-    d = np.linalg.norm(x - c, axis=1).mean()
-    scale = np.abs(x).max() if x.size else 1.0
-    if not d > 1e-12 * max(scale, 1.0):
+    x_n, T, ok = normalize_points_batch(x[None])
+    if not ok[0]:
         raise KitInputError(
             f"x has {len(x)} points that are all identical ({x[0].tolist()}): they cannot be normalized; "
             "check that the correspondences are distinct"
         )
-    s = np.sqrt(2.0) / d
-    T = np.array([[s, 0.0, -s * c[0]], [0.0, s, -s * c[1]], [0.0, 0.0, 1.0]])
-    return (x - c) * s, T
+    return x_n[0], T[0]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -84,40 +109,55 @@ def normalize_points(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 # ---------------------------------------------------------------------------------------------
 
 
-def _fix_norm_and_sign(F: np.ndarray) -> np.ndarray:
-    """Scale to unit Frobenius norm and make the entry of largest magnitude positive."""
-    F = F / np.linalg.norm(F)
-    k = np.argmax(np.abs(F))
-    return F if F.flat[k] >= 0 else -F
+def _null_vectors(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``f (B, 9)`` minimizing ``|A f|`` with ``|f| = 1``, and ``ok (B,)`` (False where ``A (B, N, 9)`` has rank < 8).
+
+    For minimal samples (N = 8) the null vector is the last column of the complete QR factor of
+    ``Aᵀ`` (orthogonal to the 8 rows of A): the SVD's answer at a quarter of the cost, a rank < 8
+    shows as a vanishing ``R[7, 7]``. Otherwise the right singular vector of the smallest
+    singular value (least squares); rank < 8 shows as a vanishing 8th singular value.
+    """
+    if A.shape[1] == 8:
+        Q, R = np.linalg.qr(np.transpose(A, (0, 2, 1)), mode="complete")
+        diag = np.abs(np.diagonal(R, axis1=1, axis2=2))
+        return Q[:, :, -1], diag[:, 7] > 1e-10 * diag.max(axis=1)
+    _, S, Vt = np.linalg.svd(A, full_matrices=A.shape[1] < 9)
+    ok = S[:, 7] > 1e-10 * S[:, 0] if S.shape[1] >= 8 else np.zeros(len(A), bool)
+    return Vt[:, -1], ok
 
 
-def _eight_point_core(x1: np.ndarray, x2: np.ndarray) -> np.ndarray | None:
-    """The normalized 8-point algorithm without input checks; None for a degenerate configuration."""
-    c1, c2 = x1.mean(0), x2.mean(0)
-    d1 = np.linalg.norm(x1 - c1, axis=1).mean()
-    d2 = np.linalg.norm(x2 - c2, axis=1).mean()
-    if not (d1 > 1e-12 and d2 > 1e-12):
-        return None
-    s1, s2 = np.sqrt(2.0) / d1, np.sqrt(2.0) / d2
-    T1 = np.array([[s1, 0.0, -s1 * c1[0]], [0.0, s1, -s1 * c1[1]], [0.0, 0.0, 1.0]])
-    T2 = np.array([[s2, 0.0, -s2 * c2[0]], [0.0, s2, -s2 * c2[1]], [0.0, 0.0, 1.0]])
-    u1, v1 = ((x1 - c1) * s1).T
-    u2, v2 = ((x2 - c2) * s2).T
+def eight_point_batch(x1: np.ndarray, x2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The normalized 8-point algorithm on ``B`` sets of correspondences at once, without input checks.
+
+    The one implementation of the kit (:func:`eight_point` checks its inputs and calls it; the
+    RANSAC of :func:`ransac` takes it as its minimal solver): Hartley normalization
+    (:func:`normalize_points_batch`), the null vector of ``A``, rank 2, undo the normalization,
+    unit Frobenius norm, the entry of largest magnitude positive.
+
+    Args:
+        x1, x2: ``(B, N, 2)`` matching pixels, N >= 8.
+
+    Returns:
+        F: ``(B, 3, 3)`` with ``x2hᵀ F x1h ≈ 0``. ok: ``(B,)`` bool, False for a degenerate set
+        (identical points, or a linear system of rank < 8); its F is not meaningful.
+    """
+    B = len(x1)
+    n1, T1, ok1 = normalize_points_batch(x1)
+    n2, T2, ok2 = normalize_points_batch(x2)
+    u1, v1 = n1[..., 0], n1[..., 1]
+    u2, v2 = n2[..., 0], n2[..., 1]
     # One row per correspondence: x2ᵀ F x1 = 0 written as A f = 0 with f = F.ravel() (row-major).
-    A = np.stack([u2 * u1, u2 * v1, u2, v2 * u1, v2 * v1, v2, u1, v1, np.ones_like(u1)], axis=1)
-    # full_matrices only for N = 8, where the null vector is the 9th row of Vt (thin SVD otherwise:
-    # the full U of a big A is N x N and slow)
-    _, S, Vt = np.linalg.svd(A, full_matrices=len(A) < 9)
-    # f is unique (up to scale) only if A has rank 8: its 8th singular value must not vanish.
-    if len(S) < 8 or S[7] <= 1e-10 * S[0]:
-        return None
-    F_n = Vt[-1].reshape(3, 3)
+    A = np.stack([u2 * u1, u2 * v1, u2, v2 * u1, v2 * v1, v2, u1, v1, np.ones_like(u1)], axis=2)  # (B, N, 9)
+    f, ok = _null_vectors(A)
     # Rank 2: zero the smallest singular value (the closest rank-2 matrix in Frobenius norm).
-    U, s, Vt = np.linalg.svd(F_n)
-    F_n = U @ np.diag([s[0], s[1], 0.0]) @ Vt
+    U, s, Vt = np.linalg.svd(f.reshape(B, 3, 3))
+    s[:, 2] = 0.0
     # Undo the normalization: x2nᵀ F_n x1n = x2ᵀ (T2ᵀ F_n T1) x1.
-    F = T2.T @ F_n @ T1
-    return _fix_norm_and_sign(F)
+    F = np.transpose(T2, (0, 2, 1)) @ ((U * s[:, None, :]) @ Vt) @ T1
+    F /= np.linalg.norm(F, axis=(1, 2), keepdims=True)
+    k = np.abs(F).reshape(B, 9).argmax(axis=1)
+    F *= np.where(F.reshape(B, 9)[np.arange(B), k] < 0, -1.0, 1.0)[:, None, None]
+    return F, ok & ok1 & ok2
 
 
 def eight_point(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
@@ -148,13 +188,13 @@ def eight_point(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     for name, x in (("x1", x1), ("x2", x2)):
         if np.linalg.norm(x - x.mean(0), axis=1).max() <= 1e-12 * max(np.abs(x).max(), 1.0):
             raise KitInputError(f"{name}: all {len(x)} points are identical; the 8-point algorithm needs distinct points")
-    F = _eight_point_core(x1, x2)
-    if F is None:
+    F, ok = eight_point_batch(x1[None], x2[None])
+    if not ok[0]:
         raise KitInputError(
             f"the {len(x1)} correspondences are degenerate for {_WHY_8} (the linear system has rank < 8): "
             "are many points identical, collinear, or duplicated? use at least 8 distinct, well-spread matches"
         )
-    return F
+    return F[0]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -162,26 +202,26 @@ def eight_point(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 
 
-def _check_F(F, name: str = "F") -> np.ndarray:
-    try:
-        F = np.asarray(F, dtype=float)
-    except (TypeError, ValueError):
-        raise KitInputError(f"{name} must be a numeric (3, 3) matrix, got {type(F).__name__}") from None
-    if F.shape != (3, 3):
-        raise KitInputError(f"{name} has shape {F.shape}: expected the (3, 3) fundamental matrix")
-    if not np.isfinite(F).all():
-        raise KitInputError(f"{name} contains NaN or inf")
-    if not np.abs(F).max() > 0:
-        raise KitInputError(f"{name} is all zeros: it is not a valid fundamental matrix")
-    return F
+def sampson_distance_batch(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Sampson distances (pixels) of ``N`` matches to ``B`` fundamental matrices, without input checks.
 
+    The one implementation behind :func:`sampson_distance` and the error function of
+    :func:`ransac` (see :func:`sampson_distance` for the formula).
 
-def _sampson_core(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    x1h = np.column_stack([x1, np.ones(len(x1))])
-    x2h = np.column_stack([x2, np.ones(len(x2))])
-    Fx1 = x1h @ F.T  # (N, 3) epipolar lines in image 2
-    Ftx2 = x2h @ F  # (N, 3) epipolar lines in image 1
-    e = np.sum(x2h * Fx1, axis=1)  # algebraic error x2ᵀ F x1
+    Args:
+        F: ``(B, 3, 3)``. x1, x2: ``(N, 2)`` matching pixels.
+
+    Returns:
+        ``(B, N)`` distances >= 0 (0 where both the error and the gradient vanish, inf where only
+        the gradient does).
+    """
+    h1 = np.concatenate([x1, np.ones((len(x1), 1))], axis=1).T  # (3, N)
+    h2 = np.concatenate([x2, np.ones((len(x2), 1))], axis=1).T
+    B, N = len(F), h1.shape[1]
+    # one matrix product each for all B models: (3B, 3) @ (3, N)
+    Fx1 = (F.reshape(3 * B, 3) @ h1).reshape(B, 3, N)  # epipolar lines in image 2
+    Ftx2 = (np.transpose(F, (0, 2, 1)).reshape(3 * B, 3) @ h2).reshape(B, 3, N)  # lines in image 1
+    e = Fx1[:, 0] * h2[0] + Fx1[:, 1] * h2[1] + Fx1[:, 2]  # algebraic error x2ᵀ F x1
     g2 = Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2
     with np.errstate(divide="ignore", invalid="ignore"):
         d = np.abs(e) / np.sqrt(g2)
@@ -213,9 +253,9 @@ def sampson_distance(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarra
 
     Introduced in notebooks/01_fundamental_matrix.ipynb.
     """
-    F = _check_F(F)
+    F = validate.matrix3x3(F, "F", "fundamental matrix")
     x1, x2 = validate.matching_points(x1, x2)
-    return _sampson_core(F, x1, x2)
+    return sampson_distance_batch(F[None], x1, x2)[0]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -231,11 +271,13 @@ class RansacResult:
         F: ``(3, 3)`` fundamental matrix refit on all inliers (unit Frobenius norm, sign fixed).
         inliers: ``(N,)`` bool, True where the Sampson distance to ``F`` is below the threshold.
         n_iters: number of random samples drawn.
+        distances: ``(N,)`` Sampson distance of every correspondence to ``F`` (pixels).
     """
 
     F: np.ndarray
     inliers: np.ndarray
     n_iters: int
+    distances: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def n_inliers(self) -> int:
@@ -265,14 +307,114 @@ def ransac_iterations(inlier_ratio: float, confidence: float = 0.999, sample_siz
     w = float(inlier_ratio)
     if not 0.0 <= w <= 1.0:
         raise KitInputError(f"inlier_ratio={w}: expected a fraction in [0, 1]")
-    if not 0.0 < confidence < 1.0:
-        raise KitInputError(f"confidence={confidence}: expected a probability strictly between 0 and 1")
+    validate.probability(confidence, "confidence")
     p_good = w**sample_size
     if p_good >= 1.0:
         return 0.0
     if p_good <= 0.0:
         return float("inf")
     return float(np.log(1.0 - confidence) / np.log1p(-p_good))
+
+
+def _draw_samples(rng: np.random.Generator, n: int, size: int, count: int) -> np.ndarray:
+    """``(count, size)`` indices of ``count`` samples of ``size`` distinct items among ``n``.
+
+    One sample is drawn as ``rng.choice(n, size, replace=False)`` (the textbook loop); many at
+    once as the first ``size`` of a random permutation each (``argpartition`` of uniform noise).
+    """
+    if count == 1:
+        return rng.choice(n, size=size, replace=False)[None]
+    if n == size:
+        return np.tile(np.arange(size), (count, 1))
+    return np.argpartition(rng.random((count, n)), size - 1, axis=1)[:, :size]
+
+
+def _refit(solver, error, x1, x2, model, threshold: float, min_size: int, rounds: int = 5):
+    """Refit the model on all its inliers and recount them, while the inlier set grows.
+
+    The first refit is always taken (a fit to all inliers beats the fit to a minimal sample);
+    later ones only if they keep at least as many inliers. Returns ``(model, distances (N,))``.
+    """
+    d = error(model[None], x1, x2)[0]
+    inliers = d < threshold
+    for round_ in range(rounds):
+        if inliers.sum() < min_size:
+            break
+        new, ok = solver(x1[inliers][None], x2[inliers][None])
+        if not ok[0]:
+            break
+        d_new = error(new, x1, x2)[0]
+        inl_new = d_new < threshold
+        if round_ > 0 and inl_new.sum() < inliers.sum():
+            break
+        done = np.array_equal(inl_new, inliers)
+        model, d, inliers = new[0], d_new, inl_new
+        if done:
+            break
+    return model, d
+
+
+def ransac(
+    x1: np.ndarray,
+    x2: np.ndarray,
+    rng: np.random.Generator,
+    solver=eight_point_batch,
+    error=sampson_distance_batch,
+    sample_size: int = 8,
+    threshold: float = 1.0,
+    confidence: float = 0.999,
+    max_iters: int = 2000,
+    batch: int = 1,
+) -> RansacResult | None:
+    """RANSAC with its minimal solver and its error function as arguments (as kornia's ``RANSAC``).
+
+    Draws ``batch`` samples of ``sample_size`` correspondences at a time with ``rng``, fits one
+    model to each with ``solver``, scores every model by its inlier count (``error < threshold``;
+    ties go to the smaller sum of errors truncated at the threshold, as MSAC), and stops after
+    ``log(1 - confidence) / log(1 - w^s)`` samples for the best inlier ratio ``w`` so far
+    (:func:`ransac_iterations`) or at ``max_iters``. The best model is then refit on all its
+    inliers while the inlier set grows. No input checks (the callers check).
+
+    Args:
+        x1, x2: ``(N, 2)`` matching pixels, N >= ``sample_size``.
+        rng: seeded ``numpy.random.Generator`` (the only source of randomness).
+        solver: ``solver(x1 (B, n, 2), x2 (B, n, 2)) -> (models (B, ...), ok (B,) bool)`` for any
+            ``n >= sample_size`` (default: :func:`eight_point_batch`).
+        error: ``error(models (B, ...), x1 (N, 2), x2 (N, 2)) -> (B, N)`` in the unit of
+            ``threshold`` (default: :func:`sampson_distance_batch`, pixels).
+        sample_size: correspondences per minimal sample.
+        threshold: inlier threshold on ``error``.
+        confidence: desired probability of drawing at least one outlier-free sample.
+        max_iters: the most samples drawn.
+        batch: samples drawn and solved per call of ``solver`` (1: the textbook loop).
+
+    Returns:
+        :class:`RansacResult` (its ``F`` is the model; ``distances`` the errors to it), or None
+        when every sample was degenerate.
+    """
+    n = len(x1)
+    best_key, best = (-1, 0.0), None
+    needed, it = float(max_iters), 0
+    while it < min(needed, max_iters):
+        b = int(min(batch, max_iters - it))
+        idx = _draw_samples(rng, n, sample_size, b)
+        it += b
+        models, ok = solver(x1[idx], x2[idx])
+        if not ok.any():
+            continue  # degenerate samples: draw again (they still count as iterations)
+        models = models[ok]
+        d = error(models, x1, x2)
+        count = (d < threshold).sum(axis=1)
+        trunc = np.minimum(d, threshold).sum(axis=1)
+        k = int(np.lexsort((trunc, -count))[0])
+        key = (int(count[k]), -float(trunc[k]))
+        if key > best_key:
+            best_key, best = key, models[k]
+            needed = ransac_iterations(best_key[0] / n, confidence, sample_size)
+    if best is None:
+        return None
+    model, d = _refit(solver, error, x1, x2, best, threshold, sample_size)
+    return RansacResult(F=model, inliers=d < threshold, n_iters=it, distances=d)
 
 
 def ransac_fundamental(
@@ -291,6 +433,8 @@ def ransac_fundamental(
     iterations needed, ``log(1 - confidence) / log(1 - w⁸)`` (:func:`ransac_iterations`); the
     loop stops there or at ``max_iters``. Finally F is refit on all inliers of the best sample
     and the inliers are recomputed with it (repeated while the inlier set grows, at most 5 times).
+    (:func:`ransac` with :func:`eight_point_batch` and :func:`sampson_distance_batch`, one
+    sample at a time.)
 
     Args:
         x1: ``(N, 2)`` pixels in image 1, N >= 8.
@@ -309,51 +453,13 @@ def ransac_fundamental(
     Introduced in notebooks/01_fundamental_matrix.ipynb.
     """
     x1, x2 = validate.matching_points(x1, x2, min_count=8, why=_WHY_8)
-    if not isinstance(rng, np.random.Generator):
+    validate.generator(rng)
+    threshold_px = validate.positive(threshold_px, "threshold_px", "a positive number of pixels")
+    validate.probability(confidence, "confidence")
+    max_iters = validate.count(max_iters, "max_iters", minimum=1)
+    res = ransac(x1, x2, rng, threshold=threshold_px, confidence=confidence, max_iters=max_iters)
+    if res is None:
         raise KitInputError(
-            f"rng must be a numpy.random.Generator (e.g. np.random.default_rng(0)), got {type(rng).__name__}"
+            f"RANSAC found no non-degenerate sample in {max_iters} iterations: the {len(x1)} correspondences are degenerate"
         )
-    if not (np.isfinite(threshold_px) and threshold_px > 0):
-        raise KitInputError(f"threshold_px={threshold_px}: expected a positive number of pixels")
-    if not 0.0 < confidence < 1.0:
-        raise KitInputError(f"confidence={confidence}: expected a probability strictly between 0 and 1")
-    if int(max_iters) < 1:
-        raise KitInputError(f"max_iters={max_iters}: expected at least 1")
-    max_iters = int(max_iters)
-
-    n = len(x1)
-    best_F, best_inliers, best_count = None, None, -1
-    needed = float(max_iters)
-    it = 0
-    while it < min(needed, max_iters):
-        it += 1
-        sample = rng.choice(n, size=8, replace=False)
-        F = _eight_point_core(x1[sample], x2[sample])
-        if F is None:
-            continue  # degenerate sample: draw again (it still counts as an iteration)
-        inliers = _sampson_core(F, x1, x2) < threshold_px
-        count = int(inliers.sum())
-        if count > best_count:
-            best_F, best_inliers, best_count = F, inliers, count
-            needed = ransac_iterations(count / n, confidence, 8)
-    if best_F is None:
-        raise KitInputError(
-            f"RANSAC found no non-degenerate sample in {it} iterations: the {n} correspondences are degenerate"
-        )
-
-    # Refit on all inliers of the best sample, recompute the inliers, and repeat while the set grows.
-    F, inliers = best_F, best_inliers
-    for round_ in range(5):
-        if inliers.sum() < 8:
-            break
-        F_new = _eight_point_core(x1[inliers], x2[inliers])
-        if F_new is None:
-            break
-        inl_new = _sampson_core(F_new, x1, x2) < threshold_px
-        if round_ > 0 and inl_new.sum() < inliers.sum():
-            break
-        done = np.array_equal(inl_new, inliers)
-        F, inliers = F_new, inl_new
-        if done:
-            break
-    return RansacResult(F=F, inliers=inliers, n_iters=it)
+    return res

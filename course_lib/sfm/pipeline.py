@@ -254,9 +254,9 @@ class _State:
 
 def _verified_tracks(data, rng, threshold_px: float, min_matches: int, report: dict):
     """RANSAC on F for every pair, then tracks from the inlier matches only (:mod:`course_lib.sfm.tracks`)."""
-    from course_lib.sfm.tracks import verified_tracks, verify_pairs
+    from course_lib.sfm.tracks import ransac_every_pair, verified_tracks
 
-    ver = verify_pairs(data.matches, rng, threshold_px)
+    ver = ransac_every_pair(data.matches, rng, threshold_px)
     pairs, rows = {}, []
     for (i, j), v in ver.items():
         row = {"pair": [i, j], "names": [data.image_names[i], data.image_names[j]], "matches": len(v.inliers),

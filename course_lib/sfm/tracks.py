@@ -6,15 +6,15 @@ points together: if feature A of image 1 is wrongly matched to feature B of imag
 a real feature of another point, the two points' tracks become one, and a track with two
 features in one image is useless. So the pipeline builds its tracks in two steps:
 
-1. **Verify every pair** (notebook 01): RANSAC on F with the normalized 8-point algorithm and
-   the Sampson distance, exactly as :func:`course_lib.sfm.fundamental.ransac_fundamental`
-   teaches, but with the random samples drawn and solved in batches (:func:`verify_pair`): one
-   batched SVD for many 8-point problems instead of a Python loop over them. Only the inlier
-   matches go on.
+1. **Verify every pair** (notebook 01, :func:`ransac_every_pair`): RANSAC on F with the
+   normalized 8-point algorithm and the Sampson distance, the one RANSAC of
+   :mod:`course_lib.sfm.fundamental`, with the random samples drawn and solved in batches
+   (:func:`verify_pair`): one batched factorization for many 8-point problems instead of a
+   Python loop over them. Only the inlier matches go on.
 2. **Join the inliers** (:func:`join_tracks`): features are nodes ``(image, u, v)`` (equal
-   pixels are the same feature) and verified matches are edges. Edges are added by
-   union-find, the most trustworthy first (pairs with more inliers first, then by Sampson
-   distance), and an edge that would put two different features of one image into one track is
+   pixels are the same feature) and verified matches are edges. Edges are added by union-find
+   (:class:`course_lib.data.p3.UnionFind`), the most trustworthy first (pairs with more inliers
+   first, then by Sampson distance), and an edge that would put two different features of one image into one track is
    *refused*: the track is split at the conflicting link instead of being dropped whole.
 
 Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
@@ -26,10 +26,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from course_lib.sfm.fundamental import _eight_point_core, _sampson_core, ransac_iterations
+from course_lib.data.p3 import UnionFind
+from course_lib.sfm.fundamental import ransac
 from course_lib.validate import KitInputError
 
-__all__ = ["PairVerification", "Tracks", "verify_pair", "verify_pairs", "join_tracks", "verified_tracks"]
+__all__ = ["PairVerification", "Tracks", "verify_pair", "ransac_every_pair", "join_tracks", "verified_tracks"]
 
 
 @dataclass
@@ -55,65 +56,6 @@ class PairVerification:
         return int(self.inliers.sum())
 
 
-def _eight_point_batch(x1: np.ndarray, x2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The normalized 8-point algorithm on ``B`` samples at once.
-
-    The same steps as :func:`course_lib.sfm.fundamental._eight_point_core` (Hartley
-    normalization, null vector of ``A``, rank 2, undo the normalization), each as one
-    batched numpy call.
-
-    Args:
-        x1, x2: ``(B, 8, 2)`` pixels of B minimal samples.
-
-    Returns:
-        ``F (B, 3, 3)`` (unit Frobenius norm) and ``ok (B,)`` bool (False for a degenerate sample).
-    """
-    B = x1.shape[0]
-
-    def normalize(x):
-        c = x.mean(axis=1, keepdims=True)
-        d = np.linalg.norm(x - c, axis=2).mean(axis=1)
-        s = np.sqrt(2.0) / np.maximum(d, 1e-300)
-        T = np.zeros((B, 3, 3))
-        T[:, 0, 0] = T[:, 1, 1] = s
-        T[:, :2, 2] = -s[:, None] * c[:, 0]
-        T[:, 2, 2] = 1.0
-        return (x - c) * s[:, None, None], T, d > 1e-12
-
-    n1, T1, ok1 = normalize(x1)
-    n2, T2, ok2 = normalize(x2)
-    u1, v1 = n1[..., 0], n1[..., 1]
-    u2, v2 = n2[..., 0], n2[..., 1]
-    A = np.stack([u2 * u1, u2 * v1, u2, v2 * u1, v2 * v1, v2, u1, v1, np.ones_like(u1)], axis=2)  # (B, 8, 9)
-    # The null vector of A (8 x 9): the last column of the complete QR factor Q of Aᵀ (orthogonal
-    # to the 8 rows of A). It is the SVD's last right singular vector when A has rank 8, at a
-    # quarter of the cost; rank < 8 (a degenerate sample) shows as a vanishing R[7, 7].
-    Q, Rq = np.linalg.qr(np.transpose(A, (0, 2, 1)), mode="complete")
-    diag = np.abs(np.diagonal(Rq, axis1=1, axis2=2))
-    ok = ok1 & ok2 & (diag[:, 7] > 1e-10 * diag.max(axis=1))
-    F_n = Q[:, :, -1].reshape(B, 3, 3)
-    U, s, Vt = np.linalg.svd(F_n)
-    s[:, 2] = 0.0
-    F_n = (U * s[:, None, :]) @ Vt
-    F = np.transpose(T2, (0, 2, 1)) @ F_n @ T1
-    F /= np.linalg.norm(F, axis=(1, 2), keepdims=True)
-    return F, ok
-
-
-def _sampson_batch(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """``(B, N)`` Sampson distances (pixels) of N matches to B fundamental matrices ``F (B, 3, 3)``."""
-    h1 = np.concatenate([x1, np.ones((len(x1), 1))], axis=1).T  # (3, N)
-    h2 = np.concatenate([x2, np.ones((len(x2), 1))], axis=1).T
-    B, N = len(F), h1.shape[1]
-    # one matrix product each for all B models: (3B, 3) @ (3, N)
-    Fx1 = (F.reshape(3 * B, 3) @ h1).reshape(B, 3, N)  # epipolar lines in image 2
-    Ftx2 = (np.transpose(F, (0, 2, 1)).reshape(3 * B, 3) @ h2).reshape(B, 3, N)  # lines in image 1
-    num = Fx1[:, 0] * h2[0] + Fx1[:, 1] * h2[1] + Fx1[:, 2]  # x2ᵀ F x1
-    den = Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.abs(num) / np.sqrt(den)
-
-
 def verify_pair(
     x1: np.ndarray,
     x2: np.ndarray,
@@ -125,11 +67,11 @@ def verify_pair(
 ) -> PairVerification:
     """RANSAC on F (8-point samples, Sampson distance, adaptive stop), samples solved in batches.
 
-    The algorithm of :func:`course_lib.sfm.fundamental.ransac_fundamental` (notebook 01): draw
-    8 matches, fit F, count the matches within ``threshold_px``, stop after
-    ``log(1 - confidence) / log(1 - w⁸)`` samples for the best inlier ratio ``w``; then refit F on
-    the inliers while the inlier set grows. Here ``batch`` samples are drawn and solved at once,
-    and the best is scored MSAC-style (inlier count, ties broken by the truncated error sum).
+    The RANSAC of notebook 01, :func:`course_lib.sfm.fundamental.ransac` with the batched
+    8-point solver and Sampson distance: draw 8 matches, fit F, count the matches within
+    ``threshold_px``, stop after ``log(1 - confidence) / log(1 - w⁸)`` samples for the best
+    inlier ratio ``w``; then refit F on the inliers while the inlier set grows. Here ``batch``
+    samples are drawn and solved at once.
 
     Args:
         x1, x2: ``(N, 2)`` matching pixels of the two images.
@@ -152,51 +94,14 @@ def verify_pair(
     if n < 8:
         none.note = f"{n} matches: the 8-point algorithm needs at least 8"
         return none
-    best_key, best_F = (-1, 0.0), None
-    needed, it = float(max_iters), 0
-    while it < min(needed, max_iters):
-        b = int(min(batch, max_iters - it))
-        # b samples of 8 distinct matches: the first 8 of a random permutation (argsort of noise)
-        idx = np.argpartition(rng.random((b, n)), 7, axis=1)[:, :8] if n > 8 else np.tile(np.arange(8), (b, 1))
-        it += b
-        F, ok = _eight_point_batch(x1[idx], x2[idx])
-        if not ok.any():
-            continue
-        F = F[ok]
-        d = _sampson_batch(F, x1, x2)
-        d = np.where(np.isfinite(d), d, np.inf)
-        inl = d < threshold_px
-        count = inl.sum(axis=1)
-        trunc = np.minimum(d, threshold_px).sum(axis=1)
-        k = int(np.lexsort((trunc, -count))[0])
-        key = (int(count[k]), -float(trunc[k]))
-        if key > best_key:
-            best_key, best_F = key, F[k]
-            needed = ransac_iterations(best_key[0] / n, confidence, 8)
-    if best_F is None:
-        none.n_iters, none.note = it, "only degenerate 8-point samples (all matches on a line or repeated?)"
+    res = ransac(x1, x2, rng, threshold=threshold_px, confidence=confidence, max_iters=max_iters, batch=batch)
+    if res is None:
+        none.n_iters, none.note = max_iters, "only degenerate 8-point samples (all matches on a line or repeated?)"
         return none
-    F = best_F
-    d = _sampson_core(F, x1, x2)
-    inliers = d < threshold_px
-    for _ in range(5):  # refit on the inliers while the set grows (as ransac_fundamental does)
-        if inliers.sum() < 8:
-            break
-        F_new = _eight_point_core(x1[inliers], x2[inliers])
-        if F_new is None:
-            break
-        d_new = _sampson_core(F_new, x1, x2)
-        inl_new = d_new < threshold_px
-        if inl_new.sum() < inliers.sum():
-            break
-        done = np.array_equal(inl_new, inliers)
-        F, d, inliers = F_new, d_new, inl_new
-        if done:
-            break
-    return PairVerification(F, inliers, d, it)
+    return PairVerification(res.F, res.inliers, res.distances, res.n_iters)
 
 
-def verify_pairs(matches: dict, rng: np.random.Generator, threshold_px: float = 1.0, **kw) -> dict:
+def ransac_every_pair(matches: dict, rng: np.random.Generator, threshold_px: float = 1.0, **kw) -> dict:
     """:func:`verify_pair` for every pair of a P3 ``matches`` dict ``{(i, j): PairMatches}``, in sorted order.
 
     Returns:
@@ -268,31 +173,10 @@ def join_tracks(n_images: int, edges: list) -> Tracks:
             has_rgb[a[new]] = True
     A = np.concatenate([n[0] for n in node_of]) if edges else np.zeros(0, int)
     Bn = np.concatenate([n[1] for n in node_of]) if edges else np.zeros(0, int)
-
-    parent = list(range(n_nodes))
-    images = [1 << int(m) for m in node_img]  # bit mask of the images in each root's track
-
-    def find(x):
-        root = x
-        while parent[root] != root:
-            root = parent[root]
-        while parent[x] != root:
-            parent[x], x = root, parent[x]
-        return root
-
-    refused = 0
-    for a, b in zip(A.tolist(), Bn.tolist()):
-        ra, rb = find(a), find(b)
-        if ra == rb:
-            continue
-        if images[ra] & images[rb]:
-            refused += 1  # the two tracks share an image (with different features): split here
-            continue
-        if ra > rb:
-            ra, rb = rb, ra
-        parent[rb] = ra
-        images[ra] |= images[rb]
-    roots = np.array([find(x) for x in range(n_nodes)], dtype=int)
+    # a track holds one feature per image: a link between two tracks that share an image is refused
+    uf = UnionFind(n_nodes, groups=node_img)
+    refused = sum(not uf.union(a, b) for a, b in zip(A.tolist(), Bn.tolist()))
+    roots = np.array([uf.find(x) for x in range(n_nodes)], dtype=int)
     linked = np.zeros(n_nodes, bool)
     linked[A] = linked[Bn] = True
     _, track_of, sizes = np.unique(roots, return_inverse=True, return_counts=True)
@@ -316,7 +200,7 @@ def verified_tracks(data, verifications: dict, min_inliers: int = 8) -> Tracks:
 
     Args:
         data: :class:`course_lib.data.p3.P3Data` (its ``matches``).
-        verifications: ``{(i, j): PairVerification}`` from :func:`verify_pairs`.
+        verifications: ``{(i, j): PairVerification}`` from :func:`ransac_every_pair`.
         min_inliers: pairs with fewer inliers contribute no edges (too few to trust their F).
 
     Returns:

@@ -10,67 +10,47 @@
 
 Each module's docstring lists the exact signatures and shapes.
 
-Importing this package sets plotly's default renderer to ``"plotly_mimetype"``: figures are
+Importing this package makes ``"plotly_mimetype"`` plotly's default renderer: figures are
 stored in the notebook as JSON only (no copy of plotly.js in every notebook, so notebook files
 stay small); JupyterLab draws them natively. If you chose a renderer yourself with the
 environment variable ``PLOTLY_RENDERER`` (e.g. ``PLOTLY_RENDERER=notebook_connected`` for the
 classic notebook or a static HTML export), the kit leaves your choice alone.
+
+The names are loaded on first use (``from course_lib.viz import draw_matches`` loads matplotlib,
+not plotly nor ipywidgets), so that a command that writes one HTML page does not pay for the rest.
 """
 
 from __future__ import annotations
 
+import importlib
 import os
-
-import plotly.io as _pio
+import sys
 
 if not os.environ.get("PLOTLY_RENDERER"):
-    _pio.renderers.default = "plotly_mimetype"
+    if "plotly.io._renderers" in sys.modules:
+        import plotly.io as _pio
 
-from course_lib.viz.scene3d import (  # noqa: E402
-    add_cameras,
-    add_points,
-    add_rays,
-    camera_frustum,
-    scene_figure,
-    scene_size,
-    write_html,
-)
+        _pio.renderers.default = "plotly_mimetype"
+    else:  # plotly reads it when it first loads its renderers (which import nbformat, seconds)
+        os.environ["PLOTLY_RENDERER"] = "plotly_mimetype"
 
-__all__ = [
-    "scene_figure",
-    "add_cameras",
-    "add_points",
-    "add_rays",
-    "camera_frustum",
-    "scene_size",
-    "write_html",
-]
+#: public name -> the module that defines it
+_HOME = {
+    **dict.fromkeys(["scene_figure", "add_cameras", "add_points", "add_rays", "camera_frustum", "scene_size",
+                     "write_html"], "course_lib.viz.scene3d"),
+    **dict.fromkeys(["draw_matches", "draw_epipolar_lines", "plot_reprojection_errors", "plot_visibility",
+                     "plot_jacobian_sparsity", "plot_training_curves", "image_grid"], "course_lib.viz.figures"),
+    **dict.fromkeys(["ransac_threshold_widget", "ba_iterations_widget", "nerf_snapshot_slider",
+                     "novel_view_widget"], "course_lib.viz.widgets"),
+}
+__all__ = list(_HOME)
 
-from course_lib.viz.figures import (  # noqa: E402
-    draw_epipolar_lines,
-    draw_matches,
-    image_grid,
-    plot_jacobian_sparsity,
-    plot_reprojection_errors,
-    plot_training_curves,
-    plot_visibility,
-)
 
-__all__ += [
-    "draw_matches",
-    "draw_epipolar_lines",
-    "plot_reprojection_errors",
-    "plot_visibility",
-    "plot_jacobian_sparsity",
-    "plot_training_curves",
-    "image_grid",
-]
+def __getattr__(name: str):
+    if name in _HOME:
+        return getattr(importlib.import_module(_HOME[name]), name)
+    raise AttributeError(f"module 'course_lib.viz' has no attribute {name!r}")
 
-from course_lib.viz.widgets import (  # noqa: E402
-    ba_iterations_widget,
-    nerf_snapshot_slider,
-    novel_view_widget,
-    ransac_threshold_widget,
-)
 
-__all__ += ["ransac_threshold_widget", "ba_iterations_widget", "nerf_snapshot_slider", "novel_view_widget"]
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_HOME))

@@ -77,7 +77,7 @@ from pathlib import Path
 import numpy as np
 import plotly.graph_objects as go
 
-from course_lib.validate import KitInputError, intrinsics, rotation
+from course_lib.validate import KitInputError, as_array, camera_poses, intrinsics, rotation
 
 __all__ = [
     "scene_figure",
@@ -100,12 +100,7 @@ _POINT_META = "course_lib:points"
 # ----------------------------------------------------------------------------- input helpers
 def _np(a, dtype=float) -> np.ndarray:
     """numpy array from numpy / list / torch tensor (without importing torch)."""
-    if hasattr(a, "detach") and hasattr(a, "cpu"):
-        a = a.detach().cpu().numpy()
-    try:
-        return np.asarray(a, dtype=dtype)
-    except (TypeError, ValueError) as exc:
-        raise KitInputError(f"expected a numeric array, got {type(a).__name__} ({exc})") from None
+    return as_array(a, "the input", dtype)
 
 
 def _rows(a, name: str, dim: int = 3) -> np.ndarray:
@@ -125,26 +120,6 @@ def _image_size(image_size) -> tuple[int, int]:
     if W <= 0 or H <= 0:
         raise KitInputError(f"image_size must be positive (W, H), got {image_size!r}")
     return W, H
-
-
-def _poses(R_cw, t_cw) -> tuple[np.ndarray, np.ndarray]:
-    R = _np(R_cw)
-    t = _np(t_cw)
-    if R.shape == (3, 3):
-        R = R[None]
-    if t.shape in ((3,), (3, 1)) and R.shape[0] == 1:
-        t = t.reshape(1, 3)
-    if R.ndim != 3 or R.shape[1:] != (3, 3):
-        raise KitInputError(f"R_cw has shape {tuple(R.shape)}: expected (M, 3, 3) (one rotation per camera)")
-    if t.ndim == 3 and t.shape[1:] == (3, 1):
-        t = t[..., 0]
-    if t.shape != (R.shape[0], 3):
-        raise KitInputError(f"t_cw has shape {tuple(t.shape)}: expected ({R.shape[0]}, 3) to match R_cw {tuple(R.shape)}")
-    for i, Ri in enumerate(R):
-        rotation(Ri, name=f"R_cw[{i}]", atol=1e-4)
-    if not np.isfinite(t).all():
-        raise KitInputError("t_cw contains NaN or inf")
-    return R, t
 
 
 def _colour(rgb) -> str:
@@ -518,7 +493,7 @@ def add_cameras(
     Returns:
         ``fig`` (modified in place).
     """
-    R, t = _poses(R_cw, t_cw)
+    R, t = camera_poses(R_cw, t_cw)
     M = R.shape[0]
     Ks = _camera_intrinsics(K, M)
     W, H = _image_size(image_size)

@@ -57,9 +57,9 @@ import numpy as np
 import plotly.graph_objects as go
 import plotly.io as pio
 
-from course_lib.validate import KitInputError, intrinsics, matching_points
+from course_lib.validate import KitInputError, camera_poses, intrinsics, matching_points
 from course_lib.viz.figures import draw_matches
-from course_lib.viz.scene3d import _poses, add_cameras, add_points, scene_figure, set_axis_box
+from course_lib.viz.scene3d import add_cameras, add_points, scene_figure, set_axis_box
 
 __all__ = ["ransac_threshold_widget", "ba_iterations_widget", "nerf_snapshot_slider", "novel_view_widget"]
 
@@ -212,7 +212,7 @@ def ba_iterations_widget(
     for k, st in enumerate(states):
         if not isinstance(st, (tuple, list)) or len(st) != 3:
             raise KitInputError(f"states[{k}] must be a tuple (R_cw (M,3,3), t_cw (M,3), X (N,3))")
-        R, t = _poses(st[0], st[1])
+        R, t = camera_poses(st[0], st[1])
         X = np.asarray(st[2], float)
         if X.ndim != 2 or X.shape[1] != 3:
             raise KitInputError(f"states[{k}][2] (X) has shape {X.shape}: expected (N, 3)")

@@ -11,6 +11,7 @@ import pytest
 from course_lib.conventions import camera_center, project
 from course_lib.data import building
 from course_lib.data.building import Surface, load_ground_truth, render
+from course_lib.data.features import tracks_from_images
 from course_lib.data.p3 import read_p3, write_p3
 from course_lib.data.synthetic import look_at
 from course_lib.paths import EMBEDDED_NERF, EMBEDDED_SFM
@@ -163,7 +164,7 @@ def test_matching_reproduces_committed_files(committed, tmp_path):
     """SIFT + matching + tracks on the committed photos give exactly the committed matching files."""
     d, K, names, _, _ = committed
     images = [d.image(i) for i in range(d.n_images)]
-    track_uv, track_rgb, _, _ = building.tracks_from_images(images)
+    track_uv, track_rgb, _, _ = tracks_from_images(images)
     write_p3(tmp_path, names, K, track_uv, track_rgb)
     for i in range(1, d.n_images):
         name = f"matching{i}.txt"

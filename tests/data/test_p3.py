@@ -302,3 +302,16 @@ def test_tracks_from_pairs_matches_reader_rule():
     assert stats == {"inconsistent_components": 1, "dropped_observations": 1}
     with pytest.raises(KitInputError, match="not a pair"):
         tracks_from_pairs(2, {(0, 0): ([[1, 1]], [[2, 2]])})
+
+
+def test_union_find_roots_and_groups():
+    from course_lib.data.p3 import UnionFind
+
+    uf = UnionFind(5)
+    assert uf.union(3, 1) and uf.union(1, 4)
+    assert uf.find(4) == uf.find(3) == 1  # the root is the smallest node
+    assert uf.find(2) == 2 and uf.add() == 5
+    g = UnionFind(4, groups=[0, 1, 0, 1])  # nodes of the same group never share a set
+    assert g.union(0, 1)
+    assert not g.union(1, 2)  # the set {0, 1} already holds group 0
+    assert g.union(2, 3) and g.find(3) == 2 and g.find(1) == 0

@@ -1,7 +1,11 @@
 """``python -m course_lib sfm``: outputs (COLMAP model, report.json, scene.html) and one-line errors on bad input."""
 
 import json
+import os
 import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -117,3 +121,33 @@ def test_left_out_image_is_printed_by_name(tmp_path, capsys):
     assert "4/5 images registered" in out and "left out: 5.png: no verified matches" in out
     report = json.loads((tmp_path / "o" / "report.json").read_text())
     assert report["left_out"][0]["name"] == "5.png"
+
+
+# --- the command line imports only what the command needs -------------------------------------------
+
+def _modules_after(argv: list[str]) -> set[str]:
+    """The names in ``sys.modules`` after ``python -m course_lib ARGV`` has run, in a fresh process."""
+    code = ("import sys, runpy; sys.argv = ['course_lib'] + sys.argv[1:]\n"
+            "try:\n    runpy.run_module('course_lib', run_name='__main__')\n"
+            "except SystemExit:\n    pass\n"
+            "print('MODULES', ' '.join(sorted(sys.modules)))")
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    out = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, cwd=root, env=env,
+                         check=True).stdout
+    line = next(ln for ln in out.splitlines() if ln.startswith("MODULES "))
+    return set(line.split()[1:])
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["sfm", "--help"], ["match", "--help"]])
+def test_help_imports_no_torch_nor_nbformat(argv):
+    mods = _modules_after(argv)
+    heavy = {m for m in mods if m.split(".")[0] in {"torch", "nbformat", "jsonschema", "plotly"}}
+    assert not heavy, f"python -m course_lib {' '.join(argv)} imported {sorted(heavy)[:5]}"
+
+
+def test_sfm_imports_neither_torch_nor_nbformat(tmp_path):
+    mods = _modules_after(["sfm", "--out", str(tmp_path / "o"), "--quiet"])  # scene.html included: plotly, not its renderers
+    assert "course_lib.sfm.pipeline" in mods
+    heavy = {m for m in mods if m.split(".")[0] in {"torch", "nbformat", "jsonschema"}}
+    assert not heavy, f"python -m course_lib sfm imported {sorted(heavy)[:5]}"

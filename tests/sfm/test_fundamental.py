@@ -19,10 +19,14 @@ from course_lib.paths import course_data
 from course_lib.sfm.fundamental import (
     RansacResult,
     eight_point,
+    eight_point_batch,
     normalize_points,
+    normalize_points_batch,
+    ransac,
     ransac_fundamental,
     ransac_iterations,
     sampson_distance,
+    sampson_distance_batch,
 )
 from course_lib.validate import KitInputError
 
@@ -216,6 +220,57 @@ def test_bad_inputs_give_clear_messages():
         sampson_distance(np.eye(2), x, x)
     with pytest.raises(KitInputError, match=r"x2 has shape \(20, 3\)"):
         sampson_distance(np.eye(3), x, np.c_[x, x[:, :1]])
+
+
+# -- the batched building blocks and the generic RANSAC ----------------------------------------
+
+
+def test_batched_parts_equal_the_checked_ones(scene):
+    x1, x2, _, _ = scene.pair(0, 1)
+    xs1 = np.stack([x1[:40], x1[40:80], x1[80:120]])
+    xs2 = np.stack([x2[:40], x2[40:80], x2[80:120]])
+    xn, T, ok = normalize_points_batch(xs1)
+    F, okF = eight_point_batch(xs1, xs2)
+    assert ok.all() and okF.all()
+    d = sampson_distance_batch(F, x1, x2)
+    assert d.shape == (3, len(x1))
+    for b in range(3):
+        xn_b, T_b = normalize_points(xs1[b])
+        np.testing.assert_array_equal(xn[b], xn_b)
+        np.testing.assert_array_equal(T[b], T_b)
+        np.testing.assert_allclose(F[b], eight_point(xs1[b], xs2[b]), atol=1e-12)
+        np.testing.assert_allclose(d[b], sampson_distance(F[b], x1, x2), rtol=1e-12)
+    assert not normalize_points_batch(np.ones((1, 5, 2)))[2][0]
+
+
+def test_ransac_takes_its_solver_and_error():
+    """The generic RANSAC fits a 2-D line (minimal sample: 2 points) as well as F (kornia-style)."""
+    rng = np.random.default_rng(3)
+    t = rng.uniform(-10, 10, 100)
+    pts = np.c_[t, 2 * t + 1] + rng.normal(0, 0.05, (100, 2))
+    pts[:30] = rng.uniform(-20, 20, (30, 2))  # outliers
+
+    def line_solver(a, b):  # a: (B, n, 2) points; fit v = m u + c by least squares
+        A = np.stack([a[..., 0], np.ones_like(a[..., 0])], axis=2)
+        sol = np.stack([np.linalg.lstsq(Ai, ai[:, 1], rcond=None)[0] for Ai, ai in zip(A, a)])
+        return sol, np.ptp(a[..., 0], axis=1) > 1e-9
+
+    def line_error(models, a, b):
+        return np.abs(a[:, 1][None] - (models[:, :1] * a[:, 0][None] + models[:, 1:]))
+
+    res = ransac(pts, pts, rng, line_solver, line_error, sample_size=2, threshold=0.3, batch=16)
+    np.testing.assert_allclose(res.F, [2.0, 1.0], atol=0.05)
+    assert res.inliers[30:].all() and res.inliers[:30].sum() <= 3
+    np.testing.assert_allclose(res.distances, line_error(res.F[None], pts, pts)[0])
+
+
+def test_ransac_fundamental_is_the_generic_ransac_one_sample_at_a_time(scene):
+    x1, x2, _, _ = scene.pair(0, 2)
+    a = ransac_fundamental(x1, x2, np.random.default_rng(5), threshold_px=1.0)
+    b = ransac(x1, x2, np.random.default_rng(5), threshold=1.0)
+    np.testing.assert_array_equal(a.F, b.F)
+    np.testing.assert_array_equal(a.inliers, b.inliers)
+    assert a.n_iters == b.n_iters
 
 
 # -- the real course data -----------------------------------------------------------------------
