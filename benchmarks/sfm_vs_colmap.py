@@ -151,7 +151,7 @@ def _pose_columns(res, R_ref, t_ref, scene_size):
 def _p3_scene(folder: Path):
     """A P3 folder, with its ``ground_truth.json`` where there is one (:func:`course_lib.data.building.load_ground_truth`)."""
     from course_lib.data.building import load_ground_truth
-    from course_lib.sfm.pipeline import _image_size  # from the images, or the extent of the pixels without them
+    from course_lib.sfm.reconstruction import image_size_of as _image_size  # from the images, or the extent of the pixels without them
 
     data = read_p3(folder, require_images=False)
     size_px = _image_size(data)
