@@ -77,6 +77,10 @@ class MapperOptions:
         init_min_points: points an initial pair must score, and keep after triangulation, BA and
             filtering, to start a model; otherwise the next candidate is tried. (COLMAP: > 0.)
         init_max_trials: candidate pairs tried per model at most. (COLMAP ``init_num_trials`` 200.)
+        init_relaxations: when no pair starts the first model, ``min_pair_inliers`` and
+            ``init_min_angle_deg`` are halved and the candidates tried again, up to this many
+            times. (COLMAP relaxes ``init_min_num_inliers`` and ``init_min_tri_angle`` the same way,
+            twice each.)
         multiple_models: start new models from the images left when registration stalls.
             (COLMAP ``multiple_models`` true.)
         max_models: the most models. (COLMAP ``max_num_models`` 50.)
@@ -108,6 +112,7 @@ class MapperOptions:
     min_pair_inliers: int = 50
     init_min_points: int = 20
     init_max_trials: int = 50
+    init_relaxations: int = 2
     multiple_models: bool = True
     max_models: int = 10
     min_model_size: int = 3
@@ -396,6 +401,17 @@ class IncrementalMapper:
                     return
                 n += 1
                 yield c
+
+    def relax_initialization(self) -> dict:
+        """Halve ``min_pair_inliers`` and ``init_min_angle_deg`` (COLMAP's relaxation when no model starts); the new values."""
+        from dataclasses import replace
+
+        self.opts = replace(self.opts, min_pair_inliers=max(self.opts.min_pair_matches, self.opts.min_pair_inliers // 2),
+                            init_min_angle_deg=self.opts.init_min_angle_deg / 2.0)
+        self._scored.clear()  # the scores count points above the angle
+        self.say(f"no pair starts a model: relaxed to min_pair_inliers={self.opts.min_pair_inliers}, "
+                 f"init_min_angle_deg={self.opts.init_min_angle_deg}")
+        return {"min_pair_inliers": self.opts.min_pair_inliers, "init_min_angle_deg": self.opts.init_min_angle_deg}
 
     def initialize(self, pair: InitialPair) -> bool:
         """Start a model from ``pair``: triangulate, bundle-adjust and filter; False (model reset) if too few points remain."""

@@ -166,12 +166,8 @@ def _build_models(mapper: IncrementalMapper, rgb: np.ndarray, pairs: dict) -> tu
     opts = mapper.opts
     models, reasons, discarded = [], [], {}
     while len(models) < opts.max_models and (~mapper.used).sum() >= 2:
-        tried = []
-        for pair in mapper.find_initial_pair():
-            tried.append(pair.row())
-            if mapper.initialize(pair):
-                break
-        else:
+        tried, relaxed = _start_model(mapper, relax=not models)
+        if not mapper.registered.any():
             if not models:
                 raise KitInputError(_no_start_message(mapper, tried, pairs))
             break
@@ -179,6 +175,8 @@ def _build_models(mapper: IncrementalMapper, rgb: np.ndarray, pairs: dict) -> tu
         mapper.finish()
         rec = mapper.end_model(rgb)
         rec.report["initial_pair"]["candidates"] = tried
+        if relaxed:
+            rec.report["initial_pair"]["relaxed"] = relaxed
         if models and rec.n_registered < opts.min_model_size:
             why = (f"in a model of only {rec.n_registered} images ({', '.join(rec.report['final']['registered'])}): "
                    f"fewer than min_model_size={opts.min_model_size}, discarded")
@@ -191,6 +189,24 @@ def _build_models(mapper: IncrementalMapper, rgb: np.ndarray, pairs: dict) -> tu
     for r in reasons:
         r.update(discarded)
     return models, reasons
+
+
+def _start_model(mapper: IncrementalMapper, relax: bool) -> tuple[list, list]:
+    """Try the candidate pairs until one starts a model; ``(rows of the pairs tried, relaxations made)``.
+
+    Where none does and ``relax`` (no model yet), the initialization is relaxed
+    (:meth:`~course_lib.sfm.mapper.IncrementalMapper.relax_initialization`) and the candidates tried again.
+    """
+    tried, relaxed = [], []
+    mapper.begin_model()
+    for step in range(mapper.opts.init_relaxations + 1 if relax else 1):
+        if step:
+            relaxed.append(mapper.relax_initialization())
+        for pair in mapper.find_initial_pair():
+            tried.append(pair.row())
+            if mapper.initialize(pair):
+                return tried, relaxed
+    return tried, relaxed
 
 
 def _no_start_message(mapper: IncrementalMapper, tried: list, pairs: dict) -> str:
