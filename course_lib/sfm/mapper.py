@@ -94,6 +94,13 @@ class MapperOptions:
             Huber at 1 px bounds the pull of the outliers that its looser thresholds let in.)
         ba_max_iterations: iteration cap of each BA (twice that for the final one). (COLMAP
             ``ba_local_max_num_iterations`` 25, global 50.)
+        ba_images_ratio: with ``"incremental"``, a registration is followed by a BA of the whole
+            model when the model has grown by this factor since the last one (always up to 6
+            images); in between, only the new points are refined (non-linear triangulation, the
+            cameras fixed) and filtered. Default 1.0: after every registration (on 16 views, 1.2
+            saves about 15 % of the CPU time and changes the rotation error by +-10 %). (COLMAP
+            ``ba_global_images_ratio`` 1.1, with a local BA of the 6 nearest images after every
+            registration; OpenSfM ``bundle_new_points_ratio`` 1.2.)
         final_ba_loss, final_ba_f_scale: loss of the final BA; ``"auto"``: Cauchy at ``f_scale``
             (None: twice the estimated noise, at least 0.3 px) when the errors have a heavy tail
             (SIFT), plain least squares otherwise (:func:`final_thresholds`).
@@ -120,6 +127,7 @@ class MapperOptions:
     ba_loss: str = "huber"
     ba_f_scale: float = 1.0
     ba_max_iterations: int = 10
+    ba_images_ratio: float = 1.0
     final_ba_loss: str = "auto"
     final_ba_f_scale: float | None = None
     initial_pair: tuple[int, int] | None = None
@@ -291,6 +299,7 @@ class IncrementalMapper:
         self.R, self.t = np.full((M, 3, 3), np.nan), np.full((M, 3), np.nan)
         self.X = np.full((T, 3), np.nan)
         self.ref = -1  # the camera that fixes the gauge (the initial pair's first)
+        self.n_at_last_ba = 0  # registered images at the last bundle adjustment of the whole model
         self.stages: list[dict] = []
         self.seconds: dict[str, float] = {}
         self.initial: dict = {}
@@ -607,7 +616,14 @@ class IncrementalMapper:
         return {"iterations": res.n_iterations, "rms_before": round(res.initial_rms, 4), "rms_after": round(res.final_rms, 4),
                 "seconds": round(res.seconds, 3), "gauge": res.gauge}
 
+    def should_bundle(self) -> bool:
+        """Whether the model is due a bundle adjustment (OpenSfM's ``ShouldBundle``): up to 6 images
+        always, then when it has grown by ``ba_images_ratio`` since the last one."""
+        n = int(self.registered.sum())
+        return self.opts.bundle_adjustment == "incremental" and (n <= 6 or n >= self.opts.ba_images_ratio * self.n_at_last_ba)
+
     def _adjust_and_filter(self, stage: dict) -> None:
+        self.n_at_last_ba = int(self.registered.sum())
         o = self.opts
         stage["ba"] = self.adjust_bundle(o.ba_loss, o.ba_f_scale, o.ba_max_iterations)
         stage["filter"] = self.filter_points()
@@ -656,11 +672,15 @@ class IncrementalMapper:
                                 "correspondences": n_corr, "note": why})
             self.say(f"not registered (yet): {self.names[i]}: {why}")
             return False
+        had_X = self.has_X
         n_new = self.triangulate_image(i)
         stage = {"stage": "register", "image": i, "name": self.names[i], "registered": True, **info,
                  "new_points": n_new, "points": int(self.has_X.sum()), "reprojection_before_ba": self.observation_stats()}
-        if self.opts.bundle_adjustment == "incremental":
+        if self.should_bundle():
             self._adjust_and_filter(stage)
+        elif self.opts.bundle_adjustment == "incremental":
+            stage["points_refined"] = self._refine_points(self.candidate[:, i] & self.has_X & ~had_X)
+            stage["filter"] = self.filter_points()
         stage["points_after"] = int(self.has_X.sum())
         stage["seconds"] = round(time.perf_counter() - t0, 3)
         self.stages.append(stage)

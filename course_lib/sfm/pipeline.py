@@ -1,43 +1,39 @@
 """Incremental Structure from Motion on a P3 folder: the notebooks 01-05 chained into one pipeline.
 
-:func:`run_sfm` takes the matches of a P3 folder (:func:`course_lib.data.p3.read_p3`) and returns a
-:class:`Reconstruction` (poses of the registered images, 3-D points, inlier observations) and a
-report of every stage. The stages are the notebooks' exercises, called from the reference
-library:
+:func:`run_sfm` takes the matches of a P3 folder (:func:`course_lib.data.p3.read_p3`) and returns
+the largest model as a :class:`~course_lib.sfm.reconstruction.Reconstruction` (poses of the
+registered images, 3-D points, inlier observations, a report of every stage), the other models in
+its ``others``. It is short: stage 1 here, the rest are the methods of
+:class:`~course_lib.sfm.mapper.IncrementalMapper` (shaped like COLMAP's ``IncrementalMapper``),
+every setting in one :class:`~course_lib.sfm.mapper.MapperOptions`:
 
-1. **Verified tracks** (notebook 01, :mod:`course_lib.sfm.tracks`): RANSAC on F for every image
-   pair (the 8-point algorithm and the Sampson distance of
-   :func:`~course_lib.sfm.fundamental.ransac_fundamental`, samples solved in batches), then the
-   tracks are joined from the *inlier* matches only, by union-find, trusted pairs first; a link
-   that would put two features of one image into one track is refused, so the track is split
-   there instead of being dropped. (The P3 reader's tracks, joined from the raw matches, are
-   not used: a few wrong matches that are real features of other points chain unrelated tracks.)
-2. **Initial pair** (notebooks 02, 03): among the pairs with many inliers, the one whose
-   triangulated points have the widest triangulation angles (a long baseline): score =
-   number of inlier points triangulated in front of both cameras with an angle above
-   ``init_min_angle_deg``. E from F (:func:`~course_lib.sfm.essential.essential_from_fundamental`),
-   the four candidates and the cheirality test (:func:`~course_lib.sfm.triangulation.choose_pose`)
-   give the second camera; the first is the world frame (``R = I, t = 0``) and the baseline has
-   length 1 (the unit of the reconstruction).
-3. **Triangulation** (notebook 03): linear from two views (the new image and its farthest
-   registered partner), then non-linear over all registered views that see the track (skipped
-   for images after the initial pair when bundle adjustment follows at once, since BA refines the
-   new points with everything else); a point is kept if it lies in front of those cameras,
-   reprojects within ``max_reproj_px`` and its triangulation angle is at least ``min_angle_deg``;
-   observations that reproject badly are rejected.
-4. **Registration** (notebook 04): the unregistered image that sees the most triangulated tracks
-   next: PnP RANSAC (:func:`~course_lib.sfm.pnp.pnp_ransac`) then non-linear PnP on the inliers.
-   This is how UPenn images 5 and 6, which share no matches with images 1 and 2, come in.
-5. **Bundle adjustment** (notebook 05, :func:`~course_lib.sfm.bundle_adjustment.bundle_adjust`):
-   after every registration (robust Huber loss, then observations beyond ``max_reproj_px`` are
-   removed); at the end, tracks that failed earlier are triangulated again and rejected
-   observations that now fit are used again (:func:`_retriangulate_and_complete`), the noise
-   level ``sigma`` is estimated from the median reprojection
-   error, observations beyond ``4 sigma`` (within [1, 4] px) are removed and a final BA polishes
-   the result: plain least squares where the errors look Gaussian, a Cauchy loss at ``2 sigma``
-   (at least 0.3 px) where they have a heavy tail (SIFT). Points seen in only two images cannot
-   reveal a wrong match, so the cameras are refined first with the points seen three or more
-   times, and the two-view points after them.
+1. **Verified tracks** (notebook 01, :func:`verified_pairs_and_tracks`, :mod:`course_lib.sfm.tracks`):
+   RANSAC on F for every image pair (the 8-point algorithm and the Sampson distance, samples
+   solved in batches), then the tracks are joined from the *inlier* matches only, by union-find,
+   trusted pairs first; a link that would put two features of one image into one track is
+   refused, so the track is split there instead of being dropped. (The P3 reader's tracks, joined
+   from the raw matches, are not used: a few wrong matches chain unrelated tracks.)
+2. **Initial pair** (notebooks 02, 03; ``find_initial_pair``, ``initialize``): the image with the
+   most verified correspondences to other images first, then its partner with the most points
+   triangulated at ``init_min_angle_deg`` or more; pure-rotation and planar pairs are named and
+   skipped; a pair that keeps fewer than ``init_min_points`` points after triangulation and BA is
+   dropped for the next. E from F, the four candidates and the cheirality test give the second
+   camera; the first is the world frame (``R = I, t = 0``), the baseline has length 1.
+3. **Registration** (notebook 04; ``register_next_image``): the image whose 2D-3D
+   correspondences are the most and the most spread out next: PnP RANSAC then non-linear PnP.
+   Images that fail are tried again after every registration. This is how UPenn images 5 and 6,
+   which share no matches with images 1 and 2, come in.
+4. **Triangulation** (notebook 03; ``triangulate_image``): the tracks the new image shares with
+   every registered image, linear from its farthest partner, kept if in front, within
+   ``max_reproj_px`` and seen under ``min_angle_deg`` or more.
+5. **Bundle adjustment** (notebook 05; ``adjust_bundle``, ``filter_points``): after every
+   registration (robust Huber loss, then observations beyond ``max_reproj_px`` are removed). When
+   registration stalls with images left, ``retriangulate`` and try them again; at the end
+   (``finish``) re-triangulation, a noise estimate from the median reprojection error, filtering at
+   ``4 sigma`` and a final BA (plain least squares for Gaussian-like errors, Cauchy for SIFT's heavy
+   tail; cameras first with the points seen three or more times).
+6. **Several models**: where the model cannot grow and two or more images are left, a new model
+   starts from those (as COLMAP does); the largest is returned, the others in ``others``.
 
 P3 data quirks handled upstream by the reader (:mod:`course_lib.data.p3`): duplicate rows are
 merged, features are identified by equal coordinates. Matches contain outliers on purpose
