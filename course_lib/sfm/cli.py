@@ -3,12 +3,19 @@
 Without ``DATA_DIR`` the embedded scene (``data/synthetic-building``) is used. Writes to ``OUT_DIR``
 (default ``outputs/sfm``, git-ignored):
 
-* ``colmap/cameras.txt``, ``colmap/images.txt``, ``colmap/points3D.txt``: the model as COLMAP text
-  files (open it with ``pycolmap.Reconstruction(OUT_DIR / "colmap")`` or COLMAP's GUI);
+* ``colmap/cameras.txt``, ``colmap/images.txt``, ``colmap/points3D.txt``: the largest model as COLMAP
+  text files (open it with ``pycolmap.Reconstruction(OUT_DIR / "colmap")`` or COLMAP's GUI); where
+  registration stalled and the images left made models of their own, those go beside it, largest
+  first: ``colmap-1/``, ``colmap-2/``, ...;
 * ``report.json``: the pipeline's per-stage report (pairs and RANSAC inliers, verified tracks,
   degenerate pairs, initial pair, every registration, images left out and why, reprojection
-  errors before and after bundle adjustment, seconds) plus totals;
-* ``scene.html``: the cameras and points in an interactive 3-D plot that opens offline.
+  errors before and after bundle adjustment, seconds) of the largest model, ``models`` (one summary
+  per model), ``others`` (the other models' reports) plus totals;
+* ``scene.html``: the cameras and points in an interactive 3-D plot that opens offline (every
+  model, the others drawn beside the largest).
+
+Exit status 0 when at least one model exists; where no image pair can start one, a one-line
+message and exit status 2.
 
 Bad input (a missing folder or image, a truncated matching file, a K that is not invertible)
 ends with a one-line message and exit status 2 (:mod:`course_lib.__main__`).
@@ -57,10 +64,31 @@ def _jsonable(obj):
 
 
 def write_scene_html(rec, path: Path, title: str) -> Path:
-    """The reconstruction as a standalone HTML page (plotly.js embedded, opens offline)."""
-    from course_lib.viz.scene3d import scene_figure, write_html
+    """The reconstruction as a standalone HTML page (plotly.js embedded, opens offline).
 
-    fig = scene_figure(cameras=rec.cameras(), points=rec.points(), title=title)
+    The other models (``rec.others``) are drawn beside the largest one, each in its own legend
+    group, scaled to its size and shifted along x: their world frames are unrelated.
+    """
+    from course_lib.viz.scene3d import add_cameras, add_points, scene_figure, write_html
+
+    fig = scene_figure(cameras=rec.cameras(), points=rec.points(), title=title, name="model 1")
+    X0, _ = rec.points()
+    lo, hi = (X0.min(0), X0.max(0)) if len(X0) else (np.zeros(3), np.ones(3))
+    size = float(np.linalg.norm(hi - lo)) or 1.0
+    right = hi[0]
+    for m in rec.others:
+        X, rgb = m.points()
+        C = m.centers[m.registered]
+        both = np.concatenate([X, C]) if len(X) else C
+        s = size / max(float(np.linalg.norm(both.max(0) - both.min(0))), 1e-9)
+        shift = np.array([right + 0.3 * size, 0.0, 0.0]) - s * np.array([both[:, 0].min(), 0.0, 0.0]) \
+            - np.array([0.0, *(s * both[:, 1:].mean(0) - (lo[1:] + hi[1:]) / 2)])
+        label = f"model {m.report['model']}"
+        add_points(fig, s * X + shift, rgb, name=f"{label} points")
+        R = m.R_cw[m.registered]
+        add_cameras(fig, R, np.stack([-Ri @ (s * c + shift) for Ri, c in zip(R, C)]), m.K, m.image_size,
+                    names=[m.image_names[i] for i in np.flatnonzero(m.registered)], legend_group=f"{label} cameras")
+        right = float((s * both[:, 0] + shift[0]).max())
     return write_html(fig, path)
 
 
@@ -78,34 +106,54 @@ def run(args) -> int:
     data = read_p3(data_dir)
     rec = run_sfm(data, np.random.default_rng(args.seed), bundle_adjustment=args.ba, verbose=not args.quiet)
 
-    colmap_dir = rec.write_colmap(out / "colmap")
+    models = [rec] + rec.others
+    folders = [m.write_colmap(out / m.report["models"][k]["folder"]) for k, m in enumerate(models)]
     html = None
     if not args.no_html:
-        html = write_scene_html(rec, out / "scene.html", f"SfM: {data_dir.name} ({rec.n_registered} images, {rec.n_points} points)")
+        counts = " + ".join(str(m.n_registered) for m in models)
+        html = write_scene_html(rec, out / "scene.html", f"SfM: {data_dir.name} ({counts} images in {len(models)} model(s), "
+                                f"{rec.n_points} points in the largest)")
     report = dict(rec.report)
+    report["others"] = [{k: v for k, v in m.report.items() if k not in ("pairs", "tracks", "options", "models")} for m in rec.others]
     report["data_dir"] = str(data_dir)
     report["seed"] = args.seed
-    report["outputs"] = {"colmap": str(colmap_dir), "report": str(out / "report.json"), "scene_html": str(html) if html else None}
+    report["outputs"] = {"colmap": str(folders[0]), "colmap_others": [str(f) for f in folders[1:]],
+                         "report": str(out / "report.json"), "scene_html": str(html) if html else None}
     report["totals"] = {
         "wall_seconds": round(time.perf_counter() - t0, 3),
         "cpu_seconds": round(time.process_time() - cpu0, 3),
         "registered_images": rec.n_registered,
+        "registered_images_all_models": sum(m.n_registered for m in models),
+        "models": len(models),
         "n_images": len(rec.image_names),
         "points": rec.n_points,
         "mean_reprojection_error_px": report["final"]["mean_reprojection_error_px"],
     }
     with open(out / "report.json", "w") as f:
         json.dump(_jsonable(report), f, indent=2)
+    _print_summary(report, data_dir, models, folders, out, html)
+    return 0
 
-    fin = report["final"]
+
+def _print_summary(report: dict, data_dir: Path, models: list, folders: list, out: Path, html) -> None:
+    """The summary line (the largest model), one line per other model, the images left out and the outputs."""
+    rec, fin = models[0], report["final"]
+    M = len(rec.image_names)
     print(
-        f"SfM on {data_dir}: {rec.n_registered}/{len(rec.image_names)} images registered, {rec.n_points} points, "
+        f"SfM on {data_dir}: {rec.n_registered}/{M} images registered, {rec.n_points} points, "
         f"{fin['observations']} observations, mean reprojection error {fin['mean_reprojection_error_px']:.3f} px "
         f"(median {fin['median_reprojection_error_px']:.3f}), {report['totals']['wall_seconds']:.1f} s"
+        + (f"; {len(models)} models: {' + '.join(str(m.n_registered) for m in models)} images" if len(models) > 1 else "")
     )
+    for m, folder in zip(models[1:], folders[1:]):
+        f = m.report["final"]
+        print(f"model {m.report['model']} ({folder.name}/): {m.n_registered} images ({', '.join(f['registered'])}), "
+              f"{m.n_points} points, mean reprojection error {f['mean_reprojection_error_px']:.3f} px")
+    in_some = {n for m in models for n in m.report["final"]["registered"]}
     for d in report.get("left_out", []):
-        print(f"left out: {d['name']}: {d['reason']}")
+        if d["name"] not in in_some:
+            print(f"left out: {d['name']}: {d['reason']}")
     for d in report.get("degenerate_pairs", []):
         print(f"degenerate pair (not used to start): {d['names'][0]}, {d['names'][1]}: {d['kind']}")
-    print(f"outputs: {colmap_dir}/ (COLMAP text model), {out / 'report.json'}" + (f", {html}" if html else ""))
-    return 0
+    extra = f" (+ {', '.join(f.name + '/' for f in folders[1:])} for the other models)" if len(folders) > 1 else ""
+    print(f"outputs: {folders[0]}/ (COLMAP text model){extra}, {out / 'report.json'}" + (f", {html}" if html else ""))
