@@ -19,7 +19,7 @@ SfM lessons read (:mod:`course_lib.data.p3`), so a student's own photos become c
    neighbour, the +0.25 px SIFT offset corrected) -- the same code that made the embedded scene,
    here with COLMAP's SIFT settings (:data:`CONTRAST_THRESHOLD`, RootSIFT, at most 8192 features).
 5. **Geometric verification** of every pair (new here): a fundamental matrix is fitted by
-   RANSAC (the kit's, seeded, Sampson threshold ``--verify-px``; see
+   RANSAC (OpenCV's, seeded, threshold ``--verify-px``; see
    :func:`course_lib.data.features.keep_geometric_inliers`) and only its
    inliers are kept; pairs with fewer than
    ``--min-pair-matches`` inliers are dropped. Without it, one wrong match between two
