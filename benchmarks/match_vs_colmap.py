@@ -26,7 +26,7 @@ Usage::
     python benchmarks/match_vs_colmap.py                     # every set, default match settings
     python benchmarks/match_vs_colmap.py --sets wpi ring     # some of them
     python benchmarks/match_vs_colmap.py --variants          # also every match setting that may explain a gap
-    python benchmarks/match_vs_colmap.py --variants RootSIFT "contrast 0.02"   # some of them
+    python benchmarks/match_vs_colmap.py --variants "contrast 0.04" "no RootSIFT"   # some of them
     python benchmarks/match_vs_colmap.py --cache /tmp/rings  # keep the rendered rings between runs
 """
 
@@ -55,12 +55,12 @@ from sfm_vs_colmap import run_colmap  # noqa: E402
 #: name -> keyword arguments of match_images (the kit's default first)
 VARIANTS = {
     "kit default": {},
+    "OpenCV SIFT defaults (match before)": {"contrast_threshold": 0.04, "rootsift": False, "max_features": 0},
+    "contrast 0.04": {"contrast_threshold": 0.04},
+    "no RootSIFT": {"rootsift": False},
     "ratio 0.7": {"ratio": 0.7},
     "verify 4 px": {"verify_px": 4.0},
     "floor 8": {"min_pair_matches": 8},
-    "RootSIFT": {"rootsift": True},
-    "contrast 0.02": {"contrast_threshold": 0.02},
-    "COLMAP-like SIFT": {"contrast_threshold": 0.02, "rootsift": True, "max_features": 8192, "verify_px": 4.0},
 }
 
 

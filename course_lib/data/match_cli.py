@@ -16,9 +16,10 @@ SfM lessons read (:mod:`course_lib.data.p3`), so a student's own photos become c
    ``fx' = s fx`` and ``cx' = s (cx + 0.5) - 0.5`` (likewise ``fy, cy`` with H' / H).
 4. **SIFT + ratio test across all pairs**, with
    :func:`course_lib.data.features.detect_and_match` (OpenCV SIFT, Lowe's ratio, mutual nearest
-   neighbour, the +0.25 px SIFT offset corrected) -- the same code that made the embedded scene.
+   neighbour, the +0.25 px SIFT offset corrected) -- the same code that made the embedded scene,
+   here with COLMAP's SIFT settings (:data:`CONTRAST_THRESHOLD`, RootSIFT, at most 8192 features).
 5. **Geometric verification** of every pair (new here): a fundamental matrix is fitted by
-   RANSAC (the kit's, seeded, Sampson threshold ``--verify-px``; see
+   RANSAC (OpenCV's, seeded, threshold ``--verify-px``; see
    :func:`course_lib.data.features.keep_geometric_inliers`) and only its
    inliers are kept; pairs with fewer than
    ``--min-pair-matches`` inliers are dropped. Without it, one wrong match between two
@@ -51,6 +52,15 @@ from course_lib.validate import KitInputError, intrinsics, output_dir
 
 __all__ = ["IMAGE_SUFFIXES", "MatchResult", "list_images", "load_images", "scale_intrinsics", "downscale_images",
            "match_images", "match_folder", "add_arguments", "run"]
+
+#: SIFT settings of ``match``: COLMAP's defaults (``SiftExtractionOptions``). Its ``peak_threshold``
+#: 0.02 / 3 is OpenCV's ``contrastThreshold`` 0.02 (OpenCV's own default, 0.04, keeps half as many
+#: weak extrema: on a texture-poor 16-view ring COLMAP's mapper registered 0 views from those matches,
+#: 4 from these, as from COLMAP's own; ``benchmarks/match_vs_colmap.py``), RootSIFT descriptors
+#: (``normalization = L1_ROOT``) and at most 8192 features per image.
+CONTRAST_THRESHOLD = 0.02
+ROOTSIFT = True
+MAX_FEATURES = 8192
 
 #: File suffixes read as images (case-insensitive).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -180,8 +190,8 @@ class MatchResult:
 
 
 def match_images(images: list[np.ndarray], ratio: float = 0.8, verify: bool = True, verify_px: float = 2.0,
-                 min_pair_matches: int = 15, rng: np.random.Generator | None = None, rootsift: bool = False,
-                 max_features: int = 0, contrast_threshold: float = 0.04) -> MatchResult:
+                 min_pair_matches: int = 15, rng: np.random.Generator | None = None, rootsift: bool = ROOTSIFT,
+                 max_features: int = MAX_FEATURES, contrast_threshold: float = CONTRAST_THRESHOLD) -> MatchResult:
     """SIFT matches of all pairs (ratio test), optionally verified by an F-RANSAC, joined into tracks.
 
     Args:
@@ -223,7 +233,8 @@ def match_images(images: list[np.ndarray], ratio: float = 0.8, verify: bool = Tr
 
 
 def match_folder(images_dir, K, out, downscale: float = 1.0, ratio: float = 0.8, verify: bool = True,
-                 verify_px: float = 2.0, min_pair_matches: int = 15, seed: int = 0) -> dict:
+                 verify_px: float = 2.0, min_pair_matches: int = 15, seed: int = 0, rootsift: bool = ROOTSIFT,
+                 max_features: int = MAX_FEATURES, contrast_threshold: float = CONTRAST_THRESHOLD) -> dict:
     """Match a folder of photos and write a P3 folder (the ``match`` command).
 
     Args:
@@ -231,7 +242,8 @@ def match_folder(images_dir, K, out, downscale: float = 1.0, ratio: float = 0.8,
         K: ``(3, 3)`` intrinsics of the full-size photos, or the path of a ``calibration.txt``.
         out: output P3 folder (created; must not be ``images_dir``).
         downscale: factor >= 1 (K is scaled, see :func:`scale_intrinsics`).
-        ratio, verify, verify_px, min_pair_matches, seed: see :func:`match_images`.
+        ratio, verify, verify_px, min_pair_matches, seed, rootsift, max_features, contrast_threshold:
+            see :func:`match_images`.
 
     Returns:
         The report written to ``out/match_report.json``.
@@ -254,7 +266,8 @@ def match_folder(images_dir, K, out, downscale: float = 1.0, ratio: float = 0.8,
     images = load_images(paths)
     H0, W0 = images[0].shape[:2]
     images, K2 = downscale_images(images, K, downscale)
-    res = match_images(images, ratio, verify, verify_px, min_pair_matches, np.random.default_rng(seed))
+    res = match_images(images, ratio, verify, verify_px, min_pair_matches, np.random.default_rng(seed),
+                       rootsift=rootsift, max_features=max_features, contrast_threshold=contrast_threshold)
     names = [f"{i + 1}.png" for i in range(len(images))]
     write_p3(out, names, K2, res.track_uv, res.track_rgb, images=images)
     n_obs = (~np.isnan(res.track_uv[..., 0])).sum(1) if len(res.track_uv) else np.zeros(0, int)
@@ -266,7 +279,8 @@ def match_folder(images_dir, K, out, downscale: float = 1.0, ratio: float = 0.8,
         "downscale": float(downscale),
         "K_source": K.tolist(),
         "K": K2.tolist(),
-        "ratio": float(ratio),
+        "ratio": float(ratio), "rootsift": bool(rootsift), "max_features": int(max_features),
+        "contrast_threshold": float(contrast_threshold),
         "verify": bool(verify), "verify_px": float(verify_px), "min_pair_matches": int(min_pair_matches), "seed": int(seed),
         "pairs": {f"{i + 1}-{j + 1}": {"sift": res.raw_matches[(i, j)], "verified": res.verified_matches.get((i, j), 0)}
                   for (i, j) in sorted(res.raw_matches)},
@@ -293,11 +307,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--min-pair-matches", type=int, default=15, help="pairs with fewer verified matches are dropped (default 15)")
     p.add_argument("--no-verify", action="store_true", help="keep all ratio-test matches (no geometric verification)")
     p.add_argument("--seed", type=int, default=0, help="seed of the verification's RANSAC (default 0)")
+    p.add_argument("--contrast-threshold", type=float, default=CONTRAST_THRESHOLD,
+                   help=f"SIFT contrast threshold (OpenCV's contrastThreshold; default {CONTRAST_THRESHOLD}, COLMAP's; OpenCV's own 0.04 finds fewer features)")
+    p.add_argument("--max-features", type=int, default=MAX_FEATURES,
+                   help=f"keep at most this many SIFT features per photo (default {MAX_FEATURES}, COLMAP's; 0: all)")
+    p.add_argument("--no-rootsift", action="store_true", help="match plain SIFT descriptors instead of RootSIFT")
 
 
 def run(args) -> int:
     rep = match_folder(args.images_dir, args.K, args.out, args.downscale, args.ratio, not args.no_verify,
-                       args.verify_px, args.min_pair_matches, args.seed)
+                       args.verify_px, args.min_pair_matches, args.seed, rootsift=not args.no_rootsift,
+                       max_features=args.max_features, contrast_threshold=args.contrast_threshold)
     n = len(rep["images"])
     kept = sum(1 for v in rep["pairs"].values() if v["verified"] >= args.min_pair_matches or (args.no_verify and v["sift"]))
     print(f"matched {n} images ({rep['image_size'][0]}x{rep['image_size'][1]}): {kept}/{n * (n - 1) // 2} pairs kept, "

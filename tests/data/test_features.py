@@ -65,3 +65,18 @@ def test_track_colours_at_the_first_observation():
     uv = np.array([[[np.nan, np.nan], [3.2, 1.8]], [[0.0, 0.0], [1.0, 1.0]]])
     np.testing.assert_array_equal(track_colours(uv, images), [[1, 2, 3], [10, 10, 10]])
     assert track_colours(np.zeros((0, 2, 2)), images).shape == (0, 3)
+
+
+def test_matching_ships_without_the_sfm_reference():
+    """The student kit leaves the SfM reference (notebooks 01-05) out; ``match`` must still work there."""
+    import ast
+    from pathlib import Path
+
+    import course_lib.data.features as features
+    import course_lib.data.match_cli as match_cli
+
+    for mod in (features, match_cli):
+        tree = ast.parse(Path(mod.__file__).read_text())
+        names = [n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module]
+        names += [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+        assert not [m for m in names if m.startswith("course_lib.sfm")], (mod.__name__, names)
