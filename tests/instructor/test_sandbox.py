@@ -91,7 +91,7 @@ def test_object_arrays_and_pickles_are_refused():
 
     head = json.dumps({"v": {"$": "nd", "a": 0}}).encode()
     msg = struct.pack("<II", len(head), 1) + head + struct.pack("<Q", len(raw)) + raw
-    with pytest.raises(ValueError, match="allow_pickle"):
+    with pytest.raises(wire.WireError, match="Python objects"):
         wire.unpack(msg)
 
 
@@ -151,7 +151,7 @@ def test_the_student_process_sees_only_the_release_and_its_folder(iso, tmp_path)
         pytest.skip(f"no user namespaces on this machine ({box['note']}): only the import path and limits apply")
     assert box["read_only"] and box["proc"] == "own PID namespace", box
     assert out["reference"] == out["secret"] == "FileNotFoundError", out
-    assert "Read-only file system" in out["write outside"] and not outside.exists(), out
+    assert ("No such file" in out["write outside"] or "Read-only" in out["write outside"]) and not outside.exists(), out
     assert out["network"] != "connected" and out["processes"] <= 2, out
 
 
