@@ -471,7 +471,7 @@ def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, hidden: HiddenCases, ti
 
     Returns what the student's process was confined by.
     """
-    budget = max(timeout, 10 * hidden.reference_seconds.get(_key(e), 0.0) + 5)
+    budget = round(max(timeout, 10 * hidden.reference_seconds.get(_key(e), 0.0) + 5), 1)
     out = run_hidden(HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(hidden.fixtures_dir),
                                e.reference, allow_reference, str(submission)), budget, iso)
     ref = hidden.reference_passing.get(_key(e), [])

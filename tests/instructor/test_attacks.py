@@ -174,7 +174,7 @@ def test_writing_outside_the_temporary_folder_fails(tmp_path, hidden):
 def test_looping_exercise_is_stopped_at_its_own_limit(tmp_path, hidden):
     g = grade_eight_point(submission(tmp_path, LOOP), hidden, timeout=6.0)
     assert g["points"] == 0 and g["status"] == "timeout", g
-    assert any("stopped after 6 s" in f for f in g["feedback"]), g["feedback"]
+    assert any("stopped after 6" in f for f in g["feedback"]), g["feedback"]  # 6 s, or 10x the reference's time + 5 s
     assert g["hidden"]["seconds"] < 6.0 + 5
 
 
@@ -286,9 +286,11 @@ def outside(tmp_path):
 
 
 def unharmed(report: dict) -> None:
-    """The secret and the other student's notes appear nowhere in what the grader wrote."""
+    """The secret and the other student's notes appear nowhere in what the grader wrote, and every attack ran (none
+    was stopped by the static scans, which would prove nothing about the sandbox)."""
     text = json.dumps(report, ensure_ascii=False) + to_markdown(report)
     assert SECRET not in text, "a file outside the submission reached the report"
+    assert not [g for g in report["exercises"] if g["status"] == "flagged"], report["exercises"]
 
 
 def grade01(path: Path, hidden, **kw) -> dict:
@@ -452,16 +454,16 @@ def test_fork_bombs_memory_and_disk_are_bounded_for_the_whole_tree(tmp_path, hid
     codes = [os.waitstatus_to_exitcode(os.waitpid(k, 0)[1]) for k in kids]
     raise RuntimeError(f"exit codes of the three others: {{codes}} ({{block[0]}})")
 """
-    disk = """
+    disk = f"""
     written = 0
     try:
         for k in range(100):
-            with open(f"fill{k}.bin", "wb") as f:
+            with {SYS}["builtins"].open(f"fill{{k}}.bin", "wb") as f:
                 f.write(b"x" * (16 << 20))
             written += 16 << 20
     except OSError as exc:
-        raise RuntimeError(f"wrote {written >> 20} MiB, then {exc}")
-    raise RuntimeError(f"wrote {written >> 20} MiB")
+        raise RuntimeError(f"wrote {{written >> 20}} MiB, then {{exc}}")
+    raise RuntimeError(f"wrote {{written >> 20}} MiB")
 """
     for what, body in (("fork bomb", fork_bomb), ("memory", memory), ("disk", disk)):
         report = grade01(submission(tmp_path / what.replace(" ", "-"), body), hidden, limits=SMALL)
