@@ -236,13 +236,7 @@ def grade_submission(
     specs, omitted = _specs_to_grade(notebooks_dir, notebooks, exercises)
     with _scratch(workdir) as work:
         copy = copy_submission(submission, work / "submission")
-        if hidden is None:
-            salt = secrets.randbits(62) if salt is None else int(salt)
-            hidden = prepare_hidden(specs, salt, work, notebooks_dir, timeout=max(timeout, 120.0))
-        else:
-            _preload(specs)
-        if hidden.library is None:
-            hidden.library = _temporary_student_library(notebooks_dir)
+        hidden = _ready_hidden(hidden, specs, salt, work, notebooks_dir, timeout)
         iso = Isolation.for_grading(hidden.library if not allow_reference else REPO_ROOT,
                                     [work, Path(hidden.fixtures_dir)], notebooks_dir, self_test=allow_reference,
                                     limits=limits)
@@ -261,6 +255,19 @@ def grade_submission(
         report["isolation"] = {"hidden checks": run.sandbox_seen,
                                "nbval": nbval_run.sandbox if nbval_run is not None else {}}
         return report
+
+
+def _ready_hidden(hidden: HiddenCases | None, specs: list[NotebookSpec], salt: int | None, work: Path,
+                  notebooks_dir: Path, timeout: float) -> HiddenCases:
+    """The hidden cases of this run (made here, with a random seed unless ``salt``, when ``hidden`` is None)."""
+    if hidden is None:
+        salt = secrets.randbits(62) if salt is None else int(salt)
+        hidden = prepare_hidden(specs, salt, work, notebooks_dir, timeout=max(timeout, 120.0))
+    else:
+        _preload(specs)
+    if hidden.library is None:
+        hidden.library = _temporary_student_library(notebooks_dir)
+    return hidden
 
 
 def _specs_to_grade(notebooks_dir: Path, notebooks: list[str] | None,
@@ -567,8 +574,20 @@ def to_markdown(report: dict) -> str:
             if g["nbval"] != "not run":
                 lines.append(f"- nbval check cell: {g['nbval']}")
             lines.append("")
-    box = report.get("isolation", {}).get("hidden checks", {})
-    sandbox = "" if not box else ("; sandbox: namespaces, no network, kit hidden, read-only" if box.get("namespaces")
-                                  and box.get("read_only") else "; sandbox: resource limits and import path only")
-    lines.append(f"<sub>hidden seed {report['hidden_seed']}, graded in {report['seconds']:g} s{sandbox}</sub>")
+    left_out = report.get("submission", {}).get("left out", [])
+    if left_out:
+        lines += ["## Files of your submission the grader did not copy", ""]
+        lines += [f"- {_short(r)}" for r in left_out[:20]] + [""]
+    lines.append(f"<sub>hidden seed {report['hidden_seed']}, graded in {report['seconds']:g} s{_sandbox_line(report)}</sub>")
     return "\n".join(lines) + "\n"
+
+
+def _sandbox_line(report: dict) -> str:
+    """One line on what confined the student's code (from the report's ``isolation``)."""
+    box = report.get("isolation", {}).get("hidden checks", {})
+    if not isinstance(box, dict) or not box:
+        return ""
+    if box.get("namespaces") is True and box.get("read_only") is True:
+        totals = "cgroup totals" if "cgroup" in str(box.get("memory", "")) else "per-process limits"
+        return f"; sandbox: namespaces, no network, an allow-listed read-only file system, {totals}"
+    return "; sandbox: resource limits and import path only"
