@@ -104,7 +104,8 @@ def _copy_entry(walk: _Walk, path: str, dst: Path, rel: str, depth: int) -> None
     except OSError as exc:
         walk.out.refused.append(f"{rel}: cannot be read ({exc.strerror})")
         return
-    if stat.S_ISLNK(st.st_mode):
+    linked = stat.S_ISLNK(st.st_mode)
+    if linked:
         real = os.path.realpath(path)
         if not _inside(real, walk.src_real):
             walk.out.refused.append(f"{rel}: a symbolic link to a place outside the submission (left out)")
@@ -117,7 +118,7 @@ def _copy_entry(walk: _Walk, path: str, dst: Path, rel: str, depth: int) -> None
         path = real
     if stat.S_ISDIR(st.st_mode):
         real = os.path.realpath(path)
-        if real in walk.seen_dirs and real != path:
+        if linked and real in walk.seen_dirs:
             walk.out.refused.append(f"{rel}: a link to a folder already copied (a cycle; left out)")
             return
         walk.seen_dirs.add(real)
