@@ -1,8 +1,10 @@
 """nbval over a submission's notebooks, each in its own sandboxed pytest process.
 
-Each notebook runs in a fresh temporary copy of the submission (its working directory), with the
-student release's ``course_lib`` first on ``PYTHONPATH``, resource limits and (where Linux allows
-it) the namespaces of :mod:`course_lib.instructor.sandbox`.
+Each notebook runs in a fresh copy of the grader's copy of the submission (its working directory),
+with the student release's ``course_lib`` first on ``PYTHONPATH``, resource limits and (where Linux
+allows it) the sandbox of :mod:`course_lib.instructor.sandbox`. pytest reads no configuration and
+no ``conftest.py`` of the submission (``-c /dev/null --noconftest``), and no module of the notebooks'
+folder can stand in for pytest's own (``python -P``).
 """
 
 from __future__ import annotations
@@ -30,10 +32,10 @@ MAX_NBVAL_RERUNS = 3  # reruns of a notebook after cells that timed out
 class NbvalRun:
     """pytest --nbval over notebooks, one sandboxed pytest process per notebook, ``jobs`` at a time, in the background.
 
-    Each notebook runs in a fresh temporary copy of the submission (its working directory), with the
-    student release's ``course_lib`` first on ``PYTHONPATH``, resource limits, and (where Linux
-    allows it) the namespaces of :mod:`course_lib.instructor.sandbox`: no network, the instructor's kit
-    and the grader's scratch folder hidden, everything read-only but the copy.
+    Each notebook runs in a fresh copy of the submission (its working directory), with the student
+    release's ``course_lib`` first on ``PYTHONPATH``, resource limits, and (where Linux allows it)
+    the sandbox of :mod:`course_lib.instructor.sandbox`: no network, an allow-listed read-only file
+    system, a size-limited tmpfs for what it writes, totals for the process tree.
     """
 
     def __init__(self, submission: Path, isolation: Isolation, cell_timeout: float, jobs: int = 2,

@@ -1,6 +1,6 @@
 """The process that runs a student's code during grading: the sandbox, the wire format, the server.
 
-This file is run as a *script* by the grader (``python -S -E child.py ...``), never imported by
+This file is run as a *script* by the grader (``python -S -E sandbox.py ...``), never imported by
 the student's code, and needs nothing but the standard library (numpy and torch are imported only
 when the student's code or the data need them). The grader imports it too, for :func:`encode`,
 :func:`decode`, :func:`write_frame` and :func:`read_frame`.
@@ -16,22 +16,30 @@ Two commands:
     ``nn.Module``) stay here and are answered by handle.
 
 ``child.py exec CONFIG.json -- PROGRAM ARGS...``
-    Enter the sandbox and ``execv`` a program (nbval of the student's notebook).
+    Enter the sandbox and ``execv`` a program (nbval of the student's notebook). The sandbox's
+    report goes to the grader's file ``report_fd``; after the program ended, the launcher (outside
+    the PID namespace, unseen by the program) copies the file ``collect`` out to ``collect_fd``.
 
 The sandbox (``CONFIG["sandbox"]``), entered before any student code runs:
 
 * resource limits are set by the grader in ``preexec_fn`` (CPU seconds, address space, file size,
-  number of processes);
-* where the kernel allows unprivileged user namespaces: a new user, mount and network namespace
-  (no network: only a loopback device that is down); the folders in ``hide`` (the instructor's
-  kit, the grader's scratch folder with the hidden cases) are covered by empty read-only tmpfs
-  mounts, except the paths in ``keep`` (the Python environment when it lives inside the kit),
-  which are bind-mounted back read-only; then every mount is made read-only except the ``writable``
-  folders (the temporary copy of the submission). Without user namespaces only the resource limits
-  and the import path apply; :func:`enter_sandbox` reports what was enforced.
+  number of processes), which also moves the process into a cgroup of its own where the grader can
+  make one (totals of memory and processes for the whole tree: :mod:`course_lib.instructor.cgroups`);
+* where the kernel allows unprivileged user namespaces: new user, mount, network, PID and IPC
+  namespaces (no network: only a loopback device; System V IPC objects end with the sandbox); the
+  process is not root inside. A **fresh root** is built from bind mounts of an allow-list
+  (``root["read_only"]``: the Python installation, the student release, system libraries; folders
+  in ``root["hide"]`` inside them covered by empty folders), a few device files, a /proc of the new
+  PID namespace, and one size-limited tmpfs for everything writable (the working folder, filled with
+  a copy of ``root["seed"]``, /tmp and /dev/shm); then ``pivot_root`` and the host's root is
+  detached. Every capability is dropped and ``no_new_privs`` set, so the mounts cannot be undone.
+  Without user namespaces only the resource limits and the import path apply (the working copy is
+  then made on the host's disk); :func:`enter_sandbox` reports what was enforced, and ``serve``
+  sends that report as its first frame, before any of the student's code runs.
 
 The wire format never unpickles: a frame is a JSON header plus numpy arrays written with
-``np.save`` and read with ``np.load(allow_pickle=False)``. Values: None, bool, int, float,
+``np.save`` and read back as ``.npy`` records of numeric dtypes whose size is checked against their
+header before anything is allocated (:func:`unpack`); a reply is at most :data:`MAX_REPLY` bytes. Values: None, bool, int, float,
 complex, str, tuple, list, dict, namedtuple, dataclass-like records (their public attributes),
 numpy arrays and scalars, scipy sparse matrices, torch tensors, numpy and torch random
 generators (their state).

@@ -13,11 +13,14 @@ The student's process (see :mod:`course_lib.instructor.sandbox` for the sandbox 
 
 * starts with ``python -S -E`` (no ``site``: the instructor's editable install is not on its
   path) and ``sys.path`` = the student release, then the standard library and site-packages;
-* works in a fresh temporary copy of the submission; its output goes to a file there;
-* has resource limits (:class:`Limits`: CPU seconds, address space, file size, processes);
-* on Linux with unprivileged user namespaces: no network, its own PID namespace and ``/proc``,
-  the instructor's kit and the grader's scratch folder (with the hidden cases) covered by empty
-  mounts, everything read-only but its temporary folder;
+* works in a fresh copy of the grader's copy of the submission (regular files only,
+  :mod:`course_lib.instructor.submission`); its output goes to a file there;
+* has resource limits (:class:`Limits`: CPU seconds, address space, file size, processes) and, where
+  a cgroup can be made, totals of memory and processes for everything it starts;
+* on Linux with unprivileged user namespaces: no network, its own PID and IPC namespaces and
+  ``/proc``, a fresh root that shows only an allow-list read-only (the Python installation, the
+  student release, system libraries: :meth:`Isolation.read_only`), a size-limited tmpfs for what it
+  writes, no capabilities;
 * receives the grader's global numpy and torch random states with every call (so that
   ``torch.manual_seed(0)`` in a check seeds the student's initialisation as it would in the
   notebook); nothing of the student's process flows back but the results (not its random state);
