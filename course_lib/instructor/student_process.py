@@ -104,7 +104,7 @@ class Limits:
 #: Folders and files of the host a student's process sees (read-only), besides Python and the student release.
 SYSTEM_PATHS = ["/usr", "/bin", "/sbin", "/lib", "/lib32", "/lib64", "/libx32", "/etc/ld.so.cache", "/etc/ld.so.conf",
                 "/etc/ld.so.conf.d", "/etc/localtime", "/etc/passwd", "/etc/group", "/etc/nsswitch.conf", "/etc/hosts",
-                "/etc/alternatives", "/etc/fonts", "/etc/ssl", "/sys/devices/system/cpu"]
+                "/etc/alternatives", "/etc/fonts", "/sys/devices/system/cpu"]
 
 
 @dataclass
