@@ -680,7 +680,6 @@ def serve(cfg: dict) -> None:
     REQ_FD, REP_FD = int(cfg["req_fd"]), int(cfg["rep_fd"])
     done = enter_sandbox(cfg.get("sandbox", {}))
     _seed_work(cfg.get("sandbox", {}), done)
-    write_frame(REP_FD, {"event": "sandbox", "sandbox": done})  # before any code of the student's runs
     os.chdir(cfg["cwd"])
     sys.path[:] = [cfg["path"]] + [p for p in cfg["sys_path"] if p]
     for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -691,6 +690,8 @@ def serve(cfg: dict) -> None:
         import torch
 
         torch.set_num_threads(1)
+    # ready: the exercise's time starts now (the imports above are the kit's, not the student's)
+    write_frame(REP_FD, {"event": "sandbox", "sandbox": done})  # before any code of the student's runs
     req, rep = REQ_FD, REP_FD
     _guard_exit(rep)
     log = open(os.path.join(cfg["cwd"], ".grader-output.txt"), "w")  # the student's prints go here

@@ -24,9 +24,10 @@ The student's process (see :mod:`course_lib.instructor.sandbox` for the sandbox 
 * receives the grader's global numpy and torch random states with every call (so that
   ``torch.manual_seed(0)`` in a check seeds the student's initialisation as it would in the
   notebook); nothing of the student's process flows back but the results (not its random state);
-* has one wall-clock budget per exercise (start, definitions and every call together): when it
-  runs out, the process is killed and every later call fails at once, so a looping exercise
-  costs at most its own limit. ``os._exit`` is reported as such before the process ends.
+* has one wall-clock budget per exercise (its definitions and every call together, counted once
+  the process has started and imported numpy and torch, which has a limit of its own,
+  :data:`START_SECONDS`): when it runs out, the process is killed and every later call fails at
+  once, so a looping exercise costs at most its own limit. ``os._exit`` is reported as such before the process ends.
 """
 
 from __future__ import annotations
@@ -55,6 +56,9 @@ __all__ = ["Limits", "Isolation", "StudentProcess", "RemoteFunction", "RemoteMod
            "student_library", "CHILD_SCRIPT", "SYSTEM_PATHS"]
 
 CHILD_SCRIPT = Path(wire.__file__).resolve()
+#: Seconds for a student's process to start (the interpreter, the sandbox, the numpy and torch imports: the kit's own
+#: work, not the student's, and ~20 s for torch on a loaded 2-core machine); the exercise's budget starts after.
+START_SECONDS = 120.0
 
 
 @dataclass
@@ -68,7 +72,7 @@ class Limits:
     (one tmpfs, where user namespaces are available).
     """
 
-    cpu_seconds: int = 300  # RLIMIT_CPU (an exercise's process gets its wall-clock budget + 10 s; nbval its timeout)
+    cpu_seconds: int = 300  # RLIMIT_CPU (an exercise's process gets its wall-clock budget + 30 s; nbval its timeout)
     memory_bytes: int = 8 << 30  # RLIMIT_AS (torch needs a few GiB of address space)
     file_bytes: int = 256 << 20  # RLIMIT_FSIZE: largest file it may write
     processes: int = 512  # RLIMIT_NPROC (threads count; not enforced by Linux for uid 0)
@@ -260,7 +264,7 @@ class StudentProcess:
                  torch: bool = False):
         self.iso, self.name, self.budget = iso, name, float(budget)
         self.t0 = time.monotonic()
-        self.deadline = self.t0 + self.budget
+        self.deadline = self.t0 + max(self.budget, START_SECONDS)  # the start: Python, numpy and torch imports
         self.ended: str | None = None  # why the process is gone (feedback for the student)
         self.event: str | None = None  # "timeout", "exit", "crash", "protocol"
         self.hello: dict = {}
@@ -287,7 +291,7 @@ class StudentProcess:
             cwd=self.cwd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
             pass_fds=(req_r, rep_w), start_new_session=True,
-            preexec_fn=iso.preexec(self.budget + 10, self.cgroup))
+            preexec_fn=iso.preexec(self.budget + 30, self.cgroup))
         os.close(req_r)
         os.close(rep_w)
         self.sandbox = self._sandbox_report(iso)
@@ -299,6 +303,8 @@ class StudentProcess:
     def _sandbox_report(self, iso: Isolation) -> dict:
         """What confines the process: its first frame (written before any code of the student's ran) and the totals."""
         first = self._receive()
+        self.t0 = time.monotonic()  # the exercise's budget counts from here: its definitions and every call
+        self.deadline = self.t0 + self.budget
         box = first[0].get("sandbox") if first is not None and first[0].get("event") == "sandbox" else None
         if not isinstance(box, dict):
             box = {"note": "the process did not report its sandbox"}
@@ -358,7 +364,7 @@ class StudentProcess:
             why = ("the process running your function (with the processes it started) used more memory than the "
                    f"limit ({self.iso.limits.memory_total_bytes >> 20} MiB in all) and was stopped")
         elif rc is not None and rc > 128 and rc - 128 in (signal.SIGXCPU, signal.SIGKILL):
-            why = f"the process running your function used up its CPU time limit ({int(self.budget) + 11} s)"
+            why = f"the process running your function used up its CPU time limit ({int(self.budget) + 31} s)"
         elif rc is not None and (rc < 0 or rc > 128):
             why = f"the process running your function was stopped by {_signal_name(abs(rc) if rc < 0 else rc - 128)}"
         else:
