@@ -188,7 +188,10 @@ class NbvalRun:
         for name in list(self.futures):
             while True:  # a restart may replace the future while we wait for it
                 fut = self.futures[name]
-                res, note = fut.result()
+                try:
+                    res, note = fut.result()
+                except Exception as exc:  # noqa: BLE001 - the grader never dies on a submission
+                    res, note = {}, f"nbval could not run {name} ({type(exc).__name__}: {str(exc)[:200]})"
                 if self.futures[name] is fut:
                     break
             out.update(res)
