@@ -13,7 +13,10 @@ real. ``test_attack_table`` prints the table (``pytest -s``).
 from __future__ import annotations
 
 import ast
+import hashlib
 import json
+import os
+import resource
 import textwrap
 from pathlib import Path
 
@@ -23,6 +26,7 @@ import pytest
 from course_lib.instructor.grade import grade_submission, prepare_hidden, to_markdown
 from course_lib.instructor.notebooks import NOTEBOOKS_DIR, kit_specs
 from course_lib.instructor.release import stub_notebook
+from course_lib.instructor.student_process import Limits
 from course_lib.paths import REPO_ROOT
 
 NB01 = "01_fundamental_matrix.ipynb"
@@ -245,12 +249,6 @@ def test_attack_table(tmp_path, hidden, capsys):
 # notebooks. Every test asserts the attack's points, and that nothing outside the submission was
 # written or deleted (a snapshot of those folders) or read (the secret and the other student's code
 # appear nowhere in the report, and reading them fails).
-
-import hashlib  # noqa: E402 - the second part of the file
-import os  # noqa: E402
-import resource  # noqa: E402
-
-from course_lib.instructor.student_process import Limits  # noqa: E402
 
 SECRET = "secret-of-another-folder-7f3a"
 
