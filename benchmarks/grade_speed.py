@@ -10,6 +10,11 @@ run and every notebook under nbval runs in full, as for a student who solved eve
 script prints the time and the score and writes the report to outputs/benchmarks/ (git-ignored).
 With ``--loop NAME`` the solution of exercise NAME is replaced by ``while True: pass``: that
 exercise must get 0 and cost at most its own time limit (target: total <= 1.5x the honest run).
+
+Issue 18's sandbox (a fresh root of bind mounts per process, a copy of the submission into its tmpfs,
+cgroups) must keep a full grading within 1.5x of the time before it (e138692: 201 s on the
+2-core machine under load; see the closing note). The script also prints the largest reply a
+student's process sent (the reply cap, ``sandbox.MAX_REPLY``, must stay well above it).
 """
 
 from __future__ import annotations
@@ -25,7 +30,9 @@ from pathlib import Path
 
 import nbformat
 
+from course_lib.instructor import student_process
 from course_lib.instructor.grade import grade_submission, to_markdown
+from course_lib.instructor.sandbox import MAX_REPLY
 from course_lib.instructor.notebooks import BEGIN, END
 from course_lib.paths import REPO_ROOT
 
@@ -47,6 +54,19 @@ def make_loop(notebooks: Path, name: str) -> str:
     raise SystemExit(f"no exercise {name} with solution markers in the notebooks")
 
 
+def record_largest_reply() -> dict:
+    """Record the largest reply of every student's process (``{"bytes": n}``, filled as the grading goes)."""
+    seen = {"bytes": 0}
+    close = student_process.StudentProcess.close
+
+    def recording_close(self) -> None:
+        seen["bytes"] = max(seen["bytes"], self.largest_reply)
+        close(self)
+
+    student_process.StudentProcess.close = recording_close
+    return seen
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--submission", type=Path, default=None, help="a student's kit (default: the instructor notebooks)")
@@ -66,11 +86,13 @@ def main(argv: list[str] | None = None) -> int:
                 sub = Path(shutil.copytree(sub, Path(tmp) / "submission"))
             where = make_loop(sub / "notebooks" if (sub / "notebooks").is_dir() else sub, args.loop)
             print(f"{args.loop} of {where} loops forever in this run")
+        largest = record_largest_reply()
         t0 = time.perf_counter()
         report = grade_submission(sub, salt=args.hidden_seed, allow_reference=self_test, nbval_jobs=args.nbval_jobs)
         dt = time.perf_counter() - t0
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "grade_speed.json").write_text(json.dumps({"seconds": round(dt, 1), "report": report}, indent=1,
+    (args.out / "grade_speed.json").write_text(json.dumps({"seconds": round(dt, 1), "largest_reply": largest["bytes"],
+                                                           "report": report}, indent=1,
                                                           ensure_ascii=False) + "\n")
     (args.out / "grade_speed.md").write_text(to_markdown(report))
     n_nb = len(report["notebooks"])
@@ -82,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
         g = next(g for g in report["exercises"] if g["name"] == args.loop)
         print(f"looping {args.loop}: {g['points']:g} points, {g['status']}, hidden checks stopped after "
               f"{g.get('hidden', {}).get('seconds', 0):g} s: {g['feedback'][0]}")
+    print(f"largest reply of a student's process: {largest['bytes'] / 2**20:.2f} MiB "
+          f"(the cap: {MAX_REPLY >> 20} MiB); sandbox: {report['isolation']['hidden checks']}")
     print("slowest hidden checks: " + ", ".join(f"{g['name']} {g.get('hidden', {}).get('seconds', 0):g} s" for g in slow))
     not_full = [f"{g['notebook']}::{g['name']} ({g['status']}, nbval {g['nbval']})" for g in report["exercises"]
                 if g["points"] < g["max_points"]]

@@ -50,14 +50,26 @@ def run(args: argparse.Namespace) -> int:
         args.json.write_text(json.dumps(report, indent=1, ensure_ascii=False) + "\n")
     if args.markdown:
         args.markdown.write_text(md)
-    box = report.get("isolation", {}).get("hidden checks", {})
-    if box and not (box.get("namespaces") and box.get("read_only")):
-        print(f"warning: the sandbox ran without Linux user namespaces ({box.get('note') or 'not available'}): the "
-              "students' code had the student release on its path and resource limits, but could read what this user "
-              "can read. Grade on a machine that allows unprivileged user namespaces.", file=sys.stderr)
+    _warn(report)
     for g in report["exercises"]:
         print(f"{g['notebook']:40s} {g['name']:28s} {g['points']:6g} / {g['max_points']:g}  {g['status']}")
     print(f"total {report['total']:g} / {report['max']:g} points (hidden seed {report['hidden_seed']}, "
           f"{report['seconds']:g} s)")
     sys.stdout.flush()
     return 0
+
+
+def _warn(report: dict) -> None:
+    """Warnings for the instructor: a weaker sandbox than intended, files of the submission left out."""
+    box = report.get("isolation", {}).get("hidden checks", {})
+    if box and not (box.get("namespaces") and box.get("read_only")):
+        print(f"warning: the sandbox ran without Linux user namespaces ({box.get('note') or 'not available'}): the "
+              "students' code had the student release on its path and resource limits, but could read what this user "
+              "can read. Grade on a machine that allows unprivileged user namespaces.", file=sys.stderr)
+    elif box and "cgroup" not in str(box.get("memory", "")):
+        print(f"note: no cgroup could be made, so memory and processes are limited per process ({box.get('processes')})"
+              "; see the CI template for a delegated cgroup ($COURSE_GRADER_CGROUP).", file=sys.stderr)
+    left_out = report.get("submission", {}).get("left out", [])
+    if left_out:
+        print(f"note: {len(left_out)} entries of the submission were not copied: " + "; ".join(left_out[:5]),
+              file=sys.stderr)

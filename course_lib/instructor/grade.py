@@ -35,10 +35,13 @@ enforced on this machine is written into the report (``isolation``).
 
 from __future__ import annotations
 
+import ast
 import atexit
+import contextlib
 import copy
 import importlib
 import os
+import re
 import secrets
 import shutil
 import tempfile
@@ -50,11 +53,12 @@ from pathlib import Path
 import nbformat
 
 from course_lib.checks.core import score_against
-from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ExerciseSpec, NotebookSpec, kit_specs
+from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ExerciseSpec, NotebookSpec, kit_specs, python_source
 from course_lib.instructor.plan import release_plan
 from course_lib.instructor.nbval_run import NbvalRun
 from course_lib.instructor.placement import Placement, place_exercises, restored
-from course_lib.instructor.student_process import Isolation, student_library
+from course_lib.instructor.student_process import Isolation, Limits, student_library
+from course_lib.instructor.submission import SubmissionCopy, copy_submission
 from course_lib.instructor.extract import extract_exercise
 from course_lib.instructor.hidden import HiddenJob, build_hidden_fixtures, run_hidden, run_reference
 from course_lib.instructor.scan import scan_exercise, scan_notebook
@@ -171,6 +175,24 @@ def _find_notebooks(sub: Path) -> Path:
     return sub
 
 
+@dataclass
+class _Run:
+    """What the grading of one submission shares between its steps."""
+
+    specs: list[NotebookSpec]
+    omitted: set[str]
+    hidden: HiddenCases
+    iso: Isolation
+    submission: SubmissionCopy  # the grader's copy of the submission (regular files only)
+    timeout: float
+    allow_reference: bool
+    grades: list[ExerciseGrade] = field(default_factory=list)
+    plans: list = field(default_factory=list)  # (spec, nb or None, placements, tamper reasons)
+    to_nbval: dict = field(default_factory=dict)  # notebook -> the notebook nbval runs (check cells restored)
+    pending: dict = field(default_factory=dict)  # notebook -> [(grade, spec, extracted code)]
+    sandbox_seen: dict = field(default_factory=dict)
+
+
 def grade_submission(
     submission: Path,
     *,
@@ -185,8 +207,12 @@ def grade_submission(
     workdir: Path | None = None,
     notebooks_dir: Path = NOTEBOOKS_DIR,
     nbval_jobs: int = 2,
+    limits: Limits | None = None,
 ) -> dict:
     """Grade a submission folder (a student kit, or a folder of notebooks) and return the report dict.
+
+    The submission is data: it is first copied into the grader's scratch folder as regular files
+    only (:func:`course_lib.instructor.submission.copy_submission`); everything else works on the copy.
 
     Args:
         submission: the student's folder; notebooks are read from ``submission/notebooks`` if it exists.
@@ -202,11 +228,51 @@ def grade_submission(
         workdir: scratch folder (a temporary one when None).
         notebooks_dir: the instructor notebooks.
         nbval_jobs: notebooks run under nbval at the same time.
+        limits: the students' processes' limits (default :class:`Limits`).
     """
     t0 = time.perf_counter()
-    submission = Path(submission)
-    if not submission.is_dir():
+    if not Path(submission).is_dir():
         raise KitInputError(f"{submission} is not a folder: pass the student's kit (or a folder with their notebooks)")
+    specs, omitted = _specs_to_grade(notebooks_dir, notebooks, exercises)
+    with _scratch(workdir) as work:
+        copy = copy_submission(submission, work / "submission")
+        hidden = _ready_hidden(hidden, specs, salt, work, notebooks_dir, timeout)
+        iso = Isolation.for_grading(hidden.library if not allow_reference else REPO_ROOT,
+                                    [work, Path(hidden.fixtures_dir)], notebooks_dir, self_test=allow_reference,
+                                    limits=limits)
+        run = _Run(specs, omitted, hidden, iso, copy, timeout, allow_reference)
+        for s in specs:
+            _plan_notebook(run, s, _find_notebooks(copy.root) / s.name)
+        nbval_run = _start_nbval(run, cell_timeout, nbval_jobs) if run_nbval and run.to_nbval else None
+        for s, nb, places, tamper in run.plans:
+            for e in s.exercises:
+                run.grades.append(_structure_and_scans(run, s, e, nb, places, tamper))
+        _hidden_checks(run, nbval_run)
+        if nbval_run is not None:
+            _add_nbval(run, nbval_run)
+        report = _report(run.grades, hidden, time.perf_counter() - t0, allow_reference)
+        report["submission"] = {"files": copy.files, "bytes": copy.bytes, "left out": copy.refused}
+        report["isolation"] = {"hidden checks": run.sandbox_seen,
+                               "nbval": nbval_run.sandbox if nbval_run is not None else {}}
+        return report
+
+
+def _ready_hidden(hidden: HiddenCases | None, specs: list[NotebookSpec], salt: int | None, work: Path,
+                  notebooks_dir: Path, timeout: float) -> HiddenCases:
+    """The hidden cases of this run (made here, with a random seed unless ``salt``, when ``hidden`` is None)."""
+    if hidden is None:
+        salt = secrets.randbits(62) if salt is None else int(salt)
+        hidden = prepare_hidden(specs, salt, work, notebooks_dir, timeout=max(timeout, 120.0))
+    else:
+        _preload(specs)
+    if hidden.library is None:
+        hidden.library = _temporary_student_library(notebooks_dir)
+    return hidden
+
+
+def _specs_to_grade(notebooks_dir: Path, notebooks: list[str] | None,
+                    exercises: list[str] | None) -> tuple[list[NotebookSpec], set[str]]:
+    """The instructor notebooks (and their exercises) to grade, and the modules the release omits."""
     unreleasable: list[str] = []
     all_specs = kit_specs(notebooks_dir, errors_out=unreleasable)
     omitted = set(release_plan(all_specs).omit)
@@ -217,134 +283,179 @@ def grade_submission(
     specs = _select(specs, exercises)
     if not specs:
         raise KitInputError(f"no instructor notebook or exercise matches {notebooks or ''} {exercises or ''}")
-    tmp = tempfile.TemporaryDirectory(prefix="course-grade-") if workdir is None else None
-    work = Path(tmp.name if tmp else workdir)
-    work.mkdir(parents=True, exist_ok=True)
+    return specs, omitted
+
+
+@contextlib.contextmanager
+def _scratch(workdir: Path | None):
+    """The grader's scratch folder (a temporary one, removed at the end, when ``workdir`` is None)."""
+    if workdir is not None:
+        Path(workdir).mkdir(parents=True, exist_ok=True)
+        yield Path(workdir)
+        return
+    with tempfile.TemporaryDirectory(prefix="course-grade-") as tmp:
+        yield Path(tmp)
+
+
+def _plan_notebook(run: _Run, s: NotebookSpec, path: Path) -> None:
+    """Read one submitted notebook (the grader's copy), place its exercises and scan it; never raises."""
+    if not path.is_file():
+        left_out = [r for r in run.submission.refused if r.split(":")[0] in (s.name, f"notebooks/{s.name}", "notebooks")]
+        why = [(None, f"{s.name} is missing from the submission ({left_out[0]})")] if left_out else []
+        run.plans.append((s, None, {}, why))
+        return
     try:
-        if hidden is None:
-            salt = secrets.randbits(62) if salt is None else int(salt)
-            hidden = prepare_hidden(specs, salt, work, notebooks_dir, timeout=max(timeout, 120.0))
-        else:
-            _preload(specs)
-        nb_dir = _find_notebooks(submission)
-        if hidden.library is None:
-            hidden.library = _temporary_student_library(notebooks_dir)
-        iso = Isolation.for_grading(hidden.library if not allow_reference else REPO_ROOT,
-                                    [work, Path(hidden.fixtures_dir)], notebooks_dir, self_test=allow_reference)
-        grades: list[ExerciseGrade] = []
-        plans = []  # (spec, nb or None, placements, tamper reasons)
-        to_nbval = {}
-        for s in specs:
-            path = nb_dir / s.name
-            if not path.exists():
-                plans.append((s, None, {}, []))
-                continue
+        nb = nbformat.read(path, as_version=4)
+        notes = _unparseable_cells(nb)
+        places = place_exercises(nb, s)
+        intact = {p.check_cell for p in places.values() if p.check_state == "intact"}
+        tamper = scan_notebook(nb, intact, {e.check_function for e in s.exercises}, [e.verdict for e in s.exercises])
+        nbv = restored(nb, s, places)
+    except Exception as exc:  # noqa: BLE001 - a notebook the grader cannot read is that notebook's verdict
+        run.plans.append((s, None, {}, [(None, f"the notebook cannot be read by the grader: {_exc_text(exc)}")]))
+        return
+    run.plans.append((s, nb, places, tamper + notes))
+    run.to_nbval[s.name] = nbv
+
+
+def _unparseable_cells(nb) -> list:
+    """Turn cells that ``ast`` cannot take apart (nested too deeply: RecursionError) into syntax errors, with a note.
+
+    Such a cell is then graded like a cell with a syntax error (its exercise: "not valid Python").
+    """
+    notes = []
+    for i, cell in enumerate(nb.cells):
+        if cell.cell_type != "code":
+            continue
+        try:
+            compile(python_source(cell.source), f"<cell {i}>", "exec", ast.PyCF_ONLY_AST)
+        except SyntaxError:
+            continue
+        except Exception as exc:  # noqa: BLE001 - RecursionError, MemoryError, ValueError (null bytes)
+            heads = [ln for ln in cell.source.splitlines() if re.match(r"\s*(def|class) \w+", ln)]
+            cell.source = "\n".join(heads[:20] + [f"<not parsed by the grader: {type(exc).__name__}>"])
+            notes.append((i, f"the grader cannot parse this cell ({type(exc).__name__}: statements nested too "
+                             "deeply or too large); it counts as a syntax error"))
+    return notes
+
+
+def _exc_text(exc: BaseException) -> str:
+    return _short(f"{type(exc).__name__}: {exc}", 300)
+
+
+def _start_nbval(run: _Run, cell_timeout: float, jobs: int) -> NbvalRun:
+    """Start nbval on every readable notebook (a notebook whose exercise loops is restarted later)."""
+    nbval_run = NbvalRun(run.submission.root, run.iso, cell_timeout, jobs=jobs)
+    for name, nbv in run.to_nbval.items():
+        nbval_run.submit(name, nbv)
+    return nbval_run
+
+
+def _structure_and_scans(run: _Run, s: NotebookSpec, e: ExerciseSpec, nb, places: dict, tamper: list) -> ExerciseGrade:
+    """The grade of one exercise after the structure check and the scans (pending the hidden checks when they pass)."""
+    g = ExerciseGrade(s.name, e.name, 0.0, e.points, [], "zero")
+    if nb is None:
+        g.status = "missing"
+        g.feedback.append(tamper[0][1] if tamper else f"{s.name} is missing from the submission")
+        return g
+    try:
+        verdict = _structure_verdict(e, places, tamper)
+        if verdict is not None:
+            g.status, msg = verdict
+            g.feedback.append(msg)
+            return g
+        ex = extract_exercise(nb, e.name, places[e.name].check_cell)
+        if ex is None:
+            g.status = "deleted"
+            g.feedback.append(f"no top-level def of {e.name} before its check cell; no credit")
+            return g
+        flags = scan_exercise(ex.tree, e.reference, run.omitted)
+    except Exception as exc:  # noqa: BLE001 - the grader never dies on a submission
+        g.status = "error"
+        g.feedback.append(f"the grader could not take {e.name} out of the notebook ({_exc_text(exc)}); no credit")
+        return g
+    if run.allow_reference:
+        flags = [f for f in flags if "reference solution" not in f]
+    if flags:
+        g.status = "flagged"
+        g.feedback += [f"your {e.name} {f}" for f in flags[:4]]
+        g.feedback.append("no credit: exercise code must be your own and may only use numpy/scipy/torch "
+                          "and the kit's non-solution modules")
+        return g
+    g.feedback += [f"note: your {e.name} {pr}" for pr in ex.problems]
+    run.pending.setdefault(s.name, []).append((g, e, ex))
+    return g
+
+
+def _structure_verdict(e: ExerciseSpec, places: dict[str, Placement], tamper: list) -> tuple[str, str] | None:
+    """``(status, feedback)`` when the notebook's structure gives exercise ``e`` no credit, else None."""
+    p = places[e.name]
+    if p.issue:
+        status, detail = p.issue.split(": ", 1)
+        if status == "error":
+            return status, f"{detail}; no credit"
+        return status, (f"exercise cell {status}: {detail}; no credit. Keep every exercise cell, in its place, "
+                        "followed by its check cell.")
+    if p.check_state != "intact":
+        edited_here = [r for c, r in tamper if c == p.check_cell and p.check_state == "edited"]
+        msg = f"the check cell of {e.name} was {'deleted' if p.check_state == 'deleted' else 'edited'}"
+        if edited_here:
+            msg += f" ({'; '.join(sorted(set(edited_here)))})"
+        return "check-edited", msg + ("; no credit. Check cells must stay as released (the grader restores them and "
+                                      "runs its own hidden checks).")
+    edited_cells = {q.check_cell for q in places.values() if q.check_state == "edited"}
+    elsewhere = [(c, r) for c, r in tamper if c not in edited_cells]
+    unparsed = [(c, r) for c, r in elsewhere if "cannot parse this cell" in r]
+    elsewhere = [(c, r) for c, r in elsewhere if (c, r) not in unparsed]
+    if elsewhere:
+        return "tampered", ("the notebook tampers with the checks: " + "; ".join(
+            f"cell {c}: {r}" for c, r in elsewhere[:4]) + ". No credit for this notebook's exercises.")
+    return None
+
+
+def _hidden_checks(run: _Run, nbval_run: NbvalRun | None) -> None:
+    """The hidden checks of every pending exercise; a notebook whose exercise looped or ended is rerun under nbval."""
+    for s, nb, places, _ in run.plans:
+        ended = {}  # exercises whose process ran out of time or ended: their check cells are not run again
+        for g, e, ex in run.pending.get(s.name, []):
             try:
-                nb = nbformat.read(path, as_version=4)
-            except Exception as exc:  # noqa: BLE001 - a broken file is a verdict
-                plans.append((s, None, {}, [(None, f"the notebook cannot be read: {exc}")]))
+                seen = _grade_hidden(g, e, ex, run.hidden, run.timeout, run.iso, run.allow_reference,
+                                     run.submission.root)
+            except Exception as exc:  # noqa: BLE001 - the grader never dies on a submission
+                g.status, g.points, seen = "error", 0.0, {}
+                g.feedback.append(f"{e.name}: the grader could not run its hidden checks ({_exc_text(exc)})")
+            run.sandbox_seen = run.sandbox_seen or seen
+            if g.status in ("timeout", "exit"):
+                ended[e.name] = (g.feedback[-1], ex.def_cell)
+        if nbval_run is not None and s.name in run.to_nbval and ended:
+            nbval_run.restart(s.name, _without_ended(copy.deepcopy(run.to_nbval[s.name]), places, ended))
+
+
+def _add_nbval(run: _Run, nbval_run: NbvalRun) -> None:
+    """The nbval verdict of each check cell, and the last 10 % of an exercise whose hidden checks all pass."""
+    results, nbval_notes = nbval_run.results()
+    by_key = {(g.notebook, g.name): g for g in run.grades}
+    for s, nb, places, _ in run.plans:
+        if nb is None:
+            continue
+        for e in s.exercises:
+            g, p = by_key[(s.name, e.name)], places[e.name]
+            if p.check_cell is None:
                 continue
-            places = place_exercises(nb, s)
-            intact = {p.check_cell for p in places.values() if p.check_state == "intact"}
-            check_names = {e.check_function for e in s.exercises}
-            tamper = scan_notebook(nb, intact, check_names, [e.verdict for e in s.exercises])
-            plans.append((s, nb, places, tamper))
-            to_nbval[s.name] = restored(nb, s, places)
-        nbval_run = NbvalRun(submission, iso, cell_timeout, jobs=nbval_jobs) if run_nbval and to_nbval else None
-        if nbval_run is not None:  # nbval starts at once; a notebook whose exercise loops is restarted below
-            for name, nbv in to_nbval.items():
-                nbval_run.submit(name, nbv)
-        pending: dict[str, list] = {}  # notebook -> [(grade, spec, extracted code)]
-        for s, nb, places, tamper in plans:
-            for e in s.exercises:
-                g = ExerciseGrade(s.name, e.name, 0.0, e.points, [], "zero")
-                grades.append(g)
-                if nb is None:
-                    g.status = "missing"
-                    g.feedback.append(tamper[0][1] if tamper else f"{s.name} is missing from the submission")
-                    continue
-                p = places[e.name]
-                edited_here = [r for c, r in tamper if c == p.check_cell and p.check_state == "edited"]
-                edited_cells = {q.check_cell for q in places.values() if q.check_state == "edited"}
-                elsewhere = [(c, r) for c, r in tamper if c not in edited_cells]
-                if p.issue:
-                    g.status, detail = p.issue.split(": ", 1)
-                    if g.status == "error":
-                        g.feedback.append(f"{detail}; no credit")
-                    else:
-                        g.feedback.append(f"exercise cell {g.status}: {detail}; no credit. Keep every exercise cell, "
-                                          "in its place, followed by its check cell.")
-                    continue
-                if p.check_state != "intact":
-                    g.status = "check-edited"
-                    what = "deleted" if p.check_state == "deleted" else "edited"
-                    msg = f"the check cell of {e.name} was {what}"
-                    if edited_here:
-                        msg += f" ({'; '.join(sorted(set(edited_here)))})"
-                    g.feedback.append(msg + "; no credit. Check cells must stay as released (the grader restores "
-                                      "them and runs its own hidden checks).")
-                    continue
-                if elsewhere:
-                    g.status = "tampered"
-                    g.feedback.append("the notebook tampers with the checks: " + "; ".join(
-                        f"cell {c}: {r}" for c, r in elsewhere[:4]) + ". No credit for this notebook's exercises.")
-                    continue
-                ex = extract_exercise(nb, e.name, p.check_cell)
-                if ex is None:
-                    g.status = "deleted"
-                    g.feedback.append(f"no top-level def of {e.name} before its check cell; no credit")
-                    continue
-                flags = scan_exercise(ex.tree, e.reference, omitted)
-                if allow_reference:
-                    flags = [f for f in flags if "reference solution" not in f]
-                if flags:
-                    g.status = "flagged"
-                    g.feedback += [f"your {e.name} {f}" for f in flags[:4]]
-                    g.feedback.append("no credit: exercise code must be your own and may only use numpy/scipy/torch "
-                                      "and the kit's non-solution modules")
-                    continue
-                g.feedback += [f"note: your {e.name} {pr}" for pr in ex.problems]
-                pending.setdefault(s.name, []).append((g, e, ex))
-        sandbox_seen: dict = {}
-        for s, nb, places, _ in plans:
-            ended = {}  # exercises whose process ran out of time or ended: their check cells are not run again
-            for g, e, ex in pending.get(s.name, []):
-                seen = _grade_hidden(g, e, ex, hidden, timeout, iso, allow_reference, submission)
-                sandbox_seen = sandbox_seen or seen
-                if g.status in ("timeout", "exit"):
-                    ended[e.name] = (g.feedback[-1], ex.def_cell)
-            if nbval_run is not None and s.name in to_nbval and ended:
-                nbval_run.restart(s.name, _without_ended(copy.deepcopy(to_nbval[s.name]), places, ended))
-        results, nbval_notes = nbval_run.results() if nbval_run is not None else ({}, {})
-        by_key = {(g.notebook, g.name): g for g in grades}
-        for s, nb, places, _ in plans:
-            if nb is None:
+            code_index = sum(1 for c in nb.cells[:p.check_cell] if c.cell_type == "code")
+            r = results.get((s.name, code_index))
+            g.nbval = "not run" if r is None else ("pass" if r == "pass" else "fail")
+            if g.status != "full":
                 continue
-            for e in s.exercises:
-                g = by_key[(s.name, e.name)]
-                p = places[e.name]
-                if p.check_cell is None or nbval_run is None:
-                    continue
-                code_index = sum(1 for c in nb.cells[:p.check_cell] if c.cell_type == "code")
-                r = results.get((s.name, code_index))
-                g.nbval = "not run" if r is None else ("pass" if r == "pass" else "fail")
-                if g.status == "full":
-                    if g.nbval == "pass":
-                        g.points = round(e.points, 2)
-                        g.feedback[0] = (f"full marks: all {g.hidden['total']} hidden checks pass and the check cell "
-                                         "prints the reference verdict")
-                    else:
-                        why = nbval_notes.get(s.name) or (r if r else "no result")
-                        g.feedback.append(f"in your notebook the check cell of {e.name} does not print the reference "
-                                          f"verdict when the notebook runs top to bottom ({_short(why)}); restart the "
-                                          f"kernel, run all cells, and fix what differs (−{(1 - HIDDEN_SHARE) * 100:.0f} %)")
-        report = _report(grades, hidden, time.perf_counter() - t0, allow_reference)
-        report["isolation"] = {"hidden checks": sandbox_seen,
-                               "nbval": nbval_run.sandbox if nbval_run is not None else {}}
-        return report
-    finally:
-        if tmp is not None:
-            tmp.cleanup()
+            if g.nbval == "pass":
+                g.points = round(e.points, 2)
+                g.feedback[0] = (f"full marks: all {g.hidden['total']} hidden checks pass and the check cell "
+                                 "prints the reference verdict")
+            else:
+                why = nbval_notes.get(s.name) or (r if r else "no result")
+                g.feedback.append(f"in your notebook the check cell of {e.name} does not print the reference "
+                                  f"verdict when the notebook runs top to bottom ({_short(why)}); restart the "
+                                  f"kernel, run all cells, and fix what differs (−{(1 - HIDDEN_SHARE) * 100:.0f} %)")
 
 
 def _without_ended(nb, places: dict[str, Placement], ended: dict[str, tuple[str, int]]):
@@ -367,7 +478,7 @@ def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, hidden: HiddenCases, ti
 
     Returns what the student's process was confined by.
     """
-    budget = max(timeout, 10 * hidden.reference_seconds.get(_key(e), 0.0) + 5)
+    budget = round(max(timeout, 10 * hidden.reference_seconds.get(_key(e), 0.0) + 5), 1)
     out = run_hidden(HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(hidden.fixtures_dir),
                                e.reference, allow_reference, str(submission)), budget, iso)
     ref = hidden.reference_passing.get(_key(e), [])
@@ -463,8 +574,20 @@ def to_markdown(report: dict) -> str:
             if g["nbval"] != "not run":
                 lines.append(f"- nbval check cell: {g['nbval']}")
             lines.append("")
-    box = report.get("isolation", {}).get("hidden checks", {})
-    sandbox = "" if not box else ("; sandbox: namespaces, no network, kit hidden, read-only" if box.get("namespaces")
-                                  and box.get("read_only") else "; sandbox: resource limits and import path only")
-    lines.append(f"<sub>hidden seed {report['hidden_seed']}, graded in {report['seconds']:g} s{sandbox}</sub>")
+    left_out = report.get("submission", {}).get("left out", [])
+    if left_out:
+        lines += ["## Files of your submission the grader did not copy", ""]
+        lines += [f"- {_short(r)}" for r in left_out[:20]] + [""]
+    lines.append(f"<sub>hidden seed {report['hidden_seed']}, graded in {report['seconds']:g} s{_sandbox_line(report)}</sub>")
     return "\n".join(lines) + "\n"
+
+
+def _sandbox_line(report: dict) -> str:
+    """One line on what confined the student's code (from the report's ``isolation``)."""
+    box = report.get("isolation", {}).get("hidden checks", {})
+    if not isinstance(box, dict) or not box:
+        return ""
+    if box.get("namespaces") is True and box.get("read_only") is True:
+        totals = "cgroup totals" if "cgroup" in str(box.get("memory", "")) else "per-process limits"
+        return f"; sandbox: namespaces, no network, an allow-listed read-only file system, {totals}"
+    return "; sandbox: resource limits and import path only"

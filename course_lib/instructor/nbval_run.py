@@ -1,8 +1,10 @@
 """nbval over a submission's notebooks, each in its own sandboxed pytest process.
 
-Each notebook runs in a fresh temporary copy of the submission (its working directory), with the
-student release's ``course_lib`` first on ``PYTHONPATH``, resource limits and (where Linux allows
-it) the namespaces of :mod:`course_lib.instructor.sandbox`.
+Each notebook runs in a fresh copy of the grader's copy of the submission (its working directory),
+with the student release's ``course_lib`` first on ``PYTHONPATH``, resource limits and (where Linux
+allows it) the sandbox of :mod:`course_lib.instructor.sandbox`. pytest reads no configuration and
+no ``conftest.py`` of the submission (``-c /dev/null --noconftest``), and no module of the notebooks'
+folder can stand in for pytest's own (``python -P``).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from pathlib import Path
 
 import nbformat
 
-from course_lib.instructor.student_process import CHILD_SCRIPT, SKIP_COPY, Isolation, kill_tree
+from course_lib.instructor.student_process import CHILD_SCRIPT, Isolation, kill_tree
 
 __all__ = ["NbvalRun", "MAX_NBVAL_RERUNS"]
 
@@ -30,10 +32,10 @@ MAX_NBVAL_RERUNS = 3  # reruns of a notebook after cells that timed out
 class NbvalRun:
     """pytest --nbval over notebooks, one sandboxed pytest process per notebook, ``jobs`` at a time, in the background.
 
-    Each notebook runs in a fresh temporary copy of the submission (its working directory), with the
-    student release's ``course_lib`` first on ``PYTHONPATH``, resource limits, and (where Linux
-    allows it) the namespaces of :mod:`course_lib.instructor.sandbox`: no network, the instructor's kit
-    and the grader's scratch folder hidden, everything read-only but the copy.
+    Each notebook runs in a fresh copy of the submission (its working directory), with the student
+    release's ``course_lib`` first on ``PYTHONPATH``, resource limits, and (where Linux allows it)
+    the sandbox of :mod:`course_lib.instructor.sandbox`: no network, an allow-listed read-only file
+    system, a size-limited tmpfs for what it writes, totals for the process tree.
     """
 
     def __init__(self, submission: Path, isolation: Isolation, cell_timeout: float, jobs: int = 2,
@@ -78,21 +80,17 @@ class NbvalRun:
         tmp = Path(tempfile.mkdtemp(prefix="course-nbval-"))
         try:
             os.chmod(tmp, 0o755)
-            work = tmp / "work"
-            if self.submission.is_dir():
-                shutil.copytree(self.submission, work, ignore=SKIP_COPY, symlinks=True)
-            nb_dir = work / "notebooks"
-            nb_dir.mkdir(parents=True, exist_ok=True)
-            for old in nb_dir.glob("*.ipynb"):
-                old.unlink()  # only the notebook under test, restored by the grader
-            nbformat.write(nb, nb_dir / name)
+            seed = tmp / "seed"  # the submission's copy with only the notebook under test, restored by the grader
+            shutil.copytree(self.submission, seed, ignore=_other_notebooks(self.submission), symlinks=False)
+            (seed / "notebooks").mkdir(exist_ok=True)
             results: dict[tuple[str, int], str] = {}
             done_upto = -1
             for attempt in range(MAX_NBVAL_RERUNS + 1):
                 with self._lock:
                     if name in self._replace:
                         return results, "replaced"
-                res, note = self._pytest(tmp, work, nb_dir, name, attempt)
+                nbformat.write(nb, seed / "notebooks" / name)
+                res, note = self._pytest(tmp, seed, name, attempt)
                 if note:
                     return results, note
                 results.update({k: v for k, v in res.items() if k[1] > done_upto})
@@ -102,56 +100,87 @@ class NbvalRun:
                     break
                 done_upto = timed_out[0]
                 # the rerun: the cell that timed out raises at once, the cells after it run again
-                nb = nbformat.read(nb_dir / name, as_version=4)
                 code = [c for c in nb.cells if c.cell_type == "code"]
                 code[done_upto].source = f"raise TimeoutError('this cell did not finish within {self.cell_timeout:g} s')"
                 code[done_upto].outputs = []
-                nbformat.write(nb, nb_dir / name)
             return results, ""
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
 
-    def _pytest(self, tmp: Path, work: Path, nb_dir: Path, name: str, attempt: int):
-        junit = work / f".nbval-{attempt}.junit.xml"
+    def _pytest(self, tmp: Path, seed: Path, name: str, attempt: int):
+        """One sandboxed pytest run; its junit report comes out through a file the sandbox never holds."""
+        work = tmp / f"work{attempt}"  # the sandbox's working copy (in its own tmpfs; on this disk without namespaces)
         stage = tmp / f"stage{attempt}"
-        stage.mkdir()
-        report = work / f".sandbox-{attempt}.json"
-        cfg = {"sandbox": self.iso.sandbox_config(stage, [work]), "cwd": str(nb_dir), "report": str(report)}
-        (tmp / f"sandbox{attempt}.json").write_text(json.dumps(cfg))
+        for d in (work, stage):
+            d.mkdir()
+        nb_dir = work / "notebooks"
+        junit_in = nb_dir / ".nbval.junit.xml"
+        junit_out, report_out = tmp / f"junit{attempt}.xml", tmp / f"sandbox{attempt}.json"
+        fds = [os.open(p, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600) for p in (junit_out, report_out)]
+        cfg = {"sandbox": self.iso.sandbox_config(stage, work, seed), "cwd": str(nb_dir),
+               "collect": str(junit_in), "collect_fd": fds[0], "report_fd": fds[1]}
+        (tmp / f"sandbox{attempt}.cfg.json").write_text(json.dumps(cfg))
+        cmd = [sys.executable, "-S", "-E", str(CHILD_SCRIPT), "exec", str(tmp / f"sandbox{attempt}.cfg.json"), "--",
+               *self.pytest_command(name, junit_in)]
+        cgroup = self.iso.cgroup()
+        try:
+            with self._lock:  # its own session, so that whatever the notebook started is stopped with it
+                if name in self._replace:
+                    return {}, "replaced"
+                proc = subprocess.Popen(cmd, cwd=work, env=self._env(work), stdout=subprocess.DEVNULL,
+                                        stderr=subprocess.DEVNULL, pass_fds=fds, start_new_session=True,
+                                        preexec_fn=self.iso.preexec(self.timeout, cgroup))
+                self._procs[name] = proc
+            for fd in fds:
+                os.close(fd)
+            fds = []
+            try:
+                proc.wait(timeout=self.timeout)
+            except subprocess.TimeoutExpired:
+                return {}, f"nbval did not finish {name} within {self.timeout:g} s"
+            finally:
+                kill_tree(proc.pid)
+                proc.wait()
+                with self._lock:
+                    self._procs.pop(name, None)
+        finally:
+            for fd in fds:
+                os.close(fd)
+            if cgroup is not None:
+                cgroup.close()
+        self._read_report(report_out, cgroup)
+        junit = junit_out if junit_out.stat().st_size else junit_in  # without namespaces: on this disk
+        return _read_junit(junit, name)
+
+    def pytest_command(self, name: str, junit: Path) -> list[str]:
+        """nbval of notebook ``name``: no conftest.py and no pytest configuration of the submission is read."""
+        safe_path = ["-P"] if sys.version_info >= (3, 11) else []  # no module of the notebooks' folder shadows pytest's
+        return [sys.executable, *safe_path, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--noconftest", "-c", os.devnull,
+                "--rootdir", str(junit.parent), "--nbval-lax", "--nbval-current-env",
+                f"--nbval-cell-timeout={int(self.cell_timeout)}", f"--junitxml={junit}", name]
+
+    def _env(self, work: Path) -> dict:
         home = work / ".home"
         env = {k: v for k, v in os.environ.items() if k in ("PATH", "LANG", "LC_ALL", "TZ")}
         env.update(COURSE_LIB_QUICK="1", PYTHONDONTWRITEBYTECODE="1", PYTHONPATH=str(self.iso.library),
                    HOME=str(home), JUPYTER_RUNTIME_DIR=str(home / "runtime"), JUPYTER_DATA_DIR=str(home / "data"),
-                   IPYTHONDIR=str(home / "ipython"), MPLCONFIGDIR=str(home / "mpl"), MPLBACKEND="Agg",
+                   IPYTHONDIR=str(home / "ipython"), MPLCONFIGDIR=str(home / "mpl"), MPLBACKEND="Agg", TMPDIR="/tmp",
                    OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONNOUSERSITE="1")
         if os.environ.get("COURSE_DATA"):
             env["COURSE_DATA"] = os.environ["COURSE_DATA"]
-        cmd = [sys.executable, "-S", "-E", str(CHILD_SCRIPT), "exec", str(tmp / f"sandbox{attempt}.json"), "--",
-               sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-c", os.devnull, "--rootdir",
-               str(nb_dir), "--nbval-lax", "--nbval-current-env", f"--nbval-cell-timeout={int(self.cell_timeout)}",
-               f"--junitxml={junit}", name]
-        # its own session, so that whatever the notebook started is stopped with it
-        with self._lock:
-            if name in self._replace:
-                return {}, "replaced"
-            proc = subprocess.Popen(cmd, cwd=nb_dir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                    start_new_session=True, preexec_fn=self.iso.preexec(self.timeout))
-            self._procs[name] = proc
+        return env
+
+    def _read_report(self, path: Path, cgroup) -> None:
+        """What the sandbox enforced (written by the launcher before the notebook ran), with the totals."""
+        if self.sandbox:
+            return
         try:
-            proc.wait(timeout=self.timeout)
-        except subprocess.TimeoutExpired:
-            return {}, f"nbval did not finish {name} within {self.timeout:g} s"
-        finally:
-            kill_tree(proc.pid)
-            proc.wait()
-            with self._lock:
-                self._procs.pop(name, None)
-        if report.exists() and not self.sandbox:
-            try:
-                self.sandbox = json.loads(report.read_text())
-            except ValueError:
-                pass
-        return _read_junit(junit, name)
+            box = json.loads(path.read_text() or "{}")
+        except ValueError:
+            box = {}
+        if isinstance(box, dict) and box:
+            box.update(self.iso.limits.totals(cgroup))
+            self.sandbox = box
 
     def results(self) -> tuple[dict[tuple[str, int], str], dict[str, str]]:
         """``{(notebook, code cell index): "pass" or a failure text}`` and ``{notebook: note}`` for runs that failed."""
@@ -159,7 +188,10 @@ class NbvalRun:
         for name in list(self.futures):
             while True:  # a restart may replace the future while we wait for it
                 fut = self.futures[name]
-                res, note = fut.result()
+                try:
+                    res, note = fut.result()
+                except Exception as exc:  # noqa: BLE001 - the grader never dies on a submission
+                    res, note = {}, f"nbval could not run {name} ({type(exc).__name__}: {str(exc)[:200]})"
                 if self.futures[name] is fut:
                     break
             out.update(res)
@@ -169,13 +201,28 @@ class NbvalRun:
         return out, notes
 
 
+def _other_notebooks(submission: Path):
+    """``copytree``'s ignore: the submission's notebooks (the one under test is written by the grader)."""
+    skip = {".ipynb_checkpoints"}
+
+    def ignore(folder: str, names: list[str]) -> list[str]:
+        in_nb_dir = Path(folder) == submission / "notebooks" or Path(folder) == submission
+        return [n for n in names if n in skip or (in_nb_dir and n.endswith(".ipynb"))]
+
+    return ignore
+
+
 def _read_junit(junit: Path, name: str) -> tuple[dict[tuple[str, int], str], str]:
     if not junit.exists():
         return {}, f"nbval did not run {name}"
     results = {}
-    for tc in ET.parse(junit).iter("testcase"):
+    try:
+        cases = list(ET.parse(junit).iter("testcase"))
+    except Exception as exc:  # noqa: BLE001 - a broken report is that notebook's note
+        return {}, f"nbval's report of {name} cannot be read ({type(exc).__name__})"
+    for tc in cases:
         cell = tc.attrib.get("name", "")
-        if not cell.startswith("Cell "):
+        if not cell.startswith("Cell ") or not cell.split()[1].isdigit():
             continue
         bad = [c for c in tc if c.tag in ("failure", "error", "skipped")]
         text = "pass"
@@ -184,5 +231,3 @@ def _read_junit(junit: Path, name: str) -> tuple[dict[tuple[str, int], str], str
             text = ("not run: " if bad[0].tag == "skipped" else "") + re.sub(r"\x1b\[[0-9;]*m", "", text)
         results[(name, int(cell.split()[1]))] = text
     return results, ""
-
-

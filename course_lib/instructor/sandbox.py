@@ -1,6 +1,6 @@
 """The process that runs a student's code during grading: the sandbox, the wire format, the server.
 
-This file is run as a *script* by the grader (``python -S -E child.py ...``), never imported by
+This file is run as a *script* by the grader (``python -S -E sandbox.py ...``), never imported by
 the student's code, and needs nothing but the standard library (numpy and torch are imported only
 when the student's code or the data need them). The grader imports it too, for :func:`encode`,
 :func:`decode`, :func:`write_frame` and :func:`read_frame`.
@@ -16,22 +16,30 @@ Two commands:
     ``nn.Module``) stay here and are answered by handle.
 
 ``child.py exec CONFIG.json -- PROGRAM ARGS...``
-    Enter the sandbox and ``execv`` a program (nbval of the student's notebook).
+    Enter the sandbox and ``execv`` a program (nbval of the student's notebook). The sandbox's
+    report goes to the grader's file ``report_fd``; after the program ended, the launcher (outside
+    the PID namespace, unseen by the program) copies the file ``collect`` out to ``collect_fd``.
 
 The sandbox (``CONFIG["sandbox"]``), entered before any student code runs:
 
 * resource limits are set by the grader in ``preexec_fn`` (CPU seconds, address space, file size,
-  number of processes);
-* where the kernel allows unprivileged user namespaces: a new user, mount and network namespace
-  (no network: only a loopback device that is down); the folders in ``hide`` (the instructor's
-  kit, the grader's scratch folder with the hidden cases) are covered by empty read-only tmpfs
-  mounts, except the paths in ``keep`` (the Python environment when it lives inside the kit),
-  which are bind-mounted back read-only; then every mount is made read-only except the ``writable``
-  folders (the temporary copy of the submission). Without user namespaces only the resource limits
-  and the import path apply; :func:`enter_sandbox` reports what was enforced.
+  number of processes), which also moves the process into a cgroup of its own where the grader can
+  make one (totals of memory and processes for the whole tree: :mod:`course_lib.instructor.cgroups`);
+* where the kernel allows unprivileged user namespaces: new user, mount, network, PID and IPC
+  namespaces (no network: only a loopback device; System V IPC objects end with the sandbox); the
+  process is not root inside. A **fresh root** is built from bind mounts of an allow-list
+  (``root["read_only"]``: the Python installation, the student release, system libraries; folders
+  in ``root["hide"]`` inside them covered by empty folders), a few device files, a /proc of the new
+  PID namespace, and one size-limited tmpfs for everything writable (the working folder, filled with
+  a copy of ``root["seed"]``, /tmp and /dev/shm); then ``pivot_root`` and the host's root is
+  detached. Every capability is dropped and ``no_new_privs`` set, so the mounts cannot be undone.
+  Without user namespaces only the resource limits and the import path apply (the working copy is
+  then made on the host's disk); :func:`enter_sandbox` reports what was enforced, and ``serve``
+  sends that report as its first frame, before any of the student's code runs.
 
 The wire format never unpickles: a frame is a JSON header plus numpy arrays written with
-``np.save`` and read with ``np.load(allow_pickle=False)``. Values: None, bool, int, float,
+``np.save`` and read back as ``.npy`` records of numeric dtypes whose size is checked against their
+header before anything is allocated (:func:`unpack`); a reply is at most :data:`MAX_REPLY` bytes. Values: None, bool, int, float,
 complex, str, tuple, list, dict, namedtuple, dataclass-like records (their public attributes),
 numpy arrays and scalars, scipy sparse matrices, torch tensors, numpy and torch random
 generators (their state).
@@ -45,8 +53,11 @@ import os
 import struct
 import sys
 
-MAX_FRAME = 1 << 31  # bytes of one message
-_JSON_LIMIT = 64 << 20
+MAX_REQUEST = 1 << 31  # bytes of one message from the grader (the hidden inputs)
+#: Bytes of one reply from the student's process: what an exercise can honestly return (the largest honest reply
+#: of the kit's exercises, a NeRF model's parameters or a rendered image, is a few MiB; see benchmarks/grade_speed.py).
+MAX_REPLY = 64 << 20
+_JSON_LIMIT = 16 << 20
 
 # ---------------------------------------------------------------------------------------------
 # Wire format
@@ -156,6 +167,8 @@ _TYPES: dict = {}
 
 
 def _record_type(name: str):
+    if len(_TYPES) > 4096:  # a reply cannot grow the grader by naming new types
+        _TYPES.clear()
     if ("record", name) not in _TYPES:
         _TYPES[("record", name)] = type(name, (Record,), {})
     return _TYPES[("record", name)]
@@ -165,6 +178,8 @@ def _ntuple_type(name: str, fields: tuple):
     import collections
 
     key = ("ntuple", name, fields)
+    if len(fields) > 64 or len(_TYPES) > 4096:
+        return None  # a plain tuple
     if key not in _TYPES:
         try:
             _TYPES[key] = collections.namedtuple(name, fields)
@@ -267,23 +282,50 @@ def pack(header: dict, arrays: list) -> bytes:
     return b"".join(parts)
 
 
-def unpack(data: bytes) -> tuple[dict, list]:
+def _load_npy(data) -> object:
+    """One ``.npy`` record as a numpy array: numeric and boolean dtypes only, its size checked against its header.
+
+    A ``.npz`` archive, a pickle, an object array or a header that claims more data than was sent is refused
+    (:class:`WireError`) before anything is allocated.
+    """
+    np = _np()
+    fmt = np.lib.format
+    fp = io.BytesIO(data)
+    if bytes(data[:6]) != b"\x93NUMPY":
+        raise WireError("malformed message (an array that is not a .npy record)")
+    version = fmt.read_magic(fp)
+    read_header = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+    shape, fortran, dtype = read_header(fp)
+    if dtype.hasobject or dtype.kind not in "biufcSUMmV":
+        raise WireError("malformed message (an array of Python objects)")
+    count = 1
+    for n in shape:
+        count *= int(n)
+    start = fp.tell()
+    if count * dtype.itemsize != len(data) - start:
+        raise WireError("malformed message (an array whose size differs from its header)")
+    flat = np.frombuffer(bytearray(data[start:]), dtype=dtype, count=count)
+    return flat.reshape(shape, order="F" if fortran else "C")
+
+
+def unpack(data) -> tuple[dict, list]:
+    """The header and arrays of one message; :class:`WireError` (or ``ValueError``) for anything malformed."""
     if len(data) < 8:
         raise WireError("malformed message")
     n_head, n_arr = struct.unpack_from("<II", data, 0)
-    if n_head > _JSON_LIMIT or n_arr > 1_000_000:
+    if n_head > min(_JSON_LIMIT, len(data) - 8) or n_arr > (len(data) - 8 - n_head) // 8:
         raise WireError("malformed message")
     pos = 8
-    header = json.loads(data[pos:pos + n_head].decode())
+    header = json.loads(bytes(data[pos:pos + n_head]).decode())
     pos += n_head
     arrays = []
-    if n_arr:
-        np = _np()
-        for _ in range(n_arr):
-            (n,) = struct.unpack_from("<Q", data, pos)
-            pos += 8
-            arrays.append(np.load(io.BytesIO(data[pos:pos + n]), allow_pickle=False))
-            pos += n
+    for _ in range(n_arr):
+        (n,) = struct.unpack_from("<Q", data, pos)
+        pos += 8
+        if n > len(data) - pos:
+            raise WireError("malformed message (an array longer than the message)")
+        arrays.append(_load_npy(memoryview(data)[pos:pos + n]))
+        pos += n
     if not isinstance(header, dict):
         raise WireError("malformed message")
     return header, arrays
@@ -308,10 +350,11 @@ def _read_exact(fd: int, n: int) -> bytes:
     return b"".join(chunks)
 
 
-def read_frame(fd: int) -> tuple[dict, list]:
+def read_frame(fd: int, limit: int = MAX_REQUEST) -> tuple[dict, list]:
+    """The next message on ``fd`` (at most ``limit`` bytes)."""
     (n,) = struct.unpack("<Q", _read_exact(fd, 8))
-    if n > MAX_FRAME:
-        raise WireError(f"a message of {n} bytes is larger than the limit ({MAX_FRAME} bytes)")
+    if n > limit:
+        raise WireError(f"a message of {n} bytes is larger than the limit ({limit} bytes)")
     return unpack(_read_exact(fd, n))
 
 
@@ -320,6 +363,10 @@ def read_frame(fd: int) -> tuple[dict, list]:
 # ---------------------------------------------------------------------------------------------
 
 CLONE_NEWNS, CLONE_NEWUSER, CLONE_NEWNET, CLONE_NEWPID = 0x00020000, 0x10000000, 0x40000000, 0x20000000
+CLONE_NEWIPC = 0x08000000
+MNT_DETACH = 2
+PR_SET_NO_NEW_PRIVS, PR_CAPBSET_DROP = 38, 24
+SYS_PIVOT_ROOT = {"x86_64": 155, "aarch64": 41}.get(os.uname().machine, 155)
 MS_RDONLY, MS_NOSUID, MS_NODEV, MS_BIND, MS_REC, MS_PRIVATE = 1, 2, 4, 4096, 16384, 1 << 18
 MS_REMOUNT = 32
 AT_FDCWD, AT_RECURSIVE = -100, 0x8000
@@ -359,70 +406,168 @@ def _setattr(ctypes, libc, path: str, set_ro: bool, recursive: bool) -> None:
     _check(ctypes, rc, f"mount_setattr {path}")
 
 
-def enter_sandbox(cfg: dict) -> dict:
-    """Enter the namespaces described in ``cfg`` (see the module docstring); returns what was enforced."""
-    done = {"namespaces": False, "network": "not isolated", "hidden": [], "read_only": False, "note": ""}
+def enter_sandbox(cfg: dict, collect=None) -> dict:
+    """Enter the namespaces and the file system view described in ``cfg``; returns what was enforced.
+
+    ``collect`` (the ``exec`` command): called in the waiting launcher after the sandboxed program ended,
+    to copy its results out of the sandbox's own file system.
+    """
+    done = {"namespaces": False, "network": "not isolated", "ipc": "shared with the host", "file system":
+            "the grading user's (only the import path and the working copy are set)", "read_only": False,
+            "disk": "per file only (RLIMIT_FSIZE)", "note": ""}
     if not cfg.get("namespaces", True) or not sys.platform.startswith("linux"):
         done["note"] = "namespaces not requested" if sys.platform.startswith("linux") else "not Linux"
         return done
     try:
         ctypes, libc = _libc()
         uid, gid = os.getuid(), os.getgid()
-        _check(ctypes, libc.unshare(CLONE_NEWUSER | CLONE_NEWNS | CLONE_NEWNET | CLONE_NEWPID), "unshare")
+        _check(ctypes, libc.unshare(CLONE_NEWUSER | CLONE_NEWNS | CLONE_NEWNET | CLONE_NEWPID | CLONE_NEWIPC), "unshare")
     except OSError as exc:
         done["note"] = f"no user namespaces here ({exc.strerror if hasattr(exc, 'strerror') else exc})"
         return done
+    inner = uid or 1000  # never root inside: no capabilities survive an exec, setuid programs stay plain
     try:
-        for name, text in (("setgroups", "deny"), ("uid_map", f"{uid} {uid} 1"), ("gid_map", f"{gid} {gid} 1")):
+        for name, text in (("setgroups", "deny"), ("uid_map", f"{inner} {uid} 1"), ("gid_map", f"{gid or 1000} {gid} 1")):
             with open(f"/proc/self/{name}", "w") as f:
                 f.write(text)
     except OSError as exc:
         done["note"] = f"the user namespace could not be set up ({exc})"
         return done
-    done["namespaces"] = True
-    done["network"] = "none: a new network namespace with only the loopback device"
+    done.update(namespaces=True, network="none: a new network namespace with only the loopback device",
+                ipc="its own IPC namespace (System V shared memory ends with the sandbox)")
     _loopback_up()
-    _become_pid_one()
+    _become_pid_one(collect)
     try:
-        _mounts(ctypes, libc, cfg, done)
-    except OSError as exc:  # reported (the grader warns); the namespaces stay
-        done["note"] = f"the file system view could not be restricted ({exc})"
+        _fresh_root(ctypes, libc, cfg, done)
+    except OSError as exc:  # the student's code must not run with the host's files in view
+        raise SystemExit(f"the sandbox's file system could not be set up: {exc}") from None
+    _drop_privileges(ctypes, libc, done)
     return done
 
 
-def _mounts(ctypes, libc, cfg: dict, done: dict) -> None:
-    """Private mounts, a /proc of the new PID namespace, hidden folders, a read-only view but ``writable``."""
+def _fresh_root(ctypes, libc, cfg: dict, done: dict) -> None:
+    """A new root of bind mounts: the allow-listed folders read-only, a size-limited tmpfs for what may be written.
+
+    ``cfg["root"]``: ``stage`` (an empty folder of the grader's, to build the root in), ``read_only`` (paths
+    shown read-only at their own place), ``hide`` (folders inside those covered by an empty folder),
+    ``work`` (the working folder's path) and ``seed`` (a folder whose files are copied into it), ``disk_bytes``.
+    """
+    import shutil
+
+    spec = cfg["root"]
+    stage = spec["stage"]
+    root, rw = os.path.join(stage, "root"), os.path.join(stage, "rw")
     _mount(ctypes, libc, None, "/", None, MS_REC | MS_PRIVATE)
+    for d in (root, rw):
+        os.makedirs(d, exist_ok=True)
+    _mount(ctypes, libc, "tmpfs", root, "tmpfs", MS_NOSUID | MS_NODEV, "size=4m,mode=755")
+    disk = int(spec.get("disk_bytes", 1 << 30))
+    _mount(ctypes, libc, "tmpfs", rw, "tmpfs", MS_NOSUID | MS_NODEV, f"size={disk},mode=755")
+    writable = _writable_area(ctypes, libc, root, rw, {"tmp": "/tmp", "shm": "/dev/shm"})
+    bound: list[str] = []
+    for p in sorted(spec.get("read_only", []), key=len):  # folders before what is inside them
+        _bind_at_own_path(ctypes, libc, root, p, bound)
+    writable += _writable_area(ctypes, libc, root, rw, {"work": spec["work"]})
+    if spec.get("seed"):  # regular files only: the grader's copy of the submission
+        shutil.copytree(spec["seed"], os.path.join(rw, "work"), dirs_exist_ok=True, symlinks=False)
+    for h in spec.get("hide", []):
+        if os.path.isdir(os.path.join(root, h.lstrip("/"))):
+            _mount(ctypes, libc, "tmpfs", os.path.join(root, h.lstrip("/")), "tmpfs", MS_NOSUID | MS_NODEV,
+                   "size=16k,mode=755")
+    _devices(ctypes, libc, root)
     try:  # a /proc of the new PID namespace: other processes (and their views of the files) are not visible
-        _mount(ctypes, libc, "proc", "/proc", "proc", MS_NOSUID | MS_NODEV | 8)
+        os.makedirs(os.path.join(root, "proc"), exist_ok=True)
+        _mount(ctypes, libc, "proc", os.path.join(root, "proc"), "proc", MS_NOSUID | MS_NODEV | 8)
         done["proc"] = "own PID namespace"
     except OSError as exc:
-        done["proc"] = f"the host's /proc stays visible ({exc})"
-    stage = cfg["stage"]  # an empty folder of the child's own, outside every hidden folder
-    keep = [k for k in cfg.get("keep", []) if os.path.isdir(k)]
-    staged = []
-    for i, k in enumerate(keep):  # park the kept folders before the folders around them are covered
-        if any(_inside(k, h) for h in cfg.get("hide", [])):
-            d = os.path.join(stage, f"keep{i}")
-            os.makedirs(d, exist_ok=True)
-            _mount(ctypes, libc, k, d, None, MS_BIND | MS_REC)
-            staged.append((k, d))
-    for h in cfg.get("hide", []):
-        if os.path.isdir(h):
-            _mount(ctypes, libc, "tmpfs", h, "tmpfs", MS_NOSUID | MS_NODEV, "size=64k,mode=755")
-            done["hidden"].append(h)
-    for k, d in staged:
-        os.makedirs(k, exist_ok=True)  # inside the tmpfs that now covers its parent
-        _mount(ctypes, libc, d, k, None, MS_BIND | MS_REC)
-    for w in cfg.get("writable", []):
-        _mount(ctypes, libc, w, w, None, MS_BIND | MS_REC)
+        done["proc"] = f"no /proc ({exc.strerror})"
+    _setattr(ctypes, libc, root, True, True)
+    for w in writable:
+        _setattr(ctypes, libc, w, False, False)
+    os.chdir(root)
+    _check(ctypes, libc.syscall(ctypes.c_long(SYS_PIVOT_ROOT), b".", b"."), "pivot_root")
+    _check(ctypes, libc.umount2(b".", ctypes.c_int(MNT_DETACH)), "umount the host's root")
+    os.chdir("/")
+    done.update({"file system": "a fresh root: the Python installation, the student release and system "
+                                "libraries read-only; the working copy, /tmp and /dev/shm writable",
+                 "read_only": True, "disk": f"{disk} bytes in all (a tmpfs for everything writable)"})
+
+
+def _bind_at_own_path(ctypes, libc, root: str, path: str, bound: list[str]) -> None:
+    """Show host ``path`` (a folder or a file) read-only at the same place under ``root``; links on the way are kept.
+
+    ``bound``: the host paths bound so far (a path inside one of them is already in view).
+    """
+    parts = [p for p in path.split("/") if p]
+    host = "/"
+    for k, part in enumerate(parts):
+        host = os.path.join(host, part)
+        if any(host == b or host.startswith(b.rstrip("/") + "/") for b in bound):
+            return
+        inside = os.path.join(root, host.lstrip("/"))
+        if os.path.islink(host):
+            if not os.path.lexists(inside):
+                os.symlink(os.readlink(host), inside)
+            target = os.path.realpath(host)
+            rest = "/".join(parts[k + 1:])
+            _bind_at_own_path(ctypes, libc, root, os.path.join(target, rest) if rest else target, bound)
+            return
+        if k < len(parts) - 1:
+            os.makedirs(inside, exist_ok=True)
+    if not os.path.exists(host):
+        return
+    inside = os.path.join(root, host.lstrip("/"))
+    if os.path.isdir(host):
+        os.makedirs(inside, exist_ok=True)
+    elif not os.path.exists(inside):
+        os.close(os.open(inside, os.O_CREAT | os.O_WRONLY, 0o644))
+    _mount(ctypes, libc, host, inside, None, MS_BIND | MS_REC)
+    bound.append(host)
+
+
+def _writable_area(ctypes, libc, root: str, rw: str, targets: dict[str, str]) -> list[str]:
+    """Folders of the one size-limited tmpfs ``rw`` bound at ``targets`` (name -> path in the sandbox)."""
+    out = []
+    for name, target in targets.items():
+        src = os.path.join(rw, name)
+        os.makedirs(src, exist_ok=True)
+        os.chmod(src, 0o755 if name == "work" else 0o1777)
+        inside = os.path.join(root, target.lstrip("/"))
+        os.makedirs(inside, exist_ok=True)
+        _mount(ctypes, libc, src, inside, None, MS_BIND)
+        out.append(inside)
+    return out
+
+
+def _devices(ctypes, libc, root: str) -> None:
+    """/dev with the harmless devices only (bound from the host: a user namespace cannot create device files)."""
+    dev = os.path.join(root, "dev")
+    os.makedirs(dev, exist_ok=True)
+    for name in ("null", "zero", "full", "random", "urandom"):
+        if os.path.exists(f"/dev/{name}"):
+            open(os.path.join(dev, name), "a").close()
+            _mount(ctypes, libc, f"/dev/{name}", os.path.join(dev, name), None, MS_BIND)
+    for name, target in (("fd", "/proc/self/fd"), ("stdin", "/proc/self/fd/0"), ("stdout", "/proc/self/fd/1"),
+                         ("stderr", "/proc/self/fd/2")):
+        os.symlink(target, os.path.join(dev, name))
+
+
+def _drop_privileges(ctypes, libc, done: dict) -> None:
+    """No capabilities left (not even in the sandbox's own namespaces) and none to gain: the mounts stay as they are."""
     try:
-        _setattr(ctypes, libc, "/", True, True)
-        for w in cfg.get("writable", []):
-            _setattr(ctypes, libc, w, False, False)
-        done["read_only"] = True
+        _check(ctypes, libc.prctl(PR_SET_NO_NEW_PRIVS, 1, 0, 0, 0), "prctl(NO_NEW_PRIVS)")
+        for cap in range(64):
+            if libc.prctl(PR_CAPBSET_DROP, cap, 0, 0, 0) != 0:
+                break
+
+        class Header(ctypes.Structure):
+            _fields_ = [("version", ctypes.c_uint32), ("pid", ctypes.c_int)]
+
+        data = (ctypes.c_uint32 * 6)()
+        _check(ctypes, libc.capset(ctypes.byref(Header(0x20080522, 0)), data), "capset")
+        done["capabilities"] = "none"
     except OSError as exc:
-        done["note"] = f"the file system stays writable ({exc})"
+        done["capabilities"] = f"kept ({exc})"
 
 
 def _loopback_up() -> None:
@@ -439,8 +584,12 @@ def _loopback_up() -> None:
         pass
 
 
-def _become_pid_one() -> None:
-    """Fork into the new PID namespace: the child goes on as its process 1, this process waits and exits with it."""
+def _become_pid_one(collect=None) -> None:
+    """Fork into the new PID namespace: the child goes on as its process 1, this process waits and exits with it.
+
+    The waiting process stays outside the PID namespace (the student's code cannot see or signal it) and,
+    after the child ended (and with it every process of the namespace), runs ``collect``.
+    """
     pid = os.fork()
     if pid == 0:
         try:  # if the waiting parent is killed, so is this process (and with it the namespace)
@@ -462,14 +611,30 @@ def _become_pid_one() -> None:
             os._exit(1)
         except InterruptedError:
             continue
+    if collect is not None:
+        try:
+            collect()
+        except Exception:  # noqa: BLE001 - the grader reads what was collected, or reports none
+            pass
     if os.WIFSIGNALED(status):
         os._exit(128 + os.WTERMSIG(status))
     os._exit(os.WEXITSTATUS(status))
 
 
-def _inside(path: str, folder: str) -> bool:
-    path, folder = os.path.abspath(path), os.path.abspath(folder)
-    return path == folder or path.startswith(folder.rstrip("/") + "/")
+def _seed_work(cfg: dict, done: dict) -> None:
+    """Without a fresh root, the working copy is made on the host's disk (with it, inside the sandbox's tmpfs)."""
+    import shutil
+
+    spec = cfg.get("root") or {}
+    if spec.get("seed") and not done.get("read_only"):
+        shutil.copytree(spec["seed"], spec["work"], dirs_exist_ok=True, symlinks=False)
+
+
+def _copy_out(path: str, fd: int, limit: int = 16 << 20) -> None:
+    """Copy (at most ``limit`` bytes of) the file ``path`` of the sandbox into the grader's open file ``fd``."""
+    with open(path, "rb") as f:
+        data = f.read(limit)
+    os.write(fd, data)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -514,6 +679,7 @@ def serve(cfg: dict) -> None:
     global REQ_FD, REP_FD
     REQ_FD, REP_FD = int(cfg["req_fd"]), int(cfg["rep_fd"])
     done = enter_sandbox(cfg.get("sandbox", {}))
+    _seed_work(cfg.get("sandbox", {}), done)
     os.chdir(cfg["cwd"])
     sys.path[:] = [cfg["path"]] + [p for p in cfg["sys_path"] if p]
     for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -524,6 +690,8 @@ def serve(cfg: dict) -> None:
         import torch
 
         torch.set_num_threads(1)
+    # ready: the exercise's time starts now (the imports above are the kit's, not the student's)
+    write_frame(REP_FD, {"event": "sandbox", "sandbox": done})  # before any code of the student's runs
     req, rep = REQ_FD, REP_FD
     _guard_exit(rep)
     log = open(os.path.join(cfg["cwd"], ".grader-output.txt"), "w")  # the student's prints go here
@@ -536,9 +704,9 @@ def serve(cfg: dict) -> None:
     try:
         exec(compile(cfg["code"], "<your notebook>", "exec"), module.__dict__)  # noqa: S102 - sandboxed
         target = module.__dict__.get(cfg["name"])
-        hello = {"ok": True, "sandbox": done, "found": target is not None, "callable": callable(target)}
+        hello = {"ok": True, "found": target is not None, "callable": callable(target)}
     except BaseException as exc:  # noqa: BLE001 - reported to the grader
-        target, hello = None, dict(_exc_reply(exc), sandbox=done)
+        target, hello = None, _exc_reply(exc)
     write_frame(rep, hello)
     while True:
         try:
@@ -621,10 +789,16 @@ def main(argv: list[str]) -> int:
     if len(argv) >= 4 and argv[0] == "exec" and argv[2] == "--":
         with open(argv[1]) as f:
             cfg = json.load(f)
-        done = enter_sandbox(cfg.get("sandbox", {}))
-        if cfg.get("report"):
-            with open(cfg["report"], "w") as f:
-                json.dump(done, f)
+        out_fds = [int(fd) for fd in (cfg.get("report_fd"), cfg.get("collect_fd")) if fd is not None]
+        collect = None
+        if cfg.get("collect") and cfg.get("collect_fd") is not None:
+            collect = lambda: _copy_out(cfg["collect"], int(cfg["collect_fd"]))  # noqa: E731
+        done = enter_sandbox(cfg.get("sandbox", {}), collect)
+        _seed_work(cfg.get("sandbox", {}), done)
+        if cfg.get("report_fd") is not None:
+            os.write(int(cfg["report_fd"]), json.dumps(done).encode())
+        for fd in out_fds:  # the program (and the student's notebook) never hold the grader's files
+            os.close(fd)
         os.chdir(cfg["cwd"])
         os.execve(argv[3], argv[3:], dict(os.environ))
     print("usage: child.py serve CONFIG.json | child.py exec CONFIG.json -- PROGRAM ARGS...", file=sys.stderr)

@@ -13,17 +13,21 @@ The student's process (see :mod:`course_lib.instructor.sandbox` for the sandbox 
 
 * starts with ``python -S -E`` (no ``site``: the instructor's editable install is not on its
   path) and ``sys.path`` = the student release, then the standard library and site-packages;
-* works in a fresh temporary copy of the submission; its output goes to a file there;
-* has resource limits (:class:`Limits`: CPU seconds, address space, file size, processes);
-* on Linux with unprivileged user namespaces: no network, its own PID namespace and ``/proc``,
-  the instructor's kit and the grader's scratch folder (with the hidden cases) covered by empty
-  mounts, everything read-only but its temporary folder;
+* works in a fresh copy of the grader's copy of the submission (regular files only,
+  :mod:`course_lib.instructor.submission`); its output goes to a file there;
+* has resource limits (:class:`Limits`: CPU seconds, address space, file size, processes) and, where
+  a cgroup can be made, totals of memory and processes for everything it starts;
+* on Linux with unprivileged user namespaces: no network, its own PID and IPC namespaces and
+  ``/proc``, a fresh root that shows only an allow-list read-only (the Python installation, the
+  student release, system libraries: :meth:`Isolation.read_only`), a size-limited tmpfs for what it
+  writes, no capabilities;
 * receives the grader's global numpy and torch random states with every call (so that
   ``torch.manual_seed(0)`` in a check seeds the student's initialisation as it would in the
   notebook); nothing of the student's process flows back but the results (not its random state);
-* has one wall-clock budget per exercise (start, definitions and every call together): when it
-  runs out, the process is killed and every later call fails at once, so a looping exercise
-  costs at most its own limit. ``os._exit`` is reported as such before the process ends.
+* has one wall-clock budget per exercise (its definitions and every call together, counted once
+  the process has started and imported numpy and torch, which has a limit of its own,
+  :data:`START_SECONDS`): when it runs out, the process is killed and every later call fails at
+  once, so a looping exercise costs at most its own limit. ``os._exit`` is reported as such before the process ends.
 """
 
 from __future__ import annotations
@@ -45,26 +49,39 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from course_lib.instructor import sandbox as wire
+from course_lib.instructor.cgroups import Cgroup
 from course_lib.paths import REPO_ROOT
 
 __all__ = ["Limits", "Isolation", "StudentProcess", "RemoteFunction", "RemoteModule", "StudentProcessEnded",
-           "student_library", "CHILD_SCRIPT"]
+           "student_library", "CHILD_SCRIPT", "SYSTEM_PATHS"]
 
 CHILD_SCRIPT = Path(wire.__file__).resolve()
-SKIP_COPY = shutil.ignore_patterns(".git", "__pycache__", ".ipynb_checkpoints", ".venv", "outputs", "*.egg-info")
+#: Seconds for a student's process to start (the interpreter, the sandbox, the numpy and torch imports: the kit's own
+#: work, not the student's, and ~20 s for torch on a loaded 2-core machine); the exercise's budget starts after.
+START_SECONDS = 120.0
 
 
 @dataclass
 class Limits:
-    """Resource limits of a student's process (``setrlimit`` in the child before it starts)."""
+    """Resource limits of a student's sandboxed process tree.
 
-    cpu_seconds: int = 300  # RLIMIT_CPU (an exercise's process gets its wall-clock budget + 10 s; nbval its timeout)
+    Per process (``setrlimit`` in the child before it starts): CPU seconds, address space, file size,
+    processes (``RLIMIT_NPROC``: counted per user namespace in the sandbox; not enforced for uid 0). For the
+    whole tree: ``memory_total_bytes`` and ``processes_total`` in a cgroup of its own where this user can
+    make one (:class:`course_lib.instructor.cgroups.Cgroup`), and ``disk_bytes`` for everything it may write
+    (one tmpfs, where user namespaces are available).
+    """
+
+    cpu_seconds: int = 300  # RLIMIT_CPU (an exercise's process gets its wall-clock budget + 30 s; nbval its timeout)
     memory_bytes: int = 8 << 30  # RLIMIT_AS (torch needs a few GiB of address space)
     file_bytes: int = 256 << 20  # RLIMIT_FSIZE: largest file it may write
     processes: int = 512  # RLIMIT_NPROC (threads count; not enforced by Linux for uid 0)
+    memory_total_bytes: int = 6 << 30  # the whole process tree (cgroup), tmpfs pages included
+    processes_total: int = 512  # the whole process tree (cgroup pids), threads included
+    disk_bytes: int = 1 << 30  # the working copy, /tmp and /dev/shm together (tmpfs)
 
     def apply(self) -> None:
-        """Set the limits in this process (a limit the platform refuses is left as it is)."""
+        """Set the per-process limits in this process (a limit the platform refuses is left as it is)."""
         for name, value in (("RLIMIT_CPU", (int(self.cpu_seconds), int(self.cpu_seconds) + 5)),
                             ("RLIMIT_AS", (int(self.memory_bytes),) * 2), ("RLIMIT_FSIZE", (int(self.file_bytes),) * 2),
                             ("RLIMIT_CORE", (0, 0)), ("RLIMIT_NPROC", (int(self.processes),) * 2)):
@@ -78,15 +95,30 @@ class Limits:
             except (ValueError, OSError):
                 pass
 
+    def totals(self, cgroup: Cgroup | None) -> dict:
+        """What bounds the whole process tree: the cgroup's totals, or what stands in for them."""
+        if cgroup is not None:
+            return cgroup.describe()
+        nproc = (f"RLIMIT_NPROC {self.processes} per user namespace" if os.getuid() != 0 else
+                 "not bounded (no cgroup can be made here, and RLIMIT_NPROC does not apply to uid 0)")
+        return {"memory": f"{self.memory_bytes} bytes of address space per process (RLIMIT_AS; no cgroup can be "
+                          "made here)", "processes": nproc}
+
+
+#: Folders and files of the host a student's process sees (read-only), besides Python and the student release.
+SYSTEM_PATHS = ["/usr", "/bin", "/sbin", "/lib", "/lib32", "/lib64", "/libx32", "/etc/ld.so.cache", "/etc/ld.so.conf",
+                "/etc/ld.so.conf.d", "/etc/localtime", "/etc/passwd", "/etc/group", "/etc/nsswitch.conf", "/etc/hosts",
+                "/etc/alternatives", "/etc/fonts", "/sys/devices/system/cpu"]
+
 
 @dataclass
 class Isolation:
-    """Where a grading run's student processes get their library, and what they must not see.
+    """Where a grading run's student processes get their library, and what they may see.
 
     Attributes:
         library: the folder whose ``course_lib`` the student's code imports (the student release).
-        hide: folders covered by empty mounts in the student's view (the instructor's kit, the
-            grader's scratch folder).
+        hide: folders never shown (the instructor's kit and library, the grader's scratch folder): left out
+            of the student's view, and covered by an empty folder where they lie inside a folder it sees.
         keep: folders inside ``hide`` that stay visible read-only (the Python environment).
         namespaces: use Linux user namespaces where the kernel allows them.
         limits: resource limits.
@@ -100,7 +132,7 @@ class Isolation:
 
     @classmethod
     def for_grading(cls, library: Path, secret: list[Path], notebooks_dir: Path, self_test: bool = False,
-                    namespaces: bool = True) -> "Isolation":
+                    namespaces: bool = True, limits: Limits | None = None) -> "Isolation":
         """The isolation of a grading run: hide the kit and the notebooks (unless ``self_test``) and ``secret``
         (the grader's scratch folder, the hidden cases)."""
         import course_lib
@@ -109,13 +141,25 @@ class Isolation:
         if not self_test:  # the kit, and the instructor's library wherever it is installed
             hide += [REPO_ROOT.resolve(), Path(notebooks_dir).resolve(), Path(course_lib.__file__).resolve().parent]
         hide = sorted({h for h in hide if not any(h != o and h.is_relative_to(o) for o in hide)})
-        keep = [Path(p).resolve() for p in {sys.prefix, sys.base_prefix, os.path.dirname(os.path.realpath(sys.executable))}]
+        keep = [Path(p).resolve() for p in _python_homes()]
         keep = [k for k in keep if any(k.is_relative_to(h) for h in hide)]
-        return cls(Path(library), hide, keep, namespaces)
+        return cls(Path(library), hide, keep, namespaces, limits or Limits())
 
-    def sandbox_config(self, stage: Path, writable: list[Path]) -> dict:
-        return {"namespaces": self.namespaces, "hide": [str(h) for h in self.hide], "keep": [str(k) for k in self.keep],
-                "stage": str(stage), "writable": [str(w) for w in writable]}
+    def read_only(self) -> list[str]:
+        """The allow-list: the host paths a student's process sees, read-only."""
+        paths = [str(Path(self.library).resolve())] + [str(Path(p).resolve()) for p in _python_homes()]
+        return sorted({p for p in paths + SYSTEM_PATHS if os.path.lexists(p)}, key=len)
+
+    def sandbox_config(self, stage: Path, work: Path, seed: Path | None) -> dict:
+        """The sandbox of one process: a fresh root in ``stage``, its working folder ``work`` filled from ``seed``."""
+        ro = self.read_only()
+        inside = lambda h: any(Path(h).is_relative_to(r) for r in ro)  # noqa: E731
+        return {"namespaces": self.namespaces,
+                "root": {"stage": str(stage), "read_only": ro, "hide": [str(h) for h in self.hide if inside(h)
+                                                                         and not any(Path(k).is_relative_to(h)
+                                                                                     for k in self.keep)],
+                         "work": str(work), "seed": str(Path(seed).resolve()) if seed else None,
+                         "disk_bytes": int(self.limits.disk_bytes)}}
 
     def python_path(self) -> list[str]:
         """The student's ``sys.path`` after the library: the grader's, minus the kit and ``''``."""
@@ -124,6 +168,8 @@ class Isolation:
             if not p or p in out:
                 continue
             rp = Path(p).resolve()
+            if not any(rp.is_relative_to(Path(h).resolve()) for h in _python_homes()):
+                continue  # only the Python installation is in the student's view (not the grader's script folder)
             if any(rp.is_relative_to(h) for h in self.hide) and not any(rp.is_relative_to(k) for k in self.keep):
                 continue
             if rp == REPO_ROOT.resolve():
@@ -131,15 +177,30 @@ class Isolation:
             out.append(p)
         return out
 
-    def preexec(self, cpu_seconds: float | None = None):
-        """The ``preexec_fn`` that sets the limits (``cpu_seconds`` replaces the CPU limit)."""
+    def preexec(self, cpu_seconds: float | None = None, cgroup: Cgroup | None = None):
+        """The ``preexec_fn`` that sets the limits (``cpu_seconds`` replaces the CPU limit) and enters ``cgroup``."""
         limits = self.limits if cpu_seconds is None else dataclasses.replace(self.limits,
                                                                               cpu_seconds=int(cpu_seconds) + 1)
 
         def run() -> None:
+            if cgroup is not None:
+                cgroup.enter()
             limits.apply()
 
         return run
+
+    def cgroup(self) -> Cgroup | None:
+        """A cgroup with this isolation's totals for one process tree (None where none can be made)."""
+        if not self.namespaces:
+            return None
+        return Cgroup.create(self.limits.memory_total_bytes, self.limits.processes_total)
+
+
+def _python_homes() -> list[str]:
+    """The folders of the Python installation (the environment and the interpreter it was made from)."""
+    homes = {sys.prefix, sys.base_prefix, sys.exec_prefix, sys.base_exec_prefix,
+             os.path.dirname(os.path.dirname(os.path.realpath(sys.executable)))}
+    return sorted(h for h in homes if h and h != "/")
 
 
 def student_library(out_dir: Path, notebooks_dir: Path | None = None) -> Path:
@@ -203,61 +264,79 @@ class StudentProcess:
                  torch: bool = False):
         self.iso, self.name, self.budget = iso, name, float(budget)
         self.t0 = time.monotonic()
-        self.deadline = self.t0 + self.budget
+        self.deadline = self.t0 + max(self.budget, START_SECONDS)  # the start: Python, numpy and torch imports
         self.ended: str | None = None  # why the process is gone (feedback for the student)
         self.event: str | None = None  # "timeout", "exit", "crash", "protocol"
         self.hello: dict = {}
         self.tmp = Path(tempfile.mkdtemp(prefix="course-student-"))
         os.chmod(self.tmp, 0o755)
-        self.cwd = self.tmp / "work"
-        if submission is not None and Path(submission).is_dir():
-            shutil.copytree(submission, self.cwd, ignore=SKIP_COPY, symlinks=True)
-        else:
-            self.cwd.mkdir()
+        self.cwd = self.tmp / "work"  # filled from the submission's copy inside the sandbox
+        self.cwd.mkdir()
         stage = self.tmp / "stage"
         stage.mkdir()
+        seed = Path(submission) if submission is not None and Path(submission).is_dir() else None
         req_r, self.req_w = os.pipe()
         self.rep_r, rep_w = os.pipe()
-        cfg = {"sandbox": iso.sandbox_config(stage, [self.cwd]), "cwd": str(self.cwd), "path": str(iso.library),
+        cfg = {"sandbox": iso.sandbox_config(stage, self.cwd, seed), "cwd": str(self.cwd), "path": str(iso.library),
                "sys_path": iso.python_path(), "code": code, "name": name, "torch": bool(torch),
                "req_fd": req_r, "rep_fd": rep_w}
         (self.tmp / "config.json").write_text(json.dumps(cfg))
-        env = {k: v for k, v in os.environ.items() if k in ("PATH", "LANG", "LC_ALL", "TZ", "TMPDIR")}
-        env.update(HOME=str(self.cwd), OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1",
-                   PYTHONDONTWRITEBYTECODE="1", MPLBACKEND="Agg", COURSE_LIB_QUICK="1")
+        env = {k: v for k, v in os.environ.items() if k in ("PATH", "LANG", "LC_ALL", "TZ")}
+        env.update(HOME=str(self.cwd), TMPDIR="/tmp", OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
+                   MKL_NUM_THREADS="1", PYTHONDONTWRITEBYTECODE="1", MPLBACKEND="Agg", COURSE_LIB_QUICK="1")
+        self.cgroup = iso.cgroup()
+        self.largest_reply = 0
         self.proc = subprocess.Popen(
             [sys.executable, "-S", "-E", str(CHILD_SCRIPT), "serve", str(self.tmp / "config.json")],
-            cwd=self.cwd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-            pass_fds=(req_r, rep_w), start_new_session=True, preexec_fn=iso.preexec(self.budget + 10))
+            cwd=self.cwd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            pass_fds=(req_r, rep_w), start_new_session=True,
+            preexec_fn=iso.preexec(self.budget + 30, self.cgroup))
         os.close(req_r)
         os.close(rep_w)
-        reply = self._receive()
+        self.sandbox = self._sandbox_report(iso)
+        reply = self._receive() if not self.ended else None
         if reply is not None:
             self.hello = reply[0]
+        self.hello["sandbox"] = self.sandbox  # the grader's record, never the student's
+
+    def _sandbox_report(self, iso: Isolation) -> dict:
+        """What confines the process: its first frame (written before any code of the student's ran) and the totals."""
+        first = self._receive()
+        self.t0 = time.monotonic()  # the exercise's budget counts from here: its definitions and every call
+        self.deadline = self.t0 + self.budget
+        box = first[0].get("sandbox") if first is not None and first[0].get("event") == "sandbox" else None
+        if not isinstance(box, dict):
+            box = {"note": "the process did not report its sandbox"}
+        box = {str(k): v if isinstance(v, (str, bool)) else str(v) for k, v in box.items()}
+        box.update(iso.limits.totals(self.cgroup))
+        return box
 
     # -- the connection ------------------------------------------------------------------------
     def _remaining(self) -> float:
         return self.deadline - time.monotonic()
 
-    def _read_exact(self, n: int) -> bytes:
-        chunks, left = [], n
-        while left:
+    def _read_exact(self, n: int) -> bytearray:
+        """``n`` bytes of the reply pipe, read as they come (the buffer grows with what arrived, never ahead of it)."""
+        buf = bytearray()
+        while len(buf) < n:
             wait = self._remaining()
             if wait <= 0 or not select.select([self.rep_r], [], [], wait)[0]:
                 raise TimeoutError
-            b = os.read(self.rep_r, min(left, 1 << 24))
+            b = os.read(self.rep_r, min(n - len(buf), 1 << 20))
             if not b:
                 raise EOFError
-            chunks.append(b)
-            left -= len(b)
-        return b"".join(chunks)
+            buf += b
+        return buf
 
     def _receive(self) -> tuple[dict, list] | None:
-        """The next reply; None (and :attr:`ended` set) when the process ended or ran out of time."""
+        """The next reply; None (and :attr:`ended` set) when the process ended, ran out of time or sent no reply."""
         try:
             (n,) = struct.unpack("<Q", self._read_exact(8))
-            if n > wire.MAX_FRAME:
-                raise wire.WireError(f"a reply of {n} bytes")
+            if n > wire.MAX_REPLY:
+                raise wire.WireError(f"a reply of {n} bytes, more than any exercise returns "
+                                     f"(the limit is {wire.MAX_REPLY >> 20} MiB)")
+            self.largest_reply = max(self.largest_reply, n)
             head, arrays = wire.unpack(self._read_exact(n))
         except TimeoutError:
             self._end("timeout", f"stopped after {self.budget:g} s: an endless loop, or far too slow "
@@ -266,12 +345,13 @@ class StudentProcess:
         except EOFError:
             self._end_from_exit()
             return None
-        except (wire.WireError, ValueError, UnicodeDecodeError, struct.error) as exc:
-            self._end("protocol", f"the process running your function sent something that is not a reply ({exc})")
+        except Exception as exc:  # noqa: BLE001 - whatever arrives, the grader goes on
+            self._end("protocol", "the process running your function sent something that is not a reply "
+                                  f"({type(exc).__name__}: {str(exc)[:200]})")
             return None
         if head.get("event") == "exit":
             code = head.get("code")
-            self._end("exit", f"your function ended the process with os._exit({code})")
+            self._end("exit", f"your function ended the process with os._exit({code if isinstance(code, int) else 1})")
             return None
         return head, arrays
 
@@ -280,8 +360,11 @@ class StudentProcess:
             rc = self.proc.wait(timeout=5)
         except subprocess.TimeoutExpired:
             rc = None
-        if rc is not None and rc > 128 and rc - 128 in (signal.SIGXCPU, signal.SIGKILL):
-            why = f"the process running your function used up its CPU time limit ({int(self.budget) + 11} s)"
+        if self.cgroup is not None and self.cgroup.oom_killed():
+            why = ("the process running your function (with the processes it started) used more memory than the "
+                   f"limit ({self.iso.limits.memory_total_bytes >> 20} MiB in all) and was stopped")
+        elif rc is not None and rc > 128 and rc - 128 in (signal.SIGXCPU, signal.SIGKILL):
+            why = f"the process running your function used up its CPU time limit ({int(self.budget) + 31} s)"
         elif rc is not None and (rc < 0 or rc > 128):
             why = f"the process running your function was stopped by {_signal_name(abs(rc) if rc < 0 else rc - 128)}"
         else:
@@ -341,11 +424,13 @@ class StudentProcess:
         try:
             value = wire.decode(reply["value"], out, module_proxy=lambda tree, arrs: RemoteModule.make(self, tree, arrs))
             replay = wire.decode(reply.get("callbacks"), out) or []
-        except (wire.WireError, KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
-            self._end("protocol", f"the process running your function sent a malformed reply ({exc})")
+            replay = [(callbacks[int(i)], tuple(a), dict(k)) for i, a, k in replay]
+        except Exception as exc:  # noqa: BLE001 - a forged reply ends this exercise, not the grading
+            self._end("protocol", f"the process running your function sent a malformed reply ({type(exc).__name__}: "
+                                  f"{str(exc)[:200]})")
             raise StudentProcessEnded(self.ended) from None
-        for i, a, k in replay:
-            callbacks[int(i)](*a, **k)  # the grader's callbacks, replayed in order after the call
+        for cb, a, k in replay:
+            cb(*a, **k)  # the grader's callbacks, replayed in order after the call
         return value
 
     @staticmethod
@@ -362,6 +447,8 @@ class StudentProcess:
     def kill(self) -> None:
         if self.proc.poll() is None:
             kill_tree(self.proc.pid)
+        if self.cgroup is not None:
+            self.cgroup.close()
         try:
             self.proc.wait(timeout=5)
         except subprocess.TimeoutExpired:  # pragma: no cover
@@ -379,6 +466,8 @@ class StudentProcess:
             except subprocess.TimeoutExpired:
                 pass
         self.kill()
+        if self.cgroup is not None:
+            self.cgroup.close()
         for fd in (self.req_w, self.rep_r):
             try:
                 os.close(fd)

@@ -322,20 +322,32 @@ def test_missing_notebook_and_cli_reports(tmp_path, hidden, monkeypatch):
     assert "# Grading feedback" in (tmp_path / "f.md").read_text()
 
 
-def test_ci_template_grades_and_publishes_feedback():
+def test_ci_template_grades_from_the_instructors_repository_and_no_token_reaches_student_code():
+    """Issue 18, item 9: the job that runs the grader (the students' code) holds no secret and can only read; the
+    jobs that hold tokens run nothing of a submission; nothing is triggered by a push to a student's repository."""
     yaml = pytest.importorskip("yaml")  # installed with jupyterlab (jupyter_events)
 
     from course_lib.paths import REPO_ROOT
 
-    wf = yaml.safe_load((REPO_ROOT / "templates" / "github-actions-grade.yml").read_text())
-    steps = wf["jobs"]["grade"]["steps"]
-    run = "\n".join(s.get("run", "") for s in steps)
-    assert "python -m course_lib grade ../submission" in run and "--json" in run and "--markdown" in run
-    assert "GITHUB_STEP_SUMMARY" in run
-    assert any(s.get("uses", "").startswith("actions/upload-artifact") for s in steps)
-    checkouts = [s for s in steps if s.get("uses", "").startswith("actions/checkout")]
-    assert len(checkouts) == 2 and all(s["with"].get("persist-credentials") is False for s in checkouts)
-    assert "push" in wf[True] if True in wf else "push" in wf["on"]  # YAML 1.1 reads the key `on` as True
+    text = (REPO_ROOT / "templates" / "github-actions-grade.yml").read_text()
+    wf = yaml.safe_load(text)
+    on = wf[True] if True in wf else wf["on"]  # YAML 1.1 reads the key `on` as True
+    assert "push" not in on and "pull_request" not in on and "pull_request_target" not in on
+    assert {"schedule", "workflow_dispatch", "repository_dispatch"} <= set(on)
+    assert wf["permissions"] == {}
+    jobs = wf["jobs"]
+    grade = jobs["grade"]
+    run = "\n".join(s.get("run", "") for s in grade["steps"])
+    assert "python -m course_lib grade" in run and "--json" in run and "--markdown" in run
+    assert "secrets." not in yaml.safe_dump(grade), "the job that runs the students' code must reference no secret"
+    assert grade["permissions"] == {"contents": "read"}
+    assert all(s["with"].get("persist-credentials") is False for s in grade["steps"]
+               if s.get("uses", "").startswith("actions/checkout"))
+    for name, job in jobs.items():
+        if "secrets." in yaml.safe_dump(job):
+            steps = "\n".join(s.get("run", "") for s in job["steps"])
+            assert "course_lib" not in steps and "pip install" not in steps and "python" not in steps, name
+    assert any(s.get("uses", "").startswith("actions/upload-artifact") for s in grade["steps"])
 
 
 def test_hidden_cases_on_disk_cannot_be_rewritten_by_a_notebook(tmp_path, hidden):

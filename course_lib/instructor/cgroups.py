@@ -1,0 +1,194 @@
+"""Totals for a student's whole process tree: memory and processes in a cgroup of its own, where one can be made.
+
+:meth:`Cgroup.create` makes one cgroup per sandboxed process (the hidden checks of one exercise, or
+nbval of one notebook) under the first base where this user may create cgroups:
+
+* cgroup v2: ``$COURSE_GRADER_CGROUP`` (a cgroup delegated to the grading user, as the CI template
+  makes it), else the root of the hierarchy when it is writable (the grader runs as root);
+* cgroup v1: this process's own cgroups of the ``memory`` and ``pids`` hierarchies, when writable.
+
+The grader's ``preexec_fn`` moves the new process into it (:meth:`Cgroup.enter`) before it starts, so
+everything it starts is counted: ``memory.max`` (v1: ``memory.limit_in_bytes``) and ``pids.max``.
+:meth:`Cgroup.close` kills what is left in it and removes it. Where no base is writable, :func:`Cgroup.create`
+returns None and the sandbox falls back on per-process limits (``RLIMIT_AS``, ``RLIMIT_NPROC`` counted per user
+namespace); the report says which applied (:meth:`Cgroup.describe`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+import time
+from dataclasses import dataclass, field
+
+__all__ = ["Cgroup"]
+
+_V2_ROOT = "/sys/fs/cgroup"
+_COUNTER = itertools.count()
+
+
+def _write(path: str, text: str) -> None:
+    with open(path, "w") as f:
+        f.write(text)
+
+
+def _own_v1(controller: str) -> str | None:
+    """This process's cgroup folder in the v1 hierarchy of ``controller`` (None without one)."""
+    base = os.path.join(_V2_ROOT, controller)
+    try:
+        with open("/proc/self/cgroup") as f:
+            for line in f:
+                _, ctrls, path = line.rstrip("\n").split(":", 2)
+                if controller in ctrls.split(","):
+                    return os.path.join(base, path.lstrip("/"))
+    except OSError:
+        pass
+    return None
+
+
+def _v2_base() -> str | None:
+    """A cgroup v2 folder under which this user can make cgroups with the memory and pids controllers."""
+    if not os.path.exists(os.path.join(_V2_ROOT, "cgroup.controllers")):
+        return None
+    for base in (os.environ.get("COURSE_GRADER_CGROUP"), _V2_ROOT):
+        if not base or not os.access(base, os.W_OK):
+            continue
+        try:
+            with open(os.path.join(base, "cgroup.subtree_control")) as f:
+                enabled = set(f.read().split())
+            if not {"memory", "pids"} <= enabled:
+                _write(os.path.join(base, "cgroup.subtree_control"), "+memory +pids")
+            return base
+        except OSError:
+            continue
+    return None
+
+
+@dataclass
+class Cgroup:
+    """The cgroup(s) of one sandboxed process tree.
+
+    Attributes:
+        version: 1 or 2.
+        paths: the cgroup folders (one for v2; the memory and pids ones for v1).
+        memory_bytes: the memory total of the tree.
+        processes: the process (and thread) total of the tree.
+    """
+
+    version: int
+    paths: list[str]
+    memory_bytes: int
+    processes: int
+    notes: list[str] = field(default_factory=list)
+
+    @classmethod
+    def create(cls, memory_bytes: int, processes: int) -> "Cgroup | None":
+        """A new cgroup with these totals, or None where this user cannot make one."""
+        name = f"course-grade-{os.getpid()}-{next(_COUNTER)}"
+        base = _v2_base()
+        if base is not None:
+            path = os.path.join(base, name)
+            try:
+                os.mkdir(path)
+                _write(os.path.join(path, "memory.max"), str(int(memory_bytes)))
+                if os.path.exists(os.path.join(path, "memory.swap.max")):
+                    _write(os.path.join(path, "memory.swap.max"), "0")
+                _write(os.path.join(path, "pids.max"), str(int(processes)))
+                return cls(2, [path], memory_bytes, processes)
+            except OSError:
+                _remove([path])
+        return cls._create_v1(name, memory_bytes, processes)
+
+    @classmethod
+    def _create_v1(cls, name: str, memory_bytes: int, processes: int) -> "Cgroup | None":
+        mem, pids = _own_v1("memory"), _own_v1("pids")
+        if not (mem and pids and os.access(mem, os.W_OK) and os.access(pids, os.W_OK)):
+            return None
+        paths = [os.path.join(mem, name), os.path.join(pids, name)]
+        try:
+            for p in paths:
+                os.mkdir(p)
+            _write(os.path.join(paths[0], "memory.limit_in_bytes"), str(int(memory_bytes)))
+            _write(os.path.join(paths[1], "pids.max"), str(int(processes)))
+        except OSError:
+            _remove(paths)
+            return None
+        memsw = os.path.join(paths[0], "memory.memsw.limit_in_bytes")
+        try:
+            if os.path.exists(memsw):
+                _write(memsw, str(int(memory_bytes)))
+        except OSError:
+            pass
+        return cls(1, paths, memory_bytes, processes)
+
+    def enter(self) -> None:
+        """Move the calling process into the cgroup (the ``preexec_fn`` of the sandboxed process)."""
+        for p in self.paths:
+            _write(os.path.join(p, "cgroup.procs"), "0" if self.version == 2 else str(os.getpid()))
+
+    def describe(self) -> dict:
+        return {"memory": f"{self.memory_bytes} bytes for the whole process tree (cgroup v{self.version})",
+                "processes": f"{self.processes} for the whole process tree (cgroup v{self.version} pids)"}
+
+    def oom_killed(self) -> bool:
+        """Whether the kernel killed a process of the tree for using more memory than the total."""
+        name = "memory.events" if self.version == 2 else "memory.oom_control"
+        try:
+            with open(os.path.join(self.paths[0], name)) as f:
+                return any(ln.startswith("oom_kill ") and int(ln.split()[1]) > 0 for ln in f)
+        except (OSError, ValueError):
+            return False
+
+    def pids_refused(self) -> bool:
+        """Whether a fork of the tree was refused at the process total."""
+        name = "pids.events"
+        try:
+            with open(os.path.join(self.paths[-1], name)) as f:
+                return any(ln.startswith("max ") and int(ln.split()[1]) > 0 for ln in f)
+        except (OSError, ValueError):
+            return False
+
+    def close(self) -> None:
+        """Kill every process left in the cgroup and remove it."""
+        kill = os.path.join(self.paths[0], "cgroup.kill")
+        if self.version == 2 and os.path.exists(kill):
+            try:
+                _write(kill, "1")
+            except OSError:
+                pass
+        for _ in range(50):
+            left = _kill_members(self.paths)
+            if not left:
+                break
+            time.sleep(0.02)
+        _remove(self.paths)
+
+
+def _kill_members(paths: list[str]) -> int:
+    left = 0
+    for p in paths:
+        try:
+            with open(os.path.join(p, "cgroup.procs")) as f:
+                pids = [int(x) for x in f.read().split()]
+        except OSError:
+            continue
+        for pid in pids:
+            left += 1
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+    return left
+
+
+def _remove(paths: list[str]) -> None:
+    for p in paths:
+        for _ in range(20):
+            try:
+                os.rmdir(p)
+                break
+            except FileNotFoundError:
+                break
+            except OSError:
+                time.sleep(0.05)
