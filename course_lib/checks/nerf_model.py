@@ -204,16 +204,15 @@ def copy_probe_weights(model, cfg: dict, seed: int, feature_pos: int, skip_h_fir
     weights' columns are swapped to match).
     """
     import torch
-    import torch.nn as nn
 
-    layers = [m for m in model.modules() if isinstance(m, nn.Linear)]
+    layers = _linear_params(model)
     ref = expected_layers(cfg)
-    if sorted((m.in_features, m.out_features) for m in layers) != sorted(ref) or any(m.bias is None for m in layers):
+    if layers is None or sorted(shp for shp, _, _ in layers) != sorted(ref):
         return False
     n, W = cfg["depth"], cfg["width"]
-    square = [i for i, m in enumerate(layers) if (m.in_features, m.out_features) == (W, W)]
+    square = [i for i, (shp, _, _) in enumerate(layers) if shp == (W, W)]
     feature_at = square[feature_pos] if square else None
-    pool = {}
+    pool: dict = {}
     for k, shp in enumerate(ref):
         if k != n + 1:  # the feature layer is placed by feature_pos
             pool.setdefault(shp, []).append(k)
@@ -221,16 +220,35 @@ def copy_probe_weights(model, cfg: dict, seed: int, feature_pos: int, skip_h_fir
     enc = 3 * (1 + 2 * cfg["pos_freqs"])
     skip_layers = {s + 1 for s in cfg["skips"]}
     with torch.no_grad():
-        for i, m in enumerate(layers):
-            k = n + 1 if i == feature_at else pool[(m.in_features, m.out_features)].pop(0)
+        for i, (shp, weight, bias) in enumerate(layers):
+            k = n + 1 if i == feature_at else pool[shp].pop(0)
             w, b = weights[k]
             if skip_h_first and k in skip_layers:
                 w = np.concatenate([w[:, enc:], w[:, :enc]], axis=1)
             if dirs_first and k == n + 2:
                 w = np.concatenate([w[:, W:], w[:, :W]], axis=1)
-            m.weight.copy_(torch.as_tensor(w))
-            m.bias.copy_(torch.as_tensor(b))
+            weight.copy_(torch.as_tensor(w))
+            bias.copy_(torch.as_tensor(b))
     return True
+
+
+def _linear_params(model) -> list | None:
+    """``[((in, out), weight, bias)]`` of the model's linear layers, from its parameters (in order of definition).
+
+    Read from ``model.parameters()`` (weight and bias of each layer in turn), so that it works for a
+    model that lives in another process too; None when the parameters are not those of its linear layers.
+    """
+    params = list(model.parameters())
+    table = layer_table(model)
+    if len(params) != 2 * len(table):
+        return None
+    out = []
+    for k, (n_in, n_out) in enumerate(table):
+        w, b = params[2 * k], params[2 * k + 1]
+        if tuple(w.shape) != (n_out, n_in) or tuple(b.shape) != (n_out,):
+            return None
+        out.append(((n_in, n_out), w, b))
+    return out
 
 
 def _layer_hint(mine: list[tuple[int, int]], ref: list[tuple[int, int]], cfg: dict) -> tuple[str, bool]:
