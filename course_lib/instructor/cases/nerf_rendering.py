@@ -29,20 +29,23 @@ def _random_case(g: np.random.Generator):
 
 
 def _slab_case(g: np.random.Generator):
-    """Rays along +z (|d| = 1) through slabs of constant density; empty space elsewhere (red matter)."""
+    """Rays (z_cam = 1, |d| >= 1) through slabs of constant density; empty space elsewhere (red matter).
+
+    Behind a slab of density s over n intervals of depth step h the light left is exp(-s n h |d|).
+    """
     S = int(g.integers(36, 48))
     z = np.tile(np.linspace(2.0, 6.0, S), (3, 1))
     step = 4.0 / (S - 1)
     sigma = np.zeros_like(z)
+    d = np.concatenate([g.normal(scale=0.3, size=(3, 2)), np.ones((3, 1))], axis=1)
     trans = []
     for r in range(3):
         a, n = int(g.integers(3, S // 2)), int(g.integers(4, S // 3))  # the slab covers samples a .. a + n - 1
         s = float(g.uniform(0.3, 5.0))
         sigma[r, a:a + n] = s
-        trans.append(np.exp(-s * n * step))
+        trans.append(np.exp(-s * n * step * np.linalg.norm(d[r])))
     rgb = np.zeros((3, S, 3))
     rgb[..., 0] = 1.0
-    d = np.tile([0.0, 0.0, 1.0], (3, 1))
     return (rgb.astype(np.float32), sigma.astype(np.float32), z.astype(np.float32), d.astype(np.float32),
             np.array(trans))
 
