@@ -284,7 +284,7 @@ def test_nerf_is_fed_the_reference_encoding(capsys):
     from tests.checks.catalogue import nerf_model as cat
 
     mod = types.ModuleType("student_nb07")
-    exec("import torch\nfrom torch import nn\n"
+    exec("import torch\nfrom torch import nn\n"  # noqa: S102 - a notebook, in a test
          "def positional_encoding(x, n_freqs, include_input=True):\n    raise NotImplementedError\n\n"
          + inspect.getsource(cat.NeRF), mod.__dict__)
     sys.modules[mod.__name__] = mod
