@@ -16,14 +16,15 @@ computed differently, weights that forget alpha (w = T) or the transmittance (w 
 Defining property (failing it costs at least half of the points): Δ in α, the interval length in
 the opacity, checked on the slabs and on the random rays with both backgrounds.
 
-The cases and the reference's results on them are stored arrays, made on the instructor's side
-by :mod:`course_lib.instructor.cases.nerf_rendering`; this module imports no reference solution and ships
-to students.
+The cases (the slabs included), the reference's results on them and the results of the classic
+mistakes are stored arrays, made on the instructor's side by
+:mod:`course_lib.instructor.cases.nerf_rendering` (the mistakes by
+:mod:`course_lib.instructor.cases.nerf_variants`); this module renders nothing, imports no reference
+solution, and ships to students.
 """
 
 from __future__ import annotations
 
-import itertools
 from typing import Callable
 
 import numpy as np
@@ -31,7 +32,7 @@ import numpy as np
 from course_lib.checks.core import FAILED, Check, declare_defining, load_fixture
 from course_lib.checks.nerf_data import close, to_numpy
 
-__all__ = ["check_volume_render", "render_variant"]
+__all__ = ["check_volume_render", "RENDER_HINTS"]
 
 FIXTURE = "nerf_rendering"
 KEYS = ("rgb_map", "depth_map", "acc_map", "weights")
@@ -41,7 +42,7 @@ declare_defining("volume_render", {
 })
 DELTA = "Δ in α"
 
-#: Weights that are not alpha_i T_i: (mistake, form) for :func:`render_variant`.
+#: Weights that are not alpha_i T_i: what to change.
 FORM_HINTS = {
     "T": "the weights forget alpha: w_i = T_i alpha_i (the light that reaches sample i times the share it absorbs), "
          "not T_i alone",
@@ -50,84 +51,40 @@ FORM_HINTS = {
 }
 
 
-def _slab_case():
-    """Rays along +z (|d| = 1) through slabs of constant density; empty space elsewhere."""
-    z = np.tile(np.linspace(2.0, 6.0, 41), (3, 1))  # delta = 0.1
-    sigma = np.zeros_like(z)
-    slabs = [(3.0, 4.0, 5.0), (2.5, 3.0, 2.0), (4.0, 5.5, 0.4)]  # (start, end, density)
-    for r, (a, b, s) in enumerate(slabs):
-        sigma[r, (z[r] >= a - 1e-9) & (z[r] < b - 1e-9)] = s
-    rgb = np.zeros((3, 41, 3))
-    rgb[..., 0] = 1.0  # red matter
-    d = np.tile([0.0, 0.0, 1.0], (3, 1))
-    trans = np.array([np.exp(-s * (b - a)) for a, b, s in slabs])
-    return rgb.astype(np.float32), sigma.astype(np.float32), z.astype(np.float32), d.astype(np.float32), trans
+#: Rendering mistakes stored per case (``<case>__<label>_<key>``): label -> what to change.
+RENDER_HINTS = {
+    "no_delta": "forgot delta: alpha_i = 1 - exp(-sigma_i * delta_i) with delta_i = z_{i+1} - z_i (times |d|), "
+                "not 1 - exp(-sigma_i)",
+    "plain_delta": "delta is not scaled by |d|: rays_d is not normalized, so the distance between samples is "
+                   "(z_{i+1} - z_i) * |rays_d|",
+    "inclusive": "inclusive cumprod: the transmittance T_i = prod_{j<i} (1 - alpha_j) excludes sample i itself "
+                 "(shift the cumulative product right by one and start with 1)",
+    "last_zero": "the last interval: the kit uses a very long last interval (1e10), so that the last sample absorbs "
+                 "what is left; yours looks like no last interval (alpha = 0 for the last sample)",
+    "last_repeat": "the last interval: the kit uses a very long last interval (1e10), so that the last sample absorbs "
+                   "what is left; yours repeats the interval before",
+    "dists_first": "the intervals are shifted by one: delta_i = z_{i+1} - z_i belongs to sample i, and the long "
+                   "interval (1e10) goes last, not first",
+    "form_T": FORM_HINTS["T"],
+    "form_alpha": FORM_HINTS["alpha"],
+}
+#: the mistakes that leave Δ out of α (the defining property)
+NO_DELTA = {"no_delta"}
 
 
-# --------------------------------------------------------------------------- variants
+def _variants(f, case: str, key: str) -> list[tuple[str, np.ndarray]]:
+    """``[(label, array)]`` of the stored mistakes of ``case`` for result ``key`` (weights, acc_map, ...)."""
+    out = []
+    for k in sorted(f):
+        if k.startswith(case + "__") and k.endswith("_" + key):
+            out.append((k[len(case) + 2:-len(key) - 1], f[k].astype(float)))
+    return out
 
 
-def render_variant(rgb, sigma, z, d, white: bool = True, delta: str = "norm", last: str = "1e10",
-                   cumprod: str = "exclusive", depth: str = "sum", form: str = "alpha_T") -> dict[str, np.ndarray]:
-    """One way of writing volume rendering (the reference is one of them, the others are mistakes).
-
-    delta: "norm" (dists * |d|), "plain" (dists, no |d|), "none" (alpha = 1 - exp(-sigma)).
-    last: the last interval: "1e10" (NeRF's), "zero" (ignored), "repeat" (the previous one).
-    cumprod: "exclusive" (T_i = prod_{j<i}), "inclusive" (prod_{j<=i}).
-    depth: "sum" (sum w z), "normalized" (sum w z / acc).
-    form: the weights: "alpha_T" (alpha_i T_i), "T" (T_i, alpha forgotten), "alpha" (alpha_i, T forgotten).
-    """
-    rgb, sigma, z, d = (np.asarray(a, float) for a in (rgb, sigma, z, d))
-    dists = np.diff(z, axis=-1)
-    tail = {"1e10": np.full_like(z[:, :1], 1e10), "zero": np.zeros_like(z[:, :1]), "repeat": dists[:, -1:]}[last]
-    dists = np.concatenate([dists, tail], axis=-1)
-    if delta == "norm":
-        dists = dists * np.linalg.norm(d, axis=-1, keepdims=True)
-    elif delta == "none":
-        dists = np.ones_like(dists)
-    alpha = 1.0 - np.exp(-sigma * dists)
-    keep = np.cumprod(1.0 - alpha + 1e-10, axis=-1)
-    if cumprod == "exclusive":
-        keep = np.concatenate([np.ones_like(keep[:, :1]), keep[:, :-1]], axis=-1)
-    w = {"alpha_T": alpha * keep, "T": keep, "alpha": alpha}[form]
-    acc = w.sum(-1)
-    rgb_map = (w[..., None] * rgb).sum(-2)
-    if white:
-        rgb_map = rgb_map + (1.0 - acc[:, None])
-    dep = (w * z).sum(-1)
-    if depth == "normalized":
-        dep = dep / np.maximum(acc, 1e-10)
-    return {"rgb_map": rgb_map, "depth_map": dep, "acc_map": acc, "weights": w}
-
-
-def _weights_params(args, w) -> dict | None:
-    for delta, last, cp in itertools.product(("norm", "plain", "none"), ("1e10", "zero", "repeat"), ("exclusive", "inclusive")):
-        if close(w, render_variant(*args, delta=delta, last=last, cumprod=cp)["weights"], rtol=1e-3, atol=1e-5):
-            return {"delta": delta, "last": last, "cumprod": cp}
-    return None
-
-
-LAST = {"1e10": "a very long last interval (1e10), so that the last sample absorbs what is left",
-        "zero": "no last interval (alpha = 0 for the last sample)", "repeat": "the last interval equal to the one before"}
-
-
-def _weights_hint(mine: dict, ref: dict) -> str:
-    hints = []
-    if mine["delta"] != ref["delta"]:
-        if mine["delta"] == "none":
-            hints.append("forgot delta: alpha_i = 1 - exp(-sigma_i * delta_i) with delta_i = z_{i+1} - z_i "
-                         "(times |d|), not 1 - exp(-sigma_i)")
-        elif mine["delta"] == "plain":
-            hints.append("delta is not scaled by |d|: rays_d is not normalized, so the distance between samples is "
-                         "(z_{i+1} - z_i) * |rays_d|")
-        else:
-            hints.append("delta should be z_{i+1} - z_i without |d|")
-    if mine["cumprod"] != ref["cumprod"]:
-        hints.append("inclusive cumprod: the transmittance T_i = prod_{j<i} (1 - alpha_j) excludes sample i itself "
-                     "(shift the cumulative product right by one and start with 1)")
-    if mine["last"] != ref["last"]:
-        hints.append(f"the last interval: the kit uses {LAST[ref['last']]}; yours looks like {LAST[mine['last']]}")
-    return "; ".join(hints) or "weights differ from the reference"
+def _which(f, case: str, key: str, value, **tol) -> str | None:
+    """The label of the stored mistake of ``case`` whose ``key`` equals ``value``, else None."""
+    return next((label for label, arr in _variants(f, case, key) if label in RENDER_HINTS and close(value, arr, **tol)),
+                None)
 
 
 def _call(c: Check, fn, args, white: bool, case: str):
@@ -157,6 +114,72 @@ def _call(c: Check, fn, args, white: bool, case: str):
     return res
 
 
+def _check_slabs(c: Check, volume_render: Callable, f) -> None:
+    """Rays through slabs of constant density: behind a slab of density sigma and thickness L, exp(-sigma L)."""
+    args = tuple(f[f"slab_{k}"] for k in ("rgb", "sigma", "z_vals", "rays_d"))
+    trans = f["slab_trans"].astype(float)
+    case = "rays through slabs of constant density"
+    res = _call(c, volume_render, args, True, case)
+    if res is None:
+        return
+    c.gate(True, f"{case}: returns rgb_map, depth_map, acc_map, weights of the right shapes", "")
+    acc = res["acc_map"]
+    ok = np.allclose(acc, 1.0 - trans, atol=1e-4)
+    if ok:
+        c.expect(True, f"{case}: the light that gets through is exp(-sigma L)", "", defining=DELTA)
+    else:
+        label = _which(f, "slab", "weights", res["weights"], rtol=1e-3, atol=1e-5) or _which(f, "slab", "acc_map", acc,
+                                                                                            atol=1e-4)
+        hint = RENDER_HINTS[label] if label else (f"acc_map = {np.round(acc, 3).tolist()}, expected 1 - exp(-sigma L) = "
+                                                  f"{np.round(1 - trans, 3).tolist()}")
+        c.fail(f"{case}: {hint}", defining=DELTA if label in NO_DELTA else None)
+    c.gate(np.allclose(res["weights"].sum(-1), acc, atol=1e-4), f"{case}: acc_map is the sum of the weights",
+           f"{case}: acc_map must be the sum of the weights along each ray")
+    if ok:  # the colour only makes sense once the opacity is right
+        want = np.stack([np.ones_like(trans), trans, trans], axis=1)  # red matter in front of a white background
+        c.expect(np.allclose(res["rgb_map"], want, atol=1e-3), f"{case}: the colour is red matter over the white background",
+                 f"{case}: rgb_map should be sum_i w_i c_i + (1 - acc_map) (white background); "
+                 f"expected {np.round(want, 3).tolist()}, got {np.round(res['rgb_map'], 3).tolist()}")
+
+
+def _check_random(c: Check, volume_render: Callable, f, white: bool) -> None:
+    """Random rays (unnormalized directions, an empty ray, density only in the last sample) vs the reference."""
+    args = tuple(f[k] for k in ("rgb", "sigma", "z_vals", "rays_d"))
+    bg = "white" if white else "black"
+    case = f"random rays, {bg} background"
+    res = _call(c, volume_render, args, white, case)
+    if res is None:
+        return
+    ref = {k: f[f"{bg}_{k}"].astype(float) for k in KEYS}
+    if close(res["weights"], ref["weights"], rtol=1e-3, atol=1e-5):
+        c.expect(True, f"{case}: weights match the reference", "", defining=DELTA)
+    else:
+        label = _which(f, bg, "weights", res["weights"], rtol=1e-3, atol=1e-5)
+        c.fail(f"{case}: " + (RENDER_HINTS[label] if label else
+                              "weights differ from the reference: w_i = T_i (1 - exp(-sigma_i delta_i)), "
+                              "T_i = prod_{j<i} exp(-sigma_j delta_j), delta_i = (z_{i+1} - z_i) |d|, delta_S = 1e10"),
+               defining=DELTA if label in NO_DELTA else None)
+        return
+    c.expect(close(res["acc_map"], ref["acc_map"], rtol=1e-3), f"{case}: acc_map matches the reference",
+             f"{case}: acc_map must be the sum of the weights along each ray")
+    if close(res["rgb_map"], ref["rgb_map"], rtol=1e-3):
+        c.expect(True, f"{case}: rgb_map matches the reference", "")
+    else:
+        other = f[f"{bg}__other_background_rgb_map"].astype(float)
+        if close(res["rgb_map"], other, rtol=1e-3):
+            hint = ("no white background: add (1 - acc_map) to rgb_map when white_background=True" if white else
+                    "white background added although white_background=False")
+        else:
+            hint = "rgb_map = sum_i w_i c_i (+ (1 - acc_map) on a white background)"
+        c.fail(f"{case}: {hint}")
+    if close(res["depth_map"], ref["depth_map"], rtol=1e-3):
+        c.expect(True, f"{case}: depth_map matches the reference", "")
+    else:
+        norm = f[f"{bg}__depth_normalized_depth_map"].astype(float)
+        c.fail(f"{case}: " + ("depth_map divided by acc_map: the kit's depth is the expected depth sum_i w_i z_i"
+                              if close(res["depth_map"], norm, rtol=1e-3) else "depth_map = sum_i w_i z_i"))
+
+
 def check_volume_render(volume_render: Callable) -> None:
     """Check ``volume_render(rgb, sigma, z_vals, rays_d, white_background=True) -> dict`` (notebook 08).
 
@@ -164,81 +187,6 @@ def check_volume_render(volume_render: Callable) -> None:
     """
     f = load_fixture(FIXTURE)
     with Check("volume_render") as c:
-        # 1. hand-computable slabs
-        rgb, sigma, z, d, trans = _slab_case()
-        case = "rays through slabs of constant density"
-        res = _call(c, volume_render, (rgb, sigma, z, d), True, case)
-        if res is not None:
-            c.gate(True, f"{case}: returns rgb_map, depth_map, acc_map, weights of the right shapes", "")
-            acc = res["acc_map"]
-            ok = np.allclose(acc, 1.0 - trans, atol=1e-4)
-            if ok:
-                c.expect(True, f"{case}: the light that gets through is exp(-sigma L)", "", defining=DELTA)
-            else:
-                slab = (rgb, sigma, z, d)
-                no_delta = render_variant(*slab, delta="none")["acc_map"]
-                incl = render_variant(*slab, cumprod="inclusive")["acc_map"]
-                form = next((k for k in FORM_HINTS if close(res["weights"], render_variant(*slab, form=k)["weights"],
-                                                                rtol=1e-3, atol=1e-5)), None)
-                prop = None
-                if close(acc, no_delta, atol=1e-4):
-                    hint, prop = "forgot delta: alpha_i = 1 - exp(-sigma_i * delta_i), not 1 - exp(-sigma_i)", DELTA
-                elif form is not None:
-                    hint = FORM_HINTS[form]
-                elif close(acc, incl, atol=1e-4):
-                    hint = "inclusive cumprod: T_i = prod_{j<i} (1 - alpha_j) must exclude sample i"
-                else:
-                    hint = f"acc_map = {np.round(acc, 3).tolist()}, expected 1 - exp(-sigma L) = {np.round(1 - trans, 3).tolist()}"
-                c.fail(f"{case}: {hint}", defining=prop)
-            c.gate(np.allclose(res["weights"].sum(-1), acc, atol=1e-4), f"{case}: acc_map is the sum of the weights",
-                     f"{case}: acc_map must be the sum of the weights along each ray")
-            if ok:  # the colour only makes sense once the opacity is right
-                want = np.stack([np.ones(3), trans, trans], axis=1)  # red matter in front of a white background
-                c.expect(np.allclose(res["rgb_map"], want, atol=1e-3),
-                         f"{case}: the colour is red matter over the white background",
-                         f"{case}: rgb_map should be sum_i w_i c_i + (1 - acc_map) (white background); "
-                         f"expected {np.round(want, 3).tolist()}, got {np.round(res['rgb_map'], 3).tolist()}")
-        # 2. random rays vs the reference
-        args = tuple(f[k] for k in ("rgb", "sigma", "z_vals", "rays_d"))
-        ref_w = f["white_weights"].astype(float)
-        ref_params = _weights_params(args, ref_w)
+        _check_slabs(c, volume_render, f)
         for white in (True, False):
-            bg = "white" if white else "black"
-            case = f"random rays, {bg} background"
-            res = _call(c, volume_render, args, white, case)
-            if res is None:
-                continue
-            ref = {k: f[f"{bg}_{k}"].astype(float) for k in KEYS}
-            if close(res["weights"], ref["weights"], rtol=1e-3, atol=1e-5):
-                c.expect(True, f"{case}: weights match the reference", "", defining=DELTA)
-            else:
-                mine = _weights_params(args, res["weights"])
-                form = next((k for k in FORM_HINTS if close(res["weights"], render_variant(*args, form=k, **{
-                    k2: v for k2, v in (ref_params or {}).items()})["weights"], rtol=1e-3, atol=1e-5)), None)
-                if form is not None:
-                    c.fail(f"{case}: {FORM_HINTS[form]}")
-                else:
-                    c.fail(f"{case}: " + (_weights_hint(mine, ref_params) if mine and ref_params else
-                                          "weights differ from the reference: w_i = T_i (1 - exp(-sigma_i delta_i)), "
-                                          "T_i = prod_{j<i} exp(-sigma_j delta_j)"),
-                           defining=DELTA if mine and mine["delta"] == "none" else None)
-                continue
-            c.expect(close(res["acc_map"], ref["acc_map"], rtol=1e-3), f"{case}: acc_map matches the reference",
-                     f"{case}: acc_map must be the sum of the weights along each ray")
-            if close(res["rgb_map"], ref["rgb_map"], rtol=1e-3):
-                c.expect(True, f"{case}: rgb_map matches the reference", "")
-            else:
-                other = render_variant(*args, white=not white, **(ref_params or {}))["rgb_map"]
-                if close(res["rgb_map"], other, rtol=1e-3):
-                    hint = ("no white background: add (1 - acc_map) to rgb_map when white_background=True" if white else
-                            "white background added although white_background=False")
-                else:
-                    hint = "rgb_map = sum_i w_i c_i (+ (1 - acc_map) on a white background)"
-                c.fail(f"{case}: {hint}")
-            if close(res["depth_map"], ref["depth_map"], rtol=1e-3):
-                c.expect(True, f"{case}: depth_map matches the reference", "")
-            else:
-                norm = (ref["weights"] * args[2]).sum(-1) / np.maximum(ref["acc_map"], 1e-10)
-                hint = ("depth_map divided by acc_map: the kit's depth is the expected depth sum_i w_i z_i"
-                        if close(res["depth_map"], norm, rtol=1e-3) else "depth_map = sum_i w_i z_i")
-                c.fail(f"{case}: {hint}")
+            _check_random(c, volume_render, f, white)

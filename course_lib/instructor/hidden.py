@@ -164,6 +164,15 @@ def run_check(check_module: str, check_function: str, fixtures_dir: str, obj) ->
     return (results[-1] if results else None), out.getvalue()
 
 
+def _provided(job: HiddenJob) -> str:
+    """The code binding the earlier steps of ``job``'s exercise to the reference's values (:mod:`.provided`)."""
+    from course_lib.instructor.provided import provided_code
+
+    if job.fixtures_dir not in _MEMORY:
+        hold_in_memory(Path(job.fixtures_dir))
+    return provided_code(job.name, _MEMORY[job.fixtures_dir])
+
+
 def run_reference(job: HiddenJob) -> HiddenOutcome:
     """The instructor's solution on the hidden cases, in the grader's own process (the calibration)."""
     import time
@@ -172,7 +181,7 @@ def run_reference(job: HiddenJob) -> HiddenOutcome:
     module = types.ModuleType("__reference__")
     try:
         with contextlib.redirect_stdout(io.StringIO()):
-            exec(compile(job.code, "<instructor notebook>", "exec"), module.__dict__)  # noqa: S102 - the instructor's
+            exec(compile(job.code + _provided(job), "<instructor notebook>", "exec"), module.__dict__)  # noqa: S102 - the instructor's
         result, _ = run_check(job.check_module, job.check_function, job.fixtures_dir, module.__dict__.get(job.name))
     except Exception as exc:  # noqa: BLE001
         return HiddenOutcome("error", message=f"the reference run failed: {type(exc).__name__}: {exc}",
@@ -197,7 +206,8 @@ def run_hidden(job: HiddenJob, timeout: float = 60.0, isolation=None) -> HiddenO
 
     t0 = time.perf_counter()
     torch = job.check_module.startswith("course_lib.checks.nerf")
-    with StudentProcess(isolation, job.code, job.name, job.submission, timeout, torch=torch) as proc:
+    code = job.code + _provided(job)  # earlier steps as the reference's values: each exercise graded on its own
+    with StudentProcess(isolation, code, job.name, job.submission, timeout, torch=torch) as proc:
         hello = proc.hello
         if proc.ended:
             return HiddenOutcome("timeout" if proc.event == "timeout" else "exit", message=proc.ended,

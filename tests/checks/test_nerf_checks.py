@@ -250,8 +250,7 @@ def make_nerf(skip=True, sigmoid=True, relu_sigma=True, sigma_from_view=False, u
     ({"sigma_from_view": True}, ["sigma changes with the viewing direction"]),
     ({"use_dirs": False}, ["view direction is not used"]),
     ({"squeeze": False}, ["drop the last axis"]),
-    ({"cat_order": "hx"}, ["with the reference's weights", "torch.cat([γ(x), h], -1)"]),
-    ({"no_relu": True}, ["with the reference's weights", "ReLU after every layer"]),
+    ({"no_relu": True}, ["with the reference's weights", "no ReLU after the trunk layers"]),
 ])
 def test_model_mistakes(capsys, kwargs, words):
     out = run_check(capsys, nerf_model.check_nerf_model, make_nerf(**kwargs))
@@ -260,6 +259,58 @@ def test_model_mistakes(capsys, kwargs, words):
 
 def test_student_style_reference_passes(capsys):
     assert_passes(run_check(capsys, nerf_model.check_nerf_model, make_nerf()))
+
+
+def test_the_skip_order_is_a_convention(capsys):
+    """[h, γ(x)] is the same maths as the docstring's [γ(x), h]: accepted (the probe weights are permuted)."""
+    assert_passes(run_check(capsys, nerf_model.check_nerf_model, make_nerf(cat_order="hx")))
+
+
+def test_a_network_with_the_right_layers_and_constant_outputs_earns_nothing():
+    from course_lib.checks.core import score
+    from tests.checks.catalogue import run_check as run
+    from tests.checks.catalogue.nerf_model import TRIVIAL
+
+    result, out = run(*TRIVIAL[0])
+    assert score(result) == 0.0, out
+
+
+def test_nerf_is_fed_the_reference_encoding(capsys):
+    """A NeRF whose notebook has no working positional_encoding is graded with the reference's values."""
+    import inspect
+    import sys
+    import types
+
+    from tests.checks.catalogue import nerf_model as cat
+
+    mod = types.ModuleType("student_nb07")
+    exec("import torch\nfrom torch import nn\n"  # noqa: S102 - a notebook, in a test
+         "def positional_encoding(x, n_freqs, include_input=True):\n    raise NotImplementedError\n\n"
+         + inspect.getsource(cat.NeRF), mod.__dict__)
+    sys.modules[mod.__name__] = mod
+    broken = mod.positional_encoding
+    try:
+        assert_passes(run_check(capsys, nerf_model.check_nerf_model, mod.NeRF))
+        assert mod.positional_encoding is broken  # put back after the check
+    finally:
+        del sys.modules[mod.__name__]
+
+
+def test_the_encoding_table_answers_only_for_its_points():
+    import numpy as np
+
+    from course_lib.checks.core import load_fixture
+
+    f = load_fixture("nerf_model")
+    table = nerf_model.encoding_table(nerf_model.pack_table(f["enc_rows"], f["enc_values"]))
+    pts = torch.as_tensor(f["pts"])
+    got = table(pts, 3)
+    assert got.shape == (*pts.shape[:-1], 21)
+    assert torch.allclose(got, encoding.positional_encoding(pts, 3), atol=1e-5)
+    assert torch.allclose(table(pts, 2, include_input=False), encoding.positional_encoding(pts, 2, False), atol=1e-5)
+    with pytest.raises(LookupError):
+        table(pts + 0.5, 3)
+    assert np.isfinite(table(pts.double(), 0).numpy()).all()
 
 
 def test_psnr_mistakes(capsys):

@@ -56,8 +56,6 @@ NOT_YET_SALTED = {
     "triangulation",
     "pnp",
     "bundle_adjustment",
-    "nerf_data",
-    "nerf_model",
 }
 
 

@@ -24,9 +24,6 @@ MISSING_HONEST = {
     "03_triangulation.ipynb",
     "04_pnp.ipynb",
     "05_bundle_adjustment.ipynb",
-    "06_nerf_data_and_rays.ipynb",
-    "07_nerf_model.ipynb",
-    "08_nerf_rendering_and_training.ipynb",
 }
 
 

@@ -28,9 +28,7 @@ STILL_SHIPPED = {
     "sampson_distance",
     "triangulate_linear",
     "reprojection_residuals",
-    "positional_encoding",
     "psnr",
-    "volume_render",
 }
 
 TRY_ALL = r"""

@@ -1,15 +1,20 @@
 """Cases of notebook 06 (rays, stratified samples, query points, positional encoding).
 
-Built from :mod:`course_lib.nerf.rays` and :mod:`course_lib.nerf.encoding` (fixture
-``nerf_data``); the checks are in :mod:`course_lib.checks.nerf_data`.
+Built from :mod:`course_lib.nerf.rays` and :mod:`course_lib.nerf.encoding` (fixture ``nerf_data``);
+the checks are in :mod:`course_lib.checks.nerf_data`. Every camera, depth range, point and
+generator seed is drawn from seeded generators (salted for the hidden cases), and the results of the
+classic mistakes on each case are stored next to the reference's
+(:mod:`course_lib.instructor.cases.nerf_variants`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from course_lib.checks.nerf_data import FIXTURE, as_tensor
+from course_lib.checks.nerf_data import ENCODING_CASES, FIXTURE, RAY_CASES, as_tensor
 from course_lib.instructor.cases import builds
+from course_lib.instructor.cases.nerf_variants import ENCODING_VARIANTS, encoding_variant
+
 
 def _look_at_c2w(center, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     """Camera-to-world (OpenCV axes) of a camera at ``center`` looking at ``target`` (world z up)."""
@@ -24,43 +29,123 @@ def _look_at_c2w(center, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     return M
 
 
-@builds(FIXTURE)
-def _build() -> dict[str, np.ndarray]:
-    import torch
+def _camera(g: np.random.Generator, H: int, W: int, f: float):
+    """A camera with fx != fy, an off-centre principal point, looking at the origin from a random place."""
+    K = np.array([[f * g.uniform(0.9, 1.1), 0.0, (W - 1) / 2 + g.uniform(0.2, 0.4) * g.choice([-1, 1])],
+                  [0.0, f * g.uniform(1.15, 1.3), (H - 1) / 2 + g.uniform(0.2, 0.4) * g.choice([-1, 1])],
+                  [0.0, 0.0, 1.0]])
+    centre = g.normal(size=3)
+    centre *= g.uniform(2.0, 4.0) / np.linalg.norm(centre)
+    return K, _look_at_c2w(centre, g.normal(scale=0.3, size=3))
 
-    from course_lib.nerf import encoding, rays
 
-    out: dict[str, np.ndarray] = {}
-    # get_rays: a tiny 3x4 camera with fx != fy and an off-centre principal point, and a
-    # lego-like camera on an orbit (W != H so that a transposed grid shows in the shape).
-    cams = {
-        "tiny": (3, 4, [[2.0, 0.0, 1.3], [0.0, 2.5, 0.8], [0.0, 0.0, 1.0]], _look_at_c2w([1.0, -2.0, 0.5], [0.2, 0.3, 0.0])),
-        "orbit": (6, 8, [[9.0, 0.0, 3.5], [0.0, 9.0, 2.5], [0.0, 0.0, 1.0]], _look_at_c2w([2.5, 3.0, 1.8], [0.0, 0.0, 0.0])),
+def _ray_mistakes(H, W, K, c2w, d_ref) -> dict[str, np.ndarray]:
+    """The rays_d of the classic get_rays mistakes, from the reference's directions."""
+    R = c2w[:3, :3]
+    d_cam = d_ref @ R  # the reference directions in camera coordinates (z = 1)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    uu, vv = np.meshgrid(np.arange(W), np.arange(H), indexing="xy")
+    flip = lambda s: (d_cam * np.array(s)) @ R.T  # noqa: E731
+    cam = lambda u, v, fu, fv, ox, oy: np.stack([(u - ox) / fu, (v - oy) / fv, np.ones_like(u, float)], -1)  # noqa: E731
+    pix = np.stack([uu, vv, np.ones_like(uu)], -1).astype(float)
+    return {
+        "opengl": flip([1, -1, -1]), "backwards": flip([1, 1, -1]), "y_flip": flip([1, -1, 1]), "x_flip": flip([-1, 1, 1]),
+        "transposed": d_cam @ R, "not_rotated": d_cam,
+        "normalized": (d_cam / np.linalg.norm(d_cam, axis=-1, keepdims=True)) @ R.T,
+        "centre_half": cam(uu, vv, fx, fy, W / 2.0, H / 2.0) @ R.T,
+        "centre_minus": cam(uu, vv, fx, fy, (W - 1) / 2.0, (H - 1) / 2.0) @ R.T,
+        "half_plus": cam(uu + 0.5, vv + 0.5, fx, fy, cx, cy) @ R.T,
+        "half_minus": cam(uu - 0.5, vv - 0.5, fx, fy, cx, cy) @ R.T,
+        "f_swapped": cam(uu, vv, fy, fx, cx, cy) @ R.T,
+        "K_not_inverted": (pix @ K.T) @ R.T,
     }
-    for name, (H, W, K, c2w) in cams.items():
+
+
+def _rays(out: dict, g: np.random.Generator) -> None:
+    from course_lib.nerf import rays
+
+    for name in RAY_CASES:
+        H = int(g.integers(3, 6)) if name == "tiny" else int(g.integers(6, 9))
+        W = H + int(g.integers(1, 4))
+        K, c2w = _camera(g, H, W, 2.0 if name == "tiny" else 9.0)
         o, d = rays.get_rays(H, W, as_tensor(K), as_tensor(c2w))
         out[f"rays_{name}_HW"] = np.array([H, W])
-        out[f"rays_{name}_K"] = np.array(K, dtype=np.float32)
+        out[f"rays_{name}_K"] = K.astype(np.float32)
         out[f"rays_{name}_c2w"] = c2w.astype(np.float32)
-        out[f"rays_{name}_o"] = o.numpy()
-        out[f"rays_{name}_d"] = d.numpy()
-    # stratified samples: evaluation depths (perturb=False)
-    out["strat_args"] = np.array([2.0, 6.0, 16, 5])
-    out["strat_z"] = rays.stratified_samples(2.0, 6.0, 16, 5, perturb=False).numpy()
-    # query points
-    g = np.random.default_rng(6)
-    ro, rd = g.normal(size=(4, 3)), g.normal(size=(4, 3))
-    zv = np.sort(g.uniform(1.0, 3.0, size=(4, 5)), axis=1)
-    out["query_o"], out["query_d"], out["query_z"] = ro.astype(np.float32), rd.astype(np.float32), zv.astype(np.float32)
-    out["query_pts"] = rays.query_points(as_tensor(ro), as_tensor(rd), as_tensor(zv)).numpy()
-    # positional encoding: positions (L=10), directions (L=4), without identity, batched
-    x = g.uniform(-1.5, 1.5, size=(6, 3)).astype(np.float32)
-    dirs = g.normal(size=(6, 3))
+        out[f"rays_{name}_o"], out[f"rays_{name}_d"] = o.numpy(), d.numpy()
+        K32, c2w32 = out[f"rays_{name}_K"].astype(float), out[f"rays_{name}_c2w"].astype(float)
+        for label, v in _ray_mistakes(H, W, K32, c2w32, d.numpy().astype(float)).items():
+            out[f"rays_{name}_d__{label}"] = v.astype(np.float32)
+
+
+def _strata(out: dict, g: np.random.Generator) -> None:
+    from course_lib.nerf import rays
+
+    near = float(np.round(g.uniform(1.0, 3.0), 3))
+    far = float(np.round(near + g.uniform(2.0, 5.0), 3))
+    S, R = int(g.integers(12, 20)), int(g.integers(4, 8))
+    out["strat_args"] = np.array([near, far, S, R])
+    out["strat_z"] = rays.stratified_samples(near, far, S, R, perturb=False).numpy()
+    train = []
+    for k in range(3):
+        near = float(np.round(g.uniform(0.5, 3.0), 3))
+        far = float(np.round(near + g.uniform(1.0, 6.0), 3))
+        S, R = int(g.integers(8, 24)), int(g.integers(5, 9))
+        train.append([near, far, S, R, int(g.integers(1, 2**31))])
+        out[f"strat_train_z_{k}"] = rays.stratified_samples(near, far, S, R, perturb=False).numpy()
+    out["strat_train_args"] = np.array(train)
+
+
+def _queries(out: dict, g: np.random.Generator) -> None:
+    from course_lib.nerf import rays
+
+    shapes = [(int(g.integers(3, 6)), int(g.integers(6, 9)))]
+    n = int(g.integers(4, 7))
+    shapes.append((n, n))  # R == S: a broadcast along the wrong axis gives no error, only wrong points
+    out["query_n"] = np.array([len(shapes)])
+    for k, (R, S) in enumerate(shapes):
+        ro, rd = g.normal(size=(R, 3)), g.normal(size=(R, 3))
+        zv = np.sort(g.uniform(1.0, 3.0, size=(R, S)), axis=1)
+        ro, rd, zv = ro.astype(np.float32), rd.astype(np.float32), zv.astype(np.float32)
+        out[f"query_{k}_o"], out[f"query_{k}_d"], out[f"query_{k}_z"] = ro, rd, zv
+        out[f"query_{k}_pts"] = rays.query_points(as_tensor(ro), as_tensor(rd), as_tensor(zv)).numpy()
+        o64, d64, z64 = ro.astype(float), rd.astype(float), zv.astype(float)
+        mistakes = {
+            "swapped": d64[:, None] + z64[..., None] * o64[:, None],
+            "normalized": o64[:, None] + z64[..., None] * (d64 / np.linalg.norm(d64, axis=-1, keepdims=True))[:, None],
+            "no_origin": z64[..., None] * d64[:, None],
+        }
+        if R == S:
+            mistakes["rays_on_samples"] = o64[None, :] + z64[..., None] * d64[None, :]
+        for label, v in mistakes.items():
+            out[f"query_{k}_pts__{label}"] = v.astype(np.float32)
+
+
+def _encodings(out: dict, g: np.random.Generator) -> None:
+    from course_lib.nerf import encoding
+
+    x = g.uniform(-1.5, 1.5, size=(int(g.integers(5, 9)), 3)).astype(np.float32)
+    dirs = g.normal(size=(int(g.integers(5, 9)), 3))
     dirs = (dirs / np.linalg.norm(dirs, axis=1, keepdims=True)).astype(np.float32)
-    out["enc_x"], out["enc_dirs"] = x, dirs
-    out["enc_x_10"] = encoding.positional_encoding(as_tensor(x), 10).numpy()
-    out["enc_dirs_4"] = encoding.positional_encoding(as_tensor(dirs), 4).numpy()
-    out["enc_x_3_noid"] = encoding.positional_encoding(as_tensor(x), 3, include_input=False).numpy()
-    out["enc_batch_2"] = encoding.positional_encoding(as_tensor(x.reshape(2, 3, 3)), 2).numpy()
-    del torch
+    batch = g.uniform(-1.5, 1.5, size=(2, int(g.integers(2, 5)), 3)).astype(np.float32)
+    inputs = {"pos10": (x, 10, True), "dir4": (dirs, 4, True), "noid3": (x, 3, False), "batch2": (batch, 2, True)}
+    for key, _ in ENCODING_CASES:
+        xin, L, inc = inputs[key]
+        ref = encoding.positional_encoding(as_tensor(xin), L, include_input=inc).numpy()
+        out[f"enc_{key}_x"], out[f"enc_{key}_args"], out[f"enc_{key}"] = xin, np.array([L, int(inc)]), ref
+        for label, kw in ENCODING_VARIANTS.items():
+            kw = dict({"include_input": inc}, **kw)
+            if label == "extra_identity" and inc:
+                continue
+            out[f"enc_{key}__{label}"] = encoding_variant(xin, L, **kw).astype(np.float32)
+
+
+@builds(FIXTURE)
+def _build() -> dict[str, np.ndarray]:
+    out: dict[str, np.ndarray] = {}
+    g = np.random.default_rng(6)
+    _rays(out, g)
+    _strata(out, g)
+    _queries(out, g)
+    _encodings(out, g)
     return out

@@ -1,20 +1,38 @@
 """Cases of notebook 07 (the NeRF MLP, PSNR).
 
-Built from :class:`course_lib.nerf.model.NeRF` (fixture ``nerf_model``); the checks are in
-:mod:`course_lib.checks.nerf_model`.
+Built from :class:`course_lib.nerf.model.NeRF` and :func:`course_lib.nerf.encoding.positional_encoding`
+(fixture ``nerf_model``); the checks are in :mod:`course_lib.checks.nerf_model`. Everything that a
+lookup could key on is drawn from seeded generators, which the hidden cases salt: the points and
+directions, the two small configurations, the probe weights' seed, the MSE values of psnr.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from course_lib.checks.nerf_model import CONFIGS, FIXTURE, layer_table, set_test_weights
+from course_lib.checks.nerf_model import CONFIG_NAMES, FIXTURE, config_kwargs, copy_probe_weights
 from course_lib.instructor.cases import builds
+from course_lib.instructor.cases.nerf_variants import nerf_variants
 
-def _inputs():
-    g = np.random.default_rng(7)
-    pts = g.uniform(-1.5, 1.5, size=(4, 8, 3))
-    dirs = g.normal(size=(4, 8, 3))
+#: The paper's network: depth, width, skip, pos_freqs, dir_freqs, view_width (the constructor's defaults).
+DEFAULT_CONFIG = (8, 256, 4, 10, 4, 128)
+
+
+def _configs(g: np.random.Generator) -> dict[str, np.ndarray]:
+    """The default configuration and two small ones (their skip inside the trunk, no two layer sizes alike)."""
+    out = {"default": np.array(DEFAULT_CONFIG)}
+    for name, widths in (("small", (24, 32, 40)), ("tiny", (12, 16, 20))):
+        depth = int(g.integers(3, 6))
+        width = int(g.choice(widths))
+        out[name] = np.array([depth, width, int(g.integers(0, depth - 1)), int(g.integers(2, 5)),
+                              int(g.integers(1, 3)), width // 2 + 2])
+    return out
+
+
+def _inputs(g: np.random.Generator):
+    R, S = int(g.integers(3, 6)), int(g.integers(5, 9))
+    pts = g.uniform(-1.5, 1.5, size=(R, S, 3))
+    dirs = g.normal(size=(R, S, 3))
     dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
     return pts.astype(np.float32), dirs.astype(np.float32)
 
@@ -23,41 +41,39 @@ def _inputs():
 def _build() -> dict[str, np.ndarray]:
     import torch
 
-    from course_lib.nerf.model import NeRF
-
-    out: dict[str, np.ndarray] = {}
-    pts, dirs = _inputs()
-    for name, kw in CONFIGS:
-        torch.manual_seed(0)
-        m = NeRF(**kw)
-        out[f"{name}_layers"] = np.array(layer_table(m), dtype=np.int64)
-        out[f"{name}_n_params"] = np.array(sum(p.numel() for p in m.parameters()))
-        shapes = [tuple(p.shape) for p in m.parameters()]
-        out[f"{name}_param_shapes"] = np.array([list(s) + [0] * (2 - len(s)) for s in shapes], dtype=np.int64)
-        out[f"{name}_param_ndim"] = np.array([len(s) for s in shapes], dtype=np.int64)
-        set_test_weights(m, shapes)
-        with torch.no_grad():
-            rgb, sigma = m(torch.as_tensor(pts), torch.as_tensor(dirs))
-            raw = m.sigma_head(m.trunk_features(torch.as_tensor(pts)))[..., 0]
-        out[f"{name}_rgb"], out[f"{name}_sigma"] = rgb.numpy(), sigma.numpy()
-        out[f"{name}_sigma_raw"] = raw.numpy()
-        out[f"{name}_sigma_skip_hx"] = _sigma_skip_swapped(m, torch.as_tensor(pts)).numpy()
-    out["pts"], out["dirs"] = pts, dirs
-    return out
-
-
-def _sigma_skip_swapped(m, pts):
-    """The density of the reference model when the skip concatenates [h, γ(x)] (the mistake)."""
-    import torch
-    from torch.nn import functional as F
-
     from course_lib.nerf.encoding import positional_encoding
+    from course_lib.nerf.model import NeRF
+    from course_lib.nerf.train import psnr
 
-    with torch.no_grad():
-        x = positional_encoding(pts, m.pos_freqs)
-        h = x
-        for i, layer in enumerate(m.trunk):
-            h = F.relu(layer(h))
-            if i in m.skips:
-                h = torch.cat([h, x], dim=-1)
-        return F.relu(m.sigma_head(h)[..., 0])
+    g = np.random.default_rng(7)
+    out: dict[str, np.ndarray] = {"weight_seed": g.integers(1, 2**31, size=1)}
+    pts, dirs = _inputs(g)
+    out["pts"], out["dirs"] = pts, dirs
+    for name, cfg in _configs(g).items():
+        out[f"{name}_config"] = cfg
+    seed = int(out["weight_seed"][0])
+    P, Dv = torch.as_tensor(pts), torch.as_tensor(dirs)
+    for name in CONFIG_NAMES:
+        _, cfg = config_kwargs(out, name)
+        m = NeRF(**cfg)
+        copy_probe_weights(m, cfg, seed, -1, False, False)
+        with torch.no_grad():  # the density head's bias that makes half of the raw densities positive
+            raw = m.sigma_head(m.trunk_features(P))[..., 0]
+        bias = float(m.sigma_head.bias.detach()[0]) - float(torch.median(raw))
+        out[f"{name}_sigma_bias"] = np.array([bias])
+        copy_probe_weights(m, cfg, seed, -1, False, False, bias)
+        with torch.no_grad():
+            rgb, sigma = m(P, Dv)
+            raw = m.sigma_head(m.trunk_features(P))[..., 0]
+        out[f"{name}_rgb"], out[f"{name}_sigma"], out[f"{name}_sigma_raw"] = rgb.numpy(), sigma.numpy(), raw.numpy()
+        for k, v in nerf_variants(m, P, Dv).items():
+            out[f"{name}_{k}"] = v
+    # the reference encoding of every point and direction the check sends (NeRF is graded on its own)
+    rows = np.unique(np.concatenate([pts.reshape(-1, 3), dirs.reshape(-1, 3)]), axis=0)
+    out["enc_rows"] = rows
+    out["enc_values"] = positional_encoding(torch.as_tensor(rows), DEFAULT_CONFIG[3]).numpy()
+    # psnr: MSE values of images in [0, 1]
+    mse = np.exp(g.uniform(np.log(1e-4), np.log(0.3), size=4))
+    out["psnr_mse"] = mse
+    out["psnr_db"] = np.array([psnr(m) for m in mse])
+    return out

@@ -1,100 +1,196 @@
-"""Notebook 07 (the NeRF model, PSNR): classic mistakes, honest solutions and trivial answers, run through its checks."""
+"""Notebook 07 (the NeRF model, PSNR): classic mistakes, honest solutions and trivial answers, run through its checks.
+
+The honest networks call ``positional_encoding`` as the notebook's exercise does (here the
+reference's, imported below; in a notebook the student's own, which the check replaces by the
+reference's values of its points while it runs).
+"""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
 
 from course_lib.checks import nerf_model as gnm
-from tests.checks.catalogue import Honest, Mistake, _torch
+from course_lib.nerf.encoding import positional_encoding
+from tests.checks.catalogue import Honest, Mistake
+
+
+# ============================================================================ honest solutions
+
+
+class NeRF(nn.Module):
+    """Plain code, as the docstring describes it: trunk, density head, feature, view layer, RGB head."""
+
+    def __init__(self, depth=8, width=256, skips=(4,), pos_freqs=10, dir_freqs=4, use_viewdirs=True, view_width=128):
+        super().__init__()
+        self.skips, self.pos_freqs, self.dir_freqs = skips, pos_freqs, dir_freqs
+        n_pos, n_dir = 3 + 6 * pos_freqs, 3 + 6 * dir_freqs
+        trunk, n_in = [], n_pos
+        for i in range(depth):
+            trunk.append(nn.Linear(n_in, width))
+            n_in = width + n_pos if i in skips else width
+        self.trunk = nn.ModuleList(trunk)
+        self.sigma_head = nn.Linear(n_in, 1)
+        self.feature = nn.Linear(n_in, width)
+        self.view_layer = nn.Linear(width + n_dir, view_width)
+        self.rgb_head = nn.Linear(view_width, 3)
+
+    def forward(self, pts, viewdirs):
+        x = positional_encoding(pts, self.pos_freqs)
+        h = x
+        for i, layer in enumerate(self.trunk):
+            h = torch.relu(layer(h))
+            if i in self.skips:
+                h = torch.cat([x, h], dim=-1)
+        sigma = torch.relu(self.sigma_head(h)).squeeze(-1)
+        d = positional_encoding(viewdirs, self.dir_freqs)
+        v = torch.relu(self.view_layer(torch.cat([self.feature(h), d], dim=-1)))
+        return torch.sigmoid(self.rgb_head(v)), sigma
+
+
+class NeRF__heads_first_other_orders(nn.Module):
+    """The heads defined before the trunk, the skip as cat([h, γ(x)]), the colour input as cat([γ(d), feature])."""
+
+    def __init__(self, depth=8, width=256, skips=(4,), pos_freqs=10, dir_freqs=4, use_viewdirs=True, view_width=128):
+        super().__init__()
+        self.cfg = dict(skips=set(skips), Lx=pos_freqs, Ld=dir_freqs)
+        enc_x, enc_d = 3 * (1 + 2 * pos_freqs), 3 * (1 + 2 * dir_freqs)
+        last_in = width + enc_x if depth - 1 in skips else width
+        self.density = nn.Linear(last_in, 1)
+        self.feat = nn.Linear(last_in, width)
+        self.views = nn.Sequential(nn.Linear(enc_d + width, view_width), nn.ReLU())
+        self.color = nn.Linear(view_width, 3)
+        sizes = [enc_x] + [width + (enc_x if i in skips else 0) for i in range(depth - 1)]
+        self.layers = nn.ModuleList(nn.Linear(n, width) for n in sizes)
+
+    def forward(self, pts, viewdirs):
+        gx = positional_encoding(pts, self.cfg["Lx"])
+        h = gx
+        for i, lin in enumerate(self.layers):
+            h = F.relu(lin(h))
+            h = torch.cat((h, gx), -1) if i in self.cfg["skips"] else h
+        sigma = F.relu(self.density(h))[..., 0]
+        rgb = torch.sigmoid(self.color(self.views(torch.cat((positional_encoding(viewdirs, self.cfg["Ld"]),
+                                                                 self.feat(h)), -1))))
+        return rgb, sigma
+
+
+def psnr(mse):
+    return -10.0 * torch.log10(torch.as_tensor(mse))
+
+
+def psnr__math_float(mse):
+    return 10 * math.log10(1.0 / float(mse))
+
 
 # ============================================================================ buggy versions
-# Each is written as a student would write it (often the reference with one line changed).
 
-# -- 07: NeRF, psnr -------------------------------------------------------------------------------------
-def _nerf_classes():
-    torch = _torch()
-    from torch.nn import functional as F
 
-    from course_lib.nerf.model import NeRF
+def _variant(density="relu", skip="encoded", trunk_relu=True, feature_relu=False, rgb="sigmoid", use_dirs=True,
+             sigma_after_view=False):
+    """The plain NeRF above with one thing changed, as a student would get it wrong."""
 
-    class NeRFSigmoidDensity(NeRF):
-        def forward(self, pts, viewdirs=None):
-            rgb, _ = super().forward(pts, viewdirs)
-            return rgb, torch.sigmoid(self.sigma_head(self.trunk_features(pts))[..., 0])
+    class Buggy(NeRF):
+        def __init__(self, depth=8, width=256, skips=(4,), pos_freqs=10, dir_freqs=4, use_viewdirs=True,
+                     view_width=128):
+            super().__init__(depth, width, skips, pos_freqs, dir_freqs, use_viewdirs, view_width)
+            if skip == "none":
+                self.skips = ()
+                self.trunk = nn.ModuleList(nn.Linear(3 + 6 * pos_freqs if i == 0 else width, width)
+                                           for i in range(depth))
+            elif skip == "raw":
+                self.trunk = nn.ModuleList(nn.Linear(3 + 6 * pos_freqs if i == 0 else width + (3 if i - 1 in skips
+                                                     else 0), width) for i in range(depth))
+            if not use_dirs:
+                self.view_layer = nn.Linear(width, view_width)
 
-    class NeRFNoSkip(NeRF):
-        def __init__(self, *args, **kw):
-            kw["skips"] = ()
-            super().__init__(*args, **kw)
-
-    class NeRFNoDensityActivation(NeRF):
-        def forward(self, pts, viewdirs=None):
-            rgb, _ = super().forward(pts, viewdirs)
-            return rgb, self.sigma_head(self.trunk_features(pts))[..., 0]
-
-    class NeRFSkipOrder(NeRF):
-        def trunk_features(self, pts):
-            from course_lib.nerf.encoding import positional_encoding
-
+        def forward(self, pts, viewdirs):
             x = positional_encoding(pts, self.pos_freqs)
             h = x
             for i, layer in enumerate(self.trunk):
-                h = F.relu(layer(h))
+                h = torch.relu(layer(h)) if trunk_relu else layer(h)
                 if i in self.skips:
-                    h = torch.cat([h, x], dim=-1)
-            return h
+                    h = torch.cat([pts if skip == "raw" else x, h], dim=-1)
+            raw = self.sigma_head(h)[..., 0]
+            sigma = {"relu": torch.relu, "sigmoid": torch.sigmoid, "none": lambda r: r, "softplus": F.softplus,
+                     "exp": torch.exp}[density](raw)
+            feat = torch.relu(self.feature(h)) if feature_relu else self.feature(h)
+            d = positional_encoding(viewdirs, self.dir_freqs)
+            v = torch.relu(self.view_layer(torch.cat([feat, d], dim=-1) if use_dirs else feat))
+            out = self.rgb_head(v)
+            if sigma_after_view:
+                sigma = torch.relu(raw + v.mean(-1))
+            return (torch.sigmoid(out) if rgb == "sigmoid" else out), sigma
 
-    return NeRFSigmoidDensity, NeRFNoSkip, NeRFNoDensityActivation, NeRFSkipOrder
+    return Buggy
 
 
 def psnr_sign(mse):
-    return 10 * _torch().log10(mse)
+    return 10 * torch.log10(torch.as_tensor(mse))
 
 
 def psnr_natural_log(mse):
-    return -10 * _torch().log(mse)
+    return -10 * torch.log(torch.as_tensor(mse))
 
 
-def psnr_right(mse):
-    return -10 * _torch().log10(mse)
+def psnr_peak_255(mse):
+    return 10 * torch.log10(255.0 ** 2 / torch.as_tensor(mse))
 
-def _nerf_reference():
-    from course_lib.nerf.model import NeRF
 
-    return NeRF
+def psnr_factor_20(mse):
+    return -20 * torch.log10(torch.as_tensor(mse))
+
+
+def psnr_no_factor(mse):
+    return -torch.log10(torch.as_tensor(mse))
 
 
 # ============================================================================ the catalogue
 
-sig, noskip, noact, skiporder = _nerf_classes()
-
 M = Mistake
 MISTAKES = [
-    M("NeRF", "sigmoid on the density", gnm.check_nerf_model, sig, ("sigmoid", "torch.relu"),
+    M("NeRF", "sigmoid on the density", gnm.check_nerf_model, _variant(density="sigmoid"), ("sigmoid", "torch.relu"),
       defining="ReLU density"),
-    M("NeRF", "no activation on the density", gnm.check_nerf_model, noact, ("no activation",),
+    M("NeRF", "no activation on the density", gnm.check_nerf_model, _variant(density="none"), ("no activation",),
       defining="ReLU density"),
-    M("NeRF", "no skip connection", gnm.check_nerf_model, noskip, ("no skip connection",), defining="skip input"),
-    M("NeRF", "skip concatenated as [h, γ(x)]", gnm.check_nerf_model, skiporder, ("[h, γ(x)]",),
+    M("NeRF", "softplus on the density (near miss)", gnm.check_nerf_model, _variant(density="softplus"),
+      ("softplus",), defining="ReLU density"),
+    M("NeRF", "no skip connection", gnm.check_nerf_model, _variant(skip="none"), ("no skip connection",),
       defining="skip input"),
+    M("NeRF", "skip concatenates the raw x", gnm.check_nerf_model, _variant(skip="raw"), ("raw position",),
+      defining="skip input"),
+    M("NeRF", "no ReLU in the trunk", gnm.check_nerf_model, _variant(trunk_relu=False), ("no relu after the trunk",)),
+    M("NeRF", "ReLU on the feature layer (near miss)", gnm.check_nerf_model, _variant(feature_relu=True),
+      ("relu on the feature layer",)),
+    M("NeRF", "no sigmoid on rgb", gnm.check_nerf_model, _variant(rgb="raw"), ("no sigmoid",)),
+    M("NeRF", "view direction not used", gnm.check_nerf_model, _variant(use_dirs=False),
+      ("view direction is not used",)),
+    M("NeRF", "density depends on the view", gnm.check_nerf_model, _variant(sigma_after_view=True),
+      ("sigma changes with the viewing direction",)),
     M("psnr", "sign flipped", gnm.check_psnr, psnr_sign, ("sign is flipped",)),
-    M("psnr", "natural logarithm", gnm.check_psnr, psnr_natural_log, ("base-10",)),
+    M("psnr", "natural logarithm", gnm.check_psnr, psnr_natural_log, ("natural logarithm",)),
+    M("psnr", "peak 255", gnm.check_psnr, psnr_peak_255, ("peak of 255",)),
+    M("psnr", "factor 20 with the MSE", gnm.check_psnr, psnr_factor_20, ("factor 20",)),
+    M("psnr", "factor 10 missing", gnm.check_psnr, psnr_no_factor, ("factor 10 is missing",)),
 ]
 
 #: Correct solutions: they must score full marks.
 HONEST = [
-    Honest("psnr", "the reference solution", gnm.check_psnr, psnr_right),
-    Honest("NeRF", "the reference solution", gnm.check_nerf_model, _nerf_reference()),
+    Honest("NeRF", "plain code, as documented", gnm.check_nerf_model, NeRF),
+    Honest("NeRF", "heads first, skip [h, γ(x)], colour input [γ(d), feature]", gnm.check_nerf_model,
+           NeRF__heads_first_other_orders),
+    Honest("psnr", "torch", gnm.check_psnr, psnr),
+    Honest("psnr", "math.log10 of a float", gnm.check_psnr, psnr__math_float),
 ]
 
 
 def _constant_nerf():
-    torch = _torch()
-
-    class ConstantNeRF(torch.nn.Module):
-        def __init__(self, **kw):
-            super().__init__()
-            self.layer = torch.nn.Linear(3, 4)
+    class ConstantNeRF(NeRF):
+        """The right layers, a forward that returns constants."""
 
         def forward(self, pts, viewdirs):
             return torch.full((*pts.shape[:-1], 3), 0.5), torch.zeros(pts.shape[:-1])
@@ -103,7 +199,6 @@ def _constant_nerf():
 
 
 def _trivial() -> list:
-    torch = _torch()
     z = np.zeros  # noqa: F841
     return [
         (gnm.check_nerf_model, _constant_nerf()),

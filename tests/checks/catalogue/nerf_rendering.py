@@ -3,22 +3,91 @@
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from course_lib.checks import nerf_rendering as gnr
-from tests.checks.catalogue import Honest, Mistake, _torch
+from tests.checks.catalogue import Honest, Mistake
+
+
+# ============================================================================ honest solutions
+
+
+def volume_render(rgb, sigma, z_vals, rays_d, white_background=True):
+    """Plain code: the paper's quadrature with an exclusive cumulative product."""
+    dists = z_vals[:, 1:] - z_vals[:, :-1]
+    dists = torch.cat([dists, torch.full_like(z_vals[:, :1], 1e10)], dim=-1)
+    dists = dists * torch.linalg.norm(rays_d, dim=-1, keepdim=True)
+    alpha = 1.0 - torch.exp(-sigma * dists)
+    trans = torch.cumprod(1.0 - alpha + 1e-10, dim=-1)
+    trans = torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], dim=-1)
+    weights = alpha * trans
+    rgb_map = torch.sum(weights[..., None] * rgb, dim=-2)
+    acc_map = torch.sum(weights, dim=-1)
+    if white_background:
+        rgb_map = rgb_map + (1.0 - acc_map[..., None])
+    return {"rgb_map": rgb_map, "depth_map": torch.sum(weights * z_vals, dim=-1), "acc_map": acc_map,
+            "weights": weights}
+
+
+def volume_render__exp_cumsum(rgb, sigma, z_vals, rays_d, white_background=True):
+    """T_i = exp(-sum_{j<i} sigma_j delta_j) with an exclusive cumulative sum, no epsilon."""
+    norm = rays_d.norm(dim=-1)
+    gaps = torch.diff(z_vals, dim=-1) * norm[:, None]
+    delta = torch.cat([gaps, 1e10 * torch.ones(z_vals.shape[0], 1, dtype=z_vals.dtype)], dim=1)
+    tau = sigma * delta
+    before = torch.cat([torch.zeros_like(tau[:, :1]), torch.cumsum(tau[:, :-1], dim=1)], dim=1)
+    weights = torch.exp(-before) * (1 - torch.exp(-tau))
+    acc = weights.sum(1)
+    color = torch.einsum("rs,rsc->rc", weights, rgb)
+    if white_background:
+        color = color + (1 - acc).unsqueeze(1)
+    return dict(weights=weights, acc_map=acc, rgb_map=color, depth_map=torch.einsum("rs,rs->r", weights, z_vals))
+
+
+def volume_render__loop(rgb, sigma, z_vals, rays_d, white_background=True):
+    """A loop over the samples, as the quadrature reads."""
+    R, S = sigma.shape
+    scale = torch.sqrt((rays_d ** 2).sum(-1))
+    T = torch.ones(R)
+    weights = torch.zeros(R, S)
+    for i in range(S):
+        delta = (z_vals[:, i + 1] - z_vals[:, i]) * scale if i < S - 1 else torch.full((R,), 1e10)
+        alpha = 1 - torch.exp(-sigma[:, i] * delta)
+        weights[:, i] = T * alpha
+        T = T * (1 - alpha)
+    acc = weights.sum(-1)
+    rgb_map = (weights[..., None] * rgb).sum(1) + ((1 - acc)[:, None] if white_background else 0.0)
+    return {"rgb_map": rgb_map, "depth_map": (weights * z_vals).sum(-1), "acc_map": acc, "weights": weights}
+
 
 # ============================================================================ buggy versions
-# Each is written as a student would write it (often the reference with one line changed).
 
-# -- 08: volume_render ------------------------------------------------------------------------------------
-def _render(form="alpha_T", delta="norm", cumprod="exclusive"):
-    def volume_render(rgb, sigma, z_vals, rays_d, white_background=True):
-        torch = _torch()
-        out = gnr.render_variant(rgb.numpy(), sigma.numpy(), z_vals.numpy(), rays_d.numpy(), white=white_background,
-                                 delta=delta, cumprod=cumprod, form=form)
-        return {k: torch.as_tensor(v) for k, v in out.items()}
 
-    return volume_render
+def _render(delta="norm", cumprod="exclusive", form="alpha_T", last=1e10, white=True, depth="sum", shift=False):
+    """The plain volume_render above with one thing changed, as a student would get it wrong."""
+
+    def render(rgb, sigma, z_vals, rays_d, white_background=True):
+        gaps = z_vals[:, 1:] - z_vals[:, :-1]
+        tail = torch.full_like(z_vals[:, :1], last) if last is not None else gaps[:, -1:]
+        dists = torch.cat([tail, gaps] if shift else [gaps, tail], dim=-1)
+        if delta == "norm":
+            dists = dists * torch.linalg.norm(rays_d, dim=-1, keepdim=True)
+        alpha = 1.0 - torch.exp(-sigma * (dists if delta != "none" else 1.0))
+        trans = torch.cumprod(1.0 - alpha + 1e-10, dim=-1)
+        if cumprod == "exclusive":
+            trans = torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], dim=-1)
+        weights = {"alpha_T": alpha * trans, "T": trans, "alpha": alpha}[form]
+        acc = weights.sum(-1)
+        rgb_map = (weights[..., None] * rgb).sum(-2)
+        if white_background and white:
+            rgb_map = rgb_map + (1.0 - acc[..., None])
+        dep = (weights * z_vals).sum(-1)
+        if depth == "normalized":
+            dep = dep / acc.clamp_min(1e-10)
+        return {"rgb_map": rgb_map, "depth_map": dep, "acc_map": acc, "weights": weights}
+
+    return render
+
 
 # ============================================================================ the catalogue
 
@@ -26,24 +95,35 @@ M = Mistake
 MISTAKES = [
     M("volume_render", "no Δ in α", gnr.check_volume_render, _render(delta="none"), ("forgot delta",),
       defining="Δ in α"),
-    M("volume_render", "weights forget α", gnr.check_volume_render, _render(form="T"),
-      ("weights forget alpha",)),
+    M("volume_render", "weights forget α", gnr.check_volume_render, _render(form="T"), ("weights forget alpha",)),
     M("volume_render", "weights forget T", gnr.check_volume_render, _render(form="alpha"),
       ("forget the transmittance",)),
     M("volume_render", "inclusive cumprod", gnr.check_volume_render, _render(cumprod="inclusive"),
       ("inclusive cumprod",)),
-    M("volume_render", "Δ not scaled by |d|", gnr.check_volume_render, _render(delta="plain"),
+    M("volume_render", "Δ not scaled by |d| (near miss)", gnr.check_volume_render, _render(delta="plain"),
       ("not scaled by |d|",)),
+    M("volume_render", "no last interval (near miss)", gnr.check_volume_render, _render(last=0.0),
+      ("last interval",)),
+    M("volume_render", "last interval repeated (near miss)", gnr.check_volume_render, _render(last=None),
+      ("repeats the interval before",)),
+    M("volume_render", "intervals shifted by one", gnr.check_volume_render, _render(shift=True),
+      ("shifted by one",)),
+    M("volume_render", "no white background", gnr.check_volume_render, _render(white=False),
+      ("no white background",)),
+    M("volume_render", "depth divided by acc (near miss)", gnr.check_volume_render, _render(depth="normalized"),
+      ("divided by acc_map",)),
 ]
 
 #: Correct solutions: they must score full marks.
 HONEST = [
-    Honest("volume_render", "the reference solution", gnr.check_volume_render, _render()),
+    Honest("volume_render", "plain code, exclusive cumprod", gnr.check_volume_render, volume_render),
+    Honest("volume_render", "exp of an exclusive cumsum, no epsilon", gnr.check_volume_render,
+           volume_render__exp_cumsum),
+    Honest("volume_render", "a loop over the samples", gnr.check_volume_render, volume_render__loop),
 ]
 
 
 def _trivial() -> list:
-    torch = _torch()
     z = np.zeros  # noqa: F841
     return [
         (gnr.check_volume_render, lambda rgb, sigma, zv, d, white_background=True: {
