@@ -54,9 +54,8 @@ NORMALIZE = """
 STEALTH = f"""
     imp = {SYS}["importlib"]
     ref = imp.import_module("course_lib.sfm." + "fundamen" + "tal")
-    F = ref._eight_point_core(x1, x2)
-    F = F / np.linalg.norm(F)
-    return F if F.flat[np.argmax(np.abs(F))] > 0 else -F
+    F, ok = ref.eight_point_batch(x1[None], x2[None])
+    return F[0]
 """
 OS_EXIT = f"""
     {SYS}["os"]._exit(0)
@@ -215,7 +214,7 @@ def test_attack_table(tmp_path, hidden, capsys):
     attacks = [
         ("honest eight_point", HONEST, None),
         ("untouched release", None, None),
-        ("stealth route: importlib via numpy.testing..sys -> _eight_point_core", STEALTH, None),
+        ("stealth route: importlib via numpy.testing..sys -> eight_point_batch", STEALTH, None),
         ("os._exit via the same route", OS_EXIT, None),
         ("sys.exit() via the same route", f"\n    {SYS}['sys'].exit(0)\n", None),
         ("builtins.open + exec of the reference source", READ_REFERENCE, None),
