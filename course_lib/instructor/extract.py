@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 from course_lib.instructor.notebooks import python_source
 
-__all__ = ["Extracted", "extract_exercise", "code_cells", "Statement", "top_level_statements"]
+__all__ = ["Extracted", "Statement", "code_cells", "extract_exercise", "top_level_statements"]
 
 #: Names every module has (the student's code runs as a module called ``__main__``).
 MODULE_NAMES = {"__name__", "__file__", "__doc__", "__builtins__", "__spec__", "__loader__", "__package__",

@@ -59,34 +59,34 @@ CATALOGUE = [
     Variant("augmented attribute", ['import numpy as np\nclass P:\n    w = np.ones(3)\nP.w += 1',
                                     'def solve(x):\n    return P.w * x']),
     # decorators
-    Variant("library decorator", ['import functools\n\n@functools.lru_cache(maxsize=None)\ndef weight(k):\n'
-                                  '    return 2.0 ** k',
+    Variant("library decorator", [('import functools\n\n@functools.lru_cache(maxsize=None)\ndef weight(k):\n'
+                                  '    return 2.0 ** k'),
                                   'def solve(x):\n    return x * weight(3)']),
-    Variant("notebook decorator", ['FACTOR = 2.0\n\ndef doubled(fn):\n    def wrapper(*a):\n'
-                                   '        return FACTOR * fn(*a)\n    return wrapper',
+    Variant("notebook decorator", [('FACTOR = 2.0\n\ndef doubled(fn):\n    def wrapper(*a):\n'
+                                   '        return FACTOR * fn(*a)\n    return wrapper'),
                                    '@doubled\ndef solve(x):\n    return x + 1']),
-    Variant("decorator with arguments", ['def scaled(s):\n    def deco(fn):\n        return lambda *a: s * fn(*a)\n'
-                                         '    return deco\nS = 4.0',
+    Variant("decorator with arguments", [('def scaled(s):\n    def deco(fn):\n        return lambda *a: s * fn(*a)\n'
+                                         '    return deco\nS = 4.0'),
                                          '@scaled(S)\ndef solve(x):\n    return x']),
     Variant("rewrapped after the def", ['def twice(fn):\n    return lambda x: fn(fn(x))',
                                         'def solve(x):\n    return x + 1\n\nsolve = twice(solve)']),
     # nested defs and scopes
-    Variant("nested def reads a constant", ['K = 5.0', 'def solve(x):\n    def inner(y):\n        return y * K\n'
-                                            '    return inner(x)']),
-    Variant("name local to a nested def only", ['N = 10.0', 'def solve(x):\n    def g():\n        N = 2.0\n'
-                                                '        return N\n    return g() + N + x']),
-    Variant("closure over a local", ['OFFSET = 1.0', 'def solve(x):\n    s = 3.0\n    def f(v):\n'
-                                     '        return v * s + OFFSET\n    return f(x)']),
-    Variant("class in a def", ['BIAS = 0.5', 'def solve(x):\n    class Acc:\n        b = BIAS\n'
-                               '        def add(self, v):\n            return v + self.b\n    return Acc().add(x)']),
+    Variant("nested def reads a constant", ['K = 5.0', ('def solve(x):\n    def inner(y):\n        return y * K\n'
+                                            '    return inner(x)')]),
+    Variant("name local to a nested def only", ['N = 10.0', ('def solve(x):\n    def g():\n        N = 2.0\n'
+                                                '        return N\n    return g() + N + x')]),
+    Variant("closure over a local", ['OFFSET = 1.0', ('def solve(x):\n    s = 3.0\n    def f(v):\n'
+                                     '        return v * s + OFFSET\n    return f(x)')]),
+    Variant("class in a def", ['BIAS = 0.5', ('def solve(x):\n    class Acc:\n        b = BIAS\n'
+                               '        def add(self, v):\n            return v + self.b\n    return Acc().add(x)')]),
     Variant("recursion", ['BASE_CASE = 1', 'def solve(n):\n    return BASE_CASE if n <= 1 else n * solve(n - 1)'],
             args=(5,)),
     # global
-    Variant("global counter", ['COUNTER = 0', 'def solve(x):\n    global COUNTER\n    COUNTER += 1\n'
-                                              '    return x + COUNTER']),
+    Variant("global counter", ['COUNTER = 0', ('def solve(x):\n    global COUNTER\n    COUNTER += 1\n'
+                                              '    return x + COUNTER')]),
     Variant("global set by a setup function", ['def setup():\n    global K\n    K = 5.0\n\nsetup()', SOLVE_K]),
-    Variant("global changed in place by a function", ['OPTS = {"sign": 1.0}\n\ndef configure():\n'
-                                                      '    OPTS["sign"] = -2.0\n\nconfigure()',
+    Variant("global changed in place by a function", [('OPTS = {"sign": 1.0}\n\ndef configure():\n'
+                                                      '    OPTS["sign"] = -2.0\n\nconfigure()'),
                                                       'def solve(x):\n    return OPTS["sign"] * x']),
     Variant("global at top level", ['global K\nK = 2.0', SOLVE_K]),
     # lambdas
@@ -96,28 +96,28 @@ CATALOGUE = [
     Variant("lambda inside", ['P = 2', 'def solve(x):\n    f = lambda v: v ** P\n    return f(x)']),
     # classes
     Variant("class exercise", ['import numpy as np\nK = 2.0',
-                               'class Solve:\n    factor = K\n\n    def __init__(self, bias=1.0):\n'
+                               ('class Solve:\n    factor = K\n\n    def __init__(self, bias=1.0):\n'
                                '        self.bias = bias\n\n    def __call__(self, x):\n'
-                               '        return self.factor * np.asarray(x) + self.bias'],
+                               '        return self.factor * np.asarray(x) + self.bias')],
             name="Solve", args=()),
     Variant("class with a notebook base class", ['class Base:\n    def scale(self):\n        return 3.0',
-                                                 'class Solve(Base):\n    def __call__(self, x):\n'
-                                                 '        return self.scale() * x'],
+                                                 ('class Solve(Base):\n    def __call__(self, x):\n'
+                                                 '        return self.scale() * x')],
             name="Solve", args=()),
-    Variant("dataclass of options", ['from dataclasses import dataclass\nSCALE = 2.0\n\n@dataclass\nclass Params:\n'
+    Variant("dataclass of options", [('from dataclasses import dataclass\nSCALE = 2.0\n\n@dataclass\nclass Params:\n'
                                      '    scale: float = SCALE\n    shift: float = 0.5\n\nPARAMS = Params()\n'
-                                     'PARAMS.shift = 1.5',
+                                     'PARAMS.shift = 1.5'),
                                      'def solve(x, p=PARAMS):\n    return p.scale * x + p.shift']),
     # with, try, if
     Variant("with block", ['import numpy as np\nwith np.errstate(all="ignore"):\n    TABLE = np.log(np.arange(3.0) + 1)',
                            'def solve(x):\n    return x + TABLE']),
-    Variant("optional import in try", ['try:\n    from scipy.linalg import norm\nexcept ImportError:\n'
-                                       '    from numpy.linalg import norm',
+    Variant("optional import in try", [('try:\n    from scipy.linalg import norm\nexcept ImportError:\n'
+                                       '    from numpy.linalg import norm'),
                                        'def solve(x):\n    return norm(x)']),
-    Variant("try in the function", ['FALLBACK = -1.0', 'def solve(x):\n    try:\n        return 1.0 / x[0]\n'
-                                    '    except ZeroDivisionError:\n        return FALLBACK'], args=([0.0],)),
-    Variant("if chooses a helper", ['FAST = True\nif FAST:\n    def helper(v):\n        return 2 * v\nelse:\n'
-                                    '    def helper(v):\n        return 3 * v',
+    Variant("try in the function", ['FALLBACK = -1.0', ('def solve(x):\n    try:\n        return 1.0 / x[0]\n'
+                                    '    except ZeroDivisionError:\n        return FALLBACK')], args=([0.0],)),
+    Variant("if chooses a helper", [('FAST = True\nif FAST:\n    def helper(v):\n        return 2 * v\nelse:\n'
+                                    '    def helper(v):\n        return 3 * v'),
                                     'def solve(x):\n    return helper(x)']),
     # walrus, unpacking, star imports, annotations
     Variant("walrus at top level", ['if (LIMIT := 4) > 2:\n    pass', 'def solve(x):\n    return x * LIMIT']),
@@ -127,10 +127,10 @@ CATALOGUE = [
     Variant("star import of an allowed module", ['from numpy.linalg import *\nfrom numpy import *',
                                                  'def solve(x):\n    return norm(x) + sqrt(4.0)']),
     Variant("type annotations", ['import numpy as np\nfrom numbers import Number\nSCALE: float = 2.0\nLATER: int',
-                                 'def solve(x: np.ndarray, k: Number = 1) -> np.ndarray:\n'
-                                 '    y: np.ndarray = x * SCALE\n    return y + k']),
-    Variant("future annotations", ['from __future__ import annotations\n\nimport numpy as np\n\n'
-                                   'def solve(x: Undefined) -> AlsoUndefined:\n    return np.asarray(x) * 2']),
+                                 ('def solve(x: np.ndarray, k: Number = 1) -> np.ndarray:\n'
+                                 '    y: np.ndarray = x * SCALE\n    return y + k')]),
+    Variant("future annotations", [('from __future__ import annotations\n\nimport numpy as np\n\n'
+                                   'def solve(x: Undefined) -> AlsoUndefined:\n    return np.asarray(x) * 2')]),
     # module constants and helpers of earlier cells
     Variant("constants from constants", ['import numpy as np\nA = 2.0\nB = A * 3\nM = np.eye(3) * B', 'A = 100.0',
                                          'def solve(x):\n    return M @ x']),
