@@ -264,7 +264,7 @@ class Check:
         self.verdicts.append(Verdict(ok, text, kind, defining))
         self.unanswered_call = None
         for case in self.answered:
-            if case == self.case or case in text:
+            if case == self.case or f"{case}:" in text:  # "case A: ..." names case A (not "case A1")
                 self.answered[case] = True
         if ok:
             self.passed += 1
