@@ -328,8 +328,9 @@ class Check:
 
         ``NotImplementedError`` is reported as "not implemented yet" rather than as a crash. A
         result that is nothing usable fails the call too (every exercise returns a result), so a
-        missing answer is never a skipped case: ``None`` or a NaN number. A case whose result the check could not use at all (no verdict mentions
-        it by the end of the check) counts as failed as well (see :meth:`report`).
+        missing answer is never a skipped case: ``None`` or a NaN number. A case whose result the
+        check could not use at all (no verdict names it by the end of the check) counts as failed
+        as well (see :meth:`account_for_cases`).
         Array arguments are copied so that a function that modifies its input cannot corrupt
         the next case.
         """
