@@ -57,6 +57,7 @@ __all__ = [
     "FAILED",
     "load_fixture",
     "using_cases",
+    "as_array",
 ]
 
 PASS, FAIL = "✔", "✘"
@@ -233,6 +234,10 @@ class Check:
         self.verdicts: list[Verdict] = []
         self.passed = 0
         self.total = 0
+        self.planned: list[str] = []  # cases the check means to run (see plan)
+        self.case: str | None = None  # the case of the last call
+        self.answered: dict[str, bool] = {}  # case called -> whether a verdict was recorded for it
+        self.unanswered_call: str | None = None  # the case of a call after which no verdict was recorded yet
 
     # -- recording ---------------------------------------------------------------------------
     def expect(self, condition: bool, pass_msg: str, fail_msg: str, defining: str | None = None,
@@ -257,6 +262,10 @@ class Check:
         ok = bool(condition)
         text = pass_msg if ok else fail_msg
         self.verdicts.append(Verdict(ok, text, kind, defining))
+        self.unanswered_call = None
+        for case in self.answered:
+            if case == self.case or f"{case}:" in text:  # "case A: ..." names case A (not "case A1")
+                self.answered[case] = True
         if ok:
             self.passed += 1
             self.lines.append(f"  {PASS} {pass_msg}")
@@ -305,21 +314,36 @@ class Check:
             self.note(f"your {names} failed {'its' if len(bad) == 1 else 'their'} own checks above and "
                       f"{self.exercise} calls {'it' if len(bad) == 1 else 'them'}: fix {names} first")
 
+    def plan(self, *cases: str) -> None:
+        """Declare the cases this check means to run (the ``case=`` names of its calls).
+
+        A planned case that no :meth:`call` reached when the check ends (the check stopped early,
+        or returned before it) counts as one failed check, and the verdict names it: a check never
+        runs fewer cases than it planned without saying so.
+        """
+        self.planned += [c for c in cases if c not in self.planned]
+
     def call(self, fn: Callable, *args, case: str, **kwargs) -> Any:
         """Call the student's function; on an exception record a failure and return :data:`FAILED`.
 
         ``NotImplementedError`` is reported as "not implemented yet" rather than as a crash. A
-        function that returns ``None`` fails the call too (every exercise returns a result), so a
-        missing answer is never a skipped case.
+        result that is nothing usable fails the call too (every exercise returns a result), so a
+        missing answer is never a skipped case: ``None`` or a NaN number. A case whose result the
+        check could not use at all (no verdict names it by the end of the check) counts as failed
+        as well (see :meth:`account_for_cases`).
         Array arguments are copied so that a function that modifies its input cannot corrupt
         the next case.
         """
         args = tuple(a.copy() if isinstance(a, np.ndarray) else a for a in args)
+        self.case = case
+        self.answered.setdefault(case, False)
         try:
             out = fn(*args, **kwargs)
-            if out is None:
-                self.fail(f"{case}: your function returned None: return the result (a missing return statement?)")
+            unusable = _unusable(out)
+            if unusable:
+                self.fail(f"{case}: your function returned {unusable}: return the result (a missing return statement?)")
                 return FAILED
+            self.unanswered_call = case
             return out
         except NotImplementedError:
             self.fail(f"{case}: not implemented yet (the function raises NotImplementedError)")
@@ -332,9 +356,11 @@ class Check:
         """Check that ``value`` is an array of ``shape`` (``None`` entries match any size)."""
         if value is FAILED:
             return False
-        arr = np.asarray(value) if not isinstance(value, np.ndarray) else value
-        ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape))
         want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+        arr = as_array(value)
+        if arr is None or arr.dtype == object or arr.dtype.kind in "USV":
+            return self.gate(False, "", f"{what} is {_describe(value)}, expected a numeric array of shape {want}")
+        ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape, strict=True))
         if not ok:
             return self.gate(False, "", f"{what} has shape {tuple(arr.shape)}, expected {want}")
         if np.issubdtype(arr.dtype, np.number) and not np.isfinite(arr).all():
@@ -351,12 +377,33 @@ class Check:
         self.report()
         return True  # the verdict is the output; never a traceback in a check cell
 
+    def account_for_cases(self) -> None:
+        """Fail every case that did not run or whose result no check could use (called by :meth:`report`).
+
+        A planned case (:meth:`plan`) that no call reached, a case that was called but about which
+        no verdict was recorded (its result was nothing the check could read), and a last call
+        after which nothing was recorded, each count as one failed check, so that a missing answer
+        never makes checks disappear from the count.
+        """
+        last = self.unanswered_call  # the last call's result led to no verdict at all
+        for case in [c for c in self.planned if c not in self.answered]:
+            self.fail(f"{case}: this case did not run (the check stopped before it); it counts as failed")
+        unanswered = [case for case, answered in self.answered.items() if not answered]
+        for case in unanswered:
+            self.fail(f"{case}: the result could not be checked (nothing usable was returned); it counts as failed")
+        if last is not None and last not in unanswered:
+            self.fail(f"{last}: the result of the last call could not be checked (nothing usable was returned); "
+                      "it counts as failed")
+
     def report(self) -> CheckResult:
         """Print the verdict and store the :class:`CheckResult` in :data:`RESULTS`.
 
-        A failed defining property leads: a first line names it (and that it caps the points at
-        one half), followed by the failed checks that test it; then the other lines in order.
+        Cases that did not run, or whose result could not be used, are failed first
+        (:meth:`account_for_cases`). A failed defining property leads: a first line names it (and
+        that it caps the points at one half), followed by the failed checks that test it; then the
+        other lines in order.
         """
+        self.account_for_cases()
         result = CheckResult(self.exercise, self.passed, self.total, [], list(self.verdicts))
         broken = result.defining_failed
         lead = [i for i, v in enumerate(self.verdicts) if v.defining in broken and not v.ok]
@@ -376,6 +423,41 @@ class Check:
         else:
             print(f"  {self.passed} of {self.total} checks passed")
         return result
+
+
+def as_array(value: Any) -> np.ndarray | None:
+    """``value`` as a numpy array (torch tensors on any device, with or without grad, included); None if impossible."""
+    try:
+        if hasattr(value, "detach") and hasattr(value, "cpu"):
+            value = value.detach().cpu().numpy()
+        return value if isinstance(value, np.ndarray) else np.asarray(value)
+    except Exception:  # noqa: BLE001 - ragged lists, objects that refuse conversion: not an array
+        return None
+
+
+def _describe(value: Any) -> str:
+    """A short description of a returned value for a verdict ("a str", "a tuple of 2 items", "None")."""
+    if value is None:
+        return "None"
+    if isinstance(value, (tuple, list)):
+        return f"a {type(value).__name__} of {len(value)} items"
+    arr = as_array(value)
+    if arr is not None and arr.dtype != object and arr.dtype.kind not in "USV":
+        return f"an array of shape {tuple(arr.shape)}"
+    return f"a {type(value).__name__}"
+
+
+def _unusable(out: Any) -> str | None:
+    """What makes a returned value nothing usable ("None", "NaN"), or None.
+
+    Results of the wrong type or shape are the check's to name (it knows what was asked for, e.g.
+    "return a dict"); a check that cannot use a result at all fails its case in :meth:`Check.report`.
+    """
+    if out is None:
+        return "None"
+    if isinstance(out, (float, np.floating)) and np.isnan(out):
+        return "NaN"
+    return None
 
 
 def _student_frame(exc: BaseException) -> str:

@@ -1,21 +1,47 @@
 """Cutting one exercise out of a submitted notebook, with exactly what it needs.
 
 :func:`extract_exercise` takes the top-level ``def`` (or ``class``) of the exercise's name in the
-cells before its check cell, plus the imports, helper functions and assignments it needs
-(transitively, the last binding of each name, as the notebook would see it when the check cell
-runs). The grader runs that code, and nothing else of the notebook, in the student's process
+cells before its check cell, plus every earlier top-level statement that the exercise's result can
+depend on, in notebook order: a backward slice over the notebook's top-level statements. The
+grader runs that code, and nothing else of the notebook, in the student's process
 (:mod:`course_lib.instructor.student_process`).
+
+A statement is kept when it *touches* a needed name:
+
+* it binds it (assignment of any form, ``import``, ``def``, ``class``, ``for`` / ``with`` / ``except``
+  targets, ``:=``, ``del``); an unconditional simple binding (``x = ...``, ``import x``,
+  ``def x``) ends the search for earlier bindings of that name;
+* it changes the object bound to it: item or attribute assignment (``OPTS["sign"] = 1.0``,
+  ``cfg.scale = 2``), augmented assignment, a method call used as a statement
+  (``OPTS.update(...)``, ``torch.set_default_dtype(...)``), or a call of a function whose body
+  assigns it through ``global``.
+
+What a kept statement reads is needed in turn. Names are resolved with :mod:`symtable`, so
+nested defs, lambdas, comprehensions, class bodies, decorators, defaults, annotations and
+``global`` declarations count exactly as Python scopes them; the free names of a function body
+are needed both where the function is defined and when the check calls it, so a module constant
+that a later cell changes is seen with the value it has when the check cell runs. ``from m import
+*`` statements are always kept (what they bind is unknown here); ``from __future__`` imports go
+first. Two statements on one line (``a = 1; b = 2``) are cut apart.
 """
 
 from __future__ import annotations
 
 import ast
 import builtins
+import symtable
 from dataclasses import dataclass, field
 
 from course_lib.instructor.notebooks import python_source
 
-__all__ = ["Extracted", "extract_exercise", "code_cells"]
+__all__ = ["Extracted", "Statement", "code_cells", "extract_exercise", "top_level_statements"]
+
+#: Names every module has (the student's code runs as a module called ``__main__``).
+MODULE_NAMES = {"__name__", "__file__", "__doc__", "__builtins__", "__spec__", "__loader__", "__package__",
+                "__class__"}
+FUTURE_ANNOTATIONS = "from __future__ import annotations\n"
+_SIMPLE_BINDINGS = (ast.Assign, ast.AnnAssign, ast.Import, ast.ImportFrom, ast.FunctionDef, ast.AsyncFunctionDef,
+                    ast.ClassDef)
 
 
 @dataclass
@@ -23,71 +49,45 @@ class Extracted:
     """The code of one exercise as cut out of a notebook."""
 
     name: str
-    code: str  # imports + helpers + the def, in notebook order
+    code: str  # the statements it needs + the def, in notebook order
     tree: ast.Module
     def_cell: int  # cell index of the def used
     problems: list[str] = field(default_factory=list)  # e.g. names the grader could not find
 
 
-def _bound_names(node: ast.AST) -> list[str]:
-    if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
-        return [node.name]
-    if isinstance(node, (ast.Import, ast.ImportFrom)):
-        return [(a.asname or a.name).split(".")[0] for a in node.names if a.name != "*"]
-    targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
-    out = []
-    for t in targets:
-        for n in ast.walk(t):
-            if isinstance(n, ast.Name):
-                out.append(n.id)
-    return out
+@dataclass
+class Statement:
+    """One top-level statement of a notebook and the names it binds, changes and reads.
 
+    Attributes:
+        cell: the index of its cell (among all cells).
+        node: its syntax tree.
+        text: its source (only this statement, even when it shares a line with another).
+        binds: names it (re)binds at top level.
+        kills: names it surely rebinds (unconditional simple bindings): earlier bindings are dead.
+        changes: names whose object it changes in place (item, attribute, method call, ``global``).
+        reads: names it reads, at once or later (the free names of the functions it defines).
+        global_writes: for a top-level ``def``: the names its body assigns through ``global``.
+        star: whether it is ``from m import *``.
+    """
 
-def _local_names(node: ast.AST) -> set[str]:
-    """Names bound inside a def or class (arguments, assignments, imports, nested defs, loop targets)."""
-    out = set()
-    for n in ast.walk(node):
-        if n is node:
-            if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
-                out |= _arg_names(n.args)
-            continue
-        if isinstance(n, ast.Name) and isinstance(n.ctx, (ast.Store, ast.Del)):
-            out.add(n.id)
-        elif isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
-            out.add(n.name)
-            if not isinstance(n, ast.ClassDef):
-                out |= _arg_names(n.args)
-        elif isinstance(n, ast.Lambda):
-            out |= _arg_names(n.args)
-        elif isinstance(n, (ast.Import, ast.ImportFrom)):
-            out |= {(a.asname or a.name).split(".")[0] for a in n.names}
-        elif isinstance(n, ast.ExceptHandler) and n.name:
-            out.add(n.name)
-    return out
+    cell: int
+    node: ast.stmt
+    text: str
+    binds: set[str] = field(default_factory=set)
+    kills: set[str] = field(default_factory=set)
+    changes: set[str] = field(default_factory=set)
+    reads: set[str] = field(default_factory=set)
+    global_writes: set[str] = field(default_factory=set)
+    star: bool = False
 
+    @property
+    def is_def(self) -> bool:
+        return isinstance(self.node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef))
 
-def _arg_names(a: ast.arguments) -> set[str]:
-    return {x.arg for x in a.posonlyargs + a.args + a.kwonlyargs + [a.vararg, a.kwarg] if x is not None}
-
-
-def _used_names(node: ast.AST) -> set[str]:
-    """The free names of a top-level statement: what it needs from the notebook's globals."""
-    loads = {n.id for n in ast.walk(node) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load)}
-    if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
-        outer = set()  # decorators, defaults, bases: evaluated in the notebook's scope
-        exprs = list(getattr(node, "decorator_list", [])) + list(getattr(node, "bases", []))
-        if not isinstance(node, ast.ClassDef):
-            exprs += [d for d in node.args.defaults + node.args.kw_defaults if d is not None]
-        for e in exprs:
-            outer |= {n.id for n in ast.walk(e) if isinstance(n, ast.Name)}
-        return (loads - _local_names(node)) | outer
-    return loads
-
-
-def _segment(src: str, node: ast.AST) -> str:
-    lines = src.splitlines()
-    start = min([node.lineno] + [d.lineno for d in getattr(node, "decorator_list", [])]) - 1
-    return "\n".join(lines[start:node.end_lineno])
+    @property
+    def is_future(self) -> bool:
+        return isinstance(self.node, ast.ImportFrom) and self.node.module == "__future__"
 
 
 def code_cells(nb) -> list[tuple[int, str, ast.Module | None]]:
@@ -105,58 +105,164 @@ def code_cells(nb) -> list[tuple[int, str, ast.Module | None]]:
     return out
 
 
-def extract_exercise(nb, name: str, before_cell: int) -> Extracted | None:
-    """Cut exercise ``name`` out of a notebook: its last top-level def before cell ``before_cell``, with what it needs.
+def _segment(src: str, node: ast.stmt) -> str:
+    """The source of one top-level statement (with its decorators; cut apart from others on its line)."""
+    decorators = getattr(node, "decorator_list", [])
+    if decorators:
+        lines = src.splitlines()
+        start = min(d.lineno for d in decorators) - 1
+        return "\n".join(lines[start:node.end_lineno])
+    return ast.get_source_segment(src, node) or ast.unparse(node)
 
-    Returns None when no cell before ``before_cell`` defines ``name`` at top level.
+
+def _root_name(expr: ast.AST) -> str | None:
+    """``OPTS`` for ``OPTS["a"].b[0]``; None when the chain does not start at a name."""
+    while isinstance(expr, (ast.Attribute, ast.Subscript, ast.Starred)):
+        expr = expr.value
+    return expr.id if isinstance(expr, ast.Name) else None
+
+
+def _module_level_nodes(node: ast.AST):
+    """The nodes of a statement that run when it runs: not the bodies of the functions and lambdas it defines."""
+    todo = [node]
+    while todo:
+        n = todo.pop()
+        yield n
+        if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            todo += list(n.decorator_list) + [d for d in n.args.defaults + n.args.kw_defaults if d is not None]
+        elif isinstance(n, ast.Lambda):
+            todo += [d for d in n.args.defaults + n.args.kw_defaults if d is not None]
+        else:
+            todo += list(ast.iter_child_nodes(n))
+
+
+def _changed_names(node: ast.AST, nodes=None) -> set[str]:
+    """Names whose object the statement changes in place: item/attribute stores and deletes, method-call statements."""
+    out: set[str] = set()
+    for n in _module_level_nodes(node) if nodes is None else nodes:
+        if isinstance(n, (ast.Attribute, ast.Subscript)) and isinstance(n.ctx, (ast.Store, ast.Del)):
+            root = _root_name(n)
+            if root:
+                out.add(root)
+        elif isinstance(n, ast.AugAssign) and isinstance(n.target, ast.Name):
+            out.add(n.target.id)
+        elif isinstance(n, ast.Expr) and isinstance(n.value, ast.Call) and isinstance(n.value.func, ast.Attribute):
+            root = _root_name(n.value.func)
+            if root:
+                out.add(root)
+    return out
+
+
+def _called_names(node: ast.stmt) -> set[str]:
+    return {n.func.id for n in _module_level_nodes(node) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
+
+
+def _scope_names(table: symtable.SymbolTable) -> tuple[set[str], set[str]]:
+    """``(read, written)``: global names the nested scopes of ``table`` read, and assign through ``global``."""
+    read: set[str] = set()
+    written: set[str] = set()
+    for child in table.get_children():
+        for s in child.get_symbols():
+            if s.is_global() and s.is_referenced():
+                read.add(s.get_name())
+            if s.is_declared_global() and s.is_assigned():
+                written.add(s.get_name())
+        r, w = _scope_names(child)
+        read |= r
+        written |= w
+    return read, written
+
+
+def analyse(cell: int, src: str, node: ast.stmt, lazy_annotations: bool = False) -> Statement:
+    """The :class:`Statement` of one top-level statement of a cell whose (magic-free) source is ``src``.
+
+    ``lazy_annotations``: an earlier cell ran ``from __future__ import annotations`` (IPython keeps
+    it for the later cells), so annotations are not evaluated and read nothing.
     """
-    stmts: list[tuple[int, str, ast.AST]] = []  # (cell, source, node) in notebook order
-    syntax_errors = []
+    text = _segment(src, node)
+    st = Statement(cell, node, text)
+    try:
+        table = symtable.symtable(FUTURE_ANNOTATIONS * lazy_annotations + text, "<cell>", "exec")
+    except SyntaxError:  # e.g. 'await' outside a function: kept as it is, reads what it names
+        names = {n.id for n in ast.walk(node) if isinstance(n, ast.Name)}
+        st.reads, st.binds = names, names
+        return st
+    for s in table.get_symbols():
+        if lazy_annotations and s.get_name() == "annotations" and not st.is_future:
+            continue
+        if s.is_referenced():
+            st.reads.add(s.get_name())
+        if s.is_assigned() or s.is_imported():
+            st.binds.add(s.get_name())
+    nested_reads, nested_writes = _scope_names(table)
+    st.reads |= nested_reads
+    if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+        # names its body rebinds through `global`, or whose global object it changes in place
+        st.global_writes = nested_writes | (_changed_names(node, ast.walk(node)) & nested_reads)
+    st.changes = _changed_names(node)
+    st.reads |= {n.target.id for n in ast.walk(node) if isinstance(n, ast.AugAssign)
+                 and isinstance(n.target, ast.Name)} & st.binds
+    st.star = isinstance(node, ast.ImportFrom) and any(a.name == "*" for a in node.names)
+    if isinstance(node, _SIMPLE_BINDINGS) and not (isinstance(node, ast.AnnAssign) and node.value is None):
+        st.kills = set(st.binds) - st.reads
+    return st
+
+
+def top_level_statements(nb, before_cell: int) -> tuple[list[Statement], list[int]]:
+    """The analysed top-level statements of the code cells before ``before_cell``, and the cells that do not parse."""
+    stmts: list[Statement] = []
+    bad = []
+    lazy = False
     for i, src, tree in code_cells(nb):
         if i >= before_cell:
             break
         if tree is None:
-            syntax_errors.append(i)
+            bad.append(i)
             continue
         for node in tree.body:
-            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef, ast.Import, ast.ImportFrom,
-                                 ast.Assign, ast.AnnAssign)):
-                stmts.append((i, src, node))
-    last: dict[str, int] = {}
-    for k, (_, _, node) in enumerate(stmts):
-        for n in _bound_names(node):
-            last[n] = k
-    if name not in last or not isinstance(stmts[last[name]][2], (ast.FunctionDef, ast.ClassDef,
-                                                                    ast.AsyncFunctionDef)):
+            lazy = lazy or (isinstance(node, ast.ImportFrom) and node.module == "__future__"
+                            and any(a.name == "annotations" for a in node.names))
+            stmts.append(analyse(i, src, node, lazy))
+    return stmts, bad
+
+
+def _slice(stmts: list[Statement], name: str) -> tuple[set[int], set[str]]:
+    """Indices of the statements ``name`` needs (a backward slice), and the names still unbound before them all."""
+    writers = {s.node.name: s.global_writes for s in stmts if s.is_def and s.global_writes}
+    changes = [s.changes | {n for f in _called_names(s.node) & set(writers) for n in writers[f]} for s in stmts]
+    at_end = {name}
+    while True:
+        live, keep = set(at_end), set()
+        for k in range(len(stmts) - 1, -1, -1):
+            s = stmts[k]
+            if not (s.star or (s.binds | changes[k]) & live):
+                continue
+            keep.add(k)
+            live -= s.kills
+            live |= s.reads
+        later = set().union(*(stmts[k].reads for k in keep)) if keep else set()
+        if later <= at_end:  # a function's free names are read again when the check calls it
+            return keep, live
+        at_end |= later
+
+
+def extract_exercise(nb, name: str, before_cell: int) -> Extracted | None:
+    """Cut exercise ``name`` out of a notebook: its last top-level def before cell ``before_cell``, with what it needs.
+
+    Returns None when no cell before ``before_cell`` defines ``name`` with a top-level ``def`` or ``class``.
+    """
+    stmts, _ = top_level_statements(nb, before_cell)
+    defs = [s for s in stmts if s.is_def and s.node.name == name]
+    if not defs:
         return None
-    need, todo, missing = set(), [last[name]], set()
-    while todo:
-        k = todo.pop()
-        if k in need:
-            continue
-        need.add(k)
-        node = stmts[k][2]
-        for n in sorted(_used_names(node)):
-            if n in last and last[n] != k:
-                todo.append(last[n])
-            elif n not in last and not hasattr(builtins, n):
-                missing.add(n)
-    parts = [_segment(stmts[k][1], stmts[k][2]) for k in sorted(need)]
-    code = "\n\n".join(parts) + "\n"
-    ex = Extracted(name, code, ast.parse(code), stmts[last[name]][0])
-    # names bound inside functions (locals, comprehension variables) are not "missing"
-    local = {n.id for n in ast.walk(ex.tree) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store)}
-    local |= {a.arg for n in ast.walk(ex.tree) if isinstance(n, ast.arguments)
-              for a in n.args + n.kwonlyargs + n.posonlyargs + ([n.vararg] if n.vararg else [])
-              + ([n.kwarg] if n.kwarg else [])}
-    local |= {n.name for n in ast.walk(ex.tree) if isinstance(n, (ast.FunctionDef, ast.ClassDef))}
-    local |= {(a.asname or a.name).split(".")[0] for n in ast.walk(ex.tree) if isinstance(n, (ast.Import, ast.ImportFrom))
-              for a in n.names}
-    missing -= local
-    missing -= {"__class__"}
-    if missing:
+    keep, unbound = _slice(stmts, name)
+    kept = [stmts[k] for k in sorted(keep)]
+    kept = [s for s in kept if s.is_future] + [s for s in kept if not s.is_future]
+    code = "\n\n".join(s.text for s in kept) + "\n"
+    ex = Extracted(name, code, ast.parse(code), defs[-1].cell)
+    bound = set().union(*(s.binds | s.global_writes for s in kept))  # a loop variable is read where it is bound
+    missing = {n for n in unbound - bound if not hasattr(builtins, n) and n not in MODULE_NAMES}
+    if missing and not any(s.star for s in kept):
         ex.problems.append("uses notebook names that no top-level def, import or assignment before its check cell "
                            f"defines: {', '.join(sorted(missing))} (the grader runs the function on its own)")
     return ex
-
-

@@ -218,7 +218,7 @@ def notebook_spec(path: Path) -> NotebookSpec:
             spec.exercises.append(ExerciseSpec(
                 notebook=path.name, name=ex, cell=ex_cell, check_cell=i, check_module=check_imports[fn],
                 check_function=fn, check_source=cell.source, check_sha256=sha256(cell.source), verdict=verdict,
-                points=points, reference=_reference_of(ex, texts)))
+                points=points, reference=_reference_of(ex, texts) or library_definition(ex)))
     spec.solution_modules = sorted(sol_mods)
     spec.imports = sorted(mods)
     if not any_region and not spec.exercises:
@@ -264,6 +264,40 @@ def _reference_of(name: str, region_texts: list[str]) -> str | None:
                     continue
                 return f"{mod}:{attr or name}"
     return None
+
+
+_DEFS_CACHE: dict[tuple, set[str]] = {}
+
+
+def _top_level_names(path: Path) -> set[str]:
+    """Names of the top-level defs and classes of a file (cached by path, size and modification time)."""
+    st = path.stat()
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    if key not in _DEFS_CACHE:
+        try:
+            _DEFS_CACHE[key] = {n.name for n in _top_defs(ast.parse(path.read_text()))}
+        except SyntaxError:
+            _DEFS_CACHE[key] = set()
+    return _DEFS_CACHE[key]
+
+
+def library_definition(name: str) -> str | None:
+    """``"module:name"`` of the course_lib module (outside the instructor package) that defines ``name`` at top level.
+
+    The reference of an exercise whose solution region calls no library function (a one-line
+    exercise such as ``psnr``) is the library's own function of that name, when there is one; None
+    when no module, or more than one, defines it.
+    """
+    root = REPO_ROOT / "course_lib"
+    found = []
+    for p in sorted(root.rglob("*.py")):
+        rel = p.relative_to(REPO_ROOT).with_suffix("")
+        if "instructor" in rel.parts or "__pycache__" in rel.parts or p.name == "student.py":
+            continue
+        if name in _top_level_names(p):
+            parts = list(rel.parts[:-1]) if rel.parts[-1] == "__init__" else list(rel.parts)
+            found.append(".".join(parts))
+    return f"{found[0]}:{name}" if len(found) == 1 else None
 
 
 def kit_specs(notebooks_dir: Path = NOTEBOOKS_DIR, only: list[str] | None = None,

@@ -6,6 +6,12 @@ that no released notebook needs are left out, with every module that imports the
 :mod:`course_lib.nerf.render`) are shipped *redacted* (:func:`redact_module`): their exercise
 functions are replaced by a stand-in that calls the student's own function of the same name
 (:mod:`course_lib.student`). The instructor package never ships.
+
+Every exercise is accounted for in every shipped module, not only in the module its solution
+region imports: a top-level ``def``, ``class`` or assignment of an exercise's name in any module
+that ships is redacted too (:func:`exercise_definitions`). The plan's
+:attr:`ReleasePlan.implementations` says, per exercise, where its implementation went (left out,
+replaced by a stand-in, or shipped, with the reason); the release manifest carries it.
 """
 
 from __future__ import annotations
@@ -19,7 +25,7 @@ from course_lib.instructor.notebooks import NotebookSpec, in_optional_import, re
 from course_lib.paths import REPO_ROOT
 
 __all__ = ["INSTRUCTOR_PACKAGE", "SKIP_NAMES", "ReleasePlan", "release_plan", "solution_modules", "redact_module",
-           "imported_names", "course_lib_modules", "module_name"]
+           "imported_names", "course_lib_modules", "module_name", "exercise_definitions"]
 
 #: The package that only the instructor needs (release, grading, the hidden cases); it never ships.
 INSTRUCTOR_PACKAGE = "course_lib.instructor"
@@ -84,13 +90,18 @@ def course_lib_modules() -> dict[str, Path]:
 
 
 def solution_modules(specs: list[NotebookSpec]) -> dict[str, list[str]]:
-    """``{module: [exercise names it holds the reference of]}`` over all notebooks."""
+    """``{module: [exercise names it holds the reference of]}`` over all notebooks.
+
+    Only modules that solution regions import count; an exercise whose reference is merely a
+    library function of the same name (:func:`course_lib.instructor.notebooks.library_definition`)
+    is accounted for by :func:`_account_for_exercises`.
+    """
     out: dict[str, list[str]] = {}
     for s in specs:
         for m in s.solution_modules:
             out.setdefault(m, [])
         for e in s.exercises:
-            if e.reference:
+            if e.reference and e.reference.split(":")[0] in s.solution_modules:  # not a library_definition
                 mod, attr = e.reference.split(":")
                 out.setdefault(mod, []).append(attr)
     return {m: sorted(set(v)) for m, v in sorted(out.items())}
@@ -103,6 +114,59 @@ class ReleasePlan:
     exercise_notebook: dict[str, str]  # exercise name -> notebook that teaches it
     notes: list[str] = field(default_factory=list)
     left_out_notebooks: list[str] = field(default_factory=list)  # demos that need the reference solutions
+    #: exercise -> {"left out": [modules], "stand-in": [modules], "ships": ["module: why"]}: where each
+    #: definition of the exercise's name in course_lib went
+    implementations: dict[str, dict[str, list[str]]] = field(default_factory=dict)
+
+
+def exercise_definitions(path: Path, names: set[str]) -> dict[str, bool]:
+    """``{exercise name: whether the module itself uses it}`` for the names of ``names`` a module defines at top level.
+
+    A definition is a top-level ``def``, ``class`` or assignment of the name; "uses it" means
+    that some other top-level statement of the module reads the name (so a stand-in would change
+    what the module's own functions compute).
+    """
+    tree = ast.parse(Path(path).read_text())
+    out: dict[str, bool] = {}
+    for node in tree.body:
+        name = _bound_name(node)
+        if name in names:
+            out[name] = False
+    for node in tree.body:
+        own = _bound_name(node)
+        for n in ast.walk(node):
+            if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load) and n.id in out and n.id != own:
+                out[n.id] = True
+    return out
+
+
+def _account_for_exercises(plan: ReleasePlan, mods: dict[str, Path]) -> None:
+    """Redact every top-level definition of an exercise's name in the shipped modules; record where each went.
+
+    A definition that the module's own code calls, of an exercise whose reference lives elsewhere,
+    is not replaced (the kit's own code would then need the student's function in notebooks
+    that do not teach it): it ships, and :attr:`ReleasePlan.implementations` and the notes say so.
+    """
+    names = set(plan.exercise_notebook)
+    omit = set(plan.omit)
+    for m, path in sorted(mods.items()):
+        if m == "course_lib.student":
+            continue
+        for name, used_inside in sorted(exercise_definitions(path, names).items()):
+            where = plan.implementations.setdefault(name, {"left out": [], "stand-in": [], "ships": []})
+            if m in omit:
+                where["left out"].append(m)
+            elif name in plan.redact.get(m, []) or not used_inside:
+                if name not in plan.redact.get(m, []):
+                    plan.redact.setdefault(m, []).append(name)
+                where["stand-in"].append(m)
+            else:
+                where["ships"].append(f"{m}: the module's own code calls it (a stand-in would make the kit need "
+                                      f"the student's {name} outside {plan.exercise_notebook[name]})")
+                plan.notes.append(f"{m}.{name} implements the exercise {name} and ships: the module's own code "
+                                  "calls it; compute it inline there or take it from the caller")
+    for m in plan.redact:
+        plan.redact[m] = sorted(plan.redact[m])
 
 
 def release_plan(specs: list[NotebookSpec]) -> ReleasePlan:
@@ -160,7 +224,9 @@ def release_plan(specs: list[NotebookSpec]) -> ReleasePlan:
             left_out.append(d.name)
             notes.append(f"notebooks/{d.name} has no exercises and needs {sorted(reach & omit)[0]} (a reference "
                          "solution): it is not part of the student kit")
-    return ReleasePlan(sorted(omit), redact, ex_nb, notes, left_out)
+    plan = ReleasePlan(sorted(omit), redact, ex_nb, notes, left_out)
+    _account_for_exercises(plan, mods)
+    return plan
 
 
 def redact_module(path: Path, names: list[str], exercise_notebook: dict[str, str], keep: set[str] = frozenset()) -> str:

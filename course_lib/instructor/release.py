@@ -303,6 +303,7 @@ def release_files(notebooks_dir: Path = NOTEBOOKS_DIR) -> dict[str, bytes]:
         "left_out_notebooks": plan.left_out_notebooks,
         "omitted_modules": plan.omit,
         "redacted": plan.redact,
+        "exercise_implementations": plan.implementations,
         "notes": plan.notes,
         "files": {k: sha256(v) for k, v in sorted(files.items())},
     }

@@ -27,6 +27,8 @@ FORBIDDEN_MODULES = {
     "importlib", "gc", "inspect", "builtins", "ctypes", "sys", "subprocess", "signal", "pickle", "marshal",
     "types", "code", "codeop", "runpy", "multiprocessing", "threading", "os", "glob", "pathlib", "shutil",
     "tempfile", "io", "dill", "cloudpickle", "socket", "pty", "atexit", "faulthandler", "trace", "linecache",
+    # modules that resolve a name given as a string (pkgutil.resolve_name, pydoc.locate, ...)
+    "pkgutil", "pydoc", "imp", "zipimport", "modulefinder", "site", "sysconfig",
 }
 #: Built-ins exercise code may not call.
 FORBIDDEN_CALLS = {"exec", "eval", "compile", "__import__", "globals", "locals", "vars", "setattr", "delattr",
@@ -80,7 +82,10 @@ def scan_exercise(tree: ast.Module, reference: str | None, omitted: set[str]) ->
                     if attr == ref_attr or attr == "*":
                         found.append(f"calls the reference solution {mod}.{ref_attr} (line {node.lineno})")
                 for a in node.names:
-                    aliases[(a.asname or a.name).split(".")[0]] = mod if attr is None else f"{mod}.{attr}"
+                    if isinstance(node, ast.Import) and not a.asname:  # `import a.b.c` binds the package a
+                        aliases[a.name.split(".")[0]] = a.name.split(".")[0]
+                    else:
+                        aliases[a.asname or a.name] = mod if attr is None else f"{mod}.{attr}"
         elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in FORBIDDEN_CALLS:
             found.append(f"calls {node.func.id}() (line {node.lineno}), which exercise code may not use")
         elif isinstance(node, ast.Name) and node.id in FORBIDDEN_CALLS | {"__builtins__"}:
@@ -100,12 +105,44 @@ def scan_exercise(tree: ast.Module, reference: str | None, omitted: set[str]) ->
                 and node.name not in ALLOWED_METHOD_DUNDERS:
             found.append(f"defines the special method {node.name} (line {node.lineno}), which could change how the "
                          "checks compare results")
-    if ref_mod:
-        for node in ast.walk(tree):
-            if isinstance(node, ast.Attribute) and node.attr == ref_attr and isinstance(node.value, ast.Name) \
-                    and aliases.get(node.value.id) == ref_mod:
-                found.append(f"calls the reference solution {ref_mod}.{ref_attr} (line {node.lineno})")
+    found += _reached_by_name(tree, aliases, f"{ref_mod}.{ref_attr}" if ref_mod else None, omitted)
     return sorted(set(found))
+
+
+def _dotted(node: ast.AST, aliases: dict[str, str]) -> str | None:
+    """``course_lib.nerf.train.psnr`` for ``train.psnr`` when ``train`` is an alias of ``course_lib.nerf.train``."""
+    attrs = []
+    while isinstance(node, ast.Attribute):
+        attrs.append(node.attr)
+        node = node.value
+    if not isinstance(node, ast.Name) or node.id not in aliases:
+        return None
+    return ".".join([aliases[node.id]] + attrs[::-1])
+
+
+def _reached_by_name(tree: ast.Module, aliases: dict[str, str], reference: str | None, omitted: set[str]) -> list[str]:
+    """Routes to the reference by attribute chains and ``getattr`` on the kit's modules.
+
+    Any chain of attributes from an imported module (``course_lib.nerf.train.psnr``) is resolved
+    through the import aliases; ``getattr`` on a kit module counts too. Names built from strings at
+    run time are not chased here: what stops them is the design (the student's process holds the
+    student kit only, and the kit holds no implementation of any exercise; see
+    tests/instructor/test_release.py).
+    """
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute):
+            path = _dotted(node, aliases)
+            if path and reference and (path == reference or path.startswith(reference + ".")):
+                found.append(f"calls the reference solution {reference} (line {node.lineno})")
+            elif path and any(path == m or path.startswith(m + ".") for m in omitted):
+                found.append(f"reaches {path} (line {node.lineno}), the instructor's reference solution, which is "
+                             "not part of the student kit")
+        elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in ("getattr", "hasattr") \
+                and node.args and (_dotted(node.args[0], aliases) or "").startswith("course_lib"):
+            found.append(f"uses {node.func.id}() on the kit's module {_dotted(node.args[0], aliases)} (line "
+                         f"{node.lineno}): call the kit's functions by their names")
+    return found
 
 
 def scan_notebook(nb, intact_check_cells: set[int], check_names: set[str],

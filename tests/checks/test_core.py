@@ -163,3 +163,147 @@ def test_a_failed_detail_costs_no_hidden_points_but_the_exercise_is_not_perfect(
     capsys.readouterr()
     assert core.score(result) == 1.0 and not result.ok
     assert result.details_failed == ["correct maths, but not the order the docstring asks for"]
+
+
+# ----------------------------------------------------------------- nothing usable fails its case (issue 18, item 5)
+
+
+@pytest.mark.parametrize("junk, phrase", [
+    (None, "returned None"),
+    (float("nan"), "returned NaN"),
+    (np.float32("nan"), "returned NaN"),
+])
+def test_a_call_that_returns_nothing_usable_fails(junk, phrase, capsys):
+    with Check("unusable") as c:
+        assert c.call(lambda: junk, case="a case") is FAILED
+    out = capsys.readouterr().out
+    assert phrase in out and "0 of 1 checks passed" in out
+
+
+@pytest.mark.parametrize("value, phrase", [
+    ("junk", "is a str, expected a numeric array of shape (3,)"),
+    ({"a": 1}, "is a dict, expected a numeric array"),
+    (object(), "is a object, expected a numeric array"),
+    ((np.zeros(2), np.zeros(3)), "is a tuple of 2 items, expected a numeric array"),
+    (np.zeros((3, 1)), "has shape (3, 1), expected (3,)"),
+    (np.array([1.0, np.nan, 0.0]), "contains NaN or inf"),
+])
+def test_shape_fails_on_anything_that_is_not_the_array_asked_for(value, phrase, capsys):
+    with Check("not an array") as c:
+        assert not c.shape(value, (3,), "d")
+    out = capsys.readouterr().out
+    assert phrase in out and "0 of 1 checks passed" in out
+
+
+def test_shape_reads_torch_tensors_on_any_device_and_with_grad(capsys):
+    torch = pytest.importorskip("torch")
+    with Check("tensor") as c:
+        assert c.shape(torch.zeros(3, requires_grad=True), (3,), "d")
+    assert "all 1 checks passed" in capsys.readouterr().out
+
+
+def test_a_planned_case_that_did_not_run_counts_as_failed(capsys):
+    with Check("planned") as c:
+        c.plan("case A", "case B", "case C")
+        out = c.call(lambda: np.ones(3), case="case A")
+        c.expect(c.shape(out, (3,), "case A: d") and out.sum() == 3, "case A: right", "case A: wrong")
+        c.call(lambda: np.ones(3), case="case B")
+        c.expect(True, "case B: right", "")
+        # the check returns here: case C never runs
+    result = core.RESULTS["planned"]
+    out = capsys.readouterr().out
+    assert "case C: this case did not run (the check stopped before it)" in out
+    assert not result.ok and core.score(result) == 2 / 3
+
+
+def test_a_check_that_stops_with_an_error_names_the_cases_it_did_not_reach(capsys):
+    with Check("stopped") as c:
+        c.plan("first", "second")
+        c.call(lambda: np.ones(3), case="first")
+        c.expect(True, "first: right", "")
+        raise ValueError("the check's own bug")
+    out = capsys.readouterr().out
+    assert "the check could not finish" in out and "second: this case did not run" in out
+    assert core.RESULTS["stopped"].passed == 1 and core.RESULTS["stopped"].total == 3
+
+
+def test_a_case_whose_result_no_check_could_use_counts_as_failed(capsys):
+    def lenient_to_array(v):  # a check helper that gives up silently on what it cannot read
+        try:
+            return np.asarray(v, dtype=float)
+        except (TypeError, ValueError):
+            return None
+
+    with Check("silent skip") as c:
+        z = lenient_to_array(c.call(lambda: "junk", case="evaluation"))
+        if z is not None:
+            c.expect(True, "evaluation: right", "")
+        z = lenient_to_array(c.call(lambda: np.ones(2), case="training"))
+        if z is not None:
+            c.expect(True, "training: right", "")
+    out = capsys.readouterr().out
+    assert "evaluation: the result could not be checked" in out
+    assert core.score(core.RESULTS["silent skip"]) == 0.5
+
+
+def test_a_last_call_whose_result_led_to_no_verdict_counts_as_failed(capsys):
+    with Check("repeat call") as c:
+        d = c.call(lambda: np.ones(3), case="pair")
+        c.expect(d.sum() == 3, "pair: right", "pair: wrong")
+        d2 = c.call(lambda: np.zeros(0), case="pair")  # the same case, called again (e.g. with a scaled input)
+        if d2.shape == d.shape:
+            c.gate(np.allclose(d, d2), "pair: scale-invariant", "pair: depends on the scale")
+    out = capsys.readouterr().out
+    assert "pair: the result of the last call could not be checked" in out
+    assert not core.RESULTS["repeat call"].ok
+
+
+def test_a_correct_run_gets_no_extra_lines(capsys):
+    with Check("clean") as c:
+        c.plan("a", "b")
+        for case in ("a", "b"):
+            v = c.call(lambda: np.ones(2), case=case)
+            c.shape(v, (2,), f"{case}: v")
+            c.expect(True, f"{case}: right", "")
+    assert capsys.readouterr().out.splitlines()[-1] == "  all 4 checks passed"
+
+
+@pytest.mark.parametrize("junk", [None, "junk", float("nan"), object(), (np.zeros(2), np.zeros(3)), np.zeros((0,)),
+                                  (None, None)], ids=["None", "str", "nan", "object", "ragged", "empty", "Nones"])
+def test_no_check_of_the_kit_passes_a_function_that_returns_junk_for_one_call(junk):
+    """Every check, with the reference solution answering every call but one, which returns junk: never all passed."""
+    import contextlib
+    import importlib
+    import io
+
+    from course_lib.instructor.notebooks import kit_specs
+
+    holes = []
+    for spec in kit_specs():
+        for e in spec.exercises:
+            if not e.reference or e.name in ("bundle_adjust", "NeRF"):  # a wrapper / a class: no plain reference call
+                continue
+            mod, attr = e.reference.split(":")
+            ref = getattr(importlib.import_module(mod), attr)
+            check = getattr(importlib.import_module(e.check_module), e.check_function)
+            n_calls = [0]
+
+            def counting(*a, _n=n_calls, _ref=ref, **kw):
+                _n[0] += 1
+                return _ref(*a, **kw)
+
+            with contextlib.redirect_stdout(io.StringIO()):
+                check(counting)
+            for k in range(n_calls[0]):
+                seen = [0]
+
+                def sabotaged(*a, _k=k, _seen=seen, _ref=ref, **kw):
+                    _seen[0] += 1
+                    return junk if _seen[0] == _k + 1 else _ref(*a, **kw)
+
+                with contextlib.redirect_stdout(io.StringIO()):
+                    check(sabotaged)
+                result = core.RESULTS[e.name]
+                if result.ok or core.score(result) >= 1.0:
+                    holes.append(f"{e.name}, call {k + 1} of {n_calls[0]}")
+    assert holes == []
