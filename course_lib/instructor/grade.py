@@ -211,8 +211,7 @@ def grade_submission(
 ) -> dict:
     """Grade a submission folder (a student kit, or a folder of notebooks) and return the report dict.
 
-    The submission is data: it is first copied into the grader's scratch folder as regular files
-    only (:func:`course_lib.instructor.submission.copy_submission`); everything else works on the copy.
+    The submission is data: everything works on the grader's copy of it (regular files only, :func:`copy_submission`).
 
     Args:
         submission: the student's folder; notebooks are read from ``submission/notebooks`` if it exists.
@@ -252,8 +251,7 @@ def grade_submission(
             _add_nbval(run, nbval_run)
         report = _report(run.grades, hidden, time.perf_counter() - t0, allow_reference)
         report["submission"] = {"files": copy.files, "bytes": copy.bytes, "left out": copy.refused}
-        report["isolation"] = {"hidden checks": run.sandbox_seen,
-                               "nbval": nbval_run.sandbox if nbval_run is not None else {}}
+        report["isolation"] = {"hidden checks": run.sandbox_seen, "nbval": nbval_run.sandbox if nbval_run else {}}
         return report
 
 
