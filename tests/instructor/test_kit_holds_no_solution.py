@@ -29,7 +29,6 @@ STILL_SHIPPED = {
     "triangulate_linear",
     "reprojection_residuals",
     "positional_encoding",
-    "psnr",
     "volume_render",
 }
 
