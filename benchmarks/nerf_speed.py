@@ -142,7 +142,8 @@ def _table(rows: list[dict], marks: list[str]) -> None:
     print(" | ".join(head))
     print(" | ".join("---" for _ in head))
     for r in rows:
-        ratio = r["render_rays_per_second"] / r["rays_per_second"] if r["render_rays_per_second"] else float("nan")
+        ratio = (r["render_rays_per_second"] / r["rays_per_second"] if r["render_rays_per_second"] and r["rays_per_second"]
+                 else float("nan"))
         cells = [r["scene"], r["tree"], r["preset"]] + [
             f"{r['psnr_at'][m]:.2f}" if r["psnr_at"].get(m) is not None else "-" for m in marks]
         cells += [f"{r['run_psnr']:.2f} ({r['run_views']}/{r['n_test']})" if r["run_psnr"] is not None else "-",

@@ -225,8 +225,8 @@ class RunClock:
         return self.budget_s is not None and self.spent() + self.reserve >= self.budget_s
 
     def allowed(self) -> bool:
-        """May due snapshots/evaluations/checkpoints run now (outside time <= overhead_budget x training)?"""
-        outside = sum(v for k, v in self.seconds.items() if k != "callback")
+        """May due snapshots/evaluations/checkpoints run now (their time so far <= overhead_budget x training)?"""
+        outside = sum(v for k, v in self.seconds.items() if k not in ("callback", "setup"))
         return self.cfg.overhead_budget <= 0 or outside <= self.cfg.overhead_budget * self.train_seconds
 
     def timed(self, kind: str, fn, *args):
