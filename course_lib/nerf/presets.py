@@ -77,7 +77,8 @@ class TrainConfig:
             :func:`course_lib.nerf.device.render_chunk`).
         overhead_budget: snapshots, evaluations and checkpoints that come due wait while the time
             spent on them exceeds this fraction of the training time so far (0: never wait). The
-            snapshot at step 0 and the final checkpoint, snapshot and evaluation always run.
+            snapshot at step 0 (runs without ``minutes``: with a budget the untrained field, the
+            slowest render of all, is not drawn) and the final checkpoint, snapshot and evaluation always run.
         final_eval_share: with ``minutes``, the share of the budget for the final evaluation: it
             renders the test views that fit (an evenly spread subset, at least one).
         eval_all: render all test views at the end, whatever the budget.

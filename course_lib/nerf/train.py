@@ -517,7 +517,7 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
     outputs = RunOutputs(out, state, clock, test_data if has_test else None, test_data if has_test else train_data,
                          snapshot_view, camera)
     bar = _Bar(cfg, state, clock, progress)
-    if cfg.snapshot_every and state.step == 0:
+    if cfg.snapshot_every and state.step == 0 and not cfg.minutes:  # (untrained: the slowest render of all)
         clock.timed("snapshots", outputs.snapshot, state)
     pending, steps, stopped_by = [], 0, "iterations"
     sync_every = 1 if device.type == "cpu" else 25  # on a GPU the losses come to the host every 25 steps

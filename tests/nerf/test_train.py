@@ -243,7 +243,8 @@ def test_ctrl_c_saves_a_checkpoint_and_resumes(scene, tmp_path):
     assert m["history"]["iterations"][-6:] == list(range(n, n + 6))
 
 
-@pytest.mark.parametrize("sh", [{}, {"grid_sh_degree": 1, "grid_sh_start": 0.5}, {"grid_sh_degree": 1, "grid_sh_start": 0.7}],
+@pytest.mark.parametrize("sh", [{"grid_sh_degree": 0}, {"grid_sh_degree": 1, "grid_sh_start": 0.5},
+                                {"grid_sh_degree": 1, "grid_sh_start": 0.7}],
                          ids=["rgb", "sh-before-checkpoint", "sh-after-checkpoint"])
 def test_grid_resume_across_rebox_and_upsample(scene, tmp_path, sh):
     # stop after the box was shrunk (step 4) and before the upsampling (step 8): the resumed run
