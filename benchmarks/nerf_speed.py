@@ -1,146 +1,216 @@
-"""NeRF training speed: PSNR after 1, 2, 5 minutes of training for the presets, samples/s, memory.
+"""NeRF speed and quality by image resolution: the "fast" preset's ladder, optionally against another tree.
 
-    python benchmarks/nerf_speed.py                          # lego-100 if present, else the embedded scene
-    python benchmarks/nerf_speed.py DATA_DIR --minutes 5 --presets fast paper --at 1 2 5
-    python benchmarks/nerf_speed.py --building 200 --presets fast   # the embedded building rendered at 200x200
-    python benchmarks/nerf_speed.py --device cuda --minutes 1 --at 0.5 1   # on a GPU
+    python benchmarks/nerf_speed.py --ladder                       # building 100, 200, 400, 800 px + lego-100, 5 min
+    python benchmarks/nerf_speed.py --ladder --baseline-tree /tmp/nerf-base    # + today's code at 400 px
+    python benchmarks/nerf_speed.py --sizes 400 --minutes 0.3 --at 0.1 0.2     # a smoke test
+    python benchmarks/nerf_speed.py DATA_DIR --minutes 5 --presets fast paper  # any Blender scene
+    python benchmarks/nerf_speed.py --ladder --device cuda                     # on a GPU
 
-Each preset trains in its own process (so the peak memory is its own), on the scene's train split;
-at each ``--at`` minute of *training* time (evaluation time excluded) it renders all test views
-and records their mean PSNR. Prints a table and the machine's load average before and after (on
-a shared machine, other processes slow the run down: compare numbers taken at similar load).
+Rungs: the embedded building rendered at SIZE x SIZE (100 training views, 25 test views on a ring;
+made once under ``outputs/bench-building-SIZE-t25``, git-ignored) and, with ``--lego`` (part of
+``--ladder``), lego-100 from the course data (``../shared/data/nerf-lego-100``, read in place).
 
-"outside training" is the share of the wall time not spent in training steps: setup, snapshots,
-checkpoints and the final evaluation (``overhead_fraction`` in metrics.json, with the same
-snapshot/checkpoint settings as ``nerf train``); the renders at the intermediate marks are the
-benchmark's own and are left out of it.
+Each run is ``nerf train``'s: one process per run (so the peak memory is its own), the data
+loaded as the CLI loads it, ``--minutes`` as the CLI passes it, snapshots and checkpoints as the
+preset has them. Reported per run:
+
+* PSNR at the ``--at`` marks (minutes of the run's budget clock: wall time for this tree, whose
+  ``--minutes`` covers the whole run; training time for a baseline whose ``--minutes`` counts
+  training only), on ``--mark-views`` evenly spread test views, rendered by the benchmark (its
+  time is left out of everything);
+* PSNR at the end on **all** test views (rendered by the benchmark after the run when the run
+  itself evaluated a subset), and the run's own final test PSNR with the number of views it used;
+* steps, training rays/s, rendering rays/s of the run's final evaluation (and their ratio);
+* "outside training": the share of the run's wall time (loading included) not spent in training
+  steps, the benchmark's own renders left out; the run's wall time; the peak memory (RSS, MB).
+
+``--baseline-tree PATH`` runs the same rungs (``--baseline-at``, default 400) with the
+``course_lib`` of another checkout, e.g. today's main: ``git worktree add /tmp/nerf-base e138692``.
+The load average before and after each run is printed: compare numbers taken at similar load.
 """
 
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
+HERE = Path(__file__).resolve()
+REPO = HERE.parents[1]
 
-def _one(data: str, preset_name: str, minutes: float, at: list[float], seed: int, threads: int | None,
-         mark_views: int | None, device: str) -> dict:
-    import torch
 
+def _psnr_all(evaluate, model, fine, cfg, bounds, te, views) -> float:
+    """Mean PSNR over ``views`` with the tree's own ``evaluate``."""
+    return round(evaluate(model, fine, cfg, bounds, te, views)[0], 2)
+
+
+def _spread(n: int, k: int) -> list[int]:
+    k = max(1, min(k, n))
+    return sorted({round(i * (n - 1) / max(k - 1, 1)) for i in range(k)}) if k < n else list(range(n))
+
+
+def _one(data: str, preset_name: str, minutes: float, at: list[float], seed: int, threads, mark_views: int,
+         device: str) -> dict:
+    """One run, in this process, with whatever ``course_lib`` is first on the path."""
+    t_start = time.perf_counter()
     from course_lib.data.blender import load_blender
     from course_lib.nerf.presets import preset
     from course_lib.nerf.train import evaluate, train
 
-    tr = load_blender(data, "train")
-    te = None
-    for split in ("test", "val"):
-        if (Path(data) / f"transforms_{split}.json").exists():
-            te = load_blender(data, split)
-            break
-    import tempfile
-
-    over = dict(minutes=minutes, seed=seed)  # snapshots and checkpoints as `nerf train` (their cost is measured)
+    kw = {"dtype": "uint8"} if "dtype" in inspect.signature(load_blender).parameters else {}
+    tr = load_blender(data, "train", **kw)
+    te = next((load_blender(data, s, **kw) for s in ("test", "val") if (Path(data) / f"transforms_{s}.json").exists()), None)
+    load_s = time.perf_counter() - t_start
+    over = dict(minutes=minutes, seed=seed)
     if threads is not None:
         over["threads"] = threads
     cfg = preset(preset_name, **over)
+    whole_run = "started_at" in inspect.signature(train).parameters  # --minutes covers the whole run
     marks = sorted(m * 60.0 for m in at if m < minutes)
+    views = _spread(len(te), mark_views) if te is not None else []
     psnr_at: dict[str, float] = {}
-    if mark_views is None:  # the MLP renders slowly on a CPU: its intermediate marks use 2 test views
-        mark_views = 2 if cfg.model == "nerf" else len(te) if te is not None else 0
-    views = list(range(min(mark_views, len(te)))) if te is not None else []
 
     def callback(step, info):
-        while marks and info["seconds"] >= marks[0]:
-            t = marks.pop(0)
-            psnr_at[f"{t / 60:g}"] = round(evaluate(info["model"], info["model_fine"], info["config"], info["bounds"], te,
-                                                    views)[0], 2)
+        clock = info.get("wall_seconds", info["seconds"]) if whole_run else info["seconds"]
+        while marks and clock >= marks[0]:
+            psnr_at[f"{marks.pop(0) / 60:g}"] = _psnr_all(evaluate, info["model"], info["model_fine"], info["config"],
+                                                          info["bounds"], te, views)
         return False
 
+    extra = {"started_at": t_start} if whole_run else {}
     with tempfile.TemporaryDirectory() as out:
-        res = train(tr, te, cfg, out_dir=out, progress=False, device=device,
-                    callback=callback if te is not None else None)
+        res = train(tr, te, cfg, out_dir=out, progress=False, device=device, callback=callback if te is not None else None,
+                    **extra)
     m = res.metrics
-    psnr_at[f"{minutes:g}"] = m["test_psnr"]
-    marks_s = m["overhead_breakdown"].get("callback", 0.0)
-    kit_overhead = (m["overhead_seconds"] - marks_s) / max(m["wall_seconds"] - marks_s, 1e-9)
-    return dict(preset=preset_name, psnr_at=psnr_at, mark_views=len(views), eval_seconds=m.get("eval_seconds"), iterations=m["iterations"], train_seconds=m["train_seconds"],
-                samples_per_second=m["samples_per_second"], rays_per_second=m["rays_per_second"],
-                peak_memory_mb=m["peak_memory_mb"], peak_gpu_memory_mb=m.get("peak_gpu_memory_mb"), threads=m["threads"],
-                n_parameters=m["n_parameters"], torch_threads=torch.get_num_threads(), device=m["device_name"],
-                wall_seconds_run=m["wall_seconds"], overhead_breakdown=m["overhead_breakdown"],
-                outside_training=round(kit_overhead, 4))
+    n_eval = m.get("n_test_views", len(te) if te is not None else 0)
+    final_all = m["test_psnr"]
+    if te is not None and n_eval < len(te):  # the run evaluated a subset: the benchmark renders them all
+        final_all = _psnr_all(evaluate, res.model, res.model_fine, res.config, res.bounds, te, None)
+    psnr_at[f"{minutes:g}"] = final_all
+    cb = m["overhead_breakdown"].get("callback", 0.0)
+    wall = m["wall_seconds"] + (0.0 if whole_run else load_s)
+    outside = (wall - cb - (m["wall_seconds"] - m["overhead_seconds"])) / max(wall - cb, 1e-9)
+    render_rps = m.get("render_rays_per_second") or (
+        n_eval * te.H * te.W / m["eval_seconds"] if te is not None and m.get("eval_seconds") else None)
+    return dict(preset=preset_name, psnr_at=psnr_at, run_psnr=m["test_psnr"], run_views=n_eval,
+                n_test=len(te) if te is not None else 0, mark_views=len(views), iterations=m["iterations"],
+                train_seconds=m["train_seconds"], rays_per_second=m["rays_per_second"], render_rays_per_second=render_rps,
+                peak_memory_mb=m["peak_memory_mb"], peak_gpu_memory_mb=m.get("peak_gpu_memory_mb"),
+                threads=m["threads"], device=m["device_name"], wall_seconds=round(wall - cb, 1),
+                outside_training=round(outside, 4), breakdown=m["overhead_breakdown"], load_seconds=round(load_s, 2),
+                grid_resolution=m["config"].get("grid_resolution"), n_samples=m["config"].get("n_samples"),
+                image_size=m["image_size"])
+
+
+def _building(size: int) -> str:
+    from course_lib.data.building import make_nerf_dataset
+
+    folder = REPO / "outputs" / f"bench-building-{size}-t25"
+    if not (folder / "transforms_test.json").exists():
+        print(f"rendering the building at {size}x{size} into {folder} ...", flush=True)
+        make_nerf_dataset(folder, size=size, n_test=25, splits=("train", "test"))
+    return str(folder)
+
+
+def _run(tree: Path, data: str, name: str, a) -> dict | None:
+    """One run in its own process, importing ``course_lib`` from ``tree``."""
+    cmd = [sys.executable, str(HERE), data, "--minutes", str(a.minutes), "--seed", str(a.seed), "--_one", name,
+           "--at", *map(str, a.at), "--device", a.device, "--mark-views", str(a.mark_views)]
+    cmd += ["--threads", str(a.threads)] if a.threads is not None else []
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    load0 = os.getloadavg()[0]
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=str(tree))
+    line = next((ln for ln in out.stdout.splitlines() if ln.startswith("RESULT ")), None)
+    if line is None:
+        print(f"run failed ({tree}, {data}, {name}):\n{out.stdout[-3000:]}\n{out.stderr[-3000:]}", file=sys.stderr)
+        return None
+    r = json.loads(line[7:])
+    r.update(load=f"{load0:.1f}/{os.getloadavg()[0]:.1f}")
+    return r
+
+
+def _table(rows: list[dict], marks: list[str]) -> None:
+    head = (["scene", "tree", "preset"] + [f"PSNR@{m}" for m in marks]
+            + ["run PSNR (views)", "steps", "train rays/s", "render rays/s", "render/train", "outside training",
+               "wall s", "peak MB", "grid/samples", "load 1-min"])
+    print(" | ".join(head))
+    print(" | ".join("---" for _ in head))
+    for r in rows:
+        ratio = (r["render_rays_per_second"] / r["rays_per_second"] if r["render_rays_per_second"] and r["rays_per_second"]
+                 else float("nan"))
+        cells = [r["scene"], r["tree"], r["preset"]] + [
+            f"{r['psnr_at'][m]:.2f}" if r["psnr_at"].get(m) is not None else "-" for m in marks]
+        cells += [f"{r['run_psnr']:.2f} ({r['run_views']}/{r['n_test']})" if r["run_psnr"] is not None else "-",
+                  str(r["iterations"]), f"{r['rays_per_second']:.0f}",
+                  f"{r['render_rays_per_second']:.0f}" if r["render_rays_per_second"] else "-", f"{ratio:.1f}x",
+                  f"{100 * r['outside_training']:.1f} %", f"{r['wall_seconds']:.0f}", f"{r['peak_memory_mb']:.0f}",
+                  f"{r['grid_resolution']}/{r['n_samples']}", r["load"]]
+        print(" | ".join(cells))
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("data", nargs="?", default=None, help="Blender scene folder (default: lego-100, else embedded)")
-    p.add_argument("--minutes", type=float, default=5.0)
-    p.add_argument("--at", type=float, nargs="+", default=[1, 2, 5], help="minutes at which to measure test PSNR")
-    p.add_argument("--presets", nargs="+", default=["paper", "fast"])
+    p.add_argument("data", nargs="?", default=None, help="a Blender scene folder (instead of the building rungs)")
+    p.add_argument("--ladder", action="store_true", help="the building at 100, 200, 400, 800 px and lego-100")
+    p.add_argument("--sizes", type=int, nargs="+", default=None, metavar="SIZE", help="building rungs (pixels)")
+    p.add_argument("--lego", action="store_true", help="also lego-100 from the course data")
+    p.add_argument("--minutes", type=float, default=5.0, help="each run's --minutes (default 5)")
+    p.add_argument("--at", type=float, nargs="+", default=[1, 2], help="minutes at which to measure PSNR (default 1 2)")
+    p.add_argument("--presets", nargs="+", default=["fast"])
+    p.add_argument("--baseline-tree", default=None, type=Path,
+                   help="another checkout whose course_lib runs the same rungs (e.g. a worktree of e138692)")
+    p.add_argument("--baseline-at", type=int, nargs="+", default=[400], metavar="SIZE",
+                   help="building rungs the baseline runs (default 400; 0: every rung, lego included)")
+    p.add_argument("--mark-views", type=int, default=5, help="test views rendered at the --at marks (default 5)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=None)
-    p.add_argument("--mark-views", type=int, default=None,
-                   help="test views rendered at the intermediate marks (default: all; 2 for the MLP preset)")
     p.add_argument("--device", default="auto", help="auto (CUDA, then MPS, then CPU), cpu, cuda or mps")
-    p.add_argument("--building", type=int, default=None, metavar="SIZE",
-                   help="train on the embedded building rendered at SIZE x SIZE (made once under outputs/)")
     p.add_argument("--json", default=None, help="also write the results here")
     p.add_argument("--_one", default=None, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
-    if a.building is not None and not a._one:
-        from course_lib.data.building import make_nerf_dataset
-        from course_lib.paths import REPO_ROOT
-
-        folder = REPO_ROOT / "outputs" / f"bench-building-{a.building}"
-        if not (folder / "transforms_test.json").exists():
-            print(f"rendering the building at {a.building}x{a.building} into {folder} ...", flush=True)
-            make_nerf_dataset(folder, size=a.building, splits=("train", "test"))
-        a.data = str(folder)
-    if a.data is None:
-        from course_lib.paths import EMBEDDED_NERF, course_data
-
-        a.data = str(course_data("lego") or EMBEDDED_NERF)
     if a._one:
         print("RESULT " + json.dumps(_one(a.data, a._one, a.minutes, a.at, a.seed, a.threads, a.mark_views, a.device)))
         return 0
+    sys.path.insert(0, str(REPO))
+    from course_lib.paths import course_data
+
+    sizes = a.sizes or ([100, 200, 400, 800] if a.ladder else [])
+    scenes = [(f"building-{s}", _building(s), s) for s in sizes]
+    if a.lego or a.ladder:
+        lego = course_data("lego")
+        if lego is None:
+            print("lego-100 is not in the course data (../shared/data): its rung is skipped", file=sys.stderr)
+        else:
+            scenes.append(("lego-100", str(lego), "lego"))
+    if a.data:
+        scenes.append((Path(a.data).name, a.data, "data"))
+    if not scenes:
+        p.error("nothing to run: pass --ladder, --sizes, --lego or a DATA folder")
     rows = []
-    for name in a.presets:
-        load0 = os.getloadavg()
-        t0 = time.time()
-        cmd = [sys.executable, __file__, a.data, "--minutes", str(a.minutes), "--seed", str(a.seed), "--_one", name,
-               "--at", *map(str, a.at), "--device", a.device] + (["--threads", str(a.threads)] if a.threads is not None else []) \
-            + (["--mark-views", str(a.mark_views)] if a.mark_views is not None else [])
-        out = subprocess.run(cmd, capture_output=True, text=True)
-        line = next((ln for ln in out.stdout.splitlines() if ln.startswith("RESULT ")), None)
-        if line is None:
-            print(out.stdout, out.stderr, file=sys.stderr)
-            return 1
-        r = json.loads(line[7:])
-        r.update(load_before=[round(x, 2) for x in load0], load_after=[round(x, 2) for x in os.getloadavg()],
-                 wall_seconds=round(time.time() - t0, 1))
-        rows.append(r)
-    marks = [f"{m:g}" for m in a.at if m <= a.minutes]
-    if f"{a.minutes:g}" not in marks:
-        marks.append(f"{a.minutes:g}")
-    views = ", ".join("{}: {}".format(r["preset"], r["mark_views"]) for r in rows)
-    print(f"data: {a.data}   cores: {os.cpu_count()}   device: {rows[0]['device']}")
-    print(f"PSNR = mean over the test views: all of them at the end, at earlier marks the first N ({views})")
-    head = ["preset"] + [f"PSNR@{m}min" for m in marks] + ["iters", "samples/s", "rays/s", "peak MB", "GPU MB",
-                                                          "outside training", "threads", "load 1-min before/after"]
-    print(" | ".join(head))
-    for r in rows:
-        cells = [r["preset"]] + [f"{r['psnr_at'].get(m, float('nan')):.2f}" for m in marks]
-        cells += [str(r["iterations"]), f"{r['samples_per_second']:.0f}", f"{r['rays_per_second']:.0f}",
-                  f"{r['peak_memory_mb']:.0f}", f"{r['peak_gpu_memory_mb']:.0f}" if r["peak_gpu_memory_mb"] else "-",
-                  f"{100 * r['outside_training']:.1f} %", str(r["torch_threads"]), f"{r['load_before'][0]}/{r['load_after'][0]}"]
-        print(" | ".join(cells))
+    for scene, folder, key in scenes:
+        trees = [("this", REPO)]
+        if a.baseline_tree and (0 in a.baseline_at or key in a.baseline_at):
+            trees.append(("baseline", a.baseline_tree.resolve()))
+        for tree_name, tree in trees:
+            for name in a.presets:
+                print(f"{scene}: {tree_name} tree, preset {name}, {a.minutes:g} min ...", flush=True)
+                r = _run(tree, folder, name, a)
+                if r is not None:
+                    rows.append({"scene": scene, "tree": tree_name, **r})
+    marks = [f"{m:g}" for m in a.at if m < a.minutes] + [f"{a.minutes:g}"]
+    print(f"\ncores: {os.cpu_count()}   device: {rows[0]['device'] if rows else '?'}   --minutes {a.minutes:g}")
+    print(f"PSNR@m = mean test PSNR at m minutes of the budget clock on {a.mark_views} evenly spread test views; "
+          f"at {a.minutes:g} min on all test views. 'run PSNR' = the run's own final figure (views it evaluated).")
+    _table(rows, marks)
     if a.json:
-        Path(a.json).write_text(json.dumps({"data": a.data, "rows": rows}, indent=1))
-    return 0
+        Path(a.json).write_text(json.dumps({"minutes": a.minutes, "rows": rows}, indent=1))
+    return 0 if rows else 1
 
 
 if __name__ == "__main__":

@@ -7,6 +7,10 @@
 * :mod:`course_lib.nerf.grid` - the voxel-grid field of the ``fast`` preset (09).
 * :mod:`course_lib.nerf.presets` - :class:`TrainConfig` and the presets ``paper`` and ``fast``.
 * :mod:`course_lib.nerf.device` - where it runs: ``pick_device()`` (CUDA, then MPS, then the CPU), render chunks.
-* :mod:`course_lib.nerf.train` - training, checkpoints, evaluation, novel-view paths.
+* :mod:`course_lib.nerf.scene` - the scene's bounds (``SceneBounds``) and the training rays (uint8 pixels).
+* :mod:`course_lib.nerf.schedule` - the grid's training schedule, as callbacks the field supplies.
+* :mod:`course_lib.nerf.inference` - forward-only rendering: evaluation, snapshots, novel views (08-09).
+* :mod:`course_lib.nerf.checkpoint` - checkpoints, written during training, read on any device.
+* :mod:`course_lib.nerf.train` - the training loop, its clock and its outputs.
 * :mod:`course_lib.nerf.cli` - ``python -m course_lib nerf train|render``.
 """

@@ -182,8 +182,8 @@ class GridField(nn.Module):
     def voxel_size(self) -> float:
         return float((self.box_max - self.box_min).max()) / self.resolution
 
-    def _normalized(self, pts: torch.Tensor) -> torch.Tensor:
-        """World points -> grid_sample coordinates in [-1, 1] (x, y, z order = W, H, D axes)."""
+    def normalized(self, pts: torch.Tensor) -> torch.Tensor:
+        """World points ``(N, 3)`` -> grid coordinates in [-1, 1] (x, y, z order = W, H, D axes), ``(N, 3)``."""
         ext = self.voxel_size * (torch.tensor(self.shape[::-1], device=pts.device, dtype=pts.dtype) - 1)
         return (pts - self.box_min) / ext * 2.0 - 1.0
 
@@ -201,7 +201,8 @@ class GridField(nn.Module):
             return out.reshape(grid.shape[1], -1).T
         return Trilinear.apply(grid, xyz)
 
-    def _inside_and_occupied(self, xyz: torch.Tensor) -> torch.Tensor:
+    def occupied(self, xyz: torch.Tensor) -> torch.Tensor:
+        """``(N,)`` bool: grid coordinates ``xyz (N, 3)`` (:meth:`normalized`) inside the box and in an occupied voxel."""
         inside = ((xyz >= -1.0) & (xyz <= 1.0)).all(dim=-1)
         D, H, W = self.shape
         idx = ((xyz + 1.0) * 0.5 * torch.tensor([W - 1, H - 1, D - 1], device=xyz.device, dtype=xyz.dtype)).round().long()
@@ -213,32 +214,48 @@ class GridField(nn.Module):
     def density(self, pts: torch.Tensor) -> torch.Tensor:
         """``sigma (...)`` >= 0 at ``pts (..., 3)``; 0 outside the box and in empty (unoccupied) voxels."""
         flat = pts.reshape(-1, 3)
-        xyz = self._normalized(flat)
-        keep = self._inside_and_occupied(xyz)
+        xyz = self.normalized(flat)
+        keep = self.occupied(xyz)
         sigma = torch.zeros(flat.shape[0], device=pts.device, dtype=pts.dtype)
         if keep.any():
-            raw = self._sample(self.density_grid, xyz[keep])[:, 0]
-            sigma = sigma.index_put((keep,), F.softplus(raw + self.shift) / self.voxel_size)
+            sigma = sigma.index_put((keep,), self.density_at(xyz[keep]))
         return sigma.reshape(pts.shape[:-1])
+
+    def density_at(self, xyz: torch.Tensor) -> torch.Tensor:
+        """``sigma (N,)`` at grid coordinates ``xyz (N, 3)`` inside the box (no occupancy test)."""
+        return F.softplus(self._sample(self.density_grid, xyz)[:, 0] + self.shift) / self.voxel_size
 
     def color(self, pts: torch.Tensor, viewdirs: torch.Tensor | None = None) -> torch.Tensor:
         """``rgb (..., 3)`` in [0, 1] at ``pts (..., 3)`` seen along ``viewdirs (..., 3)``."""
-        flat = pts.reshape(-1, 3)
-        feats = self._sample(self.feature_grid, self._normalized(flat))
+        dirs = viewdirs.reshape(-1, 3) if viewdirs is not None else None
+        return self.color_at(self.normalized(pts.reshape(-1, 3)), dirs).reshape(*pts.shape[:-1], 3)
+
+    def color_at(self, xyz: torch.Tensor, viewdirs: torch.Tensor | None = None) -> torch.Tensor:
+        """``rgb (N, 3)`` at grid coordinates ``xyz (N, 3)`` (:meth:`normalized`) seen along ``viewdirs (N, 3)``."""
+        return self.color_from_features(self._sample(self.feature_grid, xyz), viewdirs)
+
+    def color_from_features(self, feats: torch.Tensor, viewdirs: torch.Tensor | None = None) -> torch.Tensor:
+        """``rgb (N, 3)`` from interpolated feature-grid values ``feats (N, C)`` seen along ``viewdirs (N, 3)``."""
         if self.mlp_width > 0:
             if viewdirs is None:
                 raise KitInputError("this grid field has a view-dependent MLP: pass viewdirs")
-            e = positional_encoding(viewdirs.reshape(-1, 3), self.dir_freqs)
+            e = positional_encoding(viewdirs, self.dir_freqs)
             feats = self.mlp(torch.cat([feats, e], dim=-1))
         elif self.sh_degree > 0:
             if viewdirs is None:
                 raise KitInputError("this grid field has view-dependent (spherical-harmonic) colour: pass viewdirs")
-            Y = sh_basis(viewdirs.reshape(-1, 3), self.sh_degree)  # (N, K)
+            Y = sh_basis(viewdirs, self.sh_degree)  # (N, K)
             feats = (feats.reshape(-1, Y.shape[1], 3) * Y[:, :, None]).sum(dim=1)
-        return torch.sigmoid(feats).reshape(*pts.shape[:-1], 3)
+        return torch.sigmoid(feats)
 
     def forward(self, pts: torch.Tensor, viewdirs: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         return self.color(pts, viewdirs), self.density(pts)
+
+    def training_callbacks(self, cfg) -> list:
+        """What the trainer runs before/after steps: the grid's schedule (:func:`course_lib.nerf.schedule.grid_callbacks`)."""
+        from course_lib.nerf.schedule import grid_callbacks
+
+        return grid_callbacks(self, cfg)
 
     def ray_bounds(self, rays_o: torch.Tensor, rays_d: torch.Tensor, near: float = 0.0):
         """Per-ray ``(t_near, t_far)`` of the box (rays that miss get an empty interval at ``near``)."""
@@ -278,11 +295,12 @@ class GridField(nn.Module):
                 for i, n in enumerate((Wd, Hh, D))]
         zz, yy, xx = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")  # (D, H, W)
         pts = torch.stack([xx, yy, zz], dim=-1).reshape(-1, 3)
-        xyz = self._normalized(pts)
-        raw_old = self._sample(self.density_grid.data, xyz)[:, 0]
+        xyz = self.normalized(pts)
+        # in chunks of points: a trilinear read holds 8 corners per point and channel at once
+        raw_old = torch.cat([self._sample(self.density_grid.data, c)[:, 0] for c in xyz.split(1 << 19)])
         sig = F.softplus(raw_old + self.shift) / old_vs  # sigma per world unit, kept
         raw = torch.log(torch.expm1((sig * new_vs).clamp(min=1e-10))) - self.shift
-        feats = self._sample(self.feature_grid.data, xyz)  # (N, C)
+        feats = torch.cat([self._sample(self.feature_grid.data, c) for c in xyz.split(1 << 19)])  # (N, C)
         self.box_min, self.box_max, self.resolution = new_min, new_max, int(resolution)
         self.density_grid = nn.Parameter(raw.reshape(1, 1, *shape).contiguous())
         self.feature_grid = nn.Parameter(feats.T.reshape(1, -1, *shape).contiguous())

@@ -1,29 +1,18 @@
-"""Training configurations: :class:`TrainConfig` and the presets ``"paper"`` and ``"fast"``.
-
-``"paper"``
-    The paper's model and optimizer: the 8x256 MLP with the encoded input concatenated again after
-    layer 4 (0-based, as the official code), L = 10 / 4 octaves, view-dependent colour, ReLU
-    density, 64 stratified coarse samples per ray (``fine=True, n_importance=128`` adds the
-    paper's fine network), Adam with lr 5e-4 decaying exponentially to 5e-5 over the run, batches
-    of random rays across all training images. One difference, for a CPU: 1024 rays per batch
-    (the paper: 4096). On a CPU it learns slowly: minutes give a grey blur, hours a sharp scene.
-
-``"fast"``
+"""Training configurations: :class:`TrainConfig` and the presets ``"paper"`` and ``"fast"``
     Same data, same rays, same volume rendering, same loss; the field is a voxel grid
-    (:class:`course_lib.nerf.grid.GridField`: density + RGB, trilinear interpolation) instead of
-    an MLP, with the usual speed-ups: only the scene's box is sampled (ray-box bounds, 80 samples
-    per ray), a coarse 40-voxel grid first; at step 200 the grid is resampled into the box around
-    the surfaces the rays hit (:func:`course_lib.nerf.train.surface_box`) at 80 voxels, at step 450
-    refined to 100 voxels; an occupancy grid skips empty space; colours only where the weight is
-    > 1e-4; a small density total-variation prior (its gradient written out); fused Adam at a high
-    learning rate (0.1 decaying to 0.01) on 2048-ray batches. Colour is an RGB grid
-    (view-independent, cheap steps) until step 1500, then spherical harmonics of degree 1
-    (``grid_sh_degree=1, grid_sh_start=1500``: view-dependent, for shiny surfaces; 4x the colour
-    channels, so each step costs about twice as much on a CPU; notebook 09's 7b). On lego-100
-    (2 CPU cores, 5 min) the switch takes the test PSNR from 30.9 dB to 32.6 dB.
-
-Snapshots, evaluations and checkpoints take at most ``overhead_budget`` (5 %) of the training
-time (due ones wait); render chunks come from the device (``chunk=0``).
+    (:class:`course_lib.nerf.grid.GridField`: density + colour, trilinear interpolation) instead of
+    an MLP, with the usual speed-ups: only the scene's box is sampled (ray-box bounds), a coarse
+    grid first (40 % of the final resolution); at 6 % of the run the grid is resampled into the box
+    around the surfaces the rays hit (:func:`course_lib.nerf.schedule.surface_box`) at 80 %, at
+    15 % refined to the final resolution; an occupancy grid skips empty space; colours only where
+    the weight is > 1e-4; a small density total-variation prior (its gradient written out); fused
+    Adam at a high learning rate (0.1 decaying to 0.01) on 2048-ray batches. Colour is an RGB grid
+    (view-independent, cheap steps) for the first 45 % of the run, then spherical harmonics of
+    degree 1 (view-dependent, for shiny surfaces; 4x the colour channels; notebook 09's 7b).
+    Every stage is a fraction of the run (of ``minutes``, else of ``iters``), so short and long
+    runs go through the same stages. The final resolution and the samples per ray follow the
+    images (:func:`auto_grid_resolution`: 100 voxels at 100 x 100 px, more for larger images and
+    longer budgets) unless ``grid_resolution`` / ``n_samples`` are set.
 
 Both use ``threads=-1``: ``torch.set_num_threads(1)`` when the machine is busy (load average above
 3/4 of the cores), else all cores -- on a shared machine several torch threads wait for each
@@ -39,7 +28,7 @@ from dataclasses import dataclass, field, fields, replace
 
 from course_lib.validate import KitInputError
 
-__all__ = ["TrainConfig", "preset", "PRESETS"]
+__all__ = ["TrainConfig", "preset", "PRESETS", "auto_grid_resolution", "resolve"]
 
 
 @dataclass
@@ -51,24 +40,27 @@ class TrainConfig:
         depth, width, skips, pos_freqs, dir_freqs, use_viewdirs, view_width, density: NeRF MLP sizes.
         fine: train a second (fine) NeRF for the ``n_importance`` samples (the paper); else the
             coarse network also evaluates the fine samples.
-        grid_resolution: final voxels along the longest box side; grid_schedule: list of
-            ``(step, resolution)``: the resolution from that step on (coarse to fine).
-        shrink_box_at: step at which the grid is resampled into the box around the surfaces seen
-            so far (:func:`course_lib.nerf.train.surface_box`; 0: never).
+        grid_resolution: final voxels along the longest box side (0: from the image size and the
+            budget, :func:`auto_grid_resolution`); grid_schedule: list of ``(progress, share)``:
+            from that fraction of the run on, ``share`` x the final resolution (coarse to fine).
+        shrink_box_at: fraction of the run at which the grid is resampled into the box around the
+            surfaces seen so far (:func:`course_lib.nerf.schedule.surface_box`; 0: never).
         grid_mlp_width, grid_feature_dim, grid_dir_freqs: optional tiny colour MLP of the grid.
         grid_sh_degree: view-dependent colour of the grid from spherical harmonics (0: none, 1, 2).
-        grid_sh_start: step from which the colour grid holds spherical harmonics (0: from the start);
+        grid_sh_start: fraction of the run from which the colour grid holds spherical harmonics (0: from the start);
             before it an RGB grid, whose steps are cheaper (:meth:`GridField.enable_sh`).
         alpha_init: initial per-voxel opacity of the grid.
     Sampling
-        n_samples: coarse samples per ray. n_importance: fine samples per ray (0: none).
+        n_samples: coarse samples per ray (0, grid models: 0.8 x the final resolution).
+            n_importance: fine samples per ray (0: none).
         near, far: ray bounds (None: from the cameras, see :func:`course_lib.nerf.train.scene_bounds`).
         white_background: composite onto white (Blender scenes).
         box_bounds: grid models sample each ray only between its entry into and exit from the
             grid's box (ray-box bounds); False: between the scene's near and far, as the MLP does
             (an ablation switch, notebook 09).
         color_threshold: compute colours only where the weight exceeds it (grid models).
-        occupancy_every, occupancy_threshold, occupancy_start: refresh the grid's occupancy.
+        occupancy_every, occupancy_threshold, occupancy_start: refresh the grid's occupancy every
+            N steps from that fraction of the run on.
     Optimisation
         batch_rays: random rays per step (across all training images). lr, lr_final: Adam
             learning rate, decayed exponentially over the run (MLP: lr; grid: grid_lr / mlp lr).
@@ -76,7 +68,8 @@ class TrainConfig:
         seed: torch Generator seed (rays, jitter, initial weights).
         threads: torch.set_num_threads (0: torch's default; -1: auto, 1 thread on a busy machine).
     Budget and outputs
-        iters: maximum number of steps; minutes: maximum training time (whichever comes first).
+        iters: maximum number of steps; minutes: the whole run's time budget, training and
+            everything around it (whichever of the two comes first).
         snapshot_every: render the held-out view every N steps (0: never).
         checkpoint_every: save a checkpoint every N steps (0: only at the end).
         eval_every: test PSNR on ``n_eval_views`` test views every N steps (0: only at the end).
@@ -84,7 +77,11 @@ class TrainConfig:
             :func:`course_lib.nerf.device.render_chunk`).
         overhead_budget: snapshots, evaluations and checkpoints that come due wait while the time
             spent on them exceeds this fraction of the training time so far (0: never wait). The
-            snapshot at step 0 and the final checkpoint, snapshot and evaluation always run.
+            snapshot at step 0 (runs without ``minutes``: with a budget the untrained field, the
+            slowest render of all, is not drawn) and the final checkpoint, snapshot and evaluation always run.
+        final_eval_share: with ``minutes``, the share of the budget for the final evaluation: it
+            renders the test views that fit (an evenly spread subset, at least one).
+        eval_all: render all test views at the end, whatever the budget.
     """
 
     preset: str = "custom"
@@ -139,6 +136,8 @@ class TrainConfig:
     n_eval_views: int = 2
     chunk: int = 0
     overhead_budget: float = 0.05
+    final_eval_share: float = 0.05
+    eval_all: bool = False
 
     def to_dict(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in fields(self)}
@@ -167,10 +166,10 @@ PRESETS: dict[str, TrainConfig] = {
         threads=-1, snapshot_every=50, checkpoint_every=100, eval_every=0,
     ),
     "fast": TrainConfig(
-        preset="fast", model="grid", grid_resolution=100, grid_schedule=((0, 40), (200, 80), (450, 100)),
-        shrink_box_at=200, grid_mlp_width=0, alpha_init=1e-2, n_samples=80, color_threshold=1e-4,
-        grid_sh_degree=1, grid_sh_start=1500,
-        occupancy_every=50, occupancy_start=100, occupancy_threshold=1e-3, batch_rays=2048, lr=1e-3, lr_final=1e-4,
+        preset="fast", model="grid", grid_resolution=0, grid_schedule=((0.0, 0.4), (0.06, 0.8), (0.15, 1.0)),
+        shrink_box_at=0.06, grid_mlp_width=0, alpha_init=1e-2, n_samples=0, color_threshold=1e-4,
+        grid_sh_degree=1, grid_sh_start=0.45,
+        occupancy_every=50, occupancy_start=0.03, occupancy_threshold=1e-3, batch_rays=2048, lr=1e-3, lr_final=1e-4,
         grid_lr=0.1, grid_lr_final=0.01, tv_weight=1e-4, threads=-1, snapshot_every=100, checkpoint_every=200,
         eval_every=0,
     ),
@@ -182,3 +181,34 @@ def preset(name: str, **overrides) -> TrainConfig:
     if name not in PRESETS:
         raise KitInputError(f"unknown preset {name!r}: choose one of {sorted(PRESETS)}")
     return replace(PRESETS[name], **overrides)
+
+
+def auto_grid_resolution(H: int, W: int, minutes: float | None = None) -> int:
+    """Voxels along the box's longest side for images of ``H x W`` pixels and a budget of ``minutes``.
+
+    100 voxels at 100 x 100 px (where lego reaches 32 dB in 5 minutes on 2 CPU cores); larger
+    images show finer detail, so the grid grows with the image side -- but more slowly than it,
+    because a larger grid also needs more steps to be fitted: ``100 (side / 100)^0.4`` (152 at
+    400 px, 200 at 800 px), times ``(minutes / 5)^0.1`` for other budgets, within [64, 256].
+    """
+    side = max(int(H), int(W))
+    scale = (side / 100.0) ** 0.4 * ((minutes / 5.0) ** 0.1 if minutes else 1.0)
+    return int(min(256, max(64, round(100 * scale))))
+
+
+def resolve(cfg: TrainConfig, H: int, W: int) -> TrainConfig:
+    """``cfg`` with its automatic values filled in for images of ``H x W`` pixels.
+
+    ``grid_resolution = 0`` -> :func:`auto_grid_resolution`; ``n_samples = 0`` -> 0.8 x the grid's
+    final resolution (about two samples per voxel along a ray through the box; 64 for the MLP).
+    """
+    for name in ("shrink_box_at", "grid_sh_start", "occupancy_start", "final_eval_share"):
+        if not 0.0 <= getattr(cfg, name) <= 1.0:
+            raise KitInputError(f"{name} = {getattr(cfg, name)}: expected a fraction of the run in [0, 1]")
+    for at, share in cfg.grid_schedule:
+        if not (0.0 <= at <= 1.0 and 0.0 < share <= 1.0):
+            raise KitInputError(f"grid_schedule entry ({at}, {share}): expected (fraction of the run in [0, 1], "
+                                "share of grid_resolution in (0, 1]), e.g. ((0, 0.4), (0.06, 0.8), (0.15, 1.0))")
+    res = cfg.grid_resolution or auto_grid_resolution(H, W, cfg.minutes)
+    samples = cfg.n_samples or (max(16, int(round(0.8 * res))) if cfg.model == "grid" else 64)
+    return replace(cfg, grid_resolution=int(res), n_samples=int(samples))

@@ -1,4 +1,4 @@
-"""Training a NeRF (notebook 08): random rays, volume rendering, MSE, Adam; checkpoints and metrics.
+"""Training a NeRF (notebook 08): random rays, volume rendering, MSE, Adam; a short loop over small parts.
 
 One step::
 
@@ -7,16 +7,25 @@ One step::
     loss  <- mean((out.rgb_map - pixel colours)^2)                     (+ coarse loss, + TV prior)
     Adam step;  PSNR = -10 log10(MSE)
 
-:func:`train` runs steps on the chosen device (:func:`course_lib.nerf.device.pick_device`) until the
-time budget or the number of steps is reached (whichever comes first), shows a ``tqdm.auto`` bar
-(seconds trained of seconds allowed for a time budget, else steps; loss and PSNR beside it),
-renders a held-out view every ``snapshot_every`` steps (PNG), saves checkpoints (model + optimizer
-+ step + config + RNG states + device) that a stopped run resumes from on any device, evaluates
-the test views in device-sized batches and writes ``metrics.json``. Time spent on snapshots,
-evaluation and checkpoints is not training time: it is recorded (``overhead_seconds``,
-``overhead_fraction`` of the wall time, per kind in ``overhead_breakdown``) and kept below
-``overhead_budget`` of the training time by letting due snapshots/checkpoints wait.
-:func:`render_path` renders novel views along a circle around the scene (GIF).
+:func:`train` is the loop (as nerfstudio's ``Trainer.train``); around it, one part per job:
+
+* :class:`~course_lib.nerf.scene.TrainingRays` -- the training pixels (uint8) and their rays;
+  :class:`~course_lib.nerf.scene.SceneBounds` -- the scene's box and ray bounds (typed, replaced
+  only by the model's schedule);
+* :class:`TrainState` -- model, optimizer, step, clocks, history, RNG: what a checkpoint holds
+  (:mod:`course_lib.nerf.checkpoint`);
+* the model's own callbacks (``model.training_callbacks(cfg)``; the grid's schedule lives in
+  :mod:`course_lib.nerf.schedule`), run before or after a step when due;
+* :class:`RunClock` -- the budget: ``minutes`` covers the whole run (loading included when the
+  caller passes ``started_at``), so training stops early enough for the final evaluation; time
+  outside training by kind (``overhead_breakdown``), snapshots/evaluations/checkpoints that come
+  due wait while it exceeds ``overhead_budget`` of the training time;
+* :class:`RunOutputs` -- snapshots (PNG), checkpoints, evaluations during the run and at the end
+  (forward-only renders, :mod:`course_lib.nerf.inference`), ``metrics.json``.
+
+With a time budget the final evaluation renders the test views that fit in ``final_eval_share``
+of it -- all of them when they fit, else a fixed, evenly spread subset, and ``metrics.json`` says
+which (``test_views``, ``n_test_views``); ``eval_all`` renders all of them whatever the time.
 """
 
 from __future__ import annotations
@@ -33,111 +42,98 @@ import torch
 from torch.nn import functional as F
 
 from course_lib.data.blender import BlenderData
-from course_lib.nerf.device import device_name, pick_device, render_chunk
+from course_lib.nerf.checkpoint import CHECKPOINT, build_model, load_checkpoint, save_checkpoint
+from course_lib.nerf.device import device_name, pick_device
 from course_lib.nerf.grid import GridField
-from course_lib.nerf.model import NeRF
-from course_lib.nerf.presets import TrainConfig, preset
-from course_lib.nerf.rays import get_rays
-from course_lib.nerf.render import LAST_DELTA, render_chunked, render_image, render_rays
+from course_lib.nerf.inference import (RenderSettings, circular_path, evaluate, render_path, render_view, save_gif,
+                                       save_png, spread_views)
+from course_lib.nerf.presets import TrainConfig, preset, resolve
+from course_lib.nerf.render import LAST_DELTA, render_rays
+from course_lib.nerf.scene import SceneBounds, TrainingRays, scene_bounds
+from course_lib.nerf.schedule import surface_box
 from course_lib.threads import set_torch_threads
 from course_lib.validate import KitInputError
 
 __all__ = [
-    "TrainResult", "TrainingInterrupted", "train", "scene_bounds", "surface_box", "build_model", "psnr", "evaluate", "render_view", "load_checkpoint",
-    "render_path", "circular_path", "save_gif",
+    "TrainResult", "TrainState", "TrainingInterrupted", "RunClock", "RunOutputs", "train", "scene_bounds",
+    "SceneBounds", "surface_box", "build_model", "evaluate", "render_view", "load_checkpoint", "render_path",
+    "circular_path", "save_gif", "CHECKPOINT",
 ]
 
-CHECKPOINT = "checkpoint.pt"
 
+@dataclass
+class TrainResult:
+    """What :func:`train` returns.
 
-def psnr(mse) -> float:
-    """PSNR in dB of images in [0, 1]: ``-10 log10(MSE)``."""
-    mse = float(mse)
-    return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
-
-
-def scene_bounds(c2w: np.ndarray, K: np.ndarray, W: int) -> dict:
-    """A box and ray bounds that contain what the cameras look at (object-centred captures).
-
-    The centre is the point closest (least squares) to all optical axes; the radius is the
-    largest sphere around it that fits in the horizontal field of view of the nearest camera,
-    ``r = d_min sin(fov_x / 2)``. near/far bracket that sphere from every camera.
-
-    Args:
-        c2w: ``(N, 4, 4)`` camera-to-world, OpenCV axes. K: ``(3, 3)``. W: image width.
-
-    Returns:
-        dict with ``center (3,)``, ``radius``, ``box_min``, ``box_max`` (lists), ``near``, ``far``.
+    Attributes:
+        model, model_fine: the trained field(s) (``model_fine`` None without a fine network).
+        config: the :class:`TrainConfig` used (automatic values filled in, :func:`~course_lib.nerf.presets.resolve`).
+        bounds: the scene's :class:`~course_lib.nerf.scene.SceneBounds`.
+        metrics: the dict written to ``metrics.json``.
+        history: ``iterations, loss, psnr, seconds`` per step and ``test_iterations, test_psnr``.
+        snapshots: list of ``(step, (H, W, 3) float image)`` of the held-out view.
+        test_renders: ``(N, H, W, 3)`` renders of the evaluated test views (None without test data).
     """
-    C = c2w[:, :3, 3]
-    z = c2w[:, :3, 2] / np.linalg.norm(c2w[:, :3, 2], axis=1, keepdims=True)
-    A = np.zeros((3, 3))
-    b = np.zeros(3)
-    for c, d in zip(C, z):
-        P = np.eye(3) - np.outer(d, d)  # projector orthogonal to the axis
-        A += P
-        b += P @ c
-    center = np.linalg.lstsq(A, b, rcond=None)[0] if len(C) > 1 else C[0] + 4.0 * z[0]
-    dist = np.linalg.norm(C - center, axis=1)
-    half_fov = math.atan(0.5 * W / K[0, 0])
-    radius = float(dist.min() * math.sin(half_fov))
-    near = float(max(0.05 * dist.min(), dist.min() - radius * math.sqrt(3)))
-    far = float(dist.max() + radius * math.sqrt(3))
-    return dict(center=center.tolist(), radius=radius, box_min=(center - radius).tolist(),
-                box_max=(center + radius).tolist(), near=near, far=far)
+
+    model: torch.nn.Module
+    model_fine: torch.nn.Module | None
+    config: TrainConfig
+    bounds: SceneBounds
+    metrics: dict
+    history: dict
+    snapshots: list = field(default_factory=list)
+    test_renders: np.ndarray | None = None
 
 
-@torch.no_grad()
-def surface_box(model: GridField, cfg: TrainConfig, rays_o: torch.Tensor, rays_d: torch.Tensor,
-                generator: torch.Generator, n_rays: int = 16384, min_weight: float = 0.05,
-                margin_voxels: float = 3.0) -> tuple[list, list]:
-    """The box around the points where (a sample of) the training rays stop, with a margin.
+class TrainingInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`train`: raised after the checkpoint was written (a ``KeyboardInterrupt``).
 
-    After a short coarse stage the density in empty space is still noisy ("fog" of small
-    opacity), but the points that carry most of each ray's weight already sit on the surfaces;
-    their bounding box is a tight box for the fine grid (robust quantiles, then a margin).
-
-    Returns:
-        ``(box_min, box_max)`` lists, inside the current box.
+    Attributes:
+        step: the last completed step. checkpoint: the checkpoint's path (None without ``out_dir``).
     """
-    idx = torch.randint(0, rays_o.shape[0], (min(n_rays, rays_o.shape[0]),), generator=generator, device=rays_o.device)
-    o, d = rays_o[idx], rays_d[idx]
-    near, far = model.ray_bounds(o, d)
-    pts_all = []
-    chunk = _chunk(cfg, model)
-    for i in range(0, o.shape[0], chunk):
-        out = render_rays(model, o[i:i + chunk], d[i:i + chunk], near[i:i + chunk], far[i:i + chunk],
-                          cfg.n_samples, white_background=cfg.white_background, last_delta=None)
-        w, z = out["weights"], out["z_vals"]
-        keep = w > min_weight
-        pts = o[i:i + chunk, None, :] + z[..., None] * d[i:i + chunk, None, :]
-        pts_all.append(pts[keep])
-    pts = torch.cat(pts_all)
-    if pts.shape[0] < 100:
-        return model.box_min.tolist(), model.box_max.tolist()
-    lo = torch.quantile(pts, 0.001, dim=0) - margin_voxels * model.voxel_size
-    hi = torch.quantile(pts, 0.999, dim=0) + margin_voxels * model.voxel_size
-    lo = torch.maximum(lo, model.box_min)
-    hi = torch.minimum(hi, model.box_max)
-    return lo.tolist(), hi.tolist()
+
+    def __init__(self, step: int, checkpoint: Path | None):
+        super().__init__(f"interrupted at step {step}")
+        self.step, self.checkpoint = step, checkpoint
 
 
-def build_model(cfg: TrainConfig, bounds: dict, resolution: int | None = None):
-    """The model(s) of a config: ``(model, model_fine or None)``; weights from the global torch RNG."""
-    if cfg.model == "nerf":
-        kw = dict(depth=cfg.depth, width=cfg.width, skips=tuple(cfg.skips), pos_freqs=cfg.pos_freqs,
-                  dir_freqs=cfg.dir_freqs, use_viewdirs=cfg.use_viewdirs, view_width=cfg.view_width, density=cfg.density)
-        fine = NeRF(**kw) if (cfg.fine and cfg.n_importance > 0) else None
-        return NeRF(**kw), fine
-    if cfg.model == "grid":
-        res = resolution or (cfg.grid_schedule[0][1] if cfg.grid_schedule else cfg.grid_resolution)
-        return GridField(bounds["box_min"], bounds["box_max"], resolution=res, mlp_width=cfg.grid_mlp_width,
-                         feature_dim=cfg.grid_feature_dim, dir_freqs=cfg.grid_dir_freqs, alpha_init=cfg.alpha_init,
-                         sh_degree=cfg.grid_sh_degree if not cfg.grid_sh_start else 0), None
-    raise KitInputError(f"model {cfg.model!r}: expected 'nerf' or 'grid'")
+@dataclass
+class TrainState:
+    """Everything that changes during training (and goes into a checkpoint).
+
+    Attributes:
+        model, model_fine, optimizer, config, bounds, rays, generator, device: the run's objects.
+        step: steps done. train_seconds: time in steps, wall_seconds: the run's time (both over resumes).
+        progress: fraction of the run done, in [0, 1]. history: per-step loss and PSNR, test PSNRs.
+        callbacks: the model's training callbacks (:class:`~course_lib.nerf.schedule.TrainingCallback`).
+    """
+
+    model: torch.nn.Module
+    model_fine: torch.nn.Module | None
+    optimizer: torch.optim.Optimizer
+    config: TrainConfig
+    bounds: SceneBounds
+    rays: TrainingRays
+    generator: torch.Generator
+    device: torch.device
+    step: int = 0
+    train_seconds: float = 0.0
+    wall_seconds: float = 0.0
+    progress: float = 0.0
+    history: dict = field(default_factory=lambda: {k: [] for k in ("iterations", "loss", "psnr", "seconds",
+                                                                  "test_iterations", "test_psnr")})
+    callbacks: list = field(default_factory=list)
+
+    def new_optimizer(self) -> None:
+        self.optimizer = make_optimizer(self.config, self.model, self.model_fine)
+
+    def run_callbacks(self, where: str) -> None:
+        for cb in self.callbacks:
+            if cb.where == where and cb.due(self) and cb.run(self):
+                self.new_optimizer()
 
 
-def _optimizer(cfg: TrainConfig, model, model_fine) -> torch.optim.Optimizer:
+def make_optimizer(cfg: TrainConfig, model, model_fine) -> torch.optim.Optimizer:
     """Adam: grid values at ``grid_lr``, network weights at ``lr``.
 
     On a CPU or a CUDA GPU the fused implementation (one pass over the memory instead of several)
@@ -156,229 +152,82 @@ def _optimizer(cfg: TrainConfig, model, model_fine) -> torch.optim.Optimizer:
     return torch.optim.Adam([{"params": params, "lr": cfg.lr, "kind": "mlp"}], betas=(0.9, 0.999), fused=fused)
 
 
-def _set_lr(opt: torch.optim.Optimizer, cfg: TrainConfig, progress: float) -> None:
+def set_learning_rate(opt: torch.optim.Optimizer, cfg: TrainConfig, progress: float) -> None:
     """Exponential decay from the initial to the final learning rate over the run."""
     for g in opt.param_groups:
         lo, hi = (cfg.grid_lr_final, cfg.grid_lr) if g.get("kind") == "grid" else (cfg.lr_final, cfg.lr)
         g["lr"] = hi * (lo / hi) ** min(max(progress, 0.0), 1.0)
 
 
-def _bounds_fn(model, cfg: TrainConfig, bounds: dict):
-    """Per-ray (near, far): the grid's box (``cfg.box_bounds``), or the config's/scene's near and far."""
-    near = cfg.near if cfg.near is not None else bounds["near"]
-    far = cfg.far if cfg.far is not None else bounds["far"]
+def ray_bounds_of(model, cfg: TrainConfig, bounds: SceneBounds):
+    """Per-ray ``(near, far)``: the grid's box (``cfg.box_bounds``), or the scene's near and far."""
+    near, far = bounds.near, bounds.far
     if isinstance(model, GridField) and cfg.box_bounds:
         return lambda o, d: model.ray_bounds(o, d, near=near)
     return lambda o, d: (near, far)
 
 
-def _last_delta(model):
-    """The paper's "to infinity" last interval for MLPs; the grid's field ends at its box (None)."""
-    return None if isinstance(model, GridField) else LAST_DELTA
+def train_step(state: TrainState) -> tuple[torch.Tensor, torch.Tensor]:
+    """One optimizer step on a random batch of rays; returns ``(loss, mse)`` (0-d tensors, detached)."""
+    cfg, model = state.config, state.model
+    o, d, rgb_true = state.rays.sample(cfg.batch_rays, state.generator)
+    near, far = ray_bounds_of(model, cfg, state.bounds)(o, d)
+    out = render_rays(model, o, d, near, far, cfg.n_samples, cfg.n_importance, state.model_fine, perturb=cfg.perturb,
+                      white_background=cfg.white_background, generator=state.generator,
+                      color_threshold=cfg.color_threshold, last_delta=None if isinstance(model, GridField) else LAST_DELTA)
+    mse = F.mse_loss(out["rgb_map"], rgb_true)
+    loss = mse + (F.mse_loss(out["rgb_map_coarse"], rgb_true) if "rgb_map_coarse" in out else 0.0)
+    state.optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    if isinstance(model, GridField) and cfg.tv_weight > 0:  # + tv_weight * TV(density), its gradient written out
+        loss = loss.detach() + cfg.tv_weight * model.add_total_variation_grad(cfg.tv_weight)
+    state.optimizer.step()
+    return loss.detach(), mse.detach()
 
 
-def _chunk(cfg: TrainConfig, model) -> int:
-    """Rays per render chunk: ``cfg.chunk``, or (0) what the model's device takes."""
-    if cfg.chunk:
-        return int(cfg.chunk)
-    return render_chunk(next(model.parameters()).device, cfg.n_samples + cfg.n_importance)
-
-
-def render_view(model, model_fine, cfg: TrainConfig, bounds: dict, H: int, W: int, K, c2w) -> dict:
-    """Render one view with a trained model (no gradients, chunks of rays sized to the device).
-
-    Returns:
-        dict with ``rgb (H, W, 3)``, ``depth (H, W)``, ``acc (H, W)`` tensors on the model's device.
-    """
-    was = model.training
-    model.eval()
-    out = render_image(model, H, W, K, c2w, None, None, cfg.n_samples, cfg.n_importance, model_fine,
-                       white_background=cfg.white_background, chunk=_chunk(cfg, model),
-                       color_threshold=cfg.color_threshold, ray_bounds=_bounds_fn(model, cfg, bounds),
-                       last_delta=_last_delta(model))
-    model.train(was)
-    return out
-
-
-def evaluate(model, model_fine, cfg: TrainConfig, bounds: dict, data: BlenderData, views=None,
-             return_renders: bool = True) -> tuple[float, list, list]:
-    """Mean PSNR over views of ``data`` (all by default); returns ``(mean, per_view, renders)``.
-
-    The views are rendered together, several per batch where the device's chunk holds more rays
-    than one view, and compared with the ground truth on the device; only the per-view PSNRs (and
-    the renders, if ``return_renders``) come back to the host.
-
-    Returns:
-        ``(mean PSNR, [PSNR per view], [(H, W, 3) float32 numpy renders] or [])``.
-    """
-    views = list(range(len(data)) if views is None else views)
-    if not views:
-        raise KitInputError("evaluate: no views to render")
-    device = next(model.parameters()).device
-    chunk = _chunk(cfg, model)
-    H, W = data.H, data.W
-    per_batch = max(1, chunk // (H * W))
-    ray_bounds = _bounds_fn(model, cfg, bounds)
-    was = model.training
-    model.eval()
-    mse_all, renders = [], []
-    for b in range(0, len(views), per_batch):
-        vb = views[b:b + per_batch]
-        c2w = torch.as_tensor(np.asarray(data.c2w)[vb], dtype=torch.float32, device=device)
-        rays = [get_rays(H, W, data.K, c2w[k]) for k in range(len(vb))]
-        rays_o = torch.cat([r[0].reshape(-1, 3) for r in rays])
-        rays_d = torch.cat([r[1].reshape(-1, 3) for r in rays])
-        out = render_chunked(model, rays_o, rays_d, None, None, cfg.n_samples, cfg.n_importance, model_fine,
-                             white_background=cfg.white_background, chunk=chunk, color_threshold=cfg.color_threshold,
-                             ray_bounds=ray_bounds, last_delta=_last_delta(model))
-        img = out["rgb_map"].reshape(len(vb), H, W, 3)
-        gt = torch.as_tensor(np.asarray(data.images)[vb], dtype=img.dtype).to(device)
-        mse_all.append(((img - gt) ** 2).mean(dim=(1, 2, 3)))
-        if return_renders:
-            renders.extend(img.cpu().numpy())
-    model.train(was)
-    vals = [psnr(m) for m in torch.cat(mse_all).cpu().tolist()]
-    return float(np.mean(vals)), vals, renders
-
-
-def _to_uint8(img) -> np.ndarray:
-    return (np.clip(np.asarray(img, dtype=np.float32), 0, 1) * 255 + 0.5).astype(np.uint8)
-
-
-def _save_png(path: Path, img) -> None:
-    import imageio.v3 as iio
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(path, _to_uint8(img))
-
-
-@dataclass
-class TrainResult:
-    """What :func:`train` returns.
-
-    Attributes:
-        model, model_fine: the trained field(s) (``model_fine`` None without a fine network).
-        config: the :class:`TrainConfig` used.
-        bounds: the scene box / near / far (:func:`scene_bounds`).
-        metrics: the dict written to ``metrics.json``.
-        history: ``iterations, loss, psnr, seconds`` per step and ``test_iterations, test_psnr``.
-        snapshots: list of ``(step, (H, W, 3) float image)`` of the held-out view.
-        test_renders: ``(N, H, W, 3)`` renders of the test views (empty without test data).
-    """
-
-    model: torch.nn.Module
-    model_fine: torch.nn.Module | None
-    config: TrainConfig
-    bounds: dict
-    metrics: dict
-    history: dict
-    snapshots: list = field(default_factory=list)
-    test_renders: np.ndarray | None = None
-
-
-def _progress(cfg: TrainConfig, step: int, elapsed: float) -> float:
-    """Fraction of the run done (for the learning-rate decay): steps of ``iters`` or seconds of ``minutes``."""
-    p = step / max(cfg.iters, 1)
-    if cfg.minutes:
-        p = max(p, elapsed / (60.0 * cfg.minutes))
-    return min(p, 1.0)
-
-
-def _target_resolution(cfg: TrainConfig, step: int) -> int:
-    res = cfg.grid_resolution
-    for at, r in cfg.grid_schedule:
-        if step >= at:
-            res = r
-    return int(res)
-
-
-class TrainingInterrupted(KeyboardInterrupt):
-    """Ctrl-C during :func:`train`: raised after the checkpoint was written (a ``KeyboardInterrupt``).
-
-    Attributes:
-        step: the last completed step. checkpoint: the checkpoint's path (None without ``out_dir``).
-    """
-
-    def __init__(self, step: int, checkpoint: Path | None):
-        super().__init__(f"interrupted at step {step}")
-        self.step, self.checkpoint = step, checkpoint
-
-
-def _save_checkpoint(path: Path, model, model_fine, opt, cfg, bounds, step, elapsed, history, gen, camera=None,
-                     device=None) -> None:
-    torch.save({
-        "camera": camera, "device": str(device) if device is not None else None,
-        "model": model.state_dict(), "model_config": model.config(), "model_kind": cfg.model,
-        "model_fine": model_fine.state_dict() if model_fine is not None else None,
-        "optimizer": opt.state_dict(), "step": step, "train_seconds": elapsed, "config": cfg.to_dict(),
-        "bounds": bounds, "history": history, "generator_state": gen.get_state(),
-        "torch_rng_state": torch.get_rng_state(),
-    }, path.with_suffix(".tmp"))
-    path.with_suffix(".tmp").replace(path)
-
-
-def load_checkpoint(path, device="cpu") -> dict:
-    """Load a checkpoint written by :func:`train` onto any device, whichever device wrote it.
+class RunClock:
+    """The run's time: the budget (``minutes``: the whole run) and the time outside training, by kind.
 
     Args:
-        path: ``checkpoint.pt`` or the training output folder.
-        device: where the rebuilt models go (``"auto"``, ``"cpu"``, ``"cuda"``, ``"mps"``, a torch.device).
-
-    Returns:
-        The stored dict (``step``, ``config``, ``bounds``, ``history``, ``device`` it was written on, ...)
-        plus the rebuilt ``model``, ``model_fine`` (on ``device``) and ``cfg``.
-    """
-    path = Path(path)
-    if path.is_dir():
-        path = path / CHECKPOINT
-    if not path.exists():
-        raise KitInputError(f"checkpoint {path} not found: pass a checkpoint.pt (or the training output folder)")
-    device = pick_device(device)
-    try:
-        # everything to the CPU first: RNG states must stay CPU tensors, the models move afterwards
-        ck = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:  # noqa: BLE001 -- any unreadable file
-        raise KitInputError(f"{path} is not a readable checkpoint ({exc})") from None
-    cfg = TrainConfig.from_dict(ck["config"])
-    if ck["model_kind"] == "grid":
-        mc = ck["model_config"]
-        model = GridField(mc["box_min"], mc["box_max"], resolution=mc["resolution"], mlp_width=mc["mlp_width"],
-                          feature_dim=mc["feature_dim"], dir_freqs=mc["dir_freqs"], alpha_init=mc["alpha_init"],
-                          sh_degree=mc.get("sh_degree", 0))
-        model_fine = None
-    else:
-        mc = ck["model_config"]
-        model = NeRF(**{**mc, "skips": tuple(mc["skips"])})
-        model_fine = NeRF(**{**mc, "skips": tuple(mc["skips"])}) if ck["model_fine"] is not None else None
-    model.load_state_dict(ck["model"])
-    if model_fine is not None:
-        model_fine.load_state_dict(ck["model_fine"])
-    model.to(device)
-    if model_fine is not None:
-        model_fine.to(device)
-    ck.setdefault("device", None)
-    ck.update(model=model, model_fine=model_fine, cfg=cfg)
-    return ck
-
-
-class _Clock:
-    """Wall time outside the training steps, by kind, and the rule that keeps it small.
-
-    ``due(kind)`` is True when a snapshot/evaluation/checkpoint may run now: while the time spent
-    outside training exceeds ``budget`` x the training time of this call, due work waits.
+        cfg: the config (``minutes``, ``iters``, ``overhead_budget``, ``final_eval_share``).
+        started_at: ``time.perf_counter()`` when the run began (before loading the data; default: now).
+        before: wall seconds of earlier runs that this one resumes.
     """
 
-    def __init__(self, budget: float):
-        self.budget = float(budget)
-        self.seconds: dict[str, float] = {}
+    def __init__(self, cfg: TrainConfig, started_at: float | None = None, before: float = 0.0):
+        self.cfg, self.started = cfg, time.perf_counter() if started_at is None else started_at
+        self.budget_s = 60.0 * cfg.minutes if cfg.minutes else None
+        self.before, self.train_seconds, self.reserve = before, 0.0, 0.0
+        self.seconds: dict[str, float] = {"setup": 0.0}
         self.pending: set[str] = set()
 
-    @property
-    def total(self) -> float:
-        return sum(self.seconds.values())
+    def setup_done(self, before: float = 0.0) -> None:
+        """Training starts: the time so far was setup; ``before``: wall seconds of earlier runs (resumed)."""
+        self.before, self.seconds["setup"] = before, time.perf_counter() - self.started
 
-    def allowed(self, train_seconds: float) -> bool:
-        return self.budget <= 0 or self.total <= self.budget * train_seconds
+    def wall(self) -> float:
+        """Seconds since this call began."""
+        return time.perf_counter() - self.started
+
+    def spent(self) -> float:
+        """Seconds of the budget spent (earlier runs included; the caller's callback is not ours)."""
+        return self.before + self.wall() - self.seconds.get("callback", 0.0)
+
+    def progress(self, step: int) -> float:
+        """Fraction of the run done: of the steps, or of the time left for training (whichever is further)."""
+        p = step / max(self.cfg.iters, 1)
+        if self.budget_s:
+            p = max(p, self.spent() / (self.budget_s * (1.0 - self.cfg.final_eval_share)))
+        return min(p, 1.0)
+
+    def time_up(self) -> bool:
+        """True when the time left is what the end of the run needs (``reserve`` seconds)."""
+        return self.budget_s is not None and self.spent() + self.reserve >= self.budget_s
+
+    def allowed(self) -> bool:
+        """May due snapshots/evaluations/checkpoints run now (their time so far <= overhead_budget x training)?"""
+        outside = sum(v for k, v in self.seconds.items() if k not in ("callback", "setup"))
+        return self.cfg.overhead_budget <= 0 or outside <= self.cfg.overhead_budget * self.train_seconds
 
     def timed(self, kind: str, fn, *args):
         t = time.perf_counter()
@@ -388,35 +237,134 @@ class _Clock:
             self.seconds[kind] = self.seconds.get(kind, 0.0) + time.perf_counter() - t
 
 
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-    elif device.type == "mps":
-        torch.mps.synchronize()
+class RunOutputs:
+    """Snapshots, evaluations, checkpoints and the final evaluation of a run (all forward-only renders).
+
+    Args:
+        out: output folder (None: write nothing). state: the run. clock: its :class:`RunClock`.
+        test_data: held-out views (or None). snap_data, snap_view: the view the snapshots show.
+        camera: the training camera (stored in checkpoints for ``nerf render``).
+    """
+
+    def __init__(self, out: Path | None, state: TrainState, clock: RunClock, test_data, snap_data, snap_view: int,
+                 camera: dict):
+        self.out, self.clock, self.test, self.camera = out, clock, test_data, camera
+        self.snap_data, self.snap_view = snap_data, min(snap_view, len(snap_data) - 1)
+        self.snapshots: list = []
+        self.test_renders: np.ndarray | None = None
+        self.render_seconds_per_ray: float | None = None
+        self.ckpt = out / CHECKPOINT if out is not None else None
+
+    def _measure(self, n_rays: int, seconds: float) -> None:
+        self.render_seconds_per_ray = seconds / max(n_rays, 1)
+
+    def snapshot(self, state: TrainState) -> None:
+        t = time.perf_counter()
+        d = self.snap_data
+        img = render_view(state.model, state.model_fine, state.config, state.bounds, d.H, d.W, d.K,
+                          d.c2w[self.snap_view])["rgb"].cpu().numpy()
+        self._measure(d.H * d.W, time.perf_counter() - t)
+        self.add_snapshot(state.step, img)
+
+    def add_snapshot(self, step: int, img: np.ndarray) -> None:
+        self.snapshots.append((step, img))
+        if self.out is not None:
+            save_png(self.out / "snapshots" / f"step_{step:06d}.png", img)
+
+    def test_eval(self, state: TrainState) -> None:
+        views = list(range(min(state.config.n_eval_views, len(self.test))))
+        state.history["test_iterations"].append(state.step)
+        state.history["test_psnr"].append(evaluate(state.model, state.model_fine, state.config, state.bounds,
+                                                   self.test, views, return_renders=False)[0])
+
+    def checkpoint(self, state: TrainState) -> None:
+        if self.ckpt is not None:
+            state.wall_seconds = self.clock.spent()
+            save_checkpoint(self.ckpt, state, self.camera)
+
+    def periodic(self, state: TrainState) -> None:
+        """Run the snapshots, evaluations and checkpoints that are due, within the overhead budget."""
+        cfg = state.config
+        for kind, every, fn in (("snapshots", cfg.snapshot_every, self.snapshot),
+                                ("evaluations", cfg.eval_every if self.test is not None else 0, self.test_eval),
+                                ("checkpoints", cfg.checkpoint_every, self.checkpoint)):
+            if every and state.step % every == 0:
+                self.clock.pending.add(kind)
+            if kind in self.clock.pending and self.clock.allowed():
+                self.clock.pending.discard(kind)
+                self.clock.timed(kind, fn, state)
+
+    def final_views(self, rays_per_second: float) -> list[int]:
+        """The test views of the final evaluation: all, or (a time budget) those that fit in its share."""
+        n = len(self.test) if self.test is not None else 0
+        cfg = self.clock.cfg
+        if n == 0 or cfg.eval_all or not self.clock.budget_s:
+            return list(range(n))
+        per_view = self.test.H * self.test.W * self.seconds_per_ray(rays_per_second)
+        return spread_views(n, int(cfg.final_eval_share * self.clock.budget_s / max(per_view, 1e-9)))
+
+    def seconds_per_ray(self, train_rays_per_second: float) -> float:
+        """Measured forward-render time per ray, else a guess: three times the training rate."""
+        return self.render_seconds_per_ray or 1.0 / max(3.0 * train_rays_per_second, 1.0)
+
+    def final_seconds(self, rays_per_second: float) -> float:
+        """Predicted time of the run's end: the final evaluation (+ a snapshot if it is not among its views)."""
+        spr = self.seconds_per_ray(rays_per_second)
+        views = self.final_views(rays_per_second)
+        return spr * self.test.H * self.test.W * len(views) if views else spr * self.snap_data.H * self.snap_data.W
+
+    def finish(self, state: TrainState) -> dict:
+        """Final checkpoint, evaluation (with PNGs of the renders) and snapshot; returns test metrics."""
+        self.clock.timed("checkpoints", self.checkpoint, state)
+        rays_per_second = state.config.batch_rays * state.step / max(state.train_seconds, 1e-9)
+        views = self.final_views(rays_per_second)
+        res: dict = {"test_psnr": None}
+        if views:
+            t = time.perf_counter()
+            mean, per_view, renders = evaluate(state.model, state.model_fine, state.config, state.bounds, self.test, views)
+            self._measure(len(views) * self.test.H * self.test.W, time.perf_counter() - t)
+            self.test_renders = np.stack(renders)
+            res.update(test_psnr=round(mean, 3), test_psnr_per_view=[round(v, 3) for v in per_view],
+                       test_views=views, n_test_views=len(views), n_test_views_available=len(self.test),
+                       eval_seconds=round(time.perf_counter() - t, 2),
+                       render_rays_per_second=round(1.0 / self.render_seconds_per_ray, 1))
+            state.history["test_iterations"].append(state.step)
+            state.history["test_psnr"].append(mean)
+            fresh = not self.snapshots or self.snapshots[-1][0] != state.step
+            if fresh and self.snap_data is self.test and self.snap_view in views and state.config.snapshot_every:
+                self.add_snapshot(state.step, renders[views.index(self.snap_view)])
+            if self.out is not None:
+                for i, img in zip(views, renders):
+                    save_png(self.out / "test" / f"{self.test.names[i]}.png", img)
+            self.clock.seconds["final_evaluation"] = time.perf_counter() - t
+        if state.config.snapshot_every and (not self.snapshots or self.snapshots[-1][0] != state.step):
+            self.clock.timed("snapshots", self.snapshot, state)
+        return res
 
 
 class _Bar:
-    """The progress bar: seconds trained of seconds allowed (a time budget), else steps of steps."""
+    """The progress bar: seconds of the budget spent (a time budget), else steps of steps."""
 
-    def __init__(self, cfg: TrainConfig, step: int, elapsed: float, enabled: bool, device: torch.device):
+    def __init__(self, cfg: TrainConfig, state: TrainState, clock: RunClock, enabled: bool):
         from tqdm.auto import tqdm
 
         self.by_time = bool(cfg.minutes)
-        desc = f"nerf {cfg.preset} on {device.type}"
+        desc = f"nerf {cfg.preset} on {state.device.type}"
         if self.by_time:
-            self.bar = tqdm(total=round(60.0 * cfg.minutes, 1), initial=round(min(elapsed, 60.0 * cfg.minutes), 1),
-                            disable=not enabled, desc=desc, mininterval=1.0, unit="s",
-                            bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s trained "
-                                       "[{elapsed} wall{postfix}]")
+            total = round(clock.budget_s, 1)
+            self.bar = tqdm(total=total, initial=round(min(clock.spent(), total), 1), disable=not enabled, desc=desc,
+                            mininterval=1.0, unit="s", bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s "
+                            "of the run [{elapsed} wall{postfix}]")
         else:
-            self.bar = tqdm(total=cfg.iters, initial=step, disable=not enabled, desc=desc, mininterval=1.0,
+            self.bar = tqdm(total=cfg.iters, initial=state.step, disable=not enabled, desc=desc, mininterval=1.0,
                             unit="step")
-        self.shown = elapsed if self.by_time else step
+        self.shown = self.bar.n
 
-    def update(self, step: int, elapsed: float, info: dict | None) -> None:
-        now = min(elapsed, self.bar.total) if self.by_time else step
-        if info is not None:
-            self.bar.set_postfix(info, refresh=False)
+    def update(self, state: TrainState, clock: RunClock, show: bool) -> None:
+        now = min(clock.spent(), self.bar.total) if self.by_time else state.step
+        if show and state.history["loss"]:
+            self.bar.set_postfix({"step": state.step, "loss": f"{state.history['loss'][-1]:.4f}",
+                                  "psnr": f"{state.history['psnr'][-1]:.2f}"}, refresh=False)
         self.bar.update(now - self.shown)
         self.shown = now
 
@@ -424,30 +372,124 @@ class _Bar:
         self.bar.close()
 
 
+def _start(train_data: BlenderData, cfg: TrainConfig, device: torch.device, ckpt: Path | None,
+           resume: bool) -> tuple[TrainState, dict | None]:
+    """A new :class:`TrainState` (model from the seed), or the one in ``ckpt``; and what was resumed."""
+    rays = TrainingRays(train_data, device)
+    gen = torch.Generator(device=device).manual_seed(cfg.seed)
+    if resume and ckpt is not None and ckpt.exists():
+        ck = load_checkpoint(ckpt, device)
+        if ck["cfg"].model != cfg.model:
+            raise KitInputError(f"{ckpt} holds a {ck['cfg'].model!r} model but the config asks for {cfg.model!r}: "
+                                "use another --out folder or delete the checkpoint")
+        state = TrainState(ck["model"], ck["model_fine"], None, cfg, ck["bounds"], rays, gen, device, step=ck["step"],
+                           train_seconds=ck["train_seconds"], wall_seconds=ck["wall_seconds"], history=ck["history"])
+        state.new_optimizer()
+        state.optimizer.load_state_dict(ck["optimizer"])
+        written_on = torch.device(ck["device"]).type if ck.get("device") else "cpu"
+        if written_on == device.type:
+            gen.set_state(ck["generator_state"])
+        else:  # another device's generator state does not fit: a new, reproducible stream
+            gen.manual_seed(cfg.seed + 1_000_003 * state.step)
+        torch.set_rng_state(ck["torch_rng_state"])
+        resumed = {"step": state.step, "train_seconds": round(state.train_seconds, 2), "device": ck.get("device")}
+    else:
+        bounds = scene_bounds(train_data.c2w, train_data.K, train_data.W).with_rays(cfg.near, cfg.far)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(cfg.seed)
+            model, model_fine = build_model(cfg, bounds)
+        model.to(device)
+        if model_fine is not None:
+            model_fine.to(device)
+        state = TrainState(model, model_fine, None, cfg, bounds, rays, gen, device)
+        state.new_optimizer()
+        resumed = None
+    callbacks = getattr(state.model, "training_callbacks", None)
+    state.callbacks = callbacks(cfg) if callbacks is not None else []
+    return state, resumed
+
+
+def _record(state: TrainState, pending: list) -> None:
+    """Move the pending ``(step, loss, mse)`` tensors of the last steps into the history (one sync)."""
+    if pending:
+        vals = torch.stack([torch.stack([lo, ms]) for _, lo, ms in pending]).cpu().tolist()
+        for (st, _, _), (lo, ms) in zip(pending, vals):
+            state.history["iterations"].append(st)
+            state.history["loss"].append(float(lo))
+            state.history["psnr"].append(float("inf") if ms <= 0 else -10.0 * math.log10(ms))
+            state.history["seconds"].append(round(state.train_seconds, 3))
+        pending.clear()
+
+
+def _metrics(state: TrainState, clock: RunClock, train_data: BlenderData, stopped_by: str, steps: int,
+             resumed: dict | None, test: dict) -> dict:
+    cfg, model, fine = state.config, state.model, state.model_fine
+    wall = clock.wall()
+    m = {
+        "preset": cfg.preset, "iterations": state.step, "train_seconds": round(state.train_seconds, 2),
+        "stopped_by": stopped_by, "final_train_psnr": float(np.mean(state.history["psnr"][-50:])) if steps else None,
+        "rays_per_second": round(steps * cfg.batch_rays / max(clock.train_seconds, 1e-9), 1),
+        "samples_per_second": round(steps * cfg.batch_rays * (cfg.n_samples + cfg.n_importance)
+                                    / max(clock.train_seconds, 1e-9), 1) if steps else None,
+        "n_parameters": int(sum(p.numel() for p in model.parameters())
+                            + (sum(p.numel() for p in fine.parameters()) if fine is not None else 0)),
+        "n_train_views": len(train_data), "image_size": [train_data.W, train_data.H], "bounds": state.bounds.to_dict(),
+        "device": str(state.device), "device_name": device_name(state.device),
+        "render_chunk": RenderSettings.of(cfg, state.bounds, model).chunk_for(model), "resumed_from": resumed,
+        "threads": torch.get_num_threads(), "torch": torch.__version__, "config": cfg.to_dict(),
+        "data": str(train_data.folder) if train_data.folder is not None else None, **test,
+    }
+    if state.device.type == "cuda":
+        m["peak_gpu_memory_mb"] = round(torch.cuda.max_memory_allocated(state.device) / 2**20, 1)
+    m["peak_memory_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
+    # wall time of this call = training steps + everything else (setup, snapshots, evaluations, checkpoints,
+    # the caller's callback, the final evaluation): the overhead, with its parts
+    m.update(wall_seconds=round(wall, 2), overhead_seconds=round(wall - clock.train_seconds, 2),
+             overhead_fraction=round((wall - clock.train_seconds) / max(wall, 1e-9), 4),
+             overhead_breakdown={k: round(v, 2) for k, v in clock.seconds.items()}, history=state.history)
+    return m
+
+
+def _info(state: TrainState, clock: RunClock) -> dict:
+    """What the caller's callback sees after a step."""
+    return {"loss": state.history["loss"][-1], "psnr": state.history["psnr"][-1], "seconds": state.train_seconds,
+            "wall_seconds": clock.spent(), "model": state.model, "model_fine": state.model_fine,
+            "config": state.config, "bounds": state.bounds}
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    elif device.type == "mps":
+        torch.mps.synchronize()
+
+
 def train(train_data: BlenderData, test_data: BlenderData | None = None, config: TrainConfig | str = "fast",
           out_dir=None, resume: bool = True, progress: bool = True, device="auto", callback=None,
-          snapshot_view: int = 0) -> TrainResult:
+          snapshot_view: int = 0, started_at: float | None = None) -> TrainResult:
     """Train a NeRF (or the grid field of the "fast" preset) on one scene.
 
     Args:
         train_data: the training views (:func:`course_lib.data.blender.load_blender`, split "train").
         test_data: held-out views: snapshots show ``test_data[snapshot_view]``; the final test PSNR
-            is the mean over all of them (None: snapshots of a training view, no test PSNR).
+            is the mean over the evaluated ones (None: snapshots of a training view, no test PSNR).
         config: a :class:`TrainConfig` or a preset name (``"paper"``, ``"fast"``).
         out_dir: folder for ``metrics.json``, ``snapshots/step_XXXXXX.png``, ``test/<name>.png``
             and ``checkpoint.pt`` (None: write nothing, e.g. in a notebook).
         resume: continue from ``out_dir/checkpoint.pt`` if there is one (same step, optimizer,
-            RNG states; the time already trained counts against ``minutes``). A checkpoint resumes
+            RNG states; the time already spent counts against ``minutes``). A checkpoint resumes
             on any device; the ray sampler's random stream continues exactly only on the device
             type that wrote it (elsewhere it is reseeded from the seed and the step).
-        progress: show a tqdm.auto progress bar: with a time budget (``minutes``) it counts seconds
-            trained of seconds allowed, else steps of ``iters``; loss, PSNR and step beside it.
+        progress: show a tqdm.auto progress bar (seconds of the budget, else steps; loss, PSNR).
         device: ``"auto"`` (CUDA, then MPS, then the CPU), ``"cpu"``, ``"cuda"``, ``"mps"`` or a
             torch.device (:func:`course_lib.nerf.device.pick_device`).
         callback: optional ``callback(step, info: dict) -> bool``, called after each step with
-            ``loss, psnr, seconds`` (training time so far), ``model, model_fine, config, bounds``;
-            return True to stop (a checkpoint is written). Its own time is not training time.
+            ``loss, psnr, seconds`` (training time so far), ``wall_seconds`` (of the budget),
+            ``model, model_fine, config, bounds``; return True to stop (a checkpoint is written).
+            Its own time is not counted against the budget.
         snapshot_view: index of the held-out view in the snapshots.
+        started_at: ``time.perf_counter()`` at the start of the run (before loading the data), so
+            that ``minutes`` covers the loading too (default: when ``train`` is called).
 
     Returns:
         :class:`TrainResult` (model, metrics, history, snapshots, test renders).
@@ -457,296 +499,68 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
 
     Introduced in ``notebooks/08_nerf_rendering_and_training.ipynb``.
     """
-    cfg = preset(config) if isinstance(config, str) else config
     if not isinstance(train_data, BlenderData) or len(train_data) == 0:
         raise KitInputError("train_data must be a non-empty BlenderData (course_lib.data.blender.load_blender)")
+    cfg = resolve(preset(config) if isinstance(config, str) else config, train_data.H, train_data.W)
     device = pick_device(device)
     if device.type == "cpu":
         set_torch_threads(cfg.threads)
     out = Path(out_dir) if out_dir is not None else None
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-    t_wall = time.perf_counter()
-    clock = _Clock(cfg.overhead_budget)
-
-    # ---------------------------------------------------------------- all rays of all training images
-    H, W = train_data.H, train_data.W
-    c2w_all = torch.as_tensor(train_data.c2w, dtype=torch.float32, device=device)
-    rays = [get_rays(H, W, train_data.K, c2w_all[i]) for i in range(len(train_data))]
-    rays_o = torch.stack([r[0] for r in rays]).reshape(-1, 3)
-    rays_d = torch.stack([r[1] for r in rays]).reshape(-1, 3)
-    target = torch.as_tensor(train_data.images).to(device).reshape(-1, 3)
-    del rays
-    n_rays = rays_o.shape[0]
-    bounds = scene_bounds(train_data.c2w, train_data.K, W)
-    if cfg.near is not None:
-        bounds["near"] = cfg.near
-    if cfg.far is not None:
-        bounds["far"] = cfg.far
-
-    # ---------------------------------------------------------------- model, optimizer, RNG (or resume)
-    gen = torch.Generator(device=device).manual_seed(cfg.seed)
-    ckpt_path = out / CHECKPOINT if out is not None else None
-    history = {"iterations": [], "loss": [], "psnr": [], "seconds": [], "test_iterations": [], "test_psnr": []}
-    step, elapsed = 0, 0.0
-    resumed_from = None
-    if resume and ckpt_path is not None and ckpt_path.exists():
-        ck = load_checkpoint(ckpt_path, device)
-        model, model_fine = ck["model"], ck["model_fine"]
-        if ck["cfg"].model != cfg.model:
-            raise KitInputError(f"{ckpt_path} holds a {ck['cfg'].model!r} model but the config asks for {cfg.model!r}: "
-                                "use another --out folder or delete the checkpoint")
-        bounds = ck["bounds"]
-        opt = _optimizer(cfg, model, model_fine)
-        opt.load_state_dict(ck["optimizer"])
-        step, elapsed, history = ck["step"], ck["train_seconds"], ck["history"]
-        written_on = torch.device(ck["device"]).type if ck.get("device") else "cpu"
-        if written_on == device.type:
-            gen.set_state(ck["generator_state"])
-        else:  # another device's generator state does not fit: a new, reproducible stream
-            gen.manual_seed(cfg.seed + 1_000_003 * step)
-        torch.set_rng_state(ck["torch_rng_state"])
-        resumed_from = {"step": step, "train_seconds": round(elapsed, 2), "device": ck.get("device")}
-    else:
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(cfg.seed)
-            model, model_fine = build_model(cfg, bounds)
-        model.to(device)
-        if model_fine is not None:
-            model_fine.to(device)
-        opt = _optimizer(cfg, model, model_fine)
-    is_grid = isinstance(model, GridField)
-    last_delta = _last_delta(model)
-    near_far = _bounds_fn(model, cfg, bounds)
-
-    camera = {"H": H, "W": W, "K": np.asarray(train_data.K).tolist(), "c2w": np.asarray(train_data.c2w).tolist()}
-    snap_data = test_data if test_data is not None and len(test_data) else train_data
-    snap_i = min(snapshot_view, len(snap_data) - 1)
-    snapshots: list = []
-    budget_s = 60.0 * cfg.minutes if cfg.minutes else None
-    eval_views = list(range(min(cfg.n_eval_views, len(test_data)))) if test_data is not None else []
-    # history on a GPU: losses stay on the device and come to the host every `sync_every` steps
-    sync_every = 1 if device.type == "cpu" else 25
-    pending: list = []  # (step, seconds, loss tensor, mse tensor) not yet in the history
-
-    def flush():
-        if pending:
-            vals = torch.stack([torch.stack([lo.detach(), ms.detach()]) for _, _, lo, ms in pending]).cpu().tolist()
-            for (st, sec, _, _), (lo, ms) in zip(pending, vals):
-                history["iterations"].append(st)
-                history["loss"].append(float(lo))
-                history["psnr"].append(psnr(ms))
-                history["seconds"].append(round(sec, 3))
-            pending.clear()
-
-    def snapshot():
-        img = render_view(model, model_fine, cfg, bounds, snap_data.H, snap_data.W, snap_data.K, snap_data.c2w[snap_i])["rgb"]
-        img = img.cpu().numpy()
-        snapshots.append((step, img))
-        if out is not None:
-            _save_png(out / "snapshots" / f"step_{step:06d}.png", img)
-
-    def test_eval():
-        history["test_iterations"].append(step)
-        history["test_psnr"].append(evaluate(model, model_fine, cfg, bounds, test_data, eval_views, return_renders=False)[0])
-
-    def checkpoint():
-        if ckpt_path is not None:
-            flush()
-            _save_checkpoint(ckpt_path, model, model_fine, opt, cfg, bounds, step, elapsed, history, gen, camera, device)
-
-    clock.seconds["setup"] = time.perf_counter() - t_wall
-    bar = _Bar(cfg, step, elapsed, progress, device)
-    if cfg.snapshot_every and step == 0:
-        clock.timed("snapshots", snapshot)
-    samples_done, run_seconds = 0, 0.0  # this call only (a resumed run has trained before)
-    stopped_by = "iterations"
-    last = {}
+    clock = RunClock(cfg, started_at)
+    state, resumed = _start(train_data, cfg, device, out / CHECKPOINT if out is not None else None, resume)
+    clock.setup_done(before=state.wall_seconds)  # a resumed run's earlier time counts against the budget
+    camera = {"H": train_data.H, "W": train_data.W, "K": np.asarray(train_data.K).tolist(),
+              "c2w": np.asarray(train_data.c2w).tolist()}
+    has_test = test_data is not None and len(test_data) > 0
+    outputs = RunOutputs(out, state, clock, test_data if has_test else None, test_data if has_test else train_data,
+                         snapshot_view, camera)
+    bar = _Bar(cfg, state, clock, progress)
+    if cfg.snapshot_every and state.step == 0 and not cfg.minutes:  # (untrained: the slowest render of all)
+        clock.timed("snapshots", outputs.snapshot, state)
+    pending, steps, stopped_by = [], 0, "iterations"
+    sync_every = 1 if device.type == "cpu" else 25  # on a GPU the losses come to the host every 25 steps
     try:
-        while step < cfg.iters:
-            if budget_s is not None and elapsed >= budget_s:
+        while state.step < cfg.iters:
+            if steps:  # what the end of the run will need, from the speeds measured so far
+                clock.reserve = outputs.final_seconds(cfg.batch_rays * steps / clock.train_seconds)
+            if clock.time_up():
                 stopped_by = "time"
                 break
             t0 = time.perf_counter()
-            frac = _progress(cfg, step, elapsed)
-            if is_grid and cfg.shrink_box_at and not bounds.get("shrunk") and step >= cfg.shrink_box_at:
-                # coarse geometry found: resample the grids into the box around the occupied voxels
-                lo, hi = surface_box(model, cfg, rays_o, rays_d, gen)
-                model.rebox(lo, hi, _target_resolution(cfg, step))
-                model.update_occupancy(cfg.occupancy_threshold)
-                bounds.update(box_min=lo, box_max=hi, shrunk=True)
-                opt = _optimizer(cfg, model, model_fine)
-            if is_grid and cfg.grid_schedule:
-                res = _target_resolution(cfg, step)
-                if res > model.resolution:
-                    model.upsample(res)
-                    model.update_occupancy(cfg.occupancy_threshold)
-                    opt = _optimizer(cfg, model, model_fine)
-            if is_grid and cfg.grid_sh_degree and model.sh_degree == 0 and step >= cfg.grid_sh_start:
-                model.enable_sh(cfg.grid_sh_degree)  # RGB first (cheap steps), view-dependent colour from here
-                opt = _optimizer(cfg, model, model_fine)
-            _set_lr(opt, cfg, frac)
-            idx = torch.randint(0, n_rays, (cfg.batch_rays,), generator=gen, device=device)
-            o, d, rgb_true = rays_o[idx], rays_d[idx], target[idx]
-            near, far = near_far(o, d)
-            res_out = render_rays(model, o, d, near, far, cfg.n_samples, cfg.n_importance, model_fine,
-                                  perturb=cfg.perturb, white_background=cfg.white_background, generator=gen,
-                                  color_threshold=cfg.color_threshold, last_delta=last_delta)
-            mse = F.mse_loss(res_out["rgb_map"], rgb_true)
-            loss = mse
-            if "rgb_map_coarse" in res_out:
-                loss = loss + F.mse_loss(res_out["rgb_map_coarse"], rgb_true)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            if is_grid and cfg.tv_weight > 0:  # + tv_weight * TV(density), its gradient written out (cheaper)
-                loss = loss.detach() + cfg.tv_weight * model.add_total_variation_grad(cfg.tv_weight)
-            opt.step()
-            step += 1
-            samples_done += cfg.batch_rays * (cfg.n_samples + cfg.n_importance)
-            if is_grid and cfg.occupancy_every and step >= cfg.occupancy_start and step % cfg.occupancy_every == 0:
-                model.update_occupancy(cfg.occupancy_threshold)
-            pending.append((step, 0.0, loss, mse))
-            synced = step % sync_every == 0 or step == 1 or callback is not None
+            state.progress = clock.progress(state.step)
+            state.run_callbacks("before")
+            set_learning_rate(state.optimizer, cfg, state.progress)
+            loss, mse = train_step(state)
+            state.step += 1
+            steps += 1
+            state.run_callbacks("after")
+            pending.append((state.step, loss, mse))
+            synced = state.step % sync_every == 0 or steps == 1 or callback is not None
             if synced:
                 _sync(device)
             dt = time.perf_counter() - t0
-            elapsed += dt
-            run_seconds += dt
-            pending[-1] = (step, elapsed, loss, mse)
+            state.train_seconds += dt
+            clock.train_seconds += dt
             if synced:
-                flush()
-                last = {"loss": history["loss"][-1], "psnr": history["psnr"][-1]}
-            show = synced and last and (step % 10 == 0 or step == 1)
-            bar.update(step, elapsed, {"step": step, "loss": f"{last['loss']:.4f}", "psnr": f"{last['psnr']:.2f}"}
-                       if show else None)
-
-            for kind, every, fn in (("snapshots", cfg.snapshot_every, snapshot),
-                                    ("evaluations", cfg.eval_every if eval_views else 0, test_eval),
-                                    ("checkpoints", cfg.checkpoint_every, checkpoint)):
-                if every and step % every == 0:
-                    clock.pending.add(kind)
-                if kind in clock.pending and clock.allowed(run_seconds):
-                    clock.pending.discard(kind)
-                    clock.timed(kind, fn)
-            if callback is not None:
-                t_cb = time.perf_counter()
-                stop = callback(step, {"loss": last.get("loss"), "psnr": last.get("psnr"), "seconds": elapsed,
-                                       "model": model, "model_fine": model_fine, "config": cfg, "bounds": bounds})
-                clock.seconds["callback"] = clock.seconds.get("callback", 0.0) + time.perf_counter() - t_cb
-                if stop:
-                    stopped_by = "callback"
-                    break
+                _record(state, pending)
+            bar.update(state, clock, synced and (state.step % 10 == 0 or steps == 1))
+            outputs.periodic(state)
+            if callback is not None and clock.timed("callback", callback, state.step, _info(state, clock)):
+                stopped_by = "callback"
+                break
     except KeyboardInterrupt:
         bar.close()
-        checkpoint()
-        raise TrainingInterrupted(step, ckpt_path) from None
+        _record(state, pending)
+        outputs.checkpoint(state)
+        raise TrainingInterrupted(state.step, outputs.ckpt) from None
     bar.close()
-    flush()
-    if budget_s is not None and elapsed >= budget_s and stopped_by == "iterations" and step < cfg.iters:
-        stopped_by = "time"
-    clock.timed("checkpoints", checkpoint)
-    if cfg.snapshot_every and (not snapshots or snapshots[-1][0] != step):
-        clock.timed("snapshots", snapshot)
-
-    # ---------------------------------------------------------------- final evaluation and metrics
-    metrics = {
-        "preset": cfg.preset, "iterations": step, "train_seconds": round(elapsed, 2), "stopped_by": stopped_by,
-        "final_train_psnr": float(np.mean(history["psnr"][-50:])) if history["psnr"] else None,
-        "rays_per_second": round(samples_done / max(cfg.n_samples + cfg.n_importance, 1) / max(run_seconds, 1e-9), 1),
-        "samples_per_second": round(samples_done / max(run_seconds, 1e-9), 1) if samples_done else None,
-        "n_parameters": int(sum(p.numel() for p in model.parameters())
-                            + (sum(p.numel() for p in model_fine.parameters()) if model_fine is not None else 0)),
-        "n_train_views": len(train_data), "image_size": [W, H], "bounds": bounds, "device": str(device),
-        "device_name": device_name(device), "render_chunk": _chunk(cfg, model), "resumed_from": resumed_from,
-        "threads": torch.get_num_threads(), "torch": torch.__version__, "config": cfg.to_dict(),
-        "data": str(train_data.folder) if train_data.folder is not None else None,
-    }
-    test_renders = None
-    if test_data is not None and len(test_data):
-        t = time.perf_counter()
-        mean, per_view, renders = evaluate(model, model_fine, cfg, bounds, test_data)
-        test_renders = np.stack(renders)
-        clock.seconds["final_evaluation"] = time.perf_counter() - t
-        metrics.update(test_psnr=round(mean, 3), test_psnr_per_view=[round(v, 3) for v in per_view],
-                       n_test_views=len(test_data), eval_seconds=round(clock.seconds["final_evaluation"], 2))
-        history["test_iterations"].append(step)
-        history["test_psnr"].append(mean)
-        if out is not None:
-            clock.timed("final_evaluation", lambda: [_save_png(out / "test" / f"{name}.png", img)
-                                                    for name, img in zip(test_data.names, renders)])
-    else:
-        metrics["test_psnr"] = None
-    if device.type == "cuda":
-        metrics["peak_gpu_memory_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
-    metrics["peak_memory_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
-    wall = time.perf_counter() - t_wall
-    # wall time of this call = training steps of this call + everything else (setup, snapshots, evaluations,
-    # checkpoints, the caller's callback, the final evaluation): the overhead, with its parts
-    metrics["wall_seconds"] = round(wall, 2)
-    metrics["overhead_seconds"] = round(wall - run_seconds, 2)
-    metrics["overhead_fraction"] = round((wall - run_seconds) / max(wall, 1e-9), 4)
-    metrics["overhead_breakdown"] = {k: round(v, 2) for k, v in clock.seconds.items()}
-    metrics["history"] = history
+    _record(state, pending)
+    test = outputs.finish(state)
+    metrics = _metrics(state, clock, train_data, stopped_by, steps, resumed, test)
     if out is not None:
         (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
-    return TrainResult(model=model, model_fine=model_fine, config=cfg, bounds=bounds, metrics=metrics, history=history,
-                       snapshots=snapshots, test_renders=test_renders)
-
-
-# ------------------------------------------------------------------------------------ novel views
-
-
-def circular_path(c2w: np.ndarray, center, n_frames: int = 40, elevation_deg: float | None = None,
-                  radius: float | None = None) -> np.ndarray:
-    """Cameras on a circle around ``center``, looking at it (OpenCV axes, camera-to-world).
-
-    The world "up" is the mean of the training cameras' up vectors (their -y axes); radius and
-    elevation default to the training cameras' mean distance and mean elevation.
-
-    Returns:
-        ``(n_frames, 4, 4)`` camera-to-world matrices.
-    """
-    from course_lib.data.synthetic import look_at
-
-    center = np.asarray(center, float)
-    up = -c2w[:, :3, 1].mean(axis=0)
-    up /= np.linalg.norm(up)
-    rel = c2w[:, :3, 3] - center
-    dist = np.linalg.norm(rel, axis=1)
-    r = float(radius if radius is not None else dist.mean())
-    elev = math.radians(elevation_deg) if elevation_deg is not None else float(np.mean(np.arcsin(np.clip(rel @ up / dist, -1, 1))))
-    # an orthonormal basis (a, b) of the plane perpendicular to up, a towards the first camera
-    a = rel[0] - (rel[0] @ up) * up
-    a = a / np.linalg.norm(a) if np.linalg.norm(a) > 1e-9 else np.cross(up, [1.0, 0, 0])
-    b = np.cross(up, a)
-    out = []
-    for k in range(n_frames):
-        th = 2 * math.pi * k / n_frames
-        C = center + r * (math.cos(elev) * (math.cos(th) * a + math.sin(th) * b) + math.sin(elev) * up)
-        R_cw, t_cw = look_at(C, center, up=up)
-        M = np.eye(4)
-        M[:3, :3] = R_cw.T
-        M[:3, 3] = C
-        out.append(M)
-    return np.stack(out)
-
-
-def render_path(model, model_fine, cfg: TrainConfig, bounds: dict, H: int, W: int, K, c2w_path: np.ndarray,
-                progress: bool = False) -> np.ndarray:
-    """Render views along a path; returns ``(n, H, W, 3)`` uint8 frames."""
-    from tqdm.auto import tqdm
-
-    frames = []
-    for M in tqdm(c2w_path, disable=not progress, desc=f"render on {next(model.parameters()).device.type}"):
-        frames.append(_to_uint8(render_view(model, model_fine, cfg, bounds, H, W, K, M)["rgb"].cpu().numpy()))
-    return np.stack(frames)
-
-
-def save_gif(path, frames: np.ndarray, fps: float = 12.0) -> Path:
-    """Write ``(n, H, W, 3)`` uint8 frames as a looping GIF."""
-    import imageio.v2 as imageio
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    imageio.mimsave(path, list(frames), duration=1.0 / fps, loop=0)
-    return path
+    return TrainResult(model=state.model, model_fine=state.model_fine, config=cfg, bounds=state.bounds, metrics=metrics,
+                       history=state.history, snapshots=outputs.snapshots,
+                       test_renders=outputs.test_renders)

@@ -28,7 +28,6 @@ STILL_SHIPPED = {
     "sampson_distance",
     "triangulate_linear",
     "reprojection_residuals",
-    "psnr",
 }
 
 TRY_ALL = r"""

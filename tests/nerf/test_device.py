@@ -26,8 +26,8 @@ def scene():
 
 def tiny_grid(**kw):
     base = dict(iters=40, minutes=None, batch_rays=256, n_samples=32, snapshot_every=0, checkpoint_every=0,
-                occupancy_start=10, occupancy_every=10, grid_schedule=((0, 12), (20, 16)), grid_resolution=16,
-                shrink_box_at=20, threads=1, grid_lr=0.3, grid_lr_final=0.1)
+                occupancy_start=0.25, occupancy_every=10, grid_schedule=((0, 0.75), (0.5, 1.0)), grid_resolution=16,
+                shrink_box_at=0.5, threads=1, grid_lr=0.3, grid_lr_final=0.1)
     base.update(kw)
     return preset("fast", **base)
 

@@ -1,0 +1,125 @@
+"""The grid field's training schedule, as callbacks the field hands to the trainer (notebook 09).
+
+The training loop (:func:`course_lib.nerf.train.train`) knows nothing about voxel grids: it asks
+the model for its callbacks (``model.training_callbacks(cfg)``, as nerfstudio's models do) and
+runs each one before or after a step when it is due. A :class:`GridField` has four:
+
+* **shrink the box** (``cfg.shrink_box_at``): after a short coarse stage, resample the grids into
+  the box around the surfaces that the training rays hit (:func:`surface_box`);
+* **coarse to fine** (``cfg.grid_schedule``): a finer grid at each stage;
+* **spherical harmonics** (``cfg.grid_sh_start``): the RGB colour grid turns view-dependent;
+* **occupancy** (``cfg.occupancy_every``): refresh the empty-space grid every N steps.
+
+Every time in the schedule is a **fraction of the run** (``progress`` in [0, 1]: of the time
+budget, or of the steps when there is none), so a 1-minute and a 20-minute run go through the
+same stages. Each callback reads what is already done from the model itself (its resolution, its
+SH degree, ``bounds.shrunk``), so a resumed run does not repeat a stage.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+
+from course_lib.nerf.render import render_rays
+
+__all__ = ["TrainingCallback", "grid_callbacks", "surface_box", "target_resolution"]
+
+
+@dataclass
+class TrainingCallback:
+    """Something the model does to itself during training.
+
+    Attributes:
+        name: what it does (shown in errors and logs).
+        where: ``"before"`` or ``"after"`` the optimizer step.
+        due: ``due(state) -> bool``.
+        run: ``run(state) -> bool``: True when it replaced parameters (the trainer then builds a
+            new optimizer).
+
+    ``state`` is the trainer's :class:`~course_lib.nerf.train.TrainState`: ``step`` (steps done),
+    ``progress`` (fraction of the run), ``bounds`` (which a callback may replace), ``rays``, ``generator``.
+    """
+
+    name: str
+    where: str
+    due: Callable[[int, float], bool]
+    run: Callable[[object], bool]
+
+
+def target_resolution(cfg, progress: float) -> int:
+    """The grid resolution at ``progress``: ``cfg.grid_resolution`` times the share of the last stage reached."""
+    share = 1.0
+    for at, s in cfg.grid_schedule:
+        if progress >= at:
+            share = s
+    return max(2, int(round(share * cfg.grid_resolution)))
+
+
+@torch.no_grad()
+def surface_box(model, cfg, rays, generator: torch.Generator, n_rays: int = 16384, min_weight: float = 0.05,
+                margin_voxels: float = 3.0) -> tuple[list, list]:
+    """The box around the points where (a sample of) the training rays stop, with a margin.
+
+    After a short coarse stage the density in empty space is still noisy ("fog" of small
+    opacity), but the points that carry most of each ray's weight already sit on the surfaces;
+    their bounding box is a tight box for the fine grid (robust quantiles, then a margin).
+
+    Args:
+        model: the :class:`~course_lib.nerf.grid.GridField`. cfg: the run's config.
+        rays: :class:`~course_lib.nerf.scene.TrainingRays`. generator: picks the rays.
+
+    Returns:
+        ``(box_min, box_max)`` lists, inside the current box.
+    """
+    o, d, _rgb = rays.sample(min(n_rays, len(rays)), generator)
+    near, far = model.ray_bounds(o, d)
+    pts_all = []
+    for i in range(0, o.shape[0], 4096):
+        out = render_rays(model, o[i:i + 4096], d[i:i + 4096], near[i:i + 4096], far[i:i + 4096], cfg.n_samples,
+                          white_background=cfg.white_background, last_delta=None)
+        pts = o[i:i + 4096, None, :] + out["z_vals"][..., None] * d[i:i + 4096, None, :]
+        pts_all.append(pts[out["weights"] > min_weight])
+    pts = torch.cat(pts_all)
+    if pts.shape[0] < 100:
+        return model.box_min.tolist(), model.box_max.tolist()
+    lo = torch.quantile(pts, 0.001, dim=0) - margin_voxels * model.voxel_size
+    hi = torch.quantile(pts, 0.999, dim=0) + margin_voxels * model.voxel_size
+    return torch.maximum(lo, model.box_min).tolist(), torch.minimum(hi, model.box_max).tolist()
+
+
+def grid_callbacks(model, cfg) -> list[TrainingCallback]:
+    """The callbacks of a :class:`~course_lib.nerf.grid.GridField` trained with ``cfg`` (see the module)."""
+
+    def shrink(state) -> bool:
+        lo, hi = surface_box(model, cfg, state.rays, state.generator)
+        model.rebox(lo, hi, target_resolution(cfg, state.progress))
+        model.update_occupancy(cfg.occupancy_threshold)
+        state.bounds = state.bounds.with_box(lo, hi)
+        return True
+
+    def upsample(state) -> bool:
+        model.upsample(target_resolution(cfg, state.progress))
+        model.update_occupancy(cfg.occupancy_threshold)
+        return True
+
+    def spherical_harmonics(state) -> bool:
+        model.enable_sh(cfg.grid_sh_degree)  # RGB first (cheap steps), view-dependent colour from here
+        return True
+
+    def occupancy(state) -> bool:
+        model.update_occupancy(cfg.occupancy_threshold)
+        return False
+
+    return [
+        TrainingCallback("shrink the box", "before", lambda st: bool(cfg.shrink_box_at) and not st.bounds.shrunk
+                         and st.progress >= cfg.shrink_box_at, shrink),
+        TrainingCallback("coarse to fine", "before", lambda st: bool(cfg.grid_schedule)
+                         and target_resolution(cfg, st.progress) > model.resolution, upsample),
+        TrainingCallback("spherical harmonics", "before", lambda st: bool(cfg.grid_sh_degree) and model.sh_degree == 0
+                         and st.progress >= cfg.grid_sh_start, spherical_harmonics),
+        TrainingCallback("occupancy", "after", lambda st: bool(cfg.occupancy_every) and st.progress >= cfg.occupancy_start
+                         and st.step % cfg.occupancy_every == 0, occupancy),
+    ]
