@@ -85,15 +85,15 @@ def two_view_step(data_folder=None, pair: tuple[int, int] = STEP_PAIR) -> TwoVie
     folder = Path(EMBEDDED_SFM if data_folder is None else data_folder)
     pair = (int(pair[0]), int(pair[1]))
     if folder.resolve() == Path(EMBEDDED_SFM).resolve() and pair == STEP_PAIR:
-        f = load_fixture("fundamental")
+        f = load_fixture("fundamental_step")
         if "building_F_ransac" not in f:
             raise FileNotFoundError(
-                "the fundamental fixture has no result for the embedded scene; rebuild it with: "
-                "python -m course_lib fixtures fundamental"
+                "the fundamental_step fixture has no result for the embedded scene; rebuild it with: "
+                "python -m course_lib fixtures fundamental_step"
             )
         return TwoViewStep(
             x1=f["building_x1"], x2=f["building_x2"], F=f["building_F_ransac"], inliers=f["building_inliers"].astype(bool),
-            K=f["building_K"], pair=pair, source="stored reference result (fixture 'fundamental')",
+            K=f["building_K"], pair=pair, source="stored reference result (fixture 'fundamental_step')",
         )
     try:
         from course_lib.data.p3 import read_p3

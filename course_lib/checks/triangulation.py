@@ -84,32 +84,26 @@ def _scale(X) -> float:
     return float(max(np.linalg.norm(X.max(0) - X.min(0)), 1e-9))
 
 
-def _dlt(P1, P2, x1, x2, rows=(0, 1), smallest: bool = True) -> np.ndarray:
-    """The check's own DLT, with switches for the classic mistakes (see :func:`_dlt_variants`)."""
-    out = []
-    for a, b in zip(np.asarray(x1, float), np.asarray(x2, float)):
-        A = np.stack([a[0] * P1[2] - P1[rows[0]], a[1] * P1[2] - P1[rows[1]],
-                      b[0] * P2[2] - P2[rows[0]], b[1] * P2[2] - P2[rows[1]]])
-        Xh = np.linalg.svd(A)[2][-1 if smallest else 0]
-        out.append(Xh[:3] / Xh[3] if Xh[3] != 0 else np.full(3, np.nan))
-    return np.array(out).reshape(-1, 3)
+#: What each stored mistake of the linear triangulation (``lin_<case>_mis_<key>``) means.
+_LINEAR_MISTAKES = {
+    "swapped": "the cameras are swapped in the rows of A: the rows of x1 use P2 and those of x2 use P1; build "
+               "u1 p3ᵀ - p1ᵀ, v1 p3ᵀ - p2ᵀ from P1 and the same two rows with x2 from P2",
+    "uv_swapped": "u and v are swapped in the rows of A: u goes with the first row of P (u p3ᵀ - p1ᵀ) and v with the "
+                  "second (v p3ᵀ - p2ᵀ)",
+    "largest": "you took the singular vector of the LARGEST singular value: X_h is the last row of Vt (Vt[-1]), "
+               "the least-squares null vector of A",
+}
 
 
-def _dlt_variants(P1, P2, x1, x2) -> list[tuple[str, np.ndarray]]:
-    """``(mistake, points that mistake gives)`` for the classic mistakes of the linear triangulation."""
+def _reprojection_px(P, X, x) -> np.ndarray:
+    """(N,) pixel distances between x and the projection of X by P."""
+    Xh = np.column_stack([X, np.ones(len(X))]) @ np.asarray(P, float).T
     with np.errstate(all="ignore"):
-        return [
-            ("the cameras are swapped in the rows of A: the rows of x1 use P2 and those of x2 use P1; build "
-             "u1 p3ᵀ - p1ᵀ, v1 p3ᵀ - p2ᵀ from P1 and the same two rows with x2 from P2", _dlt(P2, P1, x1, x2)),
-            ("u and v are swapped in the rows of A: u goes with the first row of P (u p3ᵀ - p1ᵀ) and v with the "
-             "second (v p3ᵀ - p2ᵀ)", _dlt(P1, P2, x1, x2, rows=(1, 0))),
-            ("you took the singular vector of the LARGEST singular value: X_h is the last row of Vt (Vt[-1]), "
-             "the least-squares null vector of A", _dlt(P1, P2, x1, x2, smallest=False)),
-        ]
+        return np.linalg.norm(Xh[:, :2] / Xh[:, 2:] - x, axis=1)
 
 
 def _points_verdict(c: Check, X, ref, case: str, tol: float, P1=None, P2=None, x1=None, x2=None,
-                    pass_msg: str = "matches the reference") -> bool:
+                    pass_msg: str = "matches the reference", mis: dict | None = None) -> bool:
     """Shape and closeness of triangulated points, with the typical mistakes named."""
     if X is FAILED:
         return False
@@ -138,18 +132,17 @@ def _points_verdict(c: Check, X, ref, case: str, tol: float, P1=None, P2=None, x
     if np.median(np.linalg.norm(A - (-ref), axis=1)) <= tol * scale:
         return c.fail(f"{case}: the points are mirrored through the origin (X -> -X): divide by X_h[3], keeping its sign")
     hint = ""
+    for key, Y in (mis or {}).items():
+        if Y.shape == A.shape and np.median(np.linalg.norm(A - Y, axis=1)) <= max(tol, 1e-6) * scale:
+            return c.fail(f"{case}: {_LINEAR_MISTAKES[key]}")
     if P1 is not None:
-        from course_lib.conventions import from_homogeneous, to_homogeneous
-
-        for why, Y in _dlt_variants(P1, P2, x1, x2):
-            if np.median(np.linalg.norm(A - Y, axis=1)) <= max(tol, 1e-6) * scale:
-                return c.fail(f"{case}: {why}")
-        Xh = to_homogeneous(A)
-        e = np.concatenate([np.linalg.norm(from_homogeneous(Xh @ P.T) - x, axis=1) for P, x in ((P1, x1), (P2, x2))])
-        hint = f" (median reprojection error {np.median(e):.3g} px)"
-    return c.fail(f"{case}: median distance to the reference points {np.median(d):.3g} (scene size {scale:.3g}){hint}: "
-                  "check the equations u p3ᵀ - p1ᵀ and v p3ᵀ - p2ᵀ (p_k are the rows of P, u goes with the first row) "
-                  "and take the right singular vector of the SMALLEST singular value (Vt[-1])")
+        e_right = np.median(np.concatenate([_reprojection_px(P1, A, x1), _reprojection_px(P2, A, x2)]))
+        e_swap = np.median(np.concatenate([_reprojection_px(P2, A, x1), _reprojection_px(P1, A, x2)]))
+        if e_swap < 0.5 * e_right:
+            return c.fail(f"{case}: your points project well with the cameras swapped ({e_swap:.3g} px, {e_right:.3g} px "
+                          f"as given): {_LINEAR_MISTAKES['swapped']}")
+        hint = f" (median reprojection error {e_right:.3g} px)"
+    return c.fail(f"{case}: median distance to the reference points {np.median(d):.3g} (scene size {scale:.3g}){hint}")
 
 
 # --------------------------------------------------------------------------- triangulate_linear
@@ -168,11 +161,12 @@ def check_triangulate_linear(fn, exercise: str = "triangulate_linear") -> None:
             X = c.call(fn, P1, P2, x1, x2, case=case)
             if X is FAILED:
                 continue
+            mis = {key: f[f"{k}_mis_{key}"] for key in _LINEAR_MISTAKES if f"{k}_mis_{key}" in f}
             if name == "noiseless":
                 _points_verdict(c, X, f[f"{k}_Xtrue"], case, tol, P1, P2, x1, x2,
-                                pass_msg="recovers the true points exactly")
+                                pass_msg="recovers the true points exactly", mis=mis)
             else:
-                _points_verdict(c, X, f[f"{k}_X"], case, tol, P1, P2, x1, x2)
+                _points_verdict(c, X, f[f"{k}_X"], case, tol, P1, P2, x1, x2, mis=mis)
         # one point at a time must work too (N = 1)
         P1, P2 = f["lin_noiseless_P1"], f["lin_noiseless_P2"]
         X1 = c.call(fn, P1, P2, f["lin_noiseless_x1"][:1], f["lin_noiseless_x2"][:1], case="a single point (N = 1)")
@@ -207,23 +201,21 @@ def pose_fields(out):
     return None
 
 
-def _cheirality_variants(R, C, Xc) -> list[tuple[str, int]]:
-    """(mistake, index the mistake picks) for typical wrong cheirality tests."""
-    variants = []
-    for hint, test in (
-        ("the test checks only camera 2: require z > 0 in camera 1 as well", lambda k, X: (X - C[k]) @ R[k][2] > 0),
-        ("the test checks only camera 1: require r3ᵀ (X - C) > 0 for camera 2 as well", lambda k, X: X[:, 2] > 0),
-        ("the test forgets the centre: use r3ᵀ (X - C) > 0, not r3ᵀ X > 0", lambda k, X: (X[:, 2] > 0) & (X @ R[k][2] > 0)),
-        ("the test uses t where the centre C belongs: r3ᵀ (X - C) with C = -Rᵀ t",
-         lambda k, X: (X[:, 2] > 0) & ((X + R[k] @ C[k]) @ R[k][2] > 0)),
-        ("the test uses the third column of R: r3ᵀ is the third ROW, R[2]", lambda k, X: (X[:, 2] > 0) & ((X - C[k]) @ R[k][:, 2] > 0)),
-        ("the sign of the cheirality test is flipped, it keeps the points behind the cameras: in front means depth > 0",
-         lambda k, X: (X[:, 2] < 0) & ((X - C[k]) @ R[k][2] < 0)),
-    ):
-        with np.errstate(invalid="ignore"):
-            counts = np.array([int(test(k, Xc[k]).sum()) for k in range(4)])
-        variants.append((hint, int(np.argmax(counts)), counts))
-    return variants
+#: The wrong cheirality tests, in the order of the rows of the stored ``<case>_mis_counts``.
+_CHEIRALITY_MISTAKES = (
+    "the test checks only camera 2: require z > 0 in camera 1 as well",
+    "the test checks only camera 1: require r3ᵀ (X - C) > 0 for camera 2 as well",
+    "the test forgets the centre: use r3ᵀ (X - C) > 0, not r3ᵀ X > 0",
+    "the test uses t where the centre C belongs: r3ᵀ (X - C) with C = -Rᵀ t",
+    "the test uses the third column of R: r3ᵀ is the third ROW, R[2]",
+    "the sign of the cheirality test is flipped, it keeps the points behind the cameras: in front means depth > 0",
+)
+
+
+def _cheirality_variants(f: dict, key: str) -> list[tuple[str, int, np.ndarray]]:
+    """(mistake, index the mistake picks, its counts) for the typical wrong cheirality tests of case ``key``."""
+    counts = f[f"{key}_mis_counts"]
+    return [(hint, int(np.argmax(cnt)), cnt) for hint, cnt in zip(_CHEIRALITY_MISTAKES, counts)]
 
 
 def _match_candidate(R_s, t_s, R, C) -> tuple[int | None, str | None]:
@@ -265,7 +257,7 @@ def _pose_case(c: Check, fn, f, key, case) -> None:
         c.fail(f"{case}: R_cw is none of the four candidates R[k]: return the chosen candidate's rotation unchanged")
         return
     if k != ref_k:
-        variants = _cheirality_variants(R, C, f[f"{key}_Xc"])
+        variants = _cheirality_variants(f, key)
         named = [hint for hint, idx, _ in variants if idx == k]
         if counts_s is not None and counts_s.shape == (4,):  # prefer the variant that also explains the counts
             named = [hint for hint, idx, cnt in variants if idx == k and np.array_equal(cnt, counts_s)] + named
@@ -278,8 +270,9 @@ def _pose_case(c: Check, fn, f, key, case) -> None:
     if confusion:
         c.fail(f"{case}: the right candidate, but {confusion}")
         return
-    c.expect(True, f"{case}: picks the candidate with the points in front of both cameras", "",
-             defining="in front of both cameras")
+    # a gate: a constant answer (always R[0]) would otherwise earn the cases whose right candidate is 0
+    c.gate(True, f"{case}: picks the candidate with the points in front of both cameras", "",
+           defining="in front of both cameras")
     if X_s is None or X_s.shape != f[f"{key}_X"].shape:
         c.fail(f"{case}: X must have shape {f[f'{key}_X'].shape}, got {None if X_s is None else X_s.shape}")
     else:
@@ -292,8 +285,9 @@ def _pose_case(c: Check, fn, f, key, case) -> None:
         c.fail(f"{case}: counts must have shape (4,): the number of points in front for each candidate")
     else:
         tol = max(2, 0.01 * n)
-        close = np.abs(counts_s - ref_counts).max() <= tol and (front_s.astype(bool) != ref_front).sum() <= tol
-        named = sorted((np.abs(counts_s - counts).max(), hint) for hint, _, counts in _cheirality_variants(R, C, f[f"{key}_Xc"])
+        close = (np.abs(counts_s - ref_counts).max() <= tol
+                 and (front_s.astype(bool) != ref_front).sum() <= max(1, int(0.01 * n)))
+        named = sorted((np.abs(counts_s - counts).max(), hint) for hint, _, counts in _cheirality_variants(f, key)
                        if np.abs(counts_s - counts).max() <= tol and np.abs(counts - ref_counts).max() > tol)
         named = [hint for _, hint in named]
         why = named[0] if named else ("count, for each candidate, the points with z > 0 in camera 1 AND "
@@ -303,7 +297,7 @@ def _pose_case(c: Check, fn, f, key, case) -> None:
                  defining="in front of both cameras" if named else None)
     if f"{key}_true_R" in f:
         ok = np.allclose(R_s, f[f"{key}_true_R"], atol=1e-6) and np.allclose(t_s, f[f"{key}_true_t"], atol=1e-6)
-        c.expect(ok, f"{case}: equals the true relative pose", f"{case}: differs from the true relative pose")
+        c.gate(ok, f"{case}: equals the true relative pose", f"{case}: differs from the true relative pose")
     if f"{key}_gt_R" in f:  # estimated from real matches: close to the ground truth, not equal
         rot = _angle_deg(R_s, f[f"{key}_gt_R"])
         cos_t = float(t_s @ f[f"{key}_gt_t"] / max(np.linalg.norm(t_s), 1e-300))
@@ -323,9 +317,43 @@ def check_choose_pose(fn, exercise: str = "choose_pose") -> None:
                           ("pose_embedded", "embedded scene")):
             if f"{key}_R" in f:
                 _pose_case(c, fn, f, key, case)
+        c.blame_earlier("triangulate_linear")
 
 
 # --------------------------------------------------------------------------- triangulate_nonlinear
+
+
+#: What each stored mistake of the non-linear triangulation (``nl_<case>_mis_<key>``) means.
+_NONLINEAR_MISTAKES = {
+    "no_depth_division": "the residual compares K (R X + t) with the pixel without dividing by its depth z: project "
+                         "with (K (R X + t))[:2] / (K (R X + t))[2]",
+    "cross_multiplied": "the residual is cross-multiplied, (K (R X + t))[:2] - x (K (R X + t))[2]: that is an algebraic "
+                        "error, not the reprojection error in pixels; divide by the depth, then subtract x",
+    "R_transposed": "R is transposed: the cameras map x_cam = R_cw X + t_cw, use R_cws[i] itself (not .T)",
+    "nan_as_zero": "the unseen observations (NaN in uv) became pixels (0, 0): leave them out of the residuals",
+    "unseen_not_refined": "the points that some view does not see were not refined: use every view in which the "
+                          "point is seen (uv[j, i] not NaN), as long as there are two",
+}
+
+
+def _nonlinear_diagnosis(f: dict, key: str, A: np.ndarray, ref: np.ndarray) -> str | None:
+    """The named mistake whose result the points ``A`` reproduce, or None."""
+    off = np.linalg.norm(A - ref, axis=1).mean()  # how far from the optimum; a mistake must explain that
+
+    def explains(Y) -> bool:
+        return Y is not None and Y.shape == A.shape and np.linalg.norm(A - Y, axis=1).mean() <= 0.05 * off
+
+    for name, hint in _NONLINEAR_MISTAKES.items():
+        if explains(f.get(f"{key}_mis_{name}")):
+            return hint
+    if explains(f.get(f"{key}_X_2views")):
+        return ("you used only the first two views: sum the residuals over every view in which the point is seen "
+                "(uv[:, i] not NaN)")
+    cos = (A * ref).sum(1) / (np.linalg.norm(A, axis=1) * np.linalg.norm(ref, axis=1) + 1e-300)
+    if np.median(cos) > 1 - 1e-7 and np.median(np.abs(np.linalg.norm(A, axis=1) / np.linalg.norm(ref, axis=1) - 1)) > 1e-3:
+        return ("each point lies on the line through the origin of the optimum but at another distance: did you "
+                "optimize a homogeneous point and forget to divide by its last coordinate?")
+    return None
 
 
 def check_triangulate_nonlinear(fn, exercise: str = "triangulate_nonlinear") -> None:
@@ -340,6 +368,9 @@ def check_triangulate_nonlinear(fn, exercise: str = "triangulate_nonlinear") -> 
             if X is FAILED:
                 continue
             A = _arr(X)
+            if A is not None and A.shape == (ref.shape[0], 4):
+                c.fail(f"{case}: returned homogeneous points of shape {A.shape}: divide by the last coordinate and drop it")
+                continue
             if A is None or A.shape != ref.shape:
                 c.fail(f"{case}: expected shape {ref.shape}, got {None if A is None else A.shape}")
                 continue
@@ -351,16 +382,16 @@ def check_triangulate_nonlinear(fn, exercise: str = "triangulate_nonlinear") -> 
             if np.allclose(A, X0, atol=1e-12):
                 c.fail(f"{case}: the points did not move: return the optimized points (result.x), not X0")
                 continue
+            named = _nonlinear_diagnosis(f, key, A, ref)
             if e_s > e0 * (1 + 1e-9) + 1e-9:
-                c.fail(f"{case}: the non-linear step increased the reprojection error ({e0:.3g} -> {e_s:.3g} px): "
-                       "check the residual: the projection K (R X + t) divided by its depth z (the usual slip is a "
-                       "residual without that division), minus the observed pixel; and return the optimum")
+                c.fail(f"{case}: {named or 'the non-linear step increased the RMS reprojection error'} "
+                       f"({e0:.3g} px before, {e_s:.3g} px after; the optimum is {e_ref:.3g} px)")
                 continue
             c.gate(True, f"{case}: lowers the reprojection error", "")
-            if f"{key}_X_2views" in f and np.median(np.linalg.norm(A - f[f"{key}_X_2views"], axis=1)) < 1e-4 * _scale(ref):
-                c.fail(f"{case}: you used only the first two views: sum the residuals over every view in which "
-                       "the point is seen (uv[:, i] not NaN)")
-                continue
-            c.expect(e_s <= e_ref * (1 + 1e-3) + 1e-6, f"{case}: reaches the least-squares optimum",
-                     f"{case}: RMS reprojection error {e_s:.4g} px, the optimum is {e_ref:.4g} px: run the solver to "
-                     "convergence and use every view that sees the point")
+            ok = e_s <= e_ref * (1 + 1e-3) + 1e-6
+            if ok or named is None:
+                c.expect(ok, f"{case}: reaches the least-squares optimum",
+                         f"{case}: RMS reprojection error {e_s:.4g} px, the optimum is {e_ref:.4g} px: run the solver to "
+                         "convergence and use every view that sees the point")
+            else:
+                c.fail(f"{case}: {named} (RMS reprojection error {e_s:.4g} px, the optimum is {e_ref:.4g} px)")

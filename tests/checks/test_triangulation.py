@@ -110,7 +110,7 @@ def _choose_returning(transform):
     (gtri.check_choose_pose, _choose_returning(lambda R, t, Rk, Ck: (R.T, t)), "R_wc"),
     (gtri.check_choose_pose, _choose_returning(lambda R, t, Rk, Ck: (R, Ck)), "camera centre C"),
     (gtri.check_choose_pose, _choose_returning(lambda R, t, Rk, Ck: (R, -Ck)), "C vs t"),
-    (gtri.check_triangulate_nonlinear, lambda K, R, t, uv, X0: X0 + 0.05, "increased the reprojection error"),
+    (gtri.check_triangulate_nonlinear, lambda K, R, t, uv, X0: X0 + 0.05, "increased the RMS reprojection error"),
     (gtri.check_triangulate_nonlinear, lambda K, R, t, uv, X0: X0.copy(), "did not move"),
     (gtri.check_triangulate_nonlinear, lambda K, R, t, uv, X0: tri.triangulate_nonlinear(K, R[:2], t[:2], uv[:, :2], X0),
      "only the first two views"),

@@ -1,7 +1,10 @@
 """Cases of notebook 02 (essential matrix, pose candidates): E from synthetic pairs and the embedded pair, and -E.
 
 Built from :mod:`course_lib.sfm.essential` (fixture ``essential``); the checks are in
-:mod:`course_lib.checks.essential`.
+:mod:`course_lib.checks.essential`. The embedded case is a random subset of the reference inliers
+of notebook 01 (its F refit on that subset), so the hidden cases of a grading run (salted seeds)
+repeat nothing that ships. What the classic mistakes give is stored with each case
+(:mod:`course_lib.instructor.mistakes.essential`).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from course_lib.steps import STEP_PAIR, STEP_SEED, STEP_THRESHOLD_PX
 def _build() -> dict[str, np.ndarray]:
     from course_lib.data.synthetic import make_scene
     from course_lib.sfm import essential as ref
+    from course_lib.instructor.mistakes.essential import essential_variants
     from course_lib.sfm.fundamental import eight_point
 
     out: dict[str, np.ndarray] = {}
@@ -33,15 +37,17 @@ def _build() -> dict[str, np.ndarray]:
         cases.append(name)
     # the embedded pair: the same reference result that two_view_step() serves to notebook 02
     # (recomputed here, so that this fixture does not depend on the order fixtures are built in)
-    from course_lib.instructor.cases.fundamental import embedded_pair
+    from course_lib.instructor.cases.fundamental import embedded_pair, random_subset
     from course_lib.sfm.fundamental import ransac_fundamental
 
     emb = embedded_pair()
     if emb is not None:
         x1, x2, K = emb
         res = ransac_fundamental(x1, x2, np.random.default_rng(STEP_SEED), threshold_px=STEP_THRESHOLD_PX)
-        out["building_F"], out["building_K"] = res.F, K
-        out["building_x1"], out["building_x2"] = x1[res.inliers], x2[res.inliers]
+        keep = random_subset(int(res.inliers.sum()), 23)
+        x1, x2 = x1[res.inliers][keep], x2[res.inliers][keep]
+        out["building_F"], out["building_K"] = eight_point(x1, x2), K
+        out["building_x1"], out["building_x2"] = x1, x2
         out["building_pair"] = np.array(STEP_PAIR)
         cases.append("building")
     out["cases"] = np.array(cases)
@@ -49,6 +55,8 @@ def _build() -> dict[str, np.ndarray]:
         E = ref.essential_from_fundamental(out[f"{name}_F"], out[f"{name}_K"])
         R, C = ref.pose_candidates(E)
         out[f"{name}_E"], out[f"{name}_R"], out[f"{name}_C"] = E, R, C
+        for key, M in essential_variants(out[f"{name}_F"], out[f"{name}_K"]).items():
+            out[f"{name}_mis_{key}"] = M
     # E and -E are the same essential matrix; for one of the two the SVD gives det(U) det(V) = -1, so
     # a missing det flip shows on every pair (pose_candidates only)
     # (with np.linalg.svd; the multiple of E that exposes it is searched for, -E first)

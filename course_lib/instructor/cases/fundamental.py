@@ -1,7 +1,14 @@
-"""Cases of notebook 01 (fundamental matrix): synthetic pairs, the embedded pair, the unnormalized 8-point.
+"""Cases of notebook 01 (fundamental matrix) and notebook 02's starting point.
 
-Built from :mod:`course_lib.sfm.fundamental` (fixture ``fundamental``); the checks are in
-:mod:`course_lib.checks.fundamental`.
+Built from :mod:`course_lib.sfm.fundamental`: the fixture ``fundamental`` holds the check cases
+(synthetic pairs, a random subset of the embedded pair's matches, what the classic mistakes give
+on them: :mod:`course_lib.instructor.mistakes.fundamental`); the step fixture ``fundamental_step``
+holds the reference F and inliers of the embedded pair that notebook 02 starts from
+(:func:`course_lib.steps.two_view_step`). The checks are in :mod:`course_lib.checks.fundamental`.
+
+Every random choice comes from a seeded ``np.random.default_rng`` (never seed 0, which the hidden
+checks keep unsalted), so the hidden cases of a grading run are new scenes and a new subset of the
+embedded matches: nothing equal to what ships with the kit.
 """
 
 from __future__ import annotations
@@ -15,27 +22,11 @@ from course_lib.instructor.cases import builds
 from course_lib.paths import EMBEDDED_SFM
 from course_lib.steps import STEP_PAIR, STEP_SEED, STEP_THRESHOLD_PX
 
-def _synthetic_cases() -> dict[str, np.ndarray]:
-    from course_lib.data.synthetic import make_scene
+#: RANSAC threshold of the refit case (no outliers, 1 px noise: every match is an inlier).
+REFIT_THRESHOLD_PX = 5.0
 
-    out: dict[str, np.ndarray] = {}
-    # normalize_points: an anisotropic cloud far from the origin (a strip of a building)
-    g = np.random.default_rng(101)
-    out["norm_x"] = np.column_stack([g.uniform(150.0, 700.0, 40), g.uniform(380.0, 520.0, 40)])
-    # noiseless pair: exact projections
-    sc = make_scene(np.random.default_rng(3), n_cameras=2, n_points=120, noise_px=0.0, outlier_fraction=0.0)
-    x1, x2, _, _ = sc.pair(0, 1)
-    out["noiseless_x1"], out["noiseless_x2"] = x1, x2
-    # noisy pair: 1 px noise, no outliers; the unnormalized 8-point is clearly worse here
-    sc = make_scene(np.random.default_rng(3), n_cameras=2, n_points=120, noise_px=1.0, outlier_fraction=0.0)
-    x1, x2, _, ids = sc.pair(0, 1)
-    out["noisy_x1"], out["noisy_x2"] = x1, x2
-    # pair with outliers (about 20 % of the correspondences), 0.5 px noise
-    sc = make_scene(np.random.default_rng(5), n_cameras=2, n_points=250, noise_px=0.5, outlier_fraction=0.1)
-    x1, x2, inl, ids = sc.pair(0, 1)
-    out["outliers_x1"], out["outliers_x2"], out["outliers_true_inliers"] = x1, x2, inl
-    out["outliers_x1_true"], out["outliers_x2_true"] = sc.uv_true[ids, 0], sc.uv_true[ids, 1]
-    return out
+#: The share of the embedded pair's matches that a check case keeps (a random subset per build).
+EMBEDDED_SHARE = 0.85
 
 
 def embedded_pair():
@@ -49,52 +40,110 @@ def embedded_pair():
     return m.x1, m.x2, data.K
 
 
-def _unnormalized_eight_point(x1, x2) -> np.ndarray:
-    """The typical mistake 'not normalized', kept to recognize it (fixture build time only)."""
-    u1, v1 = x1.T
-    u2, v2 = x2.T
-    A = np.stack([u2 * u1, u2 * v1, u2, v2 * u1, v2 * v1, v2, u1, v1, np.ones_like(u1)], axis=1)
-    F = np.linalg.svd(A)[2][-1].reshape(3, 3)
-    U, s, Vt = np.linalg.svd(F)
-    F = U @ np.diag([s[0], s[1], 0.0]) @ Vt
-    return F / np.linalg.norm(F)
+def random_subset(n: int, seed: int, share: float = EMBEDDED_SHARE) -> np.ndarray:
+    """Indices of a random subset of ``share * n`` of ``n`` items, in random order (salted in grading)."""
+    g = np.random.default_rng(seed)
+    return g.permutation(n)[: int(round(share * n))]
+
+
+@builds("fundamental_step", step=True)
+def _build_step() -> dict[str, np.ndarray]:
+    from course_lib.sfm import fundamental as ref
+
+    emb = embedded_pair()
+    if emb is None:
+        return {}
+    x1, x2, K = emb
+    res = ref.ransac_fundamental(x1, x2, np.random.default_rng(STEP_SEED), threshold_px=STEP_THRESHOLD_PX)
+    return {"building_x1": x1, "building_x2": x2, "building_K": K, "building_F_ransac": res.F,
+            "building_inliers": res.inliers, "building_n_iters": np.array(res.n_iters),
+            "building_pair": np.array(STEP_PAIR), "building_threshold_px": np.array(STEP_THRESHOLD_PX)}
+
+
+def _scenes() -> dict[str, tuple[np.ndarray, ...]]:
+    """``{case: (x1, x2, true inlier mask, noiseless x1, noiseless x2)}`` of the synthetic pairs."""
+    from course_lib.data.synthetic import make_scene
+
+    out = {}
+    for name, seed, n, noise, outliers in (("noiseless", 3, 120, 0.0, 0.0), ("noisy", 4, 120, 1.0, 0.0),
+                                           ("outliers", 5, 250, 0.7, 0.1), ("refit", 6, 150, 1.0, 0.0)):
+        sc = make_scene(np.random.default_rng(seed), n_cameras=2, n_points=n, noise_px=noise, outlier_fraction=outliers)
+        x1, x2, inl, ids = sc.pair(0, 1)
+        out[name] = (x1, x2, inl.astype(bool), sc.uv_true[ids, 0], sc.uv_true[ids, 1])
+    return out
+
+
+def _eight_point_case(out: dict, name: str, x1: np.ndarray, x2: np.ndarray) -> None:
+    from course_lib.instructor.mistakes.fundamental import eight_point_variants
+    from course_lib.sfm import fundamental as ref
+
+    p = f"ep_{name}"
+    out[f"{p}_x1"], out[f"{p}_x2"] = x1, x2
+    out[f"{p}_F"] = ref.eight_point(x1, x2)
+    out[f"{p}_T1"], out[f"{p}_T2"] = ref.normalize_points(x1)[1], ref.normalize_points(x2)[1]
+    for key, F in eight_point_variants(x1, x2).items():
+        out[f"{p}_mis_{key}"] = F
+
+
+def _sampson_case(out: dict, name: str, F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> None:
+    from course_lib.instructor.mistakes.fundamental import sampson_variants
+    from course_lib.sfm import fundamental as ref
+
+    p = f"sd_{name}"
+    out[f"{p}_F"], out[f"{p}_x1"], out[f"{p}_x2"] = F, x1, x2
+    out[f"{p}_d"] = ref.sampson_distance(F, x1, x2)
+    for key, d in sampson_variants(F, x1, x2).items():
+        out[f"{p}_mis_{key}"] = d
 
 
 @builds(FIXTURE)
 def _build() -> dict[str, np.ndarray]:
+    from course_lib.instructor.mistakes.fundamental import ransac_masks
     from course_lib.sfm import fundamental as ref
 
-    out = _synthetic_cases()
+    out: dict[str, np.ndarray] = {}
+    # normalize_points: an anisotropic cloud far from the origin (a strip of a building facade)
+    g = np.random.default_rng(101)
+    n = int(g.integers(30, 50))
+    out["norm_x"] = np.column_stack([g.uniform(150.0, 700.0, n), g.uniform(380.0, 520.0, n)])
     out["norm_xn"], out["norm_T"] = ref.normalize_points(out["norm_x"])
+
+    scenes = _scenes()
     cases = ["noiseless", "noisy", "outliers"]
+    for name in cases:
+        x1, x2, inl = scenes[name][:3]
+        _eight_point_case(out, name, x1[inl], x2[inl])
+    x1, x2, inl, xt1, xt2 = scenes["outliers"]
+    _sampson_case(out, "outliers", out["ep_outliers_F"], x1, x2)
+    sd_cases = ["outliers"]
+
+    # RANSAC on the pair with outliers, as the check calls it (seed 0 there: the check's own generator)
+    res = ref.ransac_fundamental(x1, x2, np.random.default_rng(0), threshold_px=CHECK_THRESHOLD_PX)
+    out.update({"rs_x1": x1, "rs_x2": x2, "rs_true_inliers": inl, "rs_x1_true": xt1, "rs_x2_true": xt2,
+                "rs_F": res.F, "rs_inliers": res.inliers, "rs_n_iters": np.array(res.n_iters)})
+    for key, mask in ransac_masks(res.F, x1, x2, CHECK_THRESHOLD_PX).items():
+        out[f"rs_mask_{key}"] = mask
+
+    # RANSAC without outliers and a wide threshold: only a refit F is precise
+    x1, x2, _, xt1, xt2 = scenes["refit"]
+    res = ref.ransac_fundamental(x1, x2, np.random.default_rng(44), threshold_px=REFIT_THRESHOLD_PX)
+    out.update({"rf_x1": x1, "rf_x2": x2, "rf_x1_true": xt1, "rf_x2_true": xt2, "rf_F": res.F,
+                "rf_threshold_px": np.array(REFIT_THRESHOLD_PX)})
+
     emb = embedded_pair()
     if emb is not None:
         x1, x2, K = emb
-        out["building_x1"], out["building_x2"], out["building_K"] = x1, x2, K
-        res = ref.ransac_fundamental(x1, x2, np.random.default_rng(STEP_SEED), threshold_px=STEP_THRESHOLD_PX)
-        out["building_F_ransac"], out["building_inliers"] = res.F, res.inliers
-        out["building_n_iters"] = np.array(res.n_iters)
-        out["building_pair"] = np.array(STEP_PAIR)
-        out["building_threshold_px"] = np.array(STEP_THRESHOLD_PX)
+        keep = random_subset(len(x1), 41)
+        x1, x2 = x1[keep], x2[keep]
+        res = ref.ransac_fundamental(x1, x2, np.random.default_rng(42), threshold_px=STEP_THRESHOLD_PX)
+        out.update({"rb_x1": x1, "rb_x2": x2, "rb_F": res.F, "rb_inliers": res.inliers,
+                    "rb_threshold_px": np.array(STEP_THRESHOLD_PX)})
+        _eight_point_case(out, "building", x1[res.inliers], x2[res.inliers])
         cases.append("building")
+        # Sampson with an F of another scale and sign than unit norm
+        factor = float(np.random.default_rng(43).uniform(5.0, 50.0)) * -1.0
+        _sampson_case(out, "scaled", factor * res.F, x1, x2)
+        sd_cases.append("scaled")
     out["cases"] = np.array(cases)
-    for name in cases:
-        x1, x2 = out[f"{name}_x1"], out[f"{name}_x2"]
-        if name == "outliers":
-            inl = out["outliers_true_inliers"]
-        elif name == "building":
-            inl = out["building_inliers"]
-        else:
-            inl = np.ones(len(x1), bool)
-        # eight_point on the inliers of the case; its Sampson distances there
-        F = ref.eight_point(x1[inl], x2[inl])
-        out[f"{name}_F"] = F
-        out[f"{name}_F_unnormalized"] = _unnormalized_eight_point(x1[inl], x2[inl])
-        out[f"{name}_sampson"] = ref.sampson_distance(F, x1, x2)
-    # RANSAC on the pair with outliers, as the check calls it
-    res = ref.ransac_fundamental(
-        out["outliers_x1"], out["outliers_x2"], np.random.default_rng(0), threshold_px=CHECK_THRESHOLD_PX
-    )
-    out["outliers_F_ransac"], out["outliers_inliers"] = res.F, res.inliers
-    out["outliers_n_iters"] = np.array(res.n_iters)
+    out["sd_cases"] = np.array(sd_cases)
     return out

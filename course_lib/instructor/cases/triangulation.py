@@ -59,12 +59,14 @@ def _build() -> dict[str, np.ndarray]:
         x1, x2, _, ids = sc.pair(0, 1)
         out.update({f"lin_{name}_P1": P1, f"lin_{name}_P2": P2, f"lin_{name}_x1": x1, f"lin_{name}_x2": x2,
                     f"lin_{name}_X": tri.triangulate_linear(P1, P2, x1, x2), f"lin_{name}_Xtrue": sc.X[ids]})
+        _store_linear_mistakes(out, f"lin_{name}")
 
     # -- choose_pose: candidates from the true E; two scenes whose correct candidate has another index
     for name, seed in (("syn_a", 21), ("syn_b", 24)):
         sc = _synthetic_two_view(seed, 80, 0.5)
         R, t = _relative(sc, 0, 1)
         x1, x2, _, _ = sc.pair(0, 1)
+        x1, x2 = _with_behind(x1, x2, sc.K, R, t, seed + 100)
         Rc, Cc = essential.pose_candidates(skew(t) @ R)
         _store_pose_case(out, f"pose_{name}", Rc, Cc, sc.K, x1, x2, tri)
         out[f"pose_{name}_true_R"], out[f"pose_{name}_true_t"] = R, t / np.linalg.norm(t)
@@ -75,12 +77,14 @@ def _build() -> dict[str, np.ndarray]:
 
     rng = np.random.default_rng(27)
     Xw = rng.uniform(-1.0, 1.0, size=(60, 3))
-    R1, t1 = look_at(np.array([0.0, 0.0, -4.0]), np.zeros(3))
-    R2, t2 = look_at(np.array([2.8, -0.5, 2.8]), np.zeros(3))
+    a1, a2 = rng.uniform(-0.05, 0.05), rng.uniform(2.3, 2.4)  # camera 2 about 135 degrees around the object
+    R1, t1 = look_at(4.0 * np.array([np.sin(a1), 0.0, -np.cos(a1)]), np.zeros(3))
+    R2, t2 = look_at(4.0 * np.array([np.sin(a1 + a2), rng.uniform(-0.15, -0.1), -np.cos(a1 + a2)]), np.zeros(3))
     x1 = project(K, R1, t1, Xw) + rng.normal(0.0, 0.3, (60, 2))
     x2 = project(K, R2, t2, Xw) + rng.normal(0.0, 0.3, (60, 2))
     R = R2 @ R1.T
     t = t2 - R @ t1
+    x1, x2 = _with_behind(x1, x2, K, R, t, 127)
     Rc, Cc = essential.pose_candidates(skew(t) @ R)
     _store_pose_case(out, "pose_syn_wide", Rc, Cc, K, x1, x2, tri)
     out["pose_syn_wide_true_R"], out["pose_syn_wide_true_t"] = R, t / np.linalg.norm(t)
@@ -88,8 +92,9 @@ def _build() -> dict[str, np.ndarray]:
     # -- camera 2 moves forward (towards the scene) or backward: here one of the "twisted" candidates
     #    puts every point in front of camera 1 (or of camera 2) and comes first, so a cheirality test on
     #    one camera only picks the wrong pose (in the sideways pairs above it only changes the counts)
-    for name, forward in (("fwd", True), ("back", False)):
-        Rc, Cc, x1, x2, R, t = _moving_pair(K, forward)
+    for name, forward, seed in (("fwd", True, 28), ("back", False, 29)):
+        Rc, Cc, x1, x2, R, t = _moving_pair(K, forward, seed)
+        x1, x2 = _with_behind(x1, x2, K, R, t, seed + 100)
         _store_pose_case(out, f"pose_syn_{name}", Rc, Cc, K, x1, x2, tri)
         out[f"pose_syn_{name}_true_R"], out[f"pose_syn_{name}_true_t"] = R, t / np.linalg.norm(t)
 
@@ -101,32 +106,69 @@ def _build() -> dict[str, np.ndarray]:
     _store_nl_case(out, "nl_syn", sc.K, R_cws, t_cws, uv, X0, tri)
     out["nl_syn_Xtrue"] = sc.X
 
-    # -- the embedded scene: step 2's reference result for the pair
+    # -- the embedded scene: step 2's reference result for the pair, a random subset of its matches, and
+    #    (for the linear and the non-linear case) a random frame of the world, so that camera 1 is not [I | 0]
     if (EMBEDDED_SFM / "ground_truth.json").exists():
-        st = two_view_input(EMBEDDED_SFM)
-        Ke, x1, x2 = st["K"], st["x1"][:MAX_EMBEDDED], st["x2"][:MAX_EMBEDDED]
-        ch = tri.choose_pose(st["R_candidates"], st["C_candidates"], Ke, st["x1"], st["x2"])
-        P1 = projection_matrix(Ke, np.eye(3), np.zeros(3))
-        P2 = projection_matrix(Ke, ch.R_cw, ch.t_cw)
-        out.update({"lin_embedded_P1": P1, "lin_embedded_P2": P2, "lin_embedded_x1": x1, "lin_embedded_x2": x2,
-                    "lin_embedded_X": tri.triangulate_linear(P1, P2, x1, x2)})
-        _store_pose_case(out, "pose_embedded", st["R_candidates"], st["C_candidates"], Ke, x1, x2, tri)
-        truth = relative_truth(EMBEDDED_SFM, STEP_PAIR)
-        if truth is not None:
-            out["pose_embedded_gt_R"], out["pose_embedded_gt_t"] = truth
-        keep = ch.in_front[:MAX_EMBEDDED]
-        R_cws = np.stack([np.eye(3), ch.R_cw])
-        t_cws = np.stack([np.zeros(3), ch.t_cw])
-        uv = np.stack([x1[keep], x2[keep]], axis=1)
-        _store_nl_case(out, "nl_embedded", Ke, R_cws, t_cws, uv, out["lin_embedded_X"][keep], tri)
+        _embedded_cases(out, tri)
     return out
 
 
-def _moving_pair(K, forward: bool, seed: int = 0):
+def _embedded_cases(out: dict, tri) -> None:
+    from scipy.spatial.transform import Rotation
+
+    from course_lib.conventions import projection_matrix
+    from course_lib.instructor.cases.fundamental import random_subset
+    from course_lib.sfm import essential
+    from course_lib.sfm.fundamental import eight_point
+
+    st = two_view_input(EMBEDDED_SFM)
+    keep = random_subset(len(st["x1"]), 33)[:MAX_EMBEDDED]
+    Ke, x1, x2 = st["K"], st["x1"][keep], st["x2"][keep]
+    Rc, Cc = essential.pose_candidates(essential.essential_from_fundamental(eight_point(x1, x2), Ke))
+    _store_pose_case(out, "pose_embedded", Rc, Cc, Ke, x1, x2, tri)
+    ch = tri.choose_pose(Rc, Cc, Ke, x1, x2)
+    g = np.random.default_rng(34)  # world = a random rigid motion of camera 1's frame
+    R0, t0 = Rotation.from_rotvec(g.normal(0.0, 0.5, 3)).as_matrix(), g.normal(0.0, 1.0, 3)
+    R_cws = np.stack([R0, ch.R_cw @ R0])
+    t_cws = np.stack([t0, ch.R_cw @ t0 + ch.t_cw])
+    P1, P2 = projection_matrix(Ke, R_cws[0], t_cws[0]), projection_matrix(Ke, R_cws[1], t_cws[1])
+    X = tri.triangulate_linear(P1, P2, x1, x2)
+    out.update({"lin_embedded_P1": P1, "lin_embedded_P2": P2, "lin_embedded_x1": x1, "lin_embedded_x2": x2,
+                "lin_embedded_X": X})
+    _store_linear_mistakes(out, "lin_embedded")
+    front = ch.in_front
+    _store_nl_case(out, "nl_embedded", Ke, R_cws, t_cws, np.stack([x1[front], x2[front]], axis=1), X[front], tri)
+
+
+def _with_behind(x1: np.ndarray, x2: np.ndarray, K, R, t, seed: int, n: int = 2):
+    """The matches with ``n`` more, of points behind camera 1 (which is [I | 0]), at random rows.
+
+    Their triangulated points are never in front of both cameras, so ``in_front`` is False at rows
+    that differ from one build to the next.
+    """
+    g = np.random.default_rng(seed)
+    Xb = np.column_stack([g.uniform(-1.0, 1.0, n), g.uniform(-1.0, 1.0, n), g.uniform(-6.0, -3.0, n)])
+    b1, b2 = project(K, np.eye(3), np.zeros(3), Xb), project(K, R, t, Xb)
+    rows = np.sort(g.choice(len(x1) + n, n, replace=False))
+    y1, y2 = list(x1), list(x2)
+    for r, p, q in zip(rows, b1, b2):
+        y1.insert(r, p)
+        y2.insert(r, q)
+    return np.array(y1), np.array(y2)
+
+
+def _store_linear_mistakes(out: dict, key: str) -> None:
+    from course_lib.instructor.mistakes.triangulation import linear_variants
+
+    for name, X in linear_variants(out[f"{key}_P1"], out[f"{key}_P2"], out[f"{key}_x1"], out[f"{key}_x2"]).items():
+        out[f"{key}_mis_{name}"] = X
+
+
+def _moving_pair(K, forward: bool, seed: int):
     """Candidates and matches of a pair whose camera 2 moves 1.5 units along the optical axis.
 
     Returns ``(R (4, 3, 3), C (4, 3), x1, x2, R_true, t_true)``; camera 1 is ``[I | 0]``, the
-    60 points lie 5 to 9 units in front of it, 0.3 px noise.
+    50 to 70 points lie 5 to 9 units in front of it, 0.3 px noise.
     """
     from scipy.spatial.transform import Rotation
 
@@ -134,12 +176,13 @@ def _moving_pair(K, forward: bool, seed: int = 0):
     from course_lib.sfm import essential
 
     rng = np.random.default_rng(seed)
-    X = np.column_stack([rng.uniform(-2, 2, 60), rng.uniform(-1.5, 1.5, 60), rng.uniform(5, 9, 60)])
+    n = int(rng.integers(50, 71))
+    X = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.5, n), rng.uniform(5, 9, n)])
     C2 = np.array([rng.uniform(-0.4, 0.4), rng.uniform(-0.3, 0.3), 1.5 if forward else -1.5])
     R2 = Rotation.from_rotvec(rng.normal(0, 0.05, 3)).as_matrix()
     t2 = -R2 @ C2
-    x1 = project(K, np.eye(3), np.zeros(3), X) + rng.normal(0, 0.3, (60, 2))
-    x2 = project(K, R2, t2, X) + rng.normal(0, 0.3, (60, 2))
+    x1 = project(K, np.eye(3), np.zeros(3), X) + rng.normal(0, 0.3, (n, 2))
+    x2 = project(K, R2, t2, X) + rng.normal(0, 0.3, (n, 2))
     Rc, Cc = essential.pose_candidates(skew(t2) @ R2)
     return Rc, Cc, x1, x2, R2, t2
 
@@ -156,16 +199,21 @@ def make_nl_scene():
 
 
 def _store_pose_case(out, key, Rc, Cc, K, x1, x2, tri) -> None:
+    from course_lib.instructor.mistakes.triangulation import cheirality_counts
+
     ch = tri.choose_pose(Rc, Cc, K, x1, x2)
-    P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
-    Xc = np.stack([tri.triangulate_linear(P1, K @ np.hstack([Rc[k], (-Rc[k] @ Cc[k])[:, None]]), x1, x2) for k in range(4)])
     out.update({f"{key}_R": Rc, f"{key}_C": Cc, f"{key}_K": K, f"{key}_x1": x1, f"{key}_x2": x2,
                 f"{key}_R_cw": ch.R_cw, f"{key}_t_cw": ch.t_cw, f"{key}_X": ch.X, f"{key}_in_front": ch.in_front,
-                f"{key}_counts": ch.counts, f"{key}_index": np.array(ch.index), f"{key}_Xc": Xc})
+                f"{key}_counts": ch.counts, f"{key}_index": np.array(ch.index),
+                f"{key}_mis_counts": cheirality_counts(Rc, Cc, K, x1, x2)})
 
 
 def _store_nl_case(out, key, K, R_cws, t_cws, uv, X0, tri) -> None:
+    from course_lib.instructor.mistakes.triangulation import nonlinear_variants
+
     out.update({f"{key}_K": K, f"{key}_R": R_cws, f"{key}_t": t_cws, f"{key}_uv": uv, f"{key}_X0": X0,
                 f"{key}_X": tri.triangulate_nonlinear(K, R_cws, t_cws, uv, X0)})
+    for name, X in nonlinear_variants(K, R_cws, t_cws, uv, X0).items():
+        out[f"{key}_mis_{name}"] = X
     if R_cws.shape[0] > 2:  # the answer of a function that uses only the first two views
         out[f"{key}_X_2views"] = tri.triangulate_nonlinear(K, R_cws[:2], t_cws[:2], uv[:, :2], X0)

@@ -53,6 +53,104 @@ def pose_candidates_other_order(E):
 def pose_candidates_t_for_C(E):
     return _candidates(E, centre=False)
 
+
+def pose_candidates_C_minus_R_t(E):  # near miss: C = -R t instead of -Rᵀ t
+    U, _, Vt = np.linalg.svd(E)
+    Rs, Cs = [], []
+    for R0 in (U @ _W @ Vt, U @ _W.T @ Vt):
+        for t in (U[:, 2], -U[:, 2]):
+            R, C = R0, -R0 @ t
+            if np.linalg.det(R) < 0:
+                R, C = -R, -C
+            Rs.append(R)
+            Cs.append(C / np.linalg.norm(C))
+    return np.stack(Rs), np.stack(Cs)
+
+
+def pose_candidates_one_rotation(E):
+    U, _, Vt = np.linalg.svd(E)
+    R = U @ _W @ Vt
+    if np.linalg.det(R) < 0:
+        R = -R
+    C = Vt[2] / np.linalg.norm(Vt[2])
+    return np.stack([R, R, R, R]), np.stack([C, -C, C, -C])
+
+
+def essential_inverse_K(F, K):
+    Ki = np.linalg.inv(K)
+    U, _, Vt = np.linalg.svd(Ki.T @ F @ Ki)
+    return U @ np.diag([1.0, 1.0, 0.0]) @ Vt
+
+
+def essential_F_transposed(F, K):
+    U, _, Vt = np.linalg.svd(K.T @ F.T @ K)
+    return U @ np.diag([1.0, 1.0, 0.0]) @ Vt
+
+
+def essential_kept_singular_values(F, K):  # near miss: rank 2 enforced but the two values not made equal
+    U, s, Vt = np.linalg.svd(K.T @ F @ K)
+    return U @ np.diag([1.0, s[1] / s[0], 0.0]) @ Vt
+
+
+# ============================================================================ honest solutions
+# Written from the textbook (Hartley & Zisserman 9.6), not from course_lib.
+
+def essential_from_fundamental(F, K):
+    U, _, Vt = np.linalg.svd(K.T @ F @ K)
+    return U @ np.diag([1.0, 1.0, 0.0]) @ Vt
+
+
+def essential_from_fundamental__proper_rotations(F, K):
+    """Another style: U and V made rotations first (det +1), E then normalized to unit singular values."""
+    U, s, Vt = np.linalg.svd(K.T @ F @ K)
+    if np.linalg.det(U) < 0:
+        U = -U
+    if np.linalg.det(Vt) < 0:
+        Vt = -Vt
+    E = U @ np.diag([(s[0] + s[1]) / 2, (s[0] + s[1]) / 2, 0.0]) @ Vt
+    return E / np.linalg.svd(E, compute_uv=False)[0]
+
+
+def essential_average_singular_value(F, K):
+    """Hartley & Zisserman's closest E, diag((s1 + s2) / 2, same, 0): correct up to scale (a detail)."""
+    U, s, Vt = np.linalg.svd(K.T @ F @ K)
+    m = (s[0] + s[1]) / 2
+    return U @ np.diag([m, m, 0.0]) @ Vt
+
+
+def pose_candidates(E):
+    W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    U, _, Vt = np.linalg.svd(E)
+    Rs, Cs = [], []
+    for R in (U @ W @ Vt, U @ W.T @ Vt):
+        for sign in (1.0, -1.0):
+            t = sign * U[:, 2]
+            Rk, Ck = R, -R.T @ t
+            if np.linalg.det(Rk) < 0:
+                Rk, Ck = -Rk, -Ck
+            Rs.append(Rk)
+            Cs.append(Ck / np.linalg.norm(Ck))
+    return np.array(Rs), np.array(Cs)
+
+
+def pose_candidates__proper_svd(E):
+    """Another style: U and V made rotations before building R (no flip afterwards), C = ±V[:, 2]."""
+    U, _, Vt = np.linalg.svd(E)
+    if np.linalg.det(U) < 0:
+        U = U * -1
+    if np.linalg.det(Vt) < 0:
+        Vt = Vt * -1
+    W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    R1, R2 = U @ W @ Vt, U @ W.T @ Vt
+    R = np.empty((4, 3, 3))
+    C = np.empty((4, 3))
+    R[0], R[1], R[2], R[3] = R1, R1, R2, R2
+    for k in range(4):
+        t = U[:, 2] if k % 2 == 0 else -U[:, 2]
+        C[k] = -R[k].T @ t
+    return R, C / np.linalg.norm(C, axis=1, keepdims=True)
+
+
 # ============================================================================ the catalogue
 
 M = Mistake
@@ -63,16 +161,37 @@ MISTAKES = [
       ("k f kᵀ",)),
     M("pose_candidates", "det R = -1 not fixed", ges.check_pose_candidates, pose_candidates_no_det_fix,
       ("det -1", "flip the sign of both r and c"), defining="det R = +1"),
-    M("pose_candidates", "candidates in another order", ges.check_pose_candidates, pose_candidates_other_order,
-      ("another order", "the docstring fixes"), defining="documented order"),
     M("pose_candidates", "t returned as C", ges.check_pose_candidates, pose_candidates_t_for_C,
       ("not the camera centre",)),
+    M("pose_candidates", "C = -R t", ges.check_pose_candidates, pose_candidates_C_minus_R_t, ("c = -r t",)),
+    M("pose_candidates", "only one rotation", ges.check_pose_candidates, pose_candidates_one_rotation,
+      ("only one rotation",)),
+    M("essential_from_fundamental", "K⁻ᵀ F K⁻¹", ges.check_essential_from_fundamental, essential_inverse_K,
+      ("turns an e into an f",)),
+    M("essential_from_fundamental", "Fᵀ used", ges.check_essential_from_fundamental, essential_F_transposed,
+      ("fᵀ was used",)),
+    M("essential_from_fundamental", "singular values (1, s2/s1, 0)", ges.check_essential_from_fundamental,
+      essential_kept_singular_values, ("not corrected",), defining="singular values (1, 1, 0)"),
 ]
 
 #: Correct solutions: they must score full marks.
 HONEST = [
+    Honest("essential_from_fundamental", "textbook", ges.check_essential_from_fundamental, essential_from_fundamental),
+    Honest("essential_from_fundamental", "proper rotations, average singular value, rescaled",
+           ges.check_essential_from_fundamental, essential_from_fundamental__proper_rotations),
+    Honest("pose_candidates", "textbook", ges.check_pose_candidates, pose_candidates),
+    Honest("pose_candidates", "U and V made rotations first", ges.check_pose_candidates, pose_candidates__proper_svd),
     Honest("essential_from_fundamental", "the reference solution", ges.check_essential_from_fundamental, res.essential_from_fundamental),
     Honest("pose_candidates", "the reference solution", ges.check_pose_candidates, res.pose_candidates),
+]
+
+
+#: Correct maths in another form than the docstring's: full hidden-check points, a detail (≤ 1 point of 10).
+DETAIL = [
+    Honest("essential_from_fundamental", "diag((s1 + s2) / 2, same, 0)", ges.check_essential_from_fundamental,
+           essential_average_singular_value),
+    Honest("pose_candidates", "grouped by the sign of C (+, +, -, -)", ges.check_pose_candidates,
+           pose_candidates_other_order),
 ]
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
 
@@ -11,7 +12,8 @@ from course_lib.sfm import fundamental as rfu
 from tests.checks.catalogue import Honest, Mistake, _h
 
 # ============================================================================ buggy versions
-# Each is written as a student would write it (often the reference with one line changed).
+# Each is written as a student would write it; calls of earlier exercises use the reference, as the
+# grader's hidden checks feed every exercise the reference's earlier steps.
 
 # -- 01: normalize_points -----------------------------------------------------------------------
 def normalize_no_centroid(x):
@@ -39,8 +41,27 @@ def normalize_T_inverted(x):
     return xn, np.linalg.inv(T)
 
 
+def normalize_rms(x):
+    c = x.mean(0)
+    s = np.sqrt(2) / np.sqrt(np.mean(np.sum((x - c) ** 2, axis=1)))
+    T = np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1.0]])
+    return (x - c) * s, T
+
+
+def normalize_uncentred_scale(x):  # near miss: the scale from the distances to the origin of the image
+    c = x.mean(0)
+    s = np.sqrt(2) / np.linalg.norm(x, axis=1).mean()
+    T = np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1.0]])
+    return (x - c) * s, T
+
+
+def normalize_homogeneous(x):
+    xn, T = rfu.normalize_points(x)
+    return np.column_stack([xn, np.ones(len(xn))]), T
+
+
 # -- 01: eight_point ----------------------------------------------------------------------------
-def _eight(x1, x2, normalize=True, rank2=True, transpose=False):
+def _eight(x1, x2, normalize=True, rank2=True, transpose=False, denorm="right"):
     if normalize:
         x1n, T1 = rfu.normalize_points(x1)
         x2n, T2 = rfu.normalize_points(x2)
@@ -55,7 +76,12 @@ def _eight(x1, x2, normalize=True, rank2=True, transpose=False):
         U, s, Vt = np.linalg.svd(F)
         F = U @ np.diag([s[0], s[1], 0.0]) @ Vt
     Ta, Tb = (T2, T1) if transpose else (T1, T2)
-    F = Tb.T @ F @ Ta
+    if denorm == "right":
+        F = Tb.T @ F @ Ta
+    elif denorm == "swapped":
+        F = Ta.T @ F @ Tb
+    elif denorm == "inverse":
+        F = np.linalg.inv(Tb).T @ F @ np.linalg.inv(Ta)
     return F / np.linalg.norm(F)
 
 
@@ -69,6 +95,18 @@ def eight_point_unnormalized(x1, x2):
 
 def eight_point_transposed(x1, x2):
     return _eight(x1, x2, transpose=True)
+
+
+def eight_point_not_denormalized(x1, x2):
+    return _eight(x1, x2, denorm="none")
+
+
+def eight_point_denormalized_swapped(x1, x2):
+    return _eight(x1, x2, denorm="swapped")
+
+
+def eight_point_denormalized_inverse(x1, x2):
+    return _eight(x1, x2, denorm="inverse")
 
 
 # -- 01: sampson_distance -----------------------------------------------------------------------
@@ -85,37 +123,64 @@ def sampson_one_sided(F, x1, x2):
     return np.abs(np.sum(_h(x2) * l2, axis=1)) / np.hypot(l2[:, 0], l2[:, 1])
 
 
+def sampson_symmetric(F, x1, x2):  # near miss: the symmetric epipolar distance
+    l2, l1 = _h(x1) @ F.T, _h(x2) @ F
+    e = np.abs(np.sum(_h(x2) * l2, axis=1))
+    return e / np.hypot(l2[:, 0], l2[:, 1]) + e / np.hypot(l1[:, 0], l1[:, 1])
+
+
+def sampson_wrong_gradient(F, x1, x2):  # near miss: F x2 in place of Fᵀ x2
+    l2, l1 = _h(x1) @ F.T, _h(x2) @ F.T
+    e = np.sum(_h(x2) * l2, axis=1)
+    return np.abs(e) / np.sqrt(l2[:, 0] ** 2 + l2[:, 1] ** 2 + l1[:, 0] ** 2 + l1[:, 1] ** 2)
+
+
+def sampson_signed(F, x1, x2):
+    l2, l1 = _h(x1) @ F.T, _h(x2) @ F
+    e = np.sum(_h(x2) * l2, axis=1)
+    return e / np.sqrt(l2[:, 0] ** 2 + l2[:, 1] ** 2 + l1[:, 0] ** 2 + l1[:, 1] ** 2)
+
+
 # -- 01: ransac_fundamental ---------------------------------------------------------------------
 def _ransac(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000, error="sampson", refit=True,
-            adaptive=True, own_rng=False):
+            adaptive=True, own_rng=False, use_confidence=True, cap=True):
     n = len(x1)
     best, n_iters, need = None, 0, max_iters
     g = np.random.default_rng() if own_rng else rng
-    while n_iters < min(need, max_iters):
-        n_iters += 1
-        idx = g.choice(n, 8, replace=False)
-        F = rfu.eight_point(x1[idx], x2[idx])
+    p = confidence if use_confidence else 0.999
+
+    def inliers_of(F):
         if error == "sampson":
-            inl = rfu.sampson_distance(F, x1, x2) < threshold_px
-        elif error == "algebraic":
-            inl = np.abs(np.sum(_h(x2) * (_h(x1) @ F.T), axis=1)) < threshold_px
-        else:
-            inl = rfu.sampson_distance(F, x1, x2) ** 2 < threshold_px
+            return rfu.sampson_distance(F, x1, x2) < threshold_px
+        if error == "algebraic":
+            return np.abs(np.sum(_h(x2) * (_h(x1) @ F.T), axis=1)) < threshold_px
+        return rfu.sampson_distance(F, x1, x2) ** 2 < threshold_px
+
+    while n_iters < (min(need, max_iters) if cap else need):
+        n_iters += 1
+        idx = (np.random.choice(n, 8, replace=False) if own_rng == "global" else g.choice(n, 8, replace=False))
+        F = rfu.eight_point(x1[idx], x2[idx])
+        inl = inliers_of(F)
         if best is None or inl.sum() > best[1].sum():
             best = (F, inl)
             w = inl.mean()
             if adaptive and 0 < w < 1:
-                need = math.log(1 - confidence) / math.log(1 - w**8)
+                need = math.log(1 - p) / math.log(1 - w**8)
             elif adaptive:
                 need = 0
     F, inl = best
     if refit and inl.sum() >= 8:
         F = rfu.eight_point(x1[inl], x2[inl])
+        inl = inliers_of(F)
     return rfu.RansacResult(F, inl, n_iters)
 
 
 def ransac_algebraic(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
     return _ransac(x1, x2, rng, threshold_px, confidence, max_iters, error="algebraic")
+
+
+def ransac_squared(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
+    return _ransac(x1, x2, rng, threshold_px, confidence, max_iters, error="squared")
 
 
 def ransac_no_refit(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
@@ -126,8 +191,21 @@ def ransac_fixed_iterations(x1, x2, rng, threshold_px=1.0, confidence=0.999, max
     return _ransac(x1, x2, rng, threshold_px, confidence, max_iters, adaptive=False)
 
 
-def ransac_global_rng(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
+def ransac_own_rng(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
     return _ransac(x1, x2, rng, threshold_px, confidence, max_iters, own_rng=True)
+
+
+def ransac_global_np_random(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
+    return _ransac(x1, x2, rng, threshold_px, confidence, max_iters, own_rng="global")
+
+
+def ransac_ignores_confidence(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
+    return _ransac(x1, x2, rng, threshold_px, confidence, max_iters, use_confidence=False)
+
+
+def ransac_ignores_max_iters(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
+    return _ransac(x1, x2, rng, threshold_px, confidence, max_iters, cap=False)
+
 
 # ============================================================================ honest solutions
 # Written from the textbook (Hartley & Zisserman), not from course_lib; calls of other exercises by name.
@@ -137,6 +215,20 @@ def normalize_points(x):
     s = np.sqrt(2.0) / np.linalg.norm(x - c, axis=1).mean()
     T = np.array([[s, 0.0, -s * c[0]], [0.0, s, -s * c[1]], [0.0, 0.0, 1.0]])
     return (x - c) * s, T
+
+
+def normalize_points__composed_matrices(x):
+    """Another style: T as scale @ translation, x_n computed through T in homogeneous coordinates, loops."""
+    n = len(x)
+    cu = sum(p[0] for p in x) / n
+    cv = sum(p[1] for p in x) / n
+    mean_dist = sum(math.hypot(p[0] - cu, p[1] - cv) for p in x) / n
+    s = math.sqrt(2.0) / mean_dist
+    translate = np.array([[1.0, 0.0, -cu], [0.0, 1.0, -cv], [0.0, 0.0, 1.0]])
+    scale = np.diag([s, s, 1.0])
+    T = scale @ translate
+    xh = np.hstack([x, np.ones((n, 1))]) @ T.T
+    return xh[:, :2] / xh[:, 2:], T
 
 
 def eight_point(x1, x2):
@@ -150,6 +242,21 @@ def eight_point(x1, x2):
     return F / np.linalg.norm(F)
 
 
+def eight_point__kron_rows_eig(x1, x2):
+    """Another style: rows of A as Kronecker products, the null vector from the eigenvectors of AᵀA, sign fixed."""
+    a, T1 = normalize_points(x1)
+    b, T2 = normalize_points(x2)
+    rows = [np.kron(np.append(q, 1.0), np.append(p, 1.0)) for p, q in zip(a, b)]
+    A = np.array(rows)
+    w, V = np.linalg.eigh(A.T @ A)
+    Fn = V[:, np.argmin(w)].reshape(3, 3)
+    U, s, Vt = np.linalg.svd(Fn)
+    s[2] = 0.0
+    F = T2.T @ U @ np.diag(s) @ Vt @ T1
+    F = F / np.linalg.norm(F)
+    return F if F.flat[np.argmax(np.abs(F))] > 0 else -F
+
+
 def sampson_distance(F, x1, x2):
     x1h = np.column_stack([x1, np.ones(len(x1))])
     x2h = np.column_stack([x2, np.ones(len(x2))])
@@ -158,7 +265,58 @@ def sampson_distance(F, x1, x2):
     return np.abs(e) / np.sqrt(Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2)
 
 
+def sampson_distance__loop_einsum(F, x1, x2):
+    """Another style: one match at a time, the error as x2ᵀ F x1 with einsum, Sampson's error then its root."""
+    out = np.empty(len(x1))
+    for k in range(len(x1)):
+        p = np.array([x1[k][0], x1[k][1], 1.0])
+        q = np.array([x2[k][0], x2[k][1], 1.0])
+        e = np.einsum("i,ij,j->", q, F, p)
+        l2, l1 = F @ p, F.T @ q
+        out[k] = math.sqrt(e * e / (l2[0] ** 2 + l2[1] ** 2 + l1[0] ** 2 + l1[1] ** 2))
+    return out
+
+
 def ransac_fundamental(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
+    n = len(x1)
+    best = np.zeros(n, bool)
+    n_iters, needed = 0, max_iters
+    while n_iters < min(needed, max_iters):
+        idx = rng.choice(n, 8, replace=False)
+        inl = sampson_distance(eight_point(x1[idx], x2[idx]), x1, x2) < threshold_px
+        n_iters += 1
+        if inl.sum() > best.sum():
+            best = inl
+            w = inl.mean()
+            needed = np.log(1 - confidence) / np.log(1 - w**8) if w < 1 else 0
+    F = eight_point(x1[best], x2[best])
+    return F, sampson_distance(F, x1, x2) < threshold_px, n_iters
+
+
+Result = namedtuple("Result", "F inliers n_iters")
+
+
+def ransac_fundamental__for_loop(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
+    """Another style: a for loop with break, permutation samples, ceil of N, a namedtuple."""
+    best_inl, best_count, n_iters = None, -1, 0
+    limit = max_iters
+    for i in range(max_iters):
+        if i >= limit:
+            break
+        sample = rng.permutation(len(x1))[:8]
+        F = eight_point(x1[sample], x2[sample])
+        inl = sampson_distance(F, x1, x2) < threshold_px
+        n_iters = i + 1
+        if inl.sum() > best_count:
+            best_inl, best_count = inl, int(inl.sum())
+            w = best_count / len(x1)
+            limit = max_iters if w == 0 else (0 if w == 1 else math.ceil(math.log(1 - confidence) / math.log(1 - w**8)))
+    F = eight_point(x1[best_inl], x2[best_inl])
+    return Result(F, sampson_distance(F, x1, x2) < threshold_px, n_iters)
+
+
+def ransac_best_sample_mask(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
+    """Correct RANSAC in another form: the refit F with the best sample's inlier mask (a detail)."""
     n = len(x1)
     best = np.zeros(n, bool)
     n_iters, needed = 0, max_iters
@@ -183,33 +341,69 @@ MISTAKES = [
     M("normalize_points", "one scale per axis", gfu.check_normalize_points, normalize_two_scales,
       ("different scales",)),
     M("normalize_points", "T inverted", gfu.check_normalize_points, normalize_T_inverted, ("t is the inverse",)),
+    M("normalize_points", "RMS distance sqrt(2)", gfu.check_normalize_points, normalize_rms, ("rms distance",)),
+    M("normalize_points", "scale from the uncentred points", gfu.check_normalize_points, normalize_uncentred_scale,
+      ("uncentred points",)),
+    M("normalize_points", "homogeneous points returned", gfu.check_normalize_points, normalize_homogeneous,
+      ("drop the homogeneous 1",)),
     M("eight_point", "no rank-2 step", gfu.check_eight_point, eight_point_no_rank2, ("rank 3", "enforce rank 2"),
       defining="rank 2"),
     M("eight_point", "not normalized", gfu.check_eight_point, eight_point_unnormalized, ("not normalized",)),
     M("eight_point", "F transposed", gfu.check_eight_point, eight_point_transposed, ("transposed f",)),
+    M("eight_point", "not denormalized", gfu.check_eight_point, eight_point_not_denormalized,
+      ("still in normalized coordinates",)),
+    M("eight_point", "denormalized T1ᵀ F T2", gfu.check_eight_point, eight_point_denormalized_swapped,
+      ("wrong way round",)),
+    M("eight_point", "denormalized with the inverses", gfu.check_eight_point, eight_point_denormalized_inverse,
+      ("with the inverses",)),
     M("sampson_distance", "squared error", gfu.check_sampson_distance, sampson_squared, ("squared error",)),
     M("sampson_distance", "algebraic error", gfu.check_sampson_distance, sampson_algebraic, ("algebraic error",)),
     M("sampson_distance", "one-sided distance", gfu.check_sampson_distance, sampson_one_sided,
-      ("its epipolar line only",)),
+      ("its epipolar line f x1 only",)),
+    M("sampson_distance", "symmetric epipolar distance", gfu.check_sampson_distance, sampson_symmetric,
+      ("symmetric epipolar distance",)),
+    M("sampson_distance", "F x2 for Fᵀ x2", gfu.check_sampson_distance, sampson_wrong_gradient, ("not f x2",)),
+    M("sampson_distance", "signed distance", gfu.check_sampson_distance, sampson_signed, ("absolute value",)),
     M("ransac_fundamental", "threshold on the algebraic error", gfu.check_ransac_fundamental, ransac_algebraic,
       ("algebraic error", "sampson_distance(f, x1, x2) < threshold_px")),
+    M("ransac_fundamental", "threshold on the squared distance", gfu.check_ransac_fundamental, ransac_squared,
+      ("squared sampson distance",)),
     M("ransac_fundamental", "no final refit", gfu.check_ransac_fundamental, ransac_no_refit, ("refit",)),
     M("ransac_fundamental", "fixed iteration count", gfu.check_ransac_fundamental, ransac_fixed_iterations,
       ("n_iters = 2000",)),
-    M("ransac_fundamental", "np.random instead of rng", gfu.check_ransac_fundamental, ransac_global_rng,
+    M("ransac_fundamental", "a generator of its own", gfu.check_ransac_fundamental, ransac_own_rng,
       ("from the rng argument",)),
+    M("ransac_fundamental", "np.random instead of rng", gfu.check_ransac_fundamental, ransac_global_np_random,
+      ("from the rng argument",)),
+    M("ransac_fundamental", "confidence ignored", gfu.check_ransac_fundamental, ransac_ignores_confidence,
+      ("use the confidence argument",)),
+    M("ransac_fundamental", "max_iters ignored", gfu.check_ransac_fundamental, ransac_ignores_max_iters,
+      ("at most max_iters",)),
 ]
 
 #: Correct solutions: they must score full marks.
 HONEST = [
     Honest("normalize_points", "textbook", gfu.check_normalize_points, normalize_points),
+    Honest("normalize_points", "composed matrices, loops", gfu.check_normalize_points,
+           normalize_points__composed_matrices),
     Honest("eight_point", "textbook", gfu.check_eight_point, eight_point),
+    Honest("eight_point", "Kronecker rows, eigh of AᵀA, sign fixed", gfu.check_eight_point, eight_point__kron_rows_eig),
     Honest("sampson_distance", "textbook", gfu.check_sampson_distance, sampson_distance),
+    Honest("sampson_distance", "loop, einsum, root of Sampson's error", gfu.check_sampson_distance,
+           sampson_distance__loop_einsum),
     Honest("ransac_fundamental", "textbook, returns a tuple", gfu.check_ransac_fundamental, ransac_fundamental),
+    Honest("ransac_fundamental", "for loop, permutation samples, namedtuple", gfu.check_ransac_fundamental,
+           ransac_fundamental__for_loop),
     Honest("normalize_points", "the reference solution", gfu.check_normalize_points, rfu.normalize_points),
     Honest("eight_point", "the reference solution", gfu.check_eight_point, rfu.eight_point),
     Honest("sampson_distance", "the reference solution", gfu.check_sampson_distance, rfu.sampson_distance),
     Honest("ransac_fundamental", "the reference solution", gfu.check_ransac_fundamental, rfu.ransac_fundamental),
+]
+
+#: Correct maths in another form than the docstring's: full hidden-check points, a detail (≤ 1 point of 10).
+DETAIL = [
+    Honest("ransac_fundamental", "the best sample's inlier mask", gfu.check_ransac_fundamental,
+           ransac_best_sample_mask),
 ]
 
 

@@ -86,6 +86,190 @@ def triangulate_nonlinear_no_depth_division(K, R_cws, t_cws, uv, X0):
         out.append(least_squares(res, X0[j]).x)
     return np.array(out)
 
+def triangulate_uv_swapped(P1, P2, x1, x2):
+    out = []
+    for a, b in zip(x1, x2):
+        A = np.stack([a[0] * P1[2] - P1[1], a[1] * P1[2] - P1[0], b[0] * P2[2] - P2[1], b[1] * P2[2] - P2[0]])
+        Xh = np.linalg.svd(A)[2][-1]
+        out.append(Xh[:3] / Xh[3])
+    return np.array(out)
+
+
+def triangulate_swapped_cross_product(P1, P2, x1, x2):  # the swap in another formulation: x × P X = 0, 6 rows
+    out = []
+    for a, b in zip(x1, x2):
+        rows = []
+        for x, P in ((a, P2), (b, P1)):
+            u, v = x
+            rows += [v * P[2] - P[1], P[0] - u * P[2], u * P[1] - v * P[0]]
+        Xh = np.linalg.svd(np.array(rows))[2][-1]
+        out.append(Xh[:3] / Xh[3])
+    return np.array(out)
+
+
+def choose_pose_R_transposed(R, C, K, x1, x2):
+    ch = rtr.choose_pose(R, C, K, x1, x2)
+    return ch.R_cw.T, ch.t_cw, ch.X, ch.in_front, ch.counts
+
+
+def choose_pose_C_for_t(R, C, K, x1, x2):
+    ch = rtr.choose_pose(R, C, K, x1, x2)
+    return ch.R_cw, C[ch.index], ch.X, ch.in_front, ch.counts
+
+
+def choose_pose_sign_flipped(R, C, K, x1, x2):
+    return _choose(R, C, K, x1, x2, lambda Rk, Ck, X: (X[:, 2] < 0) & ((X - Ck) @ Rk[2] < 0))
+
+
+def _nl(K, R_cws, t_cws, uv, X0, residual, nan_zero=False, skip_partial=False):
+    from scipy.optimize import least_squares
+
+    out = np.array(X0, dtype=float, copy=True)
+    for j in range(len(X0)):
+        seen = [i for i in range(len(R_cws)) if nan_zero or np.isfinite(uv[j, i]).all()]
+        if len(seen) < 2 or (skip_partial and len(seen) < len(R_cws)):
+            continue
+        obs = np.where(np.isfinite(uv[j]), uv[j], 0.0)
+        out[j] = least_squares(lambda X: np.concatenate([residual(X, R_cws[i], t_cws[i], obs[i], K) for i in seen]),
+                               X0[j]).x
+    return out
+
+
+def _px(X, R, t, x, K):
+    p = K @ (R @ X + t)
+    return p[:2] / p[2] - x
+
+
+def triangulate_nonlinear_R_transposed(K, R_cws, t_cws, uv, X0):
+    return _nl(K, R_cws, t_cws, uv, X0, lambda X, R, t, x, K: _px(X, R.T, t, x, K))
+
+
+def triangulate_nonlinear_nan_as_zero(K, R_cws, t_cws, uv, X0):
+    return _nl(K, R_cws, t_cws, uv, X0, _px, nan_zero=True)
+
+
+def triangulate_nonlinear_cross_multiplied(K, R_cws, t_cws, uv, X0):
+    def res(X, R, t, x, K):
+        p = K @ (R @ X + t)
+        return p[:2] - x * p[2]
+
+    return _nl(K, R_cws, t_cws, uv, X0, res)
+
+
+def triangulate_nonlinear_skips_partly_seen(K, R_cws, t_cws, uv, X0):
+    return _nl(K, R_cws, t_cws, uv, X0, _px, skip_partial=True)
+
+
+def triangulate_nonlinear_homogeneous(K, R_cws, t_cws, uv, X0):  # optimizes (X, w) and forgets to divide by w
+    from scipy.optimize import least_squares
+
+    out = np.array(X0, dtype=float, copy=True)
+    for j in range(len(X0)):
+        seen = [i for i in range(len(R_cws)) if np.isfinite(uv[j, i]).all()]
+
+        def res(Xh):
+            return np.concatenate([(lambda p: p[:2] / p[2] - uv[j, i])(K @ (R_cws[i] @ Xh[:3] + t_cws[i] * Xh[3]))
+                                   for i in seen] + [[0.1 * (Xh[3] - 1.3)]])
+
+        out[j] = least_squares(res, np.append(X0[j], 1.0)).x[:3]
+    return out
+
+
+# ============================================================================ honest solutions
+# Written from the textbook (Hartley & Zisserman 12.2, 9.6.3), not from course_lib.
+
+def triangulate_linear(P1, P2, x1, x2):
+    X = np.empty((len(x1), 3))
+    for k in range(len(x1)):
+        (u1, v1), (u2, v2) = x1[k], x2[k]
+        A = np.array([u1 * P1[2] - P1[0], v1 * P1[2] - P1[1], u2 * P2[2] - P2[0], v2 * P2[2] - P2[1]])
+        Xh = np.linalg.svd(A)[2][-1]
+        X[k] = Xh[:3] / Xh[3]
+    return X
+
+
+def triangulate_linear__cross_product_batched(P1, P2, x1, x2):
+    """Another style: the rows of x × P X = 0 (all three per view), all points at once, normalized rows."""
+    def rows(P, x):
+        u, v = x[:, :1], x[:, 1:]
+        return np.stack([v * P[2] - P[1], P[0] - u * P[2], u * P[1] - v * P[0]], axis=1)
+
+    A = np.concatenate([rows(P1, x1), rows(P2, x2)], axis=1)
+    A = A / np.linalg.norm(A, axis=2, keepdims=True)
+    Xh = np.linalg.svd(A)[2][:, -1]
+    return Xh[:, :3] / Xh[:, 3:]
+
+
+def choose_pose(R, C, K, x1, x2):
+    P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
+    best = None
+    counts = np.zeros(4, int)
+    for k in range(4):
+        t = -R[k] @ C[k]
+        X = triangulate_linear(P1, K @ np.hstack([R[k], t[:, None]]), x1, x2)
+        front = (X[:, 2] > 0) & ((X - C[k]) @ R[k][2] > 0)
+        counts[k] = front.sum()
+        if best is None or counts[k] > counts[best[0]]:
+            best = (k, t, X, front)
+    k, t, X, front = best
+    return R[k], t, X, front, counts
+
+
+def choose_pose__camera_frame(R, C, K, x1, x2):
+    """Another style: the depth in camera 2 as the z of R X + t, a dict of results, argmax at the end."""
+    P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
+    results = {}
+    for k in range(4):
+        t = -R[k] @ C[k]
+        X = triangulate_linear(P1, K @ np.column_stack([R[k], t]), x1, x2)
+        z2 = (X @ R[k].T + t)[:, 2]
+        results[k] = (t, X, (X[:, 2] > 0) & (z2 > 0))
+    counts = np.array([int(results[k][2].sum()) for k in range(4)])
+    k = int(np.argmax(counts))
+    return R[k], results[k][0], results[k][1], results[k][2], counts
+
+
+def triangulate_nonlinear(K, R_cws, t_cws, uv, X0):
+    from scipy.optimize import least_squares
+
+    X = np.array(X0, dtype=float, copy=True)
+    for j in range(len(X0)):
+        views = [i for i in range(len(R_cws)) if not np.isnan(uv[j, i]).any()]
+        if len(views) < 2:
+            continue
+
+        def residual(p):
+            r = []
+            for i in views:
+                q = K @ (R_cws[i] @ p + t_cws[i])
+                r.extend(q[:2] / q[2] - uv[j, i])
+            return np.array(r)
+
+        X[j] = least_squares(residual, X0[j], xtol=1e-12, ftol=1e-12).x
+    return X
+
+
+def triangulate_nonlinear__gauss_newton(K, R_cws, t_cws, uv, X0):
+    """Another style: a hand-written Gauss-Newton with the analytic Jacobian of the projection, all points at once."""
+    X = np.array(X0, dtype=float, copy=True)
+    seen = np.isfinite(uv).all(axis=2)
+    for _ in range(30):
+        H = np.zeros((len(X), 3, 3))
+        g = np.zeros((len(X), 3))
+        for i in range(len(R_cws)):
+            m = seen[:, i]
+            Xc = X[m] @ R_cws[i].T + t_cws[i]
+            p = Xc @ K.T
+            r = p[:, :2] / p[:, 2:] - uv[m, i]
+            J = (K[:2, None, :] / p[:, 2][None, :, None] - (p[:, :2].T / p[:, 2] ** 2)[:, :, None] * K[2][None, None, :])
+            J = np.transpose(J, (1, 0, 2)) @ R_cws[i]
+            H[m] += np.transpose(J, (0, 2, 1)) @ J
+            g[m] += np.einsum("nij,ni->nj", J, r)
+        ok = seen.sum(axis=1) >= 2
+        X[ok] -= np.linalg.solve(H[ok], g[ok][:, :, None])[:, :, 0]
+    return X
+
+
 # ============================================================================ the catalogue
 
 M = Mistake
@@ -109,11 +293,37 @@ MISTAKES = [
     M("triangulate_nonlinear", "only two views", gtr.check_triangulate_nonlinear, triangulate_nonlinear_two_views,
       ("only the first two views",)),
     M("triangulate_nonlinear", "projection not divided by z", gtr.check_triangulate_nonlinear,
-      triangulate_nonlinear_no_depth_division, ("divided by its depth",)),
+      triangulate_nonlinear_no_depth_division, ("without dividing by its depth",)),
+    M("triangulate_nonlinear", "R transposed", gtr.check_triangulate_nonlinear, triangulate_nonlinear_R_transposed,
+      ("r is transposed",)),
+    M("triangulate_nonlinear", "NaN set to 0", gtr.check_triangulate_nonlinear, triangulate_nonlinear_nan_as_zero,
+      ("pixels (0, 0)",)),
+    M("triangulate_nonlinear", "cross-multiplied residual", gtr.check_triangulate_nonlinear,
+      triangulate_nonlinear_cross_multiplied, ("cross-multiplied",)),
+    M("triangulate_nonlinear", "partly seen points not refined", gtr.check_triangulate_nonlinear,
+      triangulate_nonlinear_skips_partly_seen, ("were not refined",)),
+    M("triangulate_nonlinear", "homogeneous point not divided", gtr.check_triangulate_nonlinear,
+      triangulate_nonlinear_homogeneous, ("homogeneous point",)),
+    M("triangulate_linear", "u and v swapped", gtr.check_triangulate_linear, triangulate_uv_swapped,
+      ("u and v are swapped",)),
+    M("triangulate_linear", "cameras swapped, cross-product rows", gtr.check_triangulate_linear,
+      triangulate_swapped_cross_product, ("cameras are swapped",)),
+    M("choose_pose", "R_cw transposed", gtr.check_choose_pose, choose_pose_R_transposed, ("r_cw is transposed",)),
+    M("choose_pose", "C returned as t_cw", gtr.check_choose_pose, choose_pose_C_for_t, ("t_cw is the camera centre",)),
+    M("choose_pose", "cheirality sign flipped", gtr.check_choose_pose, choose_pose_sign_flipped,
+      ("sign of the cheirality test is flipped",), defining="in front of both cameras"),
 ]
 
 #: Correct solutions: they must score full marks.
 HONEST = [
+    Honest("triangulate_linear", "textbook, a loop", gtr.check_triangulate_linear, triangulate_linear),
+    Honest("triangulate_linear", "cross-product rows, batched", gtr.check_triangulate_linear,
+           triangulate_linear__cross_product_batched),
+    Honest("choose_pose", "textbook, a tuple", gtr.check_choose_pose, choose_pose),
+    Honest("choose_pose", "depth in the camera frame", gtr.check_choose_pose, choose_pose__camera_frame),
+    Honest("triangulate_nonlinear", "least_squares per point", gtr.check_triangulate_nonlinear, triangulate_nonlinear),
+    Honest("triangulate_nonlinear", "Gauss-Newton, all points at once", gtr.check_triangulate_nonlinear,
+           triangulate_nonlinear__gauss_newton),
     Honest("triangulate_linear", "the reference solution", gtr.check_triangulate_linear, rtr.triangulate_linear),
     Honest("choose_pose", "the reference solution", gtr.check_choose_pose, rtr.choose_pose),
     Honest("triangulate_nonlinear", "the reference solution", gtr.check_triangulate_nonlinear, rtr.triangulate_nonlinear),
