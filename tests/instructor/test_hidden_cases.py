@@ -54,8 +54,6 @@ NOT_YET_SALTED = {
     "fundamental",
     "essential",
     "triangulation",
-    "pnp",
-    "bundle_adjustment",
     "nerf_data",
     "nerf_model",
 }
