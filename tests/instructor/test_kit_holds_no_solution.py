@@ -27,7 +27,6 @@ from course_lib.instructor.release import write_release
 STILL_SHIPPED = {
     "sampson_distance",
     "triangulate_linear",
-    "reprojection_residuals",
     "positional_encoding",
     "psnr",
     "volume_render",
