@@ -9,12 +9,18 @@ and with properties, and names the likely mistake:
 * ``pnp_linear``: R not orthogonalized, det R = -1, ``R_cw`` vs ``R_wc`` (transposed), the centre
   ``C`` returned as ``t``, ``t`` not divided by the scale of ``R``, the sign of ``P`` not fixed
   (points behind the camera), the DLT on pixel instead of normalized coordinates.
-* ``pnp_ransac``: inverted inlier mask, squared error compared with the pixel threshold (named
-  also when it only shifts a few inlier labels),
-  a pose that is not refit on the inliers, too few or too many iterations.
-* ``pnp_nonlinear``: a step that increases the error (a residual without the division by the
-  depth), points that do not move, a rotation that is no rotation (optimizing the 9 entries),
-  stopping early.
+* ``pnp_ransac``: inverted inlier mask; a mask that is not the inliers of the returned pose (the
+  best sample's mask next to a refit pose, a squared error, an error in normalized coordinates,
+  a constant instead of ``threshold_px``: each named by the threshold the mask obeys); no refit on
+  the inliers (the RMS over the true inliers); a fixed iteration count or an ignored
+  ``confidence``; randomness other than the ``rng`` argument (the same seed under two global
+  ``np.random`` states must give the same result). In a notebook it runs the student's
+  ``pnp_linear``; a failure then ends with a note when that one failed its own checks.
+* ``pnp_nonlinear``: points that do not move, a rotation that is no rotation (the 9 entries),
+  the 9 entries projected back with an SVD, a residual without the division by the depth (both
+  also recognised from their results, computed on the instructor's side and stored with the
+  cases), only t optimized, ``R_wc`` returned, stopping early (measured at the optimum, from a
+  start 3° away).
 
 Defining property (failing it costs at least half of the points): ``pnp_linear``'s R_cw is a
 rotation (orthonormal, det +1), on the noiseless, noisy and embedded views.
