@@ -22,8 +22,6 @@ MISSING_HONEST = {
     "01_fundamental_matrix.ipynb",  # the textbook RANSAC (mask of the best sample) loses 2.25 points
     "02_essential_matrix_and_pose.ipynb",
     "03_triangulation.ipynb",
-    "04_pnp.ipynb",
-    "05_bundle_adjustment.ipynb",
     "06_nerf_data_and_rays.ipynb",
     "07_nerf_model.ipynb",
     "08_nerf_rendering_and_training.ipynb",
