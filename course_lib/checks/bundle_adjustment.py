@@ -8,16 +8,24 @@ adjustment. It compares with the stored reference results and with properties, a
 likely mistake:
 
 * ``visibility_matrix``: the matrix transposed (cameras as rows, the handout's ``V_ij`` layout),
-  True where a point is *not* seen, ints instead of bools.
+  True where a point is *not* seen, a comparison with NaN (always True), the last axis not
+  reduced; ints instead of bools is correct maths in another form (a detail).
 * ``reprojection_residuals``: a (K, 2) array instead of the flat (2K,) vector, all u's before
   all v's, ``R_wc`` instead of ``R_cw``, no division by the depth, a parameter layout other than
-  ``[r_0, t_0, r_1, t_1, ..., X_0, X_1, ...]``, K applied twice or not at all.
+  ``[r_0, t_0, r_1, t_1, ..., X_0, X_1, ...]``, K missing, Euler angles for the rotation vector
+  (:data:`RESIDUAL_VARIANTS`).
 * ``jacobian_sparsity``: 9 parameters per camera (the SciPy cookbook's cameras carry f, k1, k2;
-  here K is fixed), point columns without the ``6M`` offset (named), rows of u and v not interleaved,
-  the matrix transposed.
-* ``bundle_adjust``: the cost does not reach the reference minimum, cameras far from the
-  reference solution (after a similarity alignment), rotations that are no rotations, NaNs, a
-  callback that is never called.
+  here K is fixed), point columns without the ``6M`` offset, rows of u and v not interleaved,
+  only the u row filled, the matrix transposed; a second case lists the observations in random
+  order.
+* ``bundle_adjust``: the cost does not reach the *minimum* (computed with tight tolerances, so a
+  solve stopped after a few evaluations fails), cameras that did not move, cameras far from those
+  of the minimum (after a similarity alignment), rotations that are no rotations, a callback that
+  is never called, called once (before or after solving) or at every evaluation of the
+  residuals instead of after every iteration.
+
+In a notebook ``bundle_adjust`` runs the student's own residuals and sparsity: when they failed
+their checks, the verdict says so (:meth:`~course_lib.checks.core.Check.blame_earlier`).
 
 The cases and the reference's results on them are stored arrays, made on the instructor's side
 by :mod:`course_lib.instructor.cases.bundle_adjustment`; this module imports no reference solution and ships
@@ -42,35 +50,24 @@ __all__ = [
 FIXTURE = "bundle_adjustment"
 
 
-# --------------------------------------------------------------------------- helpers (no reference needed)
+#: The classic mistakes of reprojection_residuals that the check recognises, and what to change. Their
+#: residuals on the cases are computed on the instructor's side and stored with the cases
+#: (``res_syn_var_<name>``); this module holds no implementation of the residuals.
+RESIDUAL_VARIANTS = {
+    "not_interleaved": "u and v are not interleaved: return (proj - uv).ravel() of the (K, 2) array, not all u's "
+                       "then all v's",
+    "R_transposed": "R is transposed (R_wc instead of R_cw): x_cam = R_cw X + t_cw with "
+                    "R_cw = Rotation.from_rotvec(r).as_matrix()",
+    "no_depth": "no division by the depth: pixels are (K x_cam)[:2] / (K x_cam)[2]",
+    "points_first": "the parameters are read in the wrong order: params = [r_0, t_0, ..., r_{M-1}, t_{M-1}, X_0, ..., "
+                    "X_{N-1}] (cameras first, 6 numbers each)",
+    "no_K": "K is missing: project with K (pixels), not in normalized coordinates",
+    "euler": "the first 3 numbers of a camera are a rotation VECTOR (axis times angle): "
+             "Rotation.from_rotvec(r), not Euler angles (Rotation.from_euler)",
+}
 
 
-def _rotvec(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(R).as_rotvec()
-
-
-def _pack(R, t, X) -> np.ndarray:
-    cams = np.hstack([_rotvec(np.asarray(R, float).reshape(-1, 3, 3)), np.asarray(t, float).reshape(-1, 3)])
-    return np.concatenate([cams.ravel(), np.asarray(X, float).ravel()])
-
-
-def _residuals_np(params, M, N, cam, pt, uv, K, transpose_R=False, divide=True, layout="cams_first"):
-    """The reference residual written again for the mistake diagnosis (variants named by the flags)."""
-    from scipy.spatial.transform import Rotation
-
-    if layout == "cams_first":
-        cams, X = params[: 6 * M].reshape(M, 6), params[6 * M :].reshape(N, 3)
-    else:
-        X, cams = params[: 3 * N].reshape(N, 3), params[3 * N :].reshape(M, 6)
-    R = Rotation.from_rotvec(cams[:, :3]).as_matrix().reshape(M, 3, 3)
-    if transpose_R:
-        R = np.transpose(R, (0, 2, 1))
-    xc = (R[cam] * X[pt][:, None, :]).sum(axis=2) + cams[cam, 3:]
-    xh = xc @ np.asarray(K, float).T
-    proj = xh[:, :2] / xh[:, 2:3] if divide else xh[:, :2]
-    return (proj - uv).ravel()
+# --------------------------------------------------------------------------- helpers
 
 
 def _as_array(out, c: Check, case: str):
@@ -96,162 +93,146 @@ def _as_array(out, c: Check, case: str):
 # --------------------------------------------------------------------------- visibility_matrix
 
 
+def _visibility_case(c: Check, fn, case: str, uv, expected) -> None:
+    V = _as_array(c.call(fn, uv, case=case), c, case)
+    if V is None:
+        return
+    T, M = expected.shape
+    if V.shape == (M, T) and V.shape != (T, M):
+        c.fail(f"{case}: V has shape {V.shape}, expected ({T}, {M}): the kit stores points as rows, "
+               "V[j, i] for point j and image i (the transpose of the handout's V_ij)")
+        return
+    if V.shape == (T, M, 2):
+        c.fail(f"{case}: V has shape {V.shape}: one entry per point and image, not per coordinate; reduce the "
+               "last axis, e.g. V = ~np.isnan(track_uv).any(axis=2)")
+        return
+    if not c.shape(V, (T, M), f"{case}: V"):
+        return
+    if V.dtype != bool:
+        c.detail(False, "", f"{case}: correct values, but V has dtype {V.dtype}: the docstring asks for a bool array "
+                 "(e.g. ~np.isnan(track_uv[..., 0]))")
+        V = V != 0
+    if np.array_equal(V, ~expected):
+        c.fail(f"{case}: V is inverted: it must be True where the point IS seen (the pixel is not NaN)")
+    elif V.all() and not expected.all():
+        c.fail(f"{case}: V is True everywhere: a comparison with NaN (track_uv != np.nan) is always True, since NaN "
+               "equals nothing; test with np.isnan")
+    else:
+        c.expect(np.array_equal(V, expected), f"{case}: V[j, i] is True exactly where point j is seen in image i",
+                 f"{case}: {int((V != expected).sum())} entries differ from the NaN pattern of track_uv")
+
+
 def check_visibility_matrix(fn, exercise: str = "visibility_matrix") -> None:
     """Check ``fn(track_uv (T, M, 2)) -> (T, M) bool`` on a synthetic case and the embedded tracks."""
     f = load_fixture(FIXTURE)
     cases = [("synthetic tracks", f["vis_track_uv"], f["vis_expected"])]
     if "emb_track_uv" in f:
-        cases.append(("embedded scene tracks", f["emb_track_uv"], np.isfinite(f["emb_track_uv"]).all(axis=2)))
+        cases.append(("embedded scene tracks", f["emb_track_uv"], f["emb_visible"]))
     with Check(exercise) as c:
         for case, uv, expected in cases:
-            V = _as_array(c.call(fn, uv, case=case), c, case)
-            if V is None:
-                continue
-            T, M = expected.shape
-            if V.shape == (M, T) and V.shape != (T, M):
-                c.fail(f"{case}: V has shape {V.shape}, expected ({T}, {M}): the kit stores points as rows, "
-                       "V[j, i] for point j and image i (the transpose of the handout's V_ij)")
-                continue
-            if not c.shape(V, (T, M), f"{case}: V"):
-                continue
-            if V.dtype != bool:
-                c.fail(f"{case}: V has dtype {V.dtype}: return a bool array (e.g. ~np.isnan(track_uv[..., 0]))")
-                continue
-            if np.array_equal(V, ~expected):
-                c.fail(f"{case}: V is inverted: it must be True where the point IS seen (the pixel is not NaN)")
-                continue
-            c.expect(np.array_equal(V, expected), f"{case}: V[j, i] is True exactly where point j is seen in image i",
-                     f"{case}: {int((V != expected).sum())} entries differ from the NaN pattern of track_uv")
+            _visibility_case(c, fn, case, uv, expected)
 
 
 # --------------------------------------------------------------------------- reprojection_residuals
+
+
+def _residual_case(c: Check, fn, f, key: str, case: str) -> None:
+    p, M, N = f[f"{key}_params"], int(f[f"{key}_M"]), int(f[f"{key}_N"])
+    cam, pt, uv, K, exp = (f[f"{key}_{s}"] for s in ("camera_idx", "point_idx", "uv", "K", "expected"))
+    r = _as_array(c.call(fn, p, M, N, cam, pt, uv, K, case=case), c, case)
+    if r is None:
+        return
+    if r.shape == (len(cam), 2):
+        c.fail(f"{case}: r has shape {r.shape}: return the flat vector r.ravel() of shape ({2 * len(cam)},), "
+               "[u_0' - u_0, v_0' - v_0, u_1' - u_1, ...]")
+        return
+    if not c.shape(r, (2 * len(cam),), f"{case}: r"):
+        return
+    r = np.asarray(r, float)
+    tol = 1e-6 * (1 + np.abs(exp).max())
+    if np.abs(r - exp).max() < tol or np.abs(r + exp).max() < tol:  # observed minus projected works too
+        c.expect(True, f"{case}: equals the reference (up to the sign, u and v interleaved)", "")
+    else:
+        why = next((msg for name, msg in RESIDUAL_VARIANTS.items() if f"{key}_var_{name}" in f
+                    and (np.abs(r - f[f"{key}_var_{name}"]).max() < tol or np.abs(r + f[f"{key}_var_{name}"]).max() < tol)),
+                   "check the projection of point point_idx[k] by camera camera_idx[k]: R from the rotation vector "
+                   "params[6c:6c+3], t = params[6c+3:6c+6], X = params[6M+3j:6M+3j+3]")
+        c.fail(f"{case}: max difference {np.abs(r - exp).max():.3g} px from the reference: {why}")
 
 
 def check_reprojection_residuals(fn, exercise: str = "reprojection_residuals") -> None:
     """Check ``fn(params, n_cameras, n_points, camera_idx, point_idx, uv, K) -> (2K,)``."""
     f = load_fixture(FIXTURE)
     with Check(exercise) as c:
-        p, M, N = f["res_syn_params"], int(f["res_syn_M"]), int(f["res_syn_N"])
-        cam, pt, uv, K = f["res_syn_camera_idx"], f["res_syn_point_idx"], f["res_syn_uv"], f["res_syn_K"]
-        exp = f["res_syn_expected"]
-        case = "perturbed synthetic scene"
-        r = _as_array(c.call(fn, p, M, N, cam, pt, uv, K, case=case), c, case)
-        if r is not None:
-            if r.shape == (len(cam), 2):
-                c.fail(f"{case}: r has shape {r.shape}: return the flat vector r.ravel() of shape ({2 * len(cam)},), "
-                       "[u_0' - u_0, v_0' - v_0, u_1' - u_1, ...]")
-            elif c.shape(r, (2 * len(cam),), f"{case}: r"):
-                r = r.astype(float)
-                tol = 1e-6 * (1 + np.abs(exp).max())
-                if np.abs(r - exp).max() < tol:
-                    c.expect(True, f"{case}: equals the reference (projected minus observed, u and v interleaved)", "")
-                elif np.abs(r + exp).max() < tol:
-                    c.expect(True, f"{case}: equals the reference up to the sign (observed minus projected works too)", "")
-                else:
-                    c.fail(f"{case}: max difference {np.abs(r - exp).max():.3g} px from the reference: "
-                           + _residual_mistake(r, p, M, N, cam, pt, uv, K, exp))
+        _residual_case(c, fn, f, "res_syn", "perturbed synthetic scene")
         # zero at the truth
         case = "true cameras and points, noiseless pixels"
-        p_t = f["res_true_params"]
+        p_t, M, N, K = f["res_true_params"], int(f["res_syn_M"]), int(f["res_syn_N"]), f["res_syn_K"]
         cam_t, pt_t, uv_t = f["res_true_camera_idx"], f["res_true_point_idx"], f["res_true_uv"]
         r = _as_array(c.call(fn, p_t, M, N, cam_t, pt_t, uv_t, K, case=case), c, case)
         if r is not None and np.size(r) == 2 * len(cam_t):
             r = np.asarray(r, float).ravel()
             c.gate(np.isfinite(r).all() and np.abs(r).max() < 1e-6, f"{case}: all residuals are zero",
-                     f"{case}: residuals up to {np.nanmax(np.abs(r)):.3g} px where the projection is exact: "
-                     "check the projection x = K (R X + t) / z")
-        # the embedded reconstruction before BA
-        st = {k[4:]: v for k, v in f.items() if k.startswith("emb_")}
-        if "track_uv" in st:
-            case = "embedded scene before bundle adjustment"
-            reg = st["registered"]
-            has_X = np.isfinite(st["X"]).all(axis=1)
-            uv_e = np.where(st["inlier"][..., None], st["track_uv"], np.nan)[has_X][:, reg]
-            cam_e, pt_e, uv_obs = observation_arrays(uv_e)
-            p_e = _pack(st["R_cw"][reg], st["t_cw"][reg], st["X"][has_X])
-            M_e, N_e = int(reg.sum()), int(has_X.sum())
-            exp_e = _residuals_np(p_e, M_e, N_e, cam_e, pt_e, uv_obs, st["K"])
-            r = _as_array(c.call(fn, p_e, M_e, N_e, cam_e, pt_e, uv_obs, st["K"], case=case), c, case)
-            if r is not None and np.size(r) == exp_e.size:
-                r = np.asarray(r, float).ravel()
-                c.expect(np.abs(np.abs(r) - np.abs(exp_e)).max() < 1e-6 * (1 + np.abs(exp_e).max()),
-                         f"{case}: equals the reference",
-                         f"{case}: differs from the reference by up to {np.nanmax(np.abs(np.abs(r) - np.abs(exp_e))):.3g} px")
-            elif r is not None:
-                c.fail(f"{case}: r has {np.size(r)} entries, expected {exp_e.size} (two per observation)")
-
-
-def _residual_mistake(r, p, M, N, cam, pt, uv, K, exp) -> str:
-    tol = 1e-6 * (1 + np.abs(exp).max())
-    variants = [
-        (exp.reshape(-1, 2).T.ravel(), "u and v are not interleaved: return (proj - uv).ravel() of the (K, 2) array, "
-                                       "not all u's then all v's"),
-        (_residuals_np(p, M, N, cam, pt, uv, K, transpose_R=True), "R is transposed (R_wc instead of R_cw): "
-                                                                   "x_cam = R_cw X + t_cw with R_cw = Rotation.from_rotvec(r).as_matrix()"),
-        (_residuals_np(p, M, N, cam, pt, uv, K, divide=False), "no division by the depth: pixels are "
-                                                               "(K x_cam)[:2] / (K x_cam)[2]"),
-        (_residuals_np(p, M, N, cam, pt, uv, K, layout="points_first"), "the parameters are read in the wrong "
-                                                                        "order: params = [r_0, t_0, ..., r_{M-1}, t_{M-1}, X_0, ..., X_{N-1}] (cameras first, 6 numbers each)"),
-        (_residuals_np(p, M, N, cam, pt, uv, np.eye(3)), "K is missing: project with K (pixels), not in normalized coordinates"),
-    ]
-    r = np.asarray(r, float).ravel()
-    for v, msg in variants:
-        if v.shape == r.shape and (np.abs(r - v).max() < tol or np.abs(r + v).max() < tol):
-            return msg
-    return ("check the projection of point point_idx[k] by camera camera_idx[k]: R from the rotation vector "
-            "params[6c:6c+3], t = params[6c+3:6c+6], X = params[6M+3j:6M+3j+3]")
+                   f"{case}: residuals up to {np.nanmax(np.abs(r)):.3g} px where the projection is exact: "
+                   "check the projection x = K (R X + t) / z")
+        elif r is not None:
+            c.fail(f"{case}: r has {np.size(r)} entries, expected {2 * len(cam_t)} (two per observation)")
+        if "emb_params" in f:
+            _residual_case(c, fn, f, "emb", "embedded scene before bundle adjustment")
 
 
 # --------------------------------------------------------------------------- jacobian_sparsity
 
 
+def _sparsity_mistake(A, exp, M: int, pt) -> str:
+    """Name the mistake when the 0/1 pattern ``A`` is not ``exp``."""
+    K2 = exp.shape[0]
+    no_offset = np.zeros_like(exp)
+    no_offset[:, : 6 * M] = exp[:, : 6 * M]
+    rows = np.repeat(np.arange(len(pt)), 2)
+    for dj in range(3):
+        no_offset[np.arange(K2), 3 * np.asarray(pt)[rows] + dj] = True
+    if np.array_equal(A, no_offset):
+        return ("the point columns start at 0 and overlap the camera columns: point j's columns are 6M + 3j, "
+                "6M + 3j + 1, 6M + 3j + 2 (after all the camera columns; add the offset 6M)")
+    if np.array_equal(A[:, : 6 * M], exp[:, : 6 * M]):
+        return ("the camera columns are right but not the point columns: point j's columns are 6M + 3j, 6M + 3j + 1, "
+                "6M + 3j + 2 (after all the camera columns)")
+    if np.array_equal(A, np.concatenate([exp[0::2], exp[1::2]])):
+        return "the rows are not interleaved: rows 2k and 2k+1 are the u and v residuals of observation k"
+    if np.array_equal(A[0::2], exp[0::2]) and not A[1::2].any():
+        return "only row 2k is filled: the v residual of observation k (row 2k + 1) depends on the same 9 parameters"
+    return (f"{int((A != exp).sum())} entries differ from the expected pattern: rows 2k, 2k+1 have ones in columns "
+            "6c..6c+5 (camera c = camera_idx[k]) and 6M+3j..6M+3j+2 (point j = point_idx[k])")
+
+
+def _sparsity_case(c: Check, fn, f, key: str, case: str) -> None:
+    import scipy.sparse as sp
+
+    M, N = int(f[f"{key}_M"]), int(f[f"{key}_N"])
+    cam, pt, exp = f[f"{key}_camera_idx"], f[f"{key}_point_idx"], f[f"{key}_expected"]
+    S = _as_array(c.call(fn, M, N, cam, pt, case=case), c, case)
+    if S is None:
+        return
+    A = (S.toarray() if sp.issparse(S) else np.asarray(S)) != 0
+    K2, P = exp.shape
+    if A.shape == (P, K2) and A.shape != (K2, P):
+        c.fail(f"{case}: shape {A.shape}, expected {(K2, P)}: rows are residuals (2 per observation), columns parameters")
+    elif A.shape == (K2, 9 * M + 3 * N):
+        c.fail(f"{case}: {A.shape[1]} columns = 9 per camera + 3 per point: here K is fixed, so a camera has 6 "
+               "parameters (rotation vector and t), not 9 as in the SciPy cookbook")
+    elif c.shape(A, (K2, P), f"{case}: sparsity"):
+        c.expect(np.array_equal(A, exp), f"{case}: a 2x6 camera block and a 2x3 point block per observation",
+                 f"{case}: {_sparsity_mistake(A, exp, M, pt)}")
+
+
 def check_jacobian_sparsity(fn, exercise: str = "jacobian_sparsity") -> None:
     """Check ``fn(n_cameras, n_points, camera_idx, point_idx) -> (2K, 6M + 3N)`` 0/1 pattern (sparse or dense)."""
     f = load_fixture(FIXTURE)
-    M, N = int(f["sp_M"]), int(f["sp_N"])
-    cam, pt, exp = f["sp_camera_idx"], f["sp_point_idx"], f["sp_expected"]
-    case = "synthetic scene (3 cameras, 12 points)"
     with Check(exercise) as c:
-        S = _as_array(c.call(fn, M, N, cam, pt, case=case), c, case)
-        if S is None:
-            return
-        import scipy.sparse as sp
-
-        A = (S.toarray() if sp.issparse(S) else np.asarray(S)) != 0
-        K2, P = exp.shape
-        if A.shape == (P, K2) and A.shape != (K2, P):
-            c.fail(f"{case}: shape {A.shape}, expected {(K2, P)}: rows are residuals (2 per observation), columns parameters")
-            return
-        if A.shape == (K2, 9 * M + 3 * N):
-            c.fail(f"{case}: {A.shape[1]} columns = 9 per camera + 3 per point: here K is fixed, so a camera has 6 "
-                   "parameters (rotation vector and t), not 9 as in the SciPy cookbook")
-            return
-        if not c.shape(A, (K2, P), f"{case}: sparsity"):
-            return
-        if np.array_equal(A, exp):
-            c.expect(True, f"{case}: the pattern has a 2x6 camera block and a 2x3 point block per observation", "")
-            return
-        # diagnose
-        cam_part, pt_part = A[:, : 6 * M], A[:, 6 * M :]
-        if np.array_equal(cam_part, exp[:, : 6 * M]) and not np.array_equal(pt_part, exp[:, 6 * M :]):
-            c.fail(f"{case}: the camera columns are right but not the point columns: point j's columns are "
-                   "6M + 3j, 6M + 3j + 1, 6M + 3j + 2 (after all the camera columns)")
-            return
-        no_offset = np.zeros_like(exp)
-        no_offset[:, : 6 * M] = exp[:, : 6 * M]
-        rows = np.repeat(np.arange(len(pt)), 2)
-        for dj in range(3):
-            no_offset[np.arange(K2), 3 * np.asarray(pt)[rows] + dj] = True
-        if np.array_equal(A, no_offset):
-            c.fail(f"{case}: the point columns start at 0 and overlap the camera columns: point j's columns are "
-                   "6M + 3j, 6M + 3j + 1, 6M + 3j + 2 (after all the camera columns; add the offset 6M)")
-            return
-        inter = np.concatenate([exp[0::2], exp[1::2]])
-        if np.array_equal(A, inter):
-            c.fail(f"{case}: the rows are not interleaved: rows 2k and 2k+1 are the u and v residuals of observation k")
-            return
-        c.fail(f"{case}: {int((A != exp).sum())} entries differ from the expected pattern: rows 2k, 2k+1 have ones in "
-               "columns 6c..6c+5 (camera c = camera_idx[k]) and 6M+3j..6M+3j+2 (point j = point_idx[k])")
+        _sparsity_case(c, fn, f, "sp", f"synthetic scene ({int(f['sp_M'])} cameras, {int(f['sp_N'])} points)")
+        if "sp2_M" in f:
+            _sparsity_case(c, fn, f, "sp2", "observations in random order")
 
 
 # --------------------------------------------------------------------------- bundle_adjust
@@ -279,16 +260,14 @@ def _triple(out, c: Check, case: str, M: int, N: int):
     return R, t, X
 
 
-def _rms(K, R, t, X, uv, mask=None) -> float:
+def _cost(K, R, t, X, uv) -> float:
+    """``0.5 * sum of squared reprojection errors`` over the observations of ``uv (N, M, 2)`` (inf if one is behind)."""
     cam, pt, obs = observation_arrays(uv)
-    if mask is not None:
-        keep = ~mask[pt, cam]
-        cam, pt, obs = cam[keep], pt[keep], obs[keep]
     xc = (R[cam] * X[pt][:, None, :]).sum(axis=2) + t[cam]
     xh = xc @ K.T
     with np.errstate(all="ignore"):
-        e = np.linalg.norm(xh[:, :2] / xh[:, 2:3] - obs, axis=1)
-    return float(np.sqrt(np.mean(e**2))) if np.isfinite(e).all() else float("inf")
+        r = xh[:, :2] / xh[:, 2:3] - obs
+    return 0.5 * float(np.sum(r**2)) if np.isfinite(r).all() and (xc[:, 2] > 0).all() else float("inf")
 
 
 def _pose_error(R, t, X, R_true, t_true, X_true):
@@ -302,34 +281,86 @@ def _pose_error(R, t, X, R_true, t_true, X_true):
     return rot, cen
 
 
+#: How close to the minimum of the cost a converged solve must come (relative): least_squares' default
+#: tolerances reach 1e-8 here, without x_scale 1e-5; a solve stopped after 3 evaluations 1e-2.
+COST_RTOL = 1e-4
+
+
+def _minimum_verdict(c: Check, case: str, cost: float, f, moved: bool, converged: bool) -> None:
+    """The cost reaches the minimum (relative :data:`COST_RTOL`); a failure says how far, and the likely reason."""
+    c0, opt = float(f["ba_initial_cost"]), float(f["ba_final_cost"])
+    if cost <= opt * (1 + COST_RTOL) + 1e-9:
+        c.expect(True, f"{case}: reaches the minimum of the reprojection error", "")
+    elif not moved:
+        c.fail(f"{case}: the cameras did not move (cost {cost:.4g}, minimum {opt:.4g}): optimize the 6 parameters of "
+               "every camera together with the points")
+    elif converged and cost < 0.9 * c0:
+        c.fail(f"{case}: cost 0.5·Σr² = {cost:.6g}, the minimum is {opt:.6g} ({cost / opt - 1:.1e} above it), and "
+               "your last iterations no longer changed it: the solve converged to the minimum of another cost; "
+               "minimize the plain sum of squares (loss='linear') over all observations")
+    elif cost < 0.9 * c0:
+        c.fail(f"{case}: cost 0.5·Σr² = {cost:.6g}, the minimum is {opt:.6g} ({cost / opt - 1:.1e} above it): "
+               "the solve stopped before the minimum; let least_squares run to convergence (no small max_nfev, "
+               "the default tolerances)")
+    else:
+        c.fail(f"{case}: cost 0.5·Σr² = {cost:.4g}, no better than the start ({c0:.4g}): are the residuals and the "
+               "parameter layout consistent (pack and unpack the same way)?")
+
+
+def _callback_verdict(c: Check, case: str, costs: list[float], c0: float, final: float) -> None:
+    """The callback sees the iterations: called more than once, the cost never rising, the last one the result."""
+    c.gate(len(costs) >= 1, f"{case}: callback is called during the optimization",
+           f"{case}: callback was never called: call callback(R_cw, t_cw, X) after every iteration (the slider needs it)")
+    if not costs:
+        return
+    rising = any(b > a * (1 + 1e-9) + 1e-9 for a, b in zip(costs, costs[1:]))
+    if len(costs) == 1:
+        when = ("with the starting state, before solving" if abs(costs[0] - c0) <= 1e-9 * c0 else
+                "after solving" if abs(costs[0] - final) <= 1e-6 * max(final, 1e-12) else "")
+        why = (f"callback was called once {when}: call it after every iteration, e.g. "
+               "least_squares(..., callback=lambda x: callback(*unpack_params(x, M, N)))")
+    elif rising:
+        why = ("the cost of the states passed to callback goes up and down (called at every evaluation of the "
+               "residuals, finite differences included?): call it once per iteration, with the accepted state")
+    else:
+        why = ("the last state passed to callback is not the result: call it after every iteration, the last "
+               "one included")
+    ok = len(costs) >= 2 and not rising and costs[-1] <= final * (1 + 1e-6) + 1e-9
+    c.expect(ok, f"{case}: callback follows the iterations (the cost never rises, the last state is the result)",
+             f"{case}: {why}")
+
+
 def check_bundle_adjustment(fn, exercise: str = "bundle_adjust") -> None:
-    """Check ``fn(K, R_cw, t_cw, X, uv, callback=None) -> (R_cw, t_cw, X)`` on a perturbed synthetic scene."""
+    """Check ``fn(K, R_cw, t_cw, X, uv, callback=None) -> (R_cw, t_cw, X)`` on a synthetic scene a few degrees off.
+
+    Convergence is measured against the minimum of the cost (computed by the reference with tight
+    tolerances), not against where the reference stops; the callback's states must follow the
+    iterations.
+    """
     f = load_fixture(FIXTURE)
     with Check(exercise) as c:
         K, R0, t0, X0, uv = (f[f"ba_{s}"] for s in ("K", "R0", "t0", "X0", "uv"))
         M, N = R0.shape[0], X0.shape[0]
-        case = "perturbed synthetic scene (0.5 px noise)"
-        states = []
-        out = _triple(c.call(fn, K, R0, t0, X0, uv, callback=lambda R, t, X: states.append(1), case=case), c, case, M, N)
+        case = "synthetic scene, cameras 3° off (0.5 px noise)"
+        states: list = []
+        cb = lambda R, t, X: states.append((np.array(R, float), np.array(t, float), np.array(X, float)))  # noqa: E731
+        out = _triple(c.call(fn, K, R0, t0, X0, uv, callback=cb, case=case), c, case, M, N)
         if out is not None:
             R, t, X = out
-            rms, ref = _rms(K, R, t, X, uv), float(f["ba_final_rms"])
-            if rms <= 1.02 * ref + 1e-3:
-                c.expect(True, f"{case}: reaches the reference minimum of the reprojection error", "")
-            elif rms < 0.9 * float(f["ba_initial_rms"]):
-                c.fail(f"{case}: RMS reprojection error {rms:.3f} px, the reference reaches {ref:.3f} px: it stopped "
-                       "early (raise max_nfev, lower ftol) or some parameters are not optimized")
-            else:
-                c.fail(f"{case}: RMS reprojection error {rms:.3f} px, no better than the start "
-                       f"({float(f['ba_initial_rms']):.3f} px): are the residuals and the parameter layout consistent?")
+            c.gate(all(np.allclose(Ri @ Ri.T, np.eye(3), atol=1e-6) and np.linalg.det(Ri) > 0 for Ri in R),
+                   f"{case}: every R_cw is a rotation", f"{case}: some R_cw is not a rotation: optimize rotation "
+                   "vectors, not the 9 entries of R")
+            cost = _cost(K, R, t, X, uv)
+            costs = [_cost(K, *s, uv) if all(np.shape(a) == np.shape(b) for a, b in zip(s, (R0, t0, X0)))
+                     else float("inf") for s in states]
+            gap = cost - float(f["ba_final_cost"])  # a solve still under way takes steps of the size of the gap
+            converged = len(costs) >= 2 and abs(costs[-2] - costs[-1]) <= 0.01 * max(gap, 0.0)
+            _minimum_verdict(c, case, cost, f, not (np.allclose(R, R0) and np.allclose(t, t0)), converged)
             rot, cen = _pose_error(R, t, X, f["ba_R"], f["ba_t"], f["ba_X"])
             size = float(np.linalg.norm(f["ba_X"].max(0) - f["ba_X"].min(0)))
-            c.expect(rot < 0.05 and cen < 0.002 * size,
-                     f"{case}: the same cameras as the reference (after a similarity alignment: the gauge is free)",
-                     f"{case}: cameras differ from the reference by {rot:.3g}° and {cen:.3g} (scene size {size:.3g}) "
-                     "after a similarity alignment: not converged, or a different cost")
-            c.gate(all(np.allclose(Ri @ Ri.T, np.eye(3), atol=1e-6) and np.linalg.det(Ri) > 0 for Ri in R),
-                     f"{case}: every R_cw is a rotation", f"{case}: some R_cw is not a rotation: optimize rotation vectors, "
-                     "not the 9 entries of R")
-            c.gate(len(states) >= 1, f"{case}: callback is called during the optimization",
-                     f"{case}: callback was never called: call callback(R_cw, t_cw, X) after every iteration (the slider needs it)")
+            c.expect(rot < 1.0 and cen < 0.02 * size,  # loose: the minimum is flat along some directions
+                     f"{case}: the cameras of the minimum (after a similarity alignment: the gauge is free)",
+                     f"{case}: cameras differ from those of the minimum by {rot:.3g}° and {cen:.3g} (scene size "
+                     f"{size:.3g}) after a similarity alignment: not converged, or a different cost")
+            _callback_verdict(c, case, costs, float(f["ba_initial_cost"]), cost)
+        c.blame_earlier("reprojection_residuals", "jacobian_sparsity")

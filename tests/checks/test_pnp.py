@@ -156,16 +156,16 @@ def test_checks_pass_a_textbook_implementation(check, fn, capsys):
     (gpnp.check_pnp_linear, _with(lambda R, t: (R, -t)), "behind the camera"),
     (gpnp.check_pnp_linear, _with(lambda R, t: (R, 2.5 * t)), "wrong scale"),
     (gpnp.check_pnp_linear, _pixels, "pixel coordinates"),
-    (gpnp.check_pnp_ransac, lambda X, x, K, rng: ref.PnPResult(*(lambda r: (r.R_cw, r.t_cw, ~r.inliers, r.n_iters))(
-        ref.pnp_ransac(X, x, K, rng))), "inverted"),
-    (gpnp.check_pnp_ransac, lambda X, x, K, rng: (lambda r: (r.R_cw, r.t_cw, np.flatnonzero(r.inliers), r.n_iters))(
-        ref.pnp_ransac(X, x, K, rng)), "not the inlier indices"),
-    (gpnp.check_pnp_ransac, lambda X, x, K, rng: (lambda r: (r.R_cw.T, r.t_cw, r.inliers, r.n_iters))(
-        ref.pnp_ransac(X, x, K, rng)), "R_wc"),
-    (gpnp.check_pnp_nonlinear, _nl_gd, "increased the reprojection error"),
+    (gpnp.check_pnp_ransac, lambda X, x, K, rng, **kw: ref.PnPResult(*(lambda r: (r.R_cw, r.t_cw, ~r.inliers, r.n_iters))(
+        ref.pnp_ransac(X, x, K, rng, **kw))), "inverted"),
+    (gpnp.check_pnp_ransac, lambda X, x, K, rng, **kw: (lambda r: (r.R_cw, r.t_cw, np.flatnonzero(r.inliers), r.n_iters))(
+        ref.pnp_ransac(X, x, K, rng, **kw)), "not the inlier indices"),
+    (gpnp.check_pnp_ransac, lambda X, x, K, rng, **kw: (lambda r: (r.R_cw.T, r.t_cw, r.inliers, r.n_iters))(
+        ref.pnp_ransac(X, x, K, rng, **kw)), "R_wc"),
+    (gpnp.check_pnp_nonlinear, _nl_gd, "increased the RMS reprojection error"),
     (gpnp.check_pnp_nonlinear, lambda X, x, K, R, t: (R.copy(), t.copy()), "did not move"),
     (gpnp.check_pnp_nonlinear, _nl_nine, "not a rotation"),
-    (gpnp.check_pnp_nonlinear, _nl_halfway, "run the solver to convergence"),
+    (gpnp.check_pnp_nonlinear, _nl_halfway, "run to convergence"),
 ])
 def test_checks_name_the_mistake(check, fn, words, capsys):
     text, result = run_check(check, fn, capsys)

@@ -2,17 +2,23 @@
 
 Built from :mod:`course_lib.sfm.bundle_adjustment` and :mod:`course_lib.sfm.visibility`
 (fixtures ``bundle_adjustment`` and ``bundle_adjustment_step``); the checks are in
-:mod:`course_lib.checks.bundle_adjustment`.
+:mod:`course_lib.checks.bundle_adjustment`. Every case is drawn from a seeded generator (salted at
+grading time, see :mod:`course_lib.instructor.hidden`), the embedded reconstruction's included: a
+random subset of its points, in random order, in a world frame moved by a random similarity. The
+residuals of the classic mistakes that the check names (R transposed, no division by the depth,
+the points first in the parameter vector, ...) are computed here, on the instructor's side, and
+stored with the cases: the shipped checks hold no implementation of the residuals.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from course_lib.checks.bundle_adjustment import FIXTURE
+from course_lib.checks.bundle_adjustment import FIXTURE, RESIDUAL_VARIANTS
 from course_lib.instructor.cases import builds
 from course_lib.paths import EMBEDDED_SFM
 from course_lib.steps import reconstruction_before_ba
+
 
 @builds("bundle_adjustment_step", step=True)
 def _build_step() -> dict[str, np.ndarray]:
@@ -39,6 +45,91 @@ def _perturb(sc, seed, rot_deg=1.0, trans=0.2, pts=0.2):
     return R, t, sc.X + rng.normal(0, pts, sc.X.shape)
 
 
+def residual_variant(name, params, M, N, cam, pt, uv, K) -> np.ndarray:
+    """The residuals of a classic mistake (``name`` in :data:`RESIDUAL_VARIANTS`), for the check to recognise."""
+    from scipy.spatial.transform import Rotation
+
+    if name == "points_first":
+        X, cams = params[: 3 * N].reshape(N, 3), params[3 * N:].reshape(M, 6)
+    else:
+        cams, X = params[: 6 * M].reshape(M, 6), params[6 * M:].reshape(N, 3)
+    R = Rotation.from_rotvec(cams[:, :3]).as_matrix().reshape(M, 3, 3)
+    if name == "euler":
+        R = Rotation.from_euler("xyz", cams[:, :3]).as_matrix().reshape(M, 3, 3)
+    if name == "R_transposed":
+        R = np.transpose(R, (0, 2, 1))
+    xc = np.einsum("kij,kj->ki", R[cam], X[pt]) + cams[cam, 3:]
+    xh = xc @ (np.eye(3) if name == "no_K" else np.asarray(K, float)).T
+    proj = xh[:, :2] if name == "no_depth" else xh[:, :2] / xh[:, 2:3]
+    r = proj - uv
+    return r.T.ravel() if name == "not_interleaved" else r.ravel()
+
+
+def _moved_reconstruction(seed: int, keep: float = 0.8) -> dict[str, np.ndarray]:
+    """The embedded reconstruction before BA: a random subset of its points in random order, the world moved by a similarity.
+
+    Returns:
+        ``K, R_cw (M, 3, 3), t_cw (M, 3), X (N, 3), uv (N, M, 2)`` (the inlier observations, NaN elsewhere).
+    """
+    from scipy.spatial.transform import Rotation
+
+    st = reconstruction_before_ba(EMBEDDED_SFM)
+    reg, has_X = st["registered"], np.isfinite(st["X"]).all(axis=1)
+    uv = np.where(st["inlier"][..., None], st["track_uv"], np.nan)[has_X][:, reg]
+    X, R, t = st["X"][has_X], st["R_cw"][reg], st["t_cw"][reg]
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(len(X))[: int(round(keep * len(X)))]
+    Rs = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+    s, T = float(np.exp(rng.uniform(-0.7, 0.7))), rng.normal(0.0, 2.0, 3)
+    R_new = R @ Rs.T  # x_cam' = s x_cam = R Rsᵀ (X' - T) + s t  with X' = s Rs X + T
+    t_new = s * t - np.einsum("mij,j->mi", R_new, T)
+    return {"K": st["K"], "R_cw": R_new, "t_cw": t_new, "X": s * X[order] @ Rs.T + T, "uv": uv[order],
+            "track_uv": st["track_uv"][rng.permutation(len(st["track_uv"]))]}
+
+
+def _residual_cases(out, ba, vis) -> None:
+    # a perturbed synthetic scene (rotation vectors of every size, skew-free K), the mistakes' residuals
+    sc = _scene(52, 4, 40, 0.5, 0.0)
+    R0, t0, X0 = _perturb(sc, 53, rot_deg=5.0)
+    obs = vis.observation_list(sc.uv)
+    p = ba.pack_params(R0, t0, X0)
+    args = (p, 4, 40, obs.camera_idx, obs.point_idx, obs.uv, sc.K)
+    out.update({"res_syn_params": p, "res_syn_M": np.array(4), "res_syn_N": np.array(40),
+                "res_syn_camera_idx": obs.camera_idx, "res_syn_point_idx": obs.point_idx, "res_syn_uv": obs.uv,
+                "res_syn_K": sc.K, "res_syn_expected": ba.reprojection_residuals(*args)})
+    out.update({f"res_syn_var_{name}": residual_variant(name, *args) for name in RESIDUAL_VARIANTS})
+    # the true parameters and the noiseless pixels: residuals vanish
+    obs_t = vis.observation_list(sc.uv_true)
+    out.update({"res_true_params": ba.pack_params(sc.R_cw, sc.t_cw, sc.X), "res_true_camera_idx": obs_t.camera_idx,
+                "res_true_point_idx": obs_t.point_idx, "res_true_uv": obs_t.uv})
+
+
+def _sparsity_cases(out, ba, vis) -> None:
+    sc = _scene(54, 3, 12, 0.5, 0.0)
+    obs = vis.observation_list(sc.uv)
+    S = ba.jacobian_sparsity(3, 12, obs.camera_idx, obs.point_idx)
+    out.update({"sp_M": np.array(3), "sp_N": np.array(12), "sp_camera_idx": obs.camera_idx,
+                "sp_point_idx": obs.point_idx, "sp_expected": S.toarray().astype(bool)})
+    # the observations in random order (not point by point), more cameras than in the first case
+    sc = _scene(57, 5, 9, 0.5, 0.0)
+    obs = vis.observation_list(sc.uv)
+    order = np.random.default_rng(58).permutation(len(obs.camera_idx))
+    cam, pt = obs.camera_idx[order], obs.point_idx[order]
+    out.update({"sp2_M": np.array(5), "sp2_N": np.array(9), "sp2_camera_idx": cam, "sp2_point_idx": pt,
+                "sp2_expected": ba.jacobian_sparsity(5, 9, cam, pt).toarray().astype(bool)})
+
+
+def _ba_case(out, ba) -> None:
+    """A synthetic scene a few degrees off: a solve stopped after 3 evaluations is far from the minimum."""
+    sc = _scene(55, 5, 150, 0.5, 0.0)
+    R0, t0, X0 = _perturb(sc, 56, rot_deg=3.0, trans=0.3, pts=0.3)
+    res = ba.bundle_adjust(sc.K, R0, t0, X0, sc.uv, ftol=1e-14, xtol=1e-14, max_iterations=200)  # the optimum
+    out.update({"ba_K": sc.K, "ba_R0": R0, "ba_t0": t0, "ba_X0": X0, "ba_uv": sc.uv, "ba_R_true": sc.R_cw,
+                "ba_t_true": sc.t_cw, "ba_X_true": sc.X, "ba_R": res.R_cw, "ba_t": res.t_cw, "ba_X": res.X,
+                "ba_final_cost": np.array(0.5 * float(np.sum(res.final_errors**2))),
+                "ba_initial_cost": np.array(0.5 * float(np.sum(res.initial_errors**2)))})
+
+
 @builds(FIXTURE)
 def _build() -> dict[str, np.ndarray]:
     from course_lib.sfm import bundle_adjustment as ba
@@ -49,37 +140,18 @@ def _build() -> dict[str, np.ndarray]:
     sc = _scene(51, 4, 30, 0.5, 0.0)
     out["vis_track_uv"] = sc.uv
     out["vis_expected"] = vis.visibility_matrix(sc.uv)
-
-    # residuals: a perturbed synthetic scene (rotation vectors of every size, skew-free K)
-    sc = _scene(52, 4, 40, 0.5, 0.0)
-    R0, t0, X0 = _perturb(sc, 53, rot_deg=5.0)
-    obs = vis.observation_list(sc.uv)
-    p = ba.pack_params(R0, t0, X0)
-    out.update({"res_syn_params": p, "res_syn_M": np.array(4), "res_syn_N": np.array(40),
-                "res_syn_camera_idx": obs.camera_idx, "res_syn_point_idx": obs.point_idx, "res_syn_uv": obs.uv,
-                "res_syn_K": sc.K,
-                "res_syn_expected": ba.reprojection_residuals(p, 4, 40, obs.camera_idx, obs.point_idx, obs.uv, sc.K)})
-    # the true parameters and the noiseless pixels: residuals vanish
-    obs_t = vis.observation_list(sc.uv_true)
-    out.update({"res_true_params": ba.pack_params(sc.R_cw, sc.t_cw, sc.X), "res_true_camera_idx": obs_t.camera_idx,
-                "res_true_point_idx": obs_t.point_idx, "res_true_uv": obs_t.uv})
-
-    # sparsity
-    sc = _scene(54, 3, 12, 0.5, 0.0)
-    obs = vis.observation_list(sc.uv)
-    S = ba.jacobian_sparsity(3, 12, obs.camera_idx, obs.point_idx)
-    out.update({"sp_M": np.array(3), "sp_N": np.array(12), "sp_camera_idx": obs.camera_idx,
-                "sp_point_idx": obs.point_idx, "sp_expected": S.toarray().astype(bool)})
-
-    # bundle adjustment: a synthetic scene, well conditioned so that any correct solver is quick
-    sc = _scene(55, 5, 150, 0.5, 0.0)
-    R0, t0, X0 = _perturb(sc, 56, rot_deg=0.5, trans=0.05, pts=0.05)
-    res = ba.bundle_adjust(sc.K, R0, t0, X0, sc.uv)
-    out.update({"ba_K": sc.K, "ba_R0": R0, "ba_t0": t0, "ba_X0": X0, "ba_uv": sc.uv, "ba_R_true": sc.R_cw,
-                "ba_t_true": sc.t_cw, "ba_X_true": sc.X, "ba_R": res.R_cw, "ba_t": res.t_cw, "ba_X": res.X,
-                "ba_final_rms": np.array(res.final_rms), "ba_initial_rms": np.array(res.initial_rms)})
-    # the embedded reconstruction before BA (notebook 05's starting point) as a case of its own
+    _residual_cases(out, ba, vis)
+    _sparsity_cases(out, ba, vis)
+    _ba_case(out, ba)
+    # the embedded reconstruction before BA (notebook 05's starting point), moved and subsampled
     if (EMBEDDED_SFM / "ground_truth.json").exists():
-        st = reconstruction_before_ba(EMBEDDED_SFM)
-        out.update({f"emb_{k}": st[k] for k in ("K", "registered", "R_cw", "t_cw", "X", "track_uv", "inlier")})
+        st = _moved_reconstruction(59)
+        out["emb_track_uv"] = st["track_uv"]
+        out["emb_visible"] = vis.visibility_matrix(st["track_uv"])
+        obs = vis.observation_list(st["uv"])
+        M, N = len(st["R_cw"]), len(st["X"])
+        p = ba.pack_params(st["R_cw"], st["t_cw"], st["X"])
+        out.update({"emb_params": p, "emb_M": np.array(M), "emb_N": np.array(N), "emb_camera_idx": obs.camera_idx,
+                    "emb_point_idx": obs.point_idx, "emb_uv": obs.uv, "emb_K": st["K"],
+                    "emb_expected": ba.reprojection_residuals(p, M, N, obs.camera_idx, obs.point_idx, obs.uv, st["K"])})
     return out

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from course_lib.checks import pnp as gpn
@@ -42,28 +44,70 @@ def pnp_linear_transposed(X, x, K):
     return R.T, t
 
 
+def pnp_linear_center_as_t(X, x, K):
+    R, t = rpn.pnp_linear(X, x, K)
+    return R, -R.T @ t
+
+
+def pnp_linear_pixels(X, x, K):
+    return rpn.pnp_linear(X, x, np.eye(3))  # the DLT on the pixels themselves
+
+
+def pnp_linear_raw_scale(X, x, K):
+    Xh = _h(X)
+    xn = _h(x) @ np.linalg.inv(K).T
+    A = np.zeros((2 * len(X), 12))
+    A[0::2, 0:4], A[0::2, 8:12] = Xh, -xn[:, :1] * Xh
+    A[1::2, 4:8], A[1::2, 8:12] = Xh, -xn[:, 1:2] * Xh
+    P = np.linalg.svd(A)[2][-1].reshape(3, 4)
+    P = P if np.linalg.det(P[:, :3]) > 0 else -P
+    U, _, Vt = np.linalg.svd(P[:, :3])
+    return U @ Vt, P[:, 3]  # t not divided by the scale of P
+
+
 # -- 04: pnp_ransac -------------------------------------------------------------------------------------
 def _pnp_ransac(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000, squared=False, refit=True,
-                invert=False):
-    from course_lib.conventions import project
+                invert=False, stale=False, adaptive=True, own_rng=False, fixed_confidence=None, normalized=False,
+                fixed_threshold=None):
+    n, best, it, need = len(X), None, 0, max_iters
+    g = np.random if own_rng else rng
+    thr = threshold_px if fixed_threshold is None else fixed_threshold
+    p = confidence if fixed_confidence is None else fixed_confidence
 
-    n, best, it = len(X), None, 0
-    while it < max_iters:
+    def inliers(R, t):
+        if normalized:  # the error in normalized coordinates, compared with a threshold in pixels
+            Kn = np.eye(3)
+            e = np.linalg.norm(_project(Kn, R, t, X) - (_h(x) @ np.linalg.inv(K).T)[:, :2], axis=1)
+        else:
+            e = rpn.pnp_reprojection_errors(X, x, K, _near_rot(R), t)
+        return (e**2 if squared else e) < thr
+
+    while it < min(need, max_iters):
         it += 1
-        idx = rng.choice(n, 6, replace=False)
+        idx = g.choice(n, 6, replace=False)
         R, t = rpn.pnp_linear(X[idx], x[idx], K)
-        e = np.linalg.norm(project(K, R, t, X) - x, axis=1)
-        inl = (e**2 if squared else e) < threshold_px
+        inl = inliers(R, t)
         if best is None or inl.sum() > best[2].sum():
             best = (R, t, inl)
-        if it >= 200:
-            break
+            w = inl.mean()
+            if adaptive:
+                need = np.log(1 - p) / np.log(1 - w**6) if 0 < w < 1 else (1 if w >= 1 else max_iters)
     R, t, inl = best
-    if refit:
+    if refit and inl.sum() >= 6:
         R, t = rpn.pnp_linear(X[inl], x[inl], K)
-        e = np.linalg.norm(project(K, R, t, X) - x, axis=1)
-        inl = (e**2 if squared else e) < threshold_px
+        if not stale:
+            inl = inliers(R, t)
     return rpn.PnPResult(R, t, ~inl if invert else inl, it)
+
+
+def _project(K, R, t, X):
+    xh = (X @ R.T + t) @ K.T
+    return xh[:, :2] / xh[:, 2:]
+
+
+def _near_rot(R):
+    U, _, Vt = np.linalg.svd(R)
+    return U @ Vt
 
 
 def pnp_ransac_squared(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000):
@@ -72,6 +116,34 @@ def pnp_ransac_squared(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_ite
 
 def pnp_ransac_inverted(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000):
     return _pnp_ransac(X, x, K, rng, threshold_px, confidence, max_iters, invert=True)
+
+
+def pnp_ransac_no_refit(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000):
+    return _pnp_ransac(X, x, K, rng, threshold_px, confidence, max_iters, refit=False)
+
+
+def pnp_ransac_stale_mask(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000):
+    return _pnp_ransac(X, x, K, rng, threshold_px, confidence, max_iters, stale=True)
+
+
+def pnp_ransac_global_rng(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000):
+    return _pnp_ransac(X, x, K, rng, threshold_px, confidence, max_iters, own_rng=True)
+
+
+def pnp_ransac_fixed_iterations(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000):
+    return _pnp_ransac(X, x, K, rng, threshold_px, confidence, max_iters, adaptive=False)
+
+
+def pnp_ransac_ignores_confidence(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000):
+    return _pnp_ransac(X, x, K, rng, threshold_px, confidence, max_iters, fixed_confidence=0.99)
+
+
+def pnp_ransac_normalized_error(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000):
+    return _pnp_ransac(X, x, K, rng, threshold_px, confidence, max_iters, normalized=True)
+
+
+def pnp_ransac_constant_threshold(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000):
+    return _pnp_ransac(X, x, K, rng, threshold_px, confidence, max_iters, fixed_threshold=2.0)
 
 
 # -- 04: pnp_nonlinear ------------------------------------------------------------------------------------
@@ -91,16 +163,190 @@ def pnp_nonlinear_nine_entries(X, x, K, R_cw, t_cw):
     return p[:9].reshape(3, 3), p[9:]
 
 
-def pnp_nonlinear_no_depth_division(X, x, K, R_cw, t_cw):
+def pnp_nonlinear_nine_entries_svd(X, x, K, R_cw, t_cw):
+    from scipy.optimize import least_squares
+
+    def res(p):
+        xc = X @ p[:9].reshape(3, 3).T + p[9:]
+        xh = xc @ K.T
+        return (xh[:, :2] / xh[:, 2:] - x).ravel()
+
+    p = least_squares(res, np.concatenate([R_cw.ravel(), t_cw])).x
+    U, _, Vt = np.linalg.svd(p[:9].reshape(3, 3))
+    return U @ Vt, p[9:]
+
+
+def _rotvec_solve(X, x, K, R_cw, t_cw, depth=True, only_t=False, max_nfev=None):
     from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
 
-    def res(p):  # the projection is not divided by its depth
-        R = Rotation.from_rotvec(p[:3]).as_matrix()
-        return ((X @ R.T + p[3:]) @ K.T)[:, :2].ravel() - x.ravel()
+    r0 = Rotation.from_matrix(R_cw).as_rotvec()
 
-    p = least_squares(res, np.concatenate([Rotation.from_matrix(R_cw).as_rotvec(), t_cw])).x
+    def res(p):
+        r, t = (r0, p) if only_t else (p[:3], p[3:])
+        xh = (X @ Rotation.from_rotvec(r).as_matrix().T + t) @ K.T
+        return ((xh[:, :2] / xh[:, 2:]) if depth else xh[:, :2]).ravel() - x.ravel()
+
+    p = least_squares(res, t_cw.copy() if only_t else np.concatenate([r0, t_cw]), max_nfev=max_nfev).x
+    return (R_cw.copy(), p) if only_t else (Rotation.from_rotvec(p[:3]).as_matrix(), p[3:])
+
+
+def pnp_nonlinear_no_depth_division(X, x, K, R_cw, t_cw):
+    return _rotvec_solve(X, x, K, R_cw, t_cw, depth=False)
+
+
+def pnp_nonlinear_only_t(X, x, K, R_cw, t_cw):
+    return _rotvec_solve(X, x, K, R_cw, t_cw, only_t=True)
+
+
+def pnp_nonlinear_two_evaluations(X, x, K, R_cw, t_cw):
+    return _rotvec_solve(X, x, K, R_cw, t_cw, max_nfev=2)
+
+
+def pnp_nonlinear_returns_R_wc(X, x, K, R_cw, t_cw):
+    R, t = _rotvec_solve(X, x, K, R_cw, t_cw)
+    return R.T, t
+
+
+# ============================================================================ honest solutions
+# Written from the textbook (Hartley & Zisserman, ch. 7; the notebook's equations), not from course_lib;
+# calls of other exercises by name.
+
+def pnp_linear(X, x, K):
+    xn = np.column_stack([x, np.ones(len(x))]) @ np.linalg.inv(K).T
+    mu = X.mean(axis=0)
+    s = np.sqrt(3.0) / np.linalg.norm(X - mu, axis=1).mean()
+    T = np.diag([s, s, s, 1.0])
+    T[:3, 3] = -s * mu
+    Xh = np.column_stack([(X - mu) * s, np.ones(len(X))])
+    A = np.zeros((2 * len(X), 12))
+    A[0::2, 0:4] = Xh
+    A[0::2, 8:12] = -xn[:, :1] * Xh
+    A[1::2, 4:8] = Xh
+    A[1::2, 8:12] = -xn[:, 1:2] * Xh
+    P = np.linalg.svd(A)[2][-1].reshape(3, 4) @ T
+    if np.linalg.det(P[:, :3]) < 0:
+        P = -P
+    U, _, Vt = np.linalg.svd(P[:, :3])
+    R = U @ Vt
+    rows, rhs = [], []
+    for (a, b, c), Xj in zip(xn, X):
+        S = np.array([[0.0, -c, b], [c, 0.0, -a], [-b, a, 0.0]])
+        rows.append(S)
+        rhs.append(-S @ (R @ Xj))
+    t = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
+    return R, t
+
+
+def pnp_ransac(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000):
+    n = len(X)
+
+    def errors(R, t):
+        Xc = X @ R.T + t
+        uvw = Xc @ K.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            e = np.linalg.norm(uvw[:, :2] / uvw[:, 2:] - x, axis=1)
+        e[Xc[:, 2] <= 0] = np.inf
+        return e
+
+    best_R, best_t, best = None, None, np.zeros(n, dtype=bool)
+    n_iters, needed = 0, max_iters
+    while n_iters < min(needed, max_iters):
+        n_iters += 1
+        sample = rng.choice(n, 6, replace=False)
+        R, t = pnp_linear(X[sample], x[sample], K)
+        inl = errors(R, t) < threshold_px
+        if best_R is None or inl.sum() > best.sum():
+            best_R, best_t, best = R, t, inl
+            w = inl.mean()
+            needed = 1 if w == 1 else (np.log(1 - confidence) / np.log(1 - w**6) if w > 0 else max_iters)
+    if best.sum() >= 6:
+        best_R, best_t = pnp_linear(X[best], x[best], K)
+        best = errors(best_R, best_t) < threshold_px
+    return best_R, best_t, best, n_iters
+
+
+def pnp_nonlinear(X, x, K, R_cw, t_cw):
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    def residuals(p):
+        Xc = X @ Rotation.from_rotvec(p[:3]).as_matrix().T + p[3:]
+        uvw = Xc @ K.T
+        return (uvw[:, :2] / uvw[:, 2:3] - x).ravel()
+
+    p0 = np.concatenate([Rotation.from_matrix(R_cw).as_rotvec(), t_cw])
+    p = least_squares(residuals, p0).x
     return Rotation.from_rotvec(p[:3]).as_matrix(), p[3:]
+
+
+# -- other valid styles
+def pnp_linear_loops_no_conditioning(X, x, K):
+    """Two equations per point built in a loop, no conditioning of the 3-D points, t from the cross products."""
+    Kinv = np.linalg.inv(K)
+    A = []
+    for Xj, xj in zip(X, x):
+        u, v, _ = Kinv @ np.array([xj[0], xj[1], 1.0])
+        Xh = np.append(Xj, 1.0)
+        A.append(np.concatenate([-Xh, np.zeros(4), u * Xh]))
+        A.append(np.concatenate([np.zeros(4), -Xh, v * Xh]))
+    P = np.linalg.svd(np.array(A))[2][-1].reshape(3, 4)
+    P *= np.sign(np.linalg.det(P[:, :3]))
+    U, _, Vt = np.linalg.svd(P[:, :3])
+    R = U @ Vt
+    A_t, b_t = [], []
+    for Xj, xj in zip(X, x):
+        m = Kinv @ np.array([xj[0], xj[1], 1.0])
+        S = np.cross(np.eye(3), m)  # S @ y = m x y ... up to sign: rows are e_i x m
+        A_t.append(S)
+        b_t.append(-S @ (R @ Xj))
+    t = np.linalg.lstsq(np.vstack(A_t), np.concatenate(b_t), rcond=None)[0]
+    return R, t
+
+
+def pnp_ransac_for_loop_dataclass(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000):
+    """A for loop with a break, samples from rng.permutation, a dataclass result."""
+    from course_lib.conventions import project
+
+    best = None
+    count = 0
+    for count in range(1, max_iters + 1):
+        idx = rng.permutation(len(X))[:6]
+        R, t = pnp_linear(X[idx], x[idx], K)
+        front = (X @ R.T + t)[:, 2] > 0
+        inl = front & (np.linalg.norm(project(K, R, t, X) - x, axis=1) < threshold_px)
+        if best is None or inl.sum() > best[2].sum():
+            best = (R, t, inl)
+        w = best[2].sum() / len(X)
+        if w >= 1 or (w > 0 and count >= np.log(1 - confidence) / np.log(1 - w**6)):
+            break
+    R, t = pnp_linear(X[best[2]], x[best[2]], K)
+    front = (X @ R.T + t)[:, 2] > 0
+    inl = front & (np.linalg.norm(project(K, R, t, X) - x, axis=1) < threshold_px)
+    return PoseResult(R, t, inl, count)
+
+
+@dataclass
+class PoseResult:
+    R_cw: np.ndarray
+    t_cw: np.ndarray
+    inliers: np.ndarray
+    n_iters: int
+
+
+def pnp_nonlinear_quaternion(X, x, K, R_cw, t_cw):
+    """A unit quaternion (normalized inside the residual) and t; the trust-region solver with x_scale."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    def res(p):
+        R = Rotation.from_quat(p[:4] / np.linalg.norm(p[:4])).as_matrix()
+        xh = (X @ R.T + p[4:]) @ K.T
+        return (xh[:, :2] / xh[:, 2:] - x).ravel()
+
+    p = least_squares(res, np.r_[Rotation.from_matrix(R_cw).as_quat(), t_cw], x_scale="jac").x
+    return Rotation.from_quat(p[:4] / np.linalg.norm(p[:4])).as_matrix(), p[4:]
+
 
 # ============================================================================ the catalogue
 
@@ -111,17 +357,46 @@ MISTAKES = [
     M("pnp_linear", "sign of P not fixed", gpn.check_pnp_linear, pnp_linear_no_sign_fix, ("det r = -1",),
       defining="R is a rotation"),
     M("pnp_linear", "R_wc returned", gpn.check_pnp_linear, pnp_linear_transposed, ("transposed",)),
+    M("pnp_linear", "C returned as t", gpn.check_pnp_linear, pnp_linear_center_as_t, ("c vs t",)),
+    M("pnp_linear", "DLT on pixel coordinates", gpn.check_pnp_linear, pnp_linear_pixels, ("pixel coordinates",)),
+    M("pnp_linear", "t not divided by the scale of P", gpn.check_pnp_linear, pnp_linear_raw_scale,
+      ("wrong scale",)),
     M("pnp_ransac", "squared error vs threshold", gpn.check_pnp_ransac, pnp_ransac_squared, ("squared error",)),
     M("pnp_ransac", "inverted inlier mask", gpn.check_pnp_ransac, pnp_ransac_inverted, ("inverted",)),
+    M("pnp_ransac", "no final refit", gpn.check_pnp_ransac, pnp_ransac_no_refit, ("refit pnp_linear on all",)),
+    M("pnp_ransac", "mask of the best sample after the refit", gpn.check_pnp_ransac, pnp_ransac_stale_mask,
+      ("recompute the inliers with the final pose",)),
+    M("pnp_ransac", "np.random instead of rng", gpn.check_pnp_ransac, pnp_ransac_global_rng,
+      ("not from np.random",)),
+    M("pnp_ransac", "fixed iteration count", gpn.check_pnp_ransac, pnp_ransac_fixed_iterations,
+      ("n_iters = 1000", "log(1 - confidence)")),
+    M("pnp_ransac", "confidence ignored", gpn.check_pnp_ransac, pnp_ransac_ignores_confidence,
+      ("the confidence argument",)),
+    M("pnp_ransac", "error in normalized coordinates", gpn.check_pnp_ransac, pnp_ransac_normalized_error,
+      ("normalized coordinates",)),
+    M("pnp_ransac", "threshold_px ignored", gpn.check_pnp_ransac, pnp_ransac_constant_threshold,
+      ("not a constant",)),
     M("pnp_nonlinear", "returns the start", gpn.check_pnp_nonlinear, pnp_nonlinear_unchanged, ("did not move",)),
     M("pnp_nonlinear", "optimizes the 9 entries of R", gpn.check_pnp_nonlinear, pnp_nonlinear_nine_entries,
       ("not a rotation",)),
+    M("pnp_nonlinear", "9 entries of R, then an SVD", gpn.check_pnp_nonlinear, pnp_nonlinear_nine_entries_svd,
+      ("9 entries of r", "rotation vector")),
     M("pnp_nonlinear", "projection not divided by z", gpn.check_pnp_nonlinear, pnp_nonlinear_no_depth_division,
-      ("divided by its depth",)),
+      ("not divided by the depth",)),
+    M("pnp_nonlinear", "only t optimized", gpn.check_pnp_nonlinear, pnp_nonlinear_only_t, ("only t moved",)),
+    M("pnp_nonlinear", "stopped after 2 evaluations", gpn.check_pnp_nonlinear, pnp_nonlinear_two_evaluations,
+      ("not at the least-squares optimum",)),
+    M("pnp_nonlinear", "returns R_wc", gpn.check_pnp_nonlinear, pnp_nonlinear_returns_R_wc, ("transposed",)),
 ]
 
 #: Correct solutions: they must score full marks.
 HONEST = [
+    Honest("pnp_linear", "textbook, conditioned, t by least squares", gpn.check_pnp_linear, pnp_linear),
+    Honest("pnp_ransac", "textbook, returns a tuple", gpn.check_pnp_ransac, pnp_ransac),
+    Honest("pnp_nonlinear", "rotation vector, default least_squares", gpn.check_pnp_nonlinear, pnp_nonlinear),
+    Honest("pnp_linear", "loops, no conditioning", gpn.check_pnp_linear, pnp_linear_loops_no_conditioning),
+    Honest("pnp_ransac", "for loop with break, a dataclass", gpn.check_pnp_ransac, pnp_ransac_for_loop_dataclass),
+    Honest("pnp_nonlinear", "unit quaternion", gpn.check_pnp_nonlinear, pnp_nonlinear_quaternion),
     Honest("pnp_linear", "the reference solution", gpn.check_pnp_linear, rpn.pnp_linear),
     Honest("pnp_ransac", "the reference solution", gpn.check_pnp_ransac, rpn.pnp_ransac),
     Honest("pnp_nonlinear", "the reference solution", gpn.check_pnp_nonlinear, rpn.pnp_nonlinear),
