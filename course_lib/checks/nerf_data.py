@@ -293,9 +293,10 @@ def _check_training(c: Check, fn: Callable, near: float, far: float, S: int, R: 
     if not again:
         return
     zt2 = to_numpy(c.call(fn, near, far, S, R, True, generator=torch.Generator().manual_seed(seed), case=case))
-    if zt2 is not None:
-        c.gate(close(zt, zt2), f"{short}: the same generator seed gives the same samples",
-               f"{case}: the same seed gave different samples: pass generator=generator to torch.rand")
+    # a second call that answers nothing usable fails this gate too
+    c.gate(zt2 is not None and np.shape(zt2) == np.shape(zt) and close(zt, zt2),
+           f"{short}: the same generator seed gives the same samples",
+           f"{case}: the same seed gave different samples: pass generator=generator to torch.rand")
 
 
 def check_stratified_samples(stratified_samples: Callable) -> None:
@@ -330,17 +331,27 @@ BROADCAST = ("size of tensor", "must match the size", "broadcast", "shape mismat
 
 
 def _query_call(c: Check, fn: Callable, args, case: str):
-    """The student's pts, or None; a broadcasting error is explained, not only shown."""
-    try:
-        fn(*(a.clone() for a in args))
-    except Exception as exc:  # noqa: BLE001 - a student's error becomes a verdict
-        msg = str(exc)
-        if not isinstance(exc, NotImplementedError) and any(w in msg.lower() for w in BROADCAST):
-            c.fail(f"{case}: a broadcasting error ({type(exc).__name__}: {msg.splitlines()[0][:120]}): rays_o and rays_d "
-                   "are (R, 3), z_vals is (R, S); add axes so that they meet as (R, 1, 3) and (R, S, 1): "
-                   "rays_o[:, None, :] + z_vals[..., None] * rays_d[:, None, :]")
-            return None
-    return to_numpy(c.call(fn, *args, case=case))
+    """The student's pts, or None; a broadcasting error is explained, not only shown (one call per case)."""
+    broadcast: list[Exception] = []
+
+    def guarded(*a):
+        try:
+            return fn(*a)
+        except Exception as exc:
+            msg = str(exc).lower()
+            if isinstance(exc, NotImplementedError) or not any(w in msg for w in BROADCAST):
+                raise
+            broadcast.append(exc)
+            return np.zeros(0)  # a placeholder; the verdict below explains the error
+
+    out = c.call(guarded, *args, case=case)
+    if broadcast:
+        exc = broadcast[0]
+        c.fail(f"{case}: a broadcasting error ({type(exc).__name__}: {str(exc).splitlines()[0][:120]}): rays_o and "
+               "rays_d are (R, 3), z_vals is (R, S); add axes so that they meet as (R, 1, 3) and (R, S, 1): "
+               "rays_o[:, None, :] + z_vals[..., None] * rays_d[:, None, :]")
+        return None
+    return to_numpy(out)
 
 
 def check_query_points(query_points: Callable) -> None:
