@@ -178,8 +178,10 @@ def test_hidden_cases_are_new_and_the_reference_passes_them(hidden):
     from course_lib.paths import FIXTURES_DIR
 
     with np.load(hidden.fixtures_dir / "fundamental.npz") as h, np.load(FIXTURES_DIR / "fundamental.npz") as p:
-        a, b = h["noisy_x1"], p["noisy_x1"]
-        assert a.shape != b.shape or not np.allclose(a, b), "the hidden scene must differ from the public one"
+        # (tests/instructor/test_hidden_cases.py proves that no hidden array equals any shipped one)
+        keys = [k for k in h.files if k in p.files and h[k].dtype.kind == "f" and h[k].size >= 16]
+        assert keys and any(h[k].shape != p[k].shape or not np.allclose(h[k], p[k]) for k in keys), \
+            "the hidden scene must differ from the public one"
     assert all(hidden.reference_passing.values()) and not hidden.reference_notes, hidden.reference_notes
 
 
