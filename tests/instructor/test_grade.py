@@ -67,7 +67,8 @@ SOLUTIONS = {
                 best = inl
                 w = inl.mean()
                 needed = np.log(1 - confidence) / np.log(1 - w**8) if w < 1 else 0
-        return RansacResult(eight_point(x1[best], x2[best]), best, n_iters)
+        F = eight_point(x1[best], x2[best])
+        return RansacResult(F, sampson_distance(F, x1, x2) < threshold_px, n_iters)  # refit, inliers recomputed
     """,
     "essential_from_fundamental": """
         U, _, Vt = np.linalg.svd(K.T @ F @ K)
