@@ -328,10 +328,12 @@ def check_sampson_distance(sampson_distance: Callable) -> None:
                 c.fail(f"{case}: {hint or f'distances differ from the Sampson distance (match {j}: {d[j]:.4g} px, expected {d_ref[j]:.4g} px): ' + _SAMPSON_DEN}")
             if k == 0:
                 d10 = _as_array(c.call(sampson_distance, -10.0 * F, x1, x2, case=case), c, f"{case}: d")
-                same = d10 is not None and d10.shape == d.shape and np.allclose(d10, d, rtol=1e-6, atol=1e-9)
-                c.gate(same, f"{case}: the distance does not depend on the scale of F",  # unusable answers fail it too
+                usable = d10 is not None and d10.shape == d.shape  # an unusable answer fails the gate too
+                c.gate(usable and np.allclose(d10, d, rtol=1e-6, atol=1e-9),
+                       f"{case}: the distance does not depend on the scale of F",
                        f"{case}: the result changes when F is multiplied by -10: a distance in pixels must not depend on "
-                       "the scale (or sign) of F")
+                       "the scale (or sign) of F" if usable else
+                       f"{case}: called with -10 F, your function returned nothing usable (expected shape {d.shape})")
 
 
 # --------------------------------------------------------------------------- ransac_fundamental

@@ -293,10 +293,11 @@ def _check_training(c: Check, fn: Callable, near: float, far: float, S: int, R: 
     if not again:
         return
     zt2 = to_numpy(c.call(fn, near, far, S, R, True, generator=torch.Generator().manual_seed(seed), case=case))
-    # a second call that answers nothing usable fails this gate too
-    c.gate(zt2 is not None and np.shape(zt2) == np.shape(zt) and close(zt, zt2),
-           f"{short}: the same generator seed gives the same samples",
-           f"{case}: the same seed gave different samples: pass generator=generator to torch.rand")
+    usable = zt2 is not None and np.shape(zt2) == np.shape(zt)  # an unusable second answer fails the gate too
+    c.gate(usable and close(zt, zt2), f"{short}: the same generator seed gives the same samples",
+           f"{case}: the same seed gave different samples: pass generator=generator to torch.rand" if usable else
+           f"{case}: a second call with the same seed returned nothing usable (shape {np.shape(zt2)}, expected "
+           f"{np.shape(zt)})")
 
 
 def check_stratified_samples(stratified_samples: Callable) -> None:
