@@ -412,15 +412,20 @@ def _nonlinear_mistake(f, key: str, R, t, R0, t0, R_r, t_r) -> str | None:
     """Name a classic mistake of the refinement from what it returned (variants computed on the instructor's side)."""
     close = lambda Ra, ta, Rb, tb: rotation_angle_deg(Ra, Rb) < 0.02 and \
         np.linalg.norm(ta - tb) < 2e-3 * max(1.0, np.linalg.norm(tb))  # noqa: E731
+
+    def like(name: str) -> bool:  # R as the stored mistake's, t along its direction where stored (not its length)
+        Rm, d = f.get(f"{key}_mis_{name}_R"), f.get(f"{key}_mis_{name}_tdir")
+        if Rm is None or not np.isfinite(t).all() or rotation_angle_deg(R, Rm) >= 0.02:
+            return False
+        return d is None or (np.linalg.norm(t) > 0 and abs(float(t @ d)) / np.linalg.norm(t) > 1 - 1e-4)
     scale = float(t @ t_r / max(float(t_r @ t_r), 1e-300))
     scaled = rotation_angle_deg(R, R_r) < 0.5 and scale > 0 and abs(scale - 1) > 0.01 and \
         np.linalg.norm(t / scale - t_r) < 0.05 * np.linalg.norm(t_r)  # R and t drifted together, R then projected
-    if scaled or (f"{key}_nine_R" in f and close(R, t, f[f"{key}_nine_R"], f[f"{key}_nine_t"])
-                  and not close(R, t, R_r, t_r)):
+    if scaled or (like("nine") and not close(R, t, R_r, t_r)):
         return ("you optimized the 9 entries of R (and projected the result back onto a rotation with an SVD): the "
                 "solver then minimizes over matrices that are no rotations, and the projection moves it off the "
                 "optimum; optimize a rotation vector (3 numbers, Rotation.from_rotvec) and t")
-    if f"{key}_nodepth_R" in f and close(R, t, f[f"{key}_nodepth_R"], f[f"{key}_nodepth_t"]):
+    if like("nodepth") and not close(R, t, R_r, t_r):
         return ("the residual is not divided by the depth: the pixel is (K x_cam)[:2] / (K x_cam)[2], minus the "
                 "observed pixel")
     if rotation_angle_deg(R, R0) < 1e-9 and not np.allclose(t, t0, atol=1e-12):

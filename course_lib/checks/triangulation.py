@@ -218,23 +218,33 @@ def _cheirality_variants(f: dict, key: str) -> list[tuple[str, int, np.ndarray]]
     return [(hint, int(np.argmax(cnt)), cnt) for hint, cnt in zip(_CHEIRALITY_MISTAKES, counts)]
 
 
-def _match_candidate(R_s, t_s, R, C) -> tuple[int | None, str | None]:
-    """Index of the candidate the student returned, or a named confusion."""
-    for k in range(4):  # exact: the rotation and translation of one candidate
-        if np.allclose(R_s, R[k], atol=1e-6) and np.allclose(t_s, -R[k] @ C[k], atol=1e-6):
-            return k, None
+def _match_candidate(R_s, t_s, R, C, right: int) -> tuple[int | None, str | None]:
+    """Index of the candidate the student returned, or a named confusion.
+
+    Two candidates share each rotation (``+C`` and ``-C``), so one answer can read as several
+    (``(R, -C)`` is candidate k with t = -C, or its partner with t = C): of the readings, in the
+    order below, the one of the right candidate ``right`` wins (unless another candidate is returned
+    exactly), else the first.
+    """
+    same = lambda a, b: np.allclose(a, b, atol=1e-6)  # noqa: E731
+    transposed = "R_cw is transposed (that is R_wc, world from camera): return the candidate R[k] itself"
+    c_vs_t = "t_cw is not -R_cw @ C (C vs t confusion): t_cw = -R_cw @ C"
+    readings = []
     for k in range(4):
-        if np.allclose(R_s, R[k], atol=1e-6):
-            if np.allclose(t_s, C[k], atol=1e-6):
-                return k, "t_cw is the camera centre C: the translation is t_cw = -R_cw @ C"
-            if np.allclose(t_s, -C[k], atol=1e-6) or np.allclose(t_s, R[k].T @ C[k], atol=1e-6):
-                return k, "t_cw is not -R_cw @ C (C vs t confusion): t_cw = -R_cw @ C"
-    for k in range(4):
-        if np.allclose(R_s, R[k], atol=1e-6):
-            return k, "t_cw does not belong to the chosen rotation's candidate: t_cw = -R[k] @ C[k]"
-        if np.allclose(R_s, R[k].T, atol=1e-6):
-            return k, "R_cw is transposed (that is R_wc, world from camera): return the candidate R[k] itself"
-    return None, None
+        t_k = -R[k] @ C[k]
+        if same(R_s, R[k]):
+            readings += [(0, k, None)] if same(t_s, t_k) else []
+            readings += [(1, k, "t_cw is the camera centre C: the translation is t_cw = -R_cw @ C")] if same(t_s, C[k]) else []
+            readings += [(2, k, c_vs_t)] if same(t_s, -C[k]) or same(t_s, R[k].T @ C[k]) else []
+            readings += [(4, k, "t_cw does not belong to the chosen rotation's candidate: t_cw = -R[k] @ C[k]")]
+        if same(R_s, R[k].T):
+            readings += [(3 if any(same(t_s, t) for t in (t_k, C[k], -C[k], R[k].T @ C[k])) else 5, k, transposed)]
+    if not readings:
+        return None, None
+    readings.sort(key=lambda r: (r[0], r[1] != right, r[1]))
+    best = readings[0][0]
+    _, k, why = next((r for r in readings if best > 0 and r[1] == right and r[0] <= max(best, 2)), readings[0])
+    return k, why
 
 
 def _pose_case(c: Check, fn, f, key, case) -> None:
@@ -252,7 +262,7 @@ def _pose_case(c: Check, fn, f, key, case) -> None:
         return
     t_s = t_s.reshape(3)
     ref_k = int(f[f"{key}_index"])
-    k, confusion = _match_candidate(R_s, t_s, R, C)
+    k, confusion = _match_candidate(R_s, t_s, R, C, ref_k)
     if k is None:
         c.fail(f"{case}: R_cw is none of the four candidates R[k]: return the chosen candidate's rotation unchanged")
         return
@@ -329,7 +339,6 @@ _NONLINEAR_MISTAKES = {
                          "with (K (R X + t))[:2] / (K (R X + t))[2]",
     "cross_multiplied": "the residual is cross-multiplied, (K (R X + t))[:2] - x (K (R X + t))[2]: that is an algebraic "
                         "error, not the reprojection error in pixels; divide by the depth, then subtract x",
-    "R_transposed": "R is transposed: the cameras map x_cam = R_cw X + t_cw, use R_cws[i] itself (not .T)",
     "nan_as_zero": "the unseen observations (NaN in uv) became pixels (0, 0): leave them out of the residuals",
     "unseen_not_refined": "the points that some view does not see were not refined: use every view in which the "
                           "point is seen (uv[j, i] not NaN), as long as there are two",
@@ -337,7 +346,17 @@ _NONLINEAR_MISTAKES = {
 
 
 def _nonlinear_diagnosis(f: dict, key: str, A: np.ndarray, ref: np.ndarray) -> str | None:
-    """The named mistake whose result the points ``A`` reproduce, or None."""
+    """The named mistake whose result the points ``A`` reproduce, or None.
+
+    Most mistakes are recognised by their stored result. A refinement with ``R`` transposed diverges
+    (the points run off to 1e7 and beyond, where the last bits of the CPU decide), so it is recognised
+    by what it optimized: the points fit the cameras with ``R_cwsᵀ`` better than the start did, and
+    better than they fit the true cameras.
+    """
+    K, R, t, uv, X0 = (f[f"{key}_{s}"] for s in ("K", "R", "t", "uv", "X0"))
+    Rt = np.transpose(R, (0, 2, 1))
+    if _reproj_rms(K, Rt, t, uv, A) < min(_reproj_rms(K, Rt, t, uv, X0), _reproj_rms(K, R, t, uv, A)):
+        return "R is transposed: the cameras map x_cam = R_cw X + t_cw, use R_cws[i] itself (not .T)"
     off = np.linalg.norm(A - ref, axis=1).mean()  # how far from the optimum; a mistake must explain that
 
     def explains(Y) -> bool:

@@ -74,7 +74,9 @@ def pose_candidates(E: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     * if ``det R = -1`` (the SVD gave ``det U det V = -1``), ``R`` and ``C`` both change sign.
 
     Candidate order: ``k = 0: (U W Vᵀ, +)``, ``1: (U W Vᵀ, -)``, ``2: (U Wᵀ Vᵀ, +)``,
-    ``3: (U Wᵀ Vᵀ, -)``.
+    ``3: (U Wᵀ Vᵀ, -)``, for the SVD's choice of signs; so that every machine gives the same order
+    (:func:`_canonical_order`), the reference takes the signs for which the first rotation is the one
+    closer to the identity and the ``+`` centre has its largest-magnitude entry positive.
 
     Args:
         E: ``(3, 3)`` essential matrix (``y2ᵀ E y1 = 0``), any scale.
@@ -99,4 +101,19 @@ def pose_candidates(E: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
                 R, C = -R, -C
             Rs.append(R)
             Cs.append(C / np.linalg.norm(C))
-    return np.stack(Rs), np.stack(Cs)
+    return _canonical_order(np.stack(Rs), np.stack(Cs))
+
+
+def _canonical_order(R: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The documented order with the SVD's choices fixed: the same candidates on every machine.
+
+    Which rotation is ``U W Vᵀ`` and which ``C`` is ``+`` depends on the signs of the singular
+    vectors, which LAPACK picks differently on different CPUs. Keeping the documented structure
+    (the two centres of one rotation side by side, ``+`` before ``-``), the rotation closer to the
+    identity (larger trace) comes first and the ``+`` centre has its largest-magnitude entry positive.
+    """
+    pairs = [0, 2] if np.trace(R[0]) >= np.trace(R[2]) else [2, 0]
+    c = C[0] * np.sign(C[0][np.abs(C[0]).argmax()])
+    order = [k + (0 if C[k] @ c > 0 else 1) for k in pairs]
+    order = [i for k in order for i in (k, k ^ 1)]
+    return R[order], C[order]

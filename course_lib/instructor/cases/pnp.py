@@ -107,9 +107,17 @@ def _nonlinear_case(out, key, K, X, x, R0, t0) -> None:
     R1, t1 = pnp.pnp_nonlinear(X, x, K, R0, t0)
     Rn, tn = _nine_entries_then_svd(X, x, K, R0, t0)
     Rd, td = _no_depth_division(X, x, K, R0, t0)
+    # Both mistakes leave t free: the 9 entries and t scale together, so t's length is wherever the
+    # solver stopped (only its direction is stored, sign fixed); without the division by depth t runs
+    # off and even its direction is where the last bits of the CPU leave it (only R is stored).
     out.update({f"{key}_K": K, f"{key}_X": X, f"{key}_x": x, f"{key}_R0": R0, f"{key}_t0": t0,
-                f"{key}_R": R1, f"{key}_t": t1, f"{key}_nine_R": Rn, f"{key}_nine_t": tn,
-                f"{key}_nodepth_R": Rd, f"{key}_nodepth_t": td})
+                f"{key}_R": R1, f"{key}_t": t1, f"{key}_mis_nine_R": Rn, f"{key}_mis_nine_tdir": _direction(tn),
+                f"{key}_mis_nodepth_R": Rd})
+
+
+def _direction(t: np.ndarray) -> np.ndarray:
+    d = t / np.linalg.norm(t)
+    return d * np.sign(d[np.abs(d).argmax()])
 
 
 def _perturbed(R, t, seed, deg=3.0, rel=0.05):

@@ -6,6 +6,8 @@ Built from :mod:`course_lib.sfm.triangulation` (fixtures ``triangulation`` and
 
 from __future__ import annotations
 
+import zlib
+
 import numpy as np
 
 from course_lib.conventions import project
@@ -199,8 +201,17 @@ def make_nl_scene():
 
 
 def _store_pose_case(out, key, Rc, Cc, K, x1, x2, tri) -> None:
+    """Store a choose_pose case; the right candidate is moved to index 1, 2 or 3 (by the case's name).
+
+    The reference orders the candidates the same way on every machine, and the right one is often
+    first; choose_pose must pick it by cheirality, never by position, so the cases put it elsewhere.
+    """
     from course_lib.instructor.mistakes.triangulation import cheirality_counts
 
+    right, target = tri.choose_pose(Rc, Cc, K, x1, x2).index, 1 + zlib.crc32(key.encode()) % 3
+    order = np.arange(4)
+    order[[right, target]] = order[[target, right]]
+    Rc, Cc = Rc[order], Cc[order]
     ch = tri.choose_pose(Rc, Cc, K, x1, x2)
     out.update({f"{key}_R": Rc, f"{key}_C": Cc, f"{key}_K": K, f"{key}_x1": x1, f"{key}_x2": x2,
                 f"{key}_R_cw": ch.R_cw, f"{key}_t_cw": ch.t_cw, f"{key}_X": ch.X, f"{key}_in_front": ch.in_front,

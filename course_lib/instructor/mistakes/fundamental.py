@@ -28,7 +28,10 @@ def _solve(a: np.ndarray, b: np.ndarray, rank2: bool = True) -> np.ndarray:
 
 
 def _unit(F: np.ndarray) -> np.ndarray:
-    return F / np.linalg.norm(F)
+    """Unit Frobenius norm, largest-magnitude entry positive (the reference's convention: the SVD's sign
+    of a null vector differs between CPUs)."""
+    F = F / np.linalg.norm(F)
+    return F * np.sign(F.flat[np.abs(F).argmax()])
 
 
 def eight_point_variants(x1: np.ndarray, x2: np.ndarray) -> dict[str, np.ndarray]:

@@ -77,8 +77,6 @@ def nonlinear_variants(K, R_cws, t_cws, uv, X0) -> dict[str, np.ndarray]:
         "no_depth_division": _refine(K, R_cws, t_cws, uv, X0, lambda X, i, x: proj(X, R_cws[i], t_cws[i])[:2] - x),
         "cross_multiplied": _refine(K, R_cws, t_cws, uv, X0,
                                     lambda X, i, x: proj(X, R_cws[i], t_cws[i])[:2] - x * proj(X, R_cws[i], t_cws[i])[2]),
-        "R_transposed": _refine(K, R_cws, t_cws, uv, X0,
-                                lambda X, i, x: proj(X, R_cws[i].T, t_cws[i])[:2] / proj(X, R_cws[i].T, t_cws[i])[2] - x),
         "nan_as_zero": np.array([least_squares(lambda X, j=j: np.concatenate([right(X, i, uv0[j, i])
                                                                                for i in range(len(R_cws))]), X0[j]).x
                                  for j in range(len(X0))]),
