@@ -704,6 +704,9 @@ def serve(cfg: dict) -> None:
     try:
         exec(compile(cfg["code"], "<your notebook>", "exec"), module.__dict__)  # noqa: S102 - sandboxed
         target = module.__dict__.get(cfg["name"])
+        for step in cfg.get("oracle", ()):  # the earlier exercises it calls: answered by the grader from now on
+            if step in module.__dict__ and step != cfg["name"]:
+                module.__dict__[step] = oracle_stub(step, cfg["name"])
         hello = {"ok": True, "found": target is not None, "callable": callable(target)}
     except BaseException as exc:  # noqa: BLE001 - reported to the grader
         target, hello = None, _exc_reply(exc)
@@ -741,6 +744,51 @@ def serve(cfg: dict) -> None:
             if isinstance(exc, WireError):
                 reply["wire"] = True
         write_frame(rep, reply, out)
+
+
+def oracle_stub(step: str, exercise: str):
+    """A plain function in place of the student's earlier exercise ``step`` while ``exercise`` is graded.
+
+    It holds no reference code: it sends its arguments to the grader as data and returns the grader's
+    answer (the reference's result, :mod:`course_lib.instructor.oracle`), or raises the reference's error.
+    """
+
+    def stub(*args, **kwargs):
+        out: list = []
+        try:
+            head = {"event": "oracle", "name": step, "args": encode(tuple(args), out),
+                    "kwargs": encode(dict(kwargs), out)}
+        except WireError as exc:
+            raise TypeError(f"{step}: {exc}") from None
+        size = sum(a.nbytes for a in out)
+        if size > MAX_REPLY:
+            raise ValueError(f"{step} was called with {size >> 20} MiB of arguments: while {exercise} is graded, "
+                             f"the grader answers {step} for at most {MAX_REPLY >> 20} MiB")
+        write_frame(REP_FD, head, out)
+        reply, arrays = read_frame(REQ_FD)
+        if reply.get("ok"):
+            return decode(reply.get("value"), arrays)
+        raise _oracle_error(reply, step, exercise)
+
+    stub.__name__ = stub.__qualname__ = step
+    stub.__doc__ = f"{step}, answered by the grader with the reference's result while {exercise} is graded."
+    return stub
+
+
+def _oracle_error(reply: dict, step: str, exercise: str) -> Exception:
+    """The reference's exception, as the student's code sees it (a builtin type where it was one)."""
+    import builtins
+
+    name = _ident(reply.get("type", "RuntimeError"), "RuntimeError")
+    cls = getattr(builtins, name, None) if reply.get("builtin") else None
+    msg = (f"{reply.get('message', '')} (raised by the grader's reference {step}, which answers for your {step} "
+           f"while {exercise} is graded)")
+    if not (isinstance(cls, type) and issubclass(cls, Exception)) or cls is StopIteration:
+        cls, msg = RuntimeError, f"{name}: {msg}"
+    try:
+        return cls(msg)
+    except Exception:  # noqa: BLE001 - exception types with other constructors
+        return RuntimeError(f"{name}: {msg}")
 
 
 def _grad_mode(enabled: bool):

@@ -258,15 +258,17 @@ class StudentProcess:
         submission: the student's folder (copied; the copy is the process's working directory).
         budget: wall-clock seconds for everything this process does for the grader.
         torch: import torch at start (the NeRF exercises).
+        oracle: answers the call-backs of the earlier exercises the code calls (:mod:`course_lib.instructor.oracle`);
+            their names are bound to stubs in the process after the code is loaded.
     """
 
     def __init__(self, iso: Isolation, code: str, name: str, submission: Path | None, budget: float,
-                 torch: bool = False):
-        self.iso, self.name, self.budget = iso, name, float(budget)
+                 torch: bool = False, oracle=None):
+        self.iso, self.name, self.budget, self.oracle = iso, name, float(budget), oracle
         self.t0 = time.monotonic()
         self.deadline = self.t0 + max(self.budget, START_SECONDS)  # the start: Python, numpy and torch imports
         self.ended: str | None = None  # why the process is gone (feedback for the student)
-        self.event: str | None = None  # "timeout", "exit", "crash", "protocol"
+        self.event: str | None = None  # "timeout", "exit", "crash", "protocol", "limit"
         self.hello: dict = {}
         self.tmp = Path(tempfile.mkdtemp(prefix="course-student-"))
         os.chmod(self.tmp, 0o755)
@@ -279,7 +281,7 @@ class StudentProcess:
         self.rep_r, rep_w = os.pipe()
         cfg = {"sandbox": iso.sandbox_config(stage, self.cwd, seed), "cwd": str(self.cwd), "path": str(iso.library),
                "sys_path": iso.python_path(), "code": code, "name": name, "torch": bool(torch),
-               "req_fd": req_r, "rep_fd": rep_w}
+               "req_fd": req_r, "rep_fd": rep_w, "oracle": oracle.names if oracle is not None else []}
         (self.tmp / "config.json").write_text(json.dumps(cfg))
         env = {k: v for k, v in os.environ.items() if k in ("PATH", "LANG", "LC_ALL", "TZ")}
         env.update(HOME=str(self.cwd), TMPDIR="/tmp", OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
@@ -414,6 +416,8 @@ class StudentProcess:
         if not self._send(head, arrays):
             raise StudentProcessEnded(self.ended)
         got = self._receive()
+        while got is not None and got[0].get("event") == "oracle":
+            got = self._answer_oracle(*got)
         if got is None:
             raise StudentProcessEnded(self.ended)
         reply, out = got
@@ -432,6 +436,27 @@ class StudentProcess:
         for cb, a, k in replay:
             cb(*a, **k)  # the grader's callbacks, replayed in order after the call
         return value
+
+    def _answer_oracle(self, head: dict, arrays: list) -> tuple[dict, list] | None:
+        """Answer a call-back of the student's code (an earlier exercise, by its reference); then the next frame.
+
+        The oracle's time is added to the exercise's deadline, up to its allowance; more call-backs than
+        :data:`course_lib.instructor.oracle.MAX_CALLS` end the process.
+        """
+        from course_lib.instructor.oracle import MAX_CALLS
+
+        if self.oracle is None or self.oracle.calls >= MAX_CALLS:
+            why = (f"your {self.name} called the earlier exercises ({', '.join(self.oracle.names)}) more than "
+                   f"{MAX_CALLS} times; the grader answers at most that many calls per exercise"
+                   if self.oracle is not None else "the process asked the grader for an earlier step it does not need")
+            self._end("limit", why)
+            return None
+        t0 = time.monotonic()
+        reply, out = self.oracle.answer(head, arrays, self._remaining())
+        self.deadline += self.oracle.credit(time.monotonic() - t0)
+        if not self._send(reply, out):
+            return None
+        return self._receive()
 
     @staticmethod
     def _rng_out(arrays: list) -> dict:
@@ -455,6 +480,8 @@ class StudentProcess:
             pass
 
     def close(self) -> None:
+        if self.oracle is not None:
+            self.oracle.close()
         if self.proc.poll() is None and not self.ended:
             try:
                 os.set_blocking(self.req_w, False)
