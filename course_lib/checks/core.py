@@ -54,6 +54,7 @@ __all__ = [
     "DEFINING",
     "DEFINING_CAP",
     "RESULTS",
+    "calls_name",
     "FAILED",
     "load_fixture",
     "using_cases",
@@ -215,6 +216,36 @@ def score_against(result: CheckResult, reference: CheckResult) -> float:
 RESULTS: dict[str, CheckResult] = {}
 
 
+def calls_name(fn: Any, name: str, depth: int = 3) -> bool | None:
+    """Whether the code of ``fn`` (a function, or the methods of a class) names ``name``, directly or through the
+    functions of its module that it names (``depth`` levels); None when ``fn`` has no code to read."""
+    import types
+
+    if isinstance(fn, type):
+        funcs = [v for v in vars(fn).values() if isinstance(v, types.FunctionType)]
+    elif isinstance(fn, types.FunctionType):
+        funcs = [fn]
+    else:
+        return None
+    seen: set = set()
+    for _ in range(depth + 1):
+        names = set()
+        for f in funcs:
+            todo = [f.__code__]
+            while todo:
+                code = todo.pop()
+                names |= set(code.co_names)
+                todo += [k for k in code.co_consts if isinstance(k, types.CodeType)]
+        if name in names:
+            return True
+        seen |= set(funcs)
+        glob = funcs[0].__globals__ if funcs else {}
+        funcs = [glob[n] for n in names if isinstance(glob.get(n), types.FunctionType) and glob[n] not in seen]
+        if not funcs:
+            return False
+    return False
+
+
 class Check:
     """Collects and prints the verdicts for one exercise.
 
@@ -299,20 +330,27 @@ class Check:
         """Print a line of advice under the verdict; it is no check and counts for nothing."""
         self.notes.append(text)
 
-    def blame_earlier(self, *exercises: str) -> None:
-        """After a failure: point at earlier exercises (run in this notebook) that failed their own checks.
+    def blame_earlier(self, *exercises: str, fn: Any = None) -> None:
+        """After a failure: point at the earlier exercises the student's code calls whose checks have not passed.
 
         An exercise that calls a student's earlier function (``pnp_ransac`` calls ``pnp_linear``)
-        fails when that one is wrong; the note says which to fix first. The grader checks every
-        exercise with the reference's earlier steps, so there the mistake costs points once.
+        fails when that one is wrong; the note says which to fix first. With ``fn`` (the student's
+        function or class, defined in this kernel) only the ``exercises`` that its code calls (directly
+        or through its module's other functions, :func:`calls_name`) are named, and an earlier check
+        that failed *or has not run in this kernel* is named; without it (or when its code cannot be
+        read), those whose check failed. The grader checks every exercise with the reference's
+        earlier steps (:mod:`course_lib.instructor.oracle`), so there the mistake costs points once.
         """
         if self.passed == self.total:
             return
-        bad = [e for e in exercises if e in RESULTS and not RESULTS[e].ok]
-        if bad:
-            names = " and ".join(bad)
-            self.note(f"your {names} failed {'its' if len(bad) == 1 else 'their'} own checks above and "
-                      f"{self.exercise} calls {'it' if len(bad) == 1 else 'them'}: fix {names} first")
+        calls = [calls_name(fn, e) for e in exercises] if fn is not None else [None] * len(exercises)
+        failed = [e for e, k in zip(exercises, calls) if k is not False and e in RESULTS and not RESULTS[e].ok]
+        not_run = [e for e, k in zip(exercises, calls) if k is True and e not in RESULTS]
+        for bad, why in ((failed, "failed"), (not_run, "has not run in this kernel")):
+            if bad:
+                names = " and ".join(bad)
+                self.note(f"{self.exercise} calls your {names}, whose check {why}: fix {names} first"
+                          + (" (run its check cell)" if why != "failed" else ""))
 
     def plan(self, *cases: str) -> None:
         """Declare the cases this check means to run (the ``case=`` names of its calls).
