@@ -22,6 +22,10 @@ reference verdicts and check cells come from the instructor's side, never from t
    wall-clock budget per exercise: a looping exercise is stopped at its limit, an exercise that
    ends the process is named (``os._exit``), and either costs only itself. Its score is
    :func:`course_lib.checks.core.score` of its hidden checks relative to the reference's.
+   **Each exercise on its own:** the earlier exercises that its code calls (``ransac_fundamental``
+   → ``eight_point``, ``pnp_ransac`` → ``pnp_linear``, ``NeRF`` → ``positional_encoding``, ...) are
+   answered there by their reference, through a call-back to the grader
+   (:mod:`course_lib.instructor.oracle`), so a mistake costs points once, in its own exercise.
 4. **nbval.** The notebooks run under nbval, with a per-cell time limit, after their check cells
    are restored to the reference source and outputs, in the same sandbox (the student release on
    ``PYTHONPATH``, a temporary copy of the submission as working directory, resource limits,

@@ -13,7 +13,10 @@ Two commands:
     answer calls from the grader on file descriptors 3 (requests) and 4 (replies): each request
     names a function or an object handle and carries its arguments as data; each reply carries the
     result as data, or the exception the student's code raised. Objects that are not data (an
-    ``nn.Module``) stay here and are answered by handle.
+    ``nn.Module``) stay here and are answered by handle. The earlier exercises named in
+    ``CONFIG["oracle"]`` are rebound, after the student's code ran, to :func:`oracle_stub`s: while a
+    call runs, a stub sends its arguments to the grader (an ``oracle`` event on the reply pipe) and
+    waits for the answer on the request pipe (:mod:`course_lib.instructor.oracle`).
 
 ``child.py exec CONFIG.json -- PROGRAM ARGS...``
     Enter the sandbox and ``execv`` a program (nbval of the student's notebook). The sandbox's

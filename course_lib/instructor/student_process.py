@@ -24,6 +24,10 @@ The student's process (see :mod:`course_lib.instructor.sandbox` for the sandbox 
 * receives the grader's global numpy and torch random states with every call (so that
   ``torch.manual_seed(0)`` in a check seeds the student's initialisation as it would in the
   notebook); nothing of the student's process flows back but the results (not its random state);
+* may call back (:mod:`course_lib.instructor.oracle`): while the grader waits for a reply, a request
+  of the stubs bound in place of the earlier exercises the code calls is answered by the reference
+  of that exercise (run by the oracle's worker, not by the grader); the oracle's time is added to the
+  exercise's deadline up to its allowance, and more call-backs than ``oracle.MAX_CALLS`` end the process;
 * has one wall-clock budget per exercise (its definitions and every call together, counted once
   the process has started and imported numpy and torch, which has a limit of its own,
   :data:`START_SECONDS`): when it runs out, the process is killed and every later call fails at
