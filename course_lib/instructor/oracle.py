@@ -16,7 +16,9 @@ a synchronous call-back:
   an :class:`Oracle`: a worker process forked from the grader (it has the full library) that decodes
   the arguments, runs the reference, and sends the result back as data; the grader forwards it to
   X's process, and X goes on. An exception of the reference (junk arguments) is raised in X's
-  process with the reference's message, as the reference would raise it.
+  process with the reference's message, as the reference would raise it. A call that the
+  reference cannot answer (arguments that do not fit its signature: the student's function has
+  another interface; values that cannot be sent as data) is answered by the student's own function.
 
 Bounds (per exercise): at most :data:`MAX_CALLS` call-backs (then X's process is stopped), each
 request and each result at most ``sandbox.MAX_REPLY`` bytes (the stub refuses a larger argument
@@ -47,6 +49,7 @@ student's generator is not advanced by the reference's draws.
 from __future__ import annotations
 
 import importlib
+import inspect
 import os
 import resource
 import select
@@ -234,6 +237,10 @@ def _run_reference(head: dict, arrays: list, steps: dict[str, str]) -> tuple[dic
             raise wire.WireError("malformed call")
         module, attr = steps[name].split(":")
         fn = getattr(importlib.import_module(module), attr)
+        try:
+            inspect.signature(fn).bind(*args, **kwargs)
+        except TypeError as exc:  # not the exercise's interface: the student's own function answers
+            return {"ok": False, "unbound": True, "message": str(exc)[:500]}, []
         value = fn(*args, **kwargs)
         out: list = []
         tree = wire.encode(value, out)

@@ -122,11 +122,13 @@ def eight_point(x1, x2=None, how="plain"):
     if how == "plain":
         return normalize_points(x1)
     if how == "junk":
-        return normalize_points("junk", wrong=1)
+        return normalize_points("junk")
     if how == "keyword":
         return normalize_points(x=x1)
     if how == "function":
-        return normalize_points(lambda: 0)
+        return normalize_points(lambda: 0)[1]
+    if how == "other interface":
+        return normalize_points(x1, centre=False)
     if how == "huge":
         return normalize_points(np.zeros((5_000_000, 2)))
     if how == "again":
@@ -152,16 +154,17 @@ def test_the_stub_answers_with_the_reference_and_junk_raises_in_the_students_cod
         f = RemoteFunction(proc, "eight_point")
         xn, T = f(x)
         assert np.allclose(xn, normalize_points(x)[0]) and np.allclose(T, normalize_points(x)[1])
-        with pytest.raises(TypeError, match="raised by the grader's reference normalize_points"):
+        with pytest.raises(ValueError, match="raised by the grader's reference normalize_points"):
             f(x, how="junk")
         with pytest.raises(ValueError, match="KitInputError: x has 8 points that are all identical .* the grader's"):
             f(np.ones((8, 2)))  # the reference's own error, as a ValueError (the builtin it derives from)
-        with pytest.raises(TypeError, match="normalize_points: a value of type function cannot be sent"):
-            f(x, how="function")
+        assert np.array_equal(f(x, how="function"), np.eye(3))  # not sendable: the student's own answers
+        with pytest.raises(TypeError, match="unexpected keyword argument 'centre'"):
+            f(x, how="other interface")  # not the reference's signature: the student's own answers (and raises)
         assert np.allclose(f(x, how="keyword")[0], normalize_points(x)[0])  # the grader and its worker go on
         reply = f(x, how="itself")  # a forged request for the exercise itself is refused
         assert reply["ok"] is False and "answers no call of 'eight_point'" in reply["message"]
-        assert proc.oracle.calls == 5 and not proc.ended  # the function never left the process
+        assert proc.oracle.calls == 6 and not proc.ended  # the function never left the process
 
 
 def test_a_huge_argument_is_refused_in_the_students_process(iso):
