@@ -197,8 +197,9 @@ def score_against(result: CheckResult, reference: CheckResult) -> float:
     the student's; the reference's passing point checks are what there is to earn. A check that
     the reference passed and the student's run did not pass *or did not record at all* (a call that
     returned nothing usable, so that the checks after it never ran) counts as failed: a missing
-    answer never makes a check disappear from the count. A failed defining property caps the
-    fraction at :data:`DEFINING_CAP`, as in :func:`score`.
+    answer never makes a check disappear from the count. As in :func:`score`, a failed gate counts
+    as one failed check (a RANSAC that never adapts its number of samples earns less than full
+    marks), and a failed defining property caps the fraction at :data:`DEFINING_CAP`.
     """
     from collections import Counter
 
@@ -206,7 +207,8 @@ def score_against(result: CheckResult, reference: CheckResult) -> float:
     if not want:
         return 0.0
     got = Counter(v.text for v in result.verdicts if v.ok and v.kind == "points")
-    frac = sum((got & want).values()) / sum(want.values())
+    failed_gates = sum(1 for v in result.verdicts if v.kind == "gate" and not v.ok)
+    frac = sum((got & want).values()) / (sum(want.values()) + failed_gates)
     if result.defining_failed:
         frac = min(frac, DEFINING_CAP)
     return frac

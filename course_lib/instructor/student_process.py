@@ -292,6 +292,7 @@ class StudentProcess:
                    MKL_NUM_THREADS="1", PYTHONDONTWRITEBYTECODE="1", MPLBACKEND="Agg", COURSE_LIB_QUICK="1")
         self.cgroup = iso.cgroup()
         self.largest_reply = 0
+        self.unpacked_at = time.monotonic()
         self.proc = subprocess.Popen(
             [sys.executable, "-S", "-E", str(CHILD_SCRIPT), "serve", str(self.tmp / "config.json")],
             cwd=self.cwd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
@@ -343,7 +344,9 @@ class StudentProcess:
                 raise wire.WireError(f"a reply of {n} bytes, more than any exercise returns "
                                      f"(the limit is {wire.MAX_REPLY >> 20} MiB)")
             self.largest_reply = max(self.largest_reply, n)
-            head, arrays = wire.unpack(self._read_exact(n))
+            data = self._read_exact(n)
+            self.unpacked_at = time.monotonic()  # a call-back's time counts from here (see _answer_oracle)
+            head, arrays = wire.unpack(data)
         except TimeoutError:
             self._end("timeout", f"stopped after {self.budget:g} s: an endless loop, or far too slow "
                                  f"(the time limit of one exercise is {self.budget:g} s)")
@@ -444,10 +447,12 @@ class StudentProcess:
     def _answer_oracle(self, head: dict, arrays: list) -> tuple[dict, list] | None:
         """Answer a call-back of the student's code (an earlier exercise, by its reference); then the next frame.
 
-        The oracle's time is added to the exercise's deadline, up to its allowance; more call-backs than
-        :data:`course_lib.instructor.oracle.MAX_CALLS` end the process.
+        The grader's time on it (from the request's arrival to the reply's departure, plus
+        :data:`~course_lib.instructor.oracle.ROUND_TRIP_SECONDS` for the transport on the student's side) is added
+        to the exercise's deadline, up to the oracle's allowance; more call-backs than
+        :data:`~course_lib.instructor.oracle.MAX_CALLS` end the process.
         """
-        from course_lib.instructor.oracle import MAX_CALLS
+        from course_lib.instructor.oracle import MAX_CALLS, ROUND_TRIP_SECONDS
 
         if self.oracle is None or self.oracle.calls >= MAX_CALLS:
             why = (f"your {self.name} called the earlier exercises ({', '.join(self.oracle.names)}) more than "
@@ -455,12 +460,11 @@ class StudentProcess:
                    if self.oracle is not None else "the process asked the grader for an earlier step it does not need")
             self._end("limit", why)
             return None
-        t0 = time.monotonic()
+        t0 = self.unpacked_at
         reply, out = self.oracle.answer(head, arrays, self._remaining())
-        self.deadline += self.oracle.credit(time.monotonic() - t0)
-        if not self._send(reply, out):
-            return None
-        return self._receive()
+        sent = self._send(reply, out)
+        self.deadline += self.oracle.credit(time.monotonic() - t0 + ROUND_TRIP_SECONDS)
+        return self._receive() if sent else None
 
     @staticmethod
     def _rng_out(arrays: list) -> dict:

@@ -182,6 +182,12 @@ def test_score_against_counts_checks_that_did_not_run(capsys):
     capsys.readouterr()
     assert student.ok and core.score(student) == 1.0  # on its own it looks perfect
     assert score_against(student, reference) == 0.5  # against the reference's count it is not
+    with Check("counted") as c:  # every case right, but a gate fails (n_iters never adapts)
+        for k in range(4):
+            c.expect(True, f"case {k} ok", "")
+        c.gate(False, "", "n_iters = 2000: update the number of iterations")
+    capsys.readouterr()
+    assert score_against(RESULTS["counted"], reference) == 4 / 5 == core.score(RESULTS["counted"])
 
 
 def test_a_failed_detail_costs_no_hidden_points_but_the_exercise_is_not_perfect(capsys):
