@@ -106,7 +106,7 @@ class Oracle:
     Args:
         exercise: the exercise being graded.
         steps: ``{name: "module:attr"}`` of the earlier exercises it may call (:func:`earlier_steps`).
-        seconds: the worker's time credited to the exercise's budget (beyond it, the time is the exercise's).
+        seconds: the call-backs' time credited to the exercise's budget (beyond it, the time is the exercise's).
     """
 
     def __init__(self, exercise: str, steps: dict[str, str], seconds: float):
@@ -213,7 +213,11 @@ def _worker(req: int, rep: int, steps: dict[str, str]) -> None:
     """The worker's loop: decode a request, run the reference, send the result (or its exception) as data."""
     from course_lib.instructor.hidden import single_thread_math
 
-    for fd in (int(f) for f in os.listdir("/proc/self/fd")):
+    try:
+        open_fds = [int(f) for f in os.listdir("/proc/self/fd")]
+    except OSError:  # no /proc: the grader's other files stay open in the worker (it runs only the reference)
+        open_fds = []
+    for fd in open_fds:
         if fd > 2 and fd not in (req, rep):
             try:
                 os.close(fd)

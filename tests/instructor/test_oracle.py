@@ -86,7 +86,7 @@ def hidden(tmp_path_factory):
 
 
 def test_a_wrong_earlier_exercise_costs_points_once(tmp_path, hidden):
-    sub, filled = honest_submission(tmp_path / "sub", notebooks=NOTEBOOKS)
+    sub, _ = honest_submission(tmp_path / "sub", notebooks=NOTEBOOKS)
     nb_of = {e.name: s.name for s in kit_specs(NOTEBOOKS_DIR, only=NOTEBOOKS) for e in s.exercises}
     for name, code in WRONG.items():
         put_def(sub / "notebooks" / nb_of[name], name, code)
