@@ -2,7 +2,8 @@
 
 * Through the real grader: a submission whose earlier exercise is wrong (``normalize_points``
   without centring, ``triangulate_linear`` with u and v swapped, ``pnp_linear`` without making R
-  orthonormal) but whose later exercises are right loses points only on the earlier exercise.
+  orthonormal, notebook 07's copy of ``positional_encoding`` without π) but whose later exercises
+  are right loses points only on the earlier exercise.
 * The call-back, in a sandboxed student process: junk arguments raise the reference's error in the
   student's code (the grader and its worker go on); an argument too large is refused there; an
   exercise that calls back without end is stopped at the cap; the exercise itself is never answered.
@@ -28,7 +29,7 @@ from course_lib.instructor.student_process import Isolation, RemoteFunction, Stu
 from course_lib.instructor.student_process import student_library
 from tests.instructor.honest import honest_submission
 
-NOTEBOOKS = ["01", "03", "04"]
+NOTEBOOKS = ["01", "03", "04", "07"]
 SEED = 19
 
 #: An earlier exercise written wrong, as a student would; every later exercise of its notebook calls it.
@@ -60,7 +61,17 @@ WRONG = {
             s = np.cbrt(np.linalg.det(P[:, :3]))
             return P[:, :3] / s, P[:, 3] / s  # R is not made orthonormal
     """,
+    "positional_encoding": """
+        def positional_encoding(x, n_freqs, include_input=True):
+            freqs = 2.0 ** torch.arange(n_freqs, dtype=x.dtype)
+            xb = x[..., None, :] * freqs[:, None]  # no factor pi, and sin and cos not interleaved per frequency
+            parts = [x] if include_input else []
+            return torch.cat(parts + [torch.sin(xb).flatten(-2), torch.cos(xb).flatten(-2)], -1)
+    """,
 }
+#: Where each wrong function goes: its exercise's notebook, or the notebook that calls it (notebook 07 asks for a
+#: copy of notebook 06's positional_encoding, whose own exercise is not graded here).
+WHERE = {"positional_encoding": "07_nerf_model.ipynb"}
 
 
 def put_def(path, name: str, code: str) -> None:
@@ -89,15 +100,15 @@ def test_a_wrong_earlier_exercise_costs_points_once(tmp_path, hidden):
     sub, _ = honest_submission(tmp_path / "sub", notebooks=NOTEBOOKS)
     nb_of = {e.name: s.name for s in kit_specs(NOTEBOOKS_DIR, only=NOTEBOOKS) for e in s.exercises}
     for name, code in WRONG.items():
-        put_def(sub / "notebooks" / nb_of[name], name, code)
+        put_def(sub / "notebooks" / WHERE.get(name, nb_of.get(name, "")), name, code)
     report = grade_submission(sub, notebooks=NOTEBOOKS, hidden=hidden, run_nbval=False)
     points = {g["name"]: g["points"] for g in report["exercises"]}
     full = {g["name"]: round(g["max_points"] * HIDDEN_SHARE, 2) for g in report["exercises"]}
-    for name in WRONG:
+    for name in set(WRONG) & set(points):
         assert points[name] < full[name], (name, points[name])
     later = {n: (p, next(g["feedback"] for g in report["exercises"] if g["name"] == n))
              for n, p in points.items() if n not in WRONG and p < full[n]}
-    assert not later, later  # eight_point, ransac_fundamental, choose_pose, pnp_ransac, ... all full
+    assert not later, later  # eight_point, ransac_fundamental, choose_pose, pnp_ransac, NeRF, ... all full
 
 
 # ------------------------------------------------------------------ the call-back in a student process
