@@ -199,7 +199,7 @@ def run_hidden(job: HiddenJob, timeout: float = 60.0, isolation=None) -> HiddenO
 
     t0 = time.perf_counter()
     torch = job.check_module.startswith("course_lib.checks.nerf")
-    oracle = Oracle(job.name, job.steps, ALLOWANCE * timeout)  # earlier steps answered by the reference: graded on its own
+    oracle = Oracle(job.name, job.steps, ALLOWANCE * timeout)  # earlier steps answered by the reference
     with StudentProcess(isolation, job.code, job.name, job.submission, timeout, torch=torch, oracle=oracle) as proc:
         hello = proc.hello
         if proc.ended:

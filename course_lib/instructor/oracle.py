@@ -12,9 +12,9 @@ a synchronous call-back:
 * in X's sandboxed process, after the student's code is loaded, each such name of ``__main__`` is
   rebound to a neutral wire stub (``sandbox.oracle_stub``: it holds no reference code, it sends its
   arguments as data and returns the answer; the kit's stand-ins of the same name find it there);
-* the grader, while it waits for X's reply, receives the stub's request and passes it, unread, to
-  an :class:`Oracle`: a worker process forked from the grader (it has the full library) that decodes
-  the arguments, runs the reference, and sends the result back as data; the grader forwards it to
+* the grader, while it waits for X's reply, receives the stub's request and passes its arguments on,
+  undecoded, to an :class:`Oracle`: a worker process forked from the grader (it has the full
+  library) that decodes the arguments, runs the reference, and sends the result back as data; the grader forwards it to
   X's process, and X goes on. An exception of the reference (junk arguments) is raised in X's
   process with the reference's message, as the reference would raise it. A call that the
   reference cannot answer (arguments that do not fit its signature: the student's function has
@@ -24,20 +24,22 @@ Bounds (per exercise): at most :data:`MAX_CALLS` call-backs (then X's process is
 request and each result at most ``sandbox.MAX_REPLY`` bytes (the stub refuses a larger argument
 with a ``ValueError``), and the call-backs' time (the grader's and the worker's, and
 :data:`ROUND_TRIP_SECONDS` of transport each) is credited to X's budget up to ``seconds``
-(:data:`ALLOWANCE` times the exercise's own budget); past that it counts as X's time, and a reference that runs longer
-than what is left is stopped (its worker is killed, and the stub raises ``TimeoutError``). The
+(:data:`ALLOWANCE` times the exercise's own budget); past that it counts as X's time, and a
+reference that runs longer than what is left is stopped (its worker is killed, and the stub raises
+``TimeoutError``). The
 worker, not the grader, decodes the student's data and runs the reference, under an address-space
 limit, so nothing the student sends can stop or exhaust the grader.
 
 Only the exercises that come *before* X in the kit (notebook order, then cell order) and that X's
-code binds are answered, never X itself, and only while X is graded. If X's code does not call Y
+code binds are answered, never X itself, and only while X is graded; an earlier exercise that is a
+class (``NeRF``) stays the student's (a module cannot travel as data). If X's code does not call Y
 (it wrote the step inline, or captured its own function elsewhere), nothing changes.
 
 **Why this cannot change Y's own grade.** Every exercise is graded in its own process
 (:class:`~course_lib.instructor.student_process.StudentProcess`), made for it and ended after it.
 The stubs exist only in X's process, and Y's grade comes from Y's own process, where Y is the
-student's function and no stub is bound. Y's hidden checks call Y directly; nothing that happens
-in X's process reaches them.
+student's function (no stub of Y is bound there: an exercise is never its own earlier step). Y's
+hidden checks call Y directly; nothing that happens in X's process reaches them.
 
 The NeRF model (a :class:`~course_lib.instructor.student_process.RemoteModule`) is no exception:
 its forward pass runs in the student's process, where ``positional_encoding`` is the stub, so the

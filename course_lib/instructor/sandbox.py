@@ -711,7 +711,7 @@ def serve(cfg: dict) -> None:
         exec(compile(cfg["code"], "<your notebook>", "exec"), module.__dict__)  # noqa: S102 - sandboxed
         target = module.__dict__.get(cfg["name"])
         for step in cfg.get("oracle", ()):  # the earlier exercises it calls: answered by the grader from now on
-            if step in module.__dict__ and step != cfg["name"]:
+            if step in module.__dict__ and step != cfg["name"] and not isinstance(module.__dict__[step], type):
                 module.__dict__[step] = oracle_stub(step, cfg["name"], module.__dict__[step])
         hello = {"ok": True, "found": target is not None, "callable": callable(target)}
     except BaseException as exc:  # noqa: BLE001 - reported to the grader

@@ -122,13 +122,18 @@ def iso(tmp_path_factory):
                                  [tmp_path_factory.mktemp("grader-secret")], NOTEBOOKS_DIR)
 
 
-STEPS = {"normalize_points": "course_lib.sfm.fundamental:normalize_points"}
+STEPS = {"normalize_points": "course_lib.sfm.fundamental:normalize_points",
+         "Model": "course_lib.nerf.model:NeRF"}  # an earlier step that is a class stays the student's
 CODE = """
 import numpy as np
 
 
 def normalize_points(x):
     return x, np.eye(3)  # wrong: the grader answers with the reference instead
+
+
+class Model:
+    pass
 
 
 def eight_point(x1, x2=None, how="plain"):
@@ -140,6 +145,8 @@ def eight_point(x1, x2=None, how="plain"):
         return normalize_points(x=x1)
     if how == "function":
         return normalize_points(lambda: 0)[1]
+    if how == "class":
+        return isinstance(Model, type) and Model.__module__ == "__main__"
     if how == "other interface":
         return normalize_points(x1, centre=False)
     if how == "huge":
@@ -175,6 +182,7 @@ def test_the_stub_answers_with_the_reference_and_junk_raises_in_the_students_cod
         with pytest.raises(TypeError, match="unexpected keyword argument 'centre'"):
             f(x, how="other interface")  # not the reference's signature: the student's own answers (and raises)
         assert np.allclose(f(x, how="keyword")[0], normalize_points(x)[0])  # the grader and its worker go on
+        assert f(x, how="class") is True
         reply = f(x, how="itself")  # a forged request for the exercise itself is refused
         assert reply["ok"] is False and "answers no call of 'eight_point'" in reply["message"]
         assert proc.oracle.calls == 6 and not proc.ended  # the function never left the process
