@@ -5,8 +5,11 @@
   orthonormal, notebook 07's copy of ``positional_encoding`` without π) but whose later exercises
   are right loses points only on the earlier exercise.
 * The call-back, in a sandboxed student process: junk arguments raise the reference's error in the
-  student's code (the grader and its worker go on); an argument too large is refused there; an
-  exercise that calls back without end is stopped at the cap; the exercise itself is never answered.
+  student's code (the grader and its worker go on); a call the reference cannot take (another
+  signature, a value that cannot be sent) and a class go to the student's own; an argument too
+  large is refused there; an exercise that calls back without end is stopped at the cap; the
+  exercise itself is never answered; the grader's time on call-backs is not the student's, and a
+  reference that runs too long, or returns too much, is stopped.
 * Which earlier steps an exercise's code calls, from its extracted code (:func:`earlier_steps`).
 """
 
