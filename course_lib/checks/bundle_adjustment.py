@@ -363,4 +363,4 @@ def check_bundle_adjustment(fn, exercise: str = "bundle_adjust") -> None:
                      f"{case}: cameras differ from those of the minimum by {rot:.3g}° and {cen:.3g} (scene size "
                      f"{size:.3g}) after a similarity alignment: not converged, or a different cost")
             _callback_verdict(c, case, costs, float(f["ba_initial_cost"]), cost)
-        c.blame_earlier("reprojection_residuals", "jacobian_sparsity")
+        c.blame_earlier("reprojection_residuals", "jacobian_sparsity", fn=fn)

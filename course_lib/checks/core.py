@@ -54,6 +54,7 @@ __all__ = [
     "DEFINING",
     "DEFINING_CAP",
     "RESULTS",
+    "calls_name",
     "FAILED",
     "load_fixture",
     "using_cases",
@@ -196,8 +197,9 @@ def score_against(result: CheckResult, reference: CheckResult) -> float:
     the student's; the reference's passing point checks are what there is to earn. A check that
     the reference passed and the student's run did not pass *or did not record at all* (a call that
     returned nothing usable, so that the checks after it never ran) counts as failed: a missing
-    answer never makes a check disappear from the count. A failed defining property caps the
-    fraction at :data:`DEFINING_CAP`, as in :func:`score`.
+    answer never makes a check disappear from the count. As in :func:`score`, a failed gate counts
+    as one failed check (a RANSAC that never adapts its number of samples earns less than full
+    marks), and a failed defining property caps the fraction at :data:`DEFINING_CAP`.
     """
     from collections import Counter
 
@@ -205,7 +207,8 @@ def score_against(result: CheckResult, reference: CheckResult) -> float:
     if not want:
         return 0.0
     got = Counter(v.text for v in result.verdicts if v.ok and v.kind == "points")
-    frac = sum((got & want).values()) / sum(want.values())
+    failed_gates = sum(1 for v in result.verdicts if v.kind == "gate" and not v.ok)
+    frac = sum((got & want).values()) / (sum(want.values()) + failed_gates)
     if result.defining_failed:
         frac = min(frac, DEFINING_CAP)
     return frac
@@ -213,6 +216,36 @@ def score_against(result: CheckResult, reference: CheckResult) -> float:
 
 #: Results of the check cells run in this process, by exercise name (the grader reads it).
 RESULTS: dict[str, CheckResult] = {}
+
+
+def calls_name(fn: Any, name: str, depth: int = 3) -> bool | None:
+    """Whether the code of ``fn`` (a function, or the methods of a class) names ``name``, directly or through the
+    functions of its module that it names (``depth`` levels); None when ``fn`` has no code to read."""
+    import types
+
+    if isinstance(fn, type):
+        funcs = [v for v in vars(fn).values() if isinstance(v, types.FunctionType)]
+    elif isinstance(fn, types.FunctionType):
+        funcs = [fn]
+    else:
+        return None
+    seen: set = set()
+    for _ in range(depth + 1):
+        names = set()
+        for f in funcs:
+            todo = [f.__code__]
+            while todo:
+                code = todo.pop()
+                names |= set(code.co_names)
+                todo += [k for k in code.co_consts if isinstance(k, types.CodeType)]
+        if name in names:
+            return True
+        seen |= set(funcs)
+        glob = funcs[0].__globals__ if funcs else {}
+        funcs = [glob[n] for n in names if isinstance(glob.get(n), types.FunctionType) and glob[n] not in seen]
+        if not funcs:
+            return False
+    return False
 
 
 class Check:
@@ -299,20 +332,27 @@ class Check:
         """Print a line of advice under the verdict; it is no check and counts for nothing."""
         self.notes.append(text)
 
-    def blame_earlier(self, *exercises: str) -> None:
-        """After a failure: point at earlier exercises (run in this notebook) that failed their own checks.
+    def blame_earlier(self, *exercises: str, fn: Any = None) -> None:
+        """After a failure: point at the earlier exercises the student's code calls whose checks have not passed.
 
         An exercise that calls a student's earlier function (``pnp_ransac`` calls ``pnp_linear``)
-        fails when that one is wrong; the note says which to fix first. The grader checks every
-        exercise with the reference's earlier steps, so there the mistake costs points once.
+        fails when that one is wrong; the note says which to fix first. With ``fn`` (the student's
+        function or class, defined in this kernel) only the ``exercises`` that its code calls (directly
+        or through its module's other functions, :func:`calls_name`) are named, and an earlier check
+        that failed *or has not run in this kernel* is named; without it (or when its code cannot be
+        read), those whose check failed. The grader checks every exercise with the reference's
+        earlier steps (:mod:`course_lib.instructor.oracle`), so there the mistake costs points once.
         """
         if self.passed == self.total:
             return
-        bad = [e for e in exercises if e in RESULTS and not RESULTS[e].ok]
-        if bad:
-            names = " and ".join(bad)
-            self.note(f"your {names} failed {'its' if len(bad) == 1 else 'their'} own checks above and "
-                      f"{self.exercise} calls {'it' if len(bad) == 1 else 'them'}: fix {names} first")
+        calls = [calls_name(fn, e) for e in exercises] if fn is not None else [None] * len(exercises)
+        failed = [e for e, k in zip(exercises, calls) if k is not False and e in RESULTS and not RESULTS[e].ok]
+        not_run = [e for e, k in zip(exercises, calls) if k is True and e not in RESULTS]
+        for bad, why in ((failed, "failed"), (not_run, "has not run in this kernel")):
+            if bad:
+                names = " and ".join(bad)
+                self.note(f"{self.exercise} calls your {names}, whose check {why}: fix {names} first"
+                          + (" (run its check cell)" if why != "failed" else ""))
 
     def plan(self, *cases: str) -> None:
         """Declare the cases this check means to run (the ``case=`` names of its calls).

@@ -268,7 +268,7 @@ def check_eight_point(eight_point: Callable) -> None:
             if name in ("noiseless", "noisy"):
                 c.gate(np.isclose(np.linalg.norm(F), 1.0, rtol=1e-6), f"{case}: F has unit Frobenius norm",
                        f"{case}: |F| = {np.linalg.norm(F):.4g}: scale F to unit Frobenius norm, F / np.linalg.norm(F)")
-        c.blame_earlier("normalize_points")
+        c.blame_earlier("normalize_points", fn=eight_point)
 
 
 # --------------------------------------------------------------------------- sampson_distance
@@ -518,7 +518,7 @@ def check_ransac_fundamental(ransac_fundamental: Callable) -> None:
         _ransac_refit_case(c, ransac_fundamental, f)
         if "rb_x1" in f:
             _ransac_embedded(c, ransac_fundamental, f)
-        c.blame_earlier("eight_point", "sampson_distance")
+        c.blame_earlier("eight_point", "sampson_distance", fn=ransac_fundamental)
 
 
 def _ransac_embedded(c: Check, fn: Callable, f: dict) -> None:

@@ -20,10 +20,11 @@ Conventions that are the same maths are accepted: the skip concatenated as ``[h,
 ``[γ(x), h]``, and the heads defined before the trunk (the test weights are copied by role).
 
 **Graded on its own:** the network is fed the *reference* positional encoding of the check's points
-(notebook 06's exercise): :func:`encoding_table` answers ``positional_encoding`` from the stored
-reference values (a table, no computation). In the notebook the check puts it in place of the
-notebook's ``positional_encoding`` while it runs; in grading, the grader binds it in the student's
-process (:mod:`course_lib.instructor.provided`). A mistake in notebook 06 never costs NeRF points.
+(notebook 06's exercise). In the notebook, :func:`encoding_table` answers ``positional_encoding``
+from the stored reference values (a table, no computation: the kit ships no encoding); the check
+puts it in place of the notebook's ``positional_encoding`` while it runs. In grading, the grader
+answers the student's ``positional_encoding`` with the reference's, through a call-back
+(:mod:`course_lib.instructor.oracle`). A mistake in notebook 06 never costs NeRF points.
 
 ``check_psnr(psnr)``: PSNR in dB of images in [0, 1] on the fixture's MSE values; names the
 flipped sign, a peak of 255, the natural logarithm, the factor 20 with the MSE.

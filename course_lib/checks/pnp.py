@@ -402,7 +402,7 @@ def check_pnp_ransac(fn, exercise: str = "pnp_ransac") -> None:
         _rng_verdicts(c, fn, f)
         if "ransac_embedded_X" in f:
             _ransac_case(c, fn, f, "ransac_embedded", "embedded scene")
-        c.blame_earlier("pnp_linear")
+        c.blame_earlier("pnp_linear", fn=fn)
 
 
 # --------------------------------------------------------------------------- pnp_nonlinear

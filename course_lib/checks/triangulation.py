@@ -327,7 +327,7 @@ def check_choose_pose(fn, exercise: str = "choose_pose") -> None:
                           ("pose_embedded", "embedded scene")):
             if f"{key}_R" in f:
                 _pose_case(c, fn, f, key, case)
-        c.blame_earlier("triangulate_linear")
+        c.blame_earlier("triangulate_linear", fn=fn)
 
 
 # --------------------------------------------------------------------------- triangulate_nonlinear

@@ -22,6 +22,10 @@ reference verdicts and check cells come from the instructor's side, never from t
    wall-clock budget per exercise: a looping exercise is stopped at its limit, an exercise that
    ends the process is named (``os._exit``), and either costs only itself. Its score is
    :func:`course_lib.checks.core.score` of its hidden checks relative to the reference's.
+   **Each exercise on its own:** the earlier exercises that its code calls (``ransac_fundamental``
+   → ``eight_point``, ``pnp_ransac`` → ``pnp_linear``, ``NeRF`` → ``positional_encoding``, ...) are
+   answered there by their reference, through a call-back to the grader
+   (:mod:`course_lib.instructor.oracle`), so a mistake costs points once, in its own exercise.
 4. **nbval.** The notebooks run under nbval, with a per-cell time limit, after their check cells
    are restored to the reference source and outputs, in the same sandbox (the student release on
    ``PYTHONPATH``, a temporary copy of the submission as working directory, resource limits,
@@ -61,6 +65,7 @@ from course_lib.instructor.student_process import Isolation, Limits, student_lib
 from course_lib.instructor.submission import SubmissionCopy, copy_submission
 from course_lib.instructor.extract import extract_exercise
 from course_lib.instructor.hidden import HiddenJob, build_hidden_fixtures, run_hidden, run_reference
+from course_lib.instructor.oracle import earlier_steps
 from course_lib.instructor.scan import scan_exercise, scan_notebook
 from course_lib.paths import REPO_ROOT
 from course_lib.validate import KitInputError
@@ -191,6 +196,7 @@ class _Run:
     to_nbval: dict = field(default_factory=dict)  # notebook -> the notebook nbval runs (check cells restored)
     pending: dict = field(default_factory=dict)  # notebook -> [(grade, spec, extracted code)]
     sandbox_seen: dict = field(default_factory=dict)
+    kit: list = field(default_factory=list)  # [(exercise, reference)] of the whole kit, in order (the earlier steps)
 
 
 def grade_submission(
@@ -232,14 +238,14 @@ def grade_submission(
     t0 = time.perf_counter()
     if not Path(submission).is_dir():
         raise KitInputError(f"{submission} is not a folder: pass the student's kit (or a folder with their notebooks)")
-    specs, omitted = _specs_to_grade(notebooks_dir, notebooks, exercises)
+    specs, omitted, kit = _specs_to_grade(notebooks_dir, notebooks, exercises)
     with _scratch(workdir) as work:
         copy = copy_submission(submission, work / "submission")
         hidden = _ready_hidden(hidden, specs, salt, work, notebooks_dir, timeout)
         iso = Isolation.for_grading(hidden.library if not allow_reference else REPO_ROOT,
                                     [work, Path(hidden.fixtures_dir)], notebooks_dir, self_test=allow_reference,
                                     limits=limits)
-        run = _Run(specs, omitted, hidden, iso, copy, timeout, allow_reference)
+        run = _Run(specs, omitted, hidden, iso, copy, timeout, allow_reference, kit=kit)
         for s in specs:
             _plan_notebook(run, s, _find_notebooks(copy.root) / s.name)
         nbval_run = _start_nbval(run, cell_timeout, nbval_jobs) if run_nbval and run.to_nbval else None
@@ -269,8 +275,9 @@ def _ready_hidden(hidden: HiddenCases | None, specs: list[NotebookSpec], salt: i
 
 
 def _specs_to_grade(notebooks_dir: Path, notebooks: list[str] | None,
-                    exercises: list[str] | None) -> tuple[list[NotebookSpec], set[str]]:
-    """The instructor notebooks (and their exercises) to grade, and the modules the release omits."""
+                    exercises: list[str] | None) -> tuple[list[NotebookSpec], set[str], list[tuple[str, str | None]]]:
+    """The instructor notebooks (and their exercises) to grade, the modules the release omits, and every exercise
+    of the kit in order with its reference (the earlier steps an exercise may call)."""
     unreleasable: list[str] = []
     all_specs = kit_specs(notebooks_dir, errors_out=unreleasable)
     omitted = set(release_plan(all_specs).omit)
@@ -281,7 +288,7 @@ def _specs_to_grade(notebooks_dir: Path, notebooks: list[str] | None,
     specs = _select(specs, exercises)
     if not specs:
         raise KitInputError(f"no instructor notebook or exercise matches {notebooks or ''} {exercises or ''}")
-    return specs, omitted
+    return specs, omitted, [(e.name, e.reference) for s in all_specs for e in s.exercises]
 
 
 @contextlib.contextmanager
@@ -418,7 +425,7 @@ def _hidden_checks(run: _Run, nbval_run: NbvalRun | None) -> None:
         for g, e, ex in run.pending.get(s.name, []):
             try:
                 seen = _grade_hidden(g, e, ex, run.hidden, run.timeout, run.iso, run.allow_reference,
-                                     run.submission.root)
+                                     run.submission.root, earlier_steps(ex.code, e.name, run.kit))
             except Exception as exc:  # noqa: BLE001 - the grader never dies on a submission
                 g.status, g.points, seen = "error", 0.0, {}
                 g.feedback.append(f"{e.name}: the grader could not run its hidden checks ({_exc_text(exc)})")
@@ -471,14 +478,15 @@ def _without_ended(nb, places: dict[str, Placement], ended: dict[str, tuple[str,
 
 
 def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, hidden: HiddenCases, timeout: float, iso: Isolation,
-                  allow_reference: bool, submission: Path) -> dict:
+                  allow_reference: bool, submission: Path, steps: dict[str, str]) -> dict:
     """Run the hidden checks of one exercise (its function in a sandboxed process) and fill in its grade.
 
+    ``steps``: the earlier exercises its code calls, answered by their references (:mod:`.oracle`).
     Returns what the student's process was confined by.
     """
     budget = round(max(timeout, 10 * hidden.reference_seconds.get(_key(e), 0.0) + 5), 1)
     out = run_hidden(HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(hidden.fixtures_dir),
-                               e.reference, allow_reference, str(submission)), budget, iso)
+                               e.reference, allow_reference, str(submission), steps), budget, iso)
     ref = hidden.reference_passing.get(_key(e), [])
     matched = sum((Counter(out.passing) & Counter(ref)).values())
     g.hidden = {"passed": matched, "total": len(ref), "seconds": round(out.seconds, 1)}

@@ -126,6 +126,7 @@ class HiddenJob:
     reference: str | None = None  # "module:attr" of the graded exercise's reference
     allow_reference: bool = False  # the instructor's self-test
     submission: str | None = None  # the student's folder (its copy is the working directory)
+    steps: dict = field(default_factory=dict)  # earlier exercises it calls -> their references (oracle.earlier_steps)
 
 
 @dataclass
@@ -164,15 +165,6 @@ def run_check(check_module: str, check_function: str, fixtures_dir: str, obj) ->
     return (results[-1] if results else None), out.getvalue()
 
 
-def _provided(job: HiddenJob) -> str:
-    """The code binding the earlier steps of ``job``'s exercise to the reference's values (:mod:`.provided`)."""
-    from course_lib.instructor.provided import provided_code
-
-    if job.fixtures_dir not in _MEMORY:
-        hold_in_memory(Path(job.fixtures_dir))
-    return provided_code(job.name, _MEMORY[job.fixtures_dir])
-
-
 def run_reference(job: HiddenJob) -> HiddenOutcome:
     """The instructor's solution on the hidden cases, in the grader's own process (the calibration)."""
     import time
@@ -181,7 +173,7 @@ def run_reference(job: HiddenJob) -> HiddenOutcome:
     module = types.ModuleType("__reference__")
     try:
         with contextlib.redirect_stdout(io.StringIO()):
-            exec(compile(job.code + _provided(job), "<instructor notebook>", "exec"), module.__dict__)  # noqa: S102 - the instructor's
+            exec(compile(job.code, "<instructor notebook>", "exec"), module.__dict__)  # noqa: S102 - the instructor's
         result, _ = run_check(job.check_module, job.check_function, job.fixtures_dir, module.__dict__.get(job.name))
     except Exception as exc:  # noqa: BLE001
         return HiddenOutcome("error", message=f"the reference run failed: {type(exc).__name__}: {exc}",
@@ -202,12 +194,13 @@ def run_hidden(job: HiddenJob, timeout: float = 60.0, isolation=None) -> HiddenO
     """
     import time
 
+    from course_lib.instructor.oracle import ALLOWANCE, Oracle
     from course_lib.instructor.student_process import RemoteFunction, StudentProcess
 
     t0 = time.perf_counter()
     torch = job.check_module.startswith("course_lib.checks.nerf")
-    code = job.code + _provided(job)  # earlier steps as the reference's values: each exercise graded on its own
-    with StudentProcess(isolation, code, job.name, job.submission, timeout, torch=torch) as proc:
+    oracle = Oracle(job.name, job.steps, ALLOWANCE * timeout)  # earlier steps answered by the reference
+    with StudentProcess(isolation, job.code, job.name, job.submission, timeout, torch=torch, oracle=oracle) as proc:
         hello = proc.hello
         if proc.ended:
             return HiddenOutcome("timeout" if proc.event == "timeout" else "exit", message=proc.ended,

@@ -13,7 +13,10 @@ Two commands:
     answer calls from the grader on file descriptors 3 (requests) and 4 (replies): each request
     names a function or an object handle and carries its arguments as data; each reply carries the
     result as data, or the exception the student's code raised. Objects that are not data (an
-    ``nn.Module``) stay here and are answered by handle.
+    ``nn.Module``) stay here and are answered by handle. The earlier exercises named in
+    ``CONFIG["oracle"]`` are rebound, after the student's code ran, to :func:`oracle_stub`s: while a
+    call runs, a stub sends its arguments to the grader (an ``oracle`` event on the reply pipe) and
+    waits for the answer on the request pipe (:mod:`course_lib.instructor.oracle`).
 
 ``child.py exec CONFIG.json -- PROGRAM ARGS...``
     Enter the sandbox and ``execv`` a program (nbval of the student's notebook). The sandbox's
@@ -659,14 +662,17 @@ def _exc_reply(exc: BaseException) -> dict:
 
 
 def _guard_exit(fd: int) -> None:
-    """``os._exit`` says who ended the process before it ends it."""
+    """``os._exit`` says who ended the process before it ends it (a process the student's code forked ends quietly:
+    it is not the process the grader talks to)."""
     import posix
 
     real = posix._exit
+    me = os.getpid()
 
     def _exit(code=0):
         try:
-            write_frame(fd, {"event": "exit", "how": "os._exit", "code": int(code) if isinstance(code, int) else 1})
+            if os.getpid() == me:
+                write_frame(fd, {"event": "exit", "how": "os._exit", "code": int(code) if isinstance(code, int) else 1})
         finally:
             real(code)
 
@@ -704,6 +710,9 @@ def serve(cfg: dict) -> None:
     try:
         exec(compile(cfg["code"], "<your notebook>", "exec"), module.__dict__)  # noqa: S102 - sandboxed
         target = module.__dict__.get(cfg["name"])
+        for step in cfg.get("oracle", ()):  # the earlier exercises it calls: answered by the grader from now on
+            if step in module.__dict__ and step != cfg["name"] and not isinstance(module.__dict__[step], type):
+                module.__dict__[step] = oracle_stub(step, cfg["name"], module.__dict__[step])
         hello = {"ok": True, "found": target is not None, "callable": callable(target)}
     except BaseException as exc:  # noqa: BLE001 - reported to the grader
         target, hello = None, _exc_reply(exc)
@@ -741,6 +750,55 @@ def serve(cfg: dict) -> None:
             if isinstance(exc, WireError):
                 reply["wire"] = True
         write_frame(rep, reply, out)
+
+
+def oracle_stub(step: str, exercise: str, own):
+    """A plain function in place of the student's earlier exercise ``step`` while ``exercise`` is graded.
+
+    It holds no reference code: it sends its arguments to the grader as data and returns the grader's
+    answer (the reference's result, :mod:`course_lib.instructor.oracle`), or raises the reference's error.
+    A call the reference cannot answer (arguments that do not fit its signature, or values that cannot
+    be sent) goes to the student's ``own`` function, as in the notebook.
+    """
+
+    def stub(*args, **kwargs):
+        out: list = []
+        try:
+            head = {"event": "oracle", "name": step, "args": encode(tuple(args), out),
+                    "kwargs": encode(dict(kwargs), out)}
+        except WireError:
+            return own(*args, **kwargs)
+        size = sum(a.nbytes for a in out)
+        if size > MAX_REPLY:
+            raise ValueError(f"{step} was called with {size >> 20} MiB of arguments: while {exercise} is graded, "
+                             f"the grader answers {step} for at most {MAX_REPLY >> 20} MiB")
+        write_frame(REP_FD, head, out)
+        reply, arrays = read_frame(REQ_FD)
+        if reply.get("ok"):
+            return decode(reply.get("value"), arrays)
+        if reply.get("unbound"):
+            return own(*args, **kwargs)
+        raise _oracle_error(reply, step, exercise)
+
+    stub.__name__ = stub.__qualname__ = step
+    stub.__doc__ = f"{step}, answered by the grader with the reference's result while {exercise} is graded."
+    return stub
+
+
+def _oracle_error(reply: dict, step: str, exercise: str) -> Exception:
+    """The reference's exception, as the student's code sees it (a builtin type where it was one)."""
+    import builtins
+
+    name = _ident(reply.get("type", "RuntimeError"), "RuntimeError")
+    cls = getattr(builtins, name, None) if reply.get("builtin") else None
+    msg = (f"{reply.get('message', '')} (raised by the grader's reference {step}, which answers for your {step} "
+           f"while {exercise} is graded)")
+    if not (isinstance(cls, type) and issubclass(cls, Exception)) or cls is StopIteration:
+        cls, msg = RuntimeError, f"{name}: {msg}"
+    try:
+        return cls(msg)
+    except Exception:  # noqa: BLE001 - exception types with other constructors
+        return RuntimeError(f"{name}: {msg}")
 
 
 def _grad_mode(enabled: bool):

@@ -24,6 +24,10 @@ The student's process (see :mod:`course_lib.instructor.sandbox` for the sandbox 
 * receives the grader's global numpy and torch random states with every call (so that
   ``torch.manual_seed(0)`` in a check seeds the student's initialisation as it would in the
   notebook); nothing of the student's process flows back but the results (not its random state);
+* may call back (:mod:`course_lib.instructor.oracle`): while the grader waits for a reply, a request
+  of the stubs bound in place of the earlier exercises the code calls is answered by the reference
+  of that exercise (run by the oracle's worker, not by the grader); the oracle's time is added to the
+  exercise's deadline up to its allowance, and more call-backs than ``oracle.MAX_CALLS`` end the process;
 * has one wall-clock budget per exercise (its definitions and every call together, counted once
   the process has started and imported numpy and torch, which has a limit of its own,
   :data:`START_SECONDS`): when it runs out, the process is killed and every later call fails at
@@ -258,15 +262,17 @@ class StudentProcess:
         submission: the student's folder (copied; the copy is the process's working directory).
         budget: wall-clock seconds for everything this process does for the grader.
         torch: import torch at start (the NeRF exercises).
+        oracle: answers the call-backs of the earlier exercises the code calls (:mod:`course_lib.instructor.oracle`);
+            their names are bound to stubs in the process after the code is loaded.
     """
 
     def __init__(self, iso: Isolation, code: str, name: str, submission: Path | None, budget: float,
-                 torch: bool = False):
-        self.iso, self.name, self.budget = iso, name, float(budget)
+                 torch: bool = False, oracle=None):
+        self.iso, self.name, self.budget, self.oracle = iso, name, float(budget), oracle
         self.t0 = time.monotonic()
         self.deadline = self.t0 + max(self.budget, START_SECONDS)  # the start: Python, numpy and torch imports
         self.ended: str | None = None  # why the process is gone (feedback for the student)
-        self.event: str | None = None  # "timeout", "exit", "crash", "protocol"
+        self.event: str | None = None  # "timeout", "exit", "crash", "protocol", "limit"
         self.hello: dict = {}
         self.tmp = Path(tempfile.mkdtemp(prefix="course-student-"))
         os.chmod(self.tmp, 0o755)
@@ -279,13 +285,14 @@ class StudentProcess:
         self.rep_r, rep_w = os.pipe()
         cfg = {"sandbox": iso.sandbox_config(stage, self.cwd, seed), "cwd": str(self.cwd), "path": str(iso.library),
                "sys_path": iso.python_path(), "code": code, "name": name, "torch": bool(torch),
-               "req_fd": req_r, "rep_fd": rep_w}
+               "req_fd": req_r, "rep_fd": rep_w, "oracle": oracle.names if oracle is not None else []}
         (self.tmp / "config.json").write_text(json.dumps(cfg))
         env = {k: v for k, v in os.environ.items() if k in ("PATH", "LANG", "LC_ALL", "TZ")}
         env.update(HOME=str(self.cwd), TMPDIR="/tmp", OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
                    MKL_NUM_THREADS="1", PYTHONDONTWRITEBYTECODE="1", MPLBACKEND="Agg", COURSE_LIB_QUICK="1")
         self.cgroup = iso.cgroup()
         self.largest_reply = 0
+        self.unpacked_at = time.monotonic()
         self.proc = subprocess.Popen(
             [sys.executable, "-S", "-E", str(CHILD_SCRIPT), "serve", str(self.tmp / "config.json")],
             cwd=self.cwd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
@@ -337,7 +344,9 @@ class StudentProcess:
                 raise wire.WireError(f"a reply of {n} bytes, more than any exercise returns "
                                      f"(the limit is {wire.MAX_REPLY >> 20} MiB)")
             self.largest_reply = max(self.largest_reply, n)
-            head, arrays = wire.unpack(self._read_exact(n))
+            data = self._read_exact(n)
+            self.unpacked_at = time.monotonic()  # a call-back's time counts from here (see _answer_oracle)
+            head, arrays = wire.unpack(data)
         except TimeoutError:
             self._end("timeout", f"stopped after {self.budget:g} s: an endless loop, or far too slow "
                                  f"(the time limit of one exercise is {self.budget:g} s)")
@@ -414,6 +423,8 @@ class StudentProcess:
         if not self._send(head, arrays):
             raise StudentProcessEnded(self.ended)
         got = self._receive()
+        while got is not None and got[0].get("event") == "oracle":
+            got = self._answer_oracle(*got)
         if got is None:
             raise StudentProcessEnded(self.ended)
         reply, out = got
@@ -432,6 +443,28 @@ class StudentProcess:
         for cb, a, k in replay:
             cb(*a, **k)  # the grader's callbacks, replayed in order after the call
         return value
+
+    def _answer_oracle(self, head: dict, arrays: list) -> tuple[dict, list] | None:
+        """Answer a call-back of the student's code (an earlier exercise, by its reference); then the next frame.
+
+        The grader's time on it (from the request's arrival to the reply's departure, plus
+        :data:`~course_lib.instructor.oracle.ROUND_TRIP_SECONDS` for the transport on the student's side) is added
+        to the exercise's deadline, up to the oracle's allowance; more call-backs than
+        :data:`~course_lib.instructor.oracle.MAX_CALLS` end the process.
+        """
+        from course_lib.instructor.oracle import MAX_CALLS, ROUND_TRIP_SECONDS
+
+        if self.oracle is None or self.oracle.calls >= MAX_CALLS:
+            why = (f"your {self.name} called the earlier exercises ({', '.join(self.oracle.names)}) more than "
+                   f"{MAX_CALLS} times; the grader answers at most that many calls per exercise"
+                   if self.oracle is not None else "the process asked the grader for an earlier step it does not need")
+            self._end("limit", why)
+            return None
+        t0 = self.unpacked_at
+        reply, out = self.oracle.answer(head, arrays, self._remaining())
+        sent = self._send(reply, out)
+        self.deadline += self.oracle.credit(time.monotonic() - t0 + ROUND_TRIP_SECONDS)
+        return self._receive() if sent else None
 
     @staticmethod
     def _rng_out(arrays: list) -> dict:
@@ -455,6 +488,8 @@ class StudentProcess:
             pass
 
     def close(self) -> None:
+        if self.oracle is not None:
+            self.oracle.close()
         if self.proc.poll() is None and not self.ended:
             try:
                 os.set_blocking(self.req_w, False)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from course_lib.checks import core
-from course_lib.checks.core import FAILED, Check
+from course_lib.checks.core import FAILED, RESULTS, Check, calls_name
 
 
 def test_check_reports_pass_and_fail(capsys):
@@ -130,11 +130,42 @@ def test_blame_earlier_names_the_failed_earlier_exercise(capsys):
         c.expect(False, "", "also wrong")
         c.blame_earlier("earlier_one", "never_run")
     text = capsys.readouterr().out
-    assert "note: your earlier_one failed its own checks above and later_one calls it" in text
+    assert "note: later_one calls your earlier_one, whose check failed: fix earlier_one first" in text
+    assert "never_run" not in text  # without the student's function: only a check that failed is named
     with Check("later_two") as c:
         c.expect(True, "fine", "")
         c.blame_earlier("earlier_one")
     assert "note:" not in capsys.readouterr().out  # nothing to blame when the exercise passes
+
+
+def _never_run_step(x):
+    return x
+
+
+def _helper(x):
+    return _never_run_step(x)
+
+
+def test_blame_earlier_names_only_what_the_code_calls_also_a_check_that_never_ran(capsys):
+    def later(x):
+        return _helper(x) + 1  # calls the earlier step through a helper of its module
+
+    def inline(x):
+        return x + 1  # wrote the step inline: calls no earlier exercise
+
+    RESULTS.pop("_never_run_step", None)
+    with Check("later_three") as c:
+        c.expect(False, "", "wrong")
+        c.blame_earlier("_never_run_step", "earlier_one", fn=later)
+    text = capsys.readouterr().out
+    assert "note: later_three calls your _never_run_step, whose check has not run in this kernel: fix " \
+           "_never_run_step first (run its check cell)" in text
+    assert "earlier_one" not in text  # failed, but later does not call it
+    with Check("later_four") as c:
+        c.expect(False, "", "wrong")
+        c.blame_earlier("_never_run_step", fn=inline)
+    assert "note:" not in capsys.readouterr().out
+    assert calls_name(print, "x") is None and calls_name(Check, "RESULTS") is True
 
 
 def test_score_against_counts_checks_that_did_not_run(capsys):
@@ -151,6 +182,12 @@ def test_score_against_counts_checks_that_did_not_run(capsys):
     capsys.readouterr()
     assert student.ok and core.score(student) == 1.0  # on its own it looks perfect
     assert score_against(student, reference) == 0.5  # against the reference's count it is not
+    with Check("counted") as c:  # every case right, but a gate fails (n_iters never adapts)
+        for k in range(4):
+            c.expect(True, f"case {k} ok", "")
+        c.gate(False, "", "n_iters = 2000: update the number of iterations")
+    capsys.readouterr()
+    assert score_against(RESULTS["counted"], reference) == 4 / 5 == core.score(RESULTS["counted"])
 
 
 def test_a_failed_detail_costs_no_hidden_points_but_the_exercise_is_not_perfect(capsys):

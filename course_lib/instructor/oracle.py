@@ -1,0 +1,274 @@
+"""Each exercise graded on its own: the earlier exercises it calls answer with the reference's results.
+
+An exercise often calls the student's own earlier exercises (``eight_point`` calls
+``normalize_points``, ``ransac_fundamental`` calls ``eight_point`` and ``sampson_distance``,
+``pnp_ransac`` calls ``pnp_linear``, ``choose_pose`` calls ``triangulate_linear``, ``bundle_adjust``
+calls ``reprojection_residuals`` and ``jacobian_sparsity``, the ``NeRF`` of notebook 07 calls
+``positional_encoding``). Graded with the student's own earlier functions, one mistake would cost
+points in every exercise after it. So, while the grader checks exercise X, the earlier exercises
+that X's extracted code binds (:func:`earlier_steps`) are answered by their **reference**, through
+a synchronous call-back:
+
+* in X's sandboxed process, after the student's code is loaded, each such name of ``__main__`` is
+  rebound to a neutral wire stub (``sandbox.oracle_stub``: it holds no reference code, it sends its
+  arguments as data and returns the answer; the kit's stand-ins of the same name find it there);
+* the grader, while it waits for X's reply, receives the stub's request and passes its arguments on,
+  undecoded, to an :class:`Oracle`: a worker process forked from the grader (it has the full
+  library) that decodes the arguments, runs the reference, and sends the result back as data; the grader forwards it to
+  X's process, and X goes on. An exception of the reference (junk arguments) is raised in X's
+  process with the reference's message, as the reference would raise it. A call that the
+  reference cannot answer (arguments that do not fit its signature: the student's function has
+  another interface; values that cannot be sent as data) is answered by the student's own function.
+
+Bounds (per exercise): at most :data:`MAX_CALLS` call-backs (then X's process is stopped), each
+request and each result at most ``sandbox.MAX_REPLY`` bytes (the stub refuses a larger argument
+with a ``ValueError``), and the call-backs' time (the grader's and the worker's, and
+:data:`ROUND_TRIP_SECONDS` of transport each) is credited to X's budget up to ``seconds``
+(:data:`ALLOWANCE` times the exercise's own budget); past that it counts as X's time, and a
+reference that runs longer than what is left is stopped (its worker is killed, and the stub raises
+``TimeoutError``). The
+worker, not the grader, decodes the student's data and runs the reference, under an address-space
+limit, so nothing the student sends can stop or exhaust the grader.
+
+Only the exercises that come *before* X in the kit (notebook order, then cell order) and that X's
+code binds are answered, never X itself, and only while X is graded; an earlier exercise that is a
+class (``NeRF``) stays the student's (a module cannot travel as data). If X's code does not call Y
+(it wrote the step inline, or captured its own function elsewhere), nothing changes.
+
+**Why this cannot change Y's own grade.** Every exercise is graded in its own process
+(:class:`~course_lib.instructor.student_process.StudentProcess`), made for it and ended after it.
+The stubs exist only in X's process, and Y's grade comes from Y's own process, where Y is the
+student's function (no stub of Y is bound there: an exercise is never its own earlier step). Y's
+hidden checks call Y directly; nothing that happens in X's process reaches them.
+
+The NeRF model (a :class:`~course_lib.instructor.student_process.RemoteModule`) is no exception:
+its forward pass runs in the student's process, where ``positional_encoding`` is the stub, so the
+network is fed the reference's encoding of whatever it encodes (this replaced the earlier table of
+stored encodings that the grader bound there). Gradients do not flow through a call-back (the
+encoding of input points needs none). A numpy ``Generator`` argument travels as its state: the
+student's generator is not advanced by the reference's draws.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import os
+import resource
+import select
+import signal
+import struct
+import symtable
+import time
+
+from course_lib.instructor import sandbox as wire
+
+__all__ = ["ALLOWANCE", "MAX_CALLS", "ROUND_TRIP_SECONDS", "Oracle", "earlier_steps"]
+
+#: Call-backs the grader answers while it grades one exercise; one more stops the exercise's process. An honest
+#: ransac_fundamental makes ~800 on the hidden cases (eight_point and sampson_distance per sample); one without the
+#: adaptive stop (a mistake the checks name) ~20 000, at ~3 ms each on a loaded 2-core machine.
+MAX_CALLS = 50_000
+#: Seconds of a call-back's transport on the student's side (encoding, two pipe hops), credited with the grader's.
+ROUND_TRIP_SECONDS = 2e-3
+#: The worker's time credited to an exercise, in multiples of its budget (so an exercise takes at most
+#: (1 + ALLOWANCE) times its budget in all).
+ALLOWANCE = 5.0
+#: Address space a worker may add to what it inherited from the grader.
+WORKER_EXTRA_BYTES = 4 << 30
+
+
+def earlier_steps(code: str, exercise: str, kit: list[tuple[str, str | None]]) -> dict[str, str]:
+    """The earlier exercises that an exercise's extracted code binds, with their references.
+
+    Args:
+        code: the exercise's extracted code (:func:`course_lib.instructor.extract.extract_exercise`: a backward
+            slice, so a name it binds is one the exercise needs: its own earlier function, or the kit's stand-in).
+        exercise: the exercise's name.
+        kit: every exercise of the kit in order, ``[(name, "module:attr" of its reference or None)]``.
+
+    Returns:
+        ``{name: reference}`` of the exercises before ``exercise`` that have a reference and that the code binds.
+    """
+    try:
+        table = symtable.symtable(code, "<exercise>", "exec")
+    except SyntaxError:
+        return {}
+    bound = {s.get_name() for s in table.get_symbols() if s.is_assigned() or s.is_imported()}
+    names = [n for n, _ in kit]
+    if exercise not in names:
+        return {}
+    before = kit[: names.index(exercise)]
+    return {n: ref for n, ref in before if ref and n in bound and n != exercise}
+
+
+class Oracle:
+    """The grader's answers to the call-backs of one exercise's process: the references of its earlier steps.
+
+    Args:
+        exercise: the exercise being graded.
+        steps: ``{name: "module:attr"}`` of the earlier exercises it may call (:func:`earlier_steps`).
+        seconds: the call-backs' time credited to the exercise's budget (beyond it, the time is the exercise's).
+    """
+
+    def __init__(self, exercise: str, steps: dict[str, str], seconds: float):
+        self.exercise, self.steps = exercise, dict(steps)
+        self.allowance = float(seconds)
+        self.calls = 0
+        self.pid: int | None = None
+        self.fds: tuple[int, int] | None = None
+
+    @property
+    def names(self) -> list[str]:
+        return sorted(self.steps)
+
+    def answer(self, head: dict, arrays: list, student_left: float) -> tuple[dict, list]:
+        """The reply to one call-back request (``head``: its name, args and kwargs as wire trees)."""
+        self.calls += 1
+        name = head.get("name")
+        if name not in self.steps:
+            return _error("LookupError", f"the grader answers no call of {str(name)[:80]!r} while it grades "
+                                         f"{self.exercise}"), []
+        wait = max(0.0, student_left) + self.allowance
+        t0 = time.monotonic()
+        try:
+            self._start()
+            wire.write_frame(self.fds[1], {"name": name, "args": head.get("args"), "kwargs": head.get("kwargs")},
+                             arrays)
+            reply = _read_frame(self.fds[0], t0 + wait, wire.MAX_REPLY + (1 << 20))
+        except TimeoutError:
+            self._stop()
+            reply = (_error("TimeoutError", f"the grader's {name} did not finish in {wait:.0f} s on these arguments "
+                                            f"(while {self.exercise} is graded)"), [])
+        except (OSError, EOFError, ValueError, wire.WireError) as exc:
+            self._stop()
+            reply = (_error("RuntimeError", f"the grader's {name} could not answer ({type(exc).__name__}: "
+                                            f"{str(exc)[:200]})"), [])
+        return reply
+
+    def credit(self, seconds: float) -> float:
+        """The part of ``seconds`` (the worker's time) that does not count against the exercise's budget."""
+        given = min(max(0.0, seconds), self.allowance)
+        self.allowance -= given
+        return given
+
+    def _start(self) -> None:
+        if self.pid is not None:
+            return
+        req_r, req_w = os.pipe()
+        rep_r, rep_w = os.pipe()
+        pid = os.fork()
+        if pid == 0:  # the worker: the grader's library, none of the grader's other files
+            try:
+                _worker(req_r, rep_w, self.steps)
+            finally:
+                os._exit(0)
+        os.close(req_r)
+        os.close(rep_w)
+        self.pid, self.fds = pid, (rep_r, req_w)
+
+    def _stop(self) -> None:
+        if self.pid is not None:
+            try:
+                os.kill(self.pid, signal.SIGKILL)
+                os.waitpid(self.pid, 0)
+            except (ProcessLookupError, ChildProcessError):
+                pass
+        for fd in self.fds or ():
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        self.pid, self.fds = None, None
+
+    def close(self) -> None:
+        """End the worker (at the end of the exercise)."""
+        self._stop()
+
+
+def _error(kind: str, message: str) -> dict:
+    return {"ok": False, "type": kind, "builtin": True, "message": message}
+
+
+def _read_frame(fd: int, deadline: float, limit: int) -> tuple[dict, list]:
+    """The next frame on ``fd`` before ``deadline`` (``TimeoutError``), at most ``limit`` bytes (``WireError``)."""
+
+    def read(n: int) -> bytes:
+        buf = bytearray()
+        while len(buf) < n:
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([fd], [], [], left)[0]:
+                raise TimeoutError
+            b = os.read(fd, min(n - len(buf), 1 << 20))
+            if not b:
+                raise EOFError("the worker ended")
+            buf += b
+        return bytes(buf)
+
+    (n,) = struct.unpack("<Q", read(8))
+    if n > limit:
+        raise wire.WireError(f"a result of {n >> 20} MiB, more than the limit ({limit >> 20} MiB)")
+    return wire.unpack(read(n))
+
+
+def _worker(req: int, rep: int, steps: dict[str, str]) -> None:
+    """The worker's loop: decode a request, run the reference, send the result (or its exception) as data."""
+    from course_lib.instructor.hidden import single_thread_math
+
+    try:
+        open_fds = [int(f) for f in os.listdir("/proc/self/fd")]
+    except OSError:  # no /proc: the grader's other files stay open in the worker (it runs only the reference)
+        open_fds = []
+    for fd in open_fds:
+        if fd > 2 and fd not in (req, rep):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+    single_thread_math()
+    try:
+        with open("/proc/self/status") as f:
+            vm = next(int(ln.split()[1]) * 1024 for ln in f if ln.startswith("VmSize:"))
+        resource.setrlimit(resource.RLIMIT_AS, (vm + WORKER_EXTRA_BYTES, vm + WORKER_EXTRA_BYTES))
+    except (OSError, ValueError, StopIteration):
+        pass
+    while True:
+        try:
+            head, arrays = wire.read_frame(req)
+        except (EOFError, OSError):
+            return
+        reply, out = _run_reference(head, arrays, steps)
+        wire.write_frame(rep, reply, out)
+
+
+def _run_reference(head: dict, arrays: list, steps: dict[str, str]) -> tuple[dict, list]:
+    """Decode the arguments, call the reference of ``head["name"]``, encode its result."""
+    name = head.get("name")
+    try:
+        args = wire.decode(head.get("args"), arrays)
+        kwargs = wire.decode(head.get("kwargs"), arrays)
+        if not isinstance(args, tuple) or not isinstance(kwargs, dict) or not all(isinstance(k, str) for k in kwargs):
+            raise wire.WireError("malformed call")
+        module, attr = steps[name].split(":")
+        fn = getattr(importlib.import_module(module), attr)
+        try:
+            inspect.signature(fn).bind(*args, **kwargs)
+        except TypeError as exc:  # not the exercise's interface: the student's own function answers
+            return {"ok": False, "unbound": True, "message": str(exc)[:500]}, []
+        value = fn(*args, **kwargs)
+        out: list = []
+        tree = wire.encode(value, out)
+    except wire.WireError as exc:
+        return _error("TypeError", str(exc)), []
+    except MemoryError:
+        return _error("MemoryError", f"the grader's {name} ran out of memory on these arguments"), []
+    except Exception as exc:  # noqa: BLE001 - the reference's own error, raised in the student's process
+        base = next(c for c in type(exc).__mro__ if c.__module__ == "builtins")  # KitInputError -> ValueError
+        name = type(exc).__name__[:80]
+        return {"ok": False, "type": base.__name__, "builtin": True,
+                "message": str(exc)[:2000] if base is type(exc) else f"{name}: {str(exc)[:2000]}"}, []
+    size = sum(a.nbytes for a in out)
+    if size > wire.MAX_REPLY:
+        return _error("ValueError", f"the grader's {name} would return {size >> 20} MiB, more than the limit "
+                                    f"({wire.MAX_REPLY >> 20} MiB)"), []
+    return {"ok": True, "value": tree}, out
