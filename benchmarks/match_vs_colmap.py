@@ -59,7 +59,7 @@ VARIANTS = {
     "contrast 0.04": {"contrast_threshold": 0.04},
     "no RootSIFT": {"rootsift": False},
     "ratio 0.7": {"ratio": 0.7},
-    "verify 4 px": {"verify_px": 4.0},
+    "verify 2 px": {"verify_px": 2.0},
     "floor 8": {"min_pair_matches": 8},
 }
 
