@@ -9,6 +9,8 @@ For every photo set, three runs:
   command) written as a P3 folder and read back, then COLMAP's verification and mapping on
   those matches (:func:`sfm_vs_colmap.run_colmap`, the same database route as the SfM
   benchmark), so the only difference to the first run is who matched;
+* **kit match -> kit sfm**: the kit end to end, :func:`course_lib.sfm.pipeline.run_sfm` on the
+  same P3 folder (seed 0), as ``python -m course_lib match`` then ``python -m course_lib sfm`` do;
 * optionally (``--variants``) the same with other ``match`` settings, to find what a gap comes
   from (ratio, RootSIFT, the feature cap, the verification threshold, the per-pair floor).
 
@@ -50,6 +52,8 @@ from course_lib.data.match_cli import match_images  # noqa: E402
 from course_lib.data.p3 import read_calibration, read_p3, write_p3  # noqa: E402
 from course_lib.evaluate import pose_errors  # noqa: E402
 from course_lib.paths import EMBEDDED_SFM, course_data  # noqa: E402
+from course_lib.sfm.pipeline import run_sfm  # noqa: E402
+from course_lib.validate import KitInputError  # noqa: E402
 from sfm_vs_colmap import run_colmap  # noqa: E402
 
 #: name -> keyword arguments of match_images (the kit's default first)
@@ -59,7 +63,7 @@ VARIANTS = {
     "contrast 0.04": {"contrast_threshold": 0.04},
     "no RootSIFT": {"rootsift": False},
     "ratio 0.7": {"ratio": 0.7},
-    "verify 4 px": {"verify_px": 4.0},
+    "verify 2 px": {"verify_px": 2.0},
     "floor 8": {"min_pair_matches": 8},
 }
 
@@ -197,8 +201,10 @@ def _poses_of(recs, names) -> dict:
     return {"R_cw": R, "t_cw": t, "registered": reg, "points": int(rec.num_points3D())}
 
 
-def kit_match_then_colmap(ps: PhotoSet, workdir: Path, seed: int = 0, **match_kw) -> dict:
-    """The kit's ``match`` (P3 written and read back), then COLMAP's verification and mapping on it."""
+def kit_match_then_colmap(ps: PhotoSet, workdir: Path, seed: int = 0, **match_kw) -> tuple[dict, dict]:
+    """The kit's ``match`` (P3 written and read back), then COLMAP's verification and mapping on it, and the kit's ``run_sfm``."""
+    import cv2
+
     t0 = time.perf_counter()
     res = match_images(ps.images, rng=np.random.default_rng(seed), **match_kw)
     names = [f"{i + 1}.png" for i in range(len(ps.images))]
@@ -209,7 +215,17 @@ def kit_match_then_colmap(ps: PhotoSet, workdir: Path, seed: int = 0, **match_kw
     out = run_colmap(data, (W, H), workdir, seed)
     pairs = sum(1 for n in res.verified_matches.values() if n >= match_kw.get("min_pair_matches", 15))
     out.update(seconds=t_match + out["seconds"], match_seconds=t_match, pairs=pairs)
-    return out
+    for n, im in zip(names, ps.images):  # as `match` writes them: run_sfm reads the image size from them
+        cv2.imwrite(str(workdir / "p3" / n), im[:, :, ::-1])
+    t0 = time.perf_counter()
+    try:
+        rec = run_sfm(read_p3(workdir / "p3"), np.random.default_rng(seed))
+        kit = {"R_cw": rec.R_cw, "t_cw": rec.t_cw, "registered": rec.registered, "points": rec.n_points}
+    except KitInputError:  # no pair can start a model
+        M = len(ps.images)
+        kit = {"R_cw": np.full((M, 3, 3), np.nan), "t_cw": np.full((M, 3), np.nan), "registered": np.zeros(M, bool), "points": 0}
+    kit.update(seconds=t_match + time.perf_counter() - t0, pairs=pairs)
+    return out, kit
 
 
 def rotation_error(out: dict, R_ref, t_ref) -> float:
@@ -226,7 +242,8 @@ def compare(ps: PhotoSet, variants: dict, seed: int = 0) -> list[dict]:
         ref = colmap_end_to_end(ps, Path(tmp) / "colmap", seed)
         runs = [("COLMAP end to end", ref)]
         for k, (label, kw) in enumerate(variants.items()):
-            runs.append((f"kit match ({label}) -> COLMAP", kit_match_then_colmap(ps, Path(tmp) / f"kit{k}", seed, **kw)))
+            col, kit = kit_match_then_colmap(ps, Path(tmp) / f"kit{k}", seed, **kw)
+            runs += [(f"kit match ({label}) -> COLMAP", col), (f"kit match ({label}) -> kit sfm", kit)]
     truth = ps.R_cw is not None
     R_ref, t_ref = (ps.R_cw, ps.t_cw) if truth else (ref["R_cw"], ref["t_cw"])
     for label, out in runs:

@@ -21,8 +21,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from course_lib import validate
 from course_lib.conventions import project, to_homogeneous, world_to_camera
@@ -281,6 +279,10 @@ def pnp_nonlinear(
     X, x, K = _inputs(X, x, K, 3, "non-linear PnP")
     R_cw = validate.rotation(R_cw, "R_cw", atol=1e-5)
     t_cw = validate.vector3(t_cw, "t_cw")
+    # imported here, as in triangulation.triangulate_nonlinear: a tenth of a second that PnP RANSAC never needs
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
     p0 = np.concatenate([Rotation.from_matrix(R_cw).as_rotvec(), t_cw])
 
     def residuals(p):

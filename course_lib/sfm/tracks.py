@@ -64,6 +64,7 @@ def verify_pair(
     confidence: float = 0.999,
     max_iters: int = 2000,
     batch: int = 256,
+    bailout: int = 64,
 ) -> PairVerification:
     """RANSAC on F (8-point samples, Sampson distance, adaptive stop), samples solved in batches.
 
@@ -80,6 +81,7 @@ def verify_pair(
         confidence: desired probability of one outlier-free sample.
         max_iters: the most samples.
         batch: samples solved per batched call.
+        bailout: size of the preemptive test of :func:`~course_lib.sfm.fundamental.ransac` (0: off).
 
     Returns:
         :class:`PairVerification` (``note`` says why not, where fewer than 8 matches or only
@@ -94,7 +96,8 @@ def verify_pair(
     if n < 8:
         none.note = f"{n} matches: the 8-point algorithm needs at least 8"
         return none
-    res = ransac(x1, x2, rng, threshold=threshold_px, confidence=confidence, max_iters=max_iters, batch=batch)
+    res = ransac(x1, x2, rng, threshold=threshold_px, confidence=confidence, max_iters=max_iters, batch=batch,
+                 bailout=bailout)
     if res is None:
         none.n_iters, none.note = max_iters, "only degenerate 8-point samples (all matches on a line or repeated?)"
         return none

@@ -23,8 +23,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.optimize import least_squares
 
 from course_lib import validate
 from course_lib.conventions import project, to_homogeneous, translation_from_center
@@ -267,6 +265,11 @@ def triangulate_nonlinear(
 
     Introduced in notebooks/03_triangulation.ipynb
     """
+    # imported here: scipy.optimize (and scipy.spatial, which it loads) take a tenth of a second,
+    # and most callers of this module (linear triangulation, the pose choice) never need them
+    import scipy.sparse as sp
+    from scipy.optimize import least_squares
+
     K, R_cws, t_cws, uv, X0 = _multiview_inputs(K, R_cws, t_cws, uv, X0)
     seen = np.isfinite(uv).all(axis=2)  # (N, V)
     X = X0.copy()

@@ -86,6 +86,18 @@ def test_stages_by_name_build_the_model(small_scene):
     assert _rotation_error(rec.R_cw, rec.t_cw, rec.registered, sc) < 0.2
 
 
+def test_growth_bundle_adjustments_are_short_and_the_final_one_is_not(small_scene):
+    """The BA policy of MapperOptions: at most ba_max_iterations during the growth, final_ba_max_iterations at the end."""
+    sc, data = small_scene
+    rec = run_sfm(data, np.random.default_rng(0), ba_max_iterations=3, final_ba_max_iterations=1)
+    grow = [st["ba"]["iterations"] for st in rec.report["stages"] if st["stage"] != "final" and "ba" in st]
+    final = next(st for st in rec.report["stages"] if st["stage"] == "final")
+    assert len(grow) == 4 and max(grow) == 3  # the initial pair and 3 registrations, each followed by a BA
+    assert final["ba"]["iterations"] == 1
+    default = run_sfm(data, np.random.default_rng(0))
+    assert default.n_registered == 5 and _rotation_error(default.R_cw, default.t_cw, default.registered, sc) < 0.2
+
+
 def test_a_pair_that_triangulates_nothing_is_dropped_without_bundle_adjustment(small_scene, monkeypatch):
     """Seed 0 of the issue's ring: the chosen pair kept no point and BA was called on nothing (exit 2)."""
     _, data = small_scene

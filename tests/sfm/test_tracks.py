@@ -86,6 +86,18 @@ def test_verify_pair_finds_the_inliers():
     assert few.F is None and "at least 8" in few.note
 
 
+def test_verify_pair_bailout_gives_the_same_answer():
+    """The preemptive test only skips models that cannot beat the best: same inliers, same samples."""
+    sc = make_scene(np.random.default_rng(8), n_cameras=3, n_points=400, noise_px=1.0, outlier_fraction=0.3)
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        x1, x2, _, _ = sc.pair(i, j)
+        off = verify_pair(x1, x2, np.random.default_rng(0), threshold_px=2.0, bailout=0)
+        on = verify_pair(x1, x2, np.random.default_rng(0), threshold_px=2.0, bailout=64)
+        assert on.n_iters == off.n_iters
+        np.testing.assert_array_equal(on.inliers, off.inliers)
+        np.testing.assert_array_equal(on.F, off.F)
+
+
 def test_swap_outliers_are_real_features_of_other_points():
     sc = make_scene(np.random.default_rng(8), n_cameras=4, n_points=100, outlier_fraction=0.2, outlier_kind="swap")
     good = sc.visible & ~sc.outlier
