@@ -234,8 +234,8 @@ def _colmap_worker(folder: str, out: str, W: str, H: str) -> int:
     return 0
 
 
-def _pose_columns(res, R_ref, t_ref, scene_size):
-    both = res["registered"] & np.isfinite(R_ref).all(axis=(1, 2))
+def _pose_columns(res, R_ref, t_ref, scene_size, only=None):
+    both = res["registered"] & np.isfinite(R_ref).all(axis=(1, 2)) & (True if only is None else only)
     if both.sum() < 2:
         return float("nan"), float("nan"), float("nan")
     pe = pose_errors(res["R_cw"][both], res["t_cw"][both], R_ref[both], t_ref[both])
@@ -324,6 +324,12 @@ def _rows(name, M, kit, col, R_true, t_true, size) -> list[dict]:
     ratio = f"time kit/COLMAP {k['seconds'] / max(c['seconds'], 1e-12):.2f}x (whole process)"
     if R_true is not None:
         ratio = f"rotation error kit/COLMAP {k['rotation_error_mean_deg'] / max(c['rotation_error_mean_deg'], 1e-12):.2f}x, " + ratio
+        common = kit["registered"] & col["registered"]
+        if common.sum() >= 2 and common.sum() < max(kit["registered"].sum(), col["registered"].sum()):
+            # the errors above are over each tool's own images; on the images both registered:
+            rk, rc = (_pose_columns(res, R_true, t_true, size, common)[0] for res in (kit, col))
+            k["rotation_error_common_deg"], c["rotation_error_common_deg"] = round(rk, 4), round(rc, 4)
+            ratio += f"; on the {int(common.sum())} images both registered: {rk:.4f} vs {rc:.4f} deg ({rk / max(rc, 1e-12):.2f}x)"
     print(f"{'':20s} ratio   {ratio}")
     return rows
 
