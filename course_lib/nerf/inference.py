@@ -35,7 +35,7 @@ from course_lib.nerf.rays import get_rays
 from course_lib.nerf.render import LAST_DELTA, render_chunked
 from course_lib.validate import KitInputError
 
-__all__ = ["RenderSettings", "trilinear_rows", "march_grid", "render_rays_forward", "render_view", "render_views", "evaluate",
+__all__ = ["RenderSettings", "trilinear_rows", "corners", "read_corners", "march_grid", "render_rays_forward", "render_view", "render_views", "evaluate",
            "spread_views", "circular_path", "render_path", "save_gif", "save_png", "to_uint8"]
 
 #: a ray whose transmittance is below this leaves the march (its colour can change by less than that)
@@ -106,21 +106,40 @@ def trilinear_rows(table: torch.Tensor, shape: tuple, xyz: torch.Tensor) -> torc
     """
     D, H, W = shape
     hi = torch.tensor([W - 1, H - 1, D - 1], dtype=xyz.dtype, device=xyz.device)
-    p = torch.minimum(((xyz + 1.0) * (0.5 * hi)).clamp(min=0), hi)
+    return read_corners(table, *corners(shape, (xyz + 1.0) * (0.5 * hi)))
+
+
+def corners(shape: tuple, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The 8 corner voxels of points and their trilinear weights (the rule of :class:`~course_lib.nerf.grid.Trilinear`).
+
+    Args:
+        shape: ``(D, H, W)``. p: ``(N, 3)`` voxel coordinates (x along W; clamped to the grid).
+
+    Returns:
+        ``idx (N, 8)`` flat voxel indices and ``w (N, 8)`` weights (z, y, x corner order).
+    """
+    D, H, W = shape
+    hi = torch.tensor([W - 1, H - 1, D - 1], dtype=p.dtype, device=p.device)
+    p = torch.minimum(p.clamp(min=0), hi)
     i0 = torch.minimum(p.floor(), (hi - 1).clamp(min=0))
     f = p - i0
     i0 = i0.long()
     base = i0[:, 0] + W * i0[:, 1] + (H * W) * i0[:, 2]
-    offsets = torch.tensor([0, 1, W, W + 1, H * W, H * W + 1, H * W + W, H * W + W + 1], device=xyz.device)
-    idx = (base[:, None] + offsets).clamp(max=D * H * W - 1).reshape(-1)
-    vals = table.index_select(0, idx).reshape(-1, 8, table.shape[1])  # (N, 8, C)
+    offsets = torch.tensor([0, 1, W, W + 1, H * W, H * W + 1, H * W + W, H * W + W + 1], device=p.device)
+    idx = (base[:, None] + offsets).clamp(max=D * H * W - 1)
     g = torch.stack([1 - f, f], dim=1)  # (N, 2, 3): the weights of the lower and upper corner per axis
-    w = (g[:, :, None, None, 2] * g[:, None, :, None, 1] * g[:, None, None, :, 0]).reshape(-1, 1, 8)  # z, y, x order
-    return torch.bmm(w.to(table.dtype), vals).squeeze(1)
+    w = (g[:, :, None, None, 2] * g[:, None, :, None, 1] * g[:, None, None, :, 0]).reshape(-1, 8)  # z, y, x order
+    return idx, w
+
+
+def read_corners(table: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """``(N, C)``: the rows ``idx (N, 8)`` of ``table (V, C)`` weighted by ``w (N, 8)`` (:func:`corners`)."""
+    vals = table.index_select(0, idx.reshape(-1)).reshape(idx.shape[0], 8, table.shape[1])  # (N, 8, C)
+    return torch.bmm(w[:, None, :].to(table.dtype), vals).squeeze(1)
 
 
 def _tables(field: GridField) -> tuple[torch.Tensor, torch.Tensor]:
-    """The field's density and feature grids voxel-major (``(V, 1)``, ``(V, C)``), for :func:`trilinear_rows`."""
+    """The field's density and feature grids voxel-major (``(V, 1)``, ``(V, C)``), for :func:`read_corners`."""
     return (field.density_grid.detach().reshape(-1, 1),
             field.feature_grid.detach()[0].reshape(field.feature_grid.shape[1], -1).T.contiguous())
 
@@ -135,6 +154,19 @@ def _ray_interval(field: GridField, rays_o, rays_d, s: RenderSettings):
     return t0, t1
 
 
+def _occupied_samples(field: GridField, occupancy: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """Indices ``(n,)`` of the points ``p (N, 3)`` (voxel coordinates) inside the grid whose nearest voxel is occupied.
+
+    The rule of :meth:`GridField.occupied`, on a flat ``occupancy (D H W,)`` table: one look-up per point.
+    """
+    D, H, W = field.shape
+    hi = torch.tensor([W - 1, H - 1, D - 1], dtype=p.dtype, device=p.device)
+    inside = ((p >= 0) & (p <= hi)).all(dim=-1)
+    q = torch.minimum(p.round().clamp(min=0), hi).long()
+    occ = occupancy[q[:, 0] + W * q[:, 1] + (H * W) * q[:, 2]] & inside
+    return torch.nonzero(occ).squeeze(1)
+
+
 @torch.inference_mode()
 def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: RenderSettings,
                min_transmittance: float = MIN_TRANSMITTANCE, segment: int = SEGMENT) -> dict:
@@ -142,7 +174,10 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
 
     The samples are those of training without jitter: ``n_samples`` evenly spaced depths
     ``t0 + (t1 - t0) i / (S - 1)`` in the ray's interval, every interval ``(t1 - t0) / (S - 1)``
-    long (the field ends at its box, so the last interval repeats the previous one).
+    long (the field ends at its box, so the last interval repeats the previous one). Each ray is
+    a line in voxel coordinates (``p = (o - box_min) / voxel + z d / voxel``); a sample costs a
+    multiply-add and one occupancy look-up, and only the occupied ones read the density (their 8
+    corners, kept for the colour of those whose weight counts).
 
     Args:
         field: the trained :class:`GridField`.
@@ -160,38 +195,40 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
     depth, acc, marched = rays_o.new_zeros(R), rays_o.new_zeros(R), rays_o.new_zeros(R)
     t0, t1 = _ray_interval(field, rays_o, rays_d, s)
     alive = torch.nonzero(t1 - t0 > 2e-4).squeeze(1)  # rays that cross the box (a miss has t1 = t0 + 1e-4)
-    step = (t1 - t0) / (S - 1)
-    norm = torch.linalg.norm(rays_d, dim=-1)
+    delta = (t1 - t0) / (S - 1) * torch.linalg.norm(rays_d, dim=-1)  # world length of every interval
+    vs = field.voxel_size
+    p_o, p_d = (rays_o - field.box_min) / vs, rays_d / vs  # the rays in voxel coordinates
+    dirs = rays_d / torch.linalg.norm(rays_d, dim=-1, keepdim=True)
     T = rays_o.new_ones(R)
     offsets = torch.arange(segment, device=rays_o.device, dtype=rays_o.dtype)
     density_table, feature_table = _tables(field)
+    occupancy, threshold = field.occupancy.reshape(-1), max(s.color_threshold, 0.0)
     for first in range(0, S, segment):
         if alive.numel() == 0:
             break
         L = min(segment, S - first)
-        o, d, ta = rays_o[alive], rays_d[alive], T[alive]
         u = ((first + offsets[:L]) / (S - 1))[None, :]  # the depths of stratified_samples, bit for bit
         z = t0[alive, None] * (1.0 - u) + t1[alive, None] * u  # (A, L)
-        xyz = field.normalized((o[:, None, :] + z[..., None] * d[:, None, :]).reshape(-1, 3))
-        occ = field.occupied(xyz)
-        sigma = torch.zeros(occ.shape[0], device=occ.device, dtype=rays_o.dtype)
-        if occ.any():
-            raw = trilinear_rows(density_table, field.shape, xyz[occ])[:, 0]
-            sigma[occ] = torch.nn.functional.softplus(raw + field.shift) / field.voxel_size
-        alpha = 1.0 - torch.exp(-sigma.reshape(-1, L) * (step[alive] * norm[alive])[:, None])
-        trans = torch.cumprod(torch.cat([ta[:, None], 1.0 - alpha + 1e-10], dim=1), dim=1)  # T before each sample
-        w = (alpha * trans[:, :-1]).reshape(-1)
-        lit = w > max(s.color_threshold, 0.0)
-        if lit.any():
-            dirs = (d / torch.linalg.norm(d, dim=-1, keepdim=True))[:, None, :].expand(-1, L, 3).reshape(-1, 3)
-            contrib = torch.zeros(w.shape[0], 3, device=w.device, dtype=w.dtype)
-            feats = trilinear_rows(feature_table, field.shape, xyz[lit])
-            contrib[lit] = field.color_from_features(feats, dirs[lit]) * w[lit, None]
-            rgb.index_add_(0, alive, contrib.reshape(-1, L, 3).sum(dim=1))
-        w = w.reshape(-1, L)
+        p = (p_o[alive, None, :] + z[..., None] * p_d[alive, None, :]).reshape(-1, 3)
+        sel = _occupied_samples(field, occupancy, p)
+        sigma = z.new_zeros(z.numel())
+        if sel.numel():
+            idx, wc = corners(field.shape, p[sel])
+            raw = (density_table[:, 0][idx] * wc).sum(dim=1)
+            sigma[sel] = torch.nn.functional.softplus(raw + field.shift) / vs
+        alpha = 1.0 - torch.exp(-sigma.reshape(-1, L) * delta[alive, None])
+        trans = torch.cumprod(torch.cat([T[alive, None], 1.0 - alpha + 1e-10], dim=1), dim=1)  # T before each sample
+        w = alpha * trans[:, :-1]
+        if sel.numel():
+            w_sel = w.reshape(-1)[sel]
+            lit = torch.nonzero(w_sel > threshold).squeeze(1)  # among the occupied samples (weight 0 elsewhere)
+            if lit.numel():
+                ray = alive[sel[lit] // L]
+                col = field.color_from_features(read_corners(feature_table, idx[lit], wc[lit]), dirs[ray])
+                rgb.index_add_(0, ray, col * w_sel[lit, None])
         depth.index_add_(0, alive, (w * z).sum(dim=1))
         acc.index_add_(0, alive, w.sum(dim=1))
-        marched.index_add_(0, alive, torch.full_like(ta, float(L)))
+        marched.index_add_(0, alive, torch.full_like(z[:, 0], float(L)))
         T[alive] = trans[:, -1]
         alive = alive[trans[:, -1] > min_transmittance]
     if s.white_background:
