@@ -35,7 +35,7 @@ from course_lib.nerf.rays import get_rays
 from course_lib.nerf.render import LAST_DELTA, render_chunked
 from course_lib.validate import KitInputError
 
-__all__ = ["RenderSettings", "trilinear_rows", "corners", "read_corners", "march_grid", "render_rays_forward", "render_view", "render_views", "evaluate",
+__all__ = ["RenderSettings", "trilinear_rows", "corners", "read_corners", "grid_tables", "march_grid", "render_rays_forward", "render_view", "render_views", "evaluate",
            "spread_views", "circular_path", "render_path", "save_gif", "save_png", "to_uint8"]
 
 #: a ray whose transmittance is below this leaves the march (its colour can change by less than that)
@@ -106,7 +106,7 @@ def trilinear_rows(table: torch.Tensor, shape: tuple, xyz: torch.Tensor) -> torc
     """
     D, H, W = shape
     hi = torch.tensor([W - 1, H - 1, D - 1], dtype=xyz.dtype, device=xyz.device)
-    return read_corners(table, *corners(shape, (xyz + 1.0) * (0.5 * hi)))
+    return read_corners(table, *corners(shape, (xyz + 1.0) * 0.5 * hi))
 
 
 def corners(shape: tuple, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -138,7 +138,7 @@ def read_corners(table: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> tor
     return torch.bmm(w[:, None, :].to(table.dtype), vals).squeeze(1)
 
 
-def _tables(field: GridField) -> tuple[torch.Tensor, torch.Tensor]:
+def grid_tables(field: GridField) -> tuple[torch.Tensor, torch.Tensor]:
     """The field's density and feature grids voxel-major (``(V, 1)``, ``(V, C)``), for :func:`read_corners`."""
     return (field.density_grid.detach().reshape(-1, 1),
             field.feature_grid.detach()[0].reshape(field.feature_grid.shape[1], -1).T.contiguous())
@@ -154,14 +154,26 @@ def _ray_interval(field: GridField, rays_o, rays_d, s: RenderSettings):
     return t0, t1
 
 
-def _occupied_samples(field: GridField, occupancy: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+def _voxel_coordinates(field: GridField, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """World points ``pts (N, 3)`` -> voxel coordinates ``p (N, 3)`` (x along W) and ``inside (N,)``.
+
+    The arithmetic of training (:meth:`GridField.normalized`, then :class:`~course_lib.nerf.grid.Trilinear`'s
+    ``(xyz + 1) 0.5 hi``) operation for operation, so that a sample on a voxel boundary falls on the
+    same side in a render as in training.
+    """
+    D, H, W = field.shape
+    xyz = field.normalized(pts)
+    inside = ((xyz >= -1.0) & (xyz <= 1.0)).all(dim=-1)
+    return (xyz + 1.0) * 0.5 * torch.tensor([W - 1, H - 1, D - 1], dtype=pts.dtype, device=pts.device), inside
+
+
+def _occupied_samples(field: GridField, occupancy: torch.Tensor, p: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
     """Indices ``(n,)`` of the points ``p (N, 3)`` (voxel coordinates) inside the grid whose nearest voxel is occupied.
 
     The rule of :meth:`GridField.occupied`, on a flat ``occupancy (D H W,)`` table: one look-up per point.
     """
     D, H, W = field.shape
     hi = torch.tensor([W - 1, H - 1, D - 1], dtype=p.dtype, device=p.device)
-    inside = ((p >= 0) & (p <= hi)).all(dim=-1)
     q = torch.minimum(p.round().clamp(min=0), hi).long()
     occ = occupancy[q[:, 0] + W * q[:, 1] + (H * W) * q[:, 2]] & inside
     return torch.nonzero(occ).squeeze(1)
@@ -169,15 +181,14 @@ def _occupied_samples(field: GridField, occupancy: torch.Tensor, p: torch.Tensor
 
 @torch.inference_mode()
 def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: RenderSettings,
-               min_transmittance: float = MIN_TRANSMITTANCE, segment: int = SEGMENT) -> dict:
+               min_transmittance: float = MIN_TRANSMITTANCE, segment: int = SEGMENT, tables=None) -> dict:
     """Render rays through a grid field front to back, skipping empty space and stopping opaque rays.
 
     The samples are those of training without jitter: ``n_samples`` evenly spaced depths
     ``t0 + (t1 - t0) i / (S - 1)`` in the ray's interval, every interval ``(t1 - t0) / (S - 1)``
-    long (the field ends at its box, so the last interval repeats the previous one). Each ray is
-    a line in voxel coordinates (``p = (o - box_min) / voxel + z d / voxel``); a sample costs a
-    multiply-add and one occupancy look-up, and only the occupied ones read the density (their 8
-    corners, kept for the colour of those whose weight counts).
+    long (the field ends at its box, so the last interval repeats the previous one). An empty
+    sample costs its position and one occupancy look-up; only the occupied ones read the density
+    (their 8 corners, kept for the colour of those whose weight counts).
 
     Args:
         field: the trained :class:`GridField`.
@@ -185,6 +196,8 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
         s: :class:`RenderSettings`.
         min_transmittance: rays whose transmittance falls below it stop.
         segment: samples per ray marched between two termination tests.
+        tables: the field's voxel-major ``(density (V, 1), features (V, C))`` tables (:func:`grid_tables`;
+            made here when None: pass them when marching many chunks of rays).
 
     Returns:
         dict with ``rgb_map (R, 3)`` (in [0, 1]), ``depth_map (R,)``, ``acc_map (R,)`` and
@@ -197,11 +210,11 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
     alive = torch.nonzero(t1 - t0 > 2e-4).squeeze(1)  # rays that cross the box (a miss has t1 = t0 + 1e-4)
     delta = (t1 - t0) / (S - 1) * torch.linalg.norm(rays_d, dim=-1)  # world length of every interval
     vs = field.voxel_size
-    p_o, p_d = (rays_o - field.box_min) / vs, rays_d / vs  # the rays in voxel coordinates
     dirs = rays_d / torch.linalg.norm(rays_d, dim=-1, keepdim=True)
     T = rays_o.new_ones(R)
     offsets = torch.arange(segment, device=rays_o.device, dtype=rays_o.dtype)
-    density_table, feature_table = _tables(field)
+    density_table, feature_table = grid_tables(field) if tables is None else tables
+    density_flat = density_table.reshape(-1)
     occupancy, threshold = field.occupancy.reshape(-1), max(s.color_threshold, 0.0)
     for first in range(0, S, segment):
         if alive.numel() == 0:
@@ -209,12 +222,12 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
         L = min(segment, S - first)
         u = ((first + offsets[:L]) / (S - 1))[None, :]  # the depths of stratified_samples, bit for bit
         z = t0[alive, None] * (1.0 - u) + t1[alive, None] * u  # (A, L)
-        p = (p_o[alive, None, :] + z[..., None] * p_d[alive, None, :]).reshape(-1, 3)
-        sel = _occupied_samples(field, occupancy, p)
+        p, inside = _voxel_coordinates(field, (rays_o[alive, None, :] + rays_d[alive, None, :] * z[..., None]).reshape(-1, 3))
+        sel = _occupied_samples(field, occupancy, p, inside)
         sigma = z.new_zeros(z.numel())
         if sel.numel():
             idx, wc = corners(field.shape, p[sel])
-            raw = (density_table[:, 0][idx] * wc).sum(dim=1)
+            raw = torch.linalg.vecdot(density_flat.index_select(0, idx.reshape(-1)).reshape(idx.shape), wc)
             sigma[sel] = torch.nn.functional.softplus(raw + field.shift) / vs
         alpha = 1.0 - torch.exp(-sigma.reshape(-1, L) * delta[alive, None])
         trans = torch.cumprod(torch.cat([T[alive, None], 1.0 - alpha + 1e-10], dim=1), dim=1)  # T before each sample
@@ -252,7 +265,9 @@ def render_rays_forward(model, model_fine, rays_o: torch.Tensor, rays_d: torch.T
         return render_chunked(model, rays_o, rays_d, None, None, s.n_samples, s.n_importance, model_fine,
                               white_background=s.white_background, chunk=chunk, color_threshold=s.color_threshold,
                               ray_bounds=bounds, last_delta=LAST_DELTA)
-    parts = [march_grid(model, rays_o[i:i + chunk], rays_d[i:i + chunk], s) for i in range(0, rays_o.shape[0], chunk)]
+    tables = grid_tables(model)  # once per call: the feature grid turned voxel-major is a copy of the grid
+    parts = [march_grid(model, rays_o[i:i + chunk], rays_d[i:i + chunk], s, tables=tables)
+             for i in range(0, rays_o.shape[0], chunk)]
     return {k: torch.cat([p[k] for p in parts]) for k in ("rgb_map", "depth_map", "acc_map")}
 
 
