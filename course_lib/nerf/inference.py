@@ -250,11 +250,12 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
 
 
 @torch.inference_mode()
-def render_rays_forward(model, model_fine, rays_o: torch.Tensor, rays_d: torch.Tensor, s: RenderSettings) -> dict:
+def render_rays_forward(model, model_fine, rays_o: torch.Tensor, rays_d: torch.Tensor, s: RenderSettings,
+                        tables=None) -> dict:
     """Render any number of rays with a trained model, chunk by chunk, without gradients.
 
-    A :class:`GridField` is marched (:func:`march_grid`); the MLP renders every sample
-    (:func:`course_lib.nerf.render.render_chunked`).
+    A :class:`GridField` is marched (:func:`march_grid`; ``tables``: its :func:`grid_tables`, made
+    here when None); the MLP renders every sample (:func:`course_lib.nerf.render.render_chunked`).
 
     Returns:
         dict with ``rgb_map (R, 3)``, ``depth_map (R,)``, ``acc_map (R,)`` on the rays' device.
@@ -265,18 +266,19 @@ def render_rays_forward(model, model_fine, rays_o: torch.Tensor, rays_d: torch.T
         return render_chunked(model, rays_o, rays_d, None, None, s.n_samples, s.n_importance, model_fine,
                               white_background=s.white_background, chunk=chunk, color_threshold=s.color_threshold,
                               ray_bounds=bounds, last_delta=LAST_DELTA)
-    tables = grid_tables(model)  # once per call: the feature grid turned voxel-major is a copy of the grid
+    tables = grid_tables(model) if tables is None else tables  # once per call: a voxel-major copy of the grids
     parts = [march_grid(model, rays_o[i:i + chunk], rays_d[i:i + chunk], s, tables=tables)
              for i in range(0, rays_o.shape[0], chunk)]
     return {k: torch.cat([p[k] for p in parts]) for k in ("rgb_map", "depth_map", "acc_map")}
 
 
-def render_view(model, model_fine, cfg, bounds, H: int, W: int, K, c2w) -> dict:
+def render_view(model, model_fine, cfg, bounds, H: int, W: int, K, c2w, tables=None) -> dict:
     """Render one view with a trained model (forward only, chunks sized to the device).
 
     Args:
         model, model_fine: the trained field(s). cfg: their :class:`~course_lib.nerf.presets.TrainConfig`.
         bounds: the scene's bounds (``SceneBounds`` or its dict). H, W, K, c2w: the camera (OpenCV axes).
+        tables: a grid's :func:`grid_tables` (when rendering several views of the same field).
 
     Returns:
         dict with ``rgb (H, W, 3)``, ``depth (H, W)``, ``acc (H, W)`` tensors on the model's device.
@@ -290,7 +292,8 @@ def render_view(model, model_fine, cfg, bounds, H: int, W: int, K, c2w) -> dict:
     model.eval()
     try:
         o, d = get_rays(H, W, K, c2w_t)
-        out = render_rays_forward(model, model_fine, o.reshape(-1, 3), d.reshape(-1, 3), RenderSettings.of(cfg, bounds, model))
+        out = render_rays_forward(model, model_fine, o.reshape(-1, 3), d.reshape(-1, 3), RenderSettings.of(cfg, bounds, model),
+                                  tables)
     finally:
         model.train(was)
     return dict(rgb=out["rgb_map"].reshape(H, W, 3), depth=out["depth_map"].reshape(H, W),
@@ -298,9 +301,13 @@ def render_view(model, model_fine, cfg, bounds, H: int, W: int, K, c2w) -> dict:
 
 
 def render_views(model, model_fine, cfg, bounds, H: int, W: int, K, c2ws):
-    """Render several views, one after the other: yields ``(H, W, 3)`` rgb tensors on the model's device."""
+    """Render several views, one after the other: yields ``(H, W, 3)`` rgb tensors on the model's device.
+
+    A grid field's voxel-major tables are made once for all the views (the field must not change meanwhile).
+    """
+    tables = grid_tables(model) if isinstance(model, GridField) else None
     for c2w in c2ws:
-        yield render_view(model, model_fine, cfg, bounds, H, W, K, c2w)["rgb"]
+        yield render_view(model, model_fine, cfg, bounds, H, W, K, c2w, tables)["rgb"]
 
 
 def spread_views(n: int, k: int) -> list[int]:
