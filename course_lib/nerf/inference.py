@@ -9,11 +9,15 @@ so a render shows exactly what the loss saw), and skips what cannot change the p
 * **no autograd** (``torch.inference_mode``): no graph, no saved tensors;
 * **rays that miss the box** are background at once;
 * **empty space**: a sample in a voxel that the occupancy grid marks empty has sigma = 0 and
-  costs one table look-up, no trilinear interpolation;
+  costs its position and one look-up in the flat occupancy table, no trilinear interpolation;
+* **corners read once**: an occupied sample's 8 corners and weights (:func:`corners`) serve its
+  density and, where its weight counts, its colour; the grids are read from voxel-major copies
+  (:func:`grid_tables`, made once per :func:`render_views` / :func:`evaluate` call), so a
+  corner's channels are one contiguous row;
 * **early ray termination**: once a ray's transmittance ``T`` falls below ``min_transmittance``
   (1e-4) nothing behind can add more than that to its colour, and the ray leaves the march;
 * **colour only where it counts**: a sample's colour is read only where its weight exceeds
-  ``color_threshold``;
+  ``color_threshold``, and added straight to its ray;
 * **chunks sized to the device** (:func:`course_lib.nerf.device.render_chunk`).
 
 Within a segment the compositing is the NeRF quadrature (``alpha = 1 - exp(-sigma delta)``,
