@@ -67,6 +67,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     t.add_argument("--black-background", action="store_true", help="composite RGBA onto black instead of white")
     t.add_argument("--eval-all", action="store_true",
                    help="evaluate all test views at the end, even where they do not fit in --minutes")
+    t.add_argument("--sparse-adam", action="store_true",
+                   help="fast preset: Adam only on the voxels each step read (lazy Adam; see course_lib/nerf/optim.py)")
     t.add_argument("--gif", action="store_true", help="also render novel views along a circle (OUT/path.gif)")
     t.add_argument("--no-resume", action="store_true", help="ignore an existing checkpoint in --out")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -126,6 +128,8 @@ def _train(args) -> int:
             over[key] = v
     if args.eval_all:
         over["eval_all"] = True
+    if args.sparse_adam:
+        over["grid_sparse_adam"] = True
     if args.fine:
         over["fine"] = True
         over.setdefault("n_importance", 128)

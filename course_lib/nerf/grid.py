@@ -84,7 +84,9 @@ class Trilinear(torch.autograd.Function):
 
     ``apply(grid (1, C, D, H, W), xyz (N, 3))`` with ``xyz`` in [-1, 1] (``x`` along W, corners at
     -1 and 1, as ``align_corners=True``) returns ``(N, C)``; points outside read 0. No gradient
-    flows to ``xyz``.
+    flows to ``xyz``. A grid with a ``reads`` list (:meth:`GridField.track_reads`) gets the flat
+    voxel indices ``(8 N,)`` of the corners appended to it by the backward pass (what a sparse
+    optimizer updates, :class:`course_lib.nerf.optim.SparseGridAdam`).
     """
 
     @staticmethod
@@ -107,7 +109,7 @@ class Trilinear(torch.autograd.Function):
         flat = grid.reshape(C, -1)
         vals = flat.index_select(1, idx).reshape(C, 8, -1)
         ctx.save_for_backward(idx, w)
-        ctx.grid_shape = grid.shape
+        ctx.grid_shape, ctx.reads = grid.shape, getattr(grid, "reads", None)
         return (vals * w).sum(dim=1).T
 
     @staticmethod
@@ -117,6 +119,8 @@ class Trilinear(torch.autograd.Function):
         contrib = (grad_out.T[:, None, :] * w).reshape(C, -1)
         grad = torch.zeros(C, math.prod(ctx.grid_shape[2:]), dtype=grad_out.dtype, device=grad_out.device)
         grad.index_add_(1, idx, contrib)
+        if ctx.reads is not None:
+            ctx.reads.append(idx)
         return grad.reshape(ctx.grid_shape), None
 
 
@@ -345,8 +349,34 @@ class GridField(nn.Module):
         hi = torch.minimum(hi, self.box_max)
         return lo.tolist(), hi.tolist()
 
+    def track_reads(self, on: bool = True) -> None:
+        """Record (or stop recording) which voxels the backward passes read (:meth:`take_reads`).
+
+        Call it again after :meth:`rebox` / :meth:`enable_sh` (they make new parameters).
+        """
+        for g in (self.density_grid, self.feature_grid):
+            g.reads = [] if on else None
+
     @torch.no_grad()
-    def add_total_variation_grad(self, weight: float) -> torch.Tensor:
+    def take_reads(self) -> dict:
+        """The voxels each grid was read at since the last call, and forget them.
+
+        Returns:
+            ``{grid parameter: (n,) sorted unique flat voxel indices}`` for the grids that record
+            reads (:meth:`track_reads`) and were read.
+        """
+        out = {}
+        for g in (self.density_grid, self.feature_grid):
+            if getattr(g, "reads", None):
+                hit = torch.zeros(math.prod(self.shape), dtype=torch.bool, device=g.device)
+                for idx in g.reads:
+                    hit[idx] = True
+                out[g] = torch.nonzero(hit).squeeze(1)
+                g.reads = []
+        return out
+
+    @torch.no_grad()
+    def add_total_variation_grad(self, weight: float, voxels: torch.Tensor | None = None) -> torch.Tensor:
         """Add ``weight`` x the gradient of :meth:`total_variation` to the density grid's ``.grad``.
 
         The same gradient as ``(weight * total_variation()).backward()``, written out (each
@@ -354,12 +384,19 @@ class GridField(nn.Module):
         lower one): about a fifth of autograd's time on a CPU for a 100^3 grid. Call it after
         ``loss.backward()`` and before the optimizer step.
 
+        With ``voxels`` (``(n,)`` flat voxel indices, e.g. those a step read, :meth:`take_reads`)
+        only those voxels get their TV gradient (DVGO's non-dense mode: the prior acts where the
+        sparse optimizer updates; the cost follows ``n``, not the grid).
+
         Returns:
-            The value of :meth:`total_variation` (a 0-d tensor, no gradient).
+            The value of :meth:`total_variation` (a 0-d tensor, no gradient); with ``voxels`` only
+            the differences that end at those voxels are summed (over the same denominators).
         """
         g = self.density_grid
         if g.grad is None:
             g.grad = torch.zeros_like(g)
+        if voxels is not None:
+            return self._sparse_total_variation_grad(weight, voxels)
         tv = g.new_zeros(())
         for dim in (2, 3, 4):
             n = g.shape[dim]
@@ -368,6 +405,23 @@ class GridField(nn.Module):
             step = d.mul_(2.0 * weight / d.numel())
             g.grad.narrow(dim, 1, n - 1).add_(step)
             g.grad.narrow(dim, 0, n - 1).sub_(step)
+        return tv
+
+    def _sparse_total_variation_grad(self, weight: float, voxels: torch.Tensor) -> torch.Tensor:
+        """:meth:`add_total_variation_grad` at the flat voxel indices ``voxels (n,)`` only."""
+        D, H, W = self.shape
+        flat, grad = self.density_grid.detach().view(-1), self.density_grid.grad.view(-1)
+        coords = (voxels // (H * W), (voxels // W) % H, voxels % W)  # z, y, x
+        center = flat[voxels]
+        step, tv = torch.zeros_like(center), center.new_zeros(())
+        for c, n, stride, others in zip(coords, (D, H, W), (H * W, W, 1), (H * W, D * W, D * H)):
+            scale = 2.0 * weight / ((n - 1) * others)
+            lower = c > 0  # the difference to the voxel below along this axis ends here
+            d_lo = torch.where(lower, center - flat[(voxels - stride).clamp(min=0)], 0.0)
+            d_hi = torch.where(c < n - 1, flat[(voxels + stride).clamp(max=flat.numel() - 1)] - center, 0.0)
+            step += scale * (d_lo - d_hi)
+            tv += (d_lo * d_lo).sum() / ((n - 1) * others)
+        grad.index_add_(0, voxels, step)
         return tv
 
     def total_variation(self) -> torch.Tensor:

@@ -9,11 +9,15 @@ so a render shows exactly what the loss saw), and skips what cannot change the p
 * **no autograd** (``torch.inference_mode``): no graph, no saved tensors;
 * **rays that miss the box** are background at once;
 * **empty space**: a sample in a voxel that the occupancy grid marks empty has sigma = 0 and
-  costs one table look-up, no trilinear interpolation;
+  costs its position and one look-up in the flat occupancy table, no trilinear interpolation;
+* **corners read once**: an occupied sample's 8 corners and weights (:func:`corners`) serve its
+  density and, where its weight counts, its colour; the grids are read from voxel-major copies
+  (:func:`grid_tables`, made once per :func:`render_views` / :func:`evaluate` call), so a
+  corner's channels are one contiguous row;
 * **early ray termination**: once a ray's transmittance ``T`` falls below ``min_transmittance``
   (1e-4) nothing behind can add more than that to its colour, and the ray leaves the march;
 * **colour only where it counts**: a sample's colour is read only where its weight exceeds
-  ``color_threshold``;
+  ``color_threshold``, and added straight to its ray;
 * **chunks sized to the device** (:func:`course_lib.nerf.device.render_chunk`).
 
 Within a segment the compositing is the NeRF quadrature (``alpha = 1 - exp(-sigma delta)``,
@@ -35,7 +39,7 @@ from course_lib.nerf.rays import get_rays
 from course_lib.nerf.render import LAST_DELTA, render_chunked
 from course_lib.validate import KitInputError
 
-__all__ = ["RenderSettings", "trilinear_rows", "march_grid", "render_rays_forward", "render_view", "render_views", "evaluate",
+__all__ = ["RenderSettings", "trilinear_rows", "corners", "read_corners", "grid_tables", "march_grid", "render_rays_forward", "render_view", "render_views", "evaluate",
            "spread_views", "circular_path", "render_path", "save_gif", "save_png", "to_uint8"]
 
 #: a ray whose transmittance is below this leaves the march (its colour can change by less than that)
@@ -106,21 +110,40 @@ def trilinear_rows(table: torch.Tensor, shape: tuple, xyz: torch.Tensor) -> torc
     """
     D, H, W = shape
     hi = torch.tensor([W - 1, H - 1, D - 1], dtype=xyz.dtype, device=xyz.device)
-    p = torch.minimum(((xyz + 1.0) * (0.5 * hi)).clamp(min=0), hi)
+    return read_corners(table, *corners(shape, (xyz + 1.0) * 0.5 * hi))
+
+
+def corners(shape: tuple, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The 8 corner voxels of points and their trilinear weights (the rule of :class:`~course_lib.nerf.grid.Trilinear`).
+
+    Args:
+        shape: ``(D, H, W)``. p: ``(N, 3)`` voxel coordinates (x along W; clamped to the grid).
+
+    Returns:
+        ``idx (N, 8)`` flat voxel indices and ``w (N, 8)`` weights (z, y, x corner order).
+    """
+    D, H, W = shape
+    hi = torch.tensor([W - 1, H - 1, D - 1], dtype=p.dtype, device=p.device)
+    p = torch.minimum(p.clamp(min=0), hi)
     i0 = torch.minimum(p.floor(), (hi - 1).clamp(min=0))
     f = p - i0
     i0 = i0.long()
     base = i0[:, 0] + W * i0[:, 1] + (H * W) * i0[:, 2]
-    offsets = torch.tensor([0, 1, W, W + 1, H * W, H * W + 1, H * W + W, H * W + W + 1], device=xyz.device)
-    idx = (base[:, None] + offsets).clamp(max=D * H * W - 1).reshape(-1)
-    vals = table.index_select(0, idx).reshape(-1, 8, table.shape[1])  # (N, 8, C)
+    offsets = torch.tensor([0, 1, W, W + 1, H * W, H * W + 1, H * W + W, H * W + W + 1], device=p.device)
+    idx = (base[:, None] + offsets).clamp(max=D * H * W - 1)
     g = torch.stack([1 - f, f], dim=1)  # (N, 2, 3): the weights of the lower and upper corner per axis
-    w = (g[:, :, None, None, 2] * g[:, None, :, None, 1] * g[:, None, None, :, 0]).reshape(-1, 1, 8)  # z, y, x order
-    return torch.bmm(w.to(table.dtype), vals).squeeze(1)
+    w = (g[:, :, None, None, 2] * g[:, None, :, None, 1] * g[:, None, None, :, 0]).reshape(-1, 8)  # z, y, x order
+    return idx, w
 
 
-def _tables(field: GridField) -> tuple[torch.Tensor, torch.Tensor]:
-    """The field's density and feature grids voxel-major (``(V, 1)``, ``(V, C)``), for :func:`trilinear_rows`."""
+def read_corners(table: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """``(N, C)``: the rows ``idx (N, 8)`` of ``table (V, C)`` weighted by ``w (N, 8)`` (:func:`corners`)."""
+    vals = table.index_select(0, idx.reshape(-1)).reshape(idx.shape[0], 8, table.shape[1])  # (N, 8, C)
+    return torch.bmm(w[:, None, :].to(table.dtype), vals).squeeze(1)
+
+
+def grid_tables(field: GridField) -> tuple[torch.Tensor, torch.Tensor]:
+    """The field's density and feature grids voxel-major (``(V, 1)``, ``(V, C)``), for :func:`read_corners`."""
     return (field.density_grid.detach().reshape(-1, 1),
             field.feature_grid.detach()[0].reshape(field.feature_grid.shape[1], -1).T.contiguous())
 
@@ -135,14 +158,41 @@ def _ray_interval(field: GridField, rays_o, rays_d, s: RenderSettings):
     return t0, t1
 
 
+def _voxel_coordinates(field: GridField, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """World points ``pts (N, 3)`` -> voxel coordinates ``p (N, 3)`` (x along W) and ``inside (N,)``.
+
+    The arithmetic of training (:meth:`GridField.normalized`, then :class:`~course_lib.nerf.grid.Trilinear`'s
+    ``(xyz + 1) 0.5 hi``) operation for operation, so that a sample on a voxel boundary falls on the
+    same side in a render as in training.
+    """
+    D, H, W = field.shape
+    xyz = field.normalized(pts)
+    inside = ((xyz >= -1.0) & (xyz <= 1.0)).all(dim=-1)
+    return (xyz + 1.0) * 0.5 * torch.tensor([W - 1, H - 1, D - 1], dtype=pts.dtype, device=pts.device), inside
+
+
+def _occupied_samples(field: GridField, occupancy: torch.Tensor, p: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
+    """Indices ``(n,)`` of the points ``p (N, 3)`` (voxel coordinates) inside the grid whose nearest voxel is occupied.
+
+    The rule of :meth:`GridField.occupied`, on a flat ``occupancy (D H W,)`` table: one look-up per point.
+    """
+    D, H, W = field.shape
+    hi = torch.tensor([W - 1, H - 1, D - 1], dtype=p.dtype, device=p.device)
+    q = torch.minimum(p.round().clamp(min=0), hi).long()
+    occ = occupancy[q[:, 0] + W * q[:, 1] + (H * W) * q[:, 2]] & inside
+    return torch.nonzero(occ).squeeze(1)
+
+
 @torch.inference_mode()
 def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: RenderSettings,
-               min_transmittance: float = MIN_TRANSMITTANCE, segment: int = SEGMENT) -> dict:
+               min_transmittance: float = MIN_TRANSMITTANCE, segment: int = SEGMENT, tables=None) -> dict:
     """Render rays through a grid field front to back, skipping empty space and stopping opaque rays.
 
     The samples are those of training without jitter: ``n_samples`` evenly spaced depths
     ``t0 + (t1 - t0) i / (S - 1)`` in the ray's interval, every interval ``(t1 - t0) / (S - 1)``
-    long (the field ends at its box, so the last interval repeats the previous one).
+    long (the field ends at its box, so the last interval repeats the previous one). An empty
+    sample costs its position and one occupancy look-up; only the occupied ones read the density
+    (their 8 corners, kept for the colour of those whose weight counts).
 
     Args:
         field: the trained :class:`GridField`.
@@ -150,6 +200,8 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
         s: :class:`RenderSettings`.
         min_transmittance: rays whose transmittance falls below it stop.
         segment: samples per ray marched between two termination tests.
+        tables: the field's voxel-major ``(density (V, 1), features (V, C))`` tables (:func:`grid_tables`;
+            made here when None: pass them when marching many chunks of rays).
 
     Returns:
         dict with ``rgb_map (R, 3)`` (in [0, 1]), ``depth_map (R,)``, ``acc_map (R,)`` and
@@ -160,38 +212,40 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
     depth, acc, marched = rays_o.new_zeros(R), rays_o.new_zeros(R), rays_o.new_zeros(R)
     t0, t1 = _ray_interval(field, rays_o, rays_d, s)
     alive = torch.nonzero(t1 - t0 > 2e-4).squeeze(1)  # rays that cross the box (a miss has t1 = t0 + 1e-4)
-    step = (t1 - t0) / (S - 1)
-    norm = torch.linalg.norm(rays_d, dim=-1)
+    delta = (t1 - t0) / (S - 1) * torch.linalg.norm(rays_d, dim=-1)  # world length of every interval
+    vs = field.voxel_size
+    dirs = rays_d / torch.linalg.norm(rays_d, dim=-1, keepdim=True)
     T = rays_o.new_ones(R)
     offsets = torch.arange(segment, device=rays_o.device, dtype=rays_o.dtype)
-    density_table, feature_table = _tables(field)
+    density_table, feature_table = grid_tables(field) if tables is None else tables
+    density_flat = density_table.reshape(-1)
+    occupancy, threshold = field.occupancy.reshape(-1), max(s.color_threshold, 0.0)
     for first in range(0, S, segment):
         if alive.numel() == 0:
             break
         L = min(segment, S - first)
-        o, d, ta = rays_o[alive], rays_d[alive], T[alive]
         u = ((first + offsets[:L]) / (S - 1))[None, :]  # the depths of stratified_samples, bit for bit
         z = t0[alive, None] * (1.0 - u) + t1[alive, None] * u  # (A, L)
-        xyz = field.normalized((o[:, None, :] + z[..., None] * d[:, None, :]).reshape(-1, 3))
-        occ = field.occupied(xyz)
-        sigma = torch.zeros(occ.shape[0], device=occ.device, dtype=rays_o.dtype)
-        if occ.any():
-            raw = trilinear_rows(density_table, field.shape, xyz[occ])[:, 0]
-            sigma[occ] = torch.nn.functional.softplus(raw + field.shift) / field.voxel_size
-        alpha = 1.0 - torch.exp(-sigma.reshape(-1, L) * (step[alive] * norm[alive])[:, None])
-        trans = torch.cumprod(torch.cat([ta[:, None], 1.0 - alpha + 1e-10], dim=1), dim=1)  # T before each sample
-        w = (alpha * trans[:, :-1]).reshape(-1)
-        lit = w > max(s.color_threshold, 0.0)
-        if lit.any():
-            dirs = (d / torch.linalg.norm(d, dim=-1, keepdim=True))[:, None, :].expand(-1, L, 3).reshape(-1, 3)
-            contrib = torch.zeros(w.shape[0], 3, device=w.device, dtype=w.dtype)
-            feats = trilinear_rows(feature_table, field.shape, xyz[lit])
-            contrib[lit] = field.color_from_features(feats, dirs[lit]) * w[lit, None]
-            rgb.index_add_(0, alive, contrib.reshape(-1, L, 3).sum(dim=1))
-        w = w.reshape(-1, L)
+        p, inside = _voxel_coordinates(field, (rays_o[alive, None, :] + rays_d[alive, None, :] * z[..., None]).reshape(-1, 3))
+        sel = _occupied_samples(field, occupancy, p, inside)
+        sigma = z.new_zeros(z.numel())
+        if sel.numel():
+            idx, wc = corners(field.shape, p[sel])
+            raw = torch.linalg.vecdot(density_flat.index_select(0, idx.reshape(-1)).reshape(idx.shape), wc)
+            sigma[sel] = torch.nn.functional.softplus(raw + field.shift) / vs
+        alpha = 1.0 - torch.exp(-sigma.reshape(-1, L) * delta[alive, None])
+        trans = torch.cumprod(torch.cat([T[alive, None], 1.0 - alpha + 1e-10], dim=1), dim=1)  # T before each sample
+        w = alpha * trans[:, :-1]
+        if sel.numel():
+            w_sel = w.reshape(-1)[sel]
+            lit = torch.nonzero(w_sel > threshold).squeeze(1)  # among the occupied samples (weight 0 elsewhere)
+            if lit.numel():
+                ray = alive[sel[lit] // L]
+                col = field.color_from_features(read_corners(feature_table, idx[lit], wc[lit]), dirs[ray])
+                rgb.index_add_(0, ray, col * w_sel[lit, None])
         depth.index_add_(0, alive, (w * z).sum(dim=1))
         acc.index_add_(0, alive, w.sum(dim=1))
-        marched.index_add_(0, alive, torch.full_like(ta, float(L)))
+        marched.index_add_(0, alive, torch.full_like(z[:, 0], float(L)))
         T[alive] = trans[:, -1]
         alive = alive[trans[:, -1] > min_transmittance]
     if s.white_background:
@@ -200,11 +254,12 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
 
 
 @torch.inference_mode()
-def render_rays_forward(model, model_fine, rays_o: torch.Tensor, rays_d: torch.Tensor, s: RenderSettings) -> dict:
+def render_rays_forward(model, model_fine, rays_o: torch.Tensor, rays_d: torch.Tensor, s: RenderSettings,
+                        tables=None) -> dict:
     """Render any number of rays with a trained model, chunk by chunk, without gradients.
 
-    A :class:`GridField` is marched (:func:`march_grid`); the MLP renders every sample
-    (:func:`course_lib.nerf.render.render_chunked`).
+    A :class:`GridField` is marched (:func:`march_grid`; ``tables``: its :func:`grid_tables`, made
+    here when None); the MLP renders every sample (:func:`course_lib.nerf.render.render_chunked`).
 
     Returns:
         dict with ``rgb_map (R, 3)``, ``depth_map (R,)``, ``acc_map (R,)`` on the rays' device.
@@ -215,16 +270,19 @@ def render_rays_forward(model, model_fine, rays_o: torch.Tensor, rays_d: torch.T
         return render_chunked(model, rays_o, rays_d, None, None, s.n_samples, s.n_importance, model_fine,
                               white_background=s.white_background, chunk=chunk, color_threshold=s.color_threshold,
                               ray_bounds=bounds, last_delta=LAST_DELTA)
-    parts = [march_grid(model, rays_o[i:i + chunk], rays_d[i:i + chunk], s) for i in range(0, rays_o.shape[0], chunk)]
+    tables = grid_tables(model) if tables is None else tables  # once per call: a voxel-major copy of the grids
+    parts = [march_grid(model, rays_o[i:i + chunk], rays_d[i:i + chunk], s, tables=tables)
+             for i in range(0, rays_o.shape[0], chunk)]
     return {k: torch.cat([p[k] for p in parts]) for k in ("rgb_map", "depth_map", "acc_map")}
 
 
-def render_view(model, model_fine, cfg, bounds, H: int, W: int, K, c2w) -> dict:
+def render_view(model, model_fine, cfg, bounds, H: int, W: int, K, c2w, tables=None) -> dict:
     """Render one view with a trained model (forward only, chunks sized to the device).
 
     Args:
         model, model_fine: the trained field(s). cfg: their :class:`~course_lib.nerf.presets.TrainConfig`.
         bounds: the scene's bounds (``SceneBounds`` or its dict). H, W, K, c2w: the camera (OpenCV axes).
+        tables: a grid's :func:`grid_tables` (when rendering several views of the same field).
 
     Returns:
         dict with ``rgb (H, W, 3)``, ``depth (H, W)``, ``acc (H, W)`` tensors on the model's device.
@@ -238,7 +296,8 @@ def render_view(model, model_fine, cfg, bounds, H: int, W: int, K, c2w) -> dict:
     model.eval()
     try:
         o, d = get_rays(H, W, K, c2w_t)
-        out = render_rays_forward(model, model_fine, o.reshape(-1, 3), d.reshape(-1, 3), RenderSettings.of(cfg, bounds, model))
+        out = render_rays_forward(model, model_fine, o.reshape(-1, 3), d.reshape(-1, 3), RenderSettings.of(cfg, bounds, model),
+                                  tables)
     finally:
         model.train(was)
     return dict(rgb=out["rgb_map"].reshape(H, W, 3), depth=out["depth_map"].reshape(H, W),
@@ -246,9 +305,13 @@ def render_view(model, model_fine, cfg, bounds, H: int, W: int, K, c2w) -> dict:
 
 
 def render_views(model, model_fine, cfg, bounds, H: int, W: int, K, c2ws):
-    """Render several views, one after the other: yields ``(H, W, 3)`` rgb tensors on the model's device."""
+    """Render several views, one after the other: yields ``(H, W, 3)`` rgb tensors on the model's device.
+
+    A grid field's voxel-major tables are made once for all the views (the field must not change meanwhile).
+    """
+    tables = grid_tables(model) if isinstance(model, GridField) else None
     for c2w in c2ws:
-        yield render_view(model, model_fine, cfg, bounds, H, W, K, c2w)["rgb"]
+        yield render_view(model, model_fine, cfg, bounds, H, W, K, c2w, tables)["rgb"]
 
 
 def spread_views(n: int, k: int) -> list[int]:

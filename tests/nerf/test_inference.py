@@ -82,3 +82,17 @@ def test_render_view_of_a_grid_and_of_an_mlp():
 def test_spread_views():
     assert spread_views(25, 5) == [0, 6, 12, 18, 24]
     assert spread_views(4, 10) == [0, 1, 2, 3] and spread_views(4, 0) == [0]
+
+
+def test_views_rendered_together_are_the_views_rendered_alone():
+    from course_lib.nerf.inference import render_views
+
+    field = blob_field(sh_degree=1)
+    K, c2w = camera(12)
+    other = c2w.copy()
+    other[:3, 3] = [0.3, -0.2, -2.5]
+    cfg = preset("fast", n_samples=40, grid_resolution=24)
+    bounds = SceneBounds((0.0, 0.0, 0.0), 1.0, (-1.0,) * 3, (1.0,) * 3, near=0.5, far=6.0)
+    together = list(render_views(field, None, cfg, bounds, 12, 12, K, [c2w, other]))
+    for img, pose in zip(together, [c2w, other]):
+        torch.testing.assert_close(img, render_view(field, None, cfg, bounds, 12, 12, K, pose)["rgb"], atol=0, rtol=0)

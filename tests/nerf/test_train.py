@@ -82,6 +82,24 @@ def test_grid_training_lowers_the_loss(scene, tmp_path):
     assert {"setup", "snapshots", "checkpoints", "final_evaluation"} <= set(m["overhead_breakdown"])
 
 
+def test_grid_training_with_sparse_adam(scene):
+    # lazy Adam on the voxels each step read (and the TV prior on them): the loss falls as with dense Adam
+    from course_lib.nerf.optim import SparseGridAdam
+
+    cfg = preset("fast", iters=60, minutes=None, batch_rays=512, n_samples=48, snapshot_every=0, checkpoint_every=0,
+                 occupancy_start=1 / 3, occupancy_every=10, grid_schedule=((0, 2 / 3), (1 / 3, 1.0)), grid_resolution=24,
+                 shrink_box_at=1 / 3, threads=1, grid_lr=0.3, grid_lr_final=0.1, grid_sparse_adam=True)
+    seen = []
+    res = train(scene.subset(slice(0, 6)), None, cfg, progress=False, device="cpu",
+                callback=lambda step, info: seen.append(step) and False)
+    loss = res.history["loss"]
+    assert np.mean(loss[-10:]) < 0.3 * np.mean(loss[:5]) and res.metrics["final_train_psnr"] > 17
+    assert res.model.density_grid.reads == [] and len(seen) == 60  # every step's reads were used
+    from course_lib.nerf.train import make_optimizer
+
+    assert isinstance(make_optimizer(res.config, res.model, None), SparseGridAdam)
+
+
 def test_overhead_budget_defers_snapshots(scene):
     # a snapshot due every step would cost more than training: with a 5 % budget most of them wait
     cfg = tiny_nerf_config(iters=30, snapshot_every=1, overhead_budget=0.05)
@@ -244,8 +262,9 @@ def test_ctrl_c_saves_a_checkpoint_and_resumes(scene, tmp_path):
 
 
 @pytest.mark.parametrize("sh", [{"grid_sh_degree": 0}, {"grid_sh_degree": 1, "grid_sh_start": 0.5},
-                                {"grid_sh_degree": 1, "grid_sh_start": 0.7}],
-                         ids=["rgb", "sh-before-checkpoint", "sh-after-checkpoint"])
+                                {"grid_sh_degree": 1, "grid_sh_start": 0.7},
+                                {"grid_sh_degree": 1, "grid_sh_start": 0.5, "grid_sparse_adam": True}],
+                         ids=["rgb", "sh-before-checkpoint", "sh-after-checkpoint", "sparse-adam"])
 def test_grid_resume_across_rebox_and_upsample(scene, tmp_path, sh):
     # stop after the box was shrunk (step 4) and before the upsampling (step 8): the resumed run
     # must rebuild the re-boxed grid, keep it, upsample at step 8 and end where the full run ends;
