@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import replace
 from pathlib import Path
 
 from course_lib.nerf.device import DEVICE_CHOICES

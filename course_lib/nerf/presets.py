@@ -24,7 +24,7 @@ options).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, fields, replace
 
 from course_lib.validate import KitInputError
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from course_lib import validate
-from course_lib.conventions import project, to_homogeneous, translation_from_center
+from course_lib.conventions import project, translation_from_center
 
 __all__ = [
     "triangulate_linear",

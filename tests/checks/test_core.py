@@ -53,7 +53,7 @@ def test_shape_check(capsys):
 
 
 def test_a_crashing_check_is_a_verdict_not_a_traceback(capsys):
-    with Check("crash") as c:
+    with Check("crash"):
         raise RuntimeError("boom")
     assert "the check could not finish: RuntimeError: boom" in capsys.readouterr().out
 
