@@ -51,6 +51,7 @@ __all__ = [
     "to_homogeneous",
     "from_homogeneous",
     "skew",
+    "fix_sign",
     "camera_center",
     "translation_from_center",
     "projection_matrix",
@@ -100,6 +101,22 @@ def skew(v: np.ndarray) -> np.ndarray:
     """
     x, y, z = np.asarray(v, dtype=float).reshape(3)
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def fix_sign(a: np.ndarray) -> np.ndarray:
+    """``a`` times the sign of its largest-magnitude entry: the kit's choice for what is defined up to sign.
+
+    A fundamental matrix, a null vector or an SVD's singular vector comes out with either sign,
+    and LAPACK's choice differs between CPUs; this fixes it (the entry of largest magnitude positive).
+
+    Args:
+        a: array of any shape, not all zero.
+
+    Returns:
+        array of the same shape.
+    """
+    a = np.asarray(a)
+    return a * np.sign(a.flat[np.abs(a).argmax()])
 
 
 def camera_center(R_cw: np.ndarray, t_cw: np.ndarray) -> np.ndarray:

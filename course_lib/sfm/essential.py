@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib import validate
+from course_lib.conventions import fix_sign
 
 __all__ = ["essential_from_fundamental", "pose_candidates", "W"]
 
@@ -113,7 +114,7 @@ def _canonical_order(R: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarr
     identity (larger trace) comes first and the ``+`` centre has its largest-magnitude entry positive.
     """
     pairs = [0, 2] if np.trace(R[0]) >= np.trace(R[2]) else [2, 0]
-    c = C[0] * np.sign(C[0][np.abs(C[0]).argmax()])
+    c = fix_sign(C[0])
     order = [k + (0 if C[k] @ c > 0 else 1) for k in pairs]
     order = [i for k in order for i in (k, k ^ 1)]
     return R[order], C[order]

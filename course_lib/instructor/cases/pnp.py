@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib.checks.pnp import FIXTURE, RANSAC_SEED, THRESHOLD_PX
+from course_lib.conventions import fix_sign
 from course_lib.instructor.cases import builds
 from course_lib.paths import EMBEDDED_SFM
 from course_lib.steps import two_view_reconstruction
@@ -116,8 +117,7 @@ def _nonlinear_case(out, key, K, X, x, R0, t0) -> None:
 
 
 def _direction(t: np.ndarray) -> np.ndarray:
-    d = t / np.linalg.norm(t)
-    return d * np.sign(d[np.abs(d).argmax()])
+    return fix_sign(t / np.linalg.norm(t))
 
 
 def _perturbed(R, t, seed, deg=3.0, rel=0.05):

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from course_lib.conventions import to_homogeneous
+from course_lib.conventions import fix_sign, to_homogeneous
 from course_lib.sfm import fundamental as ref
 
 __all__ = ["eight_point_variants", "sampson_variants", "ransac_masks"]
@@ -30,8 +30,7 @@ def _solve(a: np.ndarray, b: np.ndarray, rank2: bool = True) -> np.ndarray:
 def _unit(F: np.ndarray) -> np.ndarray:
     """Unit Frobenius norm, largest-magnitude entry positive (the reference's convention: the SVD's sign
     of a null vector differs between CPUs)."""
-    F = F / np.linalg.norm(F)
-    return F * np.sign(F.flat[np.abs(F).argmax()])
+    return fix_sign(F / np.linalg.norm(F))
 
 
 def eight_point_variants(x1: np.ndarray, x2: np.ndarray) -> dict[str, np.ndarray]:
