@@ -135,12 +135,17 @@ def _run(tree: Path, data: str, name: str, a) -> dict | None:
     return r
 
 
-def _table(rows: list[dict], marks: list[str]) -> None:
+def _head(marks: list[str]) -> None:
     head = (["scene", "tree", "preset"] + [f"PSNR@{m}" for m in marks]
             + ["run PSNR (views)", "steps", "train rays/s", "render rays/s", "render/train", "outside training",
                "wall s", "peak MB", "grid/samples", "load 1-min"])
     print(" | ".join(head))
-    print(" | ".join("---" for _ in head))
+    print(" | ".join("---" for _ in head), flush=True)
+
+
+def _table(rows: list[dict], marks: list[str], head: bool = True) -> None:
+    if head:
+        _head(marks)
     for r in rows:
         ratio = (r["render_rays_per_second"] / r["rays_per_second"] if r["render_rays_per_second"] and r["rays_per_second"]
                  else float("nan"))
@@ -151,7 +156,7 @@ def _table(rows: list[dict], marks: list[str]) -> None:
                   f"{r['render_rays_per_second']:.0f}" if r["render_rays_per_second"] else "-", f"{ratio:.1f}x",
                   f"{100 * r['outside_training']:.1f} %", f"{r['wall_seconds']:.0f}", f"{r['peak_memory_mb']:.0f}",
                   f"{r['grid_resolution']}/{r['n_samples']}", r["load"]]
-        print(" | ".join(cells))
+        print(" | ".join(cells), flush=True)
 
 
 def main(argv=None) -> int:
@@ -181,18 +186,25 @@ def main(argv=None) -> int:
     from course_lib.paths import course_data
 
     sizes = a.sizes or ([100, 200, 400, 800] if a.ladder else [])
-    scenes = [(f"building-{s}", _building(s), s) for s in sizes]
+    scenes = [(f"building-{s}", _building(s), s, s) for s in sizes]
     if a.lego or a.ladder:
         lego = course_data("lego")
         if lego is None:
             print("lego-100 is not in the course data (../shared/data): its rung is skipped", file=sys.stderr)
         else:
-            scenes.append(("lego-100", str(lego), "lego"))
+            scenes.append(("lego-100", str(lego), "lego", 100))
+    scenes = [sc[:3] for sc in sorted(scenes, key=lambda sc: sc[3])]  # smallest first: the longest rung runs last
     if a.data:
         scenes.append((Path(a.data).name, a.data, "data"))
     if not scenes:
         p.error("nothing to run: pass --ladder, --sizes, --lego or a DATA folder")
-    rows = []
+    marks = [f"{m:g}" for m in a.at if m < a.minutes] + [f"{a.minutes:g}"]
+    rows: list[dict] = []
+
+    def save() -> None:  # after every run, so an interrupted ladder keeps the rungs it finished
+        if a.json:
+            Path(a.json).write_text(json.dumps({"minutes": a.minutes, "rows": rows}, indent=1))
+
     for scene, folder, key in scenes:
         trees = [("this", REPO)]
         if a.baseline_tree and (0 in a.baseline_at or key in a.baseline_at):
@@ -203,13 +215,12 @@ def main(argv=None) -> int:
                 r = _run(tree, folder, name, a)
                 if r is not None:
                     rows.append({"scene": scene, "tree": tree_name, **r})
-    marks = [f"{m:g}" for m in a.at if m < a.minutes] + [f"{a.minutes:g}"]
+                    _table(rows[-1:], marks, head=len(rows) == 1)
+                    save()
     print(f"\ncores: {os.cpu_count()}   device: {rows[0]['device'] if rows else '?'}   --minutes {a.minutes:g}")
     print(f"PSNR@m = mean test PSNR at m minutes of the budget clock on {a.mark_views} evenly spread test views; "
           f"at {a.minutes:g} min on all test views. 'run PSNR' = the run's own final figure (views it evaluated).")
     _table(rows, marks)
-    if a.json:
-        Path(a.json).write_text(json.dumps({"minutes": a.minutes, "rows": rows}, indent=1))
     return 0 if rows else 1
 
 

@@ -73,12 +73,17 @@ class TrainConfig:
         iters: maximum number of steps; minutes: the whole run's time budget, training and
             everything around it (whichever of the two comes first).
         snapshot_every: render the held-out view every N steps (0: never).
+        snapshot_max_side: snapshots are previews: rendered with their longest side at most this many
+            pixels (the camera scaled, :func:`~course_lib.nerf.inference.preview_camera`; 0: full size).
+            The final test renders are always full size.
         checkpoint_every: save a checkpoint every N steps (0: only at the end).
         eval_every: test PSNR on ``n_eval_views`` test views every N steps (0: only at the end).
         chunk: rays per forward pass when rendering images (0: from the device,
             :func:`course_lib.nerf.device.render_chunk`).
-        overhead_budget: snapshots, evaluations and checkpoints that come due wait while the time
-            spent on them exceeds this fraction of the training time so far (0: never wait). The
+        overhead_budget: a snapshot, evaluation or checkpoint that comes due waits while the time
+            outside training so far (loading included) plus its own predicted time would exceed this
+            fraction of the training time so far (0: never wait). With ``final_eval_share`` it bounds
+            everything outside training: about 10 % of the run with the defaults. The
             snapshot at step 0 (runs without ``minutes``: with a budget the untrained field, the
             slowest render of all, is not drawn) and the final checkpoint, snapshot and evaluation always run.
         final_eval_share: with ``minutes``, the share of the budget for the final evaluation: it
@@ -134,6 +139,7 @@ class TrainConfig:
     iters: int = 200_000
     minutes: float | None = None
     snapshot_every: int = 0
+    snapshot_max_side: int = 400
     checkpoint_every: int = 0
     eval_every: int = 0
     n_eval_views: int = 2

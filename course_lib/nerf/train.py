@@ -19,7 +19,7 @@ One step::
 * :class:`RunClock` -- the budget: ``minutes`` covers the whole run (loading included when the
   caller passes ``started_at``), so training stops early enough for the final evaluation; time
   outside training by kind (``overhead_breakdown``), snapshots/evaluations/checkpoints that come
-  due wait while it exceeds ``overhead_budget`` of the training time;
+  due wait while they would take it (loading included) over ``overhead_budget`` of the training time;
 * :class:`RunOutputs` -- snapshots (PNG), checkpoints, evaluations during the run and at the end
   (forward-only renders, :mod:`course_lib.nerf.inference`), ``metrics.json``.
 
@@ -45,8 +45,8 @@ from course_lib.data.blender import BlenderData
 from course_lib.nerf.checkpoint import CHECKPOINT, build_model, load_checkpoint, save_checkpoint
 from course_lib.nerf.device import device_name, pick_device
 from course_lib.nerf.grid import GridField
-from course_lib.nerf.inference import (RenderSettings, circular_path, evaluate, render_path, render_view, save_gif,
-                                       save_png, spread_views)
+from course_lib.nerf.inference import (RenderSettings, circular_path, evaluate, preview_camera, render_path,
+                                       render_view, save_gif, save_png, shrink, spread_views)
 from course_lib.nerf.optim import SparseGridAdam
 from course_lib.nerf.presets import TrainConfig, preset, resolve
 from course_lib.nerf.render import LAST_DELTA, render_rays
@@ -210,6 +210,7 @@ class RunClock:
         self.budget_s = 60.0 * cfg.minutes if cfg.minutes else None
         self.before, self.train_seconds, self.reserve = before, 0.0, 0.0
         self.seconds: dict[str, float] = {"setup": 0.0}
+        self.last: dict[str, float] = {}  # the duration of each kind's last run
         self.pending: set[str] = set()
 
     def setup_done(self, before: float = 0.0) -> None:
@@ -235,17 +236,22 @@ class RunClock:
         """True when the time left is what the end of the run needs (``reserve`` seconds)."""
         return self.budget_s is not None and self.spent() + self.reserve >= self.budget_s
 
-    def allowed(self) -> bool:
-        """May due snapshots/evaluations/checkpoints run now (their time so far <= overhead_budget x training)?"""
-        outside = sum(v for k, v in self.seconds.items() if k not in ("callback", "setup"))
-        return self.cfg.overhead_budget <= 0 or outside <= self.cfg.overhead_budget * self.train_seconds
+    def allowed(self, cost: float = 0.0) -> bool:
+        """May a due snapshot/evaluation/checkpoint that takes about ``cost`` seconds run now?
+
+        Yes while the time outside training (loading included, the caller's callback not) plus
+        ``cost`` stays within ``overhead_budget`` x the training time so far.
+        """
+        outside = sum(v for k, v in self.seconds.items() if k != "callback")
+        return self.cfg.overhead_budget <= 0 or outside + cost <= self.cfg.overhead_budget * self.train_seconds
 
     def timed(self, kind: str, fn, *args):
         t = time.perf_counter()
         try:
             return fn(*args)
         finally:
-            self.seconds[kind] = self.seconds.get(kind, 0.0) + time.perf_counter() - t
+            self.last[kind] = time.perf_counter() - t
+            self.seconds[kind] = self.seconds.get(kind, 0.0) + self.last[kind]
 
 
 class RunOutputs:
@@ -270,12 +276,17 @@ class RunOutputs:
         self.render_seconds_per_ray = seconds / max(n_rays, 1)
 
     def snapshot(self, state: TrainState) -> None:
+        """Render the held-out view at preview size (``snapshot_max_side``)."""
         t = time.perf_counter()
-        d = self.snap_data
-        img = render_view(state.model, state.model_fine, state.config, state.bounds, d.H, d.W, d.K,
-                          d.c2w[self.snap_view])["rgb"].cpu().numpy()
-        self._measure(d.H * d.W, time.perf_counter() - t)
+        H, W, K = self.preview_camera()
+        img = render_view(state.model, state.model_fine, state.config, state.bounds, H, W, K,
+                          self.snap_data.c2w[self.snap_view])["rgb"].cpu().numpy()
+        self._measure(H * W, time.perf_counter() - t)
         self.add_snapshot(state.step, img)
+
+    def preview_camera(self) -> tuple[int, int, np.ndarray]:
+        d = self.snap_data
+        return preview_camera(d.H, d.W, d.K, self.clock.cfg.snapshot_max_side)
 
     def add_snapshot(self, step: int, img: np.ndarray) -> None:
         self.snapshots.append((step, img))
@@ -293,17 +304,30 @@ class RunOutputs:
             state.wall_seconds = self.clock.spent()
             save_checkpoint(self.ckpt, state, self.camera)
 
-    def periodic(self, state: TrainState) -> None:
-        """Run the snapshots, evaluations and checkpoints that are due, within the overhead budget."""
+    def periodic(self, state: TrainState, rays_per_second: float) -> None:
+        """Run the snapshots, evaluations and checkpoints that are due and fit in the overhead budget.
+
+        ``rays_per_second``: the training speed so far (the guess of a render's speed before one was measured).
+        """
         cfg = state.config
         for kind, every, fn in (("snapshots", cfg.snapshot_every, self.snapshot),
                                 ("evaluations", cfg.eval_every if self.test is not None else 0, self.test_eval),
                                 ("checkpoints", cfg.checkpoint_every, self.checkpoint)):
             if every and state.step % every == 0:
                 self.clock.pending.add(kind)
-            if kind in self.clock.pending and self.clock.allowed():
+            if kind in self.clock.pending and self.clock.allowed(self.predicted(kind, rays_per_second)):
                 self.clock.pending.discard(kind)
                 self.clock.timed(kind, fn, state)
+
+    def predicted(self, kind: str, rays_per_second: float) -> float:
+        """Seconds a snapshot, evaluation or checkpoint will take: renders from their rays, checkpoints as the last one."""
+        if kind == "checkpoints":
+            return self.clock.last.get(kind, 0.0)
+        if kind == "snapshots":
+            H, W, _ = self.preview_camera()
+            return H * W * self.seconds_per_ray(rays_per_second)
+        n = min(self.clock.cfg.n_eval_views, len(self.test))
+        return n * self.test.H * self.test.W * self.seconds_per_ray(rays_per_second)
 
     def final_views(self, rays_per_second: float) -> list[int]:
         """The test views of the final evaluation: all, or (a time budget) those that fit in its share."""
@@ -319,10 +343,12 @@ class RunOutputs:
         return self.render_seconds_per_ray or 1.0 / max(3.0 * train_rays_per_second, 1.0)
 
     def final_seconds(self, rays_per_second: float) -> float:
-        """Predicted time of the run's end: the final evaluation (+ a snapshot if it is not among its views)."""
+        """Predicted time of the run's end: the final checkpoint and evaluation (or a snapshot without test views)."""
         spr = self.seconds_per_ray(rays_per_second)
         views = self.final_views(rays_per_second)
-        return spr * self.test.H * self.test.W * len(views) if views else spr * self.snap_data.H * self.snap_data.W
+        H, W, _ = self.preview_camera()
+        ckpt = self.clock.last.get("checkpoints", 0.0) if self.ckpt is not None else 0.0
+        return ckpt + (spr * self.test.H * self.test.W * len(views) if views else spr * H * W)
 
     def finish(self, state: TrainState) -> dict:
         """Final checkpoint, evaluation (with PNGs of the renders) and snapshot; returns test metrics."""
@@ -343,7 +369,8 @@ class RunOutputs:
             state.history["test_psnr"].append(mean)
             fresh = not self.snapshots or self.snapshots[-1][0] != state.step
             if fresh and self.snap_data is self.test and self.snap_view in views and state.config.snapshot_every:
-                self.add_snapshot(state.step, renders[views.index(self.snap_view)])
+                H, W, _ = self.preview_camera()  # the final render of the snapshots' view, at their size
+                self.add_snapshot(state.step, shrink(renders[views.index(self.snap_view)], H, W))
             if self.out is not None:
                 for i, img in zip(views, renders):
                     save_png(self.out / "test" / f"{self.test.names[i]}.png", img)
@@ -557,7 +584,7 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
             if synced:
                 _record(state, pending)
             bar.update(state, clock, synced and (state.step % 10 == 0 or steps == 1))
-            outputs.periodic(state)
+            outputs.periodic(state, cfg.batch_rays * steps / clock.train_seconds)
             if callback is not None and clock.timed("callback", callback, state.step, _info(state, clock)):
                 stopped_by = "callback"
                 break

@@ -96,3 +96,18 @@ def test_views_rendered_together_are_the_views_rendered_alone():
     together = list(render_views(field, None, cfg, bounds, 12, 12, K, [c2w, other]))
     for img, pose in zip(together, [c2w, other]):
         torch.testing.assert_close(img, render_view(field, None, cfg, bounds, 12, 12, K, pose)["rgb"], atol=0, rtol=0)
+
+
+def test_preview_camera_keeps_the_view():
+    from course_lib.nerf.inference import preview_camera
+
+    K = intrinsics_from_fov(800, 600, 0.7)
+    H, W, Kp = preview_camera(600, 800, K, 400)
+    assert (H, W) == (300, 400) and preview_camera(300, 400, K, 400)[:2] == (300, 400)
+    assert preview_camera(600, 800, K, 0)[:2] == (600, 800)
+    # a preview pixel's centre is the centre of the 2 x 2 full-size pixels it covers: the same ray
+    full = get_rays(600, 800, torch.as_tensor(K, dtype=torch.float32), torch.eye(4))[1]
+    small = get_rays(H, W, torch.as_tensor(Kp, dtype=torch.float32), torch.eye(4))[1]
+    for v, u in [(0, 0), (10, 37), (299, 399)]:
+        mid = full[2 * v:2 * v + 2, 2 * u:2 * u + 2].mean(dim=(0, 1))
+        torch.testing.assert_close(small[v, u], mid, atol=1e-6, rtol=1e-6)

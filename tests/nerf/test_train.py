@@ -111,6 +111,19 @@ def test_overhead_budget_defers_snapshots(scene):
     assert res.metrics["overhead_breakdown"]["snapshots"] < unlimited.metrics["overhead_breakdown"]["snapshots"]
 
 
+def test_snapshots_are_previews_and_wait_for_their_predicted_time(scene):
+    # snapshots of large images are rendered at preview size (the final one too); a snapshot that
+    # would take the time outside training over the budget waits, however long ago it came due
+    big = make_scene(n=6, size=48)
+    cfg = tiny_nerf_config(iters=8, snapshot_every=4, snapshot_max_side=24, overhead_budget=0)
+    res = train(big.subset(range(4)), big.subset([4, 5]), replace(cfg, eval_all=True), progress=False, device="cpu")
+    assert [s for s, _ in res.snapshots] == [0, 4, 8] and all(img.shape == (24, 24, 3) for _, img in res.snapshots)
+    assert res.test_renders.shape == (2, 48, 48, 3)
+    slow = train(big.subset(range(4)), big.subset([4, 5]), replace(cfg, overhead_budget=1e-9), progress=False,
+                 device="cpu")
+    assert [s for s, _ in slow.snapshots] == [0, 8]  # step 0 (runs without minutes) and the final one
+
+
 def test_progress_bar_counts_time_or_steps(scene, capsys):
     train(scene, None, tiny_nerf_config(iters=10**6, minutes=0.01), progress=True, device="cpu")
     err = capsys.readouterr().err
