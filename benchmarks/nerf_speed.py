@@ -174,7 +174,9 @@ def main(argv=None) -> int:
                    help="building rungs the baseline runs (default 400; 0: every rung, lego included)")
     p.add_argument("--mark-views", type=int, default=5, help="test views rendered at the --at marks (default 5)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--threads", type=int, default=os.cpu_count(),
+                   help="torch threads of every run (default: all cores; -1: the kit's automatic choice, which "
+                        "depends on the load when a run starts)")
     p.add_argument("--device", default="auto", help="auto (CUDA, then MPS, then CPU), cpu, cuda or mps")
     p.add_argument("--json", default=None, help="also write the results here")
     p.add_argument("--_one", default=None, help=argparse.SUPPRESS)

@@ -20,7 +20,7 @@ import glob
 import os
 import sys
 
-__all__ = ["blas_thread_controls", "single_threaded_blas", "set_blas_threads", "set_torch_threads"]
+__all__ = ["blas_thread_controls", "single_threaded_blas", "set_blas_threads", "set_torch_threads", "cores_in_use"]
 
 _BLAS_HANDLES: list | None = None
 _SYMBOLS = [(f"{p}_get_num_threads{s}", f"{p}_set_num_threads{s}")
@@ -108,7 +108,7 @@ def set_torch_threads(threads: int) -> int:
 
     Args:
         threads: > 0: that many; 0: torch's default (unchanged); -1 ("auto"): one thread when the
-            machine is busy (load average above 3/4 of the cores), else one per core. On a machine
+            machine is busy (:func:`cores_in_use` above 3/4 of the cores), else one per core. On a machine
             whose cores are already taken, several torch threads wait for each other at every
             operation and run many times slower than one.
     """
@@ -118,9 +118,32 @@ def set_torch_threads(threads: int) -> int:
         torch.set_num_threads(int(threads))
     elif threads < 0:
         cores = os.cpu_count() or 1
-        try:
-            busy = os.getloadavg()[0] > 0.75 * cores
-        except OSError:
-            busy = False
-        torch.set_num_threads(1 if busy else cores)
+        torch.set_num_threads(1 if cores_in_use() > 0.75 * cores else cores)
     return torch.get_num_threads()
+
+
+def cores_in_use(interval: float = 0.2) -> float:
+    """How many cores the machine's other work keeps busy now: sampled from ``/proc/stat`` over ``interval`` s.
+
+    Not the load average: it lags by a minute, so a run started right after another one would take
+    the machine for busy (measured: a 5-minute NeRF run started 1 s after another got one thread of two).
+    Where ``/proc/stat`` is missing (macOS, Windows), the 1-minute load average; 0 when neither is known.
+    """
+    import time
+
+    def sample():
+        with open("/proc/stat") as f:
+            v = [int(x) for x in f.readline().split()[1:]]
+        idle = v[3] + (v[4] if len(v) > 4 else 0)  # idle + iowait
+        return sum(v[:8]) - idle, sum(v[:8])
+
+    try:
+        b0, t0 = sample()
+        time.sleep(interval)
+        b1, t1 = sample()
+    except (OSError, ValueError, IndexError):
+        try:
+            return float(os.getloadavg()[0])
+        except OSError:
+            return 0.0
+    return (os.cpu_count() or 1) * (b1 - b0) / max(t1 - t0, 1)

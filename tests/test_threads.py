@@ -46,3 +46,16 @@ def test_set_torch_threads():
         assert 1 <= threads.set_torch_threads(-1) <= (os.cpu_count() or 1)
     finally:
         torch.set_num_threads(old)
+
+
+def test_cores_in_use_sees_a_busy_core():
+    import subprocess
+    import sys
+
+    spin = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        busy = threads.cores_in_use(0.5)
+    finally:
+        spin.kill()
+        spin.wait()
+    assert 0.5 <= busy <= (os.cpu_count() or 1) + 0.1  # one spinning process: at least about one core

@@ -9,14 +9,16 @@ Examples::
 
 ``train`` writes ``OUT/metrics.json`` (test PSNR, iterations, seconds, preset, loss/PSNR history),
 ``OUT/test/<view>.png`` (renders of the evaluated test views), ``OUT/snapshots/step_XXXXXX.png`` (the held-out
-view during training) and ``OUT/checkpoint.pt``; run it again with the same ``--out`` to resume
+view during training, a preview at most 400 px on its longest side) and ``OUT/checkpoint.pt``; run it again with the same ``--out`` to resume
 (``--minutes`` and ``--iters`` are totals). ``render`` writes ``OUT/path.gif`` and
 ``OUT/frame_XXX.png`` along a circle around the scene.
 
 ``--minutes`` is the budget of the whole run: loading the images, training, snapshots, checkpoints
-and the final evaluation. The final evaluation renders the test views that fit in 5 % of it: all
-of them when they fit, else a fixed, evenly spread subset (the summary says how many; ``--eval-all``
-renders all of them, whatever the time). Renders (evaluation, snapshots, ``render``) run forward
+and the final evaluation. Everything outside training stays near 10 % of it: loading, snapshots and
+checkpoints within 5 % of the training time (a due snapshot waits while it would not fit), and the
+final evaluation renders the test views that fit in 5 % of the budget: all of them when they fit,
+else a fixed, evenly spread subset (the summary says how many; ``--eval-all`` renders all of them,
+whatever the time). Renders (evaluation, snapshots, ``render``) run forward
 only, with empty-space skipping and early ray termination (:mod:`course_lib.nerf.inference`).
 
 ``--device auto`` (the default) trains and renders on a CUDA GPU if there is one, else on an Apple
