@@ -318,18 +318,16 @@ def preview_camera(H: int, W: int, K, max_side: int) -> tuple[int, int, np.ndarr
     """The camera ``(H, W, K)`` shrunk so that its longest side is at most ``max_side`` pixels (0: as it is).
 
     The same view at fewer pixels (a snapshot's preview): ``K`` scaled about the pixel centres
-    (``u' + 1/2 = s (u + 1/2)``), as :func:`course_lib.data.blender.load_blender`'s ``downscale``.
+    (:func:`course_lib.data.match_cli.scale_intrinsics`).
     """
+    from course_lib.data.match_cli import scale_intrinsics
+
     K = np.asarray(K, dtype=float)
     s = min(1.0, max_side / max(H, W)) if max_side else 1.0
     if s >= 1.0:
         return int(H), int(W), K
     h, w = max(1, round(H * s)), max(1, round(W * s))
-    sx, sy = w / W, h / H
-    Kp = K.copy()
-    Kp[0, 0], Kp[0, 1], Kp[0, 2] = K[0, 0] * sx, K[0, 1] * sx, (K[0, 2] + 0.5) * sx - 0.5
-    Kp[1, 1], Kp[1, 2] = K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5
-    return h, w, Kp
+    return h, w, scale_intrinsics(K, (W, H), (w, h))
 
 
 def shrink(img: np.ndarray, H: int, W: int) -> np.ndarray:

@@ -267,6 +267,7 @@ class RunOutputs:
                  camera: dict):
         self.out, self.clock, self.test, self.camera = out, clock, test_data, camera
         self.snap_data, self.snap_view = snap_data, min(snap_view, len(snap_data) - 1)
+        self.preview = preview_camera(snap_data.H, snap_data.W, snap_data.K, clock.cfg.snapshot_max_side)  # (H, W, K)
         self.snapshots: list = []
         self.test_renders: np.ndarray | None = None
         self.render_seconds_per_ray: float | None = None
@@ -278,15 +279,11 @@ class RunOutputs:
     def snapshot(self, state: TrainState) -> None:
         """Render the held-out view at preview size (``snapshot_max_side``)."""
         t = time.perf_counter()
-        H, W, K = self.preview_camera()
+        H, W, K = self.preview
         img = render_view(state.model, state.model_fine, state.config, state.bounds, H, W, K,
                           self.snap_data.c2w[self.snap_view])["rgb"].cpu().numpy()
         self._measure(H * W, time.perf_counter() - t)
         self.add_snapshot(state.step, img)
-
-    def preview_camera(self) -> tuple[int, int, np.ndarray]:
-        d = self.snap_data
-        return preview_camera(d.H, d.W, d.K, self.clock.cfg.snapshot_max_side)
 
     def add_snapshot(self, step: int, img: np.ndarray) -> None:
         self.snapshots.append((step, img))
@@ -324,7 +321,7 @@ class RunOutputs:
         if kind == "checkpoints":
             return self.clock.last.get(kind, 0.0)
         if kind == "snapshots":
-            H, W, _ = self.preview_camera()
+            H, W, _ = self.preview
             return H * W * self.seconds_per_ray(rays_per_second)
         n = min(self.clock.cfg.n_eval_views, len(self.test))
         return n * self.test.H * self.test.W * self.seconds_per_ray(rays_per_second)
@@ -346,7 +343,7 @@ class RunOutputs:
         """Predicted time of the run's end: the final checkpoint and evaluation (or a snapshot without test views)."""
         spr = self.seconds_per_ray(rays_per_second)
         views = self.final_views(rays_per_second)
-        H, W, _ = self.preview_camera()
+        H, W, _ = self.preview
         ckpt = self.clock.last.get("checkpoints", 0.0) if self.ckpt is not None else 0.0
         return ckpt + (spr * self.test.H * self.test.W * len(views) if views else spr * H * W)
 
@@ -369,7 +366,7 @@ class RunOutputs:
             state.history["test_psnr"].append(mean)
             fresh = not self.snapshots or self.snapshots[-1][0] != state.step
             if fresh and self.snap_data is self.test and self.snap_view in views and state.config.snapshot_every:
-                H, W, _ = self.preview_camera()  # the final render of the snapshots' view, at their size
+                H, W, _ = self.preview  # the final render of the snapshots' view, at their size
                 self.add_snapshot(state.step, shrink(renders[views.index(self.snap_view)], H, W))
             if self.out is not None:
                 for i, img in zip(views, renders):
