@@ -8,7 +8,7 @@ measured in the same process, one thread, interleaved (A, B, A, B, ...) so that 
 machine's load hits both:
 
 * **sparse vs dense Adam**: training steps of the same state, one with the fast preset's
-  :class:`~course_lib.nerf.optim.SparseGridAdam` and one with the dense fused Adam (each on its own copy
+  :class:`~course_lib.nerf.optim.GridAdam` and one with the dense fused Adam (each on its own copy
   of the model and optimizer state), steps/s of each;
 * **render vs train**: rays/s of :func:`~course_lib.nerf.inference.render_view` (test views) and of
   training steps (``batch_rays`` per step), on the same model.

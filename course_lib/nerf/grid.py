@@ -20,6 +20,12 @@ Fields
 
 Speed-ups (each a few lines)
     * Only the box ``[box_min, box_max]`` is modelled; outside it sigma = 0.
+    * The feature grid is stored channels-last (``(1, C, D, H, W)`` in shape, voxel by voxel in
+      memory, :func:`voxel_rows`): a corner's C channels are one contiguous row, so the 8-corner
+      gathers of :class:`Trilinear` (training) and of the renders read rows instead of C scattered
+      values (5x faster for 12 channels at 3 M voxels), and a render reads the grid without a copy.
+    * The trainer keeps the grids' gradients and zeroes them (:meth:`GridField.write_grads_in_place`)
+      instead of allocating a new grid-sized tensor at every step.
     * Occupancy grid (empty-space skipping): a boolean copy of "density above a threshold",
       refreshed during training by :meth:`GridField.update_occupancy`; samples in empty voxels
       get sigma = 0 without touching the grids.
@@ -42,7 +48,7 @@ from torch.nn import functional as F
 from course_lib.nerf.encoding import encoded_dim, positional_encoding
 from course_lib.validate import KitInputError
 
-__all__ = ["GridField", "Trilinear", "grid_shape", "sh_basis"]
+__all__ = ["GridField", "Trilinear", "grid_shape", "sh_basis", "corners", "read_corners", "voxel_rows", "channels_last"]
 
 # real spherical harmonics (the constants of Plenoxels / svox2), divided by Y_0 so that the
 # view-independent term has weight 1 and an SH grid starts exactly as the RGB grid
@@ -73,20 +79,74 @@ def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
     return torch.stack(out, dim=-1) / _C0
 
 
+def voxel_rows(grid: torch.Tensor) -> torch.Tensor:
+    """The grid ``(1, C, D, H, W)`` voxel by voxel: ``(D H W, C)``, a view (writes go to the grid).
+
+    Stored channels-last (``torch.channels_last_3d``, as :class:`GridField` stores its feature
+    grid), a voxel's channels are one contiguous row, so gathering and scattering rows is fast.
+    """
+    return grid[0].permute(1, 2, 3, 0).view(-1, grid.shape[1])
+
+
+def channels_last(t: torch.Tensor) -> torch.Tensor:
+    """``t (1, C, D, H, W)`` stored channels-last: :func:`voxel_rows` of it is a view."""
+    return t.contiguous(memory_format=torch.channels_last_3d)
+
+
+def corners(shape: tuple, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The 8 corner voxels of points and their trilinear weights.
+
+    A point at voxel coordinates ``p = (x, y, z)`` lies in the cell whose lower corner is
+    ``floor(p)``; with ``f = p - floor(p)`` each of the cell's 8 corners ``c`` gets the weight
+    ``prod_k (f_k if c_k is the upper corner else 1 - f_k)``.
+
+    Args:
+        shape: ``(D, H, W)``. p: ``(N, 3)`` voxel coordinates (x along W; clamped to the grid).
+
+    Returns:
+        ``idx (N, 8)`` flat voxel indices and ``w (N, 8)`` weights (z, y, x corner order, x fastest).
+    """
+    D, H, W = shape
+    hi = torch.tensor([W - 1, H - 1, D - 1], dtype=p.dtype, device=p.device)
+    p = torch.minimum(p.clamp(min=0), hi)
+    i0 = torch.minimum(p.floor(), (hi - 1).clamp(min=0))  # lower corner (the last cell holds the far face)
+    f = p - i0
+    i0 = i0.long()
+    base = i0[:, 0] + W * i0[:, 1] + (H * W) * i0[:, 2]
+    offsets = torch.tensor([0, 1, W, W + 1, H * W, H * W + 1, H * W + W, H * W + W + 1], device=p.device)
+    idx = (base[:, None] + offsets).clamp(max=D * H * W - 1)
+    g = torch.stack([1 - f, f], dim=1)  # (N, 2, 3): the weights of the lower and upper corner per axis
+    w = (g[:, :, None, None, 2] * g[:, None, :, None, 1] * g[:, None, None, :, 0]).reshape(-1, 8)  # z, y, x order
+    return idx, w
+
+
+def read_corners(table: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """``(N, C)``: the rows ``idx (N, 8)`` of ``table (V, C)`` weighted by ``w (N, 8)`` (:func:`corners`)."""
+    vals = table.index_select(0, idx.reshape(-1)).reshape(idx.shape[0], 8, table.shape[1])  # (N, 8, C)
+    return torch.bmm(w[:, None, :].to(table.dtype), vals).squeeze(1)
+
+
 class Trilinear(torch.autograd.Function):
     """Trilinear interpolation of a voxel grid, written out: 8 corners, 8 weights, one gather.
 
-    A point at grid coordinates ``p = (x, y, z)`` (voxel units) lies in the cell whose lower corner
-    is ``floor(p)``; with ``f = p - floor(p)`` each of the cell's 8 corners ``c`` gets the weight
-    ``prod_k (f_k if c_k is the upper corner else 1 - f_k)`` and the value is the weighted sum of
-    the corners' values. The gradient with respect to the grid scatters the same weights back
-    (``index_add_``), and only the touched voxels' entries are non-zero.
+    The corners and weights are :func:`corners`'; the grid is read voxel by voxel
+    (:func:`voxel_rows`), so a corner's channels are one contiguous row. The gradient with respect
+    to the grid scatters the same weights back (``index_add_`` of rows), and only the touched
+    voxels' entries are non-zero.
 
     ``apply(grid (1, C, D, H, W), xyz (N, 3))`` with ``xyz`` in [-1, 1] (``x`` along W, corners at
     -1 and 1, as ``align_corners=True``) returns ``(N, C)``; points outside read 0. No gradient
-    flows to ``xyz``. A grid with a ``reads`` list (:meth:`GridField.track_reads`) gets the flat
-    voxel indices ``(8 N,)`` of the corners appended to it by the backward pass (what a sparse
-    optimizer updates, :class:`course_lib.nerf.optim.SparseGridAdam`).
+    flows to ``xyz``.
+
+    Two options for training, set as attributes of the grid (:class:`GridField` sets them):
+
+    * ``grid.reads``, a list: the backward pass appends the flat voxel indices ``(8 N,)`` of the
+      corners to it (what a sparse optimizer updates, :class:`course_lib.nerf.optim.GridAdam`);
+    * ``grid.grad_in_place = True`` (a channels-last leaf): the backward pass adds the gradient
+      straight into ``grid.grad`` (made once, then kept: the trainer zeroes it instead of freeing
+      it) instead of returning a new dense tensor of the grid's size, which costs a fresh
+      allocation of the whole grid at every step. ``backward()`` then works as usual;
+      ``torch.autograd.grad`` with respect to such a grid does not.
     """
 
     @staticmethod
@@ -95,33 +155,30 @@ class Trilinear(torch.autograd.Function):
         hi = torch.tensor([W - 1, H - 1, D - 1], dtype=xyz.dtype, device=xyz.device)
         p = (xyz + 1.0) * 0.5 * hi  # grid coordinates, voxel units
         inside = ((p >= 0) & (p <= hi)).all(dim=-1)
-        p = torch.minimum(p.clamp(min=0), hi)
-        i0 = torch.minimum(p.floor(), (hi - 1).clamp(min=0))  # lower corner (the last cell holds the far face)
-        f = p - i0
-        i0 = i0.long()
-        base = i0[:, 0] + W * i0[:, 1] + (H * W) * i0[:, 2]
-        offsets = torch.tensor([0, 1, W, W + 1, H * W, H * W + 1, H * W + W, H * W + W + 1], device=xyz.device)
-        idx = (base[None, :] + offsets[:, None]).clamp(max=D * H * W - 1).reshape(-1)  # (8 N,) corner by corner
-        fx, fy, fz = f.unbind(-1)
-        wx, wy = torch.stack([1 - fx, fx]), torch.stack([1 - fy, fy])
-        wz = torch.stack([1 - fz, fz]) * inside
-        w = (wz[:, None, None] * wy[None, :, None] * wx[None, None, :]).reshape(8, -1).to(grid.dtype)  # (8, N)
-        flat = grid.reshape(C, -1)
-        vals = flat.index_select(1, idx).reshape(C, 8, -1)
+        idx, w = corners((D, H, W), p)
+        w = (w * inside[:, None]).to(grid.dtype)
         ctx.save_for_backward(idx, w)
         ctx.grid_shape, ctx.reads = grid.shape, getattr(grid, "reads", None)
-        return (vals * w).sum(dim=1).T
+        ctx.in_place = grid if getattr(grid, "grad_in_place", False) else None
+        return read_corners(voxel_rows(grid), idx, w)
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):
         idx, w = ctx.saved_tensors
-        C = ctx.grid_shape[1]
-        contrib = (grad_out.T[:, None, :] * w).reshape(C, -1)
-        grad = torch.zeros(C, math.prod(ctx.grid_shape[2:]), dtype=grad_out.dtype, device=grad_out.device)
-        grad.index_add_(1, idx, contrib)
+        _, C, D, H, W = ctx.grid_shape
+        contrib = (w[:, :, None] * grad_out[:, None, :]).reshape(-1, C)  # (8 N, C), corner rows
+        idx = idx.reshape(-1)
         if ctx.reads is not None:
             ctx.reads.append(idx)
-        return grad.reshape(ctx.grid_shape), None
+        grid = ctx.in_place
+        if grid is not None:
+            if grid.grad is None:
+                grid.grad = torch.zeros_like(grid)  # the grid's layout
+            voxel_rows(grid.grad).index_add_(0, idx, contrib)
+            return None, None
+        grad = channels_last(grad_out.new_zeros(1, C, D, H, W))
+        voxel_rows(grad).index_add_(0, idx, contrib)
+        return grad, None
 
 
 def grid_shape(box_min, box_max, resolution: int) -> tuple[int, int, int]:
@@ -166,7 +223,7 @@ class GridField(nn.Module):
         shape = grid_shape(box_min, box_max, resolution)
         self.resolution = int(resolution)
         self.density_grid = nn.Parameter(torch.zeros(1, 1, *shape))
-        self.feature_grid = nn.Parameter(torch.zeros(1, self.feature_dim, *shape))
+        self.feature_grid = nn.Parameter(channels_last(torch.zeros(1, self.feature_dim, *shape)))  # voxel_rows: a view
         self.register_buffer("occupancy", torch.ones(shape, dtype=torch.bool))
         if self.mlp_width > 0:
             n_in = self.feature_dim + encoded_dim(3, dir_freqs)
@@ -307,7 +364,7 @@ class GridField(nn.Module):
         feats = torch.cat([self._sample(self.feature_grid.data, c) for c in xyz.split(1 << 19)])  # (N, C)
         self.box_min, self.box_max, self.resolution = new_min, new_max, int(resolution)
         self.density_grid = nn.Parameter(raw.reshape(1, 1, *shape).contiguous())
-        self.feature_grid = nn.Parameter(feats.T.reshape(1, -1, *shape).contiguous())
+        self.feature_grid = nn.Parameter(feats.reshape(1, *shape, -1).permute(0, 4, 1, 2, 3))  # channels-last
         self.occupancy = torch.ones(shape, dtype=torch.bool, device=new_min.device)
 
     @torch.no_grad()
@@ -324,7 +381,7 @@ class GridField(nn.Module):
             raise KitInputError(f"enable_sh({degree}): expected degree 1 or 2")
         feats = self.feature_grid.data
         extra = torch.zeros(1, 3 * ((degree + 1) ** 2 - 1), *feats.shape[2:], dtype=feats.dtype, device=feats.device)
-        self.feature_grid = nn.Parameter(torch.cat([feats, extra], dim=1))
+        self.feature_grid = nn.Parameter(channels_last(torch.cat([feats, extra], dim=1)))
         self.sh_degree, self.feature_dim = int(degree), 3 * (degree + 1) ** 2
 
     def upsample(self, resolution: int) -> None:
@@ -356,6 +413,16 @@ class GridField(nn.Module):
         """
         for g in (self.density_grid, self.feature_grid):
             g.reads = [] if on else None
+
+    def write_grads_in_place(self, on: bool = True) -> None:
+        """Let :class:`Trilinear`'s backward pass add the grids' gradients straight into their ``.grad``.
+
+        For training loops that zero the gradients (``zero_grad(set_to_none=False)``) instead of
+        freeing them: a step then costs no fresh allocation of the grids' size. Call it again after
+        :meth:`rebox` / :meth:`enable_sh` (they make new parameters).
+        """
+        for g in (self.density_grid, self.feature_grid):
+            g.grad_in_place = bool(on)
 
     @torch.no_grad()
     def take_reads(self) -> dict:

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from course_lib.nerf.device import render_chunk
-from course_lib.nerf.grid import GridField
+from course_lib.nerf.grid import GridField, corners, read_corners, voxel_rows
 from course_lib.nerf.rays import get_rays
 from course_lib.nerf.render import LAST_DELTA, render_chunked
 from course_lib.validate import KitInputError
@@ -99,8 +99,7 @@ def trilinear_rows(table: torch.Tensor, shape: tuple, xyz: torch.Tensor) -> torc
 
     The grid is stored voxel by voxel (``table (D H W, C)``, channels last), so the 8 corners of a
     point are 8 rows of C contiguous values: one gather, then one small matrix product per point
-    with the 8 weights. (Training keeps the grids channel by channel, ``(1, C, D, H, W)``, whose
-    gradients ``index_add_`` writes fast; a render reads far more than it writes.)
+    with the 8 weights (:func:`~course_lib.nerf.grid.corners`, :func:`~course_lib.nerf.grid.read_corners`).
 
     Args:
         table: ``(D H W, C)``. shape: ``(D, H, W)``. xyz: ``(N, 3)`` grid coordinates in [-1, 1] (x along W).
@@ -113,39 +112,12 @@ def trilinear_rows(table: torch.Tensor, shape: tuple, xyz: torch.Tensor) -> torc
     return read_corners(table, *corners(shape, (xyz + 1.0) * 0.5 * hi))
 
 
-def corners(shape: tuple, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The 8 corner voxels of points and their trilinear weights (the rule of :class:`~course_lib.nerf.grid.Trilinear`).
-
-    Args:
-        shape: ``(D, H, W)``. p: ``(N, 3)`` voxel coordinates (x along W; clamped to the grid).
-
-    Returns:
-        ``idx (N, 8)`` flat voxel indices and ``w (N, 8)`` weights (z, y, x corner order).
-    """
-    D, H, W = shape
-    hi = torch.tensor([W - 1, H - 1, D - 1], dtype=p.dtype, device=p.device)
-    p = torch.minimum(p.clamp(min=0), hi)
-    i0 = torch.minimum(p.floor(), (hi - 1).clamp(min=0))
-    f = p - i0
-    i0 = i0.long()
-    base = i0[:, 0] + W * i0[:, 1] + (H * W) * i0[:, 2]
-    offsets = torch.tensor([0, 1, W, W + 1, H * W, H * W + 1, H * W + W, H * W + W + 1], device=p.device)
-    idx = (base[:, None] + offsets).clamp(max=D * H * W - 1)
-    g = torch.stack([1 - f, f], dim=1)  # (N, 2, 3): the weights of the lower and upper corner per axis
-    w = (g[:, :, None, None, 2] * g[:, None, :, None, 1] * g[:, None, None, :, 0]).reshape(-1, 8)  # z, y, x order
-    return idx, w
-
-
-def read_corners(table: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """``(N, C)``: the rows ``idx (N, 8)`` of ``table (V, C)`` weighted by ``w (N, 8)`` (:func:`corners`)."""
-    vals = table.index_select(0, idx.reshape(-1)).reshape(idx.shape[0], 8, table.shape[1])  # (N, 8, C)
-    return torch.bmm(w[:, None, :].to(table.dtype), vals).squeeze(1)
-
-
 def grid_tables(field: GridField) -> tuple[torch.Tensor, torch.Tensor]:
-    """The field's density and feature grids voxel-major (``(V, 1)``, ``(V, C)``), for :func:`read_corners`."""
-    return (field.density_grid.detach().reshape(-1, 1),
-            field.feature_grid.detach()[0].reshape(field.feature_grid.shape[1], -1).T.contiguous())
+    """The field's density and feature grids voxel-major (``(V, 1)``, ``(V, C)``), for :func:`read_corners`.
+
+    Views of the grids (:func:`~course_lib.nerf.grid.voxel_rows`: they are stored channels-last).
+    """
+    return voxel_rows(field.density_grid.detach()), voxel_rows(field.feature_grid.detach())
 
 
 def _ray_interval(field: GridField, rays_o, rays_d, s: RenderSettings):

@@ -65,7 +65,7 @@ class TrainConfig:
         batch_rays: random rays per step (across all training images). lr, lr_final: Adam
             learning rate, decayed exponentially over the run (MLP: lr; grid: grid_lr / mlp lr).
         grid_lr, grid_lr_final: learning rate of the voxel grids. tv_weight: density TV prior.
-        grid_sparse_adam: update only the voxels each step read (:class:`course_lib.nerf.optim.SparseGridAdam`,
+        grid_sparse_adam: update only the voxels each step read (:class:`course_lib.nerf.optim.GridAdam`,
             lazy Adam; the TV prior then acts on those voxels too) instead of a dense Adam over the grids.
         seed: torch Generator seed (rays, jitter, initial weights).
         threads: torch.set_num_threads (0: torch's default; -1: auto, 1 thread on a busy machine).

@@ -47,7 +47,7 @@ from course_lib.nerf.device import device_name, pick_device
 from course_lib.nerf.grid import GridField
 from course_lib.nerf.inference import (RenderSettings, circular_path, evaluate, preview_camera, render_path,
                                        render_view, save_gif, save_png, shrink, spread_views)
-from course_lib.nerf.optim import SparseGridAdam
+from course_lib.nerf.optim import GridAdam
 from course_lib.nerf.presets import TrainConfig, preset, resolve
 from course_lib.nerf.render import LAST_DELTA, render_rays
 from course_lib.nerf.scene import SceneBounds, TrainingRays, scene_bounds
@@ -137,25 +137,24 @@ class TrainState:
 def make_optimizer(cfg: TrainConfig, model, model_fine) -> torch.optim.Optimizer:
     """Adam: grid values at ``grid_lr``, network weights at ``lr``.
 
-    With ``cfg.grid_sparse_adam`` the grids get :class:`~course_lib.nerf.optim.SparseGridAdam`:
-    only the voxels that the step read are updated (the grid records its reads,
-    :meth:`GridField.track_reads`). Otherwise, on a CPU or a CUDA GPU, the fused implementation
-    (one pass over the memory instead of several) runs the dense update: it touches every voxel,
-    and fused it costs about a quarter of the time on a CPU (4 M values: 6 ms instead of 29 ms).
+    A grid model gets :class:`~course_lib.nerf.optim.GridAdam`: dense Adam over the grids' voxel
+    rows, fused (one pass over the memory instead of several: about a quarter of the time on a
+    CPU), or with ``cfg.grid_sparse_adam`` only the voxels that the step read (the grid records its
+    reads, :meth:`GridField.track_reads`). The grids' gradients are written in place
+    (:meth:`GridField.write_grads_in_place`; :func:`train_step` zeroes them instead of freeing them).
+    The MLP gets ``torch.optim.Adam``, fused on a CPU or a CUDA GPU.
     """
     device = next(model.parameters()).device
     fused = True if device.type in ("cpu", "cuda") else None
     if isinstance(model, GridField):
         sparse = bool(cfg.grid_sparse_adam)
         model.track_reads(sparse)
-        groups = [{"params": [model.density_grid, model.feature_grid], "lr": cfg.grid_lr, "kind": "grid",
-                   **({"sparse": True} if sparse else {})}]
+        model.write_grads_in_place()
+        groups = [{"params": [model.density_grid, model.feature_grid], "lr": cfg.grid_lr, "kind": "grid", "sparse": sparse}]
         rest = [p for n, p in model.named_parameters() if not n.endswith("_grid")]
         if rest:
             groups.append({"params": rest, "lr": cfg.lr, "kind": "mlp"})
-        if sparse:
-            return SparseGridAdam(groups, betas=(0.9, 0.99))
-        return torch.optim.Adam(groups, betas=(0.9, 0.99), fused=fused)
+        return GridAdam(groups, betas=(0.9, 0.99))
     params = list(model.parameters()) + (list(model_fine.parameters()) if model_fine is not None else [])
     return torch.optim.Adam([{"params": params, "lr": cfg.lr, "kind": "mlp"}], betas=(0.9, 0.999), fused=fused)
 
@@ -185,9 +184,9 @@ def train_step(state: TrainState) -> tuple[torch.Tensor, torch.Tensor]:
                       color_threshold=cfg.color_threshold, last_delta=None if isinstance(model, GridField) else LAST_DELTA)
     mse = F.mse_loss(out["rgb_map"], rgb_true)
     loss = mse + (F.mse_loss(out["rgb_map_coarse"], rgb_true) if "rgb_map_coarse" in out else 0.0)
-    state.optimizer.zero_grad(set_to_none=True)
+    state.optimizer.zero_grad(set_to_none=not isinstance(model, GridField))  # a grid's gradient is kept, zeroed
     loss.backward()
-    sparse = isinstance(state.optimizer, SparseGridAdam)
+    sparse = any(g.get("sparse") for g in state.optimizer.param_groups)
     reads = model.take_reads() if sparse else {}  # {grid: the voxels this step read}
     if isinstance(model, GridField) and cfg.tv_weight > 0:  # + tv_weight * TV(density), its gradient written out
         voxels = reads.get(model.density_grid, torch.zeros(0, dtype=torch.long, device=o.device)) if sparse else None

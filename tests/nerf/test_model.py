@@ -44,15 +44,16 @@ def test_errors():
 # ------------------------------------------------------------------ the grid field of the fast preset
 
 
+@pytest.mark.parametrize("layout", [torch.contiguous_format, torch.channels_last_3d])
 @pytest.mark.parametrize("shape", [(1, 1, 7, 5, 3), (1, 3, 10, 12, 9), (1, 12, 4, 6, 5), (1, 2, 1, 4, 4)])
-def test_trilinear_written_out_equals_grid_sample(shape):
+def test_trilinear_written_out_equals_grid_sample(shape, layout):
     """The grid's gather-based trilinear interpolation: grid_sample's values and gradients (corners, faces, inside)."""
     from torch.nn import functional as F
 
     from course_lib.nerf.grid import Trilinear
 
     gen = torch.Generator().manual_seed(0)
-    grid = torch.randn(*shape, dtype=torch.float64, generator=gen, requires_grad=True)
+    grid = torch.randn(*shape, dtype=torch.float64, generator=gen).contiguous(memory_format=layout).requires_grad_()
     xyz = torch.rand(300, 3, dtype=torch.float64, generator=gen) * 2 - 1
     xyz[:6] = torch.tensor([[-1, -1, -1], [1, 1, 1], [1, -1, 1], [0, 0, 0], [-1, 1, -1], [1, 0.3, -0.2]], dtype=torch.float64)
     ref = F.grid_sample(grid, xyz.reshape(1, -1, 1, 1, 3), mode="bilinear", align_corners=True).reshape(shape[1], -1).T
@@ -64,6 +65,34 @@ def test_trilinear_written_out_equals_grid_sample(shape):
     torch.testing.assert_close(g_out, g_ref, rtol=1e-12, atol=1e-12)
     # points outside the grid read 0
     assert Trilinear.apply(grid, torch.tensor([[1.5, 0.0, 0.0], [0.0, -3.0, 0.0]], dtype=torch.float64)).abs().max() == 0
+
+
+def test_grid_gradients_written_in_place_are_autograd_ones():
+    """write_grads_in_place: backward adds into the kept .grad (no new grid-sized tensor), same values, accumulating."""
+    from course_lib.nerf.grid import GridField
+
+    gen = torch.Generator().manual_seed(5)
+    ref, fast = (GridField([-1, -1, -1], [1, 1.5, 1], resolution=9, sh_degree=1) for _ in range(2))
+    with torch.no_grad():
+        for g in (ref.density_grid, ref.feature_grid):
+            g.normal_(generator=gen)
+    fast.load_state_dict(ref.state_dict())
+    assert fast.feature_grid.is_contiguous(memory_format=torch.channels_last_3d)
+    fast.write_grads_in_place()
+    pts = torch.rand(400, 3, generator=gen) * 2 - 1
+    dirs = torch.nn.functional.normalize(torch.randn(400, 3, generator=gen), dim=-1)
+    for _ in range(2):  # the second backward accumulates, as autograd does
+        for f in (ref, fast):
+            rgb, sigma = f(pts, dirs)
+            (rgb.square().sum() + sigma.sum()).backward()
+    kept = fast.feature_grid.grad
+    for a, b in ((ref.density_grid, fast.density_grid), (ref.feature_grid, fast.feature_grid)):
+        torch.testing.assert_close(b.grad, a.grad, rtol=1e-5, atol=1e-6)
+    fast.zero_grad(set_to_none=False)
+    rgb, sigma = fast(pts, dirs)
+    (rgb.square().sum() + sigma.sum()).backward()
+    assert fast.feature_grid.grad is kept  # the same buffer, zeroed and written again
+    torch.testing.assert_close(kept, ref.feature_grid.grad / 2, rtol=1e-5, atol=1e-6)
 
 
 def test_grid_total_variation_gradient_written_out_equals_autograd():

@@ -84,7 +84,7 @@ def test_grid_training_lowers_the_loss(scene, tmp_path):
 
 def test_grid_training_with_sparse_adam(scene):
     # lazy Adam on the voxels each step read (and the TV prior on them): the loss falls as with dense Adam
-    from course_lib.nerf.optim import SparseGridAdam
+    from course_lib.nerf.optim import GridAdam
 
     cfg = preset("fast", iters=60, minutes=None, batch_rays=512, n_samples=48, snapshot_every=0, checkpoint_every=0,
                  occupancy_start=1 / 3, occupancy_every=10, grid_schedule=((0, 2 / 3), (1 / 3, 1.0)), grid_resolution=24,
@@ -97,7 +97,7 @@ def test_grid_training_with_sparse_adam(scene):
     assert res.model.density_grid.reads == [] and len(seen) == 60  # every step's reads were used
     from course_lib.nerf.train import make_optimizer
 
-    assert isinstance(make_optimizer(res.config, res.model, None), SparseGridAdam)
+    assert isinstance(make_optimizer(res.config, res.model, None), GridAdam)
 
 
 def test_overhead_budget_defers_snapshots(scene):
