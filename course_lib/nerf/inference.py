@@ -44,8 +44,9 @@ __all__ = ["RenderSettings", "trilinear_rows", "corners", "read_corners", "grid_
 
 #: a ray whose transmittance is below this leaves the march (its colour can change by less than that)
 MIN_TRANSMITTANCE = 1e-4
-#: samples per ray marched at once (between two early-termination tests)
-SEGMENT = 16
+#: samples per ray marched at once (between two early-termination tests). The building at 400 px
+#: (139 samples per ray), 2 CPU threads: 4 -> 106 k rays/s, 8 -> 110-115 k, 16 -> 92 k, 32 -> 89 k
+SEGMENT = 8
 #: rays per forward-only chunk on a CPU (the march keeps ``SEGMENT`` samples per ray at once)
 CPU_FORWARD_CHUNK = 16384
 
