@@ -330,9 +330,15 @@ class GridField(nn.Module):
     # ------------------------------------------------------------------ training helpers
     @torch.no_grad()
     def update_occupancy(self, threshold: float = 1e-3, dilate: int = 1) -> float:
-        """Mark voxels whose opacity over one voxel exceeds ``threshold`` (dilated); returns the occupied fraction."""
+        """Mark the voxels whose opacity over one voxel reaches ``threshold`` (dilated); returns the occupied fraction.
+
+        Where the grid's mean one-voxel opacity is lower than ``threshold`` (a density still
+        forming, a grid that starts transparent), the mean is the threshold instead (Instant-NGP's
+        rule), so the occupancy never empties: a sample in an unoccupied voxel gets no gradient,
+        and an empty grid could never learn again.
+        """
         alpha = 1.0 - torch.exp(-F.softplus(self.density_grid + self.shift))  # opacity of one voxel length
-        occ = (alpha > threshold).float()
+        occ = (alpha >= min(float(threshold), float(alpha.mean()))).float()
         if dilate > 0:
             k = 2 * dilate + 1
             occ = F.max_pool3d(occ, kernel_size=k, stride=1, padding=dilate)

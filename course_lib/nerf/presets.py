@@ -4,7 +4,8 @@
     an MLP, with the usual speed-ups: only the scene's box is sampled (ray-box bounds), a coarse
     grid first (40 % of the final resolution); at 6 % of the run the grid is resampled into the box
     around the surfaces the rays hit (:func:`course_lib.nerf.schedule.surface_box`) at 80 %, at
-    15 % refined to the final resolution; an occupancy grid skips empty space; colours only where
+    15 % refined to the final resolution; an occupancy grid skips empty space (and the faint fog of
+    voxels whose opacity stays below 1 %); colours only where
     the weight is > 1e-4; a small density total-variation prior (its gradient written out); fused
     Adam at a high learning rate (0.1 decaying to 0.01) on 2048-ray batches. Colour is an RGB grid
     (view-independent, cheap steps) for the first 45 % of the run, then spherical harmonics of
@@ -178,7 +179,7 @@ PRESETS: dict[str, TrainConfig] = {
         preset="fast", model="grid", grid_resolution=0, grid_schedule=((0.0, 0.4), (0.06, 0.8), (0.15, 1.0)),
         shrink_box_at=0.06, grid_mlp_width=0, alpha_init=1e-2, n_samples=0, color_threshold=1e-4,
         grid_sh_degree=1, grid_sh_start=0.45,
-        occupancy_every=50, occupancy_start=0.03, occupancy_threshold=1e-3, batch_rays=2048, lr=1e-3, lr_final=1e-4,
+        occupancy_every=50, occupancy_start=0.03, occupancy_threshold=1e-2, batch_rays=2048, lr=1e-3, lr_final=1e-4,
         grid_lr=0.1, grid_lr_final=0.01, tv_weight=1e-4, threads=-1, snapshot_every=100, checkpoint_every=200,
         eval_every=0,
     ),

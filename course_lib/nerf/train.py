@@ -185,7 +185,8 @@ def train_step(state: TrainState) -> tuple[torch.Tensor, torch.Tensor]:
     mse = F.mse_loss(out["rgb_map"], rgb_true)
     loss = mse + (F.mse_loss(out["rgb_map_coarse"], rgb_true) if "rgb_map_coarse" in out else 0.0)
     state.optimizer.zero_grad(set_to_none=not isinstance(model, GridField))  # a grid's gradient is kept, zeroed
-    loss.backward()
+    if loss.requires_grad:  # else no sample of the batch was in an occupied voxel: nothing to learn from it
+        loss.backward()
     sparse = any(g.get("sparse") for g in state.optimizer.param_groups)
     reads = model.take_reads() if sparse else {}  # {grid: the voxels this step read}
     if isinstance(model, GridField) and cfg.tv_weight > 0:  # + tv_weight * TV(density), its gradient written out
