@@ -131,17 +131,17 @@ def _ray_interval(field: GridField, rays_o, rays_d, s: RenderSettings):
     return t0, t1
 
 
-def _voxel_coordinates(field: GridField, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """World points ``pts (N, 3)`` -> voxel coordinates ``p (N, 3)`` (x along W) and ``inside (N,)``.
+def _voxel_rays(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rays in voxel units: ``(a, b)`` with ``a + b t`` the voxel coordinates (x along W) of the point at depth ``t``.
 
-    The arithmetic of training (:meth:`GridField.normalized`, then :class:`~course_lib.nerf.grid.Trilinear`'s
-    ``(xyz + 1) 0.5 hi``) operation for operation, so that a sample on a voxel boundary falls on the
-    same side in a render as in training.
+    :meth:`GridField.normalized` followed by :class:`~course_lib.nerf.grid.Trilinear`'s
+    ``(xyz + 1) 0.5 hi`` is ``(x - box_min) / voxel_size``; for the points of a ray that is an
+    affine function of the depth, so a sample costs one multiply-add per axis instead of eight
+    operations. (Rounding makes a sample within about 1e-6 voxel of a voxel boundary fall on
+    either side, in a render as in training.)
     """
-    D, H, W = field.shape
-    xyz = field.normalized(pts)
-    inside = ((xyz >= -1.0) & (xyz <= 1.0)).all(dim=-1)
-    return (xyz + 1.0) * 0.5 * torch.tensor([W - 1, H - 1, D - 1], dtype=pts.dtype, device=pts.device), inside
+    vs = field.voxel_size
+    return (rays_o - field.box_min) / vs, rays_d / vs
 
 
 def _occupied_samples(field: GridField, occupancy: torch.Tensor, p: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
@@ -193,13 +193,16 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
     density_table, feature_table = grid_tables(field) if tables is None else tables
     density_flat = density_table.reshape(-1)
     occupancy, threshold = field.occupancy.reshape(-1), max(s.color_threshold, 0.0)
+    ray_a, ray_b = _voxel_rays(field, rays_o, rays_d)
+    hi = torch.tensor([W - 1 for W in field.shape[::-1]], dtype=rays_o.dtype, device=rays_o.device)
     for first in range(0, S, segment):
         if alive.numel() == 0:
             break
         L = min(segment, S - first)
         u = ((first + offsets[:L]) / (S - 1))[None, :]  # the depths of stratified_samples, bit for bit
         z = t0[alive, None] * (1.0 - u) + t1[alive, None] * u  # (A, L)
-        p, inside = _voxel_coordinates(field, (rays_o[alive, None, :] + rays_d[alive, None, :] * z[..., None]).reshape(-1, 3))
+        p = torch.addcmul(ray_a[alive, None, :], ray_b[alive, None, :], z[..., None]).reshape(-1, 3)
+        inside = ((p >= 0) & (p <= hi)).all(dim=-1)
         sel = _occupied_samples(field, occupancy, p, inside)
         sigma = z.new_zeros(z.numel())
         if sel.numel():
