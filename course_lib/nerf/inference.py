@@ -11,9 +11,10 @@ so a render shows exactly what the loss saw), and skips what cannot change the p
 * **empty space**: a sample in a voxel that the occupancy grid marks empty has sigma = 0 and
   costs its position and one look-up in the flat occupancy table, no trilinear interpolation;
 * **corners read once**: an occupied sample's 8 corners and weights (:func:`corners`) serve its
-  density and, where its weight counts, its colour; the grids are read from voxel-major copies
-  (:func:`grid_tables`, made once per :func:`render_views` / :func:`evaluate` call), so a
-  corner's channels are one contiguous row;
+  density and, where its weight counts, its colour; the grids are read voxel by voxel
+  (:func:`grid_tables`: views of the channels-last grids), so a corner's channels are one
+  contiguous row;
+* **a sample's position in voxel units** is one multiply-add per axis (:func:`_voxel_rays`);
 * **early ray termination**: once a ray's transmittance ``T`` falls below ``min_transmittance``
   (1e-4) nothing behind can add more than that to its colour, and the ray leaves the march;
 * **colour only where it counts**: a sample's colour is read only where its weight exceeds
