@@ -247,7 +247,7 @@ def render_rays_forward(model, model_fine, rays_o: torch.Tensor, rays_d: torch.T
         return render_chunked(model, rays_o, rays_d, None, None, s.n_samples, s.n_importance, model_fine,
                               white_background=s.white_background, chunk=chunk, color_threshold=s.color_threshold,
                               ray_bounds=bounds, last_delta=LAST_DELTA)
-    tables = grid_tables(model) if tables is None else tables  # once per call: a voxel-major copy of the grids
+    tables = grid_tables(model) if tables is None else tables  # voxel-major views of the grids
     parts = [march_grid(model, rays_o[i:i + chunk], rays_d[i:i + chunk], s, tables=tables)
              for i in range(0, rays_o.shape[0], chunk)]
     return {k: torch.cat([p[k] for p in parts]) for k in ("rgb_map", "depth_map", "acc_map")}
