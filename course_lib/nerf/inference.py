@@ -145,13 +145,14 @@ def _voxel_rays(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor) ->
     return (rays_o - field.box_min) / vs, rays_d / vs
 
 
-def _occupied_samples(field: GridField, occupancy: torch.Tensor, p: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
+def _occupied_samples(field: GridField, occupancy: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """Indices ``(n,)`` of the points ``p (N, 3)`` (voxel coordinates) inside the grid whose nearest voxel is occupied.
 
     The rule of :meth:`GridField.occupied`, on a flat ``occupancy (D H W,)`` table: one look-up per point.
     """
     D, H, W = field.shape
     hi = torch.tensor([W - 1, H - 1, D - 1], dtype=p.dtype, device=p.device)
+    inside = ((p >= 0) & (p <= hi)).all(dim=-1)
     q = torch.minimum(p.round().clamp(min=0), hi).long()
     occ = occupancy[q[:, 0] + W * q[:, 1] + (H * W) * q[:, 2]] & inside
     return torch.nonzero(occ).squeeze(1)
@@ -175,7 +176,7 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
         min_transmittance: rays whose transmittance falls below it stop.
         segment: samples per ray marched between two termination tests.
         tables: the field's voxel-major ``(density (V, 1), features (V, C))`` tables (:func:`grid_tables`;
-            made here when None: pass them when marching many chunks of rays).
+            made here when None).
 
     Returns:
         dict with ``rgb_map (R, 3)`` (in [0, 1]), ``depth_map (R,)``, ``acc_map (R,)`` and
@@ -195,7 +196,6 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
     density_flat = density_table.reshape(-1)
     occupancy, threshold = field.occupancy.reshape(-1), max(s.color_threshold, 0.0)
     ray_a, ray_b = _voxel_rays(field, rays_o, rays_d)
-    hi = torch.tensor([W - 1 for W in field.shape[::-1]], dtype=rays_o.dtype, device=rays_o.device)
     for first in range(0, S, segment):
         if alive.numel() == 0:
             break
@@ -203,8 +203,7 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
         u = ((first + offsets[:L]) / (S - 1))[None, :]  # the depths of stratified_samples, bit for bit
         z = t0[alive, None] * (1.0 - u) + t1[alive, None] * u  # (A, L)
         p = torch.addcmul(ray_a[alive, None, :], ray_b[alive, None, :], z[..., None]).reshape(-1, 3)
-        inside = ((p >= 0) & (p <= hi)).all(dim=-1)
-        sel = _occupied_samples(field, occupancy, p, inside)
+        sel = _occupied_samples(field, occupancy, p)
         sigma = z.new_zeros(z.numel())
         if sel.numel():
             idx, wc = corners(field.shape, p[sel])
@@ -284,7 +283,8 @@ def render_view(model, model_fine, cfg, bounds, H: int, W: int, K, c2w, tables=N
 def render_views(model, model_fine, cfg, bounds, H: int, W: int, K, c2ws):
     """Render several views, one after the other: yields ``(H, W, 3)`` rgb tensors on the model's device.
 
-    A grid field's voxel-major tables are made once for all the views (the field must not change meanwhile).
+    A grid field's voxel-major tables (views of its grids) are taken once for all the views (the field must
+    not change meanwhile).
     """
     tables = grid_tables(model) if isinstance(model, GridField) else None
     for c2w in c2ws:

@@ -139,7 +139,7 @@ class GridAdam(torch.optim.Optimizer):
 def _flat(t: torch.Tensor) -> torch.Tensor:
     """``t`` as a contiguous tensor over the same memory: a channels-last grid's voxel rows, else ``t``."""
     if t.dim() == 5 and not t.is_contiguous() and t.is_contiguous(memory_format=torch.channels_last_3d):
-        return t.permute(0, 2, 3, 4, 1)
+        return voxel_rows(t)
     return t
 
 
