@@ -9,7 +9,8 @@ so a render shows exactly what the loss saw), and skips what cannot change the p
 * **no autograd** (``torch.inference_mode``): no graph, no saved tensors;
 * **rays that miss the box** are background at once;
 * **empty space**: a sample in a voxel that the occupancy grid marks empty has sigma = 0 and
-  costs its position and one look-up in the flat occupancy table, no trilinear interpolation;
+  costs its position and one look-up in the occupancy table (padded with empty voxels, so no
+  inside test), no trilinear interpolation;
 * **corners read once**: an occupied sample's 8 corners and weights (:func:`corners`) serve its
   density and, where its weight counts, its colour; the grids are read voxel by voxel
   (:func:`grid_tables`: views of the channels-last grids), so a corner's channels are one
@@ -145,17 +146,32 @@ def _voxel_rays(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor) ->
     return (rays_o - field.box_min) / vs, rays_d / vs
 
 
-def _occupied_samples(field: GridField, occupancy: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-    """Indices ``(n,)`` of the points ``p (N, 3)`` (voxel coordinates) inside the grid whose nearest voxel is occupied.
+def _occupancy_test(field: GridField, in_box: bool):
+    """A function ``p (N, 3) -> (n,)``: the indices of the points ``p`` (voxel coordinates) in occupied voxels.
 
-    The rule of :meth:`GridField.occupied`, on a flat ``occupancy (D H W,)`` table: one look-up per point.
+    The rule of :meth:`GridField.occupied` (inside the grid, and its nearest voxel occupied), with
+    one look-up per point in the occupancy grid padded by one empty voxel on every side: a point
+    clamped to the padding reads "empty", so there is no inside test, only where the samples may
+    leave the box (``in_box=False``: samples between the scene's near and far).
     """
     D, H, W = field.shape
-    hi = torch.tensor([W - 1, H - 1, D - 1], dtype=p.dtype, device=p.device)
-    inside = ((p >= 0) & (p <= hi)).all(dim=-1)
-    q = torch.minimum(p.round().clamp(min=0), hi).long()
-    occ = occupancy[q[:, 0] + W * q[:, 1] + (H * W) * q[:, 2]] & inside
-    return torch.nonzero(occ).squeeze(1)
+    dev, dt = field.occupancy.device, field.density_grid.dtype
+    table = torch.zeros(D + 2, H + 2, W + 2, dtype=torch.bool, device=dev)
+    table[1:-1, 1:-1, 1:-1] = field.occupancy
+    table = table.reshape(-1)
+    lo = torch.full((3,), -1.0, dtype=dt, device=dev)
+    hi = torch.tensor([W, H, D], dtype=dt, device=dev)  # one past the last voxel: the padding
+    strides = torch.tensor([1, W + 2, (H + 2) * (W + 2)], device=dev)
+    first = int(strides.sum())  # voxel (0, 0, 0) in the padded table
+
+    def occupied(p: torch.Tensor) -> torch.Tensor:
+        q = torch.clamp(p, lo, hi).round_().long()
+        occ = table[(q * strides).sum(dim=1).add_(first)]
+        if not in_box:
+            occ &= ((p >= 0) & (p <= hi - 1)).all(dim=-1)
+        return torch.nonzero(occ).squeeze(1)
+
+    return occupied
 
 
 @torch.inference_mode()
@@ -194,7 +210,7 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
     offsets = torch.arange(segment, device=rays_o.device, dtype=rays_o.dtype)
     density_table, feature_table = grid_tables(field) if tables is None else tables
     density_flat = density_table.reshape(-1)
-    occupancy, threshold = field.occupancy.reshape(-1), max(s.color_threshold, 0.0)
+    occupied, threshold = _occupancy_test(field, s.box_bounds), max(s.color_threshold, 0.0)
     ray_a, ray_b = _voxel_rays(field, rays_o, rays_d)
     for first in range(0, S, segment):
         if alive.numel() == 0:
@@ -203,7 +219,7 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
         u = ((first + offsets[:L]) / (S - 1))[None, :]  # the depths of stratified_samples, bit for bit
         z = t0[alive, None] * (1.0 - u) + t1[alive, None] * u  # (A, L)
         p = torch.addcmul(ray_a[alive, None, :], ray_b[alive, None, :], z[..., None]).reshape(-1, 3)
-        sel = _occupied_samples(field, occupancy, p)
+        sel = occupied(p)
         sigma = z.new_zeros(z.numel())
         if sel.numel():
             idx, wc = corners(field.shape, p[sel])

@@ -61,6 +61,28 @@ def test_march_matches_the_training_renderer(sh_degree):
     assert out["samples"].min() == 0 and opaque.any() and out["samples"][opaque].max() < 48
 
 
+def test_march_between_near_and_far_reads_nothing_outside_the_box():
+    # box_bounds=False (notebook 09's ablation): samples run from near to far, in and out of the
+    # box; a fog that fills the whole box, up to its faces, must end exactly at them
+    field = GridField([-1, -1, -1], [1, 1, 1], resolution=16)
+    with torch.no_grad():
+        field.density_grid.fill_(0.5)
+        field.feature_grid.normal_(generator=torch.Generator().manual_seed(0))
+    field.update_occupancy(1e-3)
+    assert bool(field.occupancy.all())
+    K, c2w = camera()
+    o, d = get_rays(24, 24, K, torch.tensor(c2w, dtype=torch.float32))
+    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
+    s = RenderSettings(64, color_threshold=1e-4, near=0.5, far=6.0, box_bounds=False)
+    with torch.no_grad():
+        t0, t1 = torch.full_like(o[:, 0], 0.5), torch.full_like(o[:, 0], 6.0)
+        ref = render_rays(field, o, d, t0, t1, 64, color_threshold=1e-4, last_delta=None)
+    out = march_grid(field, o, d, s, segment=8)
+    torch.testing.assert_close(out["rgb_map"], ref["rgb_map"].clamp(0, 1), atol=2e-4, rtol=0)
+    torch.testing.assert_close(out["acc_map"], ref["acc_map"], atol=2e-4, rtol=0)
+    assert 0.05 < float(out["acc_map"].max()) < 0.9999  # the fog is seen through, not opaque
+
+
 def test_render_view_of_a_grid_and_of_an_mlp():
     field = blob_field()
     K, c2w = camera(16)
