@@ -14,9 +14,10 @@ view during training, a preview at most 400 px on its longest side) and ``OUT/ch
 ``OUT/frame_XXX.png`` along a circle around the scene.
 
 ``--minutes`` is the budget of the whole run: loading the images, training, snapshots, checkpoints
-and the final evaluation. Everything outside training stays near 10 % of it: loading, snapshots and
-checkpoints within 5 % of the training time (a due snapshot waits while it would not fit), and the
-final evaluation renders the test views that fit in 5 % of the budget: all of them when they fit,
+and the final evaluation. Everything outside training stays below 10 % of it: loading, snapshots and
+checkpoints within 5 % of the training time (a due snapshot waits while it would not fit; the fast
+preset checkpoints at most once a minute, so a crash loses about a minute), and the
+final evaluation renders the test views that fit in 3 % of the budget: all of them when they fit,
 else a fixed, evenly spread subset (the summary says how many; ``--eval-all`` renders all of them,
 whatever the time). Renders (evaluation, snapshots, ``render``) run forward
 only, with empty-space skipping and early ray termination (:mod:`course_lib.nerf.inference`).
@@ -65,6 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     t.add_argument("--device", default="auto", metavar="{" + ",".join(DEVICE_CHOICES) + "}", help=DEVICE_HELP)
     t.add_argument("--threads", type=int, default=None, help="torch threads (-1: auto, 1 on a busy machine)")
     t.add_argument("--snapshot-every", type=int, default=None, help="render the held-out view every N steps")
+    t.add_argument("--checkpoint-seconds", type=float, default=None,
+                   help="at most one checkpoint per this many seconds of the run (fast preset: 60; 0: every 200 steps)")
     t.add_argument("--black-background", action="store_true", help="composite RGBA onto black instead of white")
     t.add_argument("--eval-all", action="store_true",
                    help="evaluate all test views at the end, even where they do not fit in --minutes")
@@ -123,7 +126,7 @@ def _train(args) -> int:
         over["iters"] = args.iters
     for name, key in (("batch", "batch_rays"), ("samples", "n_samples"), ("importance", "n_importance"),
                       ("near", "near"), ("far", "far"), ("threads", "threads"), ("snapshot_every", "snapshot_every"),
-                      ("grid_resolution", "grid_resolution")):
+                      ("grid_resolution", "grid_resolution"), ("checkpoint_seconds", "checkpoint_seconds")):
         v = getattr(args, name)
         if v is not None:
             over[key] = v

@@ -272,6 +272,7 @@ class RunOutputs:
         self.test_renders: np.ndarray | None = None
         self.render_seconds_per_ray: float | None = None
         self.ckpt = out / CHECKPOINT if out is not None else None
+        self.checkpoint_at = clock.spent()  # when the last checkpoint was written (the run's start: none yet)
 
     def _measure(self, n_rays: int, seconds: float) -> None:
         self.render_seconds_per_ray = seconds / max(n_rays, 1)
@@ -298,7 +299,7 @@ class RunOutputs:
 
     def checkpoint(self, state: TrainState) -> None:
         if self.ckpt is not None:
-            state.wall_seconds = self.clock.spent()
+            state.wall_seconds = self.checkpoint_at = self.clock.spent()
             save_checkpoint(self.ckpt, state, self.camera)
 
     def periodic(self, state: TrainState, rays_per_second: float) -> None:
@@ -310,7 +311,8 @@ class RunOutputs:
         for kind, every, fn in (("snapshots", cfg.snapshot_every, self.snapshot),
                                 ("evaluations", cfg.eval_every if self.test is not None else 0, self.test_eval),
                                 ("checkpoints", cfg.checkpoint_every, self.checkpoint)):
-            if every and state.step % every == 0:
+            if every and state.step % every == 0 and (
+                    kind != "checkpoints" or self.clock.spent() - self.checkpoint_at >= cfg.checkpoint_seconds):
                 self.clock.pending.add(kind)
             if kind in self.clock.pending and self.clock.allowed(self.predicted(kind, rays_per_second)):
                 self.clock.pending.discard(kind)

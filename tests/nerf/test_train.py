@@ -159,6 +159,23 @@ def test_resume_gives_the_same_state(scene, tmp_path):
         torch.testing.assert_close(a, b)
 
 
+def test_checkpoints_at_most_every_checkpoint_seconds(scene, tmp_path, monkeypatch):
+    # checkpoint_every is in steps, checkpoint_seconds spaces them in time: with a long spacing only
+    # the final checkpoint is written (a checkpoint of a large grid takes about a second)
+    import course_lib.nerf.train as tr
+
+    saved = []
+    real = tr.save_checkpoint
+    monkeypatch.setattr(tr, "save_checkpoint", lambda *a, **k: (saved.append(a[1].step), real(*a, **k)))
+    cfg = tiny_nerf_config(iters=6, checkpoint_every=2, overhead_budget=0)
+    train(scene, None, cfg, out_dir=tmp_path / "every", progress=False)
+    assert saved == [2, 4, 6, 6]  # every 2 steps, and the final one
+    saved.clear()
+    train(scene, None, replace(cfg, checkpoint_seconds=3600), out_dir=tmp_path / "spaced", progress=False)
+    assert saved == [6]
+    assert load_checkpoint(tmp_path / "spaced")["step"] == 6
+
+
 def test_time_budget_covers_the_whole_run(scene, tmp_path):
     # --minutes is the budget of the run, not of training alone: setup, checkpoints, snapshots and the
     # final evaluation fit in it (training stops early enough for them)
@@ -249,7 +266,7 @@ def test_ctrl_c_saves_a_checkpoint_and_resumes(scene, tmp_path):
     out = tmp_path / "out"
     repo = Path(__file__).resolve().parents[2]
     cmd = [sys.executable, "-m", "course_lib", "nerf", "train", str(folder), "--out", str(out), "--quiet", "--threads",
-           "1", "--samples", "16", "--batch", "128", "--device", "cpu"]
+           "1", "--samples", "16", "--batch", "128", "--device", "cpu", "--checkpoint-seconds", "0"]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(cmd + ["--iters", "1000000"], cwd=repo, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
