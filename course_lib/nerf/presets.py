@@ -201,15 +201,16 @@ def preset(name: str, **overrides) -> TrainConfig:
 def auto_grid_resolution(H: int, W: int, minutes: float | None = None) -> int:
     """Voxels along the box's longest side for images of ``H x W`` pixels and a budget of ``minutes``.
 
-    100 voxels at 100 x 100 px (where lego reaches 32 dB in 5 minutes on 2 CPU cores); larger
-    images show finer detail, so the grid grows with the image side -- but more slowly than it,
-    because a larger grid also needs more steps to be fitted: ``100 (side / 100)^0.4`` (132 at
-    200 px, 174 at 400 px, 230 at 800 px), times ``(minutes / 5)^0.1`` for other budgets, within
-    [64, 256]. Measured on the building at 400 px, 5 minutes, 2 CPU threads: a 100-voxel grid 28.9 dB,
-    128 voxels 29.8 dB (``benchmarks/nerf_speed.py`` has the 174-voxel default).
+    100 voxels at 100 x 100 px (where lego reaches 33 dB in 5 minutes on 2 CPU cores); larger
+    images show finer detail, so the grid grows with the image side -- but much more slowly than
+    it, because a larger grid also costs more per step and needs more steps to be fitted:
+    ``100 (side / 100)^0.3`` (123 at 200 px, 152 at 400 px, 187 at 800 px), times
+    ``(minutes / 5)^0.1`` for other budgets, within [64, 256]. Measured on the building at 400 px,
+    5 minutes, 2 CPU threads (test PSNR on all 25 views, steps): 136 voxels 30.71 dB (5612 steps),
+    152 voxels 31.12 dB (4506), 174 voxels 30.79 dB (3323), 200 voxels 29.75 dB (2338).
     """
     side = max(int(H), int(W))
-    scale = (side / 100.0) ** 0.4 * ((minutes / 5.0) ** 0.1 if minutes else 1.0)
+    scale = (side / 100.0) ** 0.3 * ((minutes / 5.0) ** 0.1 if minutes else 1.0)
     return int(min(256, max(64, round(100 * scale))))
 
 
