@@ -67,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     t.add_argument("--threads", type=int, default=None, help="torch threads (-1: auto, 1 on a busy machine)")
     t.add_argument("--snapshot-every", type=int, default=None, help="render the held-out view every N steps")
     t.add_argument("--checkpoint-seconds", type=float, default=None,
-                   help="at most one checkpoint per this many seconds of the run (fast preset: 60; 0: every 200 steps)")
+                   help="at most one checkpoint per this many seconds of the run (fast preset: 60; 0: no limit)")
     t.add_argument("--black-background", action="store_true", help="composite RGBA onto black instead of white")
     t.add_argument("--eval-all", action="store_true",
                    help="evaluate all test views at the end, even where they do not fit in --minutes")
