@@ -115,12 +115,19 @@ def trilinear_rows(table: torch.Tensor, shape: tuple, xyz: torch.Tensor) -> torc
     return read_corners(table, *corners(shape, (xyz + 1.0) * 0.5 * hi))
 
 
-def grid_tables(field: GridField) -> tuple[torch.Tensor, torch.Tensor]:
-    """The field's density and feature grids voxel-major (``(V, 1)``, ``(V, C)``), for :func:`read_corners`.
+def grid_tables(field: GridField) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """What a march reads: the density and feature grids voxel-major, and the padded occupancy.
 
-    Views of the grids (:func:`~course_lib.nerf.grid.voxel_rows`: they are stored channels-last).
+    Returns:
+        ``density (V, 1)`` and ``features (V, C)`` for :func:`read_corners` (views of the grids:
+        :func:`~course_lib.nerf.grid.voxel_rows`, they are stored channels-last), and
+        ``occupancy ((D + 2) (H + 2) (W + 2),)``, the occupancy grid with one empty voxel on every
+        side, flat (:func:`_occupancy_test`; made here, once for all the chunks and views of a render).
     """
-    return voxel_rows(field.density_grid.detach()), voxel_rows(field.feature_grid.detach())
+    D, H, W = field.shape
+    occupancy = torch.zeros(D + 2, H + 2, W + 2, dtype=torch.bool, device=field.occupancy.device)
+    occupancy[1:-1, 1:-1, 1:-1] = field.occupancy
+    return voxel_rows(field.density_grid.detach()), voxel_rows(field.feature_grid.detach()), occupancy.reshape(-1)
 
 
 def _ray_interval(field: GridField, rays_o, rays_d, s: RenderSettings):
@@ -146,19 +153,17 @@ def _voxel_rays(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor) ->
     return (rays_o - field.box_min) / vs, rays_d / vs
 
 
-def _occupancy_test(field: GridField, in_box: bool):
+def _occupancy_test(field: GridField, table: torch.Tensor, in_box: bool):
     """A function ``p (N, 3) -> (n,)``: the indices of the points ``p`` (voxel coordinates) in occupied voxels.
 
     The rule of :meth:`GridField.occupied` (inside the grid, and its nearest voxel occupied), with
-    one look-up per point in the occupancy grid padded by one empty voxel on every side: a point
-    clamped to the padding reads "empty", so there is no inside test, only where the samples may
-    leave the box (``in_box=False``: samples between the scene's near and far).
+    one look-up per point in ``table``, the occupancy grid padded by one empty voxel on every side
+    (:func:`grid_tables`): a point clamped to the padding reads "empty", so there is no inside
+    test, only where the samples may leave the box (``in_box=False``: samples between the scene's
+    near and far).
     """
     D, H, W = field.shape
-    dev, dt = field.occupancy.device, field.density_grid.dtype
-    table = torch.zeros(D + 2, H + 2, W + 2, dtype=torch.bool, device=dev)
-    table[1:-1, 1:-1, 1:-1] = field.occupancy
-    table = table.reshape(-1)
+    dev, dt = table.device, field.density_grid.dtype
     lo = torch.full((3,), -1.0, dtype=dt, device=dev)
     hi = torch.tensor([W, H, D], dtype=dt, device=dev)  # one past the last voxel: the padding
     strides = torch.tensor([1, W + 2, (H + 2) * (W + 2)], device=dev)
@@ -191,8 +196,8 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
         s: :class:`RenderSettings`.
         min_transmittance: rays whose transmittance falls below it stop.
         segment: samples per ray marched between two termination tests.
-        tables: the field's voxel-major ``(density (V, 1), features (V, C))`` tables (:func:`grid_tables`;
-            made here when None).
+        tables: the field's :func:`grid_tables` (``density (V, 1)``, ``features (V, C)``, padded
+            occupancy; made here when None).
 
     Returns:
         dict with ``rgb_map (R, 3)`` (in [0, 1]), ``depth_map (R,)``, ``acc_map (R,)`` and
@@ -208,9 +213,9 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
     dirs = rays_d / torch.linalg.norm(rays_d, dim=-1, keepdim=True)
     T = rays_o.new_ones(R)
     offsets = torch.arange(segment, device=rays_o.device, dtype=rays_o.dtype)
-    density_table, feature_table = grid_tables(field) if tables is None else tables
+    density_table, feature_table, occupancy_table = grid_tables(field) if tables is None else tables
     density_flat = density_table.reshape(-1)
-    occupied, threshold = _occupancy_test(field, s.box_bounds), max(s.color_threshold, 0.0)
+    occupied, threshold = _occupancy_test(field, occupancy_table, s.box_bounds), max(s.color_threshold, 0.0)
     ray_a, ray_b = _voxel_rays(field, rays_o, rays_d)
     for first in range(0, S, segment):
         if alive.numel() == 0:
@@ -262,7 +267,7 @@ def render_rays_forward(model, model_fine, rays_o: torch.Tensor, rays_d: torch.T
         return render_chunked(model, rays_o, rays_d, None, None, s.n_samples, s.n_importance, model_fine,
                               white_background=s.white_background, chunk=chunk, color_threshold=s.color_threshold,
                               ray_bounds=bounds, last_delta=LAST_DELTA)
-    tables = grid_tables(model) if tables is None else tables  # voxel-major views of the grids
+    tables = grid_tables(model) if tables is None else tables  # once for all the chunks
     parts = [march_grid(model, rays_o[i:i + chunk], rays_d[i:i + chunk], s, tables=tables)
              for i in range(0, rays_o.shape[0], chunk)]
     return {k: torch.cat([p[k] for p in parts]) for k in ("rgb_map", "depth_map", "acc_map")}
@@ -299,8 +304,8 @@ def render_view(model, model_fine, cfg, bounds, H: int, W: int, K, c2w, tables=N
 def render_views(model, model_fine, cfg, bounds, H: int, W: int, K, c2ws):
     """Render several views, one after the other: yields ``(H, W, 3)`` rgb tensors on the model's device.
 
-    A grid field's voxel-major tables (views of its grids) are taken once for all the views (the field must
-    not change meanwhile).
+    A grid field's :func:`grid_tables` are taken once for all the views (the field must not change
+    meanwhile).
     """
     tables = grid_tables(model) if isinstance(model, GridField) else None
     for c2w in c2ws:
