@@ -22,7 +22,7 @@ import os
 import numpy as np
 import pytest
 
-from course_lib.instructor.sandbox import wire
+from course_lib.instructor.sandbox import jail, wire
 from course_lib.instructor.settings import Isolation, student_library
 from course_lib.instructor.student_process import RemoteFunction, StudentProcess, StudentProcessEnded
 from course_lib.paths import REPO_ROOT
@@ -332,3 +332,56 @@ def test_a_reply_larger_than_any_exercise_returns_ends_only_that_process(iso):
     with StudentProcess(iso, code, "f", None, 30) as proc:
         with pytest.raises(StudentProcessEnded, match="more than any exercise returns"):
             RemoteFunction(proc, "f")()
+
+
+# ------------------------------------------------------------------ issue 33: fail closed, replies bounded before anything is built
+
+
+def test_a_sandbox_report_that_says_nothing_is_refused_on_every_count(iso):
+    """verify() names everything an empty (or forged) report lacks: no grading on a sandbox it cannot confirm."""
+    missing = " | ".join(jail.verify({}, {}, iso, seccomp=True))
+    for what in ("namespace of its own", "capabilities left", "no_new_privs", "no seccomp filter", "root is writable",
+                 "network devices"):
+        assert what in missing, (what, missing)
+    line = jail.refusal("the sandbox is not isolated: " + missing, jail.REPORT)
+    assert "\n" not in line and line.startswith("refusing to run the students' code:") and "--insecure" in line
+
+
+def test_wire_floods_are_refused_before_anything_is_built():
+    import json
+    import struct
+
+    def message(head: bytes, n_arrays: int = 0, records: bytes = b"") -> bytes:
+        return struct.pack("<II", len(head), n_arrays) + head + records
+
+    with pytest.raises(wire.WireError, match="more than 200000 values"):
+        wire.unpack(message(b"[" + b"0," * 250_000 + b"0]"))
+    with pytest.raises(wire.WireError, match="array count"):
+        wire.unpack(message(b"{}", wire.MAX_ARRAYS + 1, b"\0" * 8 * (wire.MAX_ARRAYS + 1)))
+    with pytest.raises(wire.WireError, match="nested too deeply|malformed"):
+        wire.unpack(message(b"[" * 100_000 + b"]" * 100_000))
+    tree = {"$": "tuple", "v": [{"$": "sparse", "shape": [2 ** 17, 2 ** 17], "a": 0, "fmt": "coo"},
+                                {"$": "module", "h": 1, "params": [], "linear": [[8, 8, True]]}]}
+    kinds = sorted((d[0], d[1]) for d in wire.declared(tree))
+    assert kinds == [("module", "value[1]"), ("sparse", "value[0]")], kinds
+    with pytest.raises(wire.WireError, match="sends no weight"):
+        wire.check_module_tree(tree["v"][1], [])
+    assert wire.check_module_tree({"params": [["w", 0], ["b", 1]], "linear": [[3, 2, True]]},
+                                  [np.zeros((2, 3)), np.zeros(2)]) == [(3, 2, True)]
+    assert json.dumps(tree)  # (the tree itself is plain data)
+
+
+def test_a_sparse_reply_far_larger_than_the_expected_answer_is_not_built(iso):
+    code = ("import scipy.sparse as sp\n"
+            "def f(n, transposed=False):\n"
+            "    return sp.coo_matrix(([1.0], ([0], [0])), shape=(3, n) if transposed else (n, n))\n")
+    import scipy.sparse as sp
+
+    with StudentProcess(iso, code, "f", None, 30) as proc:
+        f = RemoteFunction(proc, "f", reference=lambda n, transposed=False: sp.eye(n, 3, format="csr"))
+        assert f(5, transposed=True).shape == (3, 5)  # another shape, small: the check names the mistake
+        with pytest.raises(ValueError, match=r"sparse matrix of shape \(131072, 131072\).*did not build it"):
+            f(2 ** 17)
+        with pytest.raises(ValueError, match="did not build it"):  # no reference: the plain bound
+            RemoteFunction(proc, "f")(2 ** 17)
+        assert not proc.ended
