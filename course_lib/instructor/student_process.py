@@ -158,6 +158,9 @@ class StudentProcess:
         else:
             if jail.bwrap_path() is None:
                 raise jail.IsolationError(jail.refusal("bubblewrap (bwrap) is not installed", jail.INSTALL))
+            if os.getuid() == 0 and jail.STUDENT_UID == 0:
+                raise jail.IsolationError(jail.refusal("COURSE_GRADER_STUDENT_UID is 0, the grading user's uid",
+                                                       "set it to an unprivileged uid (default 65534)"))
             info_r, info_w = os.pipe()
             program = jail.seccomp_filter()
             if program is not None:

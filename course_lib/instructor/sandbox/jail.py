@@ -47,10 +47,11 @@ import sys
 import time
 from pathlib import Path
 
+from course_lib.instructor.settings import STUDENT_UID
 from course_lib.validate import KitInputError
 
 __all__ = ["IsolationError", "bwrap_path", "command", "install_server", "verify", "read_info", "seccomp_filter",
-           "preexec", "refusal", "HOW_TO_ENABLE", "INSTALL", "REPORT", "WORK", "SEED"]
+           "preexec", "refusal", "STUDENT_UID", "HOW_TO_ENABLE", "INSTALL", "REPORT", "WORK", "SEED"]
 
 #: The working folder of a student's process inside the sandbox, and where the grader's copy of the submission is.
 WORK = "/tmp/work"
@@ -136,8 +137,6 @@ def _binds(paths: list[str], staged: dict[str, str]) -> list[str]:
 def staging(paths: list[str], stage_root: Path) -> dict[str, str]:
     """For a grader that runs as root: the allow-listed paths the student's uid cannot reach (a Python installed under
     ``/root``), each with a folder of ``stage_root`` where :func:`preexec` shows it to the student's uid alone."""
-    from course_lib.instructor.settings import STUDENT_UID
-
     out = {}
     for k, p in enumerate(sorted(paths, key=len)):
         if os.path.islink(p) or reachable(p, STUDENT_UID, STUDENT_UID):
@@ -194,7 +193,6 @@ def preexec(limits, cpu_seconds: float | None, cgroup, as_student: bool, staged:
     (:func:`staging`), and only then drops to the student's uid and starts ``bwrap``, which shows the folder
     read-only at its own path. Nothing of it is visible outside this one launcher.
     """
-    from course_lib.instructor.settings import STUDENT_UID
 
     def run() -> None:
         if cgroup is not None:
@@ -213,9 +211,23 @@ def preexec(limits, cpu_seconds: float | None, cgroup, as_student: bool, staged:
 def launch_failure(exc: BaseException, staged: dict[str, str]) -> str:
     """What failed when the launcher of a sandbox could not even start (its ``preexec_fn`` raised)."""
     if staged:
+        err = _unshare_errno()
+        why = f"unshare(CLONE_NEWNS): {os.strerror(err)}" if err else str(exc)
         return (f"the launcher could not make the private mount namespace that shows {', '.join(sorted(staged))} to "
-                f"the student's uid (unshare refused: {exc})")
+                f"the student's uid ({why})")
     return f"the sandbox's launcher could not start ({exc})"
+
+
+def _unshare_errno() -> int:
+    """The errno of ``unshare(CLONE_NEWNS)`` in a throw-away child (0: it works), to say why a launcher failed."""
+    pid = os.fork()
+    if pid == 0:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        os._exit(0 if libc.unshare(0x00020000) == 0 else min(ctypes.get_errno(), 255) or 255)
+    _, status = os.waitpid(pid, 0)
+    return os.waitstatus_to_exitcode(status) if os.WIFEXITED(status) else 255
 
 
 def _show_staged(staged: dict[str, str]) -> None:
@@ -282,8 +294,6 @@ def verify(facts: dict, info: dict, iso, seccomp: bool) -> list[str]:
     sandbox's own tmpfs, ``/proc`` and devices writable; none of the hidden folders in view; no network device
     but the loopback; and, when the grader is root, a process on the host that runs as :data:`STUDENT_UID`.
     """
-    from course_lib.instructor.settings import STUDENT_UID
-
     missing = []
     own, ns = _own_ns(), facts.get("ns") or {}
     same = [n for n in ("user", "mnt", "pid", "net", "ipc") if not ns.get(n) or ns.get(n) == own.get(n)]
@@ -316,6 +326,8 @@ def verify(facts: dict, info: dict, iso, seccomp: bool) -> list[str]:
     pid = info.get("child-pid")
     uids = _host_uids(pid) if isinstance(pid, int) else None
     if os.getuid() == 0:
+        if STUDENT_UID == 0:
+            missing.append("COURSE_GRADER_STUDENT_UID is 0, the grading user's uid")
         if uids is None:
             missing.append("its process on the host cannot be read (bwrap --info-fd)")
         elif set(uids) != {STUDENT_UID}:
@@ -327,8 +339,6 @@ def verify(facts: dict, info: dict, iso, seccomp: bool) -> list[str]:
 
 def describe(facts: dict, info: dict, iso, seccomp: bool) -> dict:
     """What confined a verified sandbox, for the report (``isolation``)."""
-    from course_lib.instructor.settings import STUDENT_UID
-
     pid = info.get("child-pid")
     uids = _host_uids(pid) if isinstance(pid, int) else None
     return {"tool": "bubblewrap", "namespaces": True, "read_only": True,
