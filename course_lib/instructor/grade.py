@@ -569,7 +569,7 @@ def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, run: _Run, steps: dict[
     Returns what the student's process was confined by.
     """
     hidden = run.hidden
-    budget = exercise_seconds(run.timeout, hidden.reference_seconds.get(_key(e), 0.0))
+    budget = exercise_seconds(run.timeout, hidden.reference_seconds.get(_key(e), 0.0), calls_back=bool(steps))
     out = run_hidden(HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(hidden.fixtures_dir),
                                e.reference, run.allow_reference, str(run.submission.root), steps), budget, run.iso,
                      cgroup_parent=run.cgroup, deadline=run.clock.deadline)

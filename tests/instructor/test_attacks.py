@@ -807,8 +807,9 @@ def test_33_one_clock_for_call_backs_and_nbval(tmp_path, hidden, outside, monkey
     report = grade01(sub, hidden, exercises=["ransac_fundamental"], timeout=6.0)
     g = graded_row("ransac_fundamental keeps the reference eight_point busy", report, "ransac_fundamental", before,
                    "2 unbounded work")
-    assert g["status"] == "timeout" and g["hidden"]["seconds"] < 6.0 + 5 + 3, (g["feedback"], g["hidden"])
-    assert any(f"stopped after {g['hidden']['seconds']:.0f}" in f or "stopped after" in f for f in g["feedback"]), g
+    budget = g["hidden"]["budget seconds"]  # settings.exercise_seconds: calls back, so CALL_BACK_FACTOR x 6 s or more
+    assert g["status"] == "timeout" and g["hidden"]["seconds"] < budget + 5 + 3, (g["feedback"], g["hidden"])
+    assert any("stopped after" in f and f"time limit of one exercise is {budget:g} s" in f for f in g["feedback"]), g
 
     from course_lib.instructor import grade as grade_mod
 
@@ -923,10 +924,11 @@ def test_33_no_user_namespaces_no_grading(tmp_path):
     assert "--insecure" in (tmp_path / "f.md").read_text() and "--insecure" in run.stderr
 
 
-def test_33_attack_table(request):
+def test_33_attack_table(request, capsys):
     """The third red-team table (printed with ``pytest -s`` or ``ATTACK_TABLE=1``)."""
     if not ROWS33:
         pytest.skip("run with the tests above")
-    show_table(request, "Issue 33: fail closed, one clock, feedback as data",
-               ["class", "attack", "points", "status", "grading s", "exercise s", "grader peak RSS MiB (+growth)",
-                "worker growth MiB", "exercise cgroup peak MiB", "feedback"], ROWS33)
+    with capsys.disabled():
+        show_table(request, "Issue 33: fail closed, one clock, feedback as data",
+                   ["class", "attack", "points", "status", "grading s", "exercise s", "grader peak RSS MiB (+growth)",
+                    "worker growth MiB", "exercise cgroup peak MiB", "feedback"], ROWS33)
