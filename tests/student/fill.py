@@ -80,7 +80,8 @@ def catalogue() -> dict[str, LiteralSolution]:
         tree = ast.parse(source)
         for qualname, node in _functions(tree).items():
             if qualname in out:
-                raise FillError(f"{qualname} is defined twice in the catalogue ({out[qualname].module}, {module.__name__})")
+                raise FillError(f"{qualname} is defined twice in the catalogue "
+                                f"({out[qualname].module}, {module.__name__})")
             out[qualname] = LiteralSolution(qualname, module.__name__, node, tree, source)
     return out
 

@@ -48,6 +48,9 @@ def filled_release(tmp_path_factory):
     kit = tmp_path_factory.mktemp("literal") / "kit"
     write_release(kit)
     filled = fill_release(kit)
+    unfilled = {s.name: [e.name for e in s.exercises if e.name not in {f.split(".")[0] for f in filled.get(s.name, [])}]
+                for s in kit_specs()}
+    assert not any(unfilled.values()), f"exercises the filler found no stub of in the release: {unfilled}"
     return kit, filled
 
 
