@@ -320,7 +320,8 @@ ALLOWED_ERRORS = ("NotImplementedError",)
 CONSEQUENCES = ("NameError", "KitInputError", "FileNotFoundError")
 
 
-def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float = 300.0) -> dict[str, list[str]]:
+def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float = 300.0,
+                   allowed_errors: tuple[str, ...] = ALLOWED_ERRORS) -> dict[str, list[str]]:
     """Execute the released notebooks inside the released kit and list what is wrong.
 
     The kernel sees the kit's own ``course_lib`` (``PYTHONPATH=out_dir``), so the left-out reference
@@ -328,6 +329,7 @@ def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float 
     not written yet, or a kit function that needs it) and, after such a cell, its consequences
     (``NameError`` for the names it would have defined, a missing file it would have written). Not allowed: any other error, an error in a check cell
     (checks turn a student's error into a verdict), or a check cell that prints nothing.
+    ``allowed_errors=()`` allows no error at all (a release filled with solutions: every cell must run).
 
     Returns:
         ``{notebook: [problems]}`` (empty lists when the release is sound).
@@ -365,7 +367,7 @@ def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float 
                 if is_check and (errors or not stream_text(cell).strip()):
                     found.append(f"cell {i}: the check cell " + (f"raised {errors[0].ename}" if errors else "printed nothing"))
                 for e in errors:
-                    if e.ename in ALLOWED_ERRORS or (e.ename in CONSEQUENCES and failed_before):
+                    if e.ename in allowed_errors or (e.ename in CONSEQUENCES and failed_before):
                         failed_before = True
                         continue
                     found.append(f"cell {i}: {e.ename}: {e.evalue}")
