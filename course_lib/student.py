@@ -185,7 +185,7 @@ def _definition_source(obj: Any, name: str, namespace: dict | None) -> str:
     elif isinstance(obj, type):
         for v in vars(obj).values():
             f = getattr(v, "__func__", v)
-            if isinstance(f, types.FunctionType) and not f.__code__.co_filename.startswith("<"):
+            if isinstance(f, types.FunctionType) and f.__code__.co_filename != "<string>":  # not made by dataclass
                 codes.append(f.__code__)
     for code in codes:
         lines = linecache.getlines(code.co_filename)
