@@ -49,12 +49,16 @@ class Exercise:
             notebook's own solution (``psnr``).
         fields: the names of the result's parts where the stub returns several things (a tuple in
             this order, or an object with these attributes); empty for a single value.
+        engines: the kit's functions and classes that compute the exercise's result with the
+            student's own functions (so the exercise's own code may not call them: the grader's scan
+            says so, :mod:`course_lib.instructor.scan`).
     """
 
     name: str
     notebook: str
     module: str | None
     fields: tuple[str, ...] = ()
+    engines: tuple[str, ...] = ()
 
 
 _NB = {
@@ -73,7 +77,8 @@ EXERCISES: dict[str, Exercise] = {e.name: e for e in [
     Exercise("normalize_points", _NB["01"], "course_lib.sfm.fundamental", ("x_n", "T")),
     Exercise("eight_point", _NB["01"], "course_lib.sfm.fundamental"),
     Exercise("sampson_distance", _NB["01"], "course_lib.sfm.fundamental"),
-    Exercise("ransac_fundamental", _NB["01"], "course_lib.sfm.fundamental", ("F", "inliers", "n_iters")),
+    Exercise("ransac_fundamental", _NB["01"], "course_lib.sfm.fundamental", ("F", "inliers", "n_iters"),
+             ("course_lib.sfm.tracks.verify_pair", "course_lib.sfm.tracks.ransac_every_pair")),
     Exercise("essential_from_fundamental", _NB["02"], "course_lib.sfm.essential"),
     Exercise("pose_candidates", _NB["02"], "course_lib.sfm.essential", ("R", "C")),
     Exercise("triangulate_linear", _NB["03"], "course_lib.sfm.triangulation"),
@@ -83,16 +88,22 @@ EXERCISES: dict[str, Exercise] = {e.name: e for e in [
     Exercise("pnp_ransac", _NB["04"], "course_lib.sfm.pnp", ("R_cw", "t_cw", "inliers", "n_iters")),
     Exercise("pnp_nonlinear", _NB["04"], "course_lib.sfm.pnp", ("R_cw", "t_cw")),
     Exercise("visibility_matrix", _NB["05"], "course_lib.sfm.visibility"),
-    Exercise("reprojection_residuals", _NB["05"], "course_lib.sfm.bundle_adjustment"),
-    Exercise("jacobian_sparsity", _NB["05"], "course_lib.sfm.bundle_adjustment"),
-    Exercise("bundle_adjust", _NB["05"], "course_lib.sfm.bundle_adjustment", ("R_cw", "t_cw", "X")),
-    Exercise("get_rays", _NB["06"], "course_lib.nerf.rays", ("rays_o", "rays_d")),
+    Exercise("reprojection_residuals", _NB["05"], "course_lib.sfm.bundle_adjustment", (),
+             ("course_lib.sfm.lm.residuals", "course_lib.sfm.lm.PinholeCamera")),
+    Exercise("jacobian_sparsity", _NB["05"], "course_lib.sfm.bundle_adjustment", (),
+             ("course_lib.sfm.lm.jacobian", "course_lib.sfm.bundle_adjustment.reprojection_jacobian",
+              "course_lib.sfm.bundle_adjustment._block_columns")),
+    Exercise("bundle_adjust", _NB["05"], "course_lib.sfm.bundle_adjustment", ("R_cw", "t_cw", "X"),
+             ("course_lib.sfm.bundle_adjustment.adjust", "course_lib.sfm.lm.solve")),
+    Exercise("get_rays", _NB["06"], "course_lib.nerf.rays", ("rays_o", "rays_d"),
+             ("course_lib.nerf.rays.camera_rays", "course_lib.nerf.scene.TrainingRays")),
     Exercise("stratified_samples", _NB["06"], "course_lib.nerf.rays"),
     Exercise("query_points", _NB["06"], "course_lib.nerf.rays"),
     Exercise("positional_encoding", _NB["06"], "course_lib.nerf.encoding"),
     Exercise("NeRF", _NB["07"], "course_lib.nerf.model"),
     Exercise("psnr", _NB["07"], None),  # a one-liner: no library function
-    Exercise("volume_render", _NB["08"], "course_lib.nerf.render"),
+    Exercise("volume_render", _NB["08"], "course_lib.nerf.render", (),
+             ("course_lib.nerf.render.composite", "course_lib.nerf.inference.march_grid")),
 ]}
 
 

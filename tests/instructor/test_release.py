@@ -326,3 +326,36 @@ def test_the_scans_pass_honest_code_that_uses_the_kit():
             "import course_lib.nerf.encoding as enc\n\ndef psnr(m):\n    n = enc.encoded_dim(3, 4)\n"
             "    return -10 * torch.log10(torch.as_tensor(m)) + 0 * n + getattr(np, 'float64')(0)")
     assert scan_exercise(ast.parse(code), "course_lib.nerf.train:psnr", {"course_lib.sfm.fundamental"}) == []
+
+
+@pytest.mark.parametrize("reference, code, phrase", [
+    ("course_lib.sfm.bundle_adjustment:bundle_adjust",
+     "from course_lib.sfm.bundle_adjustment import adjust\ndef bundle_adjust(K, R, t, X, uv, callback=None):\n"
+     "    r = adjust(K, R, t, X, uv)\n    return r.R_cw, r.t_cw, r.X", "the kit's engine that computes bundle_adjust"),
+    ("course_lib.sfm.bundle_adjustment:bundle_adjust",
+     "from course_lib.sfm import lm\ndef bundle_adjust(K, R, t, X, uv, callback=None):\n    return lm.solve(K)",
+     "calls course_lib.sfm.lm.solve"),
+    ("course_lib.nerf.rays:get_rays",
+     "import course_lib.nerf.rays as r\ndef get_rays(H, W, K, c2w):\n    return r.camera_rays(H, W, K, c2w)",
+     "calls course_lib.nerf.rays.camera_rays"),
+    ("course_lib.nerf.rays:get_rays",
+     "from course_lib.checks.core import load_fixture\ndef get_rays(H, W, K, c2w):\n    return load_fixture('x')",
+     "imports the check machinery course_lib.checks.core.load_fixture"),
+])
+def test_the_scans_name_the_kits_engines_and_the_check_machinery(reference, code, phrase):
+    """Issue 33: the engines that compute an exercise with the student's own functions, and the checks' helpers
+    (course_lib.checks; the scan looked for course_lib.grading, which no longer exists)."""
+    from course_lib.instructor.scan import scan_exercise
+
+    found = scan_exercise(ast.parse(code), reference, set())
+    assert any(phrase in f for f in found), found
+
+
+def test_the_scans_let_an_exercise_use_the_kits_helpers_and_earlier_exercises():
+    from course_lib.instructor.scan import scan_exercise
+
+    code = ("import numpy as np\nfrom scipy.optimize import least_squares\n"
+            "from course_lib.sfm.visibility import observation_list\nfrom course_lib.exercises import call\n"
+            "def bundle_adjust(K, R, t, X, uv, callback=None):\n    obs = observation_list(uv)\n"
+            "    return call('jacobian_sparsity', 1, 1, obs.camera_idx, obs.point_idx)")
+    assert scan_exercise(ast.parse(code), "course_lib.sfm.bundle_adjustment:bundle_adjust", set()) == []
