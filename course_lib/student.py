@@ -15,8 +15,9 @@ chains notebooks 01-05; :mod:`course_lib.exercises`), it calls a **stand-in**
 
 Where the saved solutions live: ``$COURSE_LIB_SOLUTIONS`` if set, else ``solutions/`` at the root of
 the student kit. The grader sets the variable to a folder of its own, so it decides what stands in
-for earlier exercises (for example the references, so that a mistake is not charged twice). The
-instructor's kit saves nothing unless the variable is set.
+for earlier exercises (for example the references: a file ``<name>.py`` that defines ``<name>``, so
+that a mistake is not charged twice), and sets ``COURSE_LIB_SAVE_SOLUTIONS=0`` so that running a
+submission's cells saves nothing there. The instructor's kit saves nothing unless the variable is set.
 
 Introduced in ``notebooks/06_nerf_data_and_rays.ipynb`` (and used from notebook 05 on).
 """
@@ -394,10 +395,10 @@ class _Saver:
 def install(shell=None) -> bool:
     """Register the saving hook in the running IPython kernel (once); True if it is registered.
 
-    Only in a student kit, or where ``$COURSE_LIB_SOLUTIONS`` is set; a no-op elsewhere (plain
-    Python, the instructor's kit).
+    Only in a student kit, or where ``$COURSE_LIB_SOLUTIONS`` is set, and not with
+    ``COURSE_LIB_SAVE_SOLUTIONS=0``; a no-op elsewhere (plain Python, the instructor's kit).
     """
-    if solutions_dir() is None:
+    if solutions_dir() is None or os.environ.get("COURSE_LIB_SAVE_SOLUTIONS", "1").lower() in ("0", "false", "no"):
         return False
     if shell is None:
         ipython = sys.modules.get("IPython")

@@ -126,9 +126,12 @@ def test_a_saved_solution_that_does_not_load_says_which_file_to_renew(tmp_path, 
     assert student.load_saved_solution("pnp_linear") is None
 
 
-def test_the_instructors_kit_saves_nothing(monkeypatch):
+def test_the_instructors_kit_saves_nothing_and_the_grader_can_turn_saving_off(monkeypatch, tmp_path):
     monkeypatch.delenv("COURSE_LIB_SOLUTIONS", raising=False)
     assert not student.is_student_kit() and student.solutions_dir() is None
+    assert not student.install(object())
+    monkeypatch.setenv("COURSE_LIB_SOLUTIONS", str(tmp_path))  # the grader's folder of stand-ins: read, never written
+    monkeypatch.setenv("COURSE_LIB_SAVE_SOLUTIONS", "0")
     assert not student.install(object())
 
 
