@@ -139,7 +139,7 @@ def stand_in(name: str, notebook: str, module: str | None = None) -> Callable:
 def is_stub(obj: Any) -> bool:
     """True for an exercise still as the release wrote it (its body raises the stub's ``NotImplementedError``)."""
     try:
-        return STUB_LINE in _definition_source(obj, obj.__name__, None)
+        return STUB_LINE in _definition_source(obj, obj.__name__)
     except (OSError, TypeError, ValueError):
         return False
 
@@ -174,7 +174,7 @@ def _history_definition(name: str) -> str | None:
     return None
 
 
-def _definition_source(obj: Any, name: str, namespace: dict | None) -> str:
+def _definition_source(obj: Any, name: str) -> str:
     """The source of a function's or class's top-level definition (decorators included).
 
     Functions are found through their code object (IPython keeps every cell in ``linecache``);
@@ -275,7 +275,7 @@ def solution_source(name: str, obj: Any, namespace: dict) -> tuple[str, list[str
             return
         if isinstance(value, (types.FunctionType, type)) and getattr(value, "__module__", None) == "__main__":
             try:
-                src = _definition_source(value, value.__name__, namespace)
+                src = _definition_source(value, value.__name__)
             except (OSError, TypeError) as exc:
                 problems.append(f"{n}: its source is not available ({exc})")
                 return
