@@ -30,26 +30,56 @@ from course_lib.instructor.release import write_release
 
 BEHAVIOUR = r'''
 import contextlib, importlib, inspect, io, itertools, json, os, pickle, pkgutil, signal, sys, time, types, warnings
+
+# No callable may start a process: everything that would is refused before the kit is imported (the probe
+# runs as one process; RLIMIT_NPROC does not bind root, so the entry points themselves are closed).
+class NoProcesses(OSError):  # an OSError, as a failed exec is: callers that handle one handle this
+    pass
+
+
+def _refuse(*_a, **_k):
+    raise NoProcesses("the behaviour probe refuses to start processes")
+
+
+import subprocess, multiprocessing, pty  # noqa: E401
+for _name in ("fork", "forkpty", "system", "popen", "posix_spawn", "posix_spawnp", "spawnv", "spawnve", "spawnvp",
+              "spawnvpe", "execv", "execve", "execvp", "execvpe", "execl", "execle", "execlp", "execlpe"):
+    if hasattr(os, _name):
+        setattr(os, _name, _refuse)
+subprocess.Popen.__init__ = _refuse
+multiprocessing.Process.start = _refuse
+pty.fork = _refuse
+try:
+    import resource
+    resource.setrlimit(resource.RLIMIT_NPROC, (64, 64))
+except (ImportError, ValueError, OSError):
+    pass
+
 import numpy as np, scipy.sparse as sp, torch
 import course_lib
+TOTAL_SECONDS = float(sys.argv[3])
+T_START = time.perf_counter()
 
 warnings.filterwarnings("ignore")
 cases = pickle.load(open(sys.argv[1], "rb"))
 MAX_SELECTIONS = int(sys.argv[2])
 
-callables, classes = [], []
+callables, classes, unimported = [], [], []
 MAIN_PID = os.getpid()
 for m in pkgutil.walk_packages(course_lib.__path__, "course_lib."):
-    if m.name.startswith("course_lib.instructor"):  # never shipped (present only in the instructor's kit)
-        continue
+    if m.name.startswith("course_lib.instructor") or m.name == "course_lib.__main__":
+        continue  # never shipped (the instructor's kit), or the command line (it runs whole commands)
     try:
         mod = importlib.import_module(m.name)
-    except Exception:
+    except Exception as exc:
+        unimported.append(f"{m.name}: {type(exc).__name__}: {exc}")
         continue
     for name, obj in vars(mod).items():
         if getattr(obj, "__kit_stand_in__", False) or getattr(obj, "__module__", None) != m.name:
             continue
         if inspect.isfunction(obj):
+            if name in ("main", "run") and "cli" in m.name:  # command-line entry points: whole commands
+                continue
             callables.append((f"{m.name}.{name}", obj))
         elif inspect.isclass(obj):
             classes.append((f"{m.name}.{name}", obj))
@@ -209,8 +239,11 @@ def arity(fn):
     return req, tot
 
 
-found, calls, slow = {}, 0, set()
+found, calls, slow, incomplete = {}, 0, set(), []
 for name, case in cases.items():
+    if time.perf_counter() - T_START > TOTAL_SECONDS:
+        incomplete.append(name)
+        continue
     pool = case["pool"]
     hits = []
     # instances of the kit's classes built from nothing or from one value of the case: their methods are tried too
@@ -254,7 +287,8 @@ for name, case in cases.items():
         elif spent > CALLABLE_SECONDS:
             slow.add(qual)
     found[name] = hits
-print(json.dumps({"found": found, "calls": calls, "slow": sorted(slow)}))
+print(json.dumps({"found": found, "calls": calls, "slow": sorted(slow), "incomplete": incomplete,
+                  "unimported": unimported}))
 '''
 
 
@@ -384,15 +418,40 @@ def public_cases() -> dict:
     return cases
 
 
+#: the probe's hard limits: wall clock of the search (then it stops and says which exercises it did not try),
+#: of the process, and its address space
+SEARCH_SECONDS, PROCESS_SECONDS, ADDRESS_SPACE = 300, 420, 8 << 30
+
+
+def _limits():  # in the probe process, before it starts: no memory blow-up, no process tree
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_AS, (ADDRESS_SPACE, ADDRESS_SPACE))
+    resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
+
+
 def _run(kit, cases, tmp_path, max_selections=48) -> dict:
+    import signal
+
     path = tmp_path / "cases.pkl"
     path.write_bytes(pickle.dumps(cases))
-    env = dict(os.environ, PYTHONPATH=str(kit), MPLBACKEND="Agg", COURSE_LIB_QUICK="1",
+    env = dict(os.environ, PYTHONPATH=str(kit), MPLBACKEND="Agg", COURSE_LIB_QUICK="1", OMP_NUM_THREADS="1",
                COURSE_LIB_SOLUTIONS=str(tmp_path / "no-solutions"))
-    res = subprocess.run([sys.executable, "-c", BEHAVIOUR, str(path), str(max_selections)], cwd=tmp_path, env=env,
-                         capture_output=True, text=True, timeout=1200)
-    assert res.returncode == 0, res.stderr[-3000:]
-    return json.loads(res.stdout.strip().splitlines()[-1])
+    proc = subprocess.Popen([sys.executable, "-c", BEHAVIOUR, str(path), str(max_selections), str(SEARCH_SECONDS)],
+                            cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_limits, start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=PROCESS_SECONDS)
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)  # the probe's own session: nothing it started outlives it
+        except ProcessLookupError:
+            pass
+    assert proc.returncode == 0, err[-3000:]
+    res = json.loads(out.strip().splitlines()[-1])
+    assert res["incomplete"] == [], f"the search ran out of time before {res['incomplete']}"
+    assert res["unimported"] == [], res["unimported"]  # every module of the kit is searched
+    return res
 
 
 @pytest.fixture(scope="module")
