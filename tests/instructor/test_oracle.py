@@ -75,19 +75,26 @@ WRONG = {
             return torch.cat(parts + [torch.sin(xb).flatten(-2), torch.cos(xb).flatten(-2)], -1)
     """,
 }
-#: Where each wrong function goes: its exercise's notebook, or the notebook that calls it (notebook 07 asks for a
-#: copy of notebook 06's positional_encoding, whose own exercise is not graded here).
+#: Where each wrong function goes: its exercise's notebook, or the notebook that calls it (notebook 07 imports
+#: notebook 06's positional_encoding, as saved when its cell ran there; a student may define one in 07 instead,
+#: and notebook 06 is not graded here).
 WHERE = {"positional_encoding": "07_nerf_model.ipynb"}
 
 
+def _binds(node: ast.stmt, name: str) -> bool:
+    if isinstance(node, (ast.Import, ast.ImportFrom)):
+        return any((a.asname or a.name).split(".")[0] == name for a in node.names)
+    return getattr(node, "name", None) == name
+
+
 def put_def(path, name: str, code: str) -> None:
-    """Replace the top-level def of ``name`` in the notebook at ``path`` by ``code`` (the student's edit)."""
+    """Replace the top-level def (or import) of ``name`` in the notebook at ``path`` by ``code`` (the student's edit)."""
     nb = nbformat.read(path, as_version=4)
     for cell in nb.cells:
         if cell.cell_type != "code":
             continue
         tree = ast.parse(python_source(cell.source))
-        node = next((n for n in tree.body if getattr(n, "name", None) == name), None)
+        node = next((n for n in tree.body if _binds(n, name)), None)
         if node is not None:
             lines = cell.source.splitlines()
             cell.source = "\n".join(lines[:node.lineno - 1] + textwrap.dedent(code).strip("\n").splitlines()

@@ -31,17 +31,6 @@ from tests.student.literal import MODULES
 COURSE = ("01", "02", "03", "04", "05", "06", "07", "08", "09", "10")
 GRADE_SEED = 2026
 
-#: What fails today (main at cf36f37), in the notebooks and in the grade; the lead removes the xfail
-#: after merging the kit side of issue 28 (worktree `release`).
-TODAY = (
-    "issue 28, kit side not merged yet: 10_photos_to_nerf is not in the release; 05 cells 32, 34 "
-    "ModuleNotFoundError course_lib.sfm.tracks; 05 cell 37 and 07 cell 15, 09 cell 5 import the kit's stand-in "
-    "over the student's own function (jacobian_sparsity, get_rays); 07 cells 10, 15, 08 cell 10, 09 cells 3, 5, 12 "
-    "NotImplementedError: the student's 06/07 functions do not travel to 07-09; pasted, get_rays gets a numpy "
-    "float64 K (07 cells 10, 15; 08 trainer), volume_render gets last_delta, NeRF gets density= and must have "
-    "config() (paper preset); 09 cells 13, 15 KeyError 'fast (all on)'"
-)
-
 
 @pytest.fixture(scope="module")
 def filled_release(tmp_path_factory):
@@ -77,7 +66,6 @@ def test_each_literal_solution_passes_its_check(exercise, capsys):
     assert "✘" not in out, out
 
 
-@pytest.mark.xfail(strict=False, reason=TODAY)
 def test_the_filled_release_runs_notebooks_01_to_10_in_order_without_an_error(filled_release):
     kit, filled = filled_release
     released = sorted(p.name for p in (kit / "notebooks").glob("*.ipynb"))
