@@ -113,10 +113,10 @@ def _visibility_case(c: Check, fn, case: str, uv, expected) -> None:
                  "(e.g. ~np.isnan(track_uv[..., 0]))")
         V = V != 0
     if np.array_equal(V, ~expected):
-        c.fail(f"{case}: V is inverted: it must be True where the point IS seen (the pixel is not NaN)")
+        c.fail(f"{case}: V is inverted: it must be True where the point IS seen (the pixel is not NaN)", named="inverted")
     elif V.all() and not expected.all():
         c.fail(f"{case}: V is True everywhere: a comparison with NaN (track_uv != np.nan) is always True, since NaN "
-               "equals nothing; test with np.isnan")
+               "equals nothing; test with np.isnan", named="nan_compare")
     else:
         c.expect(np.array_equal(V, expected), f"{case}: V[j, i] is True exactly where point j is seen in image i",
                  f"{case}: {int((V != expected).sum())} entries differ from the NaN pattern of track_uv")
@@ -153,11 +153,13 @@ def _residual_case(c: Check, fn, f, key: str, case: str) -> None:
     if np.abs(r - exp).max() < tol or np.abs(r + exp).max() < tol:  # observed minus projected works too
         c.expect(True, f"{case}: equals the reference (up to the sign, u and v interleaved)", "")
     else:
-        why = next((msg for name, msg in RESIDUAL_VARIANTS.items() if f"{key}_var_{name}" in f
-                    and (np.abs(r - f[f"{key}_var_{name}"]).max() < tol or np.abs(r + f[f"{key}_var_{name}"]).max() < tol)),
-                   "check the projection of point point_idx[k] by camera camera_idx[k]: R from the rotation vector "
-                   "params[6c:6c+3], t = params[6c+3:6c+6], X = params[6M+3j:6M+3j+3]")
-        c.fail(f"{case}: max difference {np.abs(r - exp).max():.3g} px from the reference: {why}")
+        named = next((name for name, msg in RESIDUAL_VARIANTS.items() if f"{key}_var_{name}" in f
+                      and (np.abs(r - f[f"{key}_var_{name}"]).max() < tol or np.abs(r + f[f"{key}_var_{name}"]).max() < tol)),
+                     None)
+        why = RESIDUAL_VARIANTS.get(named) or ("check the projection of point point_idx[k] by camera camera_idx[k]: R "
+                                                "from the rotation vector params[6c:6c+3], t = params[6c+3:6c+6], "
+                                                "X = params[6M+3j:6M+3j+3]")
+        c.fail(f"{case}: max difference {np.abs(r - exp).max():.3g} px from the reference: {why}", named=named)
 
 
 def check_reprojection_residuals(fn, exercise: str = "reprojection_residuals") -> None:
@@ -220,10 +222,11 @@ def _sparsity_case(c: Check, fn, f, key: str, case: str) -> None:
         c.fail(f"{case}: shape {A.shape}, expected {(K2, P)}: rows are residuals (2 per observation), columns parameters")
     elif A.shape == (K2, 9 * M + 3 * N):
         c.fail(f"{case}: {A.shape[1]} columns = 9 per camera + 3 per point: here K is fixed, so a camera has 6 "
-               "parameters (rotation vector and t), not 9 as in the SciPy cookbook")
+               "parameters (rotation vector and t), not 9 as in the SciPy cookbook", named="nine_per_camera")
     elif c.shape(A, (K2, P), f"{case}: sparsity"):
+        why = _sparsity_mistake(A, exp, M, pt)
         c.expect(np.array_equal(A, exp), f"{case}: a 2x6 camera block and a 2x3 point block per observation",
-                 f"{case}: {_sparsity_mistake(A, exp, M, pt)}")
+                 f"{case}: {why}", named=None if " entries differ" in why else why[:30])
 
 
 def check_jacobian_sparsity(fn, exercise: str = "jacobian_sparsity") -> None:
@@ -297,11 +300,11 @@ def _minimum_verdict(c: Check, case: str, cost: float, f, moved: bool, converged
     elif converged and cost < 0.9 * c0:
         c.fail(f"{case}: cost 0.5·Σr² = {cost:.6g}, the minimum is {opt:.6g} ({cost / opt - 1:.1e} above it), and "
                "your last iterations no longer changed it: the solve converged to the minimum of another cost; "
-               "minimize the plain sum of squares (loss='linear') over all observations")
+               "minimize the plain sum of squares (loss='linear') over all observations", named="another_cost")
     elif cost < 0.9 * c0:
         c.fail(f"{case}: cost 0.5·Σr² = {cost:.6g}, the minimum is {opt:.6g} ({cost / opt - 1:.1e} above it): "
                "the solve stopped before the minimum; let least_squares run to convergence (no small max_nfev, "
-               "the default tolerances)")
+               "the default tolerances)", named="stopped_early")
     else:
         c.fail(f"{case}: cost 0.5·Σr² = {cost:.4g}, no better than the start ({c0:.4g}): are the residuals and the "
                "parameter layout consistent (pack and unpack the same way)?")
@@ -327,7 +330,7 @@ def _callback_verdict(c: Check, case: str, costs: list[float], c0: float, final:
                "one included")
     ok = len(costs) >= 2 and not rising and costs[-1] <= final * (1 + 1e-6) + 1e-9
     c.expect(ok, f"{case}: callback follows the iterations (the cost never rises, the last state is the result)",
-             f"{case}: {why}")
+             f"{case}: {why}", named=why[:30])
 
 
 def check_bundle_adjustment(fn, exercise: str = "bundle_adjust") -> None:
@@ -349,7 +352,7 @@ def check_bundle_adjustment(fn, exercise: str = "bundle_adjust") -> None:
             R, t, X = out
             c.gate(all(np.allclose(Ri @ Ri.T, np.eye(3), atol=1e-6) and np.linalg.det(Ri) > 0 for Ri in R),
                    f"{case}: every R_cw is a rotation", f"{case}: some R_cw is not a rotation: optimize rotation "
-                   "vectors, not the 9 entries of R")
+                   "vectors, not the 9 entries of R", named="nine_entries")
             cost = _cost(K, R, t, X, uv)
             costs = [_cost(K, *s, uv) if all(np.shape(a) == np.shape(b) for a, b in zip(s, (R0, t0, X0)))
                      else float("inf") for s in states]

@@ -140,17 +140,20 @@ def check_essential_from_fundamental(essential_from_fundamental: Callable) -> No
                          "up to scale), but the docstring asks for exactly (1, 1, 0): U diag(1, 1, 0) Vᵀ")
             elif _same_up_to_sign(_unit(E), f[f"{name}_mis_uncorrected"], 1e-6):
                 c.fail(f"{case}: E = Kᵀ F K is not corrected (singular values {np.round(s / s[0], 3).tolist()} relative): "
-                       "set them to (1, 1, 0), E = U diag(1, 1, 0) Vᵀ from the SVD of Kᵀ F K", defining=sv)
+                       "set them to (1, 1, 0), E = U diag(1, 1, 0) Vᵀ from the SVD of Kᵀ F K", defining=sv,
+                       named="uncorrected")
             else:
                 c.fail(f"{case}: E has singular values {np.round(s, 4).tolist()}, expected two equal ones and a zero, "
                        "(1, 1, 0): E = U diag(1, 1, 0) Vᵀ from the SVD of Kᵀ F K", defining=sv)
             if _same_up_to_sign(_unit(E), _unit(E_ref), 1e-6):
                 c.expect(True, f"{case}: E matches the reference Kᵀ F K (up to sign)", "")
                 continue
-            hint = next((h for key, h in _E_MISTAKES.items() if any(
+            key = next((key for key in _E_MISTAKES if any(
                 f"{name}_mis_{k}" in f and _same_up_to_sign(_unit(E), _unit(f[f"{name}_mis_{k}"]), 1e-5)
                 for k in (key, f"{key}_corrected"))), None)
-            c.fail(f"{case}: {hint or 'E differs from the reference Kᵀ F K (corrected to singular values (1, 1, 0)), up to sign'}")
+            hint = _E_MISTAKES.get(key)
+            c.fail(f"{case}: {hint or 'E differs from the reference Kᵀ F K (corrected to singular values (1, 1, 0)), up to sign'}",
+                   named=key)
 
 
 #: What each stored mistake of essential_from_fundamental (``<case>_mis_<key>[_corrected]``) means.
@@ -226,10 +229,10 @@ def check_pose_candidates(pose_candidates: Callable) -> None:
             Ct = np.stack([-(R[k].T @ Cn[k]) for k in range(4)])
             if -1 not in match_candidates(R, Ct, R_ref, C_ref, rot_deg=1e-3, cos_min=1 - 1e-6):
                 c.fail(f"{case}: C holds the translation t = ±U[:, 2], not the camera centre: C = -Rᵀ t "
-                       "(the right null vector of E, ±V[:, 2]); t = -R C")
+                       "(the right null vector of E, ±V[:, 2]); t = -R C", named="t_for_C")
             elif -1 not in match_candidates(R, np.stack([R[k].T @ R[k].T @ Cn[k] for k in range(4)]), R_ref,
                                             C_ref, rot_deg=1e-3, cos_min=1 - 1e-6):
-                c.fail(f"{case}: C = -R t: the centre is C = -Rᵀ t (transpose R), t = ±U[:, 2]")
+                c.fail(f"{case}: C = -R t: the centre is C = -Rᵀ t (transpose R), t = ±U[:, 2]", named="C_minus_R_t")
             elif len({tuple(np.round(Rk, 6).ravel()) for Rk in np.abs(R)}) < 2:
                 c.fail(f"{case}: only one rotation: the candidates use both U W Vᵀ and U Wᵀ Vᵀ, each with C and -C")
             elif not factors:

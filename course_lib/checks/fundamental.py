@@ -141,7 +141,7 @@ def _scale_verdict(c: Check, x: np.ndarray, xn: np.ndarray, T: np.ndarray) -> No
         c.fail("the mean distance is 1: Hartley's normalization scales it to sqrt(2) (s = sqrt(2) / mean distance)")
     elif np.isclose(mean_d, uncentred, rtol=1e-6):
         c.fail("the scale is measured from the uncentred points: s = sqrt(2) / (mean distance to the centroid), "
-               "np.linalg.norm(x - c, axis=1).mean() with c the mean of the points")
+               "np.linalg.norm(x - c, axis=1).mean() with c the mean of the points", named="uncentred_scale")
     else:
         c.fail(f"the mean distance to the origin is {mean_d:.4g}, expected sqrt(2) = 1.4142")
 
@@ -181,7 +181,8 @@ def check_normalize_points(normalize_points: Callable) -> None:
         if np.allclose(mapped, xn, atol=1e-8):
             c.gate(True, "x_n = T x (in homogeneous coordinates)", "")
         elif np.allclose(back, x, atol=1e-6):
-            c.fail("T is the inverse: it maps x_n back to the pixels; return the T with x_n = T x (pixels to normalized)")
+            c.fail("T is the inverse: it maps x_n back to the pixels; return the T with x_n = T x (pixels to normalized)",
+                   named="T_inverse")
         else:
             c.fail("x_n is not T applied to x: T must be the similarity that maps every pixel x to x_n")
         centroid = xn.mean(0)
@@ -218,17 +219,17 @@ _EIGHT_POINT_MISTAKES = {
 }
 
 
-def _diagnose_F(F, f, p: str, x1, x2) -> str:
-    """The likely mistake when F differs from the reference on case ``p``; else what failed, with numbers."""
+def _diagnose_F(F, f, p: str, x1, x2) -> tuple[str, str | None]:
+    """The likely mistake when F differs from the reference on case ``p`` (text, key); else what failed, with numbers."""
     for key, hint in _EIGHT_POINT_MISTAKES.items():
         if f"{p}_mis_{key}" in f and _same_up_to_scale(F, f[f"{p}_mis_{key}"], 1e-4):
-            return hint
+            return hint, key
     if _rank(F, f[f"{p}_T1"], f[f"{p}_T2"]) == 3:
-        return _EIGHT_POINT_MISTAKES["no_rank2"]
+        return _EIGHT_POINT_MISTAKES["no_rank2"], "no_rank2"
     d = np.median(_line_distance_px(F, x1, x2))
     d_ref = np.median(_line_distance_px(f[f"{p}_F"], x1, x2))
     return (f"F does not fit the matches as well as the reference's 8-point F: median distance of the points to their "
-            f"epipolar lines {d:.3g} px, reference {d_ref:.3g} px")
+            f"epipolar lines {d:.3g} px, reference {d_ref:.3g} px"), None
 
 
 def check_eight_point(eight_point: Callable) -> None:
@@ -261,7 +262,8 @@ def check_eight_point(eight_point: Callable) -> None:
             if ok:
                 c.expect(True, msg, "")
             else:
-                c.fail(f"{case}: {_diagnose_F(F, f, p, x1, x2)}")
+                text, key = _diagnose_F(F, f, p, x1, x2)
+                c.fail(f"{case}: {text}", named=key)
             c.gate(_rank(F, f[f"{p}_T1"], f[f"{p}_T2"]) == 2, f"{case}: F has rank 2",
                    f"{case}: F has rank 3: enforce rank 2 by zeroing the smallest singular value, "
                    "F = U diag(s1, s2, 0) Vᵀ", defining="rank 2")
@@ -322,10 +324,12 @@ def check_sampson_distance(sampson_distance: Callable) -> None:
             if np.allclose(d, d_ref, rtol=1e-6, atol=1e-9):
                 c.expect(True, f"{case}: distances match the reference (pixels)", "")
             else:
-                hint = next((h for key, h in _SAMPSON_MISTAKES.items() if f"{p}_mis_{key}" in f
-                             and np.allclose(d, f[f"{p}_mis_{key}"], rtol=1e-5, atol=1e-9)), None)
+                key = next((key for key, h in _SAMPSON_MISTAKES.items() if f"{p}_mis_{key}" in f
+                            and np.allclose(d, f[f"{p}_mis_{key}"], rtol=1e-5, atol=1e-9)), None)
+                hint = _SAMPSON_MISTAKES.get(key)
                 j = int(np.argmax(np.abs(d - d_ref)))
-                c.fail(f"{case}: {hint or f'distances differ from the Sampson distance (match {j}: {d[j]:.4g} px, expected {d_ref[j]:.4g} px): ' + _SAMPSON_DEN}")
+                c.fail(f"{case}: {hint or f'distances differ from the Sampson distance (match {j}: {d[j]:.4g} px, expected {d_ref[j]:.4g} px): ' + _SAMPSON_DEN}",
+                       named=key)
             if k == 0:
                 d10 = _as_array(c.call(sampson_distance, -10.0 * F, x1, x2, case=case), c, f"{case}: d")
                 usable = d10 is not None and d10.shape == d.shape  # an unusable answer fails the gate too
@@ -388,7 +392,7 @@ def _inlier_rule(F, x1, x2, inl, thr: float, stored: dict) -> str | None:
     for key, mine in (("algebraic", e < thr), ("squared", _consensus(F, x1, x2, np.sqrt(thr)))):
         j = max(_jaccard(inl, mine), _jaccard(inl, stored[key]))
         if j >= 0.97 and j > right + 0.02:
-            return _RULES[key]
+            return key
     return None
 
 
@@ -409,9 +413,9 @@ def _named_rule(F, x1, x2, inl, thr: float, stored: dict) -> tuple[str | None, b
         return None, True
     e = np.abs(np.sum(_h(x2) * (_h(x1) @ _unit(F).T), axis=1))
     if agree(_consensus(F, x1, x2, np.sqrt(thr))):
-        return _RULES["squared"], True
+        return "squared", True
     if agree(e < thr):
-        return _RULES["algebraic"], True
+        return "algebraic", True
     return _inlier_rule(F, x1, x2, inl, thr, stored), False
 
 
@@ -426,7 +430,7 @@ def _ransac_main_case(c: Check, f: dict, F, inl, case: str) -> None:
     if named is None and prec >= 0.9 and rec >= 0.8:
         c.expect(True, f"{case}: finds the true inliers (precision >= 90 %, recall >= 80 %)", "")
     elif named is not None:
-        c.fail(f"{case}: {named}")
+        c.fail(f"{case}: {_RULES[named]}", named=named)
     elif inl.mean() > 0.97:
         c.fail(f"{case}: almost every match is an inlier ({int(inl.sum())}/{len(inl)}): compare "
                "sampson_distance(F, x1, x2) < threshold_px (pixels) for every match")
@@ -437,7 +441,7 @@ def _ransac_main_case(c: Check, f: dict, F, inl, case: str) -> None:
     d_ref = np.median(_line_distance_px(f["rs_F"], xt1, xt2))
     c.expect(bool(np.isfinite(d) and d <= 3.0 * d_ref + 0.3), f"{case}: F fits the true geometry as well as the reference",
              f"{case}: F is off (median epipolar distance of the noiseless points {d:.3g} px, reference {d_ref:.3g} px): "
-             + _REFIT_HINT)
+             + _REFIT_HINT, named="no_refit")
     if named is None:
         c.detail(own, f"{case}: the inliers are those of the refit F",
                  f"{case}: correct RANSAC, but the inliers are not those of the returned F (the best sample's?): the "
@@ -458,7 +462,7 @@ def _ransac_refit_case(c: Check, fn: Callable, f: dict) -> None:
     d_ref = np.median(_line_distance_px(f["rf_F"], f["rf_x1_true"], f["rf_x2_true"]))
     c.expect(bool(np.isfinite(d) and d <= 2.0 * d_ref + 0.05), f"{case}: F is refit on all inliers",
              f"{case}: F is as imprecise as the fit of a minimal sample (median epipolar distance of the noiseless points "
-             f"{d:.3g} px, the fit of all inliers {d_ref:.3g} px): {_REFIT_HINT}")
+             f"{d:.3g} px, the fit of all inliers {d_ref:.3g} px): {_REFIT_HINT}", named="no_refit")
 
 
 def _ransac_randomness(c: Check, fn: Callable, f: dict, out: tuple, case: str) -> None:
@@ -476,7 +480,7 @@ def _ransac_randomness(c: Check, fn: Callable, f: dict, out: tuple, case: str) -
             and np.allclose(again[0], out[0]) and again[2] == out[2])
     c.gate(same, f"{case}: the same seed gives the same result",
            f"{case}: two runs with the same seeded rng differ: draw every sample from the rng argument "
-           "(rng.choice(N, 8, replace=False)), never from np.random or a generator of your own")
+           "(rng.choice(N, 8, replace=False)), never from np.random or a generator of your own", named="rng_not_used")
     short = _unpack_ransac(c.call(fn, x1, x2, np.random.default_rng(1), threshold_px=thr, max_iters=3, case=case), c, case)
     if short is not None:
         c.gate(short[2] is not None and short[2] <= 3, f"{case}: max_iters bounds the number of samples",
@@ -538,5 +542,5 @@ def _ransac_embedded(c: Check, fn: Callable, f: dict) -> None:
         return
     stored = {"right": ref_inl, "squared": ref_inl, "algebraic": np.zeros_like(ref_inl)}
     named = _inlier_rule(out[0], x1, x2, inl, thr, stored)
-    c.fail(f"{case}: {named or 'the inliers disagree with the reference'}: {n} inliers, the reference has {n_ref} "
-           f"({common} in common)")
+    c.fail(f"{case}: {_RULES[named] if named else 'the inliers disagree with the reference'}: {n} inliers, the reference "
+           f"has {n_ref} ({common} in common)", named=named)

@@ -160,7 +160,8 @@ def _check_one_camera(c: Check, get_rays: Callable, f, name: str) -> None:
     o, d = pair
     if d.shape == (W, H, 3) and close(np.swapaxes(d, 0, 1), d_ref):
         c.fail(f"{case}: rays_d has shape (W, H, 3) = {d.shape}: meshgrid ij/xy transposition; use "
-               "torch.meshgrid(u, v, indexing='xy') (or indexing='ij' with (v, u)) so that rows are image rows v")
+               "torch.meshgrid(u, v, indexing='xy') (or indexing='ij' with (v, u)) so that rows are image rows v",
+               named="meshgrid")
         return
     if d.shape == (H * W, 3):
         c.fail(f"{case}: rays_d has shape {d.shape}: return one ray per pixel as (H, W, 3) (reshape at the end)")
@@ -171,15 +172,17 @@ def _check_one_camera(c: Check, get_rays: Callable, f, name: str) -> None:
         c.expect(True, f"{case}: rays_d matches the reference (one ray per pixel, OpenCV axes, z_cam = 1)", "")
     else:
         hint = match_variant(d, stored_variants(f, f"rays_{name}_d", RAY_HINTS))
+        named = hint and hint[:30]
         if hint is None:
             d_cam = d @ c2w[:3, :3]
             if np.all(d_cam[..., 2] < 0):
                 hint = "rays point backwards (z_cam < 0): the camera looks along +z in the kit's OpenCV axes"
+                named = "backwards"
             else:
                 err = float(np.abs(d - d_ref).max())
                 hint = (f"rays_d differs from the reference (max error {err:.3g}): the camera-frame direction of "
                         "pixel (u, v) is ((u - cx) / fx, (v - cy) / fy, 1), rotated by c2w[:3, :3]")
-        c.fail(f"{case}: {hint}")
+        c.fail(f"{case}: {hint}", named=named)
     if o.shape == (3,) or o.shape == (1, 1, 3):
         c.fail(f"{case}: rays_o has shape {o.shape}: repeat the camera centre for every pixel "
                "(rays_o.expand(H, W, 3) or torch.broadcast_to)")
@@ -229,6 +232,7 @@ def _check_evaluation(c: Check, fn: Callable, near: float, far: float, S: int, R
         c.expect(True, "evaluation (perturb=False): the evenly spaced depths of the reference, the same for every ray", "")
         return
     z2 = to_numpy(c.call(fn, near, far, S, R, False, case=case))
+    named = "eval"
     lo, up = _bins(near, far, S)["kit"]
     inside = np.all((z >= lo - 1e-6) & (z <= up + 1e-6))
     step = (far - near) / S
@@ -243,7 +247,8 @@ def _check_evaluation(c: Check, fn: Callable, near: float, far: float, S: int, R
         hint = "the depths are the centres of S equal bins: in evaluation use torch.linspace(near, far, n_samples)"
     else:
         hint = "z_vals are not evenly spaced from near to far (expected torch.linspace(near, far, n_samples) for every ray)"
-    c.fail(f"{case}: {hint}")
+        named = None
+    c.fail(f"{case}: {hint}", named=named and hint[:30])
 
 
 def _bin_hint(zt: np.ndarray, near: float, far: float, S: int) -> str:
@@ -278,8 +283,9 @@ def _check_training(c: Check, fn: Callable, near: float, far: float, S: int, R: 
            f"{case}: no jitter: with perturb=True draw one uniform sample inside each bin")
     fits = {k: np.all((zt >= lo - 1e-6) & (zt <= up + 1e-6)) for k, (lo, up) in _bins(near, far, S).items()}
     kind = next((k for k, ok in fits.items() if ok), None)
+    bin_hint = _bin_hint(zt, near, far, S)
     c.expect(kind is not None, f"{short}: every sample lies in its own bin, so the depths are sorted",
-             f"{case}: {_bin_hint(zt, near, far, S)}", defining=BINS)
+             f"{case}: {bin_hint}", defining=BINS, named=None if "draw z = lower" in bin_hint else bin_hint[-40:])
     lo, up = _bins(near, far, S)[kind or "kit"]
     off = (zt - lo) / (up - lo)
     varied_s, varied_r = np.ptp(off, axis=1).min() > 1e-3, np.ptp(off, axis=0).min() > 1e-3
@@ -297,7 +303,7 @@ def _check_training(c: Check, fn: Callable, near: float, far: float, S: int, R: 
     c.gate(usable and close(zt, zt2), f"{short}: the same generator seed gives the same samples",
            f"{case}: the same seed gave different samples: pass generator=generator to torch.rand" if usable else
            f"{case}: a second call with the same seed returned nothing usable (shape {np.shape(zt2)}, expected "
-           f"{np.shape(zt)})")
+           f"{np.shape(zt)})", named="generator" if usable else None)
 
 
 def check_stratified_samples(stratified_samples: Callable) -> None:
@@ -372,9 +378,10 @@ def check_query_points(query_points: Callable) -> None:
                 continue
             if not c.shape(p, (R, S, 3), f"{case}: pts"):
                 continue
+            hint = match_variant(p, stored_variants(f, f"query_{k}_pts", QUERY_HINTS))
             c.expect(close(p, ref), f"{case}: pts = o + t d matches the reference",
-                     f"{case}: " + (match_variant(p, stored_variants(f, f"query_{k}_pts", QUERY_HINTS))
-                                    or "pts differs from o + t d (pts[r, s] = rays_o[r] + z_vals[r, s] * rays_d[r])"))
+                     f"{case}: " + (hint or "pts differs from o + t d (pts[r, s] = rays_o[r] + z_vals[r, s] * rays_d[r])"),
+                     named=hint and hint[:30])
 
 
 # --------------------------------------------------------------------------- positional encoding
@@ -424,7 +431,7 @@ def check_positional_encoding(positional_encoding: Callable) -> None:
                     hint = ": with include_input=False leave out the identity term x"
                 elif out.shape[:-1] != xin.shape[:-1]:
                     hint = ": keep the leading (batch) axes and concatenate along the last axis"
-                c.fail(f"{case}: the encoding has shape {out.shape}, expected {want}{hint}")
+                c.fail(f"{case}: the encoding has shape {out.shape}, expected {want}{hint}", named=hint[:30] or None)
                 continue
             if close(out, ref, rtol=1e-3, atol=2e-3):  # float32 sin(2^9 pi x) is good to ~1e-4
                 c.expect(True, f"{case}: shape {want} and values match the reference", "")
@@ -432,4 +439,5 @@ def check_positional_encoding(positional_encoding: Callable) -> None:
             hint = match_variant(out, stored_variants(f, f"enc_{key}", ENCODING_HINTS), rtol=1e-3, atol=2e-3)
             c.fail(f"{case}: " + (hint or f"the values differ from the reference (max error "
                                           f"{float(np.abs(out - ref).max()):.3g}); compare with the formula above: "
-                                          "[x, sin(2^0 pi x), cos(2^0 pi x), ..., cos(2^(L-1) pi x)]"))
+                                          "[x, sin(2^0 pi x), cos(2^0 pi x), ..., cos(2^(L-1) pi x)]"),
+                   named=hint and hint[:30])

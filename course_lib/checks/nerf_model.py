@@ -384,7 +384,8 @@ def _check_config(c: Check, NeRF, f, name: str, pts, dirs, lead, seed: int) -> N
         ref_layers, mine = expected_layers(cfg), layer_table(model)
         hint, skip_mistake = _layer_hint(mine, ref_layers, cfg)  # a missing skip is named here
         c.gate(sorted(mine) == sorted(ref_layers), f"{case}: {len(ref_layers)} linear layers of the documented sizes",
-               f"{case}: {hint}", defining=SKIP if skip_mistake else None)
+               f"{case}: {hint}", defining=SKIP if skip_mistake else None,
+               named=None if hint.startswith("layers (in, out)") else hint[:30])
         own = _outputs(c, model, pts, dirs, lead, case)
     if own is not None and name == "default":
         _own_init_gates(c, model, *own, pts, dirs, lead, case)
@@ -405,13 +406,16 @@ def _check_config(c: Check, NeRF, f, name: str, pts, dirs, lead, seed: int) -> N
                   f"the density differs: check the ReLU after every trunk layer, the skip (γ(x) concatenated with "
                   f"the output of trunk layer {cfg['skips'][0]}) and that sigma is read off the last trunk layer")
     c.expect(trunk_ok, f"{with_w}, the trunk and its skip input compute the reference's features",
-             f"{with_w}: {trunk_hint}", defining=SKIP if trunk_ok else None)
+             f"{with_w}: {trunk_hint}", defining=SKIP if trunk_ok else None,
+             named="no_trunk_relu" if trunk_hint.startswith("no ReLU") else None)
     act = next((why for why, g in DENSITY_VARIANTS if close(sigma, g(raw))), None)
     ok_sig = close(sigma, ref_sigma)
     c.expect(ok_sig, f"{with_w}, sigma = ReLU(density head) equals the reference's",
              f"{with_w}: " + (act or "sigma differs from the reference's (see the line above)"),
-             defining=RELU if ok_sig or act is not None else None)
-    c.expect(close(rgb, ref_rgb), f"{with_w}, rgb equals the reference's", f"{with_w}: " + _rgb_hint(f, name, rgb, trunk_ok))
+             defining=RELU if ok_sig or act is not None else None, named=act and act[:30])
+    rgb_hint = _rgb_hint(f, name, rgb, trunk_ok)
+    c.expect(close(rgb, ref_rgb), f"{with_w}, rgb equals the reference's", f"{with_w}: " + rgb_hint,
+             named=rgb_hint[:30] if rgb_hint.startswith(("a ReLU", "rgb outside")) else None)
 
 
 def _rgb_hint(f, name: str, rgb: np.ndarray, trunk_ok: bool) -> str:
@@ -479,4 +483,4 @@ def check_psnr(psnr: Callable) -> None:
                 continue
             hint = next((why for why, g in PSNR_VARIANTS if abs(v - g(mse)) < 1e-3 * max(1.0, abs(g(mse)))), None)
             c.fail(f"{case}: got {v:.3f} dB, expected {want:.3f} for mse = {mse:.4g}: "
-                   + (hint or "PSNR = -10 log10(mse) for images in [0, 1] (peak 1)"))
+                   + (hint or "PSNR = -10 log10(mse) for images in [0, 1] (peak 1)"), named=hint and hint[:30])

@@ -132,7 +132,7 @@ def _check_slabs(c: Check, volume_render: Callable, f) -> None:
                                                                                             atol=1e-4)
         hint = RENDER_HINTS[label] if label else (f"acc_map = {np.round(acc, 3).tolist()}, expected 1 - exp(-sigma L) = "
                                                   f"{np.round(1 - trans, 3).tolist()}")
-        c.fail(f"{case}: {hint}", defining=DELTA if label in NO_DELTA else None)
+        c.fail(f"{case}: {hint}", defining=DELTA if label in NO_DELTA else None, named=label)
     c.gate(np.allclose(res["weights"].sum(-1), acc, atol=1e-4), f"{case}: acc_map is the sum of the weights",
            f"{case}: acc_map must be the sum of the weights along each ray")
     if ok:  # the colour only makes sense once the opacity is right
@@ -158,7 +158,7 @@ def _check_random(c: Check, volume_render: Callable, f, white: bool) -> None:
         c.fail(f"{case}: " + (RENDER_HINTS[label] if label else
                               "weights differ from the reference: w_i = T_i (1 - exp(-sigma_i delta_i)), "
                               "T_i = prod_{j<i} exp(-sigma_j delta_j), delta_i = (z_{i+1} - z_i) |d|, delta_S = 1e10"),
-               defining=DELTA if label in NO_DELTA else None)
+               defining=DELTA if label in NO_DELTA else None, named=label)
         return
     c.expect(close(res["acc_map"], ref["acc_map"], rtol=1e-3), f"{case}: acc_map matches the reference",
              f"{case}: acc_map must be the sum of the weights along each ray")
@@ -166,18 +166,21 @@ def _check_random(c: Check, volume_render: Callable, f, white: bool) -> None:
         c.expect(True, f"{case}: rgb_map matches the reference", "")
     else:
         other = f[f"{bg}__other_background_rgb_map"].astype(float)
+        named = None
         if close(res["rgb_map"], other, rtol=1e-3):
             hint = ("no white background: add (1 - acc_map) to rgb_map when white_background=True" if white else
                     "white background added although white_background=False")
+            named = "background"
         else:
             hint = "rgb_map = sum_i w_i c_i (+ (1 - acc_map) on a white background)"
-        c.fail(f"{case}: {hint}")
+        c.fail(f"{case}: {hint}", named=named)
     if close(res["depth_map"], ref["depth_map"], rtol=1e-3):
         c.expect(True, f"{case}: depth_map matches the reference", "")
     else:
         norm = f[f"{bg}__depth_normalized_depth_map"].astype(float)
+        normed = close(res["depth_map"], norm, rtol=1e-3)
         c.fail(f"{case}: " + ("depth_map divided by acc_map: the kit's depth is the expected depth sum_i w_i z_i"
-                              if close(res["depth_map"], norm, rtol=1e-3) else "depth_map = sum_i w_i z_i"))
+                              if normed else "depth_map = sum_i w_i z_i"), named="depth_normalized" if normed else None)
 
 
 def check_volume_render(volume_render: Callable) -> None:

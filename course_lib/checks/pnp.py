@@ -106,10 +106,10 @@ def _rotation_verdict(c: Check, R, case: str, defining: str | None = None) -> bo
     """
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
         return c.fail(f"{case}: R_cw is not orthonormal (R Rᵀ ≠ I): you forgot to orthogonalize R; with "
-                      "P[:, :3] = U S Vᵀ take R = U Vᵀ", defining=defining)
+                      "P[:, :3] = U S Vᵀ take R = U Vᵀ", defining=defining, named="not_orthogonalized")
     if np.linalg.det(R) < 0:
         return c.fail(f"{case}: det R = -1 (a reflection): P is known only up to sign; when det P[:, :3] < 0 "
-                      "flip the sign of P (R and t together)", defining=defining)
+                      "flip the sign of P (R and t together)", defining=defining, named="sign_of_P")
     if defining is not None:
         c.gate(True, f"{case}: R_cw is a rotation (orthonormal, det +1)", "", defining=defining)
     return True
@@ -156,7 +156,8 @@ def check_pnp_linear(fn, exercise: str = "pnp_linear") -> None:
                     "check the two equations per point, u_n (p3ᵀX) - p1ᵀX = 0 and v_n (p3ᵀX) - p2ᵀX = 0, "
                     "with x_n = K⁻¹ x (normalized coordinates)")
                 c.fail(f"noiseless synthetic view: rotation error {rotation_angle_deg(R, R_t):.3g}°, "
-                       f"translation error {np.linalg.norm(t - t_t):.3g}: {why}")
+                       f"translation error {np.linalg.norm(t - t_t):.3g}: {why}",
+                       named=None if why.startswith("check the two") else why[:30])
         # noisy and embedded: close to the reference
         for key, case in (("lin_noisy", "noisy synthetic view"), ("lin_embedded", "embedded scene")):
             if f"{key}_X" not in f:
@@ -178,7 +179,8 @@ def check_pnp_linear(fn, exercise: str = "pnp_linear") -> None:
             if why is None:
                 why = "check the equations on normalized coordinates x_n = K⁻¹ x and the orthogonalization R = U Vᵀ"
             c.fail(f"{case}: rotation {rotation_angle_deg(R, R_r):.3g}° from the reference, RMS reprojection error "
-                   f"{e_s:.3g} px (reference {e_r:.3g} px): {why}")
+                   f"{e_s:.3g} px (reference {e_r:.3g} px): {why}",
+                   named=None if why.startswith("check the equations") else why[:30])
 
 
 def _pixel_hint(R, K, R_true) -> str | None:
@@ -254,7 +256,8 @@ def _mask_verdict(c: Check, case: str, inl, e, thr: float) -> None:
         else:
             why = ("the mask belongs to another pose than the one returned (the best sample's?): after the refit, "
                    "recompute the inliers with the final pose")
-    c.fail(f"{case}: {int(bad.sum())} points are labelled against the returned pose's reprojection errors: {why}")
+    c.fail(f"{case}: {int(bad.sum())} points are labelled against the returned pose's reprojection errors: {why}",
+           named=why[:30])
 
 
 def _ransac_pose(c: Check, case: str, R, t, inl, e, thr, R_r, t_r, n_r: int) -> bool:
@@ -269,7 +272,8 @@ def _ransac_pose(c: Check, case: str, R, t, inl, e, thr, R_r, t_r, n_r: int) -> 
                   "reprojection error in pixels (project with K), not in normalized coordinates" if far else None)
     why = why or (
         "score each sample by the reprojection error in pixels of ALL points and keep the best; then refit on its inliers")
-    return c.fail(f"{case}: rotation {rot:.3g}° from the reference ({int(inl.sum())} inliers, reference {n_r}): {why}")
+    return c.fail(f"{case}: rotation {rot:.3g}° from the reference ({int(inl.sum())} inliers, reference {n_r}): {why}",
+                  named=why[:30])
 
 
 def _ransac_case(c: Check, fn, f, key: str, case: str, threshold: float | None = None):
@@ -282,7 +286,8 @@ def _ransac_case(c: Check, fn, f, key: str, case: str, threshold: float | None =
     R, t, inl, it = out
     thr = THRESHOLD_PX if threshold is None else threshold
     if float((~inl == inl_r).mean()) > 0.9 and float((inl == inl_r).mean()) < 0.5:
-        c.fail(f"{case}: the inlier mask is inverted: inliers are the points with reprojection error BELOW the threshold")
+        c.fail(f"{case}: the inlier mask is inverted: inliers are the points with reprojection error BELOW the threshold",
+               named="inverted")
         return None
     e = _errors(K, R, t, X, x)
     if not _ransac_pose(c, case, R, t, inl, e, thr, R_r, t_r, int(inl_r.sum())):
@@ -309,7 +314,7 @@ def _refit_verdict(c: Check, f, case: str, R, t) -> None:
     c.expect(rms <= bound, f"{case}: the pose is refit on all inliers",
              f"{case}: RMS reprojection error over the true inliers {rms:.3g} px, the reference's {ref:.3g} px: refit "
              "pnp_linear on ALL inliers of the best sample (a pose from 6 points carries their noise), then "
-             "recompute the inliers")
+             "recompute the inliers", named="no_refit")
 
 
 def _iterations_verdict(c: Check, case: str, inl, it, max_iters: int = 1000) -> None:
@@ -373,7 +378,7 @@ def _rng_verdicts(c: Check, fn, f) -> None:
     c.gate(same, f"{case}: the same rng seed gives the same result",
              f"{case}: the same rng seed gave different results when np.random's global state changed: draw every "
              "sample from the rng argument (rng.choice(N, 6, replace=False)), not from np.random or a generator of "
-             "your own")
+             "your own", named="rng_not_used")
 
 
 def check_pnp_ransac(fn, exercise: str = "pnp_ransac") -> None:
@@ -448,7 +453,7 @@ def check_pnp_nonlinear(fn, exercise: str = "pnp_nonlinear") -> None:
             R, t = out
             if not (np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0):
                 c.gate(False, "", f"{case}: the refined R_cw is not a rotation: optimize a rotation vector (3 numbers, "
-                       "Rotation.from_rotvec) or a quaternion, not the 9 entries of R")
+                       "Rotation.from_rotvec) or a quaternion, not the 9 entries of R", named="nine_entries")
                 continue
             if np.allclose(R, R0, atol=1e-12) and np.allclose(t, t0, atol=1e-12):
                 c.fail(f"{case}: the pose did not move: return the optimized parameters (result.x), not the start")
@@ -458,10 +463,10 @@ def check_pnp_nonlinear(fn, exercise: str = "pnp_nonlinear") -> None:
             if not c.gate(e_s <= e0 * (1 + 1e-9) + 1e-9, f"{case}: lowers the reprojection error",
                           f"{case}: the refinement increased the RMS reprojection error ({e0:.3g} -> {e_s:.3g} px): "
                           + (why or "the residual must be the projection K (R X + t) / z minus the observed pixels, "
-                                    "with R = Rotation.from_rotvec(p[:3]).as_matrix()")):
+                                    "with R = Rotation.from_rotvec(p[:3]).as_matrix()"), named=why and why[:30]):
                 continue
             rot = rotation_angle_deg(R, R_r)
             c.expect(e_s <= e_r * (1 + 1e-3) + 1e-6 and rot < 0.05, f"{case}: reaches the least-squares optimum",
                      f"{case}: RMS reprojection error {e_s:.4g} px, {rot:.2g}° from the optimum ({e_r:.4g} px): "
                      + (why or "not at the least-squares optimum: let least_squares run to convergence (its default "
-                                "tolerances) over all six parameters"))
+                                "tolerances) over all six parameters"), named=why and why[:30])

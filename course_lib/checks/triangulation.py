@@ -128,19 +128,20 @@ def _points_verdict(c: Check, X, ref, case: str, tol: float, P1=None, P2=None, x
     cos = (A * ref).sum(1) / (np.linalg.norm(A, axis=1) * np.linalg.norm(ref, axis=1) + 1e-300)
     if np.median(np.abs(cos)) > 1 - 1e-6 and np.median(np.abs(np.linalg.norm(A, axis=1) / np.linalg.norm(ref, axis=1) - 1)) > 1e-3:
         return c.fail(f"{case}: each point lies on the right line through the origin but at the wrong distance: "
-                      "did you divide by the homogeneous coordinate (X = X_h[:3] / X_h[3])?")
+                      "did you divide by the homogeneous coordinate (X = X_h[:3] / X_h[3])?", named="not_divided")
     if np.median(np.linalg.norm(A - (-ref), axis=1)) <= tol * scale:
-        return c.fail(f"{case}: the points are mirrored through the origin (X -> -X): divide by X_h[3], keeping its sign")
+        return c.fail(f"{case}: the points are mirrored through the origin (X -> -X): divide by X_h[3], keeping its sign",
+                      named="mirrored")
     hint = ""
     for key, Y in (mis or {}).items():
         if Y.shape == A.shape and np.median(np.linalg.norm(A - Y, axis=1)) <= max(tol, 1e-6) * scale:
-            return c.fail(f"{case}: {_LINEAR_MISTAKES[key]}")
+            return c.fail(f"{case}: {_LINEAR_MISTAKES[key]}", named=key)
     if P1 is not None:
         e_right = np.median(np.concatenate([_reprojection_px(P1, A, x1), _reprojection_px(P2, A, x2)]))
         e_swap = np.median(np.concatenate([_reprojection_px(P2, A, x1), _reprojection_px(P1, A, x2)]))
         if e_swap < 0.5 * e_right:
             return c.fail(f"{case}: your points project well with the cameras swapped ({e_swap:.3g} px, {e_right:.3g} px "
-                          f"as given): {_LINEAR_MISTAKES['swapped']}")
+                          f"as given): {_LINEAR_MISTAKES['swapped']}", named="swapped")
         hint = f" (median reprojection error {e_right:.3g} px)"
     return c.fail(f"{case}: median distance to the reference points {np.median(d):.3g} (scene size {scale:.3g}){hint}")
 
@@ -275,10 +276,11 @@ def _pose_case(c: Check, fn, f, key, case) -> None:
                                        "of BOTH cameras (z > 0 in camera 1 and r3ᵀ (X - C) > 0 in camera 2)")
         ref_counts = f[f"{key}_counts"]
         c.fail(f"{case}: chose candidate {k} ({int(ref_counts[k])} points in front of both cameras) instead of "
-               f"candidate {ref_k} ({int(ref_counts[ref_k])}): {why}", defining="in front of both cameras")
+               f"candidate {ref_k} ({int(ref_counts[ref_k])}): {why}", defining="in front of both cameras",
+               named=f"cheirality:{why[:30]}" if named else None)
         return
     if confusion:
-        c.fail(f"{case}: the right candidate, but {confusion}")
+        c.fail(f"{case}: the right candidate, but {confusion}", named=f"confusion:{confusion[:20]}")
         return
     # a gate: a constant answer (always R[0]) would otherwise earn the cases whose right candidate is 0
     c.gate(True, f"{case}: picks the candidate with the points in front of both cameras", "",
@@ -304,7 +306,8 @@ def _pose_case(c: Check, fn, f, key, case) -> None:
                                       "r3ᵀ (X - C) > 0 in camera 2")
         c.expect(close, f"{case}: in_front and counts agree with the reference",
                  f"{case}: counts {counts_s.astype(int).tolist()}, expected about {ref_counts.tolist()}: {why}",
-                 defining="in front of both cameras" if named else None)
+                 defining="in front of both cameras" if named else None,
+                 named=f"cheirality:{why[:30]}" if named else None)
     if f"{key}_true_R" in f:
         ok = np.allclose(R_s, f[f"{key}_true_R"], atol=1e-6) and np.allclose(t_s, f[f"{key}_true_t"], atol=1e-6)
         c.gate(ok, f"{case}: equals the true relative pose", f"{case}: differs from the true relative pose")
@@ -395,7 +398,7 @@ def check_triangulate_nonlinear(fn, exercise: str = "triangulate_nonlinear") -> 
                 continue
             if not np.isfinite(A).all():
                 c.fail(f"{case}: the points contain NaN: skip the observations that are NaN in uv (unseen), "
-                       "they must not enter the residuals")
+                       "they must not enter the residuals", named="nan_obs")
                 continue
             e0, e_ref, e_s = (_reproj_rms(K, R, t, uv, Y) for Y in (X0, ref, A))
             if np.allclose(A, X0, atol=1e-12):
@@ -404,7 +407,8 @@ def check_triangulate_nonlinear(fn, exercise: str = "triangulate_nonlinear") -> 
             named = _nonlinear_diagnosis(f, key, A, ref)
             if e_s > e0 * (1 + 1e-9) + 1e-9:
                 c.fail(f"{case}: {named or 'the non-linear step increased the RMS reprojection error'} "
-                       f"({e0:.3g} px before, {e_s:.3g} px after; the optimum is {e_ref:.3g} px)")
+                       f"({e0:.3g} px before, {e_s:.3g} px after; the optimum is {e_ref:.3g} px)",
+                       named=named and named[:30])
                 continue
             c.gate(True, f"{case}: lowers the reprojection error", "")
             ok = e_s <= e_ref * (1 + 1e-3) + 1e-6
@@ -413,4 +417,5 @@ def check_triangulate_nonlinear(fn, exercise: str = "triangulate_nonlinear") -> 
                          f"{case}: RMS reprojection error {e_s:.4g} px, the optimum is {e_ref:.4g} px: run the solver to "
                          "convergence and use every view that sees the point")
             else:
-                c.fail(f"{case}: {named} (RMS reprojection error {e_s:.4g} px, the optimum is {e_ref:.4g} px)")
+                c.fail(f"{case}: {named} (RMS reprojection error {e_s:.4g} px, the optimum is {e_ref:.4g} px)",
+                       named=named[:30])
