@@ -213,6 +213,9 @@ def _store_pose_case(out, key, Rc, Cc, K, x1, x2, tri) -> None:
     order[[right, target]] = order[[target, right]]
     Rc, Cc = Rc[order], Cc[order]
     ch = tri.choose_pose(Rc, Cc, K, x1, x2)
+    P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])  # the points of every candidate: an X of another one is named
+    out[f"{key}_X_all"] = np.stack([tri.triangulate_linear(P1, K @ np.hstack([Rc[k], (-Rc[k] @ Cc[k])[:, None]]), x1, x2)
+                                    for k in range(4)])
     out.update({f"{key}_R": Rc, f"{key}_C": Cc, f"{key}_K": K, f"{key}_x1": x1, f"{key}_x2": x2,
                 f"{key}_R_cw": ch.R_cw, f"{key}_t_cw": ch.t_cw, f"{key}_X": ch.X, f"{key}_in_front": ch.in_front,
                 f"{key}_counts": ch.counts, f"{key}_index": np.array(ch.index),

@@ -275,7 +275,7 @@ def triangulate_nonlinear__gauss_newton(K, R_cws, t_cws, uv, X0):
 M = Mistake
 MISTAKES = [
     M("triangulate_linear", "P1 and P2 swapped in A", gtr.check_triangulate_linear, triangulate_swapped_cameras,
-      ("cameras are swapped",)),
+      ("swapped the cameras",)),
     M("triangulate_linear", "no division by X_h[3]", gtr.check_triangulate_linear, triangulate_homogeneous,
       ("divide by the last coordinate",)),
     M("triangulate_linear", "largest singular vector", gtr.check_triangulate_linear, triangulate_largest_vector,
@@ -295,23 +295,23 @@ MISTAKES = [
     M("triangulate_nonlinear", "projection not divided by z", gtr.check_triangulate_nonlinear,
       triangulate_nonlinear_no_depth_division, ("without dividing by its depth",)),
     M("triangulate_nonlinear", "R transposed", gtr.check_triangulate_nonlinear, triangulate_nonlinear_R_transposed,
-      ("r is transposed",)),
+      ("r transposed",)),
     M("triangulate_nonlinear", "NaN set to 0", gtr.check_triangulate_nonlinear, triangulate_nonlinear_nan_as_zero,
       ("pixels (0, 0)",)),
     M("triangulate_nonlinear", "cross-multiplied residual", gtr.check_triangulate_nonlinear,
       triangulate_nonlinear_cross_multiplied, ("cross-multiplied",)),
     M("triangulate_nonlinear", "partly seen points not refined", gtr.check_triangulate_nonlinear,
-      triangulate_nonlinear_skips_partly_seen, ("were not refined",)),
+      triangulate_nonlinear_skips_partly_seen, ("did not refine",)),
     M("triangulate_nonlinear", "homogeneous point not divided", gtr.check_triangulate_nonlinear,
       triangulate_nonlinear_homogeneous, ("homogeneous point",)),
     M("triangulate_linear", "u and v swapped", gtr.check_triangulate_linear, triangulate_uv_swapped,
-      ("u and v are swapped",)),
+      ("swapped u and v",)),
     M("triangulate_linear", "cameras swapped, cross-product rows", gtr.check_triangulate_linear,
-      triangulate_swapped_cross_product, ("cameras are swapped",)),
+      triangulate_swapped_cross_product, ("reprojection error",)),
     M("choose_pose", "R_cw transposed", gtr.check_choose_pose, choose_pose_R_transposed, ("r_cw is transposed",)),
     M("choose_pose", "C returned as t_cw", gtr.check_choose_pose, choose_pose_C_for_t, ("t_cw is the camera centre",)),
     M("choose_pose", "cheirality sign flipped", gtr.check_choose_pose, choose_pose_sign_flipped,
-      ("sign of the cheirality test is flipped",), defining="in front of both cameras"),
+      ("the sign is flipped",), defining="in front of both cameras"),
 ]
 
 #: Correct solutions: they must score full marks.
