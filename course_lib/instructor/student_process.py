@@ -443,6 +443,7 @@ class StudentProcess:
         for cb, a, k in replay:
             cb(*a, **k)  # the grader's callbacks, replayed in order after the call
         self._rng_in(reply.get("rng"), out)
+        self._generators_in(reply.get("gens"), out, args, kwargs)
         return value
 
     def _answer_oracle(self, head: dict, arrays: list) -> tuple[dict, list] | None:
@@ -484,6 +485,25 @@ class StudentProcess:
                 torch.set_rng_state(wire.decode(state["torch"], arrays))
         except Exception:  # noqa: BLE001 - a malformed state changes nothing
             pass
+
+    @staticmethod
+    def _generators_in(gens, arrays: list, args: tuple, kwargs: dict) -> None:
+        """The states of the generator arguments after the student's call, set in the caller's generators: as in a
+        notebook, an rng the function drew from has advanced (the checks test that the function draws from it)."""
+        import numpy as np
+
+        torch = sys.modules.get("torch")
+        for entry in gens if isinstance(gens, list) else []:
+            try:
+                (kind, at), tree = entry
+                mine = args[int(at)] if kind == "a" else kwargs[str(at)]
+                theirs = wire.decode(tree, arrays)
+                if isinstance(mine, np.random.Generator) and isinstance(theirs, np.random.Generator):
+                    mine.bit_generator.state = theirs.bit_generator.state
+                elif torch is not None and isinstance(mine, torch.Generator) and isinstance(theirs, torch.Generator):
+                    mine.set_state(theirs.get_state())
+            except Exception:  # noqa: BLE001 - a malformed entry changes nothing
+                continue
 
     @staticmethod
     def _rng_out(arrays: list) -> dict:

@@ -353,15 +353,15 @@ def pnp_nonlinear_quaternion(X, x, K, R_cw, t_cw):
 M = Mistake
 MISTAKES = [
     M("pnp_linear", "R not orthogonalized", gpn.check_pnp_linear, pnp_linear_no_orthogonalization,
-      ("not orthonormal", "orthogonalize"), defining="R is a rotation"),
+      ("not a rotation", "orthogonalize"), defining="R is a rotation"),
     M("pnp_linear", "sign of P not fixed", gpn.check_pnp_linear, pnp_linear_no_sign_fix, ("det r = -1",),
       defining="R is a rotation"),
-    M("pnp_linear", "R_wc returned", gpn.check_pnp_linear, pnp_linear_transposed, ("transposed",)),
+    M("pnp_linear", "R_wc returned", gpn.check_pnp_linear, pnp_linear_transposed, ("you returned r_wc",)),
     M("pnp_linear", "C returned as t", gpn.check_pnp_linear, pnp_linear_center_as_t, ("c vs t",)),
     M("pnp_linear", "DLT on pixel coordinates", gpn.check_pnp_linear, pnp_linear_pixels, ("pixel coordinates",)),
     M("pnp_linear", "t not divided by the scale of P", gpn.check_pnp_linear, pnp_linear_raw_scale,
       ("wrong scale",)),
-    M("pnp_ransac", "squared error vs threshold", gpn.check_pnp_ransac, pnp_ransac_squared, ("squared error",)),
+    M("pnp_ransac", "squared error vs threshold", gpn.check_pnp_ransac, pnp_ransac_squared, ("squared reprojection error",)),
     M("pnp_ransac", "inverted inlier mask", gpn.check_pnp_ransac, pnp_ransac_inverted, ("inverted",)),
     M("pnp_ransac", "no final refit", gpn.check_pnp_ransac, pnp_ransac_no_refit, ("refit pnp_linear on all",)),
     M("pnp_ransac", "mask of the best sample after the refit", gpn.check_pnp_ransac, pnp_ransac_stale_mask,
@@ -373,9 +373,9 @@ MISTAKES = [
     M("pnp_ransac", "confidence ignored", gpn.check_pnp_ransac, pnp_ransac_ignores_confidence,
       ("the confidence argument",)),
     M("pnp_ransac", "error in normalized coordinates", gpn.check_pnp_ransac, pnp_ransac_normalized_error,
-      ("normalized coordinates",)),
+      ("in pixels",)),
     M("pnp_ransac", "threshold_px ignored", gpn.check_pnp_ransac, pnp_ransac_constant_threshold,
-      ("not a constant",)),
+      ("whatever threshold_px was passed",)),
     M("pnp_nonlinear", "returns the start", gpn.check_pnp_nonlinear, pnp_nonlinear_unchanged, ("did not move",)),
     M("pnp_nonlinear", "optimizes the 9 entries of R", gpn.check_pnp_nonlinear, pnp_nonlinear_nine_entries,
       ("not a rotation",)),
@@ -386,7 +386,7 @@ MISTAKES = [
     M("pnp_nonlinear", "only t optimized", gpn.check_pnp_nonlinear, pnp_nonlinear_only_t, ("only t moved",)),
     M("pnp_nonlinear", "stopped after 2 evaluations", gpn.check_pnp_nonlinear, pnp_nonlinear_two_evaluations,
       ("not at the least-squares optimum",)),
-    M("pnp_nonlinear", "returns R_wc", gpn.check_pnp_nonlinear, pnp_nonlinear_returns_R_wc, ("transposed",)),
+    M("pnp_nonlinear", "returns R_wc", gpn.check_pnp_nonlinear, pnp_nonlinear_returns_R_wc, ("you returned r_wc",)),
 ]
 
 #: Correct solutions: they must score full marks.
