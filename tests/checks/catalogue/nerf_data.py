@@ -36,8 +36,10 @@ def get_rays__inverse_K(H, W, K, c2w):
 
 
 def stratified_samples(near, far, n_samples, n_rays, perturb, generator=None):
-    """Plain code: the kit's bins around the evaluation depths."""
-    z = torch.linspace(near, far, n_samples).expand(n_rays, n_samples)
+    """Plain code: the kit's bins around the evaluation depths; near and far floats or (R,) tensors (per ray)."""
+    near = torch.as_tensor(near, dtype=torch.float32).reshape(-1, 1)
+    far = torch.as_tensor(far, dtype=torch.float32).reshape(-1, 1)
+    z = (near + (far - near) * torch.linspace(0, 1, n_samples)).expand(n_rays, n_samples)
     if not perturb:
         return z.clone()
     mids = (z[:, 1:] + z[:, :-1]) / 2
@@ -47,9 +49,12 @@ def stratified_samples(near, far, n_samples, n_rays, perturb, generator=None):
 
 
 def stratified_samples__paper_equal_bins(near, far, n_samples, n_rays, perturb, generator=None):
-    """The NeRF paper's equation (2): S equal bins of width (far - near) / S, one uniform sample in each."""
+    """The NeRF paper's equation (2): S equal bins of width (far - near) / S, one uniform sample in each; near and far
+    floats or (R,) tensors."""
+    near = torch.as_tensor(near, dtype=torch.float32)[..., None]
+    far = torch.as_tensor(far, dtype=torch.float32)[..., None]
     if not perturb:
-        return torch.linspace(near, far, n_samples).repeat(n_rays, 1)
+        return (near + (far - near) * torch.linspace(0, 1, n_samples)).expand(n_rays, n_samples).clone()
     width = (far - near) / n_samples
     start = near + width * torch.arange(n_samples, dtype=torch.float32)
     return start + width * torch.rand((n_rays, n_samples), generator=generator)
@@ -182,7 +187,7 @@ M = Mistake
 MISTAKES = [
     M("get_rays", "OpenGL camera axes", gnd.check_get_rays, _rays(signs=(1, -1, -1)), ("opengl",)),
     M("get_rays", "meshgrid ij", gnd.check_get_rays, get_rays_ij, ("meshgrid",)),
-    M("get_rays", "rotation transposed", gnd.check_get_rays, _rays(rotate="RT"), ("transposed",)),
+    M("get_rays", "rotation transposed", gnd.check_get_rays, _rays(rotate="RT"), ("rotated with the transpose",)),
     M("get_rays", "principal point at W / 2", gnd.check_get_rays, _rays(centre=2.0), ("principal point",)),
     M("get_rays", "half-pixel offset (near miss)", gnd.check_get_rays, _rays(offset=0.5), ("half-pixel",)),
     M("get_rays", "normalized directions (near miss)", gnd.check_get_rays, _rays(normalize=True), ("normalized",)),
@@ -208,7 +213,7 @@ MISTAKES = [
     M("query_points", "directions normalized", gnd.check_query_points, query_normalized,
       ("directions are normalized",)),
     M("query_points", "no new axes: a broadcasting error", gnd.check_query_points, query_no_axes,
-      ("broadcasting error", "rays_o[:, None, :]")),
+      ("rays_o[:, None, :]",)),
     M("query_points", "rays broadcast along the samples (near miss)", gnd.check_query_points, query_wrong_axis,
       ("broadcast along the samples axis",)),
     M("positional_encoding", "no identity term", gnd.check_positional_encoding, _encoding(identity=False),
@@ -408,7 +413,7 @@ MISTAKES += [
     M("positional_encoding", "include_input ignored", gnd.check_positional_encoding, encoding_include_input_ignored,
       ("include_input=false",), batch="29"),
     M("positional_encoding", "identity term last", gnd.check_positional_encoding, encoding_identity_last,
-      ("first",), batch="29"),
+      ("identity term x last",), batch="29"),
     M("positional_encoding", "numpy returned", gnd.check_positional_encoding, encoding_numpy, ("tensor",),
       batch="29"),
 ]
