@@ -9,6 +9,8 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from course_lib.instructor.grade import DEFAULT_TIMEOUT
+
     parser.add_argument("submission", type=Path, help="the student's kit (or a folder with their notebooks)")
     parser.add_argument("--json", type=Path, default=None, metavar="REPORT.json", help="write the report as JSON")
     parser.add_argument("--markdown", type=Path, default=None, metavar="FEEDBACK.md", help="write the feedback as Markdown")
@@ -17,9 +19,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--exercises", nargs="+", default=None, metavar="NAME", help="grade only these exercises")
     parser.add_argument("--hidden-seed", type=int, default=None,
                         help="seed of the hidden cases (default: random, written into the report)")
-    parser.add_argument("--timeout", type=float, default=20.0,
-                        help="wall-clock seconds for the hidden checks of one exercise (default 20; at least 10x "
-                             "the reference's time + 5 s)")
+    parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT,
+                        help=f"wall-clock seconds for the hidden checks of one exercise (default {DEFAULT_TIMEOUT:g}, "
+                             "so that correct but slow code is graded; at least 10x the reference's time + 5 s)")
     parser.add_argument("--cell-timeout", type=float, default=120.0, help="seconds for one notebook cell under nbval")
     parser.add_argument("--nbval-jobs", type=int, default=2, help="notebooks run under nbval at the same time")
     parser.add_argument("--no-nbval", action="store_true", help="skip the nbval run (hidden checks only)")

@@ -564,3 +564,4 @@ HONEST += [
     # written as a mistake (issue 29's probe: residuals cast to float32), it reaches the minimum: valid
     Honest("bundle_adjust", "residuals cast to float32", gba.check_bundle_adjustment, ba_float32_residuals),
 ]
+
