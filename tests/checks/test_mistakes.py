@@ -82,17 +82,23 @@ def main() -> None:
     rows = []
     for m in MISTAKES:
         result, out, caught, named, wrong = verdict(m)
+        diagnosed = any(v.named and not v.ok and all(w.lower() in v.text.lower() for w in m.names)
+                        for v in result.verdicts)
         rows.append((m.exercise, m.name, caught, named, m.defining or "", POINTS * HIDDEN_SHARE * core.score(result),
-                     bool(wrong), m.batch, wrong))
+                     bool(wrong), m.batch, wrong, diagnosed))
     w = max(len(r[0]) + len(r[1]) for r in rows) + 3
-    print(f"{'exercise: mistake':<{w}} caught named misnamed points/10  defining property")
-    for ex, name, caught, named, prop, pts, wrong, batch, texts in rows:
-        print(f"{ex + ': ' + name:<{w}} {'yes' if caught else 'NO':>6} {'yes' if named else 'NO':>5} "
+    print(f"{'exercise: mistake':<{w}} caught named    how misnamed points/10  defining property")
+    for ex, name, caught, named, prop, pts, wrong, batch, texts, diag in rows:
+        how = "diagnosis" if diag else ("property" if named else "")
+        print(f"{ex + ': ' + name:<{w}} {'yes' if caught else 'NO':>6} {'yes' if named else 'NO':>5} {how:>9} "
               f"{'YES' if wrong else '':>8} {pts:>9.2f}  {prop}")
         for t in texts:
             print(f"{'':<{w}}   misnamed by: {t}")
+    print("\n(named: the verdict holds the mistake's words; by a diagnosis: a verdict that names the mistake, said as "
+          "what the student did; by a property: the failing property, with numbers and the formula)")
     for label, sel in (("whole catalogue", rows), ("issue 29's mistakes", [r for r in rows if r[7] == "29"])):
-        print(f"\n{label}: caught {sum(r[2] for r in sel)}/{len(sel)}, named {sum(r[3] for r in sel)}/{len(sel)}, "
+        print(f"\n{label}: caught {sum(r[2] for r in sel)}/{len(sel)}, named {sum(r[3] for r in sel)}/{len(sel)} "
+              f"({sum(r[9] for r in sel)} by a diagnosis, {sum(r[3] and not r[9] for r in sel)} by the failing property), "
               f"confidently misnamed {sum(r[6] for r in sel)}; {sum(1 for r in sel if r[4])} break a defining property, "
               f"max points among them {max((r[5] for r in sel if r[4]), default=0):.2f}/10")
     print(f"\n{'exercise':<28} mistakes caught named misnamed")

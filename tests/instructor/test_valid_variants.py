@@ -9,7 +9,8 @@ of the grader:
 * the hidden checks (90 %): the variants are pasted into a student release and graded by the real
   grader, in rounds (one variant per exercise in each round, the main solutions elsewhere);
 * the check cell printing the reference verdict (10 %): each variant's check, run on the notebook's own
-  cases, prints exactly what the reference's prints (what nbval compares).
+  cases, prints exactly what the main solution's prints (what nbval compares; the main solutions print
+  the reference verdict under nbval in ``test_honest_grading``).
 
 The slow variants (a style that says "(slow)") are graded only with ``GRADE_SLOW_TESTS=1`` (minutes);
 ``python -m tests.instructor.test_valid_variants`` grades them all and prints the table.
@@ -74,9 +75,9 @@ def hidden(tmp_path_factory):
 
 @pytest.mark.parametrize("h", variants(), ids=lambda h: f"{h.exercise}: {h.style}")
 def test_a_variant_prints_the_reference_verdict(h, capsys):
-    """The nbval share: on the notebook's own cases the variant's check cell prints the reference's verdict."""
-    reference = next(r for r in collect("HONEST") if r.exercise == h.exercise and r.style == "the reference solution")
-    _, want = run_check(reference.check, reference.fn)
+    """The nbval share: on the notebook's own cases the variant's check cell prints the reference verdict."""
+    main = choose(variant=False)[h.exercise]
+    _, want = run_check(main.check, main.fn)
     result, out = run_check(h.check, h.fn)
     assert core.score(result) == 1.0 and not result.details_failed and out == want, out
 
@@ -103,8 +104,8 @@ def main() -> None:
             graded = grade_round(Path(tmp) / f"round{k}", picked, hidden_cases)
             for ex, h in picked.items():
                 g = graded[ex]
-                reference = next(r for r in collect("HONEST") if r.exercise == ex and r.style == "the reference solution")
-                _, want = run_check(reference.check, reference.fn)
+                main = choose(variant=False)[ex]
+                _, want = run_check(main.check, main.fn)
                 result, out = run_check(h.check, h.fn)
                 same = core.score(result) == 1.0 and not result.details_failed and out == want
                 rows.append((ex, h.style, g["points"], g["max_points"], g["hidden"].get("seconds"), same,

@@ -641,23 +641,25 @@ def normalize_points__float32(x):
 
 def sampson_distance__float32(F, x1, x2):
     """float32 throughout, Sampson's error then its root."""
-    F, h1, h2 = F.astype(np.float32), _h(x1).astype(np.float32), _h(x2).astype(np.float32)
+    F = F.astype(np.float32)
+    h1 = np.column_stack([x1, np.ones(len(x1))]).astype(np.float32)
+    h2 = np.column_stack([x2, np.ones(len(x2))]).astype(np.float32)
     Fx1, Ftx2 = h1 @ F.T, h2 @ F
     e = np.sum(h2 * Fx1, axis=1)
     return np.sqrt(e**2 / (Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2))
 
 
-def ransac_fundamental__with_replacement(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
-    """Samples drawn with rng.integers (a repeated index now and then is a bad sample, nothing worse), ties kept."""
+def ransac_fundamental__ties_kept(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
+    """Samples from rng.permutation, a sample as good as the best replaces it (>=), inliers by <=, N rounded up."""
     n, best, n_iters, N = len(x1), None, 0, max_iters
     while n_iters < min(N, max_iters):
-        idx = rng.integers(0, n, 8)
+        idx = rng.permutation(n)[:8]
         n_iters += 1
         inl = sampson_distance(eight_point(x1[idx], x2[idx]), x1, x2) <= threshold_px
         if best is None or inl.sum() >= best.sum():
             best = inl
             w = inl.mean()
-            N = 0 if w == 1 else math.ceil(math.log(1 - confidence) / math.log(1 - w**8))
+            N = 0 if w == 1 else (max_iters if w == 0 else np.ceil(np.log(1 - confidence) / np.log(1 - w**8)))
     F = eight_point(x1[best], x2[best])
     return F, sampson_distance(F, x1, x2) <= threshold_px, n_iters
 
@@ -705,6 +707,6 @@ HONEST += [
     Honest("eight_point", "one normalization for both images", gfu.check_eight_point, eight_point__one_normalization),
     Honest("normalize_points", "float32 throughout", gfu.check_normalize_points, normalize_points__float32),
     Honest("sampson_distance", "float32 throughout", gfu.check_sampson_distance, sampson_distance__float32),
-    Honest("ransac_fundamental", "samples with replacement, ties kept, <=", gfu.check_ransac_fundamental,
-           ransac_fundamental__with_replacement),
+    Honest("ransac_fundamental", "permutation samples, ties kept, <=", gfu.check_ransac_fundamental,
+           ransac_fundamental__ties_kept),
 ]

@@ -481,9 +481,18 @@ def triangulate_linear__float32_rows_negated(P1, P2, x1, x2):
 
 
 def choose_pose__float32(R, C, K, x1, x2):
-    """The chosen pose and points returned in float32."""
-    R_cw, t_cw, X, front, counts = choose_pose(R, C, K, x1, x2)
-    return R_cw.astype(np.float32), t_cw.astype(np.float32), X.astype(np.float32), front, counts
+    """Cheirality with the depths in both camera frames, the chosen pose and points returned in float32."""
+    P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
+    results = []
+    for k in range(4):
+        t = -R[k] @ C[k]
+        X = triangulate_linear(P1, K @ np.column_stack([R[k], t]), x1, x2)
+        front = (X[:, 2] > 0) & ((X @ R[k].T + t)[:, 2] > 0)
+        results.append((t, X, front))
+    counts = np.array([int(r[2].sum()) for r in results])
+    k = int(np.argmax(counts))
+    t, X, front = results[k]
+    return R[k].astype(np.float32), t.astype(np.float32), X.astype(np.float32), front, counts
 
 
 def triangulate_nonlinear__per_view_residuals(K, R_cws, t_cws, uv, X0):
