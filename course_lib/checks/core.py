@@ -64,6 +64,7 @@ __all__ = [
     "close_rel",
     "same_up_to_scale",
     "scale_of",
+    "unique_key",
 ]
 
 PASS, FAIL = "✔", "✘"
@@ -533,6 +534,23 @@ def same_up_to_scale(a: Any, b: Any, rtol: float = RTOL) -> bool:
         return False
     a, b = a / na, b / nb
     return bool(min(np.abs(a - b).max(), np.abs(a + b).max()) <= rtol)
+
+
+def unique_key(per_case: list) -> str | None:
+    """The one mistake that explains every case, else None (the rule for naming a mistake).
+
+    ``per_case`` holds one entry for each case where the student's result failed: the set of mistakes whose
+    result the student's equals there, or a pair ``(explained, testable)``: the mistakes it equals and the
+    mistakes that can be told apart on that case at all (a case where a mistake cannot be tested neither
+    supports nor vetoes it). A mistake is named when it explains every failing case where it can be tested,
+    at least one, and no other mistake does.
+    """
+    if not per_case:
+        return None
+    pairs = [e if isinstance(e, tuple) else (set(e), None) for e in per_case]
+    keys = set().union(*(exp for exp, _ in pairs))
+    fits = [k for k in keys if all(k in exp for exp, testable in pairs if testable is None or k in testable)]
+    return fits[0] if len(fits) == 1 else None
 
 
 def as_array(value: Any) -> np.ndarray | None:

@@ -36,8 +36,8 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import FAILED, RTOL, Check, declare_defining, load_fixture, same_up_to_scale
-from course_lib.checks.fundamental import unique_key
+from course_lib.checks.core import (FAILED, RTOL, Check, declare_defining, load_fixture, same_up_to_scale,
+                                    unique_key)
 from course_lib.conventions import rotation_angle_deg
 
 __all__ = ["check_essential_from_fundamental", "check_pose_candidates", "match_candidates"]

@@ -46,7 +46,8 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import EPS32, FAILED, RTOL, Check, close_rel, declare_defining, load_fixture, same_up_to_scale
+from course_lib.checks.core import (EPS32, FAILED, RTOL, Check, close_rel, declare_defining, load_fixture,
+                                    same_up_to_scale, unique_key)
 
 __all__ = [
     "check_normalize_points",
@@ -128,23 +129,6 @@ def _rank(F: np.ndarray, T1: np.ndarray, T2: np.ndarray) -> int:
 
     F = np.asarray(F, float)
     return max(rank(F), rank(np.linalg.inv(T2).T @ F @ np.linalg.inv(T1)))
-
-
-def unique_key(per_case: list) -> str | None:
-    """The one mistake that explains every case, else None (the rule for naming a mistake).
-
-    ``per_case`` holds one entry for each case where the student's result failed: the set of mistakes whose
-    result the student's equals there, or a pair ``(explained, testable)``: the mistakes it equals and the
-    mistakes that can be told apart on that case at all (a case where a mistake cannot be tested neither
-    supports nor vetoes it). A mistake is named when it explains every failing case where it can be tested,
-    at least one, and no other mistake does.
-    """
-    if not per_case:
-        return None
-    pairs = [e if isinstance(e, tuple) else (set(e), None) for e in per_case]
-    keys = set().union(*(exp for exp, _ in pairs))
-    fits = [k for k in keys if all(k in exp for exp, testable in pairs if testable is None or k in testable)]
-    return fits[0] if len(fits) == 1 else None
 
 
 # --------------------------------------------------------------------------- normalize_points

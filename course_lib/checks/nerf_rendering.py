@@ -29,8 +29,7 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import FAILED, Check, declare_defining, load_fixture
-from course_lib.checks.fundamental import unique_key
+from course_lib.checks.core import FAILED, Check, declare_defining, load_fixture, unique_key
 from course_lib.checks.nerf_data import close, to_numpy
 
 __all__ = ["check_volume_render", "RENDER_HINTS"]

@@ -5,7 +5,7 @@ from :mod:`course_lib.sfm.pnp` by ``python -m course_lib fixtures pnp``): synthe
 known truth and the embedded scene (``data/synthetic-building``: its third image registered
 against the two-view reconstruction of step 3, in a randomly moved world frame). It tests one
 property at a time and names a mistake only when it is the unique explanation on every case where
-it can be told apart (:func:`course_lib.checks.fundamental.unique_key`); otherwise it says which
+it can be told apart (:func:`course_lib.checks.core.unique_key`); otherwise it says which
 property fails, with numbers:
 
 * ``pnp_linear``: R_cw a rotation (defining: R Rᵀ = I, det +1), the true pose on a noiseless view,
@@ -39,8 +39,7 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib.conventions import project, rotation_angle_deg, world_to_camera
-from course_lib.checks.core import FAILED, RTOL, Check, declare_defining, load_fixture
-from course_lib.checks.fundamental import unique_key
+from course_lib.checks.core import FAILED, RTOL, Check, declare_defining, load_fixture, unique_key
 
 __all__ = [
     "check_pnp_linear",

@@ -32,8 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib.conventions import project
-from course_lib.checks.core import FAILED, Check, declare_defining, load_fixture
-from course_lib.checks.fundamental import unique_key
+from course_lib.checks.core import FAILED, Check, declare_defining, load_fixture, unique_key
 
 __all__ = [
     "check_triangulate_linear",
