@@ -305,7 +305,7 @@ MISTAKES += [
       ("viewing direction",), batch="29"),
     M("NeRF", "density off the feature layer", gnm.check_nerf_model, NeRF_density_after_feature, ("density",),
       batch="29"),
-    M("NeRF", "skip one layer late", gnm.check_nerf_model, NeRF_skip_after_fifth, ("layer",), defining="skip input",
+    M("NeRF", "skip one layer late", gnm.check_nerf_model, NeRF_skip_after_fifth, ("layer",),
       batch="29"),
     M("NeRF", "unencoded viewing direction", gnm.check_nerf_model, NeRF_raw_viewdirs, ("γ(d)",), batch="29"),
     M("psnr", "255 / mse", gnm.check_psnr, psnr_mse_in_percent, ("-10 log10(mse)",), batch="29"),
