@@ -98,12 +98,13 @@ def _median_px(F, x1, x2) -> float:
     return float(d) if np.isfinite(d) else float("inf")
 
 
-def _sampson_px(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """(N,) Sampson distances in pixels (OpenCV's Sampson error, square-rooted)."""
+def _sampson_sq(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """(N,) squared Sampson distances in pixels² (OpenCV's Sampson error as it comes; the kit ships no function that
+    returns what the exercise sampson_distance returns)."""
     import cv2
 
     F = np.ascontiguousarray(F, dtype=np.float64)
-    return np.sqrt(np.array([cv2.sampsonDistance(a, b, F) for a, b in zip(_h(x1), _h(x2))]))
+    return np.array([cv2.sampsonDistance(a, b, F) for a, b in zip(_h(x1), _h(x2))])
 
 
 def _as_array(v, c: Check, what: str):
@@ -456,7 +457,7 @@ _RULES = {
 
 def _mask_rule(F, x1, x2, inl, thr: float) -> tuple[str, tuple | None]:
     """Which rule the mask follows with the returned F: ``("right" | a key of _RULES | "other", interval)``."""
-    d = _sampson_px(F, x1, x2)
+    d = np.sqrt(_sampson_sq(F, x1, x2))
     interval = _threshold_interval(d, inl)
     if _within(interval, thr):
         return "right", interval
@@ -501,7 +502,7 @@ def _ransac_threshold_case(c: Check, f: dict, run: dict, named: str | None) -> N
     if rule == "right":
         c.expect(True, f"{case}: the inliers are the matches within threshold_px of the returned F", "")
         return
-    d_all = _sampson_px(F, x1, x2)
+    d_all = np.sqrt(_sampson_sq(F, x1, x2))
     wrong = int((inl != (d_all < thr)).sum())
     if named is not None:
         c.fail(f"{case}: {wrong} matches are labelled against the Sampson distances of your F: {_RULES[named]}",
@@ -584,8 +585,9 @@ def _ransac_refit_case(c: Check, fn: Callable, f: dict) -> None:
         return
     d = _median_px(out[0], f["rf_x1_true"], f["rf_x2_true"])
     d_ref = _median_px(f["rf_F"], f["rf_x1_true"], f["rf_x2_true"])
-    # at this threshold every match is an inlier of any decent F, so every refit is the fit of all matches
-    c.expect(d <= 1.1 * d_ref + 0.01, f"{case}: F is refit on all inliers",
+    # a refit on all inliers lands near the fit of all matches (honest variants within 1.2x); the 8-match fit of the
+    # best sample alone is several times worse (5.5x on this case)
+    c.expect(d <= 2.0 * d_ref + 0.05, f"{case}: F is refit on all inliers",
              f"{case}: F fits the noiseless points worse than the fit of all inliers (median epipolar distance {d:.3g} "
              f"px, the fit of all inliers {d_ref:.3g} px; a fit of 8 matches is typically several times worse): refit "
              "F with eight_point on all inliers of the best sample at the end")
