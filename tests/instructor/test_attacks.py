@@ -30,6 +30,9 @@ from course_lib.instructor.release import stub_notebook
 from course_lib.instructor.settings import Limits
 from course_lib.paths import REPO_ROOT
 
+#: Minutes, not seconds: left out of the quick subset (pytest -m "not slow").
+pytestmark = pytest.mark.slow
+
 NB01 = "01_fundamental_matrix.ipynb"
 SEED = 14
 SYS = 'np.testing._private.utils.sys.modules'  # the route to the interpreter through an allowed module

@@ -18,6 +18,9 @@ from course_lib.instructor.notebooks import kit_specs
 from tests.checks.catalogue import collect
 from tests.instructor.severity import _submission
 
+#: Minutes, not seconds: left out of the quick subset (pytest -m "not slow").
+pytestmark = pytest.mark.slow
+
 SEED = 2033
 
 

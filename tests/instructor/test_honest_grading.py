@@ -15,6 +15,9 @@ from course_lib.instructor.grade import HIDDEN_SHARE, grade_submission, prepare_
 from course_lib.instructor.notebooks import kit_specs
 from tests.instructor.honest import choose, honest_submission
 
+#: Minutes, not seconds: left out of the quick subset (pytest -m "not slow").
+pytestmark = pytest.mark.slow
+
 SEED = 2026
 SPECS = [s for s in kit_specs() if s.exercises]
 #: Notebooks whose exercises do not all have an honest solution in the catalogue yet (issue 19, item 1).

@@ -28,6 +28,9 @@ import torch
 from course_lib.data.synthetic import make_scene
 from course_lib.instructor.release import write_release
 
+#: Minutes, not seconds: left out of the quick subset (pytest -m "not slow").
+pytestmark = pytest.mark.slow
+
 BEHAVIOUR = r'''
 import contextlib, importlib, inspect, io, itertools, json, os, pickle, pkgutil, signal, sys, time, types, warnings
 

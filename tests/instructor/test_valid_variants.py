@@ -28,6 +28,9 @@ from course_lib.instructor.notebooks import kit_specs
 from tests.checks.catalogue import Honest, collect, run_check
 from tests.instructor.honest import choose, honest_submission
 
+#: Minutes, not seconds: left out of the quick subset (pytest -m "not slow").
+pytestmark = pytest.mark.slow
+
 SEED = 2029
 SLOW = bool(os.environ.get("GRADE_SLOW_TESTS"))
 

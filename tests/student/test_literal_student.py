@@ -27,6 +27,9 @@ from course_lib.instructor.release import verify_release, write_release
 from tests.student.fill import catalogue, fill_release
 from tests.student.literal import MODULES
 
+#: Minutes, not seconds: left out of the quick subset (pytest -m "not slow").
+pytestmark = pytest.mark.slow
+
 #: Every notebook of the course, in the order a student works through them.
 COURSE = ("01", "02", "03", "04", "05", "06", "07", "08", "09", "10")
 GRADE_SEED = 2026
