@@ -174,15 +174,6 @@ class Cgroup:
         except (OSError, ValueError):
             return False
 
-    def pids_refused(self) -> bool:
-        """Whether a fork of the tree was refused at the process total."""
-        name = "pids.events"
-        try:
-            with open(os.path.join(self.paths[-1], name)) as f:
-                return any(ln.startswith("max ") and int(ln.split()[1]) > 0 for ln in f)
-        except (OSError, ValueError):
-            return False
-
     def close(self) -> None:
         """Kill every process left in the cgroup and remove it."""
         kill = os.path.join(self.paths[0], "cgroup.kill")

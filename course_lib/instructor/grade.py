@@ -2,16 +2,16 @@
 
 ``python -m course_lib grade SUBMISSION_DIR [--json REPORT.json] [--markdown FEEDBACK.md]``
 
-For every exercise of the instructor notebooks (:func:`course_lib.instructor.release.kit_specs`; the
+For every exercise of the instructor notebooks (:func:`course_lib.instructor.notebooks.kit_specs`; the
 reference verdicts and check cells come from the instructor's side, never from the submission):
 
 1. **Structure.** The submitted notebook must still hold the exercise's ``def`` before its check
    cell, in the original order, and the check cell unedited. A deleted or moved exercise, or an
    edited or deleted check cell, gets no credit (and the report says which).
 2. **Scans** (a second line of defence). The exercise's code (cut out with its imports and
-   helpers, :func:`course_lib.instructor.hidden.extract_exercise`) must not import the reference
+   helpers, :func:`course_lib.instructor.extract.extract_exercise`) must not import the reference
    solutions or the check machinery; the notebook must not patch, rebind (by assignment, import
-   alias, loop or ``with`` target) or imitate the checks (:func:`course_lib.instructor.hidden.scan_notebook`).
+   alias, loop or ``with`` target) or imitate the checks (:func:`course_lib.instructor.scan.scan_notebook`).
 3. **Hidden checks, sealed by design.** The exercise's check function runs *here*, in the
    grader's process, on hidden cases (the fixtures rebuilt with a grading-time seed), and the
    reference's verdicts on the same cases are computed here too. The student's function is a

@@ -32,15 +32,6 @@ INSTRUCTOR_PACKAGE = "course_lib.instructor"
 SKIP_NAMES = {"__pycache__", ".ipynb_checkpoints", ".pytest_cache", ".DS_Store"}
 
 
-def _module_file(mod: str) -> Path | None:
-    base = REPO_ROOT.joinpath(*mod.split("."))
-    if base.with_suffix(".py").exists():
-        return base.with_suffix(".py")
-    if (base / "__init__.py").exists():
-        return base / "__init__.py"
-    return None
-
-
 def module_name(path: Path) -> str:
     rel = path.relative_to(REPO_ROOT).with_suffix("")
     parts = list(rel.parts)

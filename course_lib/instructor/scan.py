@@ -42,7 +42,7 @@ ALLOWED_DUNDERS = {"__init__", "__call__", "__len__", "__getitem__", "__setitem_
 ALLOWED_METHOD_DUNDERS = {"__init__", "__call__", "__repr__", "__str__", "__len__", "__iter__", "__next__",
                           "__getitem__", "__post_init__", "__enter__", "__exit__"}
 #: Names of the check machinery a notebook must not import or rebind.
-CHECK_INTERNALS = {"Check", "CheckResult", "RESULTS", "FAILED", "load_fixture", "fixture_builder", "core",
+CHECK_INTERNALS = {"Check", "CheckResult", "RESULTS", "FAILED", "load_fixture", "core",
                    "build_fixtures", "PASS", "FAIL"}
 
 

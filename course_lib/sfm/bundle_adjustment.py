@@ -461,7 +461,7 @@ class _Problem:
     """
 
     K: np.ndarray
-    obs: object  # course_lib.sfm.visibility.ObservationList
+    obs: object  # course_lib.sfm.visibility.Observations
     n_cameras: int
     n_points: int
     x0_full: np.ndarray

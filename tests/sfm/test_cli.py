@@ -45,7 +45,7 @@ def test_model_reads_back(run_embedded):
 
 
 def test_pycolmap_reads_the_model(run_embedded):
-    pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is an optional cross-check (not in environment.txt)")
+    pycolmap = pytest.importorskip("pycolmap", reason="pycolmap (environment.txt) is needed for the COLMAP cross-check")
     _, out = run_embedded
     rec = pycolmap.Reconstruction(str(out / "colmap"))
     m = read_colmap_text(out / "colmap")

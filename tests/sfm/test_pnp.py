@@ -102,7 +102,7 @@ def test_nonlinear_from_perturbed_start():
 
 
 def test_pycolmap_cross_check():
-    pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is optional (not installed in CI)")
+    pycolmap = pytest.importorskip("pycolmap", reason="pycolmap (environment.txt) is needed for the COLMAP cross-check")
     if not hasattr(pycolmap, "estimate_and_refine_absolute_pose"):
         pytest.skip("this pycolmap has no estimate_and_refine_absolute_pose")
     sc, X, x, out, R, t = view(noise_px=0.5, outlier_fraction=0.2)

@@ -125,7 +125,7 @@ def test_nonlinear_handles_unseen_and_many_points():
 
 
 def test_pycolmap_cross_check():
-    pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is optional (not installed in CI)")
+    pycolmap = pytest.importorskip("pycolmap", reason="pycolmap (environment.txt) is needed for the COLMAP cross-check")
     fn = getattr(pycolmap, "triangulate_point", None) or getattr(pycolmap, "TriangulatePoint", None)
     if fn is None:
         pytest.skip("this pycolmap has no triangulate_point")
