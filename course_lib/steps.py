@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from course_lib.checks.core import load_fixture
+from course_lib.fixtures import load_fixture
 from course_lib.paths import EMBEDDED_SFM
 
 __all__ = [

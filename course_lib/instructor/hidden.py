@@ -6,7 +6,7 @@
   0, which the checks reuse for the student's own RANSAC calls, is kept. They stay in this
   process.
 * :func:`run_hidden` runs the check function of the exercise on those cases
-  (:func:`course_lib.checks.core.using_cases`) in a worker forked from the grader, inside the
+  (:func:`course_lib.fixtures.using_cases`) in a worker forked from the grader, inside the
   exercise's cgroup and on the exercise's clock; the student's function it receives is a proxy for
   the same function in a sandboxed process (:class:`course_lib.instructor.student_process.StudentProcess`)
   that holds only the student's code and the student release of ``course_lib``. The grader itself
