@@ -49,6 +49,7 @@ import time
 import numpy as np
 
 from course_lib.sfm.mapper import IncrementalMapper, MapperOptions
+from course_lib.sfm.tracks import verified_tracks, verify_pairs
 from course_lib.sfm.reconstruction import Reconstruction, image_size_of, reprojection_error_matrix, triangulation_angles_deg
 from course_lib.threads import single_threaded_blas
 from course_lib.validate import KitInputError, intrinsics
@@ -94,7 +95,7 @@ def run_sfm(data, rng: np.random.Generator, options: MapperOptions | None = None
         t_ransac = time.perf_counter() - t_start
         tr = report["tracks"]
         if opts.verbose:
-            print(f"RANSAC on F: {len(pairs)} pairs verified; {tr['verified_tracks']} tracks from {tr['verified_matches']} inlier "
+            print(f"{report['verification']}: {len(pairs)} pairs verified; {tr['verified_tracks']} tracks from {tr['verified_matches']} inlier "
                   f"matches ({tr['refused_links']} links refused: they joined two features of one image)")
         mapper = IncrementalMapper(data, pairs, tracks.uv, K, image_size_of(data), opts, rng)
         models, reasons = _build_models(mapper, tracks.rgb, pairs)
@@ -124,15 +125,15 @@ def _check_inputs(data, rng) -> np.ndarray:
 
 
 def verified_pairs_and_tracks(data, rng, threshold_px: float, min_matches: int, report: dict):
-    """Stage 1: RANSAC on F for every pair, then tracks from the inlier matches only (:mod:`course_lib.sfm.tracks`).
+    """Stage 1: every pair verified (``match``'s verification where the folder carries it, else RANSAC on F), then
+    tracks from the inlier matches only (:func:`course_lib.sfm.tracks.verify_pairs`).
 
     Returns:
         ``pairs {(i, j): (F (3, 3), inliers (N,) bool)}`` of the pairs with at least ``min_matches``
         inliers, and the :class:`~course_lib.sfm.tracks.Tracks`; ``report`` gets ``pairs`` and ``tracks``.
     """
-    from course_lib.sfm.tracks import ransac_every_pair, verified_tracks
-
-    ver = ransac_every_pair(data.matches, rng, threshold_px)
+    ver, how = verify_pairs(data, rng, threshold_px)
+    report["verification"] = how
     pairs, rows = {}, []
     for (i, j), v in ver.items():
         row = {"pair": [i, j], "names": [data.image_names[i], data.image_names[j]], "matches": len(v.inliers),
