@@ -37,7 +37,7 @@ import numpy as np
 from course_lib.validate import KitInputError, intrinsics
 
 __all__ = ["FOCAL_GUESS_FACTOR", "DIAGONAL_35MM", "CAMERA_FILE", "CameraPrior", "exif_focal_px", "camera_prior",
-           "write_camera", "read_camera", "distort", "undistort", "undistort_pixels", "distort_pixels"]
+           "write_camera", "read_camera", "distort", "undistort", "undistort_pixels", "distort_pixels", "undistort_image"]
 
 #: COLMAP's guess without EXIF: ``f = 1.2 * max(W, H)``.
 FOCAL_GUESS_FACTOR = 1.2
@@ -212,3 +212,22 @@ def distort_pixels(uv: np.ndarray, K: np.ndarray, k1: float) -> np.ndarray:
         return uv.copy()
     f, c = np.array([K[0, 0], K[1, 1]]), np.array([K[0, 2], K[1, 2]])
     return distort((uv - c) / f, k1) * f + c
+
+
+def undistort_image(img: np.ndarray, K: np.ndarray, k1: float) -> np.ndarray:
+    """A photo of a ``SIMPLE_RADIAL`` camera resampled onto its pinhole ``K`` (same size; bilinear, edges replicated).
+
+    Args:
+        img: ``(H, W)`` or ``(H, W, C)`` image. K: ``(3, 3)`` the camera's pinhole part. k1: its radial term.
+
+    Returns:
+        The undistorted image (a copy where ``k1 == 0``).
+    """
+    import cv2
+
+    if k1 == 0.0:
+        return img.copy()
+    H, W = img.shape[:2]
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    src = distort_pixels(np.stack([u, v], axis=-1), K, k1).astype(np.float32)  # where the photo saw each pinhole pixel
+    return cv2.remap(img, src[..., 0], src[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
