@@ -21,8 +21,8 @@ them; failing lines may carry numbers, since they never appear in a reference ru
 Checks are weighed by what they test (:func:`score`, the grader's one rule): shape and dtype
 checks are gates that earn no points; a check of a *defining* property (rank 2 for F, det +1 for
 a rotation, Δ in α; declared per exercise with :func:`declare_defining`) caps the score at one
-half when it fails, and the printed verdict then leads with it. docs/mistakes.md documents the
-defining properties and the catalogue of classic mistakes that the checks name.
+half when it fails, and the printed verdict then leads with it. docs/mistakes.md (in the instructor's kit)
+documents the defining properties and the catalogue of classic mistakes that the checks name.
 
 Fixtures are stored cases in ``data/fixtures/<name>.npz`` (inputs, the reference's results, the
 results of classic mistakes), made from the reference solutions on the instructor's side by one

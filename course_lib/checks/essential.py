@@ -1,7 +1,7 @@
 """Checks of notebook 02 (the essential matrix and the four pose candidates).
 
 Each ``check_*`` function runs the student's function on stored cases (fixture ``essential``,
-built from :mod:`course_lib.sfm.essential` by ``python -m course_lib fixtures essential``),
+built in the instructor's kit from :mod:`course_lib.sfm.essential` by ``python -m course_lib fixtures essential``),
 compares with the stored reference results and with properties, and names the likely mistake:
 
 * ``essential_from_fundamental``: no singular-value correction, ``K F Kᵀ`` instead of

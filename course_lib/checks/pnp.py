@@ -1,7 +1,7 @@
 """Checks of notebook 04 (PnP) and its step input.
 
 Each ``check_*`` function runs the student's function on stored cases (fixture ``pnp``, built
-from :mod:`course_lib.sfm.pnp` by ``python -m course_lib fixtures pnp``): a synthetic scene with
+in the instructor's kit from :mod:`course_lib.sfm.pnp` by ``python -m course_lib fixtures pnp``): a synthetic scene with
 known truth and the embedded scene (``data/synthetic-building``: its third image registered
 against the two-view reconstruction of step 3). It compares with the stored reference results
 and with properties, and names the likely mistake:

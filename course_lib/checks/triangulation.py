@@ -1,7 +1,7 @@
 """Checks of notebook 03 (triangulation) and its step input.
 
 Each ``check_*`` function runs the student's function on stored cases (fixture ``triangulation``,
-built from :mod:`course_lib.sfm.triangulation` by ``python -m course_lib fixtures triangulation``):
+built in the instructor's kit from :mod:`course_lib.sfm.triangulation` by ``python -m course_lib fixtures triangulation``):
 a synthetic scene with known truth (:func:`course_lib.data.synthetic.make_scene`) and the
 embedded scene (``data/synthetic-building``, ground truth from
 :func:`course_lib.data.building.load_ground_truth`). It compares with the stored reference

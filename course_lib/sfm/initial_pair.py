@@ -5,9 +5,11 @@ comes from the **calibrated** route, as COLMAP's initial pair does:
 
 1. :func:`calibrated_pose`: the five-point essential matrix (Nistér; OpenCV's
    ``findEssentialMat`` with USAC, on the pair's verified matches, threshold in pixels through
-   ``K``), its four pose candidates and the cheirality test (the lessons' ``pose_candidates`` and
-   ``choose_pose``, notebooks 02-03), then the pose refined on the inliers (:func:`refine_pose`:
-   least squares on their Sampson distances to ``F = K⁻ᵀ [t]ₓ R K⁻¹``, five parameters).
+   ``K``), its four pose candidates and the cheirality test (the exercises ``pose_candidates`` and
+   ``choose_pose`` of notebooks 02-03, called through :func:`course_lib.exercises.call`: the
+   references in the instructor's kit, the student's own in the student kit), then the pose
+   refined on the inliers (:func:`refine_pose`: least squares on their Sampson distances to
+   ``F = K⁻ᵀ [t]ₓ R K⁻¹``, five parameters).
 
    The lessons' route -- the 8-point F, then ``E = Kᵀ F K`` -- stays in the notebooks: F has two
    degrees of freedom more than the calibrated geometry, which it spends fitting the noise. On
@@ -28,12 +30,14 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from course_lib.conventions import camera_center
 from course_lib.data.two_view import identical_photos
-from course_lib.sfm.essential import pose_candidates
-from course_lib.sfm.fundamental import sampson_distance_batch
-from course_lib.sfm.triangulation import PoseChoice, choose_pose, in_front_of_both, triangulate_linear
+from course_lib.exercises import Fields, call
 from course_lib.validate import KitInputError
+
+try:  # the instructor's kit: notebook 01's Sampson distance for many F at once
+    from course_lib.sfm.fundamental import sampson_distance_batch
+except ImportError:  # the student kit: your sampson_distance of notebook 01
+    sampson_distance_batch = None
 
 __all__ = ["H_INLIER_RATIO", "InitialPair", "pair_degeneracy", "calibrated_pose", "refine_pose", "fundamental_from_pose"]
 
@@ -43,8 +47,8 @@ H_INLIER_RATIO = 0.8
 
 @dataclass
 class InitialPair:
-    """A candidate initial pair: ``images (a, b)``, the two-view ``choice`` (:class:`~course_lib.sfm.triangulation.PoseChoice`,
-    camera ``a`` at the origin), ``score`` (points in front with an angle >= ``init_min_angle_deg``),
+    """A candidate initial pair: ``images (a, b)``, the two-view ``choice`` (:func:`calibrated_pose`'s, with
+    ``R_cw, t_cw, X, in_front, counts``; camera ``a`` at the origin), ``score`` (points in front with an angle >= ``init_min_angle_deg``),
     verified ``inliers`` of the pair, the ``median_angle_deg`` of the points in front, and the
     ``pose_inliers`` of the calibrated pose."""
 
@@ -130,18 +134,25 @@ def refine_pose(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, R_cw: np.ndarray,
         return R, t / np.linalg.norm(t)
 
     def residuals(p):
-        F = fundamental_from_pose(K, *pose(p))
-        return sampson_distance_batch(F[None], x1, x2)[0]
+        return _sampson(fundamental_from_pose(K, *pose(p)), x1, x2)
 
     sol = least_squares(residuals, np.zeros(5), method="lm", xtol=1e-10, ftol=1e-10, max_nfev=200)
     return pose(sol.x)
 
 
-def calibrated_pose(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px: float, seed: int):
-    """The relative pose of a pair from the five-point essential matrix, refined: ``(PoseChoice, inliers (N,) bool)``.
+def _sampson(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """``(N,)`` Sampson distances (pixels) of the matches to ``F``: notebook 01's (the exercise in the student kit)."""
+    if sampson_distance_batch is not None:
+        return sampson_distance_batch(F[None], x1, x2)[0]
+    return np.asarray(call("sampson_distance", F, x1, x2), float).reshape(-1)
 
-    Camera 1 is the world frame (``R = I, t = 0``), ``|t| = 1``. ``PoseChoice.X`` and ``in_front``
-    are those of all ``N`` matches (:func:`course_lib.sfm.triangulation.triangulate_linear`).
+
+def calibrated_pose(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px: float, seed: int):
+    """The relative pose of a pair from the five-point essential matrix, refined: ``(choice, inliers (N,) bool)``.
+
+    Camera 1 is the world frame (``R = I, t = 0``), ``|t| = 1``. ``choice`` has the fields of
+    ``choose_pose``'s result (``R_cw (3, 3), t_cw (3,), X (N, 3), in_front (N,) bool, counts (4,)``),
+    ``X`` and ``in_front`` over all ``N`` matches (the exercise ``triangulate_linear``).
 
     Args:
         x1, x2: ``(N, 2)`` the pair's verified matches (pixels). K: ``(3, 3)``.
@@ -160,12 +171,13 @@ def calibrated_pose(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px:
     if E is None or mask is None or E.shape[0] < 3:
         raise KitInputError("no essential matrix fits the matches (too few, or all on a line?)")
     inl = mask.ravel().astype(bool)
-    choice = choose_pose(*pose_candidates(E[:3]), K, x1[inl], x2[inl])
-    R, t = refine_pose(x1[inl], x2[inl], K, choice.R_cw, choice.t_cw)
-    inl = sampson_distance_batch(fundamental_from_pose(K, R, t)[None], x1, x2)[0] < threshold_px
+    choice = call("choose_pose", *call("pose_candidates", np.array(E[:3])), K, x1[inl], x2[inl])
+    R, t = refine_pose(x1[inl], x2[inl], K, choice.R_cw, choice.t_cw.reshape(3))
+    inl = _sampson(fundamental_from_pose(K, R, t), x1, x2) < threshold_px
     # the refinement cannot tell t from -t (the epipolar geometry is the same): the cheirality test decides again
-    choice = choose_pose(*pose_candidates(_skew(t) @ R), K, x1[inl], x2[inl])
+    choice = call("choose_pose", *call("pose_candidates", _skew(t) @ R), K, x1[inl], x2[inl])
+    R, t = choice.R_cw.reshape(3, 3), choice.t_cw.reshape(3)
     P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
-    X = triangulate_linear(P1, K @ np.hstack([choice.R_cw, choice.t_cw[:, None]]), x1, x2)
-    front = in_front_of_both(choice.R_cw, camera_center(choice.R_cw, choice.t_cw), X)
-    return PoseChoice(choice.R_cw, choice.t_cw, X, front, choice.counts, choice.index), inl
+    X = call("triangulate_linear", P1, K @ np.hstack([R, t[:, None]]), x1, x2)
+    front = (X[:, 2] > 0) & ((X @ R.T + t)[:, 2] > 0)  # in front of both cameras
+    return Fields(("R_cw", "t_cw", "X", "in_front", "counts"), (R, t, X, front, choice.counts)), inl

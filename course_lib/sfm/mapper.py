@@ -35,6 +35,11 @@ When a model cannot grow further and two or more images are left, ``run_sfm`` st
 from those (:meth:`IncrementalMapper.begin_model`), as COLMAP does. All thresholds are fields of
 :class:`~course_lib.sfm.mapper_options.MapperOptions`, each with COLMAP's default beside it.
 
+The steps of notebooks 02-04 are called through :func:`course_lib.exercises.call`, exactly as their
+stubs document: in the instructor's kit they are the reference solutions, in the student kit the
+student's own functions. The bundle adjustments (:func:`course_lib.sfm.bundle_adjustment.adjust`)
+project with the exercise ``reprojection_residuals`` of notebook 05.
+
 Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
 """
 
@@ -47,13 +52,12 @@ from scipy.spatial.transform import Rotation
 
 from course_lib.conventions import camera_center, projection_matrix
 from course_lib.data.camera import undistort_pixels
+from course_lib.exercises import call, caller
 from course_lib.sfm import lm
-from course_lib.sfm.bundle_adjustment import bundle_adjust
+from course_lib.sfm.bundle_adjustment import adjust
 from course_lib.sfm.initial_pair import H_INLIER_RATIO, InitialPair, calibrated_pose, pair_degeneracy
 from course_lib.sfm.mapper_options import MapperOptions
-from course_lib.sfm.pnp import pnp_nonlinear, pnp_ransac
 from course_lib.sfm.reconstruction import Reconstruction, error_summary, reprojection_error_matrix, triangulation_angles_deg
-from course_lib.sfm.triangulation import triangulate_linear, triangulate_nonlinear
 from course_lib.validate import KitInputError
 
 __all__ = ["MapperOptions", "IncrementalMapper", "InitialPair", "pair_degeneracy", "spread_score", "final_thresholds",
@@ -321,9 +325,9 @@ class IncrementalMapper:
         js = np.flatnonzero(self.candidate[:, a] & self.candidate[:, b])
         n_new = 0
         if len(js):
-            X0 = triangulate_linear(self._P(a), self._P(b), self.uv[js, a], self.uv[js, b])
+            X0 = call("triangulate_linear", self._P(a), self._P(b), self.uv[js, a], self.uv[js, b])
             # as in triangulate_image: the BA that follows refines the points, where there is one
-            n_new = self._accept(js, X0, triangulate_nonlinear if o.bundle_adjustment != "incremental" else None)
+            n_new = self._accept(js, X0, caller("triangulate_nonlinear") if o.bundle_adjustment != "incremental" else None)
         stage = {"stage": "initial pair", "images": [a, b], "new_points": n_new, "points": int(self.has_X.sum()),
                  "reprojection_before_ba": self.observation_stats()}
         if o.bundle_adjustment == "incremental" and n_new >= o.init_min_points:  # never a BA on (almost) nothing
@@ -367,14 +371,14 @@ class IncrementalMapper:
         if len(js) < need:
             return None, f"too few 2D-3D matches: {len(js)} of its features see triangulated points, PnP needs {need}"
         try:
-            res = pnp_ransac(self.X[js], self.uv[js, i], self.K, self.rng, threshold_px=o.pnp_threshold_px)
+            res = call("pnp_ransac", self.X[js], self.uv[js, i], self.K, self.rng, threshold_px=o.pnp_threshold_px)
         except KitInputError as exc:
             return None, f"PnP RANSAC failed on {len(js)} 2D-3D matches ({exc})"
         inl = np.asarray(res.inliers, bool)
         if inl.sum() < o.min_pnp_inliers:
             return None, (f"too few PnP inliers: {int(inl.sum())} of {len(js)} 2D-3D matches within {o.pnp_threshold_px} px, "
                           f"need {o.min_pnp_inliers}")
-        self.R[i], self.t[i] = pnp_nonlinear(self.X[js[inl]], self.uv[js[inl], i], self.K, res.R_cw, res.t_cw)
+        self.R[i], self.t[i] = call("pnp_nonlinear", self.X[js[inl]], self.uv[js[inl], i], self.K, res.R_cw, res.t_cw)
         self.registered[i] = True
         self.candidate[js[~inl], i] = False
         return {"correspondences": int(len(js)), "pnp_inliers": int(inl.sum()), "ransac_iterations": int(res.n_iters)}, None
@@ -390,12 +394,12 @@ class IncrementalMapper:
         for k in regs:
             js = np.flatnonzero(todo & self.candidate[:, k] & ~np.isfinite(X0).all(axis=1))
             if len(js):
-                X0[js] = triangulate_linear(self._P(new), self._P(k), self.uv[js, new], self.uv[js, k])
+                X0[js] = call("triangulate_linear", self._P(new), self._P(k), self.uv[js, new], self.uv[js, k])
         js = np.flatnonzero(np.isfinite(X0).all(axis=1))
         if len(js) == 0:
             return 0
         # the non-linear refinement is left to the bundle adjustment that follows, where there is one
-        refine = triangulate_nonlinear if self.opts.bundle_adjustment != "incremental" else None
+        refine = caller("triangulate_nonlinear") if self.opts.bundle_adjustment != "incremental" else None
         return self._accept(js, X0[js], refine)
 
     def _accept(self, js: np.ndarray, X0: np.ndarray, refine=None) -> int:
@@ -456,7 +460,7 @@ class IncrementalMapper:
         for a, b in pairs:  # widest baseline first
             js = np.flatnonzero(todo & seen[:, a] & seen[:, b] & ~np.isfinite(X0).all(axis=1))
             if len(js):
-                X0[js] = triangulate_linear(self._P(a), self._P(b), self.uv[js, a], self.uv[js, b])
+                X0[js] = call("triangulate_linear", self._P(a), self._P(b), self.uv[js, a], self.uv[js, b])
         js = np.flatnonzero(np.isfinite(X0).all(axis=1))
         n_new = self._accept(js, X0[js]) if len(js) else 0
         return {"observations_back": int(back.sum()), "tracks_tried": int(todo.sum()), "points_new": int(n_new)}
@@ -515,9 +519,9 @@ class IncrementalMapper:
             return self._adjust_with_intrinsics(cams, pts, loss, f_scale, max_iterations, ftol)
         if not local:
             uv = np.where(self.inlier[np.ix_(pts, cams)][..., None], self.uv[np.ix_(pts, cams)], np.nan)
-            res = bundle_adjust(self.K, self.R[cams], self.t[cams], self.X[pts], uv, loss=loss, f_scale=f_scale,
-                                max_iterations=max_iterations, ref_camera=int(np.flatnonzero(cams == self.ref)[0]),
-                                ftol=ftol, xtol=1e-10)
+            res = adjust(self.K, self.R[cams], self.t[cams], self.X[pts], uv, loss=loss, f_scale=f_scale,
+                         max_iterations=max_iterations, ref_camera=int(np.flatnonzero(cams == self.ref)[0]),
+                         ftol=ftol, xtol=1e-10)
             self.R[cams], self.t[cams], self.X[pts] = res.R_cw, res.t_cw, res.X
             return {"kind": "global", "iterations": res.n_iterations, "rms_before": round(res.initial_rms, 4),
                     "rms_after": round(res.final_rms, 4), "seconds": round(res.seconds, 3), "gauge": res.gauge}
@@ -703,7 +707,7 @@ class IncrementalMapper:
             return 0
         regs = np.flatnonzero(self.registered)
         uv = np.where(self.inlier[js][:, regs][..., None], self.uv[js][:, regs], np.nan)
-        self.X[js] = triangulate_nonlinear(self.K, self.R[regs], self.t[regs], uv, self.X[js])
+        self.X[js] = call("triangulate_nonlinear", self.K, self.R[regs], self.t[regs], uv, self.X[js])
         return int(len(js))
 
     def finish(self) -> None:

@@ -10,10 +10,12 @@ features in one image is useless. So the pipeline builds its tracks in two steps
    verification (each verified pair's F, :mod:`course_lib.data.two_view`): F is refit on its
    matches within the threshold and those are the inliers (:func:`from_carried_geometry`), no
    second RANSAC. Other folders (the course's own matching files): RANSAC on F (notebook 01,
-   :func:`ransac_every_pair`) with the normalized 8-point algorithm and the Sampson distance, the
-   one RANSAC of :mod:`course_lib.sfm.fundamental`, with the random samples drawn and solved in
-   batches (:func:`verify_pair`): one batched factorization for many 8-point problems instead of a
-   Python loop over them. Only the inlier matches go on.
+   :func:`ransac_every_pair`) with the normalized 8-point algorithm and the Sampson distance. In
+   the instructor's kit that is the one RANSAC of :mod:`course_lib.sfm.fundamental`, with the
+   random samples drawn and solved in batches (:func:`verify_pair`): one batched factorization
+   for many 8-point problems instead of a Python loop over them; in the student kit, the
+   student's own ``ransac_fundamental`` and ``sampson_distance`` (and ``eight_point`` for the
+   refit of a carried F). Only the inlier matches go on.
 2. **Join the inliers** (:func:`course_lib.data.tracks.join_tracks`): features are nodes ``(image, u, v)`` (equal
    pixels are the same feature) and verified matches are edges. Edges are added by union-find
    (:class:`course_lib.data.p3.UnionFind`), the most trustworthy first (pairs with more inliers
@@ -30,8 +32,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from course_lib.data.tracks import Tracks, join_tracks
-from course_lib.sfm.fundamental import _refit, eight_point_batch, ransac, sampson_distance_batch
+from course_lib.exercises import call
 from course_lib.validate import KitInputError
+
+try:  # the instructor's kit: notebook 01's RANSAC with batched samples and a preemptive test (faster)
+    from course_lib.sfm.fundamental import _refit, eight_point_batch, ransac, sampson_distance_batch
+except ImportError:  # the student kit: your ransac_fundamental, eight_point and sampson_distance of notebook 01
+    _refit = eight_point_batch = ransac = sampson_distance_batch = None
 
 __all__ = ["PairVerification", "Tracks", "verify_pair", "ransac_every_pair", "from_carried_geometry", "verify_pairs",
            "join_tracks", "verified_tracks"]
@@ -72,11 +79,13 @@ def verify_pair(
 ) -> PairVerification:
     """RANSAC on F (8-point samples, Sampson distance, adaptive stop), samples solved in batches.
 
-    The RANSAC of notebook 01, :func:`course_lib.sfm.fundamental.ransac` with the batched
+    The RANSAC of notebook 01 (in the instructor's kit), :func:`course_lib.sfm.fundamental.ransac` with the batched
     8-point solver and Sampson distance: draw 8 matches, fit F, count the matches within
     ``threshold_px``, stop after ``log(1 - confidence) / log(1 - w⁸)`` samples for the best
     inlier ratio ``w``; then refit F on the inliers while the inlier set grows. Here ``batch``
-    samples are drawn and solved at once.
+    samples are drawn and solved at once. In the student kit (no reference RANSAC) the student's
+    own ``ransac_fundamental`` and ``sampson_distance`` of notebook 01 verify the pair, called as
+    their stubs document (``batch`` and ``bailout`` are not used there).
 
     Args:
         x1, x2: ``(N, 2)`` matching pixels of the two images.
@@ -100,12 +109,30 @@ def verify_pair(
     if n < 8:
         none.note = f"{n} matches: the 8-point algorithm needs at least 8"
         return none
+    if ransac is None:
+        return _verify_with_exercises(x1, x2, rng, threshold_px, confidence, max_iters, none)
     res = ransac(x1, x2, rng, threshold=threshold_px, confidence=confidence, max_iters=max_iters, batch=batch,
                  bailout=bailout)
     if res is None:
         none.n_iters, none.note = max_iters, "only degenerate 8-point samples (all matches on a line or repeated?)"
         return none
     return PairVerification(res.F, res.inliers, res.distances, res.n_iters)
+
+
+def _verify_with_exercises(x1, x2, rng, threshold_px, confidence, max_iters, none: PairVerification) -> PairVerification:
+    """:func:`verify_pair` by the exercises ``ransac_fundamental`` and ``sampson_distance`` (the student kit)."""
+    try:
+        res = call("ransac_fundamental", x1, x2, rng, threshold_px, confidence, max_iters)
+    except KitInputError as exc:
+        none.n_iters, none.note = max_iters, f"ransac_fundamental found no F ({exc})"
+        return none
+    F = np.asarray(res.F, float)
+    inliers = np.asarray(res.inliers, bool).reshape(-1)
+    if F.shape != (3, 3) or inliers.shape != (len(x1),):
+        raise KitInputError(f"ransac_fundamental returned F {F.shape} and inliers {inliers.shape}: expected (3, 3) and "
+                            f"({len(x1)},) (see its docstring)")
+    d = np.asarray(call("sampson_distance", F, x1, x2), float).reshape(-1)
+    return PairVerification(F, inliers, d, int(res.n_iters))
 
 
 def ransac_every_pair(matches: dict, rng: np.random.Generator, threshold_px: float = 1.0, **kw) -> dict:
@@ -137,9 +164,38 @@ def from_carried_geometry(x1: np.ndarray, x2: np.ndarray, F: np.ndarray, thresho
     if len(x1) < 8:
         return PairVerification(None, np.zeros(len(x1), bool), np.full(len(x1), np.inf), 0,
                                 f"{len(x1)} matches: the 8-point algorithm needs at least 8")
-    model, d = _refit(eight_point_batch, sampson_distance_batch, x1, x2, np.asarray(F, float) / np.linalg.norm(F),
-                      threshold_px, 8)
+    F = np.asarray(F, float) / np.linalg.norm(F)
+    if _refit is not None:
+        model, d = _refit(eight_point_batch, sampson_distance_batch, x1, x2, F, threshold_px, 8)
+    else:
+        model, d = _refit_with_exercises(x1, x2, F, threshold_px)
     return PairVerification(model, d < threshold_px, d, 0)
+
+
+def _refit_with_exercises(x1, x2, F, threshold_px: float, rounds: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`from_carried_geometry`'s refit by the exercises ``eight_point`` and ``sampson_distance`` (the student kit).
+
+    The same rule as the reference's refit: the first refit on the inliers is taken, later ones only
+    while they keep at least as many inliers. Returns ``(F (3, 3), distances (N,))``.
+    """
+    d = np.asarray(call("sampson_distance", F, x1, x2), float).reshape(-1)
+    inl = d < threshold_px
+    for round_ in range(rounds):
+        if inl.sum() < 8:
+            break
+        try:
+            new = np.asarray(call("eight_point", x1[inl], x2[inl]), float).reshape(3, 3)
+        except KitInputError:
+            break
+        d_new = np.asarray(call("sampson_distance", new, x1, x2), float).reshape(-1)
+        inl_new = d_new < threshold_px
+        if round_ > 0 and inl_new.sum() < inl.sum():
+            break
+        done = np.array_equal(inl_new, inl)
+        F, d, inl = new, d_new, inl_new
+        if done:
+            break
+    return F, d
 
 
 def verify_pairs(data, rng: np.random.Generator, threshold_px: float = 1.0) -> tuple[dict, str]:

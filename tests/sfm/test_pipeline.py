@@ -341,3 +341,55 @@ def test_radial_distortion_is_refined(tmp_path):
     back = read_colmap_text(tmp_path / "model")
     assert back.camera_model == "SIMPLE_RADIAL" and back.k1 == pytest.approx(rec.k1)
     np.testing.assert_allclose(back.K, rec.K, atol=1e-9)
+
+
+def test_the_pipeline_runs_on_functions_that_return_what_their_stubs_document(monkeypatch):
+    """The student kit: the mapper and the pair verification call the exercises, which may return tuples
+    (the stubs allow a tuple or a dataclass); the embedded scene is reconstructed as with the references."""
+    from course_lib import exercises
+    from course_lib.sfm import bundle_adjustment, essential, fundamental, initial_pair, pnp, tracks, triangulation
+
+    def as_tuple(fn, *fields):
+        def student(*args, **kwargs):
+            res = fn(*args, **kwargs)
+            return tuple(getattr(res, f) for f in fields)
+        return student
+
+    mine = {
+        "ransac_fundamental": as_tuple(fundamental.ransac_fundamental, "F", "inliers", "n_iters"),
+        "sampson_distance": lambda F, x1, x2: list(fundamental.sampson_distance(F, x1, x2)),
+        "eight_point": fundamental.eight_point,
+        "essential_from_fundamental": essential.essential_from_fundamental,
+        "pose_candidates": essential.pose_candidates,
+        "choose_pose": as_tuple(triangulation.choose_pose, "R_cw", "t_cw", "X", "in_front", "counts"),
+        "triangulate_linear": triangulation.triangulate_linear,
+        "triangulate_nonlinear": triangulation.triangulate_nonlinear,
+        "pnp_ransac": as_tuple(pnp.pnp_ransac, "R_cw", "t_cw", "inliers", "n_iters"),
+        "pnp_nonlinear": pnp.pnp_nonlinear,
+        "reprojection_residuals": bundle_adjustment.reprojection_residuals,
+        "jacobian_sparsity": lambda *a: bundle_adjustment.jacobian_sparsity(*a).toarray(),  # a dense pattern is allowed
+    }
+    for name, fn in mine.items():
+        monkeypatch.setitem(exercises._IMPLEMENTATIONS, name, fn)
+    monkeypatch.setattr(tracks, "ransac", None)  # the student kit has no batched reference RANSAC
+    monkeypatch.setattr(initial_pair, "sampson_distance_batch", None)  # nor notebook 01's batched Sampson distance
+    rec = run_sfm(read_p3(EMBEDDED_SFM), np.random.default_rng(0))
+    _check_consistent(rec)
+    _, names, R_gt, t_gt = load_ground_truth(EMBEDDED_SFM)
+    assert rec.registered.all()
+    assert pose_errors(rec.R_cw, rec.t_cw, R_gt, t_gt).rotation_deg.max() < 0.1
+
+
+def test_a_carried_verification_is_refit_by_the_exercises_in_the_student_kit(monkeypatch):
+    """``match``'s F carried into the P3 folder: the refit on its inliers by the exercises (student kit) keeps
+    the same inliers as the reference's batched refit."""
+    from course_lib.sfm import tracks
+
+    data = read_p3(EMBEDDED_SFM)
+    pm = data.matches[(0, 1)]
+    F = tracks.verify_pair(pm.x1, pm.x2, np.random.default_rng(0), 2.0).F
+    ref = tracks.from_carried_geometry(pm.x1, pm.x2, F, 2.0)
+    monkeypatch.setattr(tracks, "_refit", None)
+    kit = tracks.from_carried_geometry(pm.x1, pm.x2, F, 2.0)
+    assert ref.n_inliers > 50 and np.array_equal(kit.inliers, ref.inliers)
+    np.testing.assert_allclose(kit.sampson, ref.sampson, rtol=1e-6, atol=1e-9)
