@@ -26,7 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="seed of the hidden cases (default: random, written into the report)")
     parser.add_argument("--timeout", type=float, default=DEFAULT_EXERCISE_SECONDS,
                         help=f"wall-clock seconds for the hidden checks of one exercise, the grader's checks of its "
-                             f"results and its call-backs included (default {DEFAULT_EXERCISE_SECONDS:g}; at least 10x "
+                             f"results and its call-backs included (default {DEFAULT_EXERCISE_SECONDS:g}, so that correct "
+                             "but slow code is graded; at least 10x "
                              "the reference's time + 5 s)")
     parser.add_argument("--submission-timeout", type=float, default=DEFAULT_SUBMISSION_SECONDS,
                         help=f"wall-clock seconds for everything of one submission, nbval included (default "

@@ -35,7 +35,13 @@ reference verdicts and check cells come from the instructor's side, never from t
    are restored to the reference source and outputs, in the same sandbox (the student release on
    ``PYTHONPATH``, a temporary copy of the submission as working directory, resource limits,
    namespaces). A notebook whose exercise looped or exited in its hidden run is run again with
-   that exercise cut short, so the loop costs its time limit once.
+   that exercise cut short, so the loop costs its time limit once. **Each mistake charged once:**
+   under nbval a later exercise runs the student's own earlier functions; when its check cell
+   fails there and an earlier exercise it calls failed its own hidden checks, the cell is judged
+   again with the reference standing in for those earlier exercises (its check on the notebook's
+   cases, the call-back of step 3), so the earlier mistake does not cost the later exercise.
+5. **Slow code is graded.** An exercise's budget (:data:`DEFAULT_TIMEOUT`, 120 s) lets correct but
+   slow code finish (a dense Jacobian, a residual per view); the feedback says when it was slow.
 
 Points per exercise (default 10): 90 % times the hidden score, plus 10 % when all hidden checks
 pass *and* the notebook's check cell printed the reference verdict under nbval. What the sandbox
@@ -98,6 +104,9 @@ DEFAULT_TIMEOUT = DEFAULT_EXERCISE_SECONDS  # s for the hidden checks of one exe
 #: Characters of one feedback message, messages of one exercise, and bytes of the whole Markdown feedback (a GitHub
 #: comment holds 65 536 characters).
 MAX_MESSAGE_CHARS, MAX_MESSAGES, MAX_FEEDBACK_BYTES = 600, 16, 60_000
+#: An exercise whose hidden checks take longer than this, and than 10 times the reference's (plus 5 s), is graded and
+#: told that it is slow.
+SLOW_NOTE_SECONDS = 20.0
 
 
 @dataclass
@@ -223,6 +232,7 @@ class _Run:
     kit: list = field(default_factory=list)  # [(exercise, reference)] of the whole kit, in order (the earlier steps)
     clock: Clock = field(default_factory=lambda: Clock(None))  # the submission's one clock
     cgroup: Cgroup | None = None  # the submission's cgroup (its exercises' and notebooks' cgroups inside)
+    steps_of: dict = field(default_factory=dict)  # (notebook, exercise) -> (extracted code, the earlier steps it calls)
 
 
 def grade_submission(
@@ -507,8 +517,10 @@ def _hidden_checks(run: _Run, nbval_run: NbvalRun | None) -> None:
                 g.feedback.append(f"not graded: the time for grading the whole submission ({run.clock.seconds:g} s) "
                                   "ran out before this exercise")
                 continue
+            steps = earlier_steps(ex.code, e.name, run.kit)
+            run.steps_of[(s.name, e.name)] = (ex, steps)
             try:
-                seen = _grade_hidden(g, e, ex, run, earlier_steps(ex.code, e.name, run.kit))
+                seen = _grade_hidden(g, e, ex, run, steps)
             except IsolationError:
                 raise  # no sandbox, no grading
             except Exception as exc:  # noqa: BLE001 - the grader never dies on a submission
@@ -537,15 +549,51 @@ def _add_nbval(run: _Run, nbval_run: NbvalRun) -> None:
             g.nbval = "not run" if r is None else ("pass" if r == "pass" else "fail")
             if g.status != "full":
                 continue
+            weak = _weak_earlier(run, s.name, e.name)
             if g.nbval == "pass":
                 g.points = round(e.points, 2)
                 g.feedback[0] = (f"full marks: all {g.hidden['total']} hidden checks pass and the check cell "
                                  "prints the reference verdict")
+            elif weak and _check_cell_with_reference(run, e):
+                g.points, g.nbval = round(e.points, 2), "pass (reference standing in)"
+                g.feedback[0] = (f"full marks: all {g.hidden['total']} hidden checks pass, and with the reference "
+                                 f"standing in for your {' and '.join(weak)} (graded on its own) the check cell prints "
+                                 "the reference verdict")
             else:
                 why = nbval_notes.get(s.name) or (r if r else "no result")
                 g.feedback.append(f"in your notebook the check cell of {e.name} does not print the reference "
                                   f"verdict when the notebook runs top to bottom ({_short(why)}); restart the "
                                   f"kernel, run all cells, and fix what differs (−{(1 - HIDDEN_SHARE) * 100:.0f} %)")
+
+
+def _weak_earlier(run: _Run, notebook: str, name: str) -> list[str]:
+    """The earlier exercises that ``name``'s code calls and whose own hidden checks did not all pass."""
+    _, steps = run.steps_of.get((notebook, name), (None, {}))
+    status = {g.name: g.status for g in run.grades}
+    return [n for n in steps if status.get(n) not in (None, "full", "detail")]
+
+
+def _check_cell_with_reference(run: _Run, e: ExerciseSpec) -> bool:
+    """Whether the exercise's check cell prints the reference verdict with the reference standing in for the earlier
+    exercises its code calls: its check on the notebook's own (public) cases, the student's function in the sandbox
+    and the earlier steps answered by their references (the hidden checks' call-back, :mod:`.oracle`).
+
+    Each mistake is charged once (issue 29): under nbval a later exercise runs the student's own earlier functions,
+    so an earlier mistake would cost the later exercise its nbval share too; this is that share's verdict then.
+    """
+    from course_lib.paths import FIXTURES_DIR
+
+    ex, steps = run.steps_of[(e.notebook, e.name)]
+    budget = exercise_seconds(run.timeout, run.hidden.reference_seconds.get(_key(e), 0.0), calls_back=True)
+    if run.clock.expired():
+        return False
+    try:
+        out = run_hidden(HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(FIXTURES_DIR), e.reference,
+                                   run.allow_reference, str(run.submission.root), steps), budget, run.iso,
+                         cgroup_parent=run.cgroup, deadline=run.clock.deadline)
+    except Exception:  # noqa: BLE001 - the grader never dies on a submission; the share stays unearned
+        return False
+    return out.status == "ok" and out.result is not None and out.result.ok
 
 
 def _without_ended(nb, places: dict[str, Placement], ended: dict[str, tuple[str, int]]):
@@ -619,6 +667,12 @@ def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, run: _Run, steps: dict[
                               "they count as failed")
         if len(fails) > MAX_FEEDBACK_LINES:
             g.feedback.append(f"... and {len(fails) - MAX_FEEDBACK_LINES} more")
+    slow = max(SLOW_NOTE_SECONDS, 10 * hidden.reference_seconds.get(_key(e), 0.0) + 5)
+    if out.seconds > slow:
+        g.feedback.append(f"note: correct answers are graded however long they take within {budget:g} s, but your "
+                          f"{e.name} is slow: its hidden checks took {out.seconds:.0f} s, the reference's "
+                          f"{hidden.reference_seconds.get(_key(e), 0.0):.1g} s (vectorize the residuals, give least_squares "
+                          "the Jacobian's sparsity)")
     if _key(e) in hidden.reference_notes:
         g.feedback.append("note: " + hidden.reference_notes[_key(e)])
     return out.sandbox

@@ -31,7 +31,10 @@ __all__ = ["Limits", "Isolation", "Clock", "student_library", "exercise_seconds"
 # ---------------------------------------------------------------------------------------------
 
 #: Seconds of an exercise's hidden checks by default (``--timeout``; the reference needs at most ~1 s).
-DEFAULT_EXERCISE_SECONDS = 20.0
+#: Seconds for the hidden checks of one exercise (the reference needs at most ~1 s). Correct but slow code is graded: a
+#: dense finite-difference Jacobian in bundle_adjust (~25 s a call on a loaded 2-core machine, two calls), one residual
+#: function per view in triangulate_nonlinear; an endless loop costs this once, and the submission's clock bounds all.
+DEFAULT_EXERCISE_SECONDS = 120.0
 #: Seconds for a student's process to start (the interpreter, the sandbox, the numpy and torch imports: the kit's own
 #: work, not the student's, and ~20 s for torch on a loaded 2-core machine); the exercise's budget starts after.
 START_SECONDS = 120.0

@@ -374,6 +374,8 @@ class StudentProcess:
             raise StudentProcessEnded(self.ended) from None
         for cb, a, k in replay:
             cb(*a, **k)  # the grader's callbacks, replayed in order after the call
+        self._rng_in(reply.get("rng"), out)
+        self._generators_in(reply.get("gens"), out, args, kwargs)
         return value
 
     def _answer_oracle(self, head: dict, arrays: list) -> tuple[dict, list] | None:
@@ -396,6 +398,43 @@ class StudentProcess:
             return None
         sent = self._send(reply, out)
         return self._receive() if sent else None
+
+    @staticmethod
+    def _rng_in(state, arrays: list) -> None:
+        """The global random states the student's call left, set here: as in a notebook, a function that seeds or
+        draws from np.random (or torch's global generator) changes its caller's state (the checks test that it does
+        not). A state that cannot be set is ignored."""
+        if not isinstance(state, dict):
+            return
+        import numpy as np
+
+        try:
+            if state.get("np") is not None:
+                np.random.set_state(tuple(wire.decode(state["np"], arrays)))
+            torch = sys.modules.get("torch")
+            if torch is not None and state.get("torch") is not None:
+                torch.set_rng_state(wire.decode(state["torch"], arrays))
+        except Exception:  # noqa: BLE001 - a malformed state changes nothing
+            pass
+
+    @staticmethod
+    def _generators_in(gens, arrays: list, args: tuple, kwargs: dict) -> None:
+        """The states of the generator arguments after the student's call, set in the caller's generators: as in a
+        notebook, an rng the function drew from has advanced (the checks test that the function draws from it)."""
+        import numpy as np
+
+        torch = sys.modules.get("torch")
+        for entry in gens if isinstance(gens, list) else []:
+            try:
+                (kind, at), tree = entry
+                mine = args[int(at)] if kind == "a" else kwargs[str(at)]
+                theirs = wire.decode(tree, arrays)
+                if isinstance(mine, np.random.Generator) and isinstance(theirs, np.random.Generator):
+                    mine.bit_generator.state = theirs.bit_generator.state
+                elif torch is not None and isinstance(mine, torch.Generator) and isinstance(theirs, torch.Generator):
+                    mine.set_state(theirs.get_state())
+            except Exception:  # noqa: BLE001 - a malformed entry changes nothing
+                continue
 
     @staticmethod
     def _rng_out(arrays: list) -> dict:

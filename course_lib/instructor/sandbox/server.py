@@ -255,6 +255,7 @@ def serve(cfg: dict) -> None:
 
             args = decode(msg["args"], arrays, recorder)
             kwargs = decode(msg["kwargs"], arrays, recorder)
+            gens = _generators(args, kwargs)
             _set_rng(msg.get("rng"), arrays)
             fn = target if msg.get("h") is None else handles[int(msg["h"])]
             if msg.get("h") is not None and msg.get("params"):
@@ -265,12 +266,23 @@ def serve(cfg: dict) -> None:
             out: list = []
             tree = encode(value, out, handles=handles)
             cb_tree = encode([[i, list(a), k] for i, a, k in calls], out)
-            reply = {"ok": True, "value": tree, "callbacks": cb_tree, "rng": _get_rng(out)}
+            reply = {"ok": True, "value": tree, "callbacks": cb_tree, "rng": _get_rng(out),
+                     "gens": [[where, encode(g, out)] for where, g in gens]}
         except BaseException as exc:  # noqa: BLE001 - the student's exception, as data
             out, reply = [], _exc_reply(exc)
             if isinstance(exc, WireError):
                 reply["wire"] = True
         write_frame(rep, reply, out)
+
+
+def _generators(args, kwargs) -> list:
+    """``[[where, generator]]``: the random generators among the call's arguments (``where``: ``["a", i]`` or
+    ``["k", name]``); their states after the call go back with the reply, so that, as in a notebook, the caller's
+    generator has advanced by what the student's function drew from it."""
+    np, torch = wire._np(), wire._torch()
+    kinds = tuple(k for k in (getattr(np.random, "Generator", None), getattr(torch, "Generator", None)) if k)
+    out = [[["a", i], a] for i, a in enumerate(args) if isinstance(a, kinds)]
+    return out + [[["k", k], v] for k, v in kwargs.items() if isinstance(v, kinds)]
 
 
 def oracle_stub(step: str, exercise: str, own):
