@@ -104,49 +104,51 @@ def epipolar_distances(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndar
     return np.where(np.isfinite(d), d, np.inf)
 
 
-def _ransac_F(x1: np.ndarray, x2: np.ndarray, threshold_px: float, seed: int) -> tuple[np.ndarray | None, np.ndarray]:
-    """OpenCV's USAC F (``USAC_ACCURATE``) with the given seed: ``(F or None, inliers (N,) bool)``."""
-    import cv2
-
-    n = len(x1)
-    if n < 8:
-        return None, np.zeros(n, bool)
-    cv2.setRNGSeed(int(seed))
-    try:
-        F, mask = cv2.findFundamentalMat(np.ascontiguousarray(x1, np.float64), np.ascontiguousarray(x2, np.float64),
-                                         cv2.USAC_ACCURATE, threshold_px, 0.999, 10000)
-    except cv2.error:  # degenerate input (all points on a line, repeated points)
-        return None, np.zeros(n, bool)
-    if F is None or mask is None or F.shape != (3, 3):
-        return None, np.zeros(n, bool)
-    F = F / np.linalg.norm(F)
-    return F, epipolar_distances(F, x1, x2) <= threshold_px
-
-
 def identical_photos(x1: np.ndarray, x2: np.ndarray) -> bool:
     """Whether matches ``x1, x2 (N, 2)`` barely move: the median displacement is below :data:`IDENTICAL_PX` (no baseline)."""
     return len(x1) > 0 and float(np.median(np.linalg.norm(np.asarray(x2) - np.asarray(x1), axis=1))) < IDENTICAL_PX
 
 
-def verify_pair(x1: np.ndarray, x2: np.ndarray, seed: int, threshold_px: float = VERIFY_PX,
+def verify_pair(f1: Features, f2: Features, m: np.ndarray, seed: int, threshold_px: float = VERIFY_PX,
                 min_inliers: int = MIN_INLIERS) -> tuple[np.ndarray | None, np.ndarray, str]:
-    """RANSAC on F for one pair's matches: ``(F or None, inliers (N,) bool, note)``.
+    """RANSAC on F for the matches ``m`` of two photos: ``(F or None, inliers (N,) bool, note)``.
+
+    OpenCV's USAC (``USAC_ACCURATE``) with the given seed; the inliers are the matches within
+    ``threshold_px`` of F (:func:`epipolar_distances`). It takes the photos' features and the
+    matches' indices, as ``match`` has them (the student kit ships it: no kit function takes the
+    two point sets of notebook 01's ``ransac_fundamental``).
 
     Args:
-        x1, x2: ``(N, 2)`` matching pixels. seed: OpenCV's RANSAC seed.
+        f1, f2: the two photos' :class:`~course_lib.data.features.Features`.
+        m: ``(N, 2)`` int feature indices (row k matches ``f1.xy[m[k, 0]]`` with ``f2.xy[m[k, 1]]``).
+        seed: OpenCV's RANSAC seed.
         threshold_px: inlier threshold on :func:`epipolar_distances`. min_inliers: fewest inliers
             of a verified pair.
 
     Returns:
-        F (None with a note where the pair is not verified), the inliers, and the note (``""``,
-        ``"identical"``, or why not).
+        F (unit norm; None with a note where the pair is not verified), the inliers, and the note
+        (``""``, ``"identical"``, or why not).
     """
-    n = len(x1)
+    import cv2
+
+    m = np.asarray(m, np.int64).reshape(-1, 2)
+    x1, x2 = f1.xy[m[:, 0]], f2.xy[m[:, 1]]
+    n = len(m)
+    none = np.zeros(n, bool)
     if n < max(8, min_inliers):
-        return None, np.zeros(n, bool), f"{n} matches: fewer than {max(8, min_inliers)}"
-    F, inl = _ransac_F(x1, x2, threshold_px, seed)
-    if F is None or inl.sum() < min_inliers:
-        return None, inl if F is not None else np.zeros(n, bool), f"{int(inl.sum())} inliers: fewer than {min_inliers}"
+        return None, none, f"{n} matches: fewer than {max(8, min_inliers)}"
+    cv2.setRNGSeed(int(seed))
+    try:
+        F, mask = cv2.findFundamentalMat(np.ascontiguousarray(x1, np.float64), np.ascontiguousarray(x2, np.float64),
+                                         cv2.USAC_ACCURATE, threshold_px, 0.999, 10000)
+    except cv2.error:  # degenerate input (all points on a line, repeated points)
+        F = mask = None
+    if F is None or mask is None or F.shape != (3, 3):
+        return None, none, "no F fits the matches (degenerate: on a line, or repeated points?)"
+    F = F / np.linalg.norm(F)
+    inl = epipolar_distances(F, x1, x2) <= threshold_px
+    if inl.sum() < min_inliers:
+        return None, inl, f"{int(inl.sum())} inliers: fewer than {min_inliers}"
     return F, inl, "identical" if identical_photos(x1[inl], x2[inl]) else ""
 
 
@@ -206,7 +208,7 @@ def verify_pairs(feats: list[Features], matches: dict, rng: np.random.Generator,
     def first(key):
         i, j = key
         m = np.asarray(matches[key], np.int64).reshape(-1, 2)
-        F, inl, note = verify_pair(feats[i].xy[m[:, 0]], feats[j].xy[m[:, 1]], seeds[key], threshold_px, min_inliers)
+        F, inl, note = verify_pair(feats[i], feats[j], m, seeds[key], threshold_px, min_inliers)
         return TwoViewGeometry(F, m, inl, 0, note)
 
     out = dict(zip(keys, thread_map(first, keys, workers, progress, "verify", "pair")))
@@ -224,7 +226,7 @@ def verify_pairs(feats: list[Features], matches: dict, rng: np.random.Generator,
         m = guided_matches(feats[i], feats[j], g.F)
         if len(m) <= g.n_inliers:
             return g
-        F, inl, note = verify_pair(feats[i].xy[m[:, 0]], feats[j].xy[m[:, 1]], seeds[key], threshold_px, min_inliers)
+        F, inl, note = verify_pair(feats[i], feats[j], m, seeds[key], threshold_px, min_inliers)
         if F is None or inl.sum() <= g.n_inliers:
             return g
         return TwoViewGeometry(F, m, inl, int(inl.sum()) - g.n_inliers, note)

@@ -407,7 +407,7 @@ class IncrementalMapper:
 
         Observations that reproject farther than ``max_reproj_px`` from the linear estimate are
         dropped, the point is refined non-linearly over the remaining ones (where a refinement
-        ``refine``, :func:`~course_lib.sfm.triangulation.triangulate_nonlinear`, is given), checked
+        ``refine``, the exercise ``triangulate_nonlinear`` of notebook 03, is given), checked
         again, and kept if at least two observations in front of their cameras remain and its
         triangulation angle is at least ``min_angle_deg``. Dropped observations are rejected for good.
         """

@@ -150,7 +150,7 @@ def ransac_every_pair(matches: dict, rng: np.random.Generator, threshold_px: flo
 def from_carried_geometry(x1: np.ndarray, x2: np.ndarray, F: np.ndarray, threshold_px: float) -> PairVerification:
     """A pair verified by ``match`` (its ``F`` carried in the P3 folder), without a RANSAC of its own.
 
-    The last step of :func:`course_lib.sfm.fundamental.ransac`, from ``F`` instead of a sample's
+    The last step of notebook 01's RANSAC (the refit on the inliers), from ``F`` instead of a sample's
     model: F is refit (8-point) on its matches within ``threshold_px`` (Sampson distance) while that
     set grows, and those are the inliers. The random sampling ran once, in ``match``
     (:mod:`course_lib.data.two_view`).

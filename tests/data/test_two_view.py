@@ -20,6 +20,13 @@ from course_lib.data.two_view import (
 from course_lib.validate import KitInputError
 
 
+def _verify(x1, x2, seed):
+    """:func:`verify_pair` on two point sets matched row by row (features without descriptors)."""
+    n = len(x1)
+    f1, f2 = (Features(np.asarray(x, float), np.zeros((n, 128), np.float32)) for x in (x1, x2))
+    return verify_pair(f1, f2, np.stack([np.arange(n)] * 2, axis=1), seed)
+
+
 def _pair(outliers=0.3, seed=2):
     sc = make_scene(np.random.default_rng(seed), n_cameras=3, n_points=300, noise_px=0.5, outlier_fraction=outliers)
     x1, x2, inlier, _ = sc.pair(0, 1)
@@ -29,16 +36,16 @@ def _pair(outliers=0.3, seed=2):
 class TestVerifyPair:
     def test_keeps_the_right_matches_and_finds_F(self):
         sc, x1, x2, inlier = _pair()
-        F, inl, note = verify_pair(x1, x2, seed=0)
+        F, inl, note = _verify(x1, x2, seed=0)
         assert note == "" and F.shape == (3, 3) and abs(np.linalg.norm(F) - 1) < 1e-9
         assert (inl & inlier).sum() >= 0.95 * inlier.sum() and (inl & ~inlier).sum() <= 0.05 * inl.sum()
         assert (epipolar_distances(F, x1[inl], x2[inl]) <= 4.0).all()
 
     def test_too_few_and_seeded(self):
         _, x1, x2, _ = _pair()
-        F, inl, note = verify_pair(x1[:10], x2[:10], seed=0)
+        F, inl, note = _verify(x1[:10], x2[:10], seed=0)
         assert F is None and not inl.any() and "fewer than 15" in note
-        a, b = verify_pair(x1, x2, seed=3), verify_pair(x1, x2, seed=3)
+        a, b = _verify(x1, x2, seed=3), _verify(x1, x2, seed=3)
         np.testing.assert_array_equal(a[1], b[1])
 
     def test_identical_photos_are_named(self):
@@ -46,7 +53,7 @@ class TestVerifyPair:
         x1 = rng.uniform(0, 800, (200, 2))
         assert identical_photos(x1, x1 + rng.normal(0, 0.2, x1.shape))
         assert not identical_photos(x1, x1 + [5.0, 0.0])
-        _, _, note = verify_pair(x1, x1 + rng.normal(0, 0.2, x1.shape), seed=0)
+        _, _, note = _verify(x1, x1 + rng.normal(0, 0.2, x1.shape), seed=0)
         assert note == "identical"
 
 
@@ -67,7 +74,7 @@ def test_guided_matching_adds_right_matches_along_the_epipolar_line(four_renders
     feats, K, R_cw, t_cw = four_renders
     f1, f2 = feats[0], feats[3]
     m = match_descriptors(f1, f2)
-    F, inl, _ = verify_pair(f1.xy[m[:, 0]], f2.xy[m[:, 1]], seed=0)
+    F, inl, _ = verify_pair(f1, f2, m, seed=0)
     g = guided_matches(f1, f2, F)
     e0 = building.epipolar_errors(K, R_cw[0], t_cw[0], R_cw[3], t_cw[3], f1.xy[m[inl, 0]], f2.xy[m[inl, 1]])
     e = building.epipolar_errors(K, R_cw[0], t_cw[0], R_cw[3], t_cw[3], f1.xy[g[:, 0]], f2.xy[g[:, 1]])
