@@ -1,32 +1,53 @@
-"""Photos -> ``match`` -> ``sfm``, the way a student runs it, scored against the true cameras.
+"""Photos -> model: the kit's ``match`` + ``sfm`` against COLMAP end to end, whole processes, side by side.
 
-Renders a fresh photo set of the synthetic building (:func:`course_lib.data.building.sfm_photos`:
-another seed gives another walk past the building -- other distances, heights, aim and roll; the
-same textured building), writes ``1.jpg ... N.jpg`` and ``calibration.txt`` into a temporary
-folder (the true cameras stay in memory), then runs the two commands of the README as separate
-processes::
+For every photo set, in one run on the same machine:
 
-    python -m course_lib match PHOTOS --K PHOTOS/calibration.txt --out P3
-    python -m course_lib sfm P3 --out SFM
+* **kit**: the two commands of the README as separate processes, timed from outside::
 
-and reports the registered images and the rotation / centre errors of the COLMAP model it wrote
-after a similarity alignment on rotations and centres (:func:`course_lib.evaluate.pose_errors`),
-with the seconds of each command (process start included).
+      python -m course_lib match PHOTOS [--K PHOTOS/calibration.txt] --out P3 --quiet
+      python -m course_lib sfm P3 --out SFM --quiet --no-html
 
-A folder of real photos works too (``--photos DIR --K calibration.txt``); without ground truth only
-the registered count, points and reprojection error are reported.
+  with ``--K`` where the set comes with a calibration file; without it the kit takes K from EXIF
+  or a guess and refines the focal length and ``k1``. Sets without a calibration file are also run
+  **with the true K** (``kit, true K``), the reference for "within 1.5x the error with the true K".
+* **COLMAP**: ``pycolmap.extract_features`` (its own SIFT; one ``PINHOLE`` camera with the K held
+  fixed where the set has a calibration file, else ``SIMPLE_RADIAL`` from EXIF or its guess,
+  refined), ``pycolmap.match_exhaustive`` (ratio test, cross-check, two-view verification) and
+  ``pycolmap.incremental_mapping``, as one process of this script (``--colmap-worker``), timed from
+  outside the same way.
+
+Printed per set and run: images registered (largest model), the sizes of all models, 3-D points,
+mean and max rotation error (degrees) after a similarity alignment on the centres
+(:func:`course_lib.evaluate.pose_errors`; against the rendering's truth, or against COLMAP for real
+photos), the focal length found (px) where it was estimated, seconds, and the kit's time over
+COLMAP's.
+
+Photo sets (rendered once into ``--cache``, default ``outputs/photos-to-sfm``; git-ignored):
+
+* ``ring-N``: N views on a ring around the synthetic building (640x480 PNG, K known);
+* ``poor-ring-N``: the same ring blurred and darkened (texture-poor: few features, pairs that need
+  the calibrated five-point start);
+* ``walk-N``: a walk past the building (800x600 JPEG, K known; :func:`course_lib.data.building.sfm_photos`);
+* ``exif5-ring-N`` / ``exif17-ring-N``: the ring with no calibration file, EXIF
+  ``FocalLengthIn35mmFilm`` rounded to whole mm and 5 % / 17 % off the true focal length;
+* ``phone-ring-N``: phone-like JPEGs (1280x960, barrel distortion ``k1 = -0.05``, EXIF focal
+  length and 35 mm equivalent of a phone, make and model), no calibration file;
+* ``wpi``, ``upenn``: the course's photos (``../shared/data``, read in place; their P3 matches are not used).
 
 Usage::
 
-    python benchmarks/photos_to_sfm.py                    # 12 views, seed 7
-    python benchmarks/photos_to_sfm.py --views 16 --seed 3
-    python benchmarks/photos_to_sfm.py --photos ~/my_photos --K ~/my_photos/K.txt
+    python benchmarks/photos_to_sfm.py --sets ring-16 ring-48 ring-100        # the time growth
+    python benchmarks/photos_to_sfm.py --sets poor-ring-24 exif5-ring-24 phone-ring-16 wpi upenn
+    python benchmarks/photos_to_sfm.py --sets ring-16 --json out.json
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import json
+import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -38,76 +59,314 @@ import numpy as np
 REPO_ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO_ROOT))
 
-from course_lib.data.building import sfm_photos  # noqa: E402
+from course_lib.data.camera import undistort_pixels  # noqa: E402
 from course_lib.data.colmap import read_colmap_text  # noqa: E402
 from course_lib.evaluate import pose_errors  # noqa: E402
+from course_lib.paths import course_data  # noqa: E402
+
+DEFAULT_CACHE = REPO_ROOT / "outputs" / "photos-to-sfm"
+PHONE_SIZE = (1280, 960)
+PHONE_K1 = -0.05
 
 
-def render_photos(folder: Path, views: int, seed: int) -> dict:
-    """Write ``1.jpg ... N.jpg``, ``calibration.txt``; return the true cameras by image name."""
+# ------------------------------------------------------------------------------------------ photo sets
+
+
+def ring_cameras(n: int, radius: float = 14.0, seed: int = 0):
+    """``n`` cameras on a ring around the building, eye height, aimed at its middle (``R_cw (n, 3, 3), t_cw (n, 3)``)."""
+    from course_lib.data.synthetic import look_at
+
+    rng = np.random.default_rng(seed)
+    Rs, ts = [], []
+    for a in np.linspace(0.0, 2 * np.pi, n, endpoint=False) + rng.normal(0, 0.03, n):
+        C = np.array([radius * np.sin(a), -1.5 - radius * np.cos(a), rng.uniform(1.3, 2.3)])
+        R, _ = look_at(C, np.array([0.0, -1.5, 2.6]) + rng.normal(0, 0.3, 3), up=(0.0, 0.0, 1.0))
+        Rs.append(R)
+        ts.append(-R @ C)
+    return np.stack(Rs), np.stack(ts)
+
+
+def _render_ring(n: int, size: tuple[int, int], K: np.ndarray, k1: float = 0.0) -> list[np.ndarray]:
+    """The ring's views as uint8 RGB, with the radial term ``k1`` applied (barrel for k1 < 0)."""
+    import cv2
+
+    from course_lib.data import building
+
+    R, t = ring_cameras(n)
+    surfaces = building.build_scene(np.random.default_rng(11), ground="large")
+    out = []
+    W, H = size
+    for i in range(n):
+        rgb, _ = building.render(surfaces, K, R[i], t[i], size, supersample=1)
+        img = np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8)
+        if k1:
+            v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+            src = undistort_pixels(np.stack([u, v], axis=-1), K, k1).astype(np.float32)  # where the pinhole saw each pixel
+            img = cv2.remap(img, src[..., 0], src[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        out.append(img)
+    return out
+
+
+def _poor(images: list[np.ndarray]) -> list[np.ndarray]:
+    """Texture-poor: the fine texture blurred away, low contrast (as ``benchmarks/match_vs_colmap.py``)."""
+    import cv2
+
+    return [np.clip(cv2.GaussianBlur(im, (0, 0), 2.5).astype(float) * 0.45 + 40, 0, 255).astype(np.uint8) for im in images]
+
+
+def _jpeg_with_exif(img: np.ndarray, exif: dict, quality: int = 92) -> bytes:
+    """JPEG bytes of an RGB image with the EXIF tags ``{tag number: value}`` (0x8769 sub-IFD tags go there)."""
+    from PIL import Image
+
+    ex = Image.Exif()
+    sub = ex.get_ifd(0x8769)
+    for tag, val in exif.items():
+        (sub if tag >= 0x8000 else ex)[tag] = val
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, "JPEG", quality=quality, exif=ex.tobytes())
+    return buf.getvalue()
+
+
+def build_set(name: str, cache: Path) -> dict:
+    """Render (once) and describe a photo set: ``{"photos": folder, "calibration": file or None, "R", "t", "K", "k1"}``."""
+    import cv2
+
+    from course_lib.data import building
+    from course_lib.data.match_cli import scale_intrinsics
+
+    if name in ("wpi", "upenn"):
+        folder = course_data(name)
+        if folder is None:
+            return {}
+        return {"photos": folder, "calibration": folder / "calibration.txt", "R": None, "t": None, "K": None, "k1": 0.0}
+    m = re.fullmatch(r"(ring|poor-ring|walk|exif5-ring|exif17-ring|phone-ring)-(\d+)", name)
+    if m is None:
+        raise SystemExit(f"unknown photo set {name!r}")
+    kind, n = m.group(1), int(m.group(2))
+    folder = cache / name
+    truth = folder / "truth.npz"
+    if truth.is_file():
+        z = np.load(truth)
+        calib = folder / "calibration.txt"
+        return {"photos": folder, "calibration": calib if calib.is_file() else None, "R": z["R"], "t": z["t"], "K": z["K"],
+                "k1": float(z["k1"])}
     folder.mkdir(parents=True, exist_ok=True)
-    photos = sfm_photos(seed=seed, n_cameras=views)
-    K, R_cw, t_cw = next(photos)
-    for i, (jpeg, _) in enumerate(photos):
-        (folder / f"{i + 1}.jpg").write_bytes(jpeg)
-    np.savetxt(folder / "calibration.txt", K, fmt="%.6f")
-    return {f"{i + 1}": (R_cw[i], t_cw[i]) for i in range(views)}
+    k1, has_calib = 0.0, kind in ("ring", "poor-ring", "walk")
+    if kind == "walk":
+        photos = building.sfm_photos(seed=7, n_cameras=n)
+        K, R, t = next(photos)
+        for i, (jpeg, _) in enumerate(photos):
+            (folder / f"{i + 1}.jpg").write_bytes(jpeg)
+    else:
+        size = PHONE_SIZE if kind == "phone-ring" else (640, 480)
+        K = scale_intrinsics(building.WPI_LIKE_K, building.SFM_IMAGE_SIZE, size)
+        K[0, 0] = K[1, 1] = float(np.sqrt(K[0, 0] * K[1, 1]))  # one focal length (SIMPLE_RADIAL's)
+        if not has_calib:  # a camera without a calibration file: its principal point at the centre, as the prior assumes
+            K[0, 2], K[1, 2] = (size[0] - 1) / 2.0, (size[1] - 1) / 2.0
+        R, t = ring_cameras(n)
+        k1 = PHONE_K1 if kind == "phone-ring" else 0.0
+        images = _render_ring(n, size, K, k1)
+        if kind == "poor-ring":
+            images = _poor(images)
+        diag = float(np.hypot(*size))
+        for i, img in enumerate(images):
+            if kind in ("ring", "poor-ring"):
+                cv2.imwrite(str(folder / f"{i + 1}.png"), img[:, :, ::-1])
+                continue
+            off = {"exif5-ring": 1.05, "exif17-ring": 1.17, "phone-ring": 1.0}[kind]
+            f35 = int(round(K[0, 0] * off * 43.2666 / diag))
+            exif = {0x010F: "KitPhone", 0x0110: "Ring 1", 0xA405: f35}
+            if kind == "phone-ring":  # a phone's real focal length (mm) and 35 mm equivalent, no sensor resolution
+                exif[0x920A] = (int(round(K[0, 0] * 4.8 / size[0] * 100)), 100)
+            (folder / f"IMG_{i + 1:04d}.jpg").write_bytes(_jpeg_with_exif(img, exif))
+    if has_calib:
+        np.savetxt(folder / "calibration.txt", K)
+    np.savez(truth, R=R, t=t, K=K, k1=k1)
+    return build_set(name, cache)
 
 
-def run(cmd: list[str]) -> float:
+# ------------------------------------------------------------------------------------------ runs
+
+
+def _env() -> dict:
+    return {**os.environ, "PYTHONPATH": str(REPO_ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+
+
+def _timed(cmd: list[str]) -> float:
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=REPO_ROOT, capture_output=True, text=True)
+    proc = subprocess.run(cmd, cwd=REPO_ROOT, env=_env(), capture_output=True, text=True)
     if proc.returncode != 0:
-        sys.exit(f"{' '.join(cmd)} failed:\n{proc.stdout}\n{proc.stderr}")
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
     return time.perf_counter() - t0
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--views", type=int, default=12, help="photos to render (default 12)")
-    ap.add_argument("--seed", type=int, default=7, help="seed of the walk and the sensor noise (default 7)")
-    ap.add_argument("--photos", type=Path, default=None, help="a folder of your own photos instead of rendered ones")
-    ap.add_argument("--K", type=Path, default=None, help="calibration.txt of --photos")
-    ap.add_argument("--json", type=Path, default=None, help="also write the result here")
-    args = ap.parse_args()
+def _models(out: Path) -> list[int]:
+    rep = json.loads((out / "report.json").read_text())
+    return [m["registered_images"] for m in rep["models"]]
 
+
+def run_kit(photos: Path, calibration: Path | None, work: Path) -> dict:
+    """The kit's two commands as whole processes: poses by image name, seconds of each."""
+    py = sys.executable
+    cmd = [py, "-m", "course_lib", "match", str(photos), "--out", str(work / "p3"), "--quiet"]
+    if calibration is not None:
+        cmd += ["--K", str(calibration)]
+    t_match = _timed(cmd)
+    try:
+        t_sfm = _timed([py, "-m", "course_lib", "sfm", str(work / "p3"), "--out", str(work / "sfm"), "--quiet", "--no-html"])
+    except RuntimeError as exc:  # no pair can start a model
+        return {"poses": {}, "points": 0, "models": [], "seconds": t_match, "match_s": t_match, "sfm_s": float("nan"),
+                "note": str(exc).splitlines()[-1][:120]}
+    model = read_colmap_text(work / "sfm" / "colmap")
+    report = json.loads((work / "p3" / "match_report.json").read_text())
+    sources = [im["source"] for im in report["images"]]
+    poses = {sources[int(Path(n).stem) - 1]: (R, t) for n, R, t in zip(model.image_names, model.R_cw, model.t_cw)}
+    return {"poses": poses, "points": int(len(model.X)), "models": _models(work / "sfm"), "seconds": t_match + t_sfm,
+            "match_s": t_match, "sfm_s": t_sfm, "focal": float(model.K[0, 0]), "k1": float(getattr(model, "k1", 0.0))}
+
+
+def run_colmap(photos: Path, calibration: Path | None, work: Path, seed: int = 0) -> dict:
+    """COLMAP end to end as one process of this script (``--colmap-worker``)."""
+    out = work / "colmap.json"
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--colmap-worker", str(photos), str(work / "colmap"), str(out),
+           "--seed", str(seed)]
+    if calibration is not None:
+        cmd += ["--K", str(calibration)]
+    seconds = _timed(cmd)
+    res = json.loads(out.read_text())
+    return {"poses": {n: (np.array(R), np.array(t)) for n, (R, t) in res["poses"].items()}, "points": res["points"],
+            "models": res["models"], "seconds": seconds, "focal": res.get("focal"), "k1": res.get("k1")}
+
+
+def colmap_worker(photos: Path, work: Path, out: Path, calibration: Path | None, seed: int) -> None:
+    """The COLMAP process: its SIFT, exhaustive matching and verification, incremental mapping; poses to ``out``."""
+    import pycolmap
+
+    from course_lib.data.match_cli import list_images
+    from course_lib.data.p3 import read_calibration
+
+    pycolmap.logging.minloglevel = 2
+    pycolmap.set_random_seed(seed)
+    work.mkdir(parents=True, exist_ok=True)
+    names = [p.name for p in list_images(photos)]
+    db = work / "database.db"
+    reader = pycolmap.ImageReaderOptions()
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.random_seed = seed
+    if calibration is not None:
+        K = read_calibration(calibration)
+        reader.camera_model = "PINHOLE"  # COLMAP's pixel centres are at +0.5
+        reader.camera_params = ",".join(str(v) for v in (K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5))
+        opts.ba_refine_focal_length = opts.ba_refine_principal_point = opts.ba_refine_extra_params = False
+    pycolmap.extract_features(db, photos, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader)
+    tvg = pycolmap.TwoViewGeometryOptions()
+    tvg.ransac.random_seed = seed
+    pycolmap.match_exhaustive(db, verification_options=tvg)
+    recs = pycolmap.incremental_mapping(str(db), str(photos), str(work / "sparse"), opts)
+    res = {"poses": {}, "points": 0, "models": sorted((int(r.num_reg_images()) for r in recs.values()), reverse=True)}
+    if recs:
+        rec = max(recs.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
+        for im in rec.images.values():
+            if im.has_pose:
+                pose = im.cam_from_world()
+                res["poses"][im.name] = (pose.rotation.matrix().tolist(), pose.translation.tolist())
+        cam = next(iter(rec.cameras.values()))
+        res.update(points=int(rec.num_points3D()), focal=float(cam.params[0]),
+                   k1=float(cam.params[3]) if cam.model.name == "SIMPLE_RADIAL" else 0.0)
+    out.write_text(json.dumps(res))
+
+
+def score(run: dict, names: list[str], R_ref, t_ref) -> dict:
+    """Registered images and rotation errors (degrees) after a similarity alignment with the reference poses."""
+    have = [k for k, n in enumerate(names) if n in run["poses"] and R_ref is not None and np.isfinite(R_ref[k]).all()]
+    row = {"registered": len(run["poses"]), "models": run["models"], "points": run["points"], "seconds": run["seconds"]}
+    if len(have) >= 3:
+        R = np.stack([run["poses"][names[k]][0] for k in have])
+        t = np.stack([run["poses"][names[k]][1] for k in have])
+        err = pose_errors(R, t, R_ref[have], t_ref[have])
+        row.update(rot_mean_deg=float(err.rotation_deg.mean()), rot_max_deg=float(err.rotation_deg.max()))
+    return row
+
+
+def compare(name: str, cache: Path, seed: int = 0) -> list[dict]:
+    """Every run on one photo set; rows for the table."""
+    from course_lib.data.match_cli import list_images
+
+    ps = build_set(name, cache)
+    if not ps:
+        print(f"{name}: the course data is not on this machine (skipped)", flush=True)
+        return []
+    names = [p.name for p in list_images(ps["photos"])]
+    runs = {}
     with tempfile.TemporaryDirectory(prefix="photos-to-sfm-") as tmp:
         tmp = Path(tmp)
-        truth = None
-        if args.photos is None:
-            photos, K_file = tmp / "photos", tmp / "photos" / "calibration.txt"
-            t0 = time.perf_counter()
-            truth = render_photos(photos, args.views, args.seed)
-            print(f"rendered {args.views} photos (seed {args.seed}) in {time.perf_counter() - t0:.1f} s")
-        else:
-            if args.K is None:
-                sys.exit("--photos needs --K (the calibration file of the photos)")
-            photos, K_file = args.photos, args.K
-        py = sys.executable
-        t_match = run([py, "-m", "course_lib", "match", str(photos), "--K", str(K_file), "--out", str(tmp / "p3")])
-        t_sfm = run([py, "-m", "course_lib", "sfm", str(tmp / "p3"), "--out", str(tmp / "sfm"), "--quiet", "--no-html"])
-        model = read_colmap_text(tmp / "sfm" / "colmap")
-        n_photos = len(list((tmp / "p3").glob("matching*.txt"))) + 1
-        result = {
-            "photos": n_photos, "registered": len(model.image_names), "points": int(len(model.X)),
-            "reprojection_px": float(np.mean(model.error)) if len(model.error) else float("nan"),
-            "match_s": round(t_match, 2), "sfm_s": round(t_sfm, 2),
-        }
-        if truth is not None:
-            keys = [Path(n).stem for n in model.image_names]
-            err = pose_errors(model.R_cw, model.t_cw, np.stack([truth[k][0] for k in keys]),
-                              np.stack([truth[k][1] for k in keys]))
-            result.update(rot_mean_deg=float(err.rotation_deg.mean()), rot_max_deg=float(err.rotation_deg.max()),
-                          centre_mean_m=float(err.center.mean()), centre_max_m=float(err.center.max()))
-    print(f"registered {result['registered']}/{result['photos']}, {result['points']} points, "
-          f"mean reprojection error {result['reprojection_px']:.3f} px; match {result['match_s']:.1f} s, sfm {result['sfm_s']:.1f} s")
-    if "rot_mean_deg" in result:
-        print(f"after alignment: rotation error mean {result['rot_mean_deg']:.3f} deg, max {result['rot_max_deg']:.3f} deg; "
-              f"centre error mean {100 * result['centre_mean_m']:.1f} cm, max {100 * result['centre_max_m']:.1f} cm "
-              f"(cameras 9.5-13.5 m from the building)")
+        runs["COLMAP"] = run_colmap(ps["photos"], ps["calibration"], tmp / "c", seed)
+        runs["kit"] = run_kit(ps["photos"], ps["calibration"], tmp / "k")
+        if ps["calibration"] is None:  # the reference for a run without K: the same photos with the true K
+            true_k = tmp / "true_K.txt"
+            np.savetxt(true_k, ps["K"])
+            runs["kit, true K"] = run_kit(ps["photos"], true_k, tmp / "kt")
+    truth = ps["R"] is not None
+    if truth:
+        R_ref, t_ref = ps["R"], ps["t"]
+    else:
+        c = runs["COLMAP"]["poses"]
+        R_ref = np.stack([c[n][0] if n in c else np.full((3, 3), np.nan) for n in names])
+        t_ref = np.stack([c[n][1] if n in c else np.full(3, np.nan) for n in names])
+    rows = []
+    for label, run in runs.items():
+        row = {"set": name, "run": label, "images": len(names), **score(run, names, R_ref, t_ref),
+               "vs": "truth" if truth else "COLMAP", "focal_px": run.get("focal"), "k1": run.get("k1"),
+               "true_focal_px": None if ps["K"] is None else float(ps["K"][0, 0])}
+        if not truth and label == "COLMAP":
+            row.pop("rot_mean_deg", None), row.pop("rot_max_deg", None)
+        for k in ("match_s", "sfm_s", "note"):
+            if k in run:
+                row[k] = run[k]
+        rows.append(row)
+    col = rows[0]["seconds"]
+    for r in rows:
+        r["time_vs_colmap"] = r["seconds"] / col
+    return rows
+
+
+def print_rows(rows: list[dict]) -> None:
+    print(f"{'set':<15}{'run':<13}{'registered':>11}{'models':>12}{'points':>8}{'rot mean':>10}{'rot max':>9}{'vs':>7}"
+          f"{'focal':>9}{'seconds':>9}{'x COLMAP':>9}  match + sfm", flush=True)
+    for r in rows:
+        rot = f"{r['rot_mean_deg']:.3f}" if "rot_mean_deg" in r else "-"
+        rmax = f"{r['rot_max_deg']:.3f}" if "rot_max_deg" in r else "-"
+        models = "+".join(map(str, r["models"])) or "-"
+        focal = f"{r['focal_px']:.1f}" if r.get("focal_px") else "-"
+        split = f"{r['match_s']:.1f} + {r['sfm_s']:.1f}" if "match_s" in r else ""
+        print(f"{r['set']:<15}{r['run']:<13}{r['registered']:>5}/{r['images']:<5}{models:>12}{r['points']:>8}{rot:>10}{rmax:>9}"
+              f"{r['vs']:>7}{focal:>9}{r['seconds']:>9.1f}{r['time_vs_colmap']:>9.2f}  {split}"
+              + (f"  ({r['note']})" if r.get("note") else ""), flush=True)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--sets", nargs="*", default=["ring-16", "ring-48", "ring-100", "poor-ring-24", "exif5-ring-24",
+                                                  "phone-ring-16", "wpi", "upenn"], help="photo sets (see the module docstring)")
+    ap.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help=f"where rendered sets are kept (default {DEFAULT_CACHE})")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    ap.add_argument("--colmap-worker", nargs=3, metavar=("PHOTOS", "WORKDIR", "OUT_JSON"), help=argparse.SUPPRESS)
+    ap.add_argument("--K", type=Path, default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.colmap_worker:
+        photos, work, out = (Path(v) for v in args.colmap_worker)
+        colmap_worker(photos, work, out, args.K, args.seed)
+        return 0
+    rows = []
+    for name in args.sets:
+        new = compare(name, args.cache, args.seed)
+        print_rows(new)
+        rows += new
     if args.json:
-        args.json.write_text(json.dumps(result, indent=1))
+        args.json.write_text(json.dumps(rows, indent=1))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -20,7 +20,8 @@ import glob
 import os
 import sys
 
-__all__ = ["blas_thread_controls", "single_threaded_blas", "set_blas_threads", "set_torch_threads", "cores_in_use"]
+__all__ = ["blas_thread_controls", "single_threaded_blas", "set_blas_threads", "set_torch_threads", "cores_in_use", "worker_count",
+           "thread_map"]
 
 _BLAS_HANDLES: list | None = None
 _SYMBOLS = [(f"{p}_get_num_threads{s}", f"{p}_set_num_threads{s}")
@@ -147,3 +148,48 @@ def cores_in_use(interval: float = 0.2) -> float:
         except OSError:
             return 0.0
     return (os.cpu_count() or 1) * (b1 - b0) / max(t1 - t0, 1)
+
+
+def worker_count(workers: int = 0) -> int:
+    """Threads to use: ``workers`` if positive, else one per core (``os.cpu_count()``)."""
+    return int(workers) if workers and int(workers) > 0 else (os.cpu_count() or 1)
+
+
+def thread_map(fn, items, workers: int = 0, progress: bool = False, desc: str = "", unit: str = "it") -> list:
+    """``[fn(x) for x in items]`` on a pool of threads, in order, with an optional ``tqdm.auto`` bar.
+
+    For work that releases the GIL (OpenCV, BLAS, large numpy operations). BLAS is held to one
+    thread meanwhile (:func:`single_threaded_blas`), so the pool's threads do not fight over cores
+    with BLAS's own.
+
+    Args:
+        fn: the function of one item. items: a sequence. workers: threads (0: one per core).
+        progress: show a progress bar. desc, unit: its label and unit.
+
+    Returns:
+        The results, in the order of ``items``.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    items = list(items)
+    n = min(worker_count(workers), max(len(items), 1))
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(items), desc=desc, unit=unit, mininterval=1.0, leave=False)
+
+    def one(x):
+        out = fn(x)
+        if bar is not None:
+            bar.update(1)
+        return out
+
+    try:
+        if n <= 1:
+            return [one(x) for x in items]
+        with single_threaded_blas(), ThreadPoolExecutor(n) as pool:
+            return list(pool.map(one, items))
+    finally:
+        if bar is not None:
+            bar.close()

@@ -3,8 +3,9 @@
 A COLMAP text model is a folder with three files (https://colmap.github.io/format.html):
 
 ``cameras.txt``
-    ``CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]``; the kit writes one ``PINHOLE`` camera
-    (``fx fy cx cy``) shared by all images.
+    ``CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]``; the kit writes one camera shared by all images:
+    ``PINHOLE`` (``fx fy cx cy``) where K came from a calibration file, ``SIMPLE_RADIAL``
+    (``f cx cy k1``, :mod:`course_lib.data.camera`) where sfm refined it.
 ``images.txt``
     two lines per registered image: ``IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME``, then
     ``POINTS2D[]`` as ``(X, Y, POINT3D_ID)`` triples (``-1`` for a 2-D point without a 3-D point).
@@ -33,6 +34,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from course_lib.data.camera import distort_pixels
 from course_lib.validate import KitInputError, existing_path, intrinsics, rotation
 
 __all__ = ["ColmapModel", "read_colmap_text", "write_colmap_text"]
@@ -53,7 +55,10 @@ class ColmapModel:
         R_cw: ``(M, 3, 3)``. t_cw: ``(M, 3)``.
         point_ids: ``(P,)`` COLMAP ids of the 3-D points.
         X: ``(P, 3)``. rgb: ``(P, 3)`` uint8. error: ``(P,)`` mean reprojection error (pixels).
-        uv: ``(P, M, 2)`` the track of each point in the kit's pixel convention, NaN where unseen.
+        uv: ``(P, M, 2)`` the track of each point in the kit's pixel convention, NaN where unseen
+            (the photos' own pixels: distorted, for a ``SIMPLE_RADIAL`` camera).
+        camera_model: ``"PINHOLE"``, ``"SIMPLE_PINHOLE"`` or ``"SIMPLE_RADIAL"``.
+        k1: the radial term of ``SIMPLE_RADIAL`` (0 otherwise; ``K`` is its pinhole part).
     """
 
     K: np.ndarray
@@ -67,6 +72,8 @@ class ColmapModel:
     rgb: np.ndarray
     error: np.ndarray
     uv: np.ndarray
+    camera_model: str = "PINHOLE"
+    k1: float = 0.0
 
 
 def _num(v) -> str:
@@ -105,6 +112,8 @@ def write_colmap_text(
     X: np.ndarray,
     rgb: np.ndarray,
     observations: np.ndarray,
+    camera_model: str = "PINHOLE",
+    k1: float = 0.0,
 ) -> Path:
     """Write a reconstruction as a COLMAP text model (``cameras.txt``, ``images.txt``, ``points3D.txt``).
 
@@ -120,7 +129,11 @@ def write_colmap_text(
         rgb: ``(T, 3)`` uint8 colours.
         observations: ``(T, M, 2)`` pixels of the observations to write (the inliers), NaN elsewhere.
             Observations of points that were not triangulated are written as 2-D points with
-            ``POINT3D_ID = -1``; observations in unregistered images are dropped.
+            ``POINT3D_ID = -1``; observations in unregistered images are dropped. For
+            ``SIMPLE_RADIAL`` these are the undistorted pixels (the pinhole ``K``'s); the file gets
+            the photos' own (distorted) ones.
+        camera_model: ``"PINHOLE"`` or ``"SIMPLE_RADIAL"`` (then ``K[0, 0]`` is the focal length).
+        k1: the radial term of ``SIMPLE_RADIAL``.
 
     Returns:
         The folder.
@@ -137,10 +150,13 @@ def write_colmap_text(
     point_id = np.full(len(X), -1, dtype=np.int64)
     point_id[has_X] = np.arange(1, int(has_X.sum()) + 1)
 
+    if camera_model not in ("PINHOLE", "SIMPLE_RADIAL"):
+        raise KitInputError(f"camera_model={camera_model!r}: the kit writes PINHOLE or SIMPLE_RADIAL")
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    _write_cameras(folder / "cameras.txt", K, W, H)
-    point2d_idx = _write_images(folder / "images.txt", names, R_cw, t_cw, registered, uv, seen, point_id)
+    _write_cameras(folder / "cameras.txt", K, W, H, camera_model, k1)
+    uv_file = distort_pixels(uv, K, k1) if camera_model == "SIMPLE_RADIAL" else uv
+    point2d_idx = _write_images(folder / "images.txt", names, R_cw, t_cw, registered, uv_file, seen, point_id)
     R_safe = np.where(registered[:, None, None], R_cw, np.eye(3))
     t_safe = np.where(registered[:, None], t_cw, 0.0)
     in_track = seen & has_X[:, None]
@@ -181,13 +197,14 @@ def _checked_points(M: int, X, rgb, observations):
     return X, np.clip(np.round(rgb.astype(float)), 0, 255).astype(np.uint8), uv
 
 
-def _write_cameras(path: Path, K: np.ndarray, W: int, H: int) -> None:
+def _write_cameras(path: Path, K: np.ndarray, W: int, H: int, model: str, k1: float) -> None:
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2] + PIXEL_OFFSET, K[1, 2] + PIXEL_OFFSET
+    params = (fx, fy, cx, cy) if model == "PINHOLE" else (fx, cx, cy, k1)
     with open(path, "w") as f:
         f.write("# Camera list with one line of data per camera:\n")
         f.write("#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n")
         f.write("# Number of cameras: 1\n")
-        f.write(f"1 PINHOLE {W} {H} {_num(fx)} {_num(fy)} {_num(cx)} {_num(cy)}\n")
+        f.write(f"1 {model} {W} {H} {' '.join(_num(v) for v in params)}\n")
 
 
 def _write_images(path: Path, names, R_cw, t_cw, registered, uv, seen, point_id) -> np.ndarray:
@@ -236,7 +253,7 @@ def _data_lines(path: Path) -> list[str]:
 
 
 def read_colmap_text(folder) -> ColmapModel:
-    """Read a COLMAP text model with one ``PINHOLE`` or ``SIMPLE_PINHOLE`` camera.
+    """Read a COLMAP text model with one ``PINHOLE``, ``SIMPLE_PINHOLE`` or ``SIMPLE_RADIAL`` camera.
 
     Args:
         folder: folder with ``cameras.txt``, ``images.txt`` and ``points3D.txt``.
@@ -261,13 +278,18 @@ def read_colmap_text(folder) -> ColmapModel:
         model, W, H, params = c[1], int(c[2]), int(c[3]), [float(v) for v in c[4:]]
     except (IndexError, ValueError):
         raise KitInputError(f"{folder / 'cameras.txt'}: malformed camera line {' '.join(c)!r}") from None
+    k1 = 0.0
     if model == "PINHOLE" and len(params) == 4:
         fx, fy, cx, cy = params
     elif model == "SIMPLE_PINHOLE" and len(params) == 3:
         fx, cx, cy = params
         fy = fx
+    elif model == "SIMPLE_RADIAL" and len(params) == 4:
+        fx, cx, cy, k1 = params
+        fy = fx
     else:
-        raise KitInputError(f"camera model {model} with {len(params)} parameters: the kit reads PINHOLE and SIMPLE_PINHOLE only")
+        raise KitInputError(f"camera model {model} with {len(params)} parameters: the kit reads PINHOLE, SIMPLE_PINHOLE and "
+                            "SIMPLE_RADIAL only (re-run COLMAP's mapper with one of them, or undistort the images first)")
     K = np.array([[fx, 0.0, cx - PIXEL_OFFSET], [0.0, fy, cy - PIXEL_OFFSET], [0.0, 0.0, 1.0]])
 
     lines = _data_lines(folder / "images.txt")
@@ -323,4 +345,4 @@ def read_colmap_text(folder) -> ColmapModel:
             if m is None or idx >= len(points2d[m]):
                 raise KitInputError(f"{folder / 'points3D.txt'}: point {point_ids[p]} refers to a missing image {iid} or 2-D point {idx}")
             uv[p, m] = points2d[m][idx, :2] - PIXEL_OFFSET
-    return ColmapModel(K, (W, H), names, image_ids, R_cw, t_cw, point_ids, X, rgb, error, uv)
+    return ColmapModel(K, (W, H), names, image_ids, R_cw, t_cw, point_ids, X, rgb, error, uv, model, k1)

@@ -1,4 +1,4 @@
-"""Features of photos: SIFT detection, matching across all pairs, geometric verification, tracks.
+"""Features of photos: SIFT detection, descriptor matching, tracks.
 
 What turns photos into correspondences (the P3 matches the SfM lessons read), in one place: the
 embedded scene is made with it (:mod:`course_lib.data.building`) and so are students' own photos
@@ -7,12 +7,12 @@ embedded scene is made with it (:mod:`course_lib.data.building`) and so are stud
 1. :func:`detect_features`: OpenCV SIFT per image, keypoints sorted by position (so the result
    does not depend on OpenCV's threading), the +0.25 px offset of OpenCV's keypoints corrected
    (:data:`SIFT_OFFSET`); optionally RootSIFT descriptors (:func:`root_sift`).
-2. :func:`match_descriptors`: Lowe's ratio test and mutual nearest neighbours for one pair;
-   :func:`detect_and_match` runs both over all pairs.
-3. :func:`keep_geometric_inliers`: per pair, only the matches that fit one fundamental matrix
-   (OpenCV's RANSAC: this module ships in the student kit, the kit's RANSAC is an exercise), and
-   only pairs with enough of them.
-4. :func:`tracks_from_images`: the matches joined into tracks
+2. :func:`match_descriptors`: Lowe's ratio test and mutual nearest neighbours for one pair, both
+   directions from one matrix of distances (one BLAS product); :func:`match_pairs` runs it over a
+   list of pairs on several threads (:mod:`course_lib.data.pairing` says which pairs), and
+   :func:`detect_and_match` over all pairs. (The geometric verification of the matches is
+   :mod:`course_lib.data.two_view`.)
+3. :func:`tracks_from_images`: the matches joined into tracks
    (:func:`course_lib.data.p3.tracks_from_pairs`) with each track's colour.
 
 Points are rows ``(u, v)`` in pixels, origin at the centre of the top-left pixel
@@ -27,11 +27,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from course_lib import validate
+from course_lib.threads import thread_map
 from course_lib.validate import KitInputError
 
-__all__ = ["SIFT_OFFSET", "RATIO", "Features", "detect_features", "root_sift", "match_descriptors",
-           "check_ratio", "detect_and_match", "keep_geometric_inliers", "track_colours", "tracks_from_images"]
+__all__ = ["SIFT_OFFSET", "RATIO", "Features", "detect_features", "root_sift", "augmented_descriptors",
+           "match_descriptors", "match_pairs", "check_ratio", "detect_and_match", "track_colours", "tracks_from_images"]
 
 #: OpenCV SIFT's keypoint offset from the kit's pixel convention (subtracted; see :func:`detect_features`).
 SIFT_OFFSET = 0.25
@@ -54,6 +54,12 @@ class Features:
     def __len__(self) -> int:
         return int(len(self.xy))
 
+    def augmented(self) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`augmented_descriptors` of these features (computed once)."""
+        if getattr(self, "_aug", None) is None:
+            self._aug = augmented_descriptors(self.descriptors)
+        return self._aug
+
 
 def root_sift(descriptors: np.ndarray) -> np.ndarray:
     """RootSIFT (Arandjelović and Zisserman 2012): L1-normalize, then take the square root.
@@ -73,7 +79,7 @@ def root_sift(descriptors: np.ndarray) -> np.ndarray:
 
 
 def detect_features(images: list[np.ndarray], max_features: int = 0, rootsift: bool = False,
-                    contrast_threshold: float = 0.04) -> list[Features]:
+                    contrast_threshold: float = 0.04, workers: int = 1, progress: bool = False) -> list[Features]:
     """SIFT features of every image (OpenCV), sorted by position.
 
     Args:
@@ -83,15 +89,16 @@ def detect_features(images: list[np.ndarray], max_features: int = 0, rootsift: b
         contrast_threshold: OpenCV's ``contrastThreshold`` (its default 0.04 keeps extrema of
             contrast >= 0.04 / 3 on a [0, 1] image; COLMAP's ``peak_threshold`` 0.02 / 3 is the
             same rule at 0.02: more features on weak texture).
+        workers: images detected at once (threads; 0: one per core). The result does not depend on it.
+        progress: show a progress bar.
 
     Returns:
         M :class:`Features`.
     """
     import cv2
 
-    sift = cv2.SIFT_create(nfeatures=int(max_features), contrastThreshold=float(contrast_threshold))
-    out = []
-    for img in images:
+    def one(img):
+        sift = cv2.SIFT_create(nfeatures=int(max_features), contrastThreshold=float(contrast_threshold))
         gray = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
         kps, des = sift.detectAndCompute(gray, None)
         # OpenCV's SIFT reports points 0.25 px right of and below the kit's pixel-centre convention
@@ -102,11 +109,34 @@ def detect_features(images: list[np.ndarray], max_features: int = 0, rootsift: b
         key = np.array([(k.pt[1], k.pt[0], k.size, k.angle, k.response) for k in kps]).reshape(-1, 5)
         order = np.lexsort(key.T[::-1])
         des = np.zeros((0, 128), np.float32) if des is None else des[order]
-        out.append(Features(pts[order], np.ascontiguousarray(root_sift(des) if rootsift else des)))
-    return out
+        return Features(pts[order], np.ascontiguousarray(root_sift(des) if rootsift else des))
+
+    return thread_map(one, images, workers, progress, "SIFT", "image")
 
 
-def match_descriptors(f1: Features, f2: Features, ratio: float = RATIO, matcher=None) -> np.ndarray:
+def augmented_descriptors(descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two ``(F, D + 2)`` float32 forms of descriptors whose product is the squared distance.
+
+    With ``a' = [a, |a|^2, 1]`` and ``b' = [-2 b, 1, |b|^2]``, ``a' . b' = |a - b|^2``: one matrix
+    product (BLAS) gives every squared distance of a pair, no second pass to add the norms.
+
+    Args:
+        descriptors: ``(F, D)`` descriptors.
+
+    Returns:
+        ``(as_query (F, D + 2), as_index (F, D + 2))``.
+    """
+    d = np.asarray(descriptors, np.float32).reshape(len(descriptors), -1)
+    n = np.einsum("ij,ij->i", d, d, dtype=np.float64).astype(np.float32)[:, None]
+    one = np.ones_like(n)
+    return np.hstack([d, n, one]), np.hstack([-2.0 * d, one, n])
+
+
+#: Entries of the distance matrix computed at once (rows are split beyond it: 64 MB of float32).
+_CHUNK_ENTRIES = 1 << 24
+
+
+def match_descriptors(f1: Features, f2: Features, ratio: float = RATIO, allowed=None) -> np.ndarray:
     """Matches of one pair: Lowe's ratio test, kept only where they are mutual nearest neighbours.
 
     A feature of image 1 is matched to its nearest neighbour in image 2 if that is closer than
@@ -114,30 +144,53 @@ def match_descriptors(f1: Features, f2: Features, ratio: float = RATIO, matcher=
     neighbour in image 1 (or a feature at the same pixel: SIFT gives several orientations per
     keypoint).
 
+    Both directions come from ONE matrix of squared distances, one BLAS product of the
+    :func:`augmented_descriptors` (row by row in chunks for large images): the row minima give the
+    forward nearest and second nearest neighbours, the column minima the backward ones. The
+    distances of the two neighbours are recomputed exactly for the ratio test.
+
     Args:
         f1, f2: the features of the two images.
         ratio: Lowe's ratio in (0, 1].
-        matcher: an OpenCV ``BFMatcher(NORM_L2)`` to reuse (made if None).
+        allowed: optional constraint (guided matching, :func:`course_lib.data.two_view.guided_matches`):
+            ``allowed(rows: slice) -> (rows, len(f2)) bool``, the candidates each feature of image 1
+            in ``rows`` may be matched to; the neighbours of both directions are taken among them
+            (where a feature has one candidate only, the ratio test passes).
 
     Returns:
-        ``(N, 2)`` int indices ``(feature in image 1, feature in image 2)``.
+        ``(N, 2)`` int indices ``(feature in image 1, feature in image 2)``, sorted by the first.
     """
-    import cv2
-
-    if len(f1) < 2 or len(f2) < 2:
+    n1, n2 = len(f1), len(f2)
+    if n1 < 2 or n2 < 2:
         return np.zeros((0, 2), int)
-    bf = cv2.BFMatcher(cv2.NORM_L2) if matcher is None else matcher
-    fwd = bf.knnMatch(f1.descriptors, f2.descriptors, k=2)
-    back = np.full(len(f2), -1)
-    for m in bf.match(f2.descriptors, f1.descriptors):
-        back[m.queryIdx] = m.trainIdx
-    sel = []
-    for m in fwd:
-        if len(m) == 2 and m[0].distance < ratio * m[1].distance:
-            q, t = m[0].queryIdx, m[0].trainIdx
-            if back[t] == q or np.array_equal(f1.xy[back[t]], f1.xy[q]):
-                sel.append((q, t))
-    return np.array(sel, int).reshape(-1, 2)
+    q_aug, _ = f1.augmented()
+    _, t_aug = f2.augmented()
+    best = np.empty((n1, 2), np.int64)
+    dd = np.empty((n1, 2), np.float32)  # squared distances of the two neighbours, as the product gave them
+    col_min = np.full(n2, np.inf, np.float32)
+    step = max(1, _CHUNK_ENTRIES // n2)
+    for s in range(0, n1, step):
+        D = q_aug[s:s + step] @ t_aug.T  # (rows, n2) squared distances
+        if allowed is not None:
+            D[~allowed(slice(s, s + len(D)))] = np.inf
+        rows = np.arange(len(D))
+        np.minimum(col_min, D.min(axis=0), out=col_min)
+        j0 = D.argmin(axis=1)
+        d0 = D[rows, j0]
+        D[rows, j0] = np.inf
+        j1 = D.argmin(axis=1)
+        best[s:s + len(D)] = np.stack([j0, j1], axis=1)
+        dd[s:s + len(D)] = np.stack([d0, D[rows, j1]], axis=1)
+    dist = np.sqrt(((f1.descriptors[:, None, :] - f2.descriptors[best]).astype(np.float64) ** 2).sum(axis=2))  # exact
+    dist[~np.isfinite(dd)] = np.inf  # no such neighbour (guided matching)
+    q = np.flatnonzero(np.isfinite(dist[:, 0]) & (dist[:, 0] < ratio * dist[:, 1]))
+    t = best[q, 0]
+    mutual = dd[q, 0] <= col_min[t]  # the same entries of the same product: no rounding between them
+    if not mutual.all():  # a feature at the same pixel as q may be t's nearest (another orientation)
+        tf = t[~mutual]
+        back = (q_aug @ t_aug[tf].T).argmin(axis=0)
+        mutual[~mutual] = np.all(f1.xy[back] == f1.xy[q[~mutual]], axis=1)
+    return np.stack([q[mutual], t[mutual]], axis=1)
 
 
 def check_ratio(ratio) -> float:
@@ -151,70 +204,45 @@ def check_ratio(ratio) -> float:
     return r
 
 
+def match_pairs(feats: list[Features], pairs, ratio: float = RATIO, workers: int = 0,
+                progress: bool = False) -> dict:
+    """:func:`match_descriptors` for the given image pairs, several pairs at once (threads).
+
+    Args:
+        feats: M :class:`Features`.
+        pairs: ``[(i, j), ...]`` image pairs (0-based, ``i != j``).
+        ratio: Lowe's ratio.
+        workers: pairs matched at once (0: one per core); the result does not depend on it.
+        progress: show a progress bar.
+
+    Returns:
+        ``{(i, j): (N, 2) int feature indices}`` for the pairs with at least one match.
+    """
+    check_ratio(ratio)
+    pairs = [(int(i), int(j)) for i, j in pairs]
+    found = thread_map(lambda ij: match_descriptors(feats[ij[0]], feats[ij[1]], ratio), pairs, workers, progress,
+                       "match", "pair")
+    return {ij: m for ij, m in zip(pairs, found) if len(m)}
+
+
 def detect_and_match(images: list[np.ndarray], ratio: float = RATIO, max_features: int = 0,
-                     rootsift: bool = False, contrast_threshold: float = 0.04) -> dict:
+                     rootsift: bool = False, contrast_threshold: float = 0.04, workers: int = 1) -> dict:
     """SIFT features of every image, matched across all pairs (ratio test + mutual nearest neighbour).
 
     Args:
         images: M ``(H, W, 3)`` uint8 RGB images.
         ratio: Lowe's ratio (the best match must be closer than ``ratio`` times the second best).
         max_features, rootsift, contrast_threshold: see :func:`detect_features`.
+        workers: threads (0: one per core); the result does not depend on it.
 
     Returns:
         ``{(i, j): (x1 (N, 2), x2 (N, 2))}`` for every pair ``i < j`` with matches (float64 pixels).
     """
-    import cv2
-
     check_ratio(ratio)
-    feats = detect_features(images, max_features, rootsift, contrast_threshold)
-    bf = cv2.BFMatcher(cv2.NORM_L2)
-    pairs = {}
-    for i in range(len(feats)):
-        for j in range(i + 1, len(feats)):
-            m = match_descriptors(feats[i], feats[j], ratio, bf)
-            if len(m):
-                pairs[(i, j)] = (feats[i].xy[m[:, 0]], feats[j].xy[m[:, 1]])
-    return pairs
-
-
-def keep_geometric_inliers(pairs: dict, rng: np.random.Generator, threshold_px: float = 2.0,
-                           min_matches: int = 15) -> tuple[dict, dict]:
-    """Keep the matches of each pair that fit one fundamental matrix; drop pairs with too few.
-
-    This is plumbing, not the lesson (the lesson's RANSAC is notebook 01's ``ransac_fundamental``,
-    which the SfM pipeline runs again on the written matches: the student's own in the student kit,
-    :func:`course_lib.sfm.fundamental.ransac` in the instructor's kit): OpenCV's ``findFundamentalMat(FM_RANSAC)``
-    (C++, fast on the hundreds of mostly empty pairs of a 40-view capture). ``cv2.setRNGSeed``
-    with a seed drawn from ``rng`` makes it repeatable.
-
-    Args:
-        pairs: ``{(i, j): (x1 (N, 2), x2 (N, 2))}`` (:func:`detect_and_match`).
-        rng: seeded generator.
-        threshold_px: distance to the epipolar line, pixels.
-        min_matches: pairs with fewer inliers (or fewer matches) are dropped.
-
-    Returns:
-        ``(kept pairs, {(i, j): number of inliers})`` (the counts include dropped pairs).
-    """
-    import cv2
-
-    validate.generator(rng)
-    threshold_px = validate.positive(threshold_px, "threshold_px", "a positive number of pixels")
-    out, counts = {}, {}
-    for key in sorted(pairs):
-        x1, x2 = (np.ascontiguousarray(np.asarray(x, float).reshape(-1, 2)) for x in pairs[key])
-        counts[key] = 0
-        if len(x1) < max(8, min_matches):
-            continue
-        cv2.setRNGSeed(int(rng.integers(2**31 - 1)))
-        F, mask = cv2.findFundamentalMat(x1, x2, cv2.FM_RANSAC, threshold_px, 0.999, 2000)
-        if mask is None or F is None or F.shape != (3, 3):
-            continue
-        inl = mask.ravel().astype(bool)
-        counts[key] = int(inl.sum())
-        if counts[key] >= min_matches:
-            out[key] = (x1[inl], x2[inl])
-    return out, counts
+    feats = detect_features(images, max_features, rootsift, contrast_threshold, workers)
+    M = len(feats)
+    found = match_pairs(feats, [(i, j) for i in range(M) for j in range(i + 1, M)], ratio, workers)
+    return {(i, j): (feats[i].xy[m[:, 0]], feats[j].xy[m[:, 1]]) for (i, j), m in found.items()}
 
 
 def track_colours(track_uv: np.ndarray, images: list[np.ndarray]) -> np.ndarray:

@@ -1,38 +1,52 @@
-"""``python -m course_lib match IMAGES_DIR --K calibration.txt --out P3_DIR``: your own photos -> P3 matches.
+"""``python -m course_lib match IMAGES_DIR [--K calibration.txt] --out P3_DIR``: your own photos -> P3 matches.
 
-Turns any set of photos taken with one camera of known intrinsics K into the P3 folder that the
-SfM lessons read (:mod:`course_lib.data.p3`), so a student's own photos become course data:
+Turns any set of photos taken with one camera into the P3 folder that the SfM lessons read
+(:mod:`course_lib.data.p3`), so a student's own photos become course data:
 
 1. **Which images.** If ``IMAGES_DIR`` holds images named like the P3 convention (``1.png``,
    ``2.jpg``, ... numbered from 1 without gaps) *only those* are read, in numeric order, and
    every other file beside them is ignored (the course folders hold ``matching*.txt`` and other
    files too). Otherwise *all* image files (``.png .jpg .jpeg .bmp .tif .tiff``, any case) are
    read in natural name order (``IMG_2.jpg`` before ``IMG_10.jpg``). Either way the output names
-   them ``1.png ... M.png`` and ``match_report.json`` maps them back to the source files.
+   them ``1.png ... M.png`` (or ``.jpg``) and ``match_report.json`` maps them back to the source files.
 2. **Same size.** All images must have the same size (one camera, one K).
-3. **Optional downscaling** by a factor ``F >= 1`` (``cv2.INTER_AREA``). K follows with the kit's
+3. **The camera.** ``--K`` gives K (held fixed by ``sfm``). Without it, K comes from the photos'
+   EXIF (focal length and sensor size, or the 35 mm equivalent) or COLMAP's guess (1.2 x the
+   longer side), and ``sfm`` refines the focal length and one radial term (:mod:`course_lib.data.camera`;
+   ``camera.json`` in the P3 folder says which).
+4. **Optional downscaling** by a factor ``F >= 1`` (``cv2.INTER_AREA``). K follows with the kit's
    pixel convention (centre of the top-left pixel at (0, 0)): for an image resized from W to
    W' = round(W / F) pixels, ``s = W' / W`` and ``u' = s (u + 0.5) - 0.5``, so
    ``fx' = s fx`` and ``cx' = s (cx + 0.5) - 0.5`` (likewise ``fy, cy`` with H' / H).
-4. **SIFT + ratio test across all pairs**, with
-   :func:`course_lib.data.features.detect_and_match` (OpenCV SIFT, Lowe's ratio, mutual nearest
-   neighbour, the +0.25 px SIFT offset corrected) -- the same code that made the embedded scene,
-   here with COLMAP's SIFT settings (:data:`CONTRAST_THRESHOLD`, RootSIFT, at most 8192 features).
-5. **Geometric verification** of every pair (new here): a fundamental matrix is fitted by
-   RANSAC (OpenCV's, seeded, threshold ``--verify-px``, default :data:`VERIFY_PX` = 4 px as COLMAP's; see
-   :func:`course_lib.data.features.keep_geometric_inliers`) and only its
-   inliers are kept; pairs with fewer than
-   ``--min-pair-matches`` inliers are dropped. Without it, one wrong match between two
+5. **SIFT** (:func:`course_lib.data.features.detect_features`, OpenCV, the +0.25 px SIFT offset
+   corrected) with COLMAP's settings (:data:`CONTRAST_THRESHOLD`, RootSIFT, at most 8192 features),
+   several photos at once.
+6. **Which pairs** (``--pairs``, :mod:`course_lib.data.pairing`): every pair up to 150 photos,
+   above that each photo with the 30 that look most alike (image retrieval) and its 10 neighbours
+   in file order; ``sequential`` for a video or a walk photographed in order.
+7. **Matching** (:func:`course_lib.data.features.match_pairs`): Lowe's ratio test and mutual
+   nearest neighbours, both from one matrix of descriptor distances per pair (BLAS), several pairs
+   at once -- the code that made the embedded scene.
+8. **Geometric verification** (:mod:`course_lib.data.two_view`): a fundamental matrix per pair by
+   RANSAC (OpenCV's USAC, seeded, threshold ``--verify-px``, default :data:`VERIFY_PX` = 4 px as
+   COLMAP's), only its inliers kept, pairs with fewer than ``--min-pair-matches`` inliers dropped;
+   the pairs of a photo with few verified matches are matched a second time, along their
+   epipolar lines (``--no-guided`` turns it off). Without verification, one wrong match between two
    otherwise separate features joins their tracks, and with many views the reader's
    inconsistency rule then drops thousands of good observations (40 views of the synthetic
-   building: 961 tracks and 10 227 dropped observations without it). ``--no-verify`` turns it off.
-6. **Tracks** are joined by :func:`course_lib.data.p3.tracks_from_pairs` (the rule of
-   :func:`~course_lib.data.p3.read_p3`) and written with :func:`~course_lib.data.p3.write_p3`
-   together with ``calibration.txt`` (the possibly scaled K) and the images as PNG.
+   building: 961 tracks and 10 227 dropped observations without it). The verified pairs' F go
+   into ``two_view_geometries.json``, which ``sfm`` uses instead of a RANSAC of its own.
+   Identical or near-identical photos (no baseline) are named. ``--no-verify`` turns it off.
+9. **Tracks** are joined by :func:`course_lib.data.tracks.join_tracks` (the most trusted matches
+   first; a link that would put two features of one photo into one track is refused, so a wrong
+   match splits a track instead of losing it: on a 48-view ring the reader's rule would have
+   dropped 5 810 of 26 061 observations) and written with :func:`~course_lib.data.p3.write_p3`
+   together with ``calibration.txt`` (the possibly scaled K). Photos that need no change are
+   copied (PNG or JPEG without an EXIF rotation), the others written as PNG (fast compression).
 
 Bad input (a missing folder, fewer than 2 images, an unreadable image, images of different
-sizes, a missing or malformed K) raises :class:`~course_lib.validate.KitInputError`, which the
-command line turns into a one-line message.
+sizes, a malformed K, EXIF focal lengths that differ) raises
+:class:`~course_lib.validate.KitInputError`, which the command line turns into a one-line message.
 
 Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
 """
@@ -42,16 +56,24 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from course_lib.data.camera import CameraPrior, camera_prior, write_camera
+from course_lib.data.features import check_ratio, detect_features, match_pairs, track_colours
+from course_lib.data.p3 import IMAGE_EXTENSIONS, read_calibration, write_p3
+from course_lib.data.pairing import PAIR_MODES, select_pairs
+from course_lib.data.tracks import join_tracks
+from course_lib.data.two_view import MIN_INLIERS, VERIFY_PX, epipolar_distances, verify_pairs, write_two_view_geometries
+from course_lib.threads import thread_map
 from course_lib.validate import KitInputError, intrinsics, output_dir
 
-__all__ = ["IMAGE_SUFFIXES", "MatchResult", "list_images", "load_images", "scale_intrinsics", "downscale_images",
-           "match_images", "match_folder", "add_arguments", "run"]
+__all__ = ["IMAGE_SUFFIXES", "VERIFY_PX", "MatchResult", "list_images", "load_images", "scale_intrinsics",
+           "downscale_images", "match_images", "match_folder", "add_arguments", "run"]
 
 #: SIFT settings of ``match``: COLMAP's defaults (``SiftExtractionOptions``). Its ``peak_threshold``
 #: 0.02 / 3 is OpenCV's ``contrastThreshold`` 0.02 (OpenCV's own default, 0.04, keeps half as many
@@ -61,13 +83,10 @@ __all__ = ["IMAGE_SUFFIXES", "MatchResult", "list_images", "load_images", "scale
 CONTRAST_THRESHOLD = 0.02
 ROOTSIFT = True
 MAX_FEATURES = 8192
-#: Threshold (pixels) of the geometric verification: COLMAP's ``TwoViewGeometryOptions.ransac.max_error``
-#: 4 px. At 2 px the F-RANSAC of the 1280x960 UPenn photos dropped good matches unevenly (7043 kept
-#: instead of 7912), and COLMAP's mapper on those matches ended 0.8-1.0 deg from COLMAP's own result
-#: (0.04 deg at 4 px, on two seeds); the kit's own sfm agrees better with COLMAP at 4 px on WPI
-#: (0.085 deg, 0.119 at 2 px) and UPenn (0.062, 0.067), and on the texture-poor ring it has
-#: 0.33 deg of rotation error at 4 px (0.44 at 2 px; COLMAP end to end 0.45).
-VERIFY_PX = 4.0
+#: The verification's threshold (pixels) is :data:`course_lib.data.two_view.VERIFY_PX`, COLMAP's
+#: ``TwoViewGeometryOptions.ransac.max_error`` 4 px. At 2 px the F-RANSAC of the 1280x960 UPenn
+#: photos dropped good matches unevenly (7043 kept instead of 7912), and COLMAP's mapper on those
+#: matches ended 0.8-1.0 deg from COLMAP's own result (0.04 deg at 4 px, on two seeds).
 
 #: File suffixes read as images (case-insensitive).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -125,12 +144,13 @@ def load_images(paths) -> list[np.ndarray]:
     """
     import cv2
 
-    images = []
-    for p in paths:
-        bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
+    def one(p):
+        bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)  # EXIF orientation applied
         if bgr is None:
             raise KitInputError(f"cannot read the image {p}: is it a valid image file (PNG, JPEG, ...)?")
-        images.append(np.ascontiguousarray(bgr[:, :, ::-1]))
+        return np.ascontiguousarray(bgr[:, :, ::-1])
+
+    images = thread_map(one, paths)
     sizes = [im.shape[:2] for im in images]
     for p, s in zip(paths, sizes):
         if s != sizes[0]:
@@ -184,9 +204,16 @@ class MatchResult:
     Attributes:
         track_uv: ``(T, M, 2)`` pixels, NaN where unseen.
         track_rgb: ``(T, 3)`` uint8 colour at the track's first observation.
-        raw_matches: ``{(i, j): N}`` SIFT matches per pair after the ratio test.
+        raw_matches: ``{(i, j): N}`` SIFT matches per pair after the ratio test (pairs with any).
         verified_matches: ``{(i, j): N}`` after geometric verification (equal to raw without it).
-        stats: track-building stats (inconsistent components, dropped observations).
+        stats: track-building stats of :func:`course_lib.data.tracks.join_tracks` (matches used,
+            links refused, tracks).
+        geometries: ``{(i, j): TwoViewGeometry}`` of the verification (empty without it).
+        pair_mode: how the pairs were chosen (:func:`course_lib.data.pairing.select_pairs`).
+        pairs_matched: how many pairs were matched.
+        identical: ``[(i, j), ...]`` pairs of identical or near-identical photos (no baseline).
+        guided: ``{(i, j): N}`` matches the guided second pass added.
+        seconds: per stage.
     """
 
     track_uv: np.ndarray
@@ -194,89 +221,175 @@ class MatchResult:
     raw_matches: dict
     verified_matches: dict
     stats: dict = field(default_factory=dict)
+    geometries: dict = field(default_factory=dict)
+    pair_mode: str = "exhaustive"
+    pairs_matched: int = 0
+    identical: list = field(default_factory=list)
+    guided: dict = field(default_factory=dict)
+    seconds: dict = field(default_factory=dict)
 
 
-def match_images(images: list[np.ndarray], ratio: float = 0.8, verify: bool = True, verify_px: float = VERIFY_PX,
-                 min_pair_matches: int = 15, rng: np.random.Generator | None = None, rootsift: bool = ROOTSIFT,
-                 max_features: int = MAX_FEATURES, contrast_threshold: float = CONTRAST_THRESHOLD) -> MatchResult:
-    """SIFT matches of all pairs (ratio test), optionally verified by an F-RANSAC, joined into tracks.
-
-    Args:
-        images: M >= 2 ``(H, W, 3)`` uint8 RGB images of one size.
-        ratio: Lowe's ratio in (0, 1].
-        verify: geometric verification of each pair (:func:`course_lib.data.features.keep_geometric_inliers`).
-        verify_px, min_pair_matches: its threshold and the fewest inliers a pair keeps.
-        rng: generator for RANSAC (default: seed 0).
-        rootsift, max_features, contrast_threshold: see :func:`course_lib.data.features.detect_features`.
-
-    Returns:
-        :class:`MatchResult`.
-
-    Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
-    """
-    from course_lib.data.features import check_ratio, detect_and_match, keep_geometric_inliers, track_colours
-    from course_lib.data.p3 import tracks_from_pairs
-
+def _check_images(images: list[np.ndarray]) -> None:
     if len(images) < 2:
         raise KitInputError(f"{len(images)} image(s): matching needs at least 2")
-    check_ratio(ratio)
     for k, im in enumerate(images):
         im = np.asarray(im)
         if im.dtype != np.uint8 or im.ndim != 3 or im.shape[2] != 3:
             raise KitInputError(f"image {k} has dtype {im.dtype} and shape {im.shape}: expected (H, W, 3) uint8 RGB")
         if im.shape != np.shape(images[0]):
             raise KitInputError(f"image {k} is {im.shape[1]}x{im.shape[0]} but image 0 is {images[0].shape[1]}x{images[0].shape[0]}: one size (one K) for all")
+
+
+def match_images(images: list[np.ndarray], ratio: float = 0.8, verify: bool = True, verify_px: float = VERIFY_PX,
+                 min_pair_matches: int = MIN_INLIERS, rng: np.random.Generator | None = None, rootsift: bool = ROOTSIFT,
+                 max_features: int = MAX_FEATURES, contrast_threshold: float = CONTRAST_THRESHOLD, pairs: str = "auto",
+                 guided: bool = True, workers: int = 0, progress: bool = False) -> MatchResult:
+    """SIFT features, matched over the chosen pairs (ratio test), verified by an F-RANSAC, joined into tracks.
+
+    Args:
+        images: M >= 2 ``(H, W, 3)`` uint8 RGB images of one size.
+        ratio: Lowe's ratio in (0, 1].
+        verify: geometric verification of each pair (:func:`course_lib.data.two_view.verify_pairs`).
+        verify_px, min_pair_matches: its threshold and the fewest inliers a pair keeps.
+        rng: generator for the vocabulary of ``pairs="retrieval"`` and for RANSAC (default: seed 0).
+        rootsift, max_features, contrast_threshold: see :func:`course_lib.data.features.detect_features`.
+        pairs: which pairs to match (:data:`course_lib.data.pairing.PAIR_MODES`).
+        guided: a second, guided matching pass for pairs with few inliers.
+        workers: threads (0: one per core); the result does not depend on it.
+        progress: progress bars for the long stages.
+
+    Returns:
+        :class:`MatchResult`.
+
+    Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
+    """
+    _check_images(images)
+    check_ratio(ratio)
     rng = np.random.default_rng(0) if rng is None else rng
-    pairs = detect_and_match(images, ratio, max_features, rootsift, contrast_threshold)
-    raw = {k: len(v[0]) for k, v in pairs.items()}
+    t0 = time.perf_counter()
+    feats = detect_features(images, max_features, rootsift, contrast_threshold, workers, progress)
+    t1 = time.perf_counter()
+    todo, mode = select_pairs(pairs, feats, rng)
+    found = match_pairs(feats, todo, ratio, workers, progress)
+    t2 = time.perf_counter()
+    raw = {k: len(v) for k, v in found.items()}
+    geoms, identical, added = {}, [], {}
     if verify:
-        pairs, ver = keep_geometric_inliers(pairs, rng, verify_px, min_pair_matches)
+        geoms = verify_pairs(feats, found, rng, verify_px, min_pair_matches, guided, workers, progress)
+        keep = {k: g.matches[g.inliers] for k, g in geoms.items() if g.F is not None}
+        ver = {k: g.n_inliers for k, g in geoms.items()}
+        identical = [k for k, g in geoms.items() if g.note == "identical"]
+        added = {k: g.guided for k, g in geoms.items() if g.guided}
     else:
-        ver = dict(raw)
-    M = len(images)
-    track_uv, _, tstats = tracks_from_pairs(M, pairs)
+        keep, ver = found, dict(raw)
+    t3 = time.perf_counter()
+    tracks = join_tracks(len(images), _edges(feats, keep, geoms))
+    track_uv, tstats = tracks.uv, tracks.stats
     track_rgb = track_colours(track_uv, images)
-    return MatchResult(track_uv, track_rgb, raw, ver, dict(tstats))
+    seconds = {"features": t1 - t0, "matching": t2 - t1, "verification": t3 - t2, "tracks": time.perf_counter() - t3}
+    return MatchResult(track_uv, track_rgb, raw, ver, dict(tstats), geoms, mode, len(todo), identical, added,
+                       {k: round(v, 3) for k, v in seconds.items()})
+
+
+def _edges(feats, keep: dict, geoms: dict) -> list:
+    """The matches of the kept pairs as edges for :func:`course_lib.data.tracks.join_tracks`, the most trusted first:
+    pairs with more matches first, within a pair the matches nearest the epipolar lines of its F."""
+    edges = []
+    for i, j in sorted(keep, key=lambda k: (-len(keep[k]), k)):
+        m = keep[(i, j)]
+        x1, x2 = feats[i].xy[m[:, 0]], feats[j].xy[m[:, 1]]
+        g = geoms.get((i, j))
+        if g is not None and g.F is not None:
+            order = np.argsort(epipolar_distances(g.F, x1, x2), kind="stable")
+            x1, x2 = x1[order], x2[order]
+        edges.append((i, j, x1, x2, None))
+    return edges
+
+
+def _copyable(path: Path) -> bool:
+    """Whether a photo can be copied into the P3 folder as it is: PNG or JPEG, no EXIF rotation (others are rewritten)."""
+    if path.suffix.lower() not in (".png", ".jpg", ".jpeg"):
+        return False
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return int(im.getexif().get(0x0112, 1) or 1) == 1  # Orientation: 1 = as stored
+    except (OSError, ValueError, SyntaxError):
+        return False
+
+
+def _write_photos(out: Path, paths: list[Path], images: list[np.ndarray], downscaled: bool) -> list[str]:
+    """The photos under P3 names in ``out``: copied where possible (:func:`_copyable`), else PNG; returns the names."""
+    import cv2
+
+    for old in out.iterdir():  # images of an earlier run would shadow these (1.png before 1.jpg)
+        if re.fullmatch(r"\d+", old.stem) and old.suffix.lower() in IMAGE_EXTENSIONS and old.is_file():
+            old.unlink()
+
+    def one(k):
+        src, img = paths[k], images[k]
+        if not downscaled and _copyable(src):
+            name = f"{k + 1}{'.png' if src.suffix.lower() == '.png' else '.jpg'}"
+            shutil.copyfile(src, out / name)
+        else:
+            name = f"{k + 1}.png"
+            if not cv2.imwrite(str(out / name), np.ascontiguousarray(img[:, :, ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+                raise KitInputError(f"could not write image {out / name}")
+        return name
+
+    return thread_map(one, range(len(paths)))
 
 
 def match_folder(images_dir, K, out, downscale: float = 1.0, ratio: float = 0.8, verify: bool = True,
-                 verify_px: float = VERIFY_PX, min_pair_matches: int = 15, seed: int = 0, rootsift: bool = ROOTSIFT,
-                 max_features: int = MAX_FEATURES, contrast_threshold: float = CONTRAST_THRESHOLD) -> dict:
+                 verify_px: float = VERIFY_PX, min_pair_matches: int = MIN_INLIERS, seed: int = 0, rootsift: bool = ROOTSIFT,
+                 max_features: int = MAX_FEATURES, contrast_threshold: float = CONTRAST_THRESHOLD, pairs: str = "auto",
+                 guided: bool = True, workers: int = 0, progress: bool = False) -> dict:
     """Match a folder of photos and write a P3 folder (the ``match`` command).
 
     Args:
         images_dir: folder of photos (:func:`list_images` says which files are read).
-        K: ``(3, 3)`` intrinsics of the full-size photos, or the path of a ``calibration.txt``.
+        K: ``(3, 3)`` intrinsics of the full-size photos, the path of a ``calibration.txt``, or
+            None: from EXIF or a guess, refined by ``sfm`` (:func:`course_lib.data.camera.camera_prior`).
         out: output P3 folder (created; must not be ``images_dir``).
         downscale: factor >= 1 (K is scaled, see :func:`scale_intrinsics`).
-        ratio, verify, verify_px, min_pair_matches, seed, rootsift, max_features, contrast_threshold:
-            see :func:`match_images`.
+        ratio, verify, verify_px, min_pair_matches, rootsift, max_features, contrast_threshold, pairs,
+            guided, workers, progress: see :func:`match_images`. seed: its generator's seed.
 
     Returns:
         The report written to ``out/match_report.json``.
 
     Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
     """
-    from course_lib.data.p3 import read_calibration, write_p3
-
     t0 = time.perf_counter()
     paths = list_images(images_dir)
     if isinstance(K, (str, Path)):
         if not Path(K).exists():
-            raise KitInputError(f"calibration file not found: {K} (pass --K with a file of 3 rows of 3 numbers: the camera's K)")
+            raise KitInputError(f"calibration file not found: {K} (pass --K with a file of 3 rows of 3 numbers: the camera's K, "
+                                "or leave --K out to take K from the photos' EXIF)")
         K = read_calibration(K)
-    K = intrinsics(K)
     out = Path(out)
     if out.resolve() == Path(images_dir).resolve():
         raise KitInputError(f"--out {out} is the image folder itself: write the P3 folder somewhere else")
-    out = output_dir(out)
     images = load_images(paths)
     H0, W0 = images[0].shape[:2]
-    images, K2 = downscale_images(images, K, downscale)
-    res = match_images(images, ratio, verify, verify_px, min_pair_matches, np.random.default_rng(seed),
-                       rootsift=rootsift, max_features=max_features, contrast_threshold=contrast_threshold)
-    names = [f"{i + 1}.png" for i in range(len(images))]
-    write_p3(out, names, K2, res.track_uv, res.track_rgb, images=images)
+    prior = CameraPrior(intrinsics(K)) if K is not None else camera_prior(paths, (W0, H0))
+    out = output_dir(out)
+    t_load = time.perf_counter() - t0
+    images, K2 = downscale_images(images, prior.K, downscale)
+    prior.K = K2
+    res = match_images(images, ratio, verify, verify_px, min_pair_matches, np.random.default_rng(seed), rootsift=rootsift,
+                       max_features=max_features, contrast_threshold=contrast_threshold, pairs=pairs, guided=guided,
+                       workers=workers, progress=progress)
+    t1 = time.perf_counter()
+    names = _write_photos(out, paths, images, downscale != 1.0)
+    write_p3(out, names, K2, res.track_uv, res.track_rgb)
+    for stale in ("camera.json", "two_view_geometries.json"):
+        (out / stale).unlink(missing_ok=True)
+    if prior.refine:
+        write_camera(out, prior)
+    if verify:
+        write_two_view_geometries(out, res.geometries, verify_px, min_pair_matches)
     n_obs = (~np.isnan(res.track_uv[..., 0])).sum(1) if len(res.track_uv) else np.zeros(0, int)
     report = {
         "images_dir": str(images_dir),
@@ -284,17 +397,21 @@ def match_folder(images_dir, K, out, downscale: float = 1.0, ratio: float = 0.8,
         "image_size_source": [W0, H0],
         "image_size": [int(images[0].shape[1]), int(images[0].shape[0])],
         "downscale": float(downscale),
-        "K_source": K.tolist(),
+        "camera": prior.summary(),
         "K": K2.tolist(),
         "ratio": float(ratio), "rootsift": bool(rootsift), "max_features": int(max_features),
-        "contrast_threshold": float(contrast_threshold),
+        "contrast_threshold": float(contrast_threshold), "pair_selection": res.pair_mode, "pairs_matched": res.pairs_matched,
         "verify": bool(verify), "verify_px": float(verify_px), "min_pair_matches": int(min_pair_matches), "seed": int(seed),
-        "pairs": {f"{i + 1}-{j + 1}": {"sift": res.raw_matches[(i, j)], "verified": res.verified_matches.get((i, j), 0)}
+        "guided": bool(guided),
+        "pairs": {f"{i + 1}-{j + 1}": {"sift": res.raw_matches[(i, j)], "verified": res.verified_matches.get((i, j), 0),
+                                       **({"guided": res.guided[(i, j)]} if (i, j) in res.guided else {})}
                   for (i, j) in sorted(res.raw_matches)},
+        "identical_photos": [[names[i], names[j]] for i, j in res.identical],
         "tracks": int(len(res.track_uv)),
         "observations": int(n_obs.sum()),
         "tracks_by_length": {str(k): int((n_obs == k).sum()) for k in sorted(set(n_obs.tolist()))},
         **{k: v for k, v in res.stats.items() if isinstance(v, (int, float))},
+        "stage_seconds": {"load": round(t_load, 3), **res.seconds, "write": round(time.perf_counter() - t1, 3)},
         "seconds": round(time.perf_counter() - t0, 2),
     }
     (out / "match_report.json").write_text(json.dumps(report, indent=1))
@@ -306,29 +423,46 @@ def match_folder(images_dir, K, out, downscale: float = 1.0, ratio: float = 0.8,
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("images_dir", help="folder of photos: only 1.png, 2.png, ... (P3 numbering) if there are such files, else all images in name order")
-    p.add_argument("--K", required=True, help="calibration file of the full-size photos: 3 rows of 3 numbers, or 'K = [a b c; d e f; g h i]'")
+    p.add_argument("--K", default=None,
+                   help="calibration file of the full-size photos: 3 rows of 3 numbers, or 'K = [a b c; d e f; g h i]' "
+                        "(default: K from the photos' EXIF, else 1.2 x the longer side; sfm then refines it)")
     p.add_argument("--out", required=True, help="output P3 folder (calibration.txt, matching*.txt, 1.png ...; match_report.json)")
     p.add_argument("--downscale", type=float, default=1.0, help="shrink the photos by this factor first (K is scaled; default 1)")
     p.add_argument("--ratio", type=float, default=0.8, help="Lowe's ratio test (default 0.8)")
+    p.add_argument("--pairs", choices=PAIR_MODES, default="auto",
+                   help="which pairs to match: all (exhaustive), each photo with the next 10 (sequential), or the most alike "
+                        "(retrieval); default auto: all up to 150 photos, retrieval above")
     p.add_argument("--verify-px", type=float, default=VERIFY_PX,
                    help=f"F-RANSAC threshold of the geometric verification, pixels (default {VERIFY_PX:g}, COLMAP's)")
-    p.add_argument("--min-pair-matches", type=int, default=15, help="pairs with fewer verified matches are dropped (default 15)")
+    p.add_argument("--min-pair-matches", type=int, default=MIN_INLIERS,
+                   help=f"pairs with fewer verified matches are dropped (default {MIN_INLIERS})")
     p.add_argument("--no-verify", action="store_true", help="keep all ratio-test matches (no geometric verification)")
+    p.add_argument("--no-guided", action="store_true", help="no second, guided matching pass for pairs with few inliers")
     p.add_argument("--seed", type=int, default=0, help="seed of the verification's RANSAC (default 0)")
     p.add_argument("--contrast-threshold", type=float, default=CONTRAST_THRESHOLD,
                    help=f"SIFT contrast threshold (OpenCV's contrastThreshold; default {CONTRAST_THRESHOLD}, COLMAP's; OpenCV's own 0.04 finds fewer features)")
     p.add_argument("--max-features", type=int, default=MAX_FEATURES,
                    help=f"keep at most this many SIFT features per photo (default {MAX_FEATURES}, COLMAP's; 0: all)")
     p.add_argument("--no-rootsift", action="store_true", help="match plain SIFT descriptors instead of RootSIFT")
+    p.add_argument("--workers", type=int, default=0, help="threads (default 0: one per core)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
 def run(args) -> int:
     rep = match_folder(args.images_dir, args.K, args.out, args.downscale, args.ratio, not args.no_verify,
                        args.verify_px, args.min_pair_matches, args.seed, rootsift=not args.no_rootsift,
-                       max_features=args.max_features, contrast_threshold=args.contrast_threshold)
+                       max_features=args.max_features, contrast_threshold=args.contrast_threshold, pairs=args.pairs,
+                       guided=not args.no_guided, workers=args.workers, progress=not args.quiet)
     n = len(rep["images"])
     kept = sum(1 for v in rep["pairs"].values() if v["verified"] >= args.min_pair_matches or (args.no_verify and v["sift"]))
-    print(f"matched {n} images ({rep['image_size'][0]}x{rep['image_size'][1]}): {kept}/{n * (n - 1) // 2} pairs kept, "
-          f"{rep['tracks']} tracks, {rep['observations']} observations, {rep['seconds']:.1f} s")
+    print(f"matched {n} images ({rep['image_size'][0]}x{rep['image_size'][1]}): {rep['pairs_matched']} of {n * (n - 1) // 2} "
+          f"pairs matched ({rep['pair_selection']}), {kept} kept, {rep['tracks']} tracks, {rep['observations']} observations, "
+          f"{rep['seconds']:.1f} s")
+    cam = rep["camera"]
+    if cam["refine"]:
+        print(f"camera: f = {cam['K'][0][0]:.1f} px from {cam['source']}; sfm refines f and k1 ({cam['model']})")
+    for a, b in rep["identical_photos"]:
+        print(f"identical or near-identical photos (no baseline): {a}, {b} -- the same view twice adds nothing to a "
+              "reconstruction; keep one, and take the others from different positions")
     print(f"P3 folder: {args.out} (read it with course_lib.data.p3.read_p3, or run: python -m course_lib sfm {args.out})")
     return 0

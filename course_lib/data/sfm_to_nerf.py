@@ -33,6 +33,10 @@ Centring and scale (a similarity of the whole scene)
     trainer's own :func:`~course_lib.nerf.train.scene_bounds` is used unless you pass them.
 
 Images and intrinsics
+    A ``SIMPLE_RADIAL`` model (``match`` without ``--K``: the focal length and ``k1`` refined by
+    ``sfm``) is first undistorted: every photo is resampled onto the camera's pinhole part
+    (:func:`course_lib.data.camera.undistort_image`), since a NeRF's rays are a pinhole's. Other
+    distortion models are refused by :func:`course_lib.data.colmap.read_colmap_text` with a message.
     The Blender format knows one horizontal field of view: square pixels, principal point at the
     image centre ``((W-1)/2, (H-1)/2)`` (:func:`course_lib.data.blender.intrinsics_from_fov`). The
     photos are resized to ``size`` pixels wide (``cv2.INTER_AREA``; K scaled as in
@@ -65,6 +69,7 @@ from pathlib import Path
 
 import numpy as np
 
+from course_lib.data.camera import undistort_image
 from course_lib.validate import KitInputError, intrinsics, output_dir
 
 __all__ = ["NerfFrame", "normalization", "to_nerf_frame", "resample_images", "sfm_to_nerf", "orbit_c2w", "render_building_views",
@@ -233,6 +238,8 @@ def sfm_to_nerf(sfm_out, images_dir, out, size: int = 100, test_every: int = 8, 
     W0, H0 = model.image_size
     if images[0].shape[:2] != (H0, W0):
         raise KitInputError(f"{model.image_names[0]} is {images[0].shape[1]}x{images[0].shape[0]} but the model's camera is {W0}x{H0}")
+    if model.k1 != 0.0:  # NeRF's rays are a pinhole's: resample the photos onto the camera's pinhole part first
+        images = [undistort_image(im, model.K, model.k1) for im in images]
     imgs, Kb, angle = resample_images(images, model.K, size)
     c2w, frame = to_nerf_frame(model.R_cw, model.t_cw, model.X, percentile)
     idx = np.arange(M)
@@ -254,6 +261,7 @@ def sfm_to_nerf(sfm_out, images_dir, out, size: int = 100, test_every: int = 8, 
         "train": [n for n, t in zip(model.image_names, test) if not t],
         "test": [n for n, t in zip(model.image_names, test) if t],
         "points": int(np.isfinite(model.X).all(axis=1).sum()),
+        "camera_model": model.camera_model, "undistorted_k1": float(model.k1),
     }
     (out / "sfm_to_nerf.json").write_text(json.dumps(summary, indent=1))
     return summary

@@ -7,12 +7,16 @@ Without ``DATA_DIR`` the embedded scene (``data/synthetic-building``) is used. W
   text files (open it with ``pycolmap.Reconstruction(OUT_DIR / "colmap")`` or COLMAP's GUI); where
   registration stalled and the images left made models of their own, those go beside it, largest
   first: ``colmap-1/``, ``colmap-2/``, ...;
-* ``report.json``: the pipeline's per-stage report (pairs and RANSAC inliers, verified tracks,
+* ``report.json``: the pipeline's per-stage report (pairs and their inliers, verified tracks, the
+  camera (refined focal length and ``k1`` where the P3 folder came from ``match`` without ``--K``),
   degenerate pairs, initial pair, every registration, images left out and why, reprojection
   errors before and after bundle adjustment, seconds) of the largest model, ``models`` (one summary
   per model), ``others`` (the other models' reports) plus totals;
 * ``scene.html``: the cameras and points in an interactive 3-D plot that opens offline (every
   model, the others drawn beside the largest).
+
+Every field of :class:`~course_lib.sfm.mapper_options.MapperOptions` can be set with
+``--option KEY=VALUE`` (repeatable); a bad key or value ends with one line and exit status 2.
 
 Exit status 0 when at least one model exists; where no image pair can start one, a one-line
 message and exit status 2.
@@ -43,6 +47,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the random generator used by RANSAC (default 0)")
     p.add_argument("--ba", choices=("incremental", "final", "none"), default="incremental",
                    help="bundle adjustment after every registration (default), only at the end, or never")
+    p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="set any field of course_lib.sfm.mapper_options.MapperOptions, e.g. --option min_pnp_inliers=30 "
+                        "--option refine_intrinsics=false (repeatable)")
     p.add_argument("--no-html", action="store_true", help="skip scene.html")
     p.add_argument("--quiet", action="store_true", help="print only the summary")
 
@@ -95,6 +102,7 @@ def write_scene_html(rec, path: Path, title: str) -> Path:
 def run(args) -> int:
     from course_lib.data.p3 import read_p3
     from course_lib.paths import EMBEDDED_SFM
+    from course_lib.sfm.mapper_options import parse_assignments
     from course_lib.sfm.pipeline import run_sfm
 
     t0 = time.perf_counter()
@@ -102,9 +110,10 @@ def run(args) -> int:
     data_dir = Path(args.data_dir) if args.data_dir else EMBEDDED_SFM
     if not data_dir.is_dir():
         raise KitInputError(f"P3 folder not found: {data_dir} (expected a folder with calibration.txt, matching1.txt, ... and 1.png, ...)")
+    options = {"bundle_adjustment": args.ba, **parse_assignments(args.option)}  # a bad --option: one line, before the work
     out = output_dir(args.out)  # before the work: a wrong --out costs nothing
     data = read_p3(data_dir)
-    rec = run_sfm(data, np.random.default_rng(args.seed), bundle_adjustment=args.ba, verbose=not args.quiet)
+    rec = run_sfm(data, np.random.default_rng(args.seed), **{"verbose": not args.quiet, **options})
 
     models = [rec] + rec.others
     folders = [m.write_colmap(out / m.report["models"][k]["folder"]) for k, m in enumerate(models)]
@@ -155,5 +164,8 @@ def _print_summary(report: dict, data_dir: Path, models: list, folders: list, ou
             print(f"left out: {d['name']}: {d['reason']}")
     for d in report.get("degenerate_pairs", []):
         print(f"degenerate pair (not used to start): {d['names'][0]}, {d['names'][1]}: {d['kind']}")
+    cam = report.get("camera", {})
+    if cam.get("model") == "SIMPLE_RADIAL":
+        print(f"camera refined (SIMPLE_RADIAL): f = {cam['K'][0][0]:.1f} px (from {cam['prior_focal_px']:.1f}), k1 = {cam['k1']:.4f}")
     extra = f" (+ {', '.join(f.name + '/' for f in folders[1:])} for the other models)" if len(folders) > 1 else ""
     print(f"outputs: {folders[0]}/ (COLMAP text model){extra}, {out / 'report.json'}" + (f", {html}" if html else ""))

@@ -82,6 +82,7 @@ __all__ = [
     "CameraModel",
     "PinholeCamera",
     "BALCamera",
+    "SimpleRadialCamera",
     "rotvec_to_matrix",
     "right_jacobian_so3",
     "residuals",
@@ -267,6 +268,56 @@ class BALCamera:
         return proj, J_cam, _mm(G, Rk)
 
 
+class SimpleRadialCamera:
+    """COLMAP's ``SIMPLE_RADIAL`` camera with its intrinsics *shared* by all cameras and refined.
+
+    Per camera 6 parameters ``(r, t_cw)`` (the kit's OpenCV axes, as :class:`PinholeCamera`); shared
+    by every camera 2 parameters ``(f, k1)`` (:attr:`n_shared`), the principal point ``(cx, cy)``
+    fixed. ``P = R(r) X + t``, ``(x, y) = P[:2] / P.z``, ``d = 1 + k1 (x^2 + y^2)``,
+    ``(u, v) = f d (x, y) + (cx, cy)`` (:func:`course_lib.data.camera.distort`).
+
+    Args:
+        principal_point: ``(cx, cy)`` in pixels (kit convention).
+    """
+
+    param_names = ("rx", "ry", "rz", "tx", "ty", "tz")
+    n_params = 6
+    shared_names = ("f", "k1")
+    n_shared = 2
+
+    def __init__(self, principal_point):
+        self.c = np.asarray(principal_point, float).reshape(2)
+
+    def project(self, cameras, X, cam_idx, shared):
+        P, _, _ = _rigid(cameras, X, cam_idx, False)
+        xy = P[:, :2] / P[:, 2:3]
+        f, k1 = shared
+        return f * (1.0 + k1 * (xy**2).sum(axis=1))[:, None] * xy + self.c
+
+    def project_jacobian(self, cameras, X, cam_idx, shared):
+        """``(proj (K, 2), J_cam (K, 2, 6), J_pt (K, 2, 3), J_shared (K, 2, 2))``."""
+        P, dP_dr, Rk = _rigid(cameras, X, cam_idx, True)
+        iz = 1.0 / P[:, 2]
+        xy = P[:, :2] * iz[:, None]
+        r2 = (xy**2).sum(axis=1)
+        f, k1 = shared
+        d = 1.0 + k1 * r2
+        proj = (f * d)[:, None] * xy + self.c
+        # d proj / d xy = f (d I + 2 k1 xy xyᵀ);  d xy / d P = [[1/z, 0, -x/z], [0, 1/z, -y/z]]
+        Dxy = (2.0 * f * k1) * (xy[:, :, None] * xy[:, None, :])
+        Dxy[:, 0, 0] += f * d
+        Dxy[:, 1, 1] += f * d
+        G = np.empty((len(iz), 2, 3))
+        G[:, :, 0] = Dxy[:, :, 0] * iz[:, None]
+        G[:, :, 1] = Dxy[:, :, 1] * iz[:, None]
+        G[:, :, 2] = -(Dxy[:, :, 0] * xy[:, 0, None] + Dxy[:, :, 1] * xy[:, 1, None]) * iz[:, None]
+        J_cam = np.empty((len(iz), 2, 6))
+        J_cam[:, :, 0:3] = _mm(G, dP_dr)
+        J_cam[:, :, 3:6] = G
+        J_sh = np.stack([d[:, None] * xy, (f * r2)[:, None] * xy], axis=2)
+        return proj, J_cam, _mm(G, Rk), J_sh
+
+
 # ---------------------------------------------------------------------------------------------
 # Residuals and the sparse Jacobian
 # ---------------------------------------------------------------------------------------------
@@ -438,7 +489,7 @@ class NormalEquations:
     Attributes:
         U: ``(M, n, n)`` camera blocks. V: ``(N, 3, 3)`` point blocks. Wt: ``(K, 3, n)`` the
         off-diagonal block of each observation, transposed (``B_k^T w A_k``). g_c: ``(M, n)``.
-        g_p: ``(N, 3)``.
+        g_p: ``(N, 3)``. U_ss, U_cs, Z, g_s: the blocks of the shared parameters (or None).
     """
 
     U: np.ndarray
@@ -446,14 +497,22 @@ class NormalEquations:
     Wt: np.ndarray
     g_c: np.ndarray
     g_p: np.ndarray
+    #: With shared parameters (``p`` of them, :class:`SimpleRadialCamera`): ``U_ss (p, p)``,
+    #: ``U_cs (M, n, p)``, ``Z (N, p, 3)`` (point blocks, ``C^T w B`` summed), ``g_s (p,)``; else None.
+    U_ss: np.ndarray | None = None
+    U_cs: np.ndarray | None = None
+    Z: np.ndarray | None = None
+    g_s: np.ndarray | None = None
 
 
-def normal_equations(structure: _Structure, r: np.ndarray, A: np.ndarray, B: np.ndarray, w: np.ndarray) -> NormalEquations:
+def normal_equations(structure: _Structure, r: np.ndarray, A: np.ndarray, B: np.ndarray, w: np.ndarray,
+                     C: np.ndarray | None = None) -> NormalEquations:
     """Accumulate the blocks of the normal equations from the per-observation Jacobian blocks.
 
     Args:
         structure: bookkeeping of the (camera-sorted) observations.
         r: ``(K, 2)`` residuals. A: ``(K, 2, n)``, B: ``(K, 2, 3)`` Jacobian blocks. w: ``(K,)`` weights.
+        C: ``(K, 2, p)`` Jacobian blocks of the parameters shared by all cameras, or None.
     """
     st = structure
     n = A.shape[2]
@@ -461,23 +520,34 @@ def normal_equations(structure: _Structure, r: np.ndarray, A: np.ndarray, B: np.
     Bw = B * w[:, None, None]
     U = np.empty((st.M, n, n))
     g_c = np.empty((st.M, n))
+    p = 0 if C is None else C.shape[2]
+    U_cs = None if C is None else np.empty((st.M, n, p))
     for i in range(st.M):  # one matrix product per camera over all its observations
         s, e = st.cam_start[i], st.cam_start[i + 1]
         Ai = A[s:e].reshape(-1, n)
         Awi = Aw[s:e].reshape(-1, n)
         U[i] = Awi.T @ Ai
         g_c[i] = Awi.T @ r[s:e].ravel()
+        if C is not None:
+            U_cs[i] = Awi.T @ C[s:e].reshape(-1, p)
     V = (st.to_pt @ _outer2(Bw, B).reshape(len(B), 9)).reshape(st.N, 3, 3)
     Wt = _outer2(Bw, A)
     g_p = st.to_pt @ (Bw[:, 0] * r[:, :1] + Bw[:, 1] * r[:, 1:])
-    return NormalEquations(U, V, Wt, g_c, g_p)
+    if C is None:
+        return NormalEquations(U, V, Wt, g_c, g_p)
+    Cw = C * w[:, None, None]
+    U_ss = np.einsum("kai,kaj->ij", Cw, C)
+    Z = (st.to_pt @ _outer2(Cw, B).reshape(len(B), 3 * p)).reshape(st.N, p, 3)
+    g_s = np.einsum("kai,ka->i", Cw, r)
+    return NormalEquations(U, V, Wt, g_c, g_p, U_ss, U_cs, Z, g_s)
 
 
 def _damping(D: np.ndarray) -> np.ndarray:
     return np.clip(D, 1e-6, 1e32)
 
 
-def schur_solve(structure: _Structure, ne: NormalEquations, lam: float, free_cam: np.ndarray, dense_limit: int = 4000):
+def schur_solve(structure: _Structure, ne: NormalEquations, lam: float, free_cam: np.ndarray, dense_limit: int = 4000,
+                free_shared: np.ndarray | None = None):
     """Solve the damped normal equations by eliminating the points (Schur complement).
 
     Args:
@@ -486,13 +556,17 @@ def schur_solve(structure: _Structure, ne: NormalEquations, lam: float, free_cam
         lam: damping; the system is ``(J^T J + lam D) delta = -J^T r``, ``D = diag(J^T J)`` clamped.
         free_cam: ``(M, n)`` bool, False for camera parameters held fixed (gauge).
         dense_limit: up to this many camera unknowns the reduced system is solved densely.
+        free_shared: ``(p,)`` bool, False for shared parameters held fixed (with ``ne.U_ss``).
 
     Returns:
-        ``(dc (M, n), dp (N, 3), predicted_decrease)``.
+        ``(dc (M, n), dp (N, 3), ds (p,) or None, predicted_decrease)``. The shared parameters
+        border the reduced camera system: ``[[S, S_cs], [S_csᵀ, S_ss]]`` with
+        ``S_cs = U_cs - W V^-1 Zᵀ`` and ``S_ss = U_ss + lam D_s - Z V^-1 Zᵀ``.
     """
     st = structure
     M, n = st.M, st.n
     pt = st.pt_idx
+    shared = ne.U_ss is not None
     Vdiag = _damping(np.einsum("jii->ji", ne.V))
     Vd = ne.V + lam * Vdiag[:, :, None] * np.eye(3)
     Vd[~st.seen] = np.eye(3)  # points without observations do not move
@@ -506,21 +580,32 @@ def schur_solve(structure: _Structure, ne: NormalEquations, lam: float, free_cam
     q = np.einsum("jab,jb->ja", Vinv, ne.g_p)  # V^-1 g_X
     rhs = -(ne.g_c - st.to_cam @ np.einsum("kab,ka->kb", ne.Wt, q[pt])).ravel()
     fixed = ~free_cam.ravel()
+    if shared:
+        p_sh = len(ne.g_s)
+        ZV = np.einsum("jab,jbc->jac", ne.Z, Vinv)  # (N, p, 3): Z_j V_j^-1
+        Sdiag = _damping(np.diag(ne.U_ss).copy())
+        S_ss = ne.U_ss + lam * np.diag(Sdiag) - np.einsum("jac,jdc->ad", ZV, ne.Z)
+        S_cs = ne.U_cs - (st.to_cam @ np.einsum("kan,kpa->knp", Yt, ne.Z[pt]).reshape(len(pt), n * p_sh)).reshape(M, n, p_sh)
+        rhs = np.concatenate([rhs, -(ne.g_s - np.einsum("jab,jb->a", ZV, ne.g_p))])
+        fixed = np.concatenate([fixed, ~np.asarray(free_shared, bool) if free_shared is not None else np.zeros(p_sh, bool)])
     rhs[fixed] = 0.0
     bi, bl = np.divmod(st.block_ids, M)
+    nS = n * M + (p_sh if shared else 0)
     if n * M <= dense_limit:
         S = np.zeros((M, M, n, n))
         S[bi, bl] = -blocks
         S[bl, bi] = -np.transpose(blocks, (0, 2, 1))
         S[np.arange(M), np.arange(M)] = ne.U + lam * Udiag[:, :, None] * np.eye(n) - diag
         S = S.transpose(0, 2, 1, 3).reshape(n * M, n * M)
+        if shared:
+            S = np.block([[S, S_cs.reshape(n * M, p_sh)], [S_cs.reshape(n * M, p_sh).T, S_ss]])
         S[fixed, :] = 0.0
         S[:, fixed] = 0.0
         S[fixed, fixed] = 1.0
         try:
-            dc = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S, check_finite=False), rhs, check_finite=False)
+            delta = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S, check_finite=False), rhs, check_finite=False)
         except np.linalg.LinAlgError:
-            dc = np.linalg.lstsq(S, rhs, rcond=None)[0]
+            delta = np.linalg.lstsq(S, rhs, rcond=None)[0]
     else:
         data = np.concatenate([-blocks, -np.transpose(blocks, (0, 2, 1)), ne.U + lam * Udiag[:, :, None] * np.eye(n) - diag])
         rows = np.concatenate([bi, bl, np.arange(M)])
@@ -528,17 +613,25 @@ def schur_solve(structure: _Structure, ne: NormalEquations, lam: float, free_cam
         order = np.lexsort((cols, rows))
         indptr = np.searchsorted(rows[order], np.arange(M + 1))
         S = sp.bsr_matrix((data[order], cols[order], indptr), shape=(n * M, n * M)).tocsr()
+        if shared:
+            Scs = sp.csr_matrix(S_cs.reshape(n * M, p_sh))
+            S = sp.bmat([[S, Scs], [Scs.T, sp.csr_matrix(S_ss)]]).tocsr()
         keep = sp.diags((~fixed).astype(float))
         S = (keep @ S @ keep + sp.diags(fixed.astype(float))).tocsc()
-        dc = scipy.sparse.linalg.spsolve(S, rhs)
-    dc = dc.reshape(M, n)
+        delta = scipy.sparse.linalg.spsolve(S, rhs)
+    dc = delta[: n * M].reshape(M, n)
+    ds = delta[n * M: nS] if shared else None
     tmp = ne.g_p + st.to_pt @ np.einsum("kab,kb->ka", ne.Wt, dc[st.cam_idx])
+    if shared:
+        tmp = tmp + np.einsum("jpa,p->ja", ne.Z, ds)
     dp = -np.einsum("jab,jb->ja", Vinv, tmp)
     # predicted decrease of the quadratic model: 0.5 * delta^T (lam D delta - g)
     pred = 0.5 * (
         float(np.sum(dc * (lam * Udiag * dc - ne.g_c))) + float(np.sum(dp * (lam * Vdiag * dp - ne.g_p)))
     )
-    return dc, dp, pred
+    if shared:
+        pred += 0.5 * float(np.sum(ds * (lam * Sdiag * ds - ne.g_s)))
+    return dc, dp, ds, pred
 
 
 # ---------------------------------------------------------------------------------------------
@@ -587,6 +680,7 @@ class LMResult:
         iterations: accepted steps. n_solves: linear systems solved (accepted + rejected steps).
         seconds: wall-clock time of :func:`solve`.
         success, message: why it stopped.
+        shared: ``(p,)`` refined shared parameters (a model with ``n_shared``), else None.
     """
 
     cameras: np.ndarray
@@ -599,6 +693,7 @@ class LMResult:
     seconds: float = 0.0
     success: bool = True
     message: str = ""
+    shared: np.ndarray | None = None
 
 
 def solve(
@@ -619,6 +714,8 @@ def solve(
     lam0: float = 1e-4,
     dense_limit: int = 4000,
     callback: Callable[[int, np.ndarray, np.ndarray, float], None] | None = None,
+    shared: np.ndarray | None = None,
+    fixed_shared: np.ndarray | None = None,
 ) -> LMResult:
     """Bundle adjustment by sparse Levenberg-Marquardt with the Schur complement on the points.
 
@@ -642,6 +739,10 @@ def solve(
         dense_limit: size of the reduced camera system up to which it is solved densely.
         callback: ``callback(iteration, cameras, points, cost)`` at the start and after each
             accepted step (cost without the robust loss).
+        shared: ``(p,)`` initial parameters shared by all cameras, for a model with ``n_shared = p``
+            (:class:`SimpleRadialCamera`: the focal length and ``k1``); they border the reduced
+            camera system (:func:`schur_solve`).
+        fixed_shared: ``(p,)`` bool, True for shared parameters held fixed; default none.
 
     Returns:
         :class:`LMResult`.
@@ -655,12 +756,12 @@ def solve(
     with single_threaded_blas():
         return _lm(
             model, cameras, points, cam_idx, pt_idx, obs, fixed_cameras, loss, f_scale,
-            max_iterations, ftol, xtol, gtol, lam0, dense_limit, callback,
+            max_iterations, ftol, xtol, gtol, lam0, dense_limit, callback, shared, fixed_shared,
         )
 
 
 def _lm(model, cameras, points, cam_idx, pt_idx, obs, fixed_cameras, loss, f_scale,
-        max_iterations, ftol, xtol, gtol, lam0, dense_limit, callback):
+        max_iterations, ftol, xtol, gtol, lam0, dense_limit, callback, shared=None, fixed_shared=None):
     """The body of :func:`solve`."""
     t_start = time.perf_counter()
     cameras, points, cam_idx, pt_idx, obs = _check_problem(model, cameras, points, cam_idx, pt_idx, obs)
@@ -679,14 +780,26 @@ def _lm(model, cameras, points, cam_idx, pt_idx, obs, fixed_cameras, loss, f_sca
     cams = cameras.copy()
     pts = np.where(seen[:, None], points, 0.0)
     free_obs = free_cam[cam_idx].astype(float)  # (K, n): zero the columns of fixed camera parameters
+    n_sh = int(getattr(model, "n_shared", 0))
+    if n_sh:
+        if shared is None or np.shape(shared) != (n_sh,) or not np.isfinite(shared).all():
+            raise KitInputError(f"shared has shape {np.shape(shared)}: {type(model).__name__} needs its {n_sh} shared "
+                                f"parameters {model.shared_names} as finite numbers")
+        sh = np.asarray(shared, float).copy()
+        free_sh = np.ones(n_sh, bool) if fixed_shared is None else ~np.asarray(fixed_shared, bool).reshape(n_sh)
+    else:
+        sh, free_sh = None, None
 
-    def evaluate(c, X):
-        r = model.project(c, X[pt_idx], cam_idx) - obs
+    def project(c, X, shp):
+        return model.project(c, X[pt_idx], cam_idx) if shp is None else model.project(c, X[pt_idx], cam_idx, shp)
+
+    def evaluate(c, X, shp=None):
+        r = project(c, X, shp) - obs
         s = (r**2).sum(axis=1)
         rho, w = _robust(loss, s, f_scale)
         return r, w, 0.5 * float(rho.sum()), 0.5 * float(s.sum())
 
-    r, w, cost, plain = evaluate(cams, pts)
+    r, w, cost, plain = evaluate(cams, pts, sh)
     if not np.isfinite(cost):
         raise KitInputError("some observed points project to infinity at the start (depth 0): check the initial cameras and points")
     history = [plain]
@@ -697,27 +810,34 @@ def _lm(model, cameras, points, cam_idx, pt_idx, obs, fixed_cameras, loss, f_sca
     n_iter = n_solves = 0
     success, message = False, "the maximum number of iterations is reached"
     while n_iter < max_iterations:
-        _, A, B = model.project_jacobian(cams, pts[pt_idx], cam_idx)
+        if sh is None:
+            _, A, B = model.project_jacobian(cams, pts[pt_idx], cam_idx)
+            C = None
+        else:
+            _, A, B, C = model.project_jacobian(cams, pts[pt_idx], cam_idx, sh)
+            C = C * free_sh[None, None, :]
         A = A * free_obs[:, None, :]
-        ne = normal_equations(st, r, A, B, w)
-        gmax = max(np.abs(ne.g_c).max(initial=0.0), np.abs(ne.g_p[seen]).max(initial=0.0))
+        ne = normal_equations(st, r, A, B, w, C)
+        gmax = max(np.abs(ne.g_c).max(initial=0.0), np.abs(ne.g_p[seen]).max(initial=0.0),
+                   0.0 if C is None else np.abs(ne.g_s).max(initial=0.0))
         if gmax < gtol:
             success, message = True, "the gradient is below gtol"
             break
         accepted = False
         while not accepted:
             n_solves += 1
-            dc, dp, pred = schur_solve(st, ne, lam, free_cam, dense_limit)
+            dc, dp, ds, pred = schur_solve(st, ne, lam, free_cam, dense_limit, free_sh)
             dp[~seen] = 0.0
             c_new, p_new = cams + dc, pts + dp
-            r_new, w_new, cost_new, plain_new = evaluate(c_new, p_new)
+            sh_new = None if sh is None else sh + ds
+            r_new, w_new, cost_new, plain_new = evaluate(c_new, p_new, sh_new)
             rho = (cost - cost_new) / pred if pred > 0 else -1.0
             if np.isfinite(cost_new) and rho > 1e-3:
                 accepted = True
                 step_norm = np.sqrt(np.sum(dc**2) + np.sum(dp**2))
                 x_norm = np.sqrt(np.sum(cams**2) + np.sum(pts**2))
                 rel = (cost - cost_new) / max(cost, 1e-300)
-                cams, pts, r, w, cost, plain = c_new, p_new, r_new, w_new, cost_new, plain_new
+                cams, pts, r, w, cost, plain, sh = c_new, p_new, r_new, w_new, cost_new, plain_new, sh_new
                 lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), LAM_MIN)
                 nu = 2.0
                 n_iter += 1
@@ -750,4 +870,5 @@ def _lm(model, cameras, points, cam_idx, pt_idx, obs, fixed_cameras, loss, f_sca
         seconds=time.perf_counter() - t_start,
         success=success,
         message=message,
+        shared=sh,
     )

@@ -7,8 +7,10 @@ OpenSfM's ``reconstruction.py``. :func:`course_lib.sfm.pipeline.run_sfm` drives 
    tried: first the images with the most verified correspondences to other images (summed over
    their verified pairs: the part of the match graph that can grow), then, for each, its partners
    ranked by the number of points triangulated in front of both cameras with an angle of at least
-   ``init_min_angle_deg`` (a long baseline). Pairs that a homography explains (pure rotation, a
-   plane) are named and skipped (:func:`pair_degeneracy`).
+   ``init_min_angle_deg`` (a long baseline). The relative pose is the calibrated one: the
+   five-point essential matrix, refined (:func:`course_lib.sfm.initial_pair.calibrated_pose`).
+   Pairs that a homography explains (pure rotation, a plane) or whose matches do not move
+   (identical photos) are named and skipped (:func:`~course_lib.sfm.initial_pair.pair_degeneracy`).
 2. :meth:`IncrementalMapper.initialize` places the pair (camera ``a`` is the world frame, the
    baseline has length 1), triangulates, bundle-adjusts and filters; a pair that keeps fewer than
    ``init_min_points`` points is dropped and the next candidate tried (bundle adjustment is never
@@ -19,14 +21,19 @@ OpenSfM's ``reconstruction.py``. :func:`course_lib.sfm.pipeline.run_sfm` drives 
 4. :meth:`IncrementalMapper.triangulate_image`: the tracks the new image shares with *every*
    registered image (widest baseline first), so links grow beyond the initial pair's.
 5. :meth:`IncrementalMapper.adjust_bundle` and :meth:`IncrementalMapper.filter_points` after each
-   registration; when registration stalls with images left, :meth:`IncrementalMapper.retriangulate`
-   (tracks that failed earlier, rejected observations that fit now) and the failed images are
-   tried again.
+   registration, by COLMAP's policy: a **local** BA of the new image and the ``ba_local_num_images``
+   - 1 images that share the most points with it (the cameras around them held fixed), and a BA of
+   the **whole** model when it has grown by ``ba_images_ratio`` since the last one, so the cost of
+   a registration does not grow with the model. Where K was estimated (no calibration file), the
+   BAs of the whole model also refine the focal length and ``k1`` (``SIMPLE_RADIAL``, shared by
+   all images; :class:`course_lib.sfm.lm.SimpleRadialCamera`). When registration stalls with
+   images left, :meth:`IncrementalMapper.retriangulate` (tracks that failed earlier, rejected
+   observations that fit now) and the failed images are tried again.
 6. :meth:`IncrementalMapper.finish`: re-triangulation, noise estimate, the final filtering and BA.
 
 When a model cannot grow further and two or more images are left, ``run_sfm`` starts a new model
 from those (:meth:`IncrementalMapper.begin_model`), as COLMAP does. All thresholds are fields of
-:class:`MapperOptions`, each with COLMAP's default beside it.
+:class:`~course_lib.sfm.mapper_options.MapperOptions`, each with COLMAP's default beside it.
 
 The steps of notebooks 02-04 are called through :func:`course_lib.exercises.call`, exactly as their
 stubs document: in the instructor's kit they are the reference solutions, in the student kit the
@@ -39,170 +46,22 @@ Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, fields
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from course_lib.conventions import camera_center, projection_matrix
+from course_lib.data.camera import undistort_pixels
 from course_lib.exercises import call, caller
+from course_lib.sfm import lm
 from course_lib.sfm.bundle_adjustment import adjust
+from course_lib.sfm.initial_pair import H_INLIER_RATIO, InitialPair, calibrated_pose, pair_degeneracy
+from course_lib.sfm.mapper_options import MapperOptions
 from course_lib.sfm.reconstruction import Reconstruction, error_summary, reprojection_error_matrix, triangulation_angles_deg
 from course_lib.validate import KitInputError
 
-__all__ = ["MapperOptions", "IncrementalMapper", "InitialPair", "pair_degeneracy", "spread_score", "final_thresholds"]
-
-
-@dataclass
-class MapperOptions:
-    """Every setting of the incremental mapper, with COLMAP's default (``IncrementalMapper::Options``,
-    ``IncrementalPipelineOptions``) where it has one.
-
-    The kit's data sets are small (5-20 images, 800x600 px), so a few thresholds are looser than
-    COLMAP's; each is stated.
-
-    Attributes:
-        f_threshold_px: RANSAC threshold on the Sampson distance for the pairs (px); only matches
-            within it join tracks. (COLMAP two-view ``max_error`` 4 px.)
-        min_pair_matches: a pair needs this many RANSAC inliers to give tracks. (COLMAP
-            ``min_num_matches`` 15, ``min_num_inliers`` 15.)
-        pnp_threshold_px: PnP RANSAC threshold on the reprojection error (px). (COLMAP
-            ``abs_pose_max_error`` 12 px.)
-        min_pnp_inliers: an image registers with at least this many PnP inliers. (COLMAP
-            ``abs_pose_min_num_inliers`` 30.)
-        max_reproj_px: observations reprojecting farther are dropped during the run. (COLMAP
-            ``filter_max_reproj_error`` 4 px.)
-        final_max_reproj_px: the threshold before the final BA; None: 4 x the noise level estimated
-            from the median reprojection error, within [1, 4] px.
-        min_angle_deg: smallest triangulation angle of a kept point. (COLMAP
-            ``filter_min_tri_angle`` 1.5 deg.)
-        init_min_angle_deg: angle a point of a candidate initial pair must have to count in its
-            score. (COLMAP asks a *median* angle of ``init_min_tri_angle`` 16 deg: too strict for a
-            walk past a building.)
-        min_pair_inliers: RANSAC inliers a pair needs to be an initial pair. (COLMAP
-            ``init_min_num_inliers`` 100.)
-        init_min_points: points an initial pair must score, and keep after triangulation, BA and
-            filtering, to start a model; otherwise the next candidate is tried. (COLMAP: > 0.)
-        init_max_trials: candidate pairs tried per model at most. (COLMAP ``init_num_trials`` 200.)
-        init_relaxations: when no pair starts the first model, ``min_pair_inliers`` and
-            ``init_min_angle_deg`` are halved and the candidates tried again, up to this many
-            times. (COLMAP relaxes ``init_min_num_inliers`` and ``init_min_tri_angle`` the same way,
-            twice each.)
-        multiple_models: start new models from the images left when registration stalls.
-            (COLMAP ``multiple_models`` true.)
-        max_models: the most models. (COLMAP ``max_num_models`` 50.)
-        min_model_size: a model after the first one is kept only with this many images; its images
-            are then left out with the reason. (COLMAP ``min_model_size`` 10, or 80 % of the images
-            where fewer.)
-        bundle_adjustment: ``"incremental"`` (after every registration and at the end),
-            ``"final"`` (once at the end) or ``"none"`` (the result *before* BA: notebook 05's
-            starting point).
-        ba_loss, ba_f_scale: robust loss of the intermediate BAs. (COLMAP: plain squares; the kit's
-            Huber at 1 px bounds the pull of the outliers that its looser thresholds let in.)
-        ba_max_iterations: iteration cap of each BA during the growth. These only have to bring
-            the new image and its points close enough for the next registration: the final BA
-            polishes (on the benchmark scenes 5 instead of 10 leaves the poses the same to 1 %
-            and saves about a quarter of the mapper's time). (COLMAP
-            ``ba_local_max_num_iterations`` 25, with a local BA that refines only the 6 images
-            nearest the new one.)
-        final_ba_max_iterations: iteration cap of each final BA. (COLMAP
-            ``ba_global_max_num_iterations`` 50.)
-        ba_images_ratio: with ``"incremental"``, a registration is followed by a BA of the whole
-            model when the model has grown by this factor since the last one (always up to 6
-            images); in between, only the new points are refined (non-linear triangulation, the
-            cameras fixed) and filtered. Default 1.0: after every registration (on 16 views, 1.2
-            saves about 15 % of the CPU time and changes the rotation error by +-10 %: 0.137 ->
-            0.156 deg on ``ring-groups-s0`` of ``benchmarks/sfm_vs_colmap.py`` (instructor's kit), 1.11x COLMAP's;
-            the kit keeps every BA and makes the growth's BAs short instead, ``ba_max_iterations``).
-            (COLMAP ``ba_global_images_ratio`` 1.1, with a local BA of the 6 nearest images after
-            every registration; OpenSfM ``bundle_new_points_ratio`` 1.2.)
-        final_ba_loss, final_ba_f_scale: loss of the final BA; ``"auto"``: Cauchy at ``f_scale``
-            (None: twice the estimated noise, at least 0.3 px) when the errors have a heavy tail
-            (SIFT), plain least squares otherwise (:func:`final_thresholds`).
-        initial_pair: force the initial pair ``(i, j)`` (0-based) of the first model.
-        verbose: print one line per stage.
-    """
-
-    f_threshold_px: float = 2.0
-    min_pair_matches: int = 16
-    pnp_threshold_px: float = 8.0
-    min_pnp_inliers: int = 20
-    max_reproj_px: float = 4.0
-    final_max_reproj_px: float | None = None
-    min_angle_deg: float = 1.0
-    init_min_angle_deg: float = 2.0
-    min_pair_inliers: int = 50
-    init_min_points: int = 20
-    init_max_trials: int = 50
-    init_relaxations: int = 2
-    multiple_models: bool = True
-    max_models: int = 10
-    min_model_size: int = 3
-    bundle_adjustment: str = "incremental"
-    ba_loss: str = "huber"
-    ba_f_scale: float = 1.0
-    ba_max_iterations: int = 5
-    final_ba_max_iterations: int = 20
-    ba_images_ratio: float = 1.0
-    final_ba_loss: str = "auto"
-    final_ba_f_scale: float | None = None
-    initial_pair: tuple[int, int] | None = None
-    verbose: bool = False
-
-    @classmethod
-    def from_keywords(cls, options: "MapperOptions | None" = None, **overrides) -> "MapperOptions":
-        """``options`` (or the defaults) with ``overrides`` replaced; a name that is no field is an error."""
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(overrides) - names)
-        if unknown:
-            raise KitInputError(f"unknown SfM option(s) {unknown}: the options are {sorted(names)}")
-        base = asdict(options) if options is not None else {}
-        opts = cls(**{**base, **overrides})
-        if opts.bundle_adjustment not in ("incremental", "final", "none"):
-            raise KitInputError(f"bundle_adjustment={opts.bundle_adjustment!r}: expected 'incremental', 'final' or 'none'")
-        return opts
-
-    def summary(self) -> dict:
-        """The options the report records."""
-        keep = ("f_threshold_px", "pnp_threshold_px", "max_reproj_px", "final_max_reproj_px", "min_angle_deg",
-                "bundle_adjustment", "ba_loss", "ba_f_scale", "final_ba_loss", "final_ba_f_scale", "init_min_points",
-                "min_model_size", "multiple_models")
-        return {k: getattr(self, k) for k in keep}
-
-
-#: A pair whose F inliers a homography explains this well is degenerate for a two-view start.
-H_INLIER_RATIO = 0.8
-
-
-def pair_degeneracy(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px: float) -> tuple[str, float]:
-    """Is a pair's geometry a homography (pure rotation or a planar scene), where F and E are ill-defined?
-
-    A homography ``H`` (OpenCV's RANSAC, ``threshold_px``) is fitted to the pair's F inliers. If it
-    explains more than :data:`H_INLIER_RATIO` of them, the pair cannot start a reconstruction:
-    if ``K⁻¹ H K`` is a rotation (equal singular values), the camera only turned (no baseline,
-    nothing to triangulate), otherwise the points lie on a plane (F is not unique).
-
-    Args:
-        x1, x2: ``(N, 2)`` inlier matches. K: ``(3, 3)``. threshold_px: pixels.
-
-    Returns:
-        ``(kind, ratio)``: kind ``""`` (fine), ``"pure rotation"`` or ``"planar"``; the share of the
-        matches the homography explains.
-    """
-    import cv2
-
-    if len(x1) < 8:
-        return "", 0.0
-    # 200 samples of 4 find a homography that explains 80 % of the matches with certainty
-    # (1 - 0.8^4)^200 < 1e-40; OpenCV's default of 2000 costs 10x more on the pairs where none does
-    H, mask = cv2.findHomography(x1.astype(np.float64), x2.astype(np.float64), cv2.RANSAC, threshold_px,
-                                 maxIters=200, confidence=0.999)
-    if H is None:
-        return "", 0.0
-    ratio = float(mask.ravel().astype(bool).mean())
-    if ratio <= H_INLIER_RATIO:
-        return "", ratio
-    s = np.linalg.svd(np.linalg.inv(K) @ H @ K, compute_uv=False)
-    return ("pure rotation" if s[0] / s[2] < 1.02 else "planar"), ratio
+__all__ = ["MapperOptions", "IncrementalMapper", "InitialPair", "pair_degeneracy", "spread_score", "final_thresholds",
+           "H_INLIER_RATIO"]
 
 
 def spread_score(uv: np.ndarray, image_size: tuple[int, int], levels: int = 6) -> int:
@@ -225,23 +84,6 @@ def spread_score(uv: np.ndarray, image_size: tuple[int, int], levels: int = 6) -
     return int(score)
 
 
-@dataclass
-class InitialPair:
-    """A candidate initial pair: ``images (a, b)``, the two-view ``choice`` (``choose_pose``'s result with
-    ``R_cw, t_cw, X, in_front, counts``, :func:`course_lib.exercises.call`; camera ``a`` at the origin), ``score`` (points in front with an angle >= ``init_min_angle_deg``),
-    RANSAC ``inliers`` and the ``median_angle_deg`` of the points in front."""
-
-    images: tuple[int, int]
-    choice: object
-    score: int
-    inliers: int
-    median_angle_deg: float
-
-    def row(self) -> dict:
-        return {"images": list(self.images), "score": self.score, "ransac_inliers": self.inliers,
-                "median_angle_deg": round(self.median_angle_deg, 2)}
-
-
 #: The final BA leaves out two-view points when every camera keeps this many observations of points seen three or more times.
 MIN_MULTIVIEW_OBSERVATIONS = 30
 #: Median of the Rayleigh distribution over sigma: the reprojection error (a 2-D distance) of
@@ -250,6 +92,9 @@ RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
 #: Share of observations beyond 3 sigma above which the errors count as heavy-tailed (Gaussian
 #: noise puts about 1 % there, SIFT matches 10-16 % on the course data and the embedded scene).
 HEAVY_TAIL_SHARE = 0.08
+#: Registered images from which the BAs of the whole model refine the intrinsics (two views
+#: hardly constrain the focal length).
+REFINE_FROM_IMAGES = 3
 
 
 def final_thresholds(errors: np.ndarray, max_reproj_px, f_scale, loss: str) -> tuple[float, float, float, float, str]:
@@ -280,22 +125,30 @@ class IncrementalMapper:
 
     The tracks (``track_uv``) are shared by every model; each model has its own poses, points and
     observation flags, all indexed by track ``j`` and image ``i``. Images registered in an earlier
-    model (``used``) take no part in a later one.
+    model (``used``) take no part in a later one. The intrinsics (``K``, ``k1``) belong to the
+    camera and carry over from one model to the next.
 
     Args:
         data: the :class:`course_lib.data.p3.P3Data` (its ``image_names`` and ``matches``).
         pairs: ``{(i, j): (F (3, 3), inliers (N,) bool)}`` the verified pairs.
-        track_uv: ``(T, M, 2)`` pixels of the verified tracks, NaN where unseen.
-        K: ``(3, 3)``. image_size: ``(W, H)``. options: :class:`MapperOptions`.
-        rng: seeded ``numpy.random.Generator`` (PnP RANSAC draws from it).
+        track_uv: ``(T, M, 2)`` pixels of the verified tracks as the photos show them, NaN where unseen.
+        K: ``(3, 3)`` (the prior, where ``refine_intrinsics``). image_size: ``(W, H)``.
+        options: :class:`MapperOptions`. rng: seeded ``numpy.random.Generator`` (PnP RANSAC draws from it).
+        refine_intrinsics: refine the focal length and ``k1`` (``SIMPLE_RADIAL``) in the BAs of the
+            whole model; :attr:`uv` then holds the undistorted pixels (where the pinhole ``K`` sees them).
     """
 
-    def __init__(self, data, pairs: dict, track_uv: np.ndarray, K: np.ndarray, image_size, options: MapperOptions, rng):
+    def __init__(self, data, pairs: dict, track_uv: np.ndarray, K: np.ndarray, image_size, options: MapperOptions, rng,
+                 refine_intrinsics: bool = False):
         self.matches, self.names = data.matches, list(data.image_names)
-        self.pairs, self.K, self.image_size, self.opts, self.rng = pairs, K, tuple(image_size), options, rng
-        self.uv = np.asarray(track_uv, float)
-        self.T, self.M = self.uv.shape[:2]
-        self.visible = np.isfinite(self.uv).all(axis=2)
+        self.pairs, self.image_size, self.opts, self.rng = pairs, tuple(image_size), options, rng
+        self.uv_raw = np.asarray(track_uv, float)
+        self.T, self.M = self.uv_raw.shape[:2]
+        self.visible = np.isfinite(self.uv_raw).all(axis=2)
+        self.refine = bool(refine_intrinsics)
+        self.K0 = np.asarray(K, float)
+        self.set_intrinsics(self.K0, 0.0)
+        self.intrinsics_log: list[dict] = []
         self.used = np.zeros(self.M, bool)  # images of earlier (or discarded) models
         self.degenerate: dict[tuple[int, int], dict] = {}
         self._scored: dict[tuple[int, int], InitialPair | None] = {}
@@ -320,6 +173,15 @@ class IncrementalMapper:
         self.initial: dict = {}
         self.reasons = {}  # why an image did not register in this model (its latest attempt)
 
+    def set_intrinsics(self, K: np.ndarray, k1: float) -> None:
+        """Use ``K`` and the radial term ``k1``: :attr:`uv` becomes the undistorted pixels of the tracks."""
+        self.K, self.k1 = np.asarray(K, float), float(k1)
+        self.uv = undistort_pixels(self.uv_raw, self.K, self.k1)
+
+    def undistort(self, x: np.ndarray) -> np.ndarray:
+        """Pixels ``(N, 2)`` as the photos show them -> where the pinhole :attr:`K` sees them."""
+        return undistort_pixels(x, self.K, self.k1)
+
     @property
     def has_X(self) -> np.ndarray:
         """``(T,)`` tracks with a point."""
@@ -337,12 +199,25 @@ class IncrementalMapper:
             C[i] = camera_center(self.R[i], self.t[i])
         return C
 
-    def errors(self) -> np.ndarray:
-        """``(T, M)`` reprojection errors of the observations in use, NaN elsewhere."""
-        return reprojection_error_matrix(self.K, self.R, self.t, self.X, np.where(self.inlier[..., None], self.uv, np.nan))
+    def errors(self, points: np.ndarray | None = None) -> np.ndarray:
+        """``(T, M)`` reprojection errors of the observations in use (of the ``(T,)`` bool ``points`` only), NaN elsewhere.
 
-    def observation_stats(self) -> dict[str, float]:
-        return error_summary(self.errors())
+        Computed for the observations only (one batched projection), not for the whole ``(T, M)`` grid.
+        """
+        use = self.inlier if points is None else self.inlier & points[:, None]
+        pi, ci = np.nonzero(use)
+        E = np.full((self.T, self.M), np.nan)
+        if len(pi):
+            xc = np.einsum("kij,kj->ki", self.R[ci], self.X[pi]) + self.t[ci]
+            xh = xc @ self.K.T
+            with np.errstate(divide="ignore", invalid="ignore"):
+                e = np.linalg.norm(xh[:, :2] / xh[:, 2:3] - self.uv[pi, ci], axis=1)
+            e[~(xc[:, 2] > 0)] = np.inf
+            E[pi, ci] = e
+        return E
+
+    def observation_stats(self, points: np.ndarray | None = None) -> dict[str, float]:
+        return error_summary(self.errors(points))
 
     def _P(self, i: int) -> np.ndarray:
         return projection_matrix(self.K, self.R[i], self.t[i])
@@ -350,7 +225,7 @@ class IncrementalMapper:
     # --- initial pair ---------------------------------------------------------------------------------
 
     def connectivity(self) -> np.ndarray:
-        """``(M,)`` verified correspondences of each free image: RANSAC inliers summed over its pairs with other free images."""
+        """``(M,)`` verified correspondences of each free image: inliers summed over its pairs with other free images."""
         conn = np.zeros(self.M)
         for (i, j), (_, inl) in self.pairs.items():
             if not (self.used[i] or self.used[j]):
@@ -358,38 +233,45 @@ class IncrementalMapper:
                 conn[j] += inl.sum()
         return conn
 
+    def _pair_inliers(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """The verified matches of pair ``(a, b)``, undistorted: ``x1, x2 (N, 2)``."""
+        inl = self.pairs[(a, b)][1]
+        pm = self.matches[(a, b)]
+        return self.undistort(pm.x1[inl]), self.undistort(pm.x2[inl])
+
     def is_degenerate(self, a: int, b: int) -> bool:
-        """Whether a homography explains pair ``(a, b)`` (:func:`pair_degeneracy`); such pairs are named in :attr:`degenerate`."""
+        """Whether pair ``(a, b)`` cannot start a model (:func:`pair_degeneracy`); such pairs are named in :attr:`degenerate`."""
         if (a, b) not in self._degenerate_checked:
-            inl = self.pairs[(a, b)][1]
-            pm = self.matches[(a, b)]
-            kind, ratio = pair_degeneracy(pm.x1[inl], pm.x2[inl], self.K, self.opts.f_threshold_px)
+            x1, x2 = self._pair_inliers(a, b)
+            kind, ratio = pair_degeneracy(x1, x2, self.K, self.opts.f_threshold_px)
             self._degenerate_checked.add((a, b))
             if kind:
                 self.degenerate[(a, b)] = {"pair": [a, b], "names": [self.names[a], self.names[b]], "kind": kind,
-                                           "homography_share": round(ratio, 3), "f_inliers": int(inl.sum())}
+                                           "homography_share": round(ratio, 3), "f_inliers": len(x1)}
         return (a, b) in self.degenerate
 
     def score_pair(self, a: int, b: int) -> InitialPair | None:
-        """The two-view start of pair ``(a, b)`` (camera ``a`` at the origin), or None where it is degenerate."""
+        """The two-view start of pair ``(a, b)`` (camera ``a`` at the origin), or None where it is degenerate.
+
+        The calibrated pose of the pair's verified matches (:func:`calibrated_pose`); the score
+        counts its inliers triangulated in front of both cameras under ``init_min_angle_deg`` or more.
+        """
         if (a, b) in self._scored:
             return self._scored[(a, b)]
-        F, inl = self.pairs[(a, b)]
-        pm = self.matches[(a, b)]
-        x1, x2 = pm.x1[inl], pm.x2[inl]
+        x1, x2 = self._pair_inliers(a, b)
         result = None
         if not self.is_degenerate(a, b):
             try:
-                E = call("essential_from_fundamental", F, self.K)
-                choice = call("choose_pose", *call("pose_candidates", E), self.K, x1, x2)
+                choice, inl = calibrated_pose(x1, x2, self.K, self.opts.init_max_error_px, int(self.rng.integers(2**31 - 1)))
             except KitInputError:
                 choice = None
             if choice is not None:
                 C2 = camera_center(choice.R_cw, choice.t_cw)
                 ang = triangulation_angles_deg(choice.X, np.stack([np.zeros(3), C2]), np.ones((len(x1), 2), bool))
-                good = choice.in_front & (ang >= self.opts.init_min_angle_deg)
-                med = float(np.median(ang[choice.in_front])) if choice.in_front.any() else 0.0
-                result = InitialPair((a, b), choice, int(good.sum()), int(inl.sum()), med)
+                front = choice.in_front & inl
+                good = front & (ang >= self.opts.init_min_angle_deg)
+                med = float(np.median(ang[front])) if front.any() else 0.0
+                result = InitialPair((a, b), choice, int(good.sum()), len(x1), med, int(inl.sum()))
         self._scored[(a, b)] = result
         return result
 
@@ -397,7 +279,7 @@ class IncrementalMapper:
         """Yield the candidate initial pairs among the free images, in the order to try them (COLMAP's order).
 
         First images by :meth:`connectivity` (the most verified correspondences to the most
-        images); for each, its partners with at least ``min_pair_inliers`` RANSAC inliers that are
+        images); for each, its partners with at least ``min_pair_inliers`` verified matches that are
         not degenerate and score at least ``init_min_points``, best score first. At most
         ``init_max_trials`` pairs; each once.
         """
@@ -405,7 +287,7 @@ class IncrementalMapper:
         if o.initial_pair is not None and not self.used.any():
             a, b = sorted(int(v) for v in o.initial_pair)
             if (a, b) not in self.pairs:
-                raise KitInputError(f"initial_pair={o.initial_pair}: that pair has no RANSAC result (too few matches?)")
+                raise KitInputError(f"initial_pair={o.initial_pair}: that pair has no verified matches (too few?)")
             yield self.score_pair(a, b) or InitialPair((a, b), None, 0, int(self.pairs[(a, b)][1].sum()), 0.0)
             return
         conn, n = self.connectivity(), 0
@@ -424,16 +306,10 @@ class IncrementalMapper:
                 n += 1
                 yield c
 
-    def relax_initialization(self) -> dict:
-        """Halve ``min_pair_inliers`` and ``init_min_angle_deg`` (COLMAP's relaxation when no model starts); the new values."""
-        from dataclasses import replace
-
-        self.opts = replace(self.opts, min_pair_inliers=max(self.opts.min_pair_matches, self.opts.min_pair_inliers // 2),
-                            init_min_angle_deg=self.opts.init_min_angle_deg / 2.0)
+    def use_options(self, options: MapperOptions) -> None:
+        """Go on with other options (e.g. :func:`course_lib.sfm.mapper_options.relaxed`); the pair scores are recomputed."""
+        self.opts = options
         self._scored.clear()  # the scores count points above the angle
-        self.say(f"no pair starts a model: relaxed to min_pair_inliers={self.opts.min_pair_inliers}, "
-                 f"init_min_angle_deg={self.opts.init_min_angle_deg}")
-        return {"min_pair_inliers": self.opts.min_pair_inliers, "init_min_angle_deg": self.opts.init_min_angle_deg}
 
     def initialize(self, pair: InitialPair) -> bool:
         """Start a model from ``pair``: triangulate, bundle-adjust and filter; False (model reset) if too few points remain."""
@@ -455,7 +331,7 @@ class IncrementalMapper:
         stage = {"stage": "initial pair", "images": [a, b], "new_points": n_new, "points": int(self.has_X.sum()),
                  "reprojection_before_ba": self.observation_stats()}
         if o.bundle_adjustment == "incremental" and n_new >= o.init_min_points:  # never a BA on (almost) nothing
-            self._adjust_and_filter(stage)
+            self._adjust_and_filter(stage, global_ba=True)
         stage["seconds"] = round(time.perf_counter() - t0, 3)
         n = int(self.has_X.sum())
         if n < o.init_min_points:
@@ -465,7 +341,7 @@ class IncrementalMapper:
             return False
         self.stages.append(stage)
         self.initial = {"images": [a, b], "names": [self.names[a], self.names[b]], "ransac_inliers": pair.inliers,
-                        "score": pair.score, "points": n_new}
+                        "pose_inliers": pair.pose_inliers, "score": pair.score, "points": n_new}
         self.seconds["initial_pair"] = time.perf_counter() - t0
         self.say(f"initial pair {self.names[a]}, {self.names[b]}: {n_new} points")
         return True
@@ -526,14 +402,14 @@ class IncrementalMapper:
         refine = caller("triangulate_nonlinear") if self.opts.bundle_adjustment != "incremental" else None
         return self._accept(js, X0[js], refine)
 
-    def _accept(self, js: np.ndarray, X0: np.ndarray, triangulate_nonlinear=None) -> int:
+    def _accept(self, js: np.ndarray, X0: np.ndarray, refine=None) -> int:
         """Check linearly triangulated tracks ``js`` (``X0 (len(js), 3)``) against all registered views, refine, keep the good ones.
 
         Observations that reproject farther than ``max_reproj_px`` from the linear estimate are
-        dropped, the point is refined non-linearly over the remaining ones (where a refinement is
-        given), checked again, and kept if at least two observations in front of their cameras
-        remain and its triangulation angle is at least ``min_angle_deg``. Dropped observations are
-        rejected for good.
+        dropped, the point is refined non-linearly over the remaining ones (where a refinement
+        ``refine``, the exercise ``triangulate_nonlinear`` of notebook 03, is given), checked
+        again, and kept if at least two observations in front of their cameras remain and its
+        triangulation angle is at least ``min_angle_deg``. Dropped observations are rejected for good.
         """
         o = self.opts
         regs = np.flatnonzero(self.registered)
@@ -547,8 +423,8 @@ class IncrementalMapper:
         uv[~(E <= o.max_reproj_px)] = np.nan
         two = np.isfinite(uv).all(axis=2).sum(axis=1) >= 2
         X = X0.copy()
-        if two.any() and triangulate_nonlinear is not None:
-            X[two] = triangulate_nonlinear(self.K, self.R[regs], self.t[regs], uv[two], X0[two])
+        if two.any() and refine is not None:
+            X[two] = refine(self.K, self.R[regs], self.t[regs], uv[two], X0[two])
         E = reprojection_error_matrix(self.K, self.R[regs], self.t[regs], X, uv)
         ok_obs = E <= o.max_reproj_px
         ang = triangulation_angles_deg(X, self.centers()[regs], ok_obs)
@@ -591,49 +467,158 @@ class IncrementalMapper:
 
     # --- filtering and bundle adjustment ------------------------------------------------------------------
 
-    def filter_points(self, max_reproj_px: float | None = None, min_angle_deg: float | None = None) -> dict:
-        """Drop observations that reproject badly, then points with < 2 observations or a small angle."""
+    def filter_points(self, max_reproj_px: float | None = None, min_angle_deg: float | None = None,
+                      points: np.ndarray | None = None) -> dict:
+        """Drop observations that reproject badly, then points with < 2 observations or a small angle.
+
+        ``points``: the ``(T,)`` bool points to check (default all; after a local BA, its points).
+        """
         thr = self.opts.max_reproj_px if max_reproj_px is None else max_reproj_px
         angle = self.opts.min_angle_deg if min_angle_deg is None else min_angle_deg
-        bad = self.inlier & ~(self.errors() <= thr)
-        self.candidate &= ~bad
-        inl = self.inlier
-        ang = triangulation_angles_deg(np.where(self.has_X[:, None], self.X, 0.0), np.nan_to_num(self.centers()), inl)
-        drop = self.has_X & ((inl.sum(axis=1) < 2) | (ang < angle))
-        self.X[drop] = np.nan
+        sel = self.has_X if points is None else self.has_X & points
+        js = np.flatnonzero(sel)
+        bad = self.inlier[js] & ~(self.errors(sel)[js] <= thr)
+        self.candidate[js] &= ~bad
+        inl = self.inlier[js]
+        ang = triangulation_angles_deg(self.X[js], np.nan_to_num(self.centers()), inl)
+        drop = (inl.sum(axis=1) < 2) | (ang < angle)
+        self.X[js[drop]] = np.nan
         return {"observations_removed": int(bad.sum()), "points_removed": int(drop.sum())}
 
+    def local_images(self, new: int) -> np.ndarray:
+        """``(M,)`` bool: image ``new`` and the ``ba_local_num_images - 1`` registered images that share the most points with it."""
+        inl = self.inlier
+        shared = inl[inl[:, new]].sum(axis=0).astype(float)
+        shared[~self.registered] = -1.0
+        shared[new] = np.inf
+        order = np.argsort(-shared, kind="stable")[: self.opts.ba_local_num_images]
+        out = np.zeros(self.M, bool)
+        out[order[shared[order] > 0]] = True
+        return out
+
     def adjust_bundle(self, loss: str, f_scale: float, max_iterations: int, ftol: float = 1e-4,
-                      points: np.ndarray | None = None) -> dict:
+                      points: np.ndarray | None = None, cameras: np.ndarray | None = None) -> dict:
         """Bundle adjustment of the registered cameras and the points (all, or the ``(T,)`` bool ``points``).
 
-        The gauge is the initial pair's first camera. With no observation to adjust it does nothing
-        and says so (``{"skipped": ...}``).
+        ``cameras`` (``(M,)`` bool): a **local** BA -- only these cameras and the points they see
+        move; the other registered cameras that see those points are held fixed (their observations
+        count). Without it, the whole model (gauge: the initial pair's first camera and the scale),
+        with the focal length and ``k1`` refined where the mapper refines the intrinsics
+        (:meth:`_adjust_with_intrinsics`). With no observation to adjust it does nothing and says
+        so (``{"skipped": ...}``).
         """
-        cams = np.flatnonzero(self.registered)
-        pts = np.flatnonzero(self.has_X if points is None else self.has_X & points)
-        uv = np.where(self.inlier[np.ix_(pts, cams)][..., None], self.uv[np.ix_(pts, cams)], np.nan)
-        if len(pts) == 0 or not np.isfinite(uv).any():
+        local = cameras is not None
+        pts_mask = self.has_X if points is None else self.has_X & points
+        if local:
+            pts_mask = pts_mask & (self.inlier & cameras[None, :]).any(axis=1)
+        pts = np.flatnonzero(pts_mask)
+        cams = np.flatnonzero(self.registered & (self.inlier[pts].any(axis=0) | (cameras if local else self.registered)))
+        if len(pts) == 0 or len(cams) < 2:
             return {"skipped": "no points to adjust"}
-        res = adjust(self.K, self.R[cams], self.t[cams], self.X[pts], uv, loss=loss, f_scale=f_scale,
-                            max_iterations=max_iterations, ref_camera=int(np.flatnonzero(cams == self.ref)[0]),
-                            ftol=ftol, xtol=1e-10)
-        self.R[cams], self.t[cams], self.X[pts] = res.R_cw, res.t_cw, res.X
-        return {"iterations": res.n_iterations, "rms_before": round(res.initial_rms, 4), "rms_after": round(res.final_rms, 4),
-                "seconds": round(res.seconds, 3), "gauge": res.gauge}
+        if not local and self.refine and self.registered.sum() >= REFINE_FROM_IMAGES:
+            return self._adjust_with_intrinsics(cams, pts, loss, f_scale, max_iterations, ftol)
+        if not local:
+            uv = np.where(self.inlier[np.ix_(pts, cams)][..., None], self.uv[np.ix_(pts, cams)], np.nan)
+            res = adjust(self.K, self.R[cams], self.t[cams], self.X[pts], uv, loss=loss, f_scale=f_scale,
+                         max_iterations=max_iterations, ref_camera=int(np.flatnonzero(cams == self.ref)[0]),
+                         ftol=ftol, xtol=1e-10)
+            self.R[cams], self.t[cams], self.X[pts] = res.R_cw, res.t_cw, res.X
+            return {"kind": "global", "iterations": res.n_iterations, "rms_before": round(res.initial_rms, 4),
+                    "rms_after": round(res.final_rms, 4), "seconds": round(res.seconds, 3), "gauge": res.gauge}
+        free = cameras[cams]
+        fixed = np.zeros((len(cams), 6), bool)
+        fixed[~free] = True
+        gauge = f"{int((~free).sum())} cameras around held fixed"
+        if (~free).sum() < 2:  # fewer than two fixed cameras leave the gauge (or the scale) free: fix it here
+            gauge = self._fix_gauge(cams, fixed)
+        res = self._solve(lm.PinholeCamera(self.K), cams, pts, self.uv, fixed, loss, f_scale, max_iterations, ftol)
+        return {"kind": "local", "images": [int(i) for i in cams[free]], "iterations": res["iterations"],
+                "rms_before": res["rms_before"], "rms_after": res["rms_after"], "seconds": res["seconds"], "gauge": gauge}
+
+    def _fix_gauge(self, cams: np.ndarray, fixed: np.ndarray) -> str:
+        """Hold the gauge of a BA over ``cams``: the reference camera (or the first) and one coordinate of the farthest one."""
+        ref = int(np.flatnonzero(cams == self.ref)[0]) if self.ref in cams else int(np.argmax(fixed.all(axis=1))) \
+            if fixed.all(axis=1).any() else 0
+        fixed[ref] = True
+        C = np.stack([camera_center(self.R[i], self.t[i]) for i in cams])
+        d = np.linalg.norm(C - C[ref], axis=1)
+        d[fixed.all(axis=1)] = -1.0
+        s = int(np.argmax(d))
+        if d[s] <= 0:
+            return f"camera {int(cams[ref])} fixed"
+        k = int(np.argmax(np.abs(self.R[cams[s]] @ (C[s] - C[ref]))))
+        fixed[s, 3 + k] = True
+        return f"camera {int(cams[ref])} fixed, t_cw[{int(cams[s])}][{k}] fixed (scale)"
+
+    def _solve(self, model, cams: np.ndarray, pts: np.ndarray, uv_all: np.ndarray, fixed: np.ndarray, loss: str,
+               f_scale: float, max_iterations: int, ftol: float, shared=None) -> dict:
+        """:func:`course_lib.sfm.lm.solve` over cameras ``cams`` and points ``pts`` (observations: :attr:`inlier`); the results written back."""
+        obs = self.inlier[np.ix_(pts, cams)]
+        pi, ci = np.nonzero(obs)
+        uv = uv_all[pts[pi], cams[ci]]
+        params = np.hstack([Rotation.from_matrix(self.R[cams]).as_rotvec(), self.t[cams]])
+        kw = {} if shared is None else {"shared": shared}
+        res = lm.solve(model, params, self.X[pts], ci, pi, uv, fixed_cameras=fixed, loss=loss, f_scale=f_scale,
+                       max_iterations=max_iterations, ftol=ftol, xtol=1e-10, **kw)
+        self.R[cams] = Rotation.from_rotvec(res.cameras[:, :3]).as_matrix()
+        self.t[cams] = res.cameras[:, 3:]
+        self.X[pts] = res.points
+        n = max(len(pi), 1)
+        return {"iterations": res.iterations, "rms_before": round(float(np.sqrt(2 * res.initial_cost / n)), 4),
+                "rms_after": round(float(np.sqrt(2 * res.final_cost / n)), 4), "seconds": round(res.seconds, 3),
+                "shared": res.shared}
+
+    def _adjust_with_intrinsics(self, cams, pts, loss, f_scale, max_iterations, ftol) -> dict:
+        """A BA of the whole model that also refines the focal length and ``k1`` (:class:`~course_lib.sfm.lm.SimpleRadialCamera`).
+
+        It works on the photos' own pixels. A result outside the sane range (focal length more than
+        ``max_focal_change`` from the prior, ``|k1| > max_k1``) is rejected: the cameras and points
+        go back and the BA is redone with the intrinsics held.
+        """
+        o = self.opts
+        saved = self.R.copy(), self.t.copy(), self.X.copy()
+        fixed = np.zeros((len(cams), 6), bool)
+        gauge = self._fix_gauge(cams, fixed)
+        model = lm.SimpleRadialCamera(self.K[:2, 2])
+        res = self._solve(model, cams, pts, self.uv_raw, fixed, loss, f_scale, max_iterations, ftol,
+                          shared=np.array([self.K[0, 0], self.k1]))
+        f, k1 = (float(v) for v in res.pop("shared"))
+        f0 = self.K0[0, 0]
+        ok = np.isfinite([f, k1]).all() and f0 / o.max_focal_change <= f <= f0 * o.max_focal_change and abs(k1) <= o.max_k1
+        entry = {"images": int(self.registered.sum()), "f": round(f, 3), "k1": round(k1, 6), "accepted": bool(ok)}
+        self.intrinsics_log.append(entry)
+        if not ok:
+            self.R[:], self.t[:], self.X[:] = saved
+            self.refine = False
+            out = self.adjust_bundle(loss, f_scale, max_iterations, ftol, points=np.isin(np.arange(self.T), pts))
+            self.refine = True
+            out["intrinsics"] = {**entry, "note": "rejected: outside the sane range; held"}
+            return out
+        K = self.K.copy()
+        K[0, 0] = K[1, 1] = f
+        self.set_intrinsics(K, k1)
+        return {"kind": "global", **res, "gauge": gauge, "intrinsics": entry}
 
     def should_bundle(self) -> bool:
-        """Whether the model is due a bundle adjustment (OpenSfM's ``ShouldBundle``): up to 6 images
+        """Whether the whole model is due a bundle adjustment (OpenSfM's ``ShouldBundle``): up to 6 images
         always, then when it has grown by ``ba_images_ratio`` since the last one."""
         n = int(self.registered.sum())
         return self.opts.bundle_adjustment == "incremental" and (n <= 6 or n >= self.opts.ba_images_ratio * self.n_at_last_ba)
 
-    def _adjust_and_filter(self, stage: dict) -> None:
-        self.n_at_last_ba = int(self.registered.sum())
+    def _adjust_and_filter(self, stage: dict, global_ba: bool, new: int | None = None) -> None:
+        """A BA of the whole model (``global_ba``) or a local one around image ``new``, then filtering; numbers into ``stage``."""
         o = self.opts
-        stage["ba"] = self.adjust_bundle(o.ba_loss, o.ba_f_scale, o.ba_max_iterations)
-        stage["filter"] = self.filter_points()
-        stage["reprojection_after_ba"] = self.observation_stats()
+        if global_ba:
+            self.n_at_last_ba = int(self.registered.sum())
+            stage["ba"] = self.adjust_bundle(o.ba_loss, o.ba_f_scale, o.ba_max_iterations)
+            stage["filter"] = self.filter_points()
+            stage["reprojection_after_ba"] = self.observation_stats()
+            return
+        local = self.local_images(new)
+        points = (self.inlier & local[None, :]).any(axis=1)
+        stage["ba"] = self.adjust_bundle(o.ba_loss, o.ba_f_scale, o.ba_local_max_iterations, cameras=local)
+        stage["filter"] = self.filter_points(points=points)
+        stage["reprojection_after_ba"] = self.observation_stats(points)
 
     # --- growing and finishing a model ----------------------------------------------------------------
 
@@ -666,7 +651,7 @@ class IncrementalMapper:
                 retried = False
             else:
                 failed.add(i)
-        self.seconds["registration"] = time.perf_counter() - t_reg
+        self.seconds["registration"] = self.seconds.get("registration", 0.0) + time.perf_counter() - t_reg
 
     def _register_and_grow(self, i: int, n_corr: int) -> bool:
         """Register image ``i``, triangulate its new tracks, adjust and filter; the stage goes into :attr:`stages`."""
@@ -678,15 +663,17 @@ class IncrementalMapper:
                                 "correspondences": n_corr, "note": why})
             self.say(f"not registered (yet): {self.names[i]}: {why}")
             return False
-        had_X = self.has_X
         n_new = self.triangulate_image(i)
         stage = {"stage": "register", "image": i, "name": self.names[i], "registered": True, **info,
-                 "new_points": n_new, "points": int(self.has_X.sum()), "reprojection_before_ba": self.observation_stats()}
-        if self.should_bundle():
-            self._adjust_and_filter(stage)
-        elif self.opts.bundle_adjustment == "incremental":
-            stage["points_refined"] = self._refine_points(self.candidate[:, i] & self.has_X & ~had_X)
-            stage["filter"] = self.filter_points()
+                 "new_points": n_new, "points": int(self.has_X.sum())}
+        if self.opts.bundle_adjustment == "incremental":
+            global_ba = self.should_bundle()
+            near = self.local_images(i) if not global_ba else None
+            points = None if global_ba else (self.inlier & near[None, :]).any(axis=1)
+            stage["reprojection_before_ba"] = self.observation_stats(points)
+            self._adjust_and_filter(stage, global_ba, i)
+        else:
+            stage["reprojection_before_ba"] = self.observation_stats()
         stage["points_after"] = int(self.has_X.sum())
         stage["seconds"] = round(time.perf_counter() - t0, 3)
         self.stages.append(stage)
@@ -753,29 +740,34 @@ class IncrementalMapper:
             st["reprojection_after_ba"] = self.observation_stats()
         st["seconds"] = round(time.perf_counter() - t0, 3)
         self.stages.append(st)
-        self.seconds["final_ba"] = time.perf_counter() - t0
+        self.seconds["final_ba"] = self.seconds.get("final_ba", 0.0) + time.perf_counter() - t0
 
     def end_model(self, rgb: np.ndarray) -> Reconstruction:
         """The current model as a :class:`Reconstruction` (its images leave the pool of later models).
 
         ``report`` holds this model's ``initial_pair``, ``stages``, ``final`` (without
-        ``left_out``, which :func:`~course_lib.sfm.pipeline.run_sfm` adds once all models exist)
-        and ``seconds``.
+        ``left_out``, which :func:`~course_lib.sfm.pipeline.run_sfm` adds once all models exist),
+        ``camera`` and ``seconds``.
         """
         self.used |= self.registered
-        rec = Reconstruction(K=self.K, image_names=list(self.names), image_size=self.image_size,
+        model = "SIMPLE_RADIAL" if self.refine else "PINHOLE"
+        rec = Reconstruction(K=self.K.copy(), image_names=list(self.names), image_size=self.image_size,
                              registered=self.registered.copy(), R_cw=self.R.copy(), t_cw=self.t.copy(), X=self.X.copy(),
-                             rgb=rgb.copy(), track_uv=self.uv.copy(), inlier=self.inlier.copy())
+                             rgb=rgb.copy(), track_uv=self.uv.copy(), inlier=self.inlier.copy(), k1=self.k1, camera_model=model)
         stats = rec.error_stats()
-        rec.report = {"initial_pair": dict(self.initial), "stages": self.stages, "seconds": dict(self.seconds), "final": {
-            "registered_images": rec.n_registered,
-            "registered": [self.names[i] for i in np.flatnonzero(rec.registered)],
-            "points": rec.n_points,
-            "observations": int(rec.inlier.sum()),
-            "mean_track_length": round(float(rec.inlier.sum() / max(rec.n_points, 1)), 3),
-            "mean_reprojection_error_px": round(stats["mean"], 4),
-            "median_reprojection_error_px": round(stats["median"], 4),
-            "rms_reprojection_error_px": round(stats["rms"], 4),
-            "max_reprojection_error_px": round(stats["max"], 4),
-        }}
+        camera = {"model": model, "K": np.round(self.K, 4).tolist(), "k1": round(self.k1, 6)}
+        if self.refine:
+            camera.update(prior_focal_px=round(float(self.K0[0, 0]), 3), refinements=list(self.intrinsics_log))
+        rec.report = {"initial_pair": dict(self.initial), "stages": self.stages, "seconds": dict(self.seconds),
+                      "camera": camera, "final": {
+                          "registered_images": rec.n_registered,
+                          "registered": [self.names[i] for i in np.flatnonzero(rec.registered)],
+                          "points": rec.n_points,
+                          "observations": int(rec.inlier.sum()),
+                          "mean_track_length": round(float(rec.inlier.sum() / max(rec.n_points, 1)), 3),
+                          "mean_reprojection_error_px": round(stats["mean"], 4),
+                          "median_reprojection_error_px": round(stats["median"], 4),
+                          "rms_reprojection_error_px": round(stats["rms"], 4),
+                          "max_reprojection_error_px": round(stats["max"], 4),
+                      }}
         return rec

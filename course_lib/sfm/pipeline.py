@@ -49,6 +49,8 @@ import time
 import numpy as np
 
 from course_lib.sfm.mapper import IncrementalMapper, MapperOptions
+from course_lib.sfm.mapper_options import relaxed
+from course_lib.sfm.tracks import verified_tracks, verify_pairs
 from course_lib.sfm.reconstruction import Reconstruction, image_size_of, reprojection_error_matrix, triangulation_angles_deg
 from course_lib.threads import single_threaded_blas
 from course_lib.validate import KitInputError, intrinsics
@@ -94,9 +96,10 @@ def run_sfm(data, rng: np.random.Generator, options: MapperOptions | None = None
         t_ransac = time.perf_counter() - t_start
         tr = report["tracks"]
         if opts.verbose:
-            print(f"RANSAC on F: {len(pairs)} pairs verified; {tr['verified_tracks']} tracks from {tr['verified_matches']} inlier "
+            print(f"{report['verification']}: {len(pairs)} pairs verified; {tr['verified_tracks']} tracks from {tr['verified_matches']} inlier "
                   f"matches ({tr['refused_links']} links refused: they joined two features of one image)")
-        mapper = IncrementalMapper(data, pairs, tracks.uv, K, image_size_of(data), opts, rng)
+        refine = opts.refine_intrinsics if opts.refine_intrinsics is not None else bool(getattr(data.camera, "refine", False))
+        mapper = IncrementalMapper(data, pairs, tracks.uv, K, image_size_of(data), opts, rng, refine_intrinsics=refine)
         models, reasons = _build_models(mapper, tracks.rgb, pairs)
     report["degenerate_pairs"] = list(mapper.degenerate.values())
     rec = _assemble(models, reasons, report)
@@ -124,15 +127,15 @@ def _check_inputs(data, rng) -> np.ndarray:
 
 
 def verified_pairs_and_tracks(data, rng, threshold_px: float, min_matches: int, report: dict):
-    """Stage 1: RANSAC on F for every pair, then tracks from the inlier matches only (:mod:`course_lib.sfm.tracks`).
+    """Stage 1: every pair verified (``match``'s verification where the folder carries it, else RANSAC on F), then
+    tracks from the inlier matches only (:func:`course_lib.sfm.tracks.verify_pairs`).
 
     Returns:
         ``pairs {(i, j): (F (3, 3), inliers (N,) bool)}`` of the pairs with at least ``min_matches``
         inliers, and the :class:`~course_lib.sfm.tracks.Tracks`; ``report`` gets ``pairs`` and ``tracks``.
     """
-    from course_lib.sfm.tracks import ransac_every_pair, verified_tracks
-
-    ver = ransac_every_pair(data.matches, rng, threshold_px)
+    ver, how = verify_pairs(data, rng, threshold_px)
+    report["verification"] = how
     pairs, rows = {}, []
     for (i, j), v in ver.items():
         row = {"pair": [i, j], "names": [data.image_names[i], data.image_names[j]], "matches": len(v.inliers),
@@ -162,17 +165,21 @@ def _build_models(mapper: IncrementalMapper, rgb: np.ndarray, pairs: dict) -> tu
     opts = mapper.opts
     models, reasons, discarded = [], [], {}
     while len(models) < opts.max_models and (~mapper.used).sum() >= 2:
-        tried, relaxed = _start_model(mapper, relax=not models)
+        tried, relaxations = _start_model(mapper, relax=not models)
         if not mapper.registered.any():
             if not models:
                 raise KitInputError(_no_start_message(mapper, tried, pairs))
             break
         mapper.grow()
         mapper.finish()
+        n = int(mapper.registered.sum())
+        mapper.grow()  # a last try for the images left out: the final BA and re-triangulation may let them in now
+        if mapper.registered.sum() > n:
+            mapper.finish()
         rec = mapper.end_model(rgb)
         rec.report["initial_pair"]["candidates"] = tried
-        if relaxed:
-            rec.report["initial_pair"]["relaxed"] = relaxed
+        if relaxations:
+            rec.report["initial_pair"]["relaxed"] = relaxations
         if models and rec.n_registered < opts.min_model_size:
             why = (f"in a model of only {rec.n_registered} images ({', '.join(rec.report['final']['registered'])}): "
                    f"fewer than min_model_size={opts.min_model_size}, discarded")
@@ -190,28 +197,32 @@ def _build_models(mapper: IncrementalMapper, rgb: np.ndarray, pairs: dict) -> tu
 def _start_model(mapper: IncrementalMapper, relax: bool) -> tuple[list, list]:
     """Try the candidate pairs until one starts a model; ``(rows of the pairs tried, relaxations made)``.
 
-    Where none does and ``relax`` (no model yet), the initialization is relaxed
-    (:meth:`~course_lib.sfm.mapper.IncrementalMapper.relax_initialization`) and the candidates tried again.
+    Where none does and ``relax`` (no model yet), the initialization is relaxed (a new options
+    object, :func:`~course_lib.sfm.mapper_options.relaxed`) and the candidates tried again.
     """
-    tried, relaxed = [], []
+    tried, made = [], []
     mapper.begin_model()
     for step in range(mapper.opts.init_relaxations + 1 if relax else 1):
         if step:
-            relaxed.append(mapper.relax_initialization())
+            mapper.use_options(relaxed(mapper.opts))
+            made.append({"min_pair_inliers": mapper.opts.min_pair_inliers, "init_min_angle_deg": mapper.opts.init_min_angle_deg})
+            mapper.say(f"no pair starts a model: relaxed to min_pair_inliers={mapper.opts.min_pair_inliers}, "
+                       f"init_min_angle_deg={mapper.opts.init_min_angle_deg}")
         for pair in mapper.find_initial_pair():
             tried.append(pair.row())
             if mapper.initialize(pair):
-                return tried, relaxed
-    return tried, relaxed
+                return tried, made
+    return tried, made
 
 
 def _no_start_message(mapper: IncrementalMapper, tried: list, pairs: dict) -> str:
     """One line: why no image pair could start the reconstruction."""
     o = mapper.opts
     degenerate = list(mapper.degenerate.values())
-    why = "; ".join(f"{d['names'][0]}-{d['names'][1]}: {d['kind']} (a homography explains {100 * d['homography_share']:.0f} % "
-                    "of the matches)" for d in degenerate[:6])
-    msg = (f"no image pair can start the reconstruction: none has {o.min_pair_inliers} or more RANSAC inliers with "
+    why = "; ".join(f"{d['names'][0]}-{d['names'][1]}: {d['kind']}" + (
+        " (no baseline: the matches do not move)" if d["kind"].startswith("identical") else
+        f" (a homography explains {100 * d['homography_share']:.0f} % of the matches)") for d in degenerate[:6])
+    msg = (f"no image pair can start the reconstruction: none has {o.min_pair_inliers} or more verified matches with "
            f"{o.init_min_points} or more points triangulated at {o.init_min_angle_deg} degrees or more")
     if tried:
         msg += (f"; the {len(tried)} pair(s) tried kept fewer than {o.init_min_points} points after triangulation and bundle "
@@ -219,7 +230,7 @@ def _no_start_message(mapper: IncrementalMapper, tried: list, pairs: dict) -> st
     if degenerate:
         return msg + (f". Degenerate pairs: {why}. Take photos from different positions (not only turning the camera) "
                       "and of a scene that is not a single plane")
-    return msg + (f": the matches are too few or too noisy ({len(pairs)} pair(s) passed RANSAC on F)")
+    return msg + (f": the matches are too few or too noisy ({len(pairs)} pair(s) verified)")
 
 
 def _left_out(rec: Reconstruction, k: int, models: list, reasons: list, verified: set) -> list[dict]:

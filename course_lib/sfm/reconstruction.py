@@ -43,6 +43,10 @@ class Reconstruction:
         others: the other models, largest first, where registration stalled and new models were
             started from the images left over (empty for one model; each has the same fields, its
             own world frame and scale, and ``others == []``).
+        k1: radial distortion of a ``SIMPLE_RADIAL`` camera (:mod:`course_lib.data.camera`); the
+            pixels in ``track_uv`` are then *undistorted* (where the pinhole ``K`` sees them), and
+            :meth:`write_colmap` writes the photos' own pixels and the model.
+        camera_model: ``"PINHOLE"`` (K from a calibration file) or ``"SIMPLE_RADIAL"`` (refined).
     """
 
     K: np.ndarray
@@ -57,6 +61,8 @@ class Reconstruction:
     inlier: np.ndarray
     report: dict = field(default_factory=dict)
     others: list = field(default_factory=list)
+    k1: float = 0.0
+    camera_model: str = "PINHOLE"
 
     @property
     def n_points(self) -> int:
@@ -107,7 +113,7 @@ class Reconstruction:
 
         return write_colmap_text(
             folder, self.K, self.image_size, self.image_names, self.R_cw, self.t_cw, self.registered, self.X, self.rgb,
-            self.observations,
+            self.observations, camera_model=self.camera_model, k1=self.k1,
         )
 
 
@@ -143,22 +149,28 @@ def triangulation_angles_deg(X: np.ndarray, centers: np.ndarray, mask: np.ndarra
 
     Args:
         X: ``(T, 3)`` points. centers: ``(M, 3)`` camera centres. mask: ``(T, M)`` which cameras see
-            each point. Points seen by fewer than two cameras get 0.
+            each point. Points seen by fewer than two cameras get 0; NaN where a ray is undefined.
+
+    The rays of each point are unit vectors; the largest angle is the arccosine of the smallest
+    dot product between two of them. Points are grouped by how many cameras see them, so each
+    group is one batched Gram matrix (no loop over camera pairs).
     """
-    T, M = mask.shape
-    rays = np.full((T, M, 3), np.nan)
-    for i in range(M):
-        if mask[:, i].any():
-            d = X - centers[i]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                rays[:, i] = d / np.linalg.norm(d, axis=1, keepdims=True)
+    mask = np.asarray(mask, bool)
+    T = mask.shape[0]
     best = np.zeros(T)
-    for a in range(M):
-        for b in range(a + 1, M):
-            both = mask[:, a] & mask[:, b]
-            if both.any():
-                c = np.clip(np.einsum("ij,ij->i", rays[both, a], rays[both, b]), -1.0, 1.0)
-                best[both] = np.maximum(best[both], np.degrees(np.arccos(c)))
+    t, i = np.nonzero(mask)  # row-major: the observations of a point are contiguous
+    if len(t) == 0:
+        return best
+    d = X[t] - centers[i]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rays = d / np.linalg.norm(d, axis=1, keepdims=True)
+    counts = np.bincount(t, minlength=T)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    for L in np.unique(counts[counts >= 2]):
+        pts = np.flatnonzero(counts == L)
+        r = rays[start[pts][:, None] + np.arange(L)]  # (n, L, 3)
+        dots = np.clip((r @ np.transpose(r, (0, 2, 1))).min(axis=(1, 2)), -1.0, 1.0)
+        best[pts] = np.degrees(np.arccos(dots))
     return best
 
 

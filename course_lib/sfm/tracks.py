@@ -6,13 +6,17 @@ points together: if feature A of image 1 is wrongly matched to feature B of imag
 a real feature of another point, the two points' tracks become one, and a track with two
 features in one image is useless. So the pipeline builds its tracks in two steps:
 
-1. **Verify every pair** (notebook 01, :func:`ransac_every_pair`): RANSAC on F with the
-   normalized 8-point algorithm and the Sampson distance. In the instructor's kit that is the one
-   RANSAC of :mod:`course_lib.sfm.fundamental`, with the random samples drawn and solved in
-   batches (:func:`verify_pair`): one batched factorization for many 8-point problems instead of
-   a Python loop over them; in the student kit, the student's own ``ransac_fundamental`` and
-   ``sampson_distance``. Only the inlier matches go on.
-2. **Join the inliers** (:func:`join_tracks`): features are nodes ``(image, u, v)`` (equal
+1. **Verify every pair** (:func:`verify_pairs`). A P3 folder written by ``match`` carries its
+   verification (each verified pair's F, :mod:`course_lib.data.two_view`): F is refit on its
+   matches within the threshold and those are the inliers (:func:`from_carried_geometry`), no
+   second RANSAC. Other folders (the course's own matching files): RANSAC on F (notebook 01,
+   :func:`ransac_every_pair`) with the normalized 8-point algorithm and the Sampson distance. In
+   the instructor's kit that is the one RANSAC of :mod:`course_lib.sfm.fundamental`, with the
+   random samples drawn and solved in batches (:func:`verify_pair`): one batched factorization
+   for many 8-point problems instead of a Python loop over them; in the student kit, the
+   student's own ``ransac_fundamental`` and ``sampson_distance`` (and ``eight_point`` for the
+   refit of a carried F). Only the inlier matches go on.
+2. **Join the inliers** (:func:`course_lib.data.tracks.join_tracks`): features are nodes ``(image, u, v)`` (equal
    pixels are the same feature) and verified matches are edges. Edges are added by union-find
    (:class:`course_lib.data.p3.UnionFind`), the most trustworthy first (pairs with more inliers
    first, then by Sampson distance), and an edge that would put two different features of one image into one track is
@@ -23,20 +27,21 @@ Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from course_lib.data.p3 import UnionFind
+from course_lib.data.tracks import Tracks, join_tracks
 from course_lib.exercises import call
 from course_lib.validate import KitInputError
 
 try:  # the instructor's kit: notebook 01's RANSAC with batched samples and a preemptive test (faster)
-    from course_lib.sfm.fundamental import ransac
-except ImportError:  # the student kit: your ransac_fundamental and sampson_distance of notebook 01
-    ransac = None
+    from course_lib.sfm.fundamental import _refit, eight_point_batch, ransac, sampson_distance_batch
+except ImportError:  # the student kit: your ransac_fundamental, eight_point and sampson_distance of notebook 01
+    _refit = eight_point_batch = ransac = sampson_distance_batch = None
 
-__all__ = ["PairVerification", "Tracks", "verify_pair", "ransac_every_pair", "join_tracks", "verified_tracks"]
+__all__ = ["PairVerification", "Tracks", "verify_pair", "ransac_every_pair", "from_carried_geometry", "verify_pairs",
+           "join_tracks", "verified_tracks"]
 
 
 @dataclass
@@ -142,89 +147,84 @@ def ransac_every_pair(matches: dict, rng: np.random.Generator, threshold_px: flo
     return {key: verify_pair(matches[key].x1, matches[key].x2, rng, threshold_px, **kw) for key in sorted(matches)}
 
 
-@dataclass
-class Tracks:
-    """Tracks joined from verified matches.
+def from_carried_geometry(x1: np.ndarray, x2: np.ndarray, F: np.ndarray, threshold_px: float) -> PairVerification:
+    """A pair verified by ``match`` (its ``F`` carried in the P3 folder), without a RANSAC of its own.
 
-    Attributes:
-        uv: ``(T, M, 2)`` pixels of each track in each image, NaN where unseen.
-        rgb: ``(T, 3)`` uint8 colour (of the feature in the lower-numbered image of its first edge).
-        stats: ``edges`` (verified matches used), ``refused_edges`` (links refused because they
-            would put two features of one image into one track), ``tracks``.
-    """
-
-    uv: np.ndarray
-    rgb: np.ndarray
-    stats: dict = field(default_factory=dict)
-
-
-def join_tracks(n_images: int, edges: list) -> Tracks:
-    """Union-find over verified matches; a link that joins two features of one image is refused.
+    The last step of notebook 01's RANSAC (the refit on the inliers), from ``F`` instead of a sample's
+    model: F is refit (8-point) on its matches within ``threshold_px`` (Sampson distance) while that
+    set grows, and those are the inliers. The random sampling ran once, in ``match``
+    (:mod:`course_lib.data.two_view`).
 
     Args:
-        n_images: M.
-        edges: list of ``(i, j, x1 (N, 2), x2 (N, 2), rgb (N, 3) or None)`` verified matches
-            between images ``i != j``, **in order of trust** (the first are joined first).
-            Features are identified by equal pixels within an image.
+        x1, x2: ``(N, 2)`` the pair's matches in the P3 folder. F: ``(3, 3)`` the carried F.
+        threshold_px: inlier threshold on the Sampson distance (pixels).
 
     Returns:
-        :class:`Tracks` with every track of two or more features.
+        :class:`PairVerification` (``n_iters`` 0).
     """
-    M = int(n_images)
-    # one node per distinct (image, u, v): np.unique over each image's endpoints of all edges
-    ends = [[] for _ in range(M)]  # per image: (edge number, side, pixels)
-    for e, (i, j, x1, x2, _) in enumerate(edges):
-        if not (0 <= i < M and 0 <= j < M) or i == j:
-            raise KitInputError(f"pair ({i}, {j}) is not a pair of two different images among 0..{M - 1}")
-        ends[i].append((e, 0, np.asarray(x1, float).reshape(-1, 2)))
-        ends[j].append((e, 1, np.asarray(x2, float).reshape(-1, 2)))
-    node_of = [[None, None] for _ in edges]  # node ids of both ends of every edge list
-    node_img, node_uv, n_nodes = [], [], 0
-    for i in range(M):
-        if not ends[i]:
-            continue
-        u, inv = np.unique(np.concatenate([x for _, _, x in ends[i]]), axis=0, return_inverse=True)
-        inv = inv.ravel() + n_nodes
-        start = 0
-        for e, side, x in ends[i]:
-            node_of[e][side] = inv[start:start + len(x)]
-            start += len(x)
-        node_img.append(np.full(len(u), i))
-        node_uv.append(u)
-        n_nodes += len(u)
-    node_img = np.concatenate(node_img) if node_img else np.zeros(0, int)
-    node_uv = np.concatenate(node_uv) if node_uv else np.zeros((0, 2))
+    x1 = np.asarray(x1, float).reshape(-1, 2)
+    x2 = np.asarray(x2, float).reshape(-1, 2)
+    if len(x1) < 8:
+        return PairVerification(None, np.zeros(len(x1), bool), np.full(len(x1), np.inf), 0,
+                                f"{len(x1)} matches: the 8-point algorithm needs at least 8")
+    F = np.asarray(F, float) / np.linalg.norm(F)
+    if _refit is not None:
+        model, d = _refit(eight_point_batch, sampson_distance_batch, x1, x2, F, threshold_px, 8)
+    else:
+        model, d = _refit_with_exercises(x1, x2, F, threshold_px)
+    return PairVerification(model, d < threshold_px, d, 0)
 
-    node_rgb = np.zeros((n_nodes, 3), np.uint8)
-    has_rgb = np.zeros(n_nodes, bool)
-    for e, (i, j, x1, x2, rgb) in enumerate(edges):
-        a = node_of[e][0]
-        if rgb is not None and len(a):
-            new = ~has_rgb[a]
-            node_rgb[a[new]] = np.asarray(rgb, np.uint8).reshape(-1, 3)[new]
-            has_rgb[a[new]] = True
-    A = np.concatenate([n[0] for n in node_of]) if edges else np.zeros(0, int)
-    Bn = np.concatenate([n[1] for n in node_of]) if edges else np.zeros(0, int)
-    # a track holds one feature per image: a link between two tracks that share an image is refused
-    uf = UnionFind(n_nodes, groups=node_img)
-    refused = sum(not uf.union(a, b) for a, b in zip(A.tolist(), Bn.tolist()))
-    roots = np.array([uf.find(x) for x in range(n_nodes)], dtype=int)
-    linked = np.zeros(n_nodes, bool)
-    linked[A] = linked[Bn] = True
-    _, track_of, sizes = np.unique(roots, return_inverse=True, return_counts=True)
-    keep_track = sizes >= 2
-    new_id = np.cumsum(keep_track) - 1
-    T = int(keep_track.sum())
-    uv = np.full((T, M, 2), np.nan)
-    rgb = np.zeros((T, 3), np.uint8)
-    sel = keep_track[track_of] & linked
-    t_of = new_id[track_of[sel]]
-    uv[t_of, node_img[sel]] = node_uv[sel]
-    # colour: of the first node (lowest id = lowest image) that has one
-    for n in np.flatnonzero(sel)[::-1]:
-        if has_rgb[n]:
-            rgb[new_id[track_of[n]]] = node_rgb[n]
-    return Tracks(uv, rgb, {"edges": int(len(A)), "refused_edges": refused, "tracks": T})
+
+def _refit_with_exercises(x1, x2, F, threshold_px: float, rounds: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`from_carried_geometry`'s refit by the exercises ``eight_point`` and ``sampson_distance`` (the student kit).
+
+    The same rule as the reference's refit: the first refit on the inliers is taken, later ones only
+    while they keep at least as many inliers. Returns ``(F (3, 3), distances (N,))``.
+    """
+    d = np.asarray(call("sampson_distance", F, x1, x2), float).reshape(-1)
+    inl = d < threshold_px
+    for round_ in range(rounds):
+        if inl.sum() < 8:
+            break
+        try:
+            new = np.asarray(call("eight_point", x1[inl], x2[inl]), float).reshape(3, 3)
+        except KitInputError:
+            break
+        d_new = np.asarray(call("sampson_distance", new, x1, x2), float).reshape(-1)
+        inl_new = d_new < threshold_px
+        if round_ > 0 and inl_new.sum() < inl.sum():
+            break
+        done = np.array_equal(inl_new, inl)
+        F, d, inl = new, d_new, inl_new
+        if done:
+            break
+    return F, d
+
+
+def verify_pairs(data, rng: np.random.Generator, threshold_px: float = 1.0) -> tuple[dict, str]:
+    """Stage 1 of SfM, the pair verification: ``({(i, j): PairVerification}, how)``.
+
+    Where the P3 folder carries ``match``'s verification (``data.two_view``,
+    :mod:`course_lib.data.two_view`), each verified pair is taken from it
+    (:func:`from_carried_geometry`; pairs it did not verify stay unverified); otherwise RANSAC runs on
+    every pair (:func:`ransac_every_pair`: the course's own matching files).
+
+    Args:
+        data: :class:`course_lib.data.p3.P3Data`. rng: seeded generator (RANSAC).
+        threshold_px: inlier threshold on the Sampson distance (pixels).
+    """
+    carried = getattr(data, "two_view", None)
+    if carried is None:
+        return ransac_every_pair(data.matches, rng, threshold_px), "RANSAC on F"
+    out = {}
+    for key in sorted(data.matches):
+        pm = data.matches[key]
+        if key in carried:
+            out[key] = from_carried_geometry(pm.x1, pm.x2, carried[key], threshold_px)
+        else:
+            out[key] = PairVerification(None, np.zeros(len(pm), bool), np.full(len(pm), np.inf), 0,
+                                        "not verified by match (its matches come from tracks through other photos)")
+    return out, "carried from match"
 
 
 def verified_tracks(data, verifications: dict, min_inliers: int = 8) -> Tracks:

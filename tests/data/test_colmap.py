@@ -102,3 +102,28 @@ def test_bad_inputs(tmp_path, model):
     (tmp_path / "m" / "points3D.txt").write_text("")
     with pytest.raises(KitInputError, match="PINHOLE"):
         read_colmap_text(tmp_path / "m")
+
+
+def test_simple_radial_writes_the_photos_own_pixels_and_reads_back(tmp_path):
+    from course_lib.data.camera import distort_pixels
+
+    rng = np.random.default_rng(4)
+    sc = make_scene(rng, n_cameras=3, n_points=40, noise_px=0.0, outlier_fraction=0.0)
+    K = sc.K.copy()
+    K[0, 1], K[1, 1] = 0.0, K[0, 0]
+    names = [f"{i + 1}.png" for i in range(3)]
+    write_colmap_text(tmp_path, K, (800, 600), names, sc.R_cw, sc.t_cw, np.ones(3, bool), sc.X,
+                      np.zeros((40, 3), np.uint8), sc.uv, camera_model="SIMPLE_RADIAL", k1=-0.04)
+    cam = [ln for ln in (tmp_path / "cameras.txt").read_text().splitlines() if not ln.startswith("#")][0].split()
+    assert cam[1] == "SIMPLE_RADIAL" and float(cam[4]) == K[0, 0] and float(cam[7]) == -0.04
+    m = read_colmap_text(tmp_path)
+    assert m.camera_model == "SIMPLE_RADIAL" and m.k1 == -0.04
+    np.testing.assert_allclose(m.K, K, atol=1e-12)
+    has = np.isfinite(m.uv)
+    np.testing.assert_allclose(m.uv[has], distort_pixels(sc.uv, K, -0.04)[has], atol=1e-9)
+    with pytest.raises(KitInputError, match="PINHOLE or SIMPLE_RADIAL"):
+        write_colmap_text(tmp_path, K, (800, 600), names, sc.R_cw, sc.t_cw, np.ones(3, bool), sc.X,
+                          np.zeros((40, 3), np.uint8), sc.uv, camera_model="OPENCV")
+    (tmp_path / "cameras.txt").write_text("1 OPENCV 800 600 500 500 400 300 0.1 0.01 0 0\n")
+    with pytest.raises(KitInputError, match="undistort the images first"):
+        read_colmap_text(tmp_path)

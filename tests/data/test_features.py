@@ -5,14 +5,14 @@ import pytest
 
 from course_lib.data import building
 from course_lib.data.features import (
+    Features,
     detect_and_match,
     detect_features,
-    keep_geometric_inliers,
+    match_descriptors,
+    match_pairs,
     root_sift,
     track_colours,
 )
-from course_lib.data.synthetic import make_scene
-from course_lib.validate import KitInputError
 
 
 def test_root_sift_is_the_square_root_of_the_l1_normalized_histogram():
@@ -47,16 +47,51 @@ def test_lower_contrast_threshold_finds_more_features_and_matches_hold(two_rende
         assert len(x1) > 50 and np.median(e) < 0.5, (kw, len(x1), np.median(e))
 
 
-def test_keep_geometric_inliers_drops_outliers_and_weak_pairs():
-    sc = make_scene(np.random.default_rng(2), n_cameras=3, n_points=200, noise_px=0.5, outlier_fraction=0.25)
-    x1, x2, inlier, _ = sc.pair(0, 1)
-    pairs = {(0, 1): (x1, x2), (0, 2): (x1[:10], x1[:10] + 3.0)}
-    kept, counts = keep_geometric_inliers(pairs, np.random.default_rng(0), threshold_px=2.0, min_matches=15)
-    assert set(kept) == {(0, 1)} and counts[(0, 2)] == 0
-    k1, _ = kept[(0, 1)]
-    assert counts[(0, 1)] == len(k1) >= 0.95 * inlier.sum()
-    with pytest.raises(KitInputError, match="rng"):
-        keep_geometric_inliers(pairs, 0)
+def _brute_force_matches(f1, f2, ratio):
+    """The rule of match_descriptors, written the slow and obvious way (float64 distances)."""
+    d = np.linalg.norm(f1.descriptors[:, None, :].astype(float) - f2.descriptors[None, :, :].astype(float), axis=2)
+    out = []
+    for q in range(len(f1)):
+        t0, t1 = np.argsort(d[q], kind="stable")[:2]
+        back = int(np.argmin(d[:, t0]))
+        if d[q, t0] < ratio * d[q, t1] and (back == q or np.array_equal(f1.xy[back], f1.xy[q])):
+            out.append((q, t0))
+    return np.array(out, int).reshape(-1, 2)
+
+
+@pytest.mark.parametrize("rootsift", [False, True])
+def test_match_descriptors_is_the_ratio_test_with_mutual_nearest_neighbours(two_renders, rootsift):
+    images = two_renders[0]
+    f1, f2 = detect_features(images, rootsift=rootsift, contrast_threshold=0.02)
+    for ratio in (0.7, 0.8, 1.0):
+        np.testing.assert_array_equal(match_descriptors(f1, f2, ratio), _brute_force_matches(f1, f2, ratio))
+
+
+def test_match_descriptors_in_chunks_and_constrained(monkeypatch):
+    """Large images are matched in row chunks (same result); ``allowed`` restricts the candidates of both directions."""
+    import course_lib.data.features as features
+
+    rng = np.random.default_rng(0)
+    d1 = rng.uniform(0, 1, (300, 16)).astype(np.float32)
+    d2 = np.concatenate([d1[:200] + rng.normal(0, 0.01, (200, 16)).astype(np.float32), rng.uniform(0, 1, (50, 16)).astype(np.float32)])
+    f1, f2 = Features(rng.uniform(0, 100, (300, 2)), d1), Features(rng.uniform(0, 100, (250, 2)), d2)
+    whole = match_descriptors(f1, f2)
+    assert len(whole) > 180 and (whole[:, 0] == whole[:, 1]).all()
+    monkeypatch.setattr(features, "_CHUNK_ENTRIES", 1000)
+    np.testing.assert_array_equal(match_descriptors(Features(f1.xy, d1), Features(f2.xy, d2)), whole)
+    even = lambda rows: ((np.arange(rows.start, rows.stop)[:, None] + np.arange(250)[None, :]) % 2) == 0  # noqa: E731
+    m = match_descriptors(f1, f2, allowed=even)
+    assert len(m) and ((m[:, 0] + m[:, 1]) % 2 == 0).all()
+    assert match_descriptors(f1, Features(f2.xy[:1], d2[:1])).shape == (0, 2)
+
+
+def test_match_pairs_in_parallel_is_the_same(two_renders):
+    feats = detect_features(two_renders[0] * 2, rootsift=True, workers=2)
+    pairs = [(0, 1), (0, 3), (1, 2), (2, 3)]
+    serial, parallel = match_pairs(feats, pairs, workers=1), match_pairs(feats, pairs, workers=2)
+    assert set(serial) == set(pairs)
+    for k in pairs:
+        np.testing.assert_array_equal(serial[k], parallel[k])
 
 
 def test_track_colours_at_the_first_observation():

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -102,3 +104,61 @@ def test_cli_and_bad_inputs(photos, tmp_path, capsys):
     # the CLI turns them into one line and exit status 2
     assert main(["match", str(tmp_path / "one"), "--K", str(folder / "calibration.txt"), "--out", str(tmp_path / "o4")]) == 2
     assert "error:" in capsys.readouterr().err
+
+
+def test_photos_are_copied_and_the_verification_is_carried(photos, tmp_path):
+    folder, K, _, _ = photos
+    rep = match_folder(folder, folder / "calibration.txt", tmp_path / "p3")
+    for i in range(1, 5):
+        assert (tmp_path / "p3" / f"{i}.png").read_bytes() == (folder / f"{i}.png").read_bytes()  # copied, not re-encoded
+    d = read_p3(tmp_path / "p3")
+    assert d.camera is None  # K from a calibration file: held fixed by sfm
+    assert d.two_view is not None and set(d.two_view) == {tuple(int(v) - 1 for v in k.split("-"))
+                                                          for k, v in rep["pairs"].items() if v["verified"] >= 15}
+    assert rep["pair_selection"] == "exhaustive" and rep["pairs_matched"] == 6
+    assert d.stats["inconsistent_components"] == 0  # the tracks are written consistent (join_tracks)
+    match_folder(folder, K, tmp_path / "p3", downscale=2.0, verify=False)
+    assert not (tmp_path / "p3" / "two_view_geometries.json").exists()
+    assert read_p3(tmp_path / "p3").image_size == (200, 150)
+    seq = match_folder(folder, K, tmp_path / "seq", pairs="sequential")
+    assert seq["pairs_matched"] == 6 and seq["pair_selection"] == "sequential"
+
+
+def test_without_K_the_camera_comes_from_EXIF_and_sfm_refines_it(photos, tmp_path, capsys):
+    import io
+
+    from PIL import Image
+
+    folder, K, _, _ = photos
+    own = tmp_path / "phone"
+    own.mkdir()
+    f35 = round(K[0, 0] * 43.2666 / np.hypot(400, 300))
+    for i in range(4):
+        img = Image.open(folder / f"{i + 1}.png")
+        ex = Image.Exif()
+        ex[0x010F], ex[0x0110] = "Maker", "Phone"
+        ex.get_ifd(0x8769)[0xA405] = f35
+        buf = io.BytesIO()
+        img.save(buf, "JPEG", quality=95, exif=ex.tobytes())
+        (own / f"IMG_{i + 1:04d}.JPG").write_bytes(buf.getvalue())
+    assert main(["match", str(own), "--out", str(tmp_path / "p3"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "camera: f = " in out and "FocalLengthIn35mmFilm" in out and "sfm refines f and k1" in out
+    d = read_p3(tmp_path / "p3")
+    assert d.camera.refine and d.camera.model == "SIMPLE_RADIAL" and d.camera.camera == "Maker Phone"
+    assert abs(d.K[0, 0] / K[0, 0] - 1) < 0.03  # the rounded 35 mm equivalent
+    assert (tmp_path / "p3" / "1.jpg").read_bytes() == (own / "IMG_0001.JPG").read_bytes()
+
+
+def test_identical_photos_are_named(photos, tmp_path, capsys):
+    folder, K, _, _ = photos
+    twin = tmp_path / "twin"
+    twin.mkdir()
+    for i in range(1, 5):
+        (twin / f"{i}.png").write_bytes((folder / f"{i}.png").read_bytes())
+    (twin / "5.png").write_bytes((folder / "4.png").read_bytes())
+    assert main(["match", str(twin), "--K", str(folder / "calibration.txt"), "--out", str(tmp_path / "p3"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "identical or near-identical photos (no baseline): 4.png, 5.png" in out
+    rep = json.loads((tmp_path / "p3" / "match_report.json").read_text())
+    assert rep["identical_photos"] == [["4.png", "5.png"]]

@@ -117,3 +117,31 @@ def test_orbit_cameras_look_at_the_origin():
         np.testing.assert_allclose(np.einsum("mi,mi->m", z, -C / building.NERF_RADIUS), 1.0, atol=1e-12)  # z forward, at the origin
         np.testing.assert_allclose(np.linalg.det(c2w[:, :3, :3]), 1.0)
         assert (c2w[:, 2, 1] < 0).all()  # camera y (down in the image) points down in the z-up world
+
+
+def test_a_simple_radial_model_is_undistorted_first(tmp_path):
+    """A SIMPLE_RADIAL model: the photos are resampled onto the pinhole before the NeRF sees them."""
+    import cv2
+
+    from course_lib.data.camera import distort_pixels
+
+    K = np.array([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]])
+    k1 = -0.15
+    c2w = building.nerf_cameras(np.random.default_rng(1), 6)
+    R_cw = np.stack([c[:3, :3].T for c in c2w])
+    t_cw = -np.einsum("mij,mj->mi", R_cw, c2w[:, :3, 3])
+    X = np.random.default_rng(0).uniform(-0.8, 0.8, (100, 3))
+    img = np.zeros((48, 64, 3), np.uint8)
+    d = distort_pixels(np.array([[58.0, 40.0]]), K, k1)[0]  # a corner dot as the distorted camera sees it
+    img[int(round(d[1])), int(round(d[0]))] = 255
+    names = [f"{i + 1}.png" for i in range(6)]
+    uv = np.stack([(np.c_[X @ R_cw[i].T + t_cw[i]] @ K.T)[:, :2] / (X @ R_cw[i].T + t_cw[i])[:, 2:] for i in range(6)], 1)
+    write_colmap_text(tmp_path / "colmap", K, (64, 48), names, R_cw, t_cw, np.ones(6, bool), X,
+                      np.full((100, 3), 128, np.uint8), uv, camera_model="SIMPLE_RADIAL", k1=k1)
+    for n in names:
+        cv2.imwrite(str(tmp_path / n), img)
+    summ = sfm_to_nerf(tmp_path, tmp_path, tmp_path / "nerf", size=64, test_every=0)
+    assert summ["camera_model"] == "SIMPLE_RADIAL" and summ["undistorted_k1"] == k1
+    out = load_blender(tmp_path / "nerf", "train").images[0]
+    v, u = np.unravel_index(np.argmax(out.sum(axis=2)), out.shape[:2])
+    assert abs(u - 58) <= 1 and abs(v - 40) <= 1  # where the pinhole sees the dot

@@ -151,3 +151,17 @@ def test_sfm_imports_neither_torch_nor_nbformat(tmp_path):
     assert "course_lib.sfm.pipeline" in mods
     heavy = {m for m in mods if m.split(".")[0] in {"torch", "nbformat", "jsonschema"}}
     assert not heavy, f"python -m course_lib sfm imported {sorted(heavy)[:5]}"
+
+
+def test_any_mapper_option_from_the_command_line(tmp_path, capsys):
+    out = tmp_path / "o"
+    assert main(["sfm", "--out", str(out), "--quiet", "--no-html", "--option", "min_pnp_inliers=25",
+                 "--option", "ba_images_ratio=1.2", "--option", "final_max_reproj_px=none"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["options"]["ba_images_ratio"] == 1.2 and report["options"]["final_max_reproj_px"] is None
+    for bad, msg in [("min_pnp=3", "no such option"), ("min_pnp_inliers=three", "expected an integer"),
+                     ("multiple_models=maybe", "true or false"), ("min_pnp_inliers", "expected KEY=VALUE"),
+                     ("initial_pair=1", "two integers")]:
+        assert main(["sfm", "--out", str(tmp_path / "x"), "--quiet", "--option", bad]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and msg in err[0], (bad, err)

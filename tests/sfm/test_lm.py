@@ -139,7 +139,7 @@ def test_schur_step_equals_dense_normal_equations(dense_limit, lam):
     proj, A, B = model.project_jacobian(cams, X[pi], ci)
     A = A * free[ci][:, None, :]
     ne = lm.normal_equations(st, proj - obs, A, B, np.ones(len(ci)))
-    dc, dp, pred = lm.schur_solve(st, ne, lam, free, dense_limit=dense_limit)
+    dc, dp, _, pred = lm.schur_solve(st, ne, lam, free, dense_limit=dense_limit)
     np.testing.assert_allclose(dc, dc_ref, rtol=1e-6, atol=1e-9 * np.abs(dc_ref).max())
     np.testing.assert_allclose(dp, dp_ref, rtol=1e-6, atol=1e-9 * np.abs(dp_ref).max())
     assert (dc[0] == 0).all() and dc[2, 4] == 0
@@ -325,3 +325,94 @@ def test_sparse_and_dense_reduced_systems_agree():
     b = lm.solve(lm.BALCamera(), cams, X, p.cam_idx, p.pt_idx, p.obs, ftol=1e-10, dense_limit=0)
     assert a.iterations == b.iterations
     assert b.final_cost == pytest.approx(a.final_cost, rel=1e-9)
+
+
+# ---------------------------------------------------------------------------------------------
+# Intrinsics shared by all cameras (SIMPLE_RADIAL)
+# ---------------------------------------------------------------------------------------------
+
+
+def _simple_radial_problem(rng, f_scale=1.0, k1=-0.08, noise_px=0.0):
+    sc = make_scene(rng, n_cameras=8, n_points=300, noise_px=0.0, outlier_fraction=0.0)
+    model = lm.SimpleRadialCamera(sc.K[:2, 2])
+    cams = np.hstack([Rotation.from_matrix(sc.R_cw).as_rotvec(), sc.t_cw])
+    pt, cam = np.nonzero(sc.visible)
+    truth = np.array([sc.K[0, 0], k1])
+    obs = model.project(cams, sc.X[pt], cam, truth) + rng.normal(0, noise_px, (len(pt), 2))
+    return sc, model, cams, pt, cam, obs, truth
+
+
+def test_simple_radial_jacobian_matches_finite_differences():
+    sc, model, cams, pt, cam, _, truth = _simple_radial_problem(np.random.default_rng(5))
+    sh = truth * [1.1, 0.5]
+    _, A, B, C = model.project_jacobian(cams, sc.X[pt], cam, sh)
+    eps = 1e-6
+    for k in range(2):
+        d = np.zeros(2)
+        d[k] = eps
+        num = (model.project(cams, sc.X[pt], cam, sh + d) - model.project(cams, sc.X[pt], cam, sh - d)) / (2 * eps)
+        np.testing.assert_allclose(C[:, :, k], num, atol=1e-5 * np.abs(num).max())
+    for k in range(6):
+        d = np.zeros_like(cams)
+        d[:, k] = eps
+        num = (model.project(cams + d, sc.X[pt], cam, sh) - model.project(cams - d, sc.X[pt], cam, sh)) / (2 * eps)
+        np.testing.assert_allclose(A[:, :, k], num, atol=1e-5 * np.abs(num).max())
+    X = sc.X[pt].copy()
+    for k in range(3):
+        d = np.zeros_like(X)
+        d[:, k] = eps
+        num = (model.project(cams, X + d, cam, sh) - model.project(cams, X - d, cam, sh)) / (2 * eps)
+        np.testing.assert_allclose(B[:, :, k], num, atol=1e-5 * np.abs(num).max())
+
+
+@pytest.mark.parametrize("dense_limit", [4000, 0], ids=["dense-cholesky", "sparse-spsolve"])
+def test_schur_step_with_shared_parameters_equals_the_dense_solve(dense_limit):
+    rng = np.random.default_rng(6)
+    sc, model, cams, pt, cam, obs, truth = _simple_radial_problem(rng, noise_px=0.5)
+    sh = truth * [1.05, 0.0] + [0.0, -0.01]
+    X = sc.X + rng.normal(0, 0.02, sc.X.shape)
+    free = np.ones(cams.shape, bool)
+    free[0] = False
+    free[1, 3] = False
+    lam = 1e-3
+    order = np.argsort(cam, kind="stable")
+    ci, pi, ob = cam[order], pt[order], obs[order]
+    st = lm._Structure(len(cams), len(X), 6, ci, pi)
+    proj, A, B, C = model.project_jacobian(cams, X[pi], ci, sh)
+    A = A * free[ci][:, None, :]
+    ne = lm.normal_equations(st, proj - ob, A, B, np.ones(len(ci)), C)
+    dc, dp, ds, _ = lm.schur_solve(st, ne, lam, free, dense_limit=dense_limit, free_shared=np.ones(2, bool))
+    # the dense reference: J = [A | B | C] over all parameters, (J^T J + lam D) delta = -J^T r
+    nc, npt = cams.size, X.size
+    J = np.zeros((2 * len(ci), nc + npt + 2))
+    for k, (c, p) in enumerate(zip(ci, pi)):
+        J[2 * k:2 * k + 2, 6 * c:6 * c + 6] = A[k]
+        J[2 * k:2 * k + 2, nc + 3 * p:nc + 3 * p + 3] = B[k]
+        J[2 * k:2 * k + 2, nc + npt:] = C[k]
+    f = np.concatenate([free.ravel(), np.ones(npt + 2, bool)])
+    H = J.T @ J
+    H = H + lam * np.diag(np.clip(np.diag(H), 1e-6, 1e32))
+    g = J.T @ (proj - ob).ravel()
+    delta = np.zeros(len(f))
+    delta[f] = np.linalg.solve(H[np.ix_(f, f)], -g[f])
+    np.testing.assert_allclose(dc.ravel(), delta[:nc], atol=1e-8 * np.abs(delta).max())
+    np.testing.assert_allclose(ds, delta[nc + npt:], rtol=1e-6)
+    np.testing.assert_allclose(dp.ravel(), delta[nc:nc + npt], atol=1e-8 * np.abs(delta).max())
+
+
+def test_focal_length_and_k1_are_recovered():
+    rng = np.random.default_rng(7)
+    sc, model, cams, pt, cam, obs, truth = _simple_radial_problem(rng, noise_px=0.3)
+    fixed = np.zeros(cams.shape, bool)
+    fixed[0] = True
+    fixed[1, 3] = True
+    start = cams + rng.normal(0, 0.002, cams.shape) * ~fixed
+    res = lm.solve(model, start, sc.X + rng.normal(0, 0.02, sc.X.shape), cam, pt, obs, fixed_cameras=fixed,
+                   shared=truth * [1.1, 0.0], max_iterations=50)
+    assert abs(res.shared[0] / truth[0] - 1) < 0.01 and abs(res.shared[1] - truth[1]) < 0.01
+    assert np.sqrt(2 * res.final_cost / len(pt)) < 0.5
+    held = lm.solve(model, start, sc.X, cam, pt, obs, fixed_cameras=fixed, shared=truth * [1.1, 0.0],
+                    fixed_shared=np.array([True, False]), max_iterations=5)
+    assert held.shared[0] == truth[0] * 1.1
+    with pytest.raises(KitInputError, match="shared parameters"):
+        lm.solve(model, start, sc.X, cam, pt, obs, max_iterations=1)

@@ -258,11 +258,96 @@ def test_image_with_too_few_matches_is_left_out_by_name(base_scene, tmp_path, n_
     assert rec.report["final"]["left_out"] == {"5.png": rec.report["left_out"][0]["reason"]}
 
 
+def test_identical_photos_are_a_named_error(base_scene, tmp_path):
+    sc = _observe(base_scene.K, base_scene.R_cw[[2, 2]], base_scene.t_cw[[2, 2]], base_scene.X, 4, noise=0.2)
+    data, _ = write_scene_p3(sc, tmp_path)
+    with pytest.raises(KitInputError, match=r"1.png-2.png: identical or near-identical photos \(no baseline"):
+        run_sfm(data, np.random.default_rng(0))
+
+
+# --- registration that scales: local BAs between BAs of the whole model ----------------------------
+
+
+def test_local_bundle_adjustments_between_global_ones(tmp_path):
+    sc = make_scene(np.random.default_rng(8), n_cameras=14, n_points=500, noise_px=0.5, outlier_fraction=0.05)
+    data, _ = write_scene_p3(sc, tmp_path)
+    rec = run_sfm(data, np.random.default_rng(0))
+    _check_consistent(rec)
+    kinds = [s["ba"]["kind"] for s in rec.report["stages"] if s["stage"] == "register" and s.get("registered")]
+    assert rec.n_registered == 14 and kinds[:4] == ["global"] * 4 and "local" in kinds[4:]
+    n, last = 6, 6  # a BA of the whole model when it has grown by ba_images_ratio since the last one
+    for kind in kinds[4:]:
+        n += 1
+        assert kind == ("global" if n >= 1.1 * last else "local")
+        last = n if kind == "global" else last
+    local = next(s["ba"] for s in rec.report["stages"] if s.get("ba", {}).get("kind") == "local")
+    assert len(local["images"]) <= 6 and "held fixed" in local["gauge"]
+    every = run_sfm(data, np.random.default_rng(0), ba_images_ratio=1.0)
+    err = lambda r: pose_errors(r.R_cw, r.t_cw, sc.R_cw, sc.t_cw).rotation_deg.mean()  # noqa: E731
+    assert err(rec) < 0.1 and err(rec) <= 1.5 * err(every)
+
+
+# --- cameras without a calibration file: the focal length and k1 refined ----------------------------
+
+
+def _uncalibrated(tmp_path, f_factor: float, k1: float, seed: int = 9):
+    """A 10-view scene seen by a SIMPLE_RADIAL camera; the P3 folder carries a prior f that is off by f_factor."""
+    from course_lib.data.camera import CameraPrior, distort_pixels, write_camera
+
+    sc = make_scene(np.random.default_rng(seed), n_cameras=10, n_points=600, noise_px=0.5, outlier_fraction=0.05)
+    K = sc.K.copy()
+    K[0, 0] = K[1, 1] = 0.5 * (K[0, 0] + K[1, 1])
+    K[0, 1] = 0.0
+    sc.K = K
+    sc.uv = distort_pixels(sc.uv, K, k1)  # the noise stays where it was: small
+    data, _ = write_scene_p3(sc, tmp_path / "p3")
+    prior = K.copy()
+    prior[0, 0] = prior[1, 1] = f_factor * K[0, 0]
+    (tmp_path / "p3" / "calibration.txt").write_text("\n".join(" ".join(map(str, r)) for r in prior))
+    write_camera(tmp_path / "p3", CameraPrior(prior, "SIMPLE_RADIAL", 0.0, "test", True))
+    return sc, read_p3(tmp_path / "p3", require_images=False)
+
+
+def test_a_wrong_focal_length_is_refined_to_the_true_one(tmp_path):
+    sc, data = _uncalibrated(tmp_path, 1.12, 0.0)
+    assert data.camera.refine
+    rec = run_sfm(data, np.random.default_rng(0))
+    assert rec.camera_model == "SIMPLE_RADIAL" and rec.n_registered == 10
+    assert abs(rec.K[0, 0] / sc.K[0, 0] - 1) < 0.01 and abs(rec.k1) < 0.01
+    cam = rec.report["camera"]
+    assert cam["model"] == "SIMPLE_RADIAL" and cam["prior_focal_px"] == pytest.approx(1.12 * sc.K[0, 0], rel=1e-6)
+    assert cam["refinements"] and all(r["accepted"] for r in cam["refinements"])
+    err = pose_errors(rec.R_cw, rec.t_cw, sc.R_cw, sc.t_cw).rotation_deg.mean()
+    held = run_sfm(data, np.random.default_rng(0), refine_intrinsics=False)  # the wrong f, held: far worse
+    (tmp_path / "p3" / "calibration.txt").write_text("\n".join(" ".join(map(str, r)) for r in sc.K))
+    true_k = run_sfm(read_p3(tmp_path / "p3", require_images=False), np.random.default_rng(0), refine_intrinsics=False)
+    true_k_err = pose_errors(true_k.R_cw, true_k.t_cw, sc.R_cw, sc.t_cw).rotation_deg.mean()
+    held_err = pose_errors(held.R_cw, held.t_cw, sc.R_cw, sc.t_cw).rotation_deg.mean()
+    assert held.camera_model == "PINHOLE" and held_err > 2 * err
+    assert err <= 1.5 * true_k_err, (err, true_k_err)
+
+
+def test_radial_distortion_is_refined(tmp_path):
+    sc, data = _uncalibrated(tmp_path, 0.95, -0.06, seed=10)
+    rec = run_sfm(data, np.random.default_rng(0))
+    assert rec.n_registered == 10
+    assert abs(rec.K[0, 0] / sc.K[0, 0] - 1) < 0.01 and abs(rec.k1 + 0.06) < 0.01
+    assert rec.error_stats()["median"] < 0.7
+    assert pose_errors(rec.R_cw, rec.t_cw, sc.R_cw, sc.t_cw).rotation_deg.mean() < 0.1
+    # the COLMAP text model says SIMPLE_RADIAL and holds the photos' own pixels
+    from course_lib.data.colmap import read_colmap_text
+
+    rec.write_colmap(tmp_path / "model")
+    back = read_colmap_text(tmp_path / "model")
+    assert back.camera_model == "SIMPLE_RADIAL" and back.k1 == pytest.approx(rec.k1)
+    np.testing.assert_allclose(back.K, rec.K, atol=1e-9)
+
+
 def test_the_pipeline_runs_on_functions_that_return_what_their_stubs_document(monkeypatch):
     """The student kit: the mapper and the pair verification call the exercises, which may return tuples
     (the stubs allow a tuple or a dataclass); the embedded scene is reconstructed as with the references."""
     from course_lib import exercises
-    from course_lib.sfm import bundle_adjustment, essential, fundamental, pnp, tracks, triangulation
+    from course_lib.sfm import bundle_adjustment, essential, fundamental, initial_pair, pnp, tracks, triangulation
 
     def as_tuple(fn, *fields):
         def student(*args, **kwargs):
@@ -273,6 +358,7 @@ def test_the_pipeline_runs_on_functions_that_return_what_their_stubs_document(mo
     mine = {
         "ransac_fundamental": as_tuple(fundamental.ransac_fundamental, "F", "inliers", "n_iters"),
         "sampson_distance": lambda F, x1, x2: list(fundamental.sampson_distance(F, x1, x2)),
+        "eight_point": fundamental.eight_point,
         "essential_from_fundamental": essential.essential_from_fundamental,
         "pose_candidates": essential.pose_candidates,
         "choose_pose": as_tuple(triangulation.choose_pose, "R_cw", "t_cw", "X", "in_front", "counts"),
@@ -286,8 +372,24 @@ def test_the_pipeline_runs_on_functions_that_return_what_their_stubs_document(mo
     for name, fn in mine.items():
         monkeypatch.setitem(exercises._IMPLEMENTATIONS, name, fn)
     monkeypatch.setattr(tracks, "ransac", None)  # the student kit has no batched reference RANSAC
+    monkeypatch.setattr(initial_pair, "sampson_distance_batch", None)  # nor notebook 01's batched Sampson distance
     rec = run_sfm(read_p3(EMBEDDED_SFM), np.random.default_rng(0))
     _check_consistent(rec)
     _, names, R_gt, t_gt = load_ground_truth(EMBEDDED_SFM)
     assert rec.registered.all()
     assert pose_errors(rec.R_cw, rec.t_cw, R_gt, t_gt).rotation_deg.max() < 0.1
+
+
+def test_a_carried_verification_is_refit_by_the_exercises_in_the_student_kit(monkeypatch):
+    """``match``'s F carried into the P3 folder: the refit on its inliers by the exercises (student kit) keeps
+    the same inliers as the reference's batched refit."""
+    from course_lib.sfm import tracks
+
+    data = read_p3(EMBEDDED_SFM)
+    pm = data.matches[(0, 1)]
+    F = tracks.verify_pair(pm.x1, pm.x2, np.random.default_rng(0), 2.0).F
+    ref = tracks.from_carried_geometry(pm.x1, pm.x2, F, 2.0)
+    monkeypatch.setattr(tracks, "_refit", None)
+    kit = tracks.from_carried_geometry(pm.x1, pm.x2, F, 2.0)
+    assert ref.n_inliers > 50 and np.array_equal(kit.inliers, ref.inliers)
+    np.testing.assert_allclose(kit.sampson, ref.sampson, rtol=1e-6, atol=1e-9)
