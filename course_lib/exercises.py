@@ -72,7 +72,7 @@ _NB = {
     "08": "08_nerf_rendering_and_training.ipynb",
 }
 
-#: Every exercise of the kit, in notebook order (``tests/test_exercises.py`` keeps it equal to the notebooks).
+#: Every exercise of the kit, in notebook order (``tests/student/test_exercises.py`` keeps it equal to the notebooks).
 EXERCISES: dict[str, Exercise] = {e.name: e for e in [
     Exercise("normalize_points", _NB["01"], "course_lib.sfm.fundamental", ("x_n", "T")),
     Exercise("eight_point", _NB["01"], "course_lib.sfm.fundamental"),
