@@ -7,8 +7,11 @@ transparent background, seen from the upper hemisphere, with parts of many sizes
 
 * two crawler tracks (tread bars) with an octagonal wheel at each end, on an undercarriage;
 * an upper body turned by a seeded angle, with a printed sign on each side, a glazed cabin,
-  a counterweight with hazard stripes, an exhaust pipe and a 2 x 4 field of toy studs;
-* a boom, a stick and a bucket at seeded angles, with thin hydraulic cylinders.
+  a counterweight with hazard stripes, an exhaust pipe, hand rails on thin posts, lamps and
+  fields of toy studs;
+* a boom, a stick and a bucket with teeth at seeded angles, with thin hydraulic cylinders;
+* small parts of 1-3 % of the object's size (cleats on the tracks, studs, posts): lego's kind of
+  detail, a few pixels wide at 200 px.
 
 Every part is a box or a prism of textured planar faces (:class:`~course_lib.data.building.Surface`,
 procedural textures at 500 texels per unit: finer than a pixel at 800 px), shaded by the
@@ -29,6 +32,7 @@ from __future__ import annotations
 
 import json
 import math
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +48,7 @@ DEFAULT_SEED = 32
 CAMERA_ANGLE_X = 0.6911112070083618
 #: Texels per unit of the procedural textures.
 RHO = 500.0
-GENERATOR = "course_lib.data.excavator v1"
+GENERATOR = "course_lib.data.excavator v2"
 
 
 # ============================================================================ textures
@@ -111,6 +115,18 @@ class _Parts:
         self.rng, self.colors = rng, colors
         self.surfaces: list[Surface] = []
         self.groups: list[tuple] = []
+        self._open: tuple | None = None  # (first surface, corners so far) of a group of several parts
+
+    @contextmanager
+    def group(self):
+        """Parts made inside the block share one bounding sphere (many small parts: fewer sphere tests)."""
+        self._open = (len(self.surfaces), [])
+        try:
+            yield
+        finally:
+            first, corners = self._open
+            self._open = None
+            self._group(first, np.concatenate(corners))
 
     def _face(self, name, origin, a, b, kind, triangle=False):
         tex = _texture(kind, self.rng, float(np.linalg.norm(a)), float(np.linalg.norm(b)), self.colors)
@@ -118,6 +134,9 @@ class _Parts:
                                      triangle))
 
     def _group(self, first: int, corners: np.ndarray) -> None:
+        if self._open is not None:
+            self._open[1].append(corners)
+            return
         center = 0.5 * (corners.min(axis=0) + corners.max(axis=0))
         self.groups.append((first, len(self.surfaces), center, float(np.linalg.norm(corners - center, axis=1).max()) + 1e-6))
 
@@ -188,6 +207,7 @@ def build_excavator(rng: np.random.Generator) -> tuple[list[Surface], list[tuple
     for i in range(2):
         for j in range(4):  # toy studs on the engine cover
             parts.box("stud", T(-0.4 + 0.09 * i, -0.05 + 0.09 * j, 0.25), (0.055, 0.055, 0.04), Rz, bottom=False)
+    _details(parts, T, Rz)
     # the arm: boom up and forward, stick down, bucket; all in the body's turned frame
     boom_pitch = rng.uniform(0.55, 0.8)  # radians above the horizontal, towards -y (forward)
     stick_pitch = rng.uniform(-1.3, -0.9)
@@ -206,7 +226,38 @@ def build_excavator(rng: np.random.Generator) -> tuple[list[Surface], list[tuple
     end = tip + stick_len * stick_dir
     Rk = _rot("x", -stick_pitch - 1.2)
     parts.box("bucket", T(*(end + np.array([0, -0.06, -0.02]))), (0.24, 0.16, 0.12), Rz @ Rk, kinds="metal")
+    with parts.group():
+        for dx in (-0.09, -0.03, 0.03, 0.09):  # the bucket's teeth
+            tooth = end + np.array([dx, 0.0, 0.0]) + Rk @ np.array([0.0, -0.09, -0.08])
+            parts.box("tooth", T(*tooth), (0.025, 0.025, 0.06), Rz @ Rk, kinds="metal")
     return parts.surfaces, parts.groups
+
+
+def _details(parts: _Parts, T, Rz) -> None:
+    """Small parts, lego-like: grousers on the tracks, studs on the body and the cabin, a hand rail, lamps."""
+    for sx in (-1, 1):  # a grouser (a cleat across the track) every 0.072 units on its top and bottom
+        for z in (-0.115, -0.355):
+            for run in range(4):
+                with parts.group():
+                    for k in range(5):
+                        y = -0.684 + 0.072 * (5 * run + k)
+                        parts.box("grouser", (sx * 0.5, y, z), (0.27, 0.026, 0.022), kinds="tread")
+    for i in range(5):  # studs on the front of the body, left of the cabin
+        with parts.group():
+            for j in range(4):
+                parts.box("stud", T(-0.42 + 0.08 * i, -0.52 + 0.08 * j, 0.25), (0.05, 0.05, 0.035), Rz, bottom=False)
+    with parts.group():
+        for i in range(3):
+            for j in range(3):  # studs on the cabin's roof
+                parts.box("stud", T(0.12 + 0.12 * i, -0.46 + 0.12 * j, 0.685), (0.06, 0.06, 0.03), Rz, bottom=False)
+    for sx in (-1, 1):  # a hand rail along each side of the engine cover: posts and a top bar
+        with parts.group():
+            for k in range(6):
+                parts.box("post", T(sx * 0.47, -0.02 + 0.1 * k, 0.3), (0.018, 0.018, 0.1), Rz, kinds="metal", bottom=False)
+            parts.box("rail", T(sx * 0.47, 0.23, 0.355), (0.022, 0.56, 0.018), Rz, kinds="metal")
+    with parts.group():
+        for dx in (0.1, 0.38):  # two lamps on the cabin's front
+            parts.box("lamp", T(dx, -0.565, 0.6), (0.05, 0.03, 0.04), Rz, kinds="metal")
 
 
 # ============================================================================ data sets
