@@ -218,16 +218,20 @@ class RunOutputs:
     def end_seconds(self, state) -> float:
         """Predicted time of the run's end: the final checkpoint and evaluation (or a snapshot without test views).
 
-        The evaluation is predicted from the last measured render speed and capped at its share of
-        the budget (:meth:`final_evaluation` decides on the speed it measures then).
+        The evaluation is predicted from the last measured render speed: all test views, or as
+        many as fit in its share of the budget but at least ``final_eval_min_views``
+        (:meth:`final_evaluation` decides on the speed it measures then).
         """
+        cfg = state.config
         ckpt = state.clock.last.get("checkpoints", 0.0) if self.ckpt is not None else 0.0
         if self.test is None:
             H, W, _ = self.preview
             return ckpt + H * W * self.seconds_per_ray(state)
-        evaluation = len(self.test) * self.test.H * self.test.W * self.seconds_per_ray(state)
-        if state.clock.budget_s and not state.config.eval_all:
-            evaluation = min(evaluation, state.config.final_eval_share * state.clock.budget_s)
+        per_view = self.test.H * self.test.W * self.seconds_per_ray(state)
+        evaluation = len(self.test) * per_view
+        if state.clock.budget_s and not cfg.eval_all:
+            fewest = min(len(self.test), cfg.final_eval_min_views) * per_view
+            evaluation = max(min(evaluation, cfg.final_eval_share * state.clock.budget_s), fewest)
         return ckpt + evaluation
 
     # ------------------------------------------------------------------ the end
