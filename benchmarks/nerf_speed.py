@@ -42,6 +42,7 @@ The load average before and after each run is printed: compare numbers taken at 
 from __future__ import annotations
 
 import argparse
+import ast
 import inspect
 import json
 import os
@@ -66,7 +67,7 @@ def _spread(n: int, k: int) -> list[int]:
 
 
 def _one(data: str, preset_name: str, minutes: float, at: list[float], seed: int, threads, mark_views: int,
-         device: str) -> dict:
+         device: str, sets: dict | None = None) -> dict:
     """One run, in this process, with whatever ``course_lib`` is first on the path."""
     t_start = time.perf_counter()
     from course_lib.data.blender import load_blender
@@ -85,7 +86,7 @@ def _one(data: str, preset_name: str, minutes: float, at: list[float], seed: int
     over = dict(minutes=minutes, seed=seed)
     if threads is not None:
         over["threads"] = threads
-    cfg = preset(preset_name, **over)
+    cfg = preset(preset_name, **over, **(sets or {}))
     whole_run = "started_at" in inspect.signature(train).parameters  # --minutes covers the whole run
     marks = sorted(m * 60.0 for m in at if m < minutes)
     views = _spread(len(te), mark_views) if te is not None else []
@@ -164,6 +165,7 @@ def _run(tree: Path, data: str, name: str, a, minutes: float) -> dict | None:
     cmd = [sys.executable, str(HERE), data, "--minutes", str(minutes), "--seed", str(a.seed), "--_one", name,
            "--at", *map(str, a.at), "--device", a.device, "--mark-views", str(a.mark_views)]
     cmd += ["--threads", str(a.threads)] if a.threads is not None else []
+    cmd += [x for kv in a.set for x in ("--set", kv)]
     env = {**os.environ, "PYTHONPATH": str(tree)}
     load0 = os.getloadavg()[0]
     out = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=str(tree))
@@ -230,10 +232,14 @@ def main(argv=None) -> int:
     p.add_argument("--json", default=None, help="also write the results here")
     p.add_argument("--append", action="store_true", help="add the rows to those already in --json")
     p.add_argument("--table", default=None, metavar="JSON", help="print the table of a --json file and stop")
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                   help="override a TrainConfig field of every run (a Python literal), e.g. --set batch_rays=4096")
     p.add_argument("--_one", default=None, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
+    sets = {k: ast.literal_eval(v) for k, _, v in (kv.partition("=") for kv in a.set)}
     if a._one:
-        print("RESULT " + json.dumps(_one(a.data, a._one, a.minutes, a.at, a.seed, a.threads, a.mark_views, a.device)))
+        print("RESULT " + json.dumps(_one(a.data, a._one, a.minutes, a.at, a.seed, a.threads, a.mark_views, a.device,
+                                          sets)))
         return 0
     marks = [f"{m:g}" for m in a.at]
     if a.table:
@@ -274,7 +280,7 @@ def main(argv=None) -> int:
                 print(f"{scene}: {tree_name} tree, preset {name}, {minutes:g} min ...", flush=True)
                 r = _run(tree, folder, name, a, minutes)
                 if r is not None:
-                    rows.append({"scene": scene, "tree": tree_name, **r})
+                    rows.append({"scene": scene, "tree": tree_name + "".join(f" {k}={v}" for k, v in sets.items()), **r})
                     _table(rows[-1:], marks, head=len(rows) == 1)
                     save()
     print(f"\ncores: {os.cpu_count()}   device: {rows[0]['device'] if rows else '?'}")
