@@ -16,7 +16,7 @@ versions: ``--batch``, ``--samples``, ``--importance``, ``--sparse-adam``, ``--b
 
 ``train`` writes ``OUT/metrics.json`` (the PSNR, iterations, seconds, preset, loss/PSNR history),
 ``OUT/test/<view>.png`` (renders of the evaluated test views), ``OUT/snapshots/step_XXXXXX.png``
-(the held-out view during training, a preview at most 400 px on its longest side) and
+(the held-out view during training, a preview at most 200 px on its longest side) and
 ``OUT/checkpoint.pt``; run it again with the same ``--out`` to resume (``--minutes`` and
 ``--iters`` are totals). ``eval`` renders every view of a split with a checkpoint and prints its
 mean PSNR. ``render`` writes ``OUT/path.gif`` and ``OUT/frame_XXX.png`` along a circle around the

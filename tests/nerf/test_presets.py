@@ -8,7 +8,8 @@ from dataclasses import fields, replace
 import pytest
 
 from course_lib.nerf import cli
-from course_lib.nerf.presets import FINE_SAMPLES, PRESETS, FractionOfRun, TrainConfig, field_docs, preset, resolve
+from course_lib.nerf.presets import (FINE_SAMPLES, PRESETS, FractionOfRun, TrainConfig, auto_batch_rays, field_docs,
+                                     preset, resolve)
 from course_lib.validate import KitInputError
 
 
@@ -49,6 +50,19 @@ class TestTrainConfig:
         assert resolve(preset("paper", fine=True), 100, 100).n_importance == FINE_SAMPLES
         assert resolve(preset("paper", fine=True, n_importance=32), 100, 100).n_importance == 32
         assert resolve(preset("paper"), 100, 100).n_importance == 0
+
+    def test_the_grid_batch_grows_with_the_grid(self):
+        # batch_rays = 0: from the grid's resolution, a multiple of 1024, at least 2048; the MLP keeps 1024
+        sizes = [resolve(preset("fast", minutes=m), H, H) for H, m in ((100, 5), (200, 5), (400, 5), (800, 10))]
+        batches = [c.batch_rays for c in sizes]
+        assert batches == sorted(batches) and batches[0] == 2048 and batches[-1] > batches[0]
+        assert all(b % 1024 == 0 for b in batches)
+        assert auto_batch_rays(sizes[-1].grid_resolution) == batches[-1]
+        assert resolve(preset("fast", batch_rays=512), 800, 800).batch_rays == 512  # a number given is kept
+        assert resolve(preset("paper"), 800, 800).batch_rays == 1024
+        assert resolve(preset("fast", batch_rays=0, model="nerf"), 100, 100).batch_rays == 1024
+        with pytest.raises(KitInputError, match="batch_rays = -1: expected a number of rays"):
+            resolve(preset("fast", batch_rays=-1), 100, 100)
 
     def test_round_trip_through_a_dict(self):
         cfg = preset("fast", grid_schedule=((0.0, 0.5), (0.5, 1.0)))
