@@ -13,8 +13,9 @@ exercise must get 0 and cost at most its own time limit (target: total <= 1.5x t
 
 Issue 18's sandbox (a fresh root of bind mounts per process, a copy of the submission into its tmpfs,
 cgroups) must keep a full grading within 1.5x of the time before it (e138692: 201 s on the
-2-core machine under load; see the closing note). The script also prints the largest reply a
-student's process sent (the reply cap, ``sandbox.MAX_REPLY``, must stay well above it).
+2-core machine under load; see the closing note); so must issue 33's (bubblewrap, checked before each
+process, and the check of each exercise in a worker of its own). The script also prints the largest
+reply a student's process sent (the reply cap, ``wire.MAX_REPLY``, must stay well above it).
 """
 
 from __future__ import annotations
@@ -30,9 +31,8 @@ from pathlib import Path
 
 import nbformat
 
-from course_lib.instructor import student_process
 from course_lib.instructor.grade import grade_submission, to_markdown
-from course_lib.instructor.sandbox import MAX_REPLY
+from course_lib.instructor.sandbox.wire import MAX_REPLY
 from course_lib.instructor.notebooks import BEGIN, END
 from course_lib.paths import REPO_ROOT
 
@@ -54,17 +54,10 @@ def make_loop(notebooks: Path, name: str) -> str:
     raise SystemExit(f"no exercise {name} with solution markers in the notebooks")
 
 
-def record_largest_reply() -> dict:
-    """Record the largest reply of every student's process (``{"bytes": n}``, filled as the grading goes)."""
-    seen = {"bytes": 0}
-    close = student_process.StudentProcess.close
-
-    def recording_close(self) -> None:
-        seen["bytes"] = max(seen["bytes"], self.largest_reply)
-        close(self)
-
-    student_process.StudentProcess.close = recording_close
-    return seen
+def largest_reply(report: dict) -> int:
+    """The largest reply any student's process sent in this grading, in bytes."""
+    return max((g.get("hidden", {}).get("memory", {}).get("largest reply bytes", 0) for g in report["exercises"]),
+               default=0)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -86,11 +79,11 @@ def main(argv: list[str] | None = None) -> int:
                 sub = Path(shutil.copytree(sub, Path(tmp) / "submission"))
             where = make_loop(sub / "notebooks" if (sub / "notebooks").is_dir() else sub, args.loop)
             print(f"{args.loop} of {where} loops forever in this run")
-        largest = record_largest_reply()
         t0 = time.perf_counter()
         report = grade_submission(sub, salt=args.hidden_seed, allow_reference=self_test, nbval_jobs=args.nbval_jobs)
         dt = time.perf_counter() - t0
     args.out.mkdir(parents=True, exist_ok=True)
+    largest = {"bytes": largest_reply(report)}
     (args.out / "grade_speed.json").write_text(json.dumps({"seconds": round(dt, 1), "largest_reply": largest["bytes"],
                                                            "report": report}, indent=1,
                                                           ensure_ascii=False) + "\n")

@@ -11,9 +11,24 @@ not the lesson, and for the reference solutions their checks compare against.
 * :mod:`course_lib.viz` - plotly 3-D scenes, matplotlib figures, widgets.
 * :mod:`course_lib.checks` - the checks behind every check cell; :mod:`course_lib.steps` - where each
   notebook starts (the reference result of the step before).
+* :mod:`course_lib.exercises` - the exercises, and how the kit's own code calls them;
+  :mod:`course_lib.student` - in the student kit, the student's own solutions (saved when their cell runs).
 * :mod:`course_lib.instructor` - release, grading, the hidden cases (never shipped to students).
 
 Command line: ``python -m course_lib --help``.
 """
 
 __version__ = "0.1.0"
+
+
+def _install_saving() -> None:
+    """In a student kit's Jupyter kernel: running an exercise's cell saves it for later notebooks (:mod:`course_lib.student`)."""
+    try:
+        from course_lib import student
+
+        student.install()
+    except Exception:  # noqa: BLE001 - importing the kit never fails because of it
+        pass
+
+
+_install_saving()

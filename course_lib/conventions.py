@@ -172,7 +172,13 @@ def compose_poses(R_ab, t_ab, R_bc, t_bc) -> tuple[np.ndarray, np.ndarray]:
 
 
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """The angle in degrees of the rotation that takes ``R_b`` to ``R_a`` (geodesic distance)."""
+    """The angle in degrees of the rotation that takes ``R_b`` to ``R_a`` (geodesic distance).
+
+    ``atan2(sin, cos)`` of the relative rotation ``R = R_a R_bᵀ`` (sin from its skew part, cos from its
+    trace): exact for small angles too, where ``arccos`` of the trace turns float32 rounding (1e-7)
+    into 0.03°.
+    """
     R = np.asarray(R_a, float) @ np.asarray(R_b, float).T
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.degrees(np.arccos(c)))
+    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.degrees(np.arctan2(s, c)))

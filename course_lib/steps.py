@@ -219,7 +219,7 @@ def correspondences_2d3d(track_ids: np.ndarray, X: np.ndarray, track_uv: np.ndar
 def two_view_reconstruction(folder, new_image: int = NEW_IMAGE) -> dict[str, np.ndarray]:
     """Step 3's reference result: the two-view reconstruction of the pair, and the next image's 2D-3D matches.
 
-    Runs the reference chain on the pair of :func:`triangulation_input`:
+    Runs the reference chain (in the instructor's kit) on the pair of :func:`triangulation_input`:
     :func:`~course_lib.sfm.triangulation.choose_pose`, then
     :func:`~course_lib.sfm.triangulation.triangulate_nonlinear`, keeping the points in front of
     both cameras.

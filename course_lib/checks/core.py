@@ -21,8 +21,8 @@ them; failing lines may carry numbers, since they never appear in a reference ru
 Checks are weighed by what they test (:func:`score`, the grader's one rule): shape and dtype
 checks are gates that earn no points; a check of a *defining* property (rank 2 for F, det +1 for
 a rotation, Δ in α; declared per exercise with :func:`declare_defining`) caps the score at one
-half when it fails, and the printed verdict then leads with it. docs/mistakes.md documents the
-defining properties and the catalogue of classic mistakes that the checks name.
+half when it fails, and the printed verdict then leads with it. docs/mistakes.md (in the instructor's kit)
+documents the defining properties and the catalogue of classic mistakes that the checks name.
 
 Fixtures are stored cases in ``data/fixtures/<name>.npz`` (inputs, the reference's results, the
 results of classic mistakes), made from the reference solutions on the instructor's side by one
@@ -59,6 +59,12 @@ __all__ = [
     "load_fixture",
     "using_cases",
     "as_array",
+    "EPS32",
+    "RTOL",
+    "close_rel",
+    "same_up_to_scale",
+    "scale_of",
+    "unique_key",
 ]
 
 PASS, FAIL = "✔", "✘"
@@ -114,12 +120,17 @@ class Verdict:
             points, but the exercise is no longer perfect, which costs the last 10 % of the grade:
             one point of ten).
         defining: the defining property it tests (see :func:`declare_defining`), or None.
+        named: for a failed check whose text names a mistake ("you compared the squared error with
+            threshold_px"), the mistake's key; a check names one only when that mistake is the unique
+            explanation of what it saw on every case built to isolate it. A failed check that states which
+            property fails, with numbers, names none (None).
     """
 
     ok: bool
     text: str
     kind: str = "points"
     defining: str | None = None
+    named: str | None = None
 
 
 @dataclass
@@ -149,6 +160,11 @@ class CheckResult:
             if v.defining and not v.ok and v.defining not in out:
                 out.append(v.defining)
         return out
+
+    @property
+    def named(self) -> list[str]:
+        """The keys of the mistakes the failed checks name (see :class:`Verdict`), in order, without repeats."""
+        return list(dict.fromkeys(v.named for v in self.verdicts if v.named and not v.ok))
 
     @property
     def details_failed(self) -> list[str]:
@@ -274,7 +290,7 @@ class Check:
 
     # -- recording ---------------------------------------------------------------------------
     def expect(self, condition: bool, pass_msg: str, fail_msg: str, defining: str | None = None,
-               kind: str = "points") -> bool:
+               kind: str = "points", named: str | None = None) -> bool:
         """Record one check; ``pass_msg`` must be deterministic, ``fail_msg`` should name the likely mistake.
 
         Args:
@@ -285,6 +301,8 @@ class Check:
                 for this exercise); failing it caps the score at one half and leads the verdict.
             kind: ``"points"``, ``"gate"`` or ``"detail"`` (see :class:`Verdict`); :meth:`shape` and
                 :meth:`gate` record gates, :meth:`detail` details.
+            named: when ``fail_msg`` names a mistake (what the student did), its key (see :class:`Verdict`):
+                only for the unique explanation of what the check saw.
         """
         if defining is not None and defining not in DEFINING.get(self.exercise, {}):
             raise ValueError(f"{defining!r} is not a declared defining property of {self.exercise!r} "
@@ -294,7 +312,7 @@ class Check:
         self.total += 1
         ok = bool(condition)
         text = pass_msg if ok else fail_msg
-        self.verdicts.append(Verdict(ok, text, kind, defining))
+        self.verdicts.append(Verdict(ok, text, kind, defining, None if ok else named))
         self.unanswered_call = None
         for case in self.answered:
             if case == self.case or f"{case}:" in text:  # "case A: ..." names case A (not "case A1")
@@ -306,18 +324,19 @@ class Check:
         self.lines.append(f"  {FAIL} {fail_msg}")
         return False
 
-    def fail(self, msg: str, defining: str | None = None) -> bool:
-        """Record a failed check (of ``defining`` when it is a defining property's)."""
-        return self.expect(False, "", msg, defining=defining)
+    def fail(self, msg: str, defining: str | None = None, named: str | None = None) -> bool:
+        """Record a failed check (of ``defining`` when it is a defining property's; ``named``: see :meth:`expect`)."""
+        return self.expect(False, "", msg, defining=defining, named=named)
 
-    def gate(self, condition: bool, pass_msg: str, fail_msg: str, defining: str | None = None) -> bool:
+    def gate(self, condition: bool, pass_msg: str, fail_msg: str, defining: str | None = None,
+             named: str | None = None) -> bool:
         """Record a precondition: no points when it passes, a failed check when not.
 
         For shape, dtype and type, and for properties that a trivial answer satisfies as well as a
         right one (rank 2, a rotation, unit norm, the same result for the same seed): passing them
         alone must earn nothing (``np.eye(3)`` or a constant is no solution), failing them costs.
         """
-        return self.expect(condition, pass_msg, fail_msg, defining=defining, kind="gate")
+        return self.expect(condition, pass_msg, fail_msg, defining=defining, kind="gate", named=named)
 
     def detail(self, condition: bool, pass_msg: str, fail_msg: str) -> bool:
         """Record a detail: correct maths, but maybe not the documented form (an order, a layout).
@@ -463,6 +482,75 @@ class Check:
         else:
             print(f"  {self.passed} of {self.total} checks passed")
         return result
+
+
+# ---------------------------------------------------------------------------------------------
+# One rule for equivalences and tolerances
+# ---------------------------------------------------------------------------------------------
+
+#: float32's machine epsilon (1.2e-7): every tolerance of the checks is a multiple of it, relative to the answer's scale.
+EPS32 = float(np.finfo(np.float32).eps)
+#: Relative tolerance of a computed result (a few hundred float32 roundings through an SVD or a sum of
+#: hundreds of terms): a correct answer computed in float32 passes, every named mistake is far beyond it.
+RTOL = 1000 * EPS32
+
+
+def scale_of(a: Any) -> float:
+    """The scale of an array: its largest magnitude (1 for an empty or all-zero array)."""
+    a = np.asarray(a, float)
+    m = float(np.abs(a).max()) if a.size else 0.0
+    return m if m > 0 and np.isfinite(m) else 1.0
+
+
+def close_rel(a: Any, b: Any, rtol: float = RTOL) -> bool:
+    """``a`` equals ``b`` within ``rtol`` of ``b``'s scale (:func:`scale_of`), same shape, all finite.
+
+    The checks' one rule for "equal": relative to the answer's scale, so that a correct answer in
+    float32 (or of large coordinates) passes.
+    """
+    try:
+        a, b = np.asarray(a, float), np.asarray(b, float)
+    except (TypeError, ValueError):
+        return False
+    if a.shape != b.shape or not np.isfinite(a).all():
+        return False
+    return bool(np.abs(a - b).max(initial=0.0) <= rtol * scale_of(b))
+
+
+def same_up_to_scale(a: Any, b: Any, rtol: float = RTOL) -> bool:
+    """``a = λ b`` for some λ ≠ 0 of either sign (both compared at unit norm, :func:`close_rel`).
+
+    The checks' one rule for what is defined up to scale and sign (F, E, a null vector): F / F[2, 2],
+    -F and F in float32 are the same F.
+    """
+    try:
+        a, b = np.asarray(a, float), np.asarray(b, float)
+    except (TypeError, ValueError):
+        return False
+    if a.shape != b.shape or not (np.isfinite(a).all() and np.isfinite(b).all()):
+        return False
+    na, nb = np.linalg.norm(a), np.linalg.norm(b)
+    if na == 0 or nb == 0:
+        return False
+    a, b = a / na, b / nb
+    return bool(min(np.abs(a - b).max(), np.abs(a + b).max()) <= rtol)
+
+
+def unique_key(per_case: list) -> str | None:
+    """The one mistake that explains every case, else None (the rule for naming a mistake).
+
+    ``per_case`` holds one entry for each case where the student's result failed: the set of mistakes whose
+    result the student's equals there, or a pair ``(explained, testable)``: the mistakes it equals and the
+    mistakes that can be told apart on that case at all (a case where a mistake cannot be tested neither
+    supports nor vetoes it). A mistake is named when it explains every failing case where it can be tested,
+    at least one, and no other mistake does.
+    """
+    if not per_case:
+        return None
+    pairs = [e if isinstance(e, tuple) else (set(e), None) for e in per_case]
+    keys = set().union(*(exp for exp, _ in pairs))
+    fits = [k for k in keys if all(k in exp for exp, testable in pairs if testable is None or k in testable)]
+    return fits[0] if len(fits) == 1 else None
 
 
 def as_array(value: Any) -> np.ndarray | None:

@@ -32,7 +32,7 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import FAILED, Check, declare_defining, load_fixture
+from course_lib.checks.core import FAILED, Check, declare_defining, load_fixture, unique_key
 
 __all__ = [
     "check_get_rays",
@@ -93,6 +93,17 @@ def as_tensor(a, dtype="float32"):
     return torch.as_tensor(np.asarray(a), dtype=getattr(torch, dtype))
 
 
+def tensor_gate(c: Check, case: str, what: str, value, like) -> bool:
+    """A gate: ``value`` is a torch tensor of the dtype of ``like`` (the kit's trainer and renderer, notebook 08,
+    feed these results to torch code in float32: a numpy array or float64 crashes there)."""
+    torch = _torch()
+    ok = isinstance(value, torch.Tensor) and value.dtype == like.dtype
+    got = (f"a {type(value).__name__}" if not isinstance(value, torch.Tensor) else f"a {value.dtype} tensor")
+    return c.gate(ok, f"{case}: {what} is a {like.dtype} tensor, as its inputs",
+                  f"{case}: {what} is {got}: return a torch tensor of the inputs' dtype ({like.dtype}); the kit's "
+                  "trainer (notebook 08) calls your function with float32 tensors and computes in float32")
+
+
 def _as_pair(out, c: Check, case: str, names=("rays_o", "rays_d")):
     if out is FAILED:
         return None
@@ -129,7 +140,7 @@ RAY_HINTS = {
     "backwards": "rays point backwards: the camera looks along +z in the kit's OpenCV axes (not -z as in OpenGL)",
     "y_flip": "y is flipped: image rows grow downwards and so does the camera's y axis (OpenCV axes), use +(v - cy) / fy",
     "x_flip": "x is flipped: use +(u - cx) / fx",
-    "transposed": "the rotation is transposed: rotate camera directions into the world with c2w[:3, :3] @ d "
+    "transposed": "you rotated with the transpose: rotate camera directions into the world with c2w[:3, :3] @ d "
                   "(in row form d @ c2w[:3, :3].T)",
     "not_rotated": "the directions are not rotated into the world: apply the rotation c2w[:3, :3]",
     "normalized": "the directions are normalized: the kit keeps d with z_cam = 1 so that z_vals are depths along "
@@ -149,37 +160,51 @@ RAY_HINTS = {
 # --------------------------------------------------------------------------- get_rays
 
 
-def _check_one_camera(c: Check, get_rays: Callable, f, name: str) -> None:
+def _one_camera(c: Check, get_rays: Callable, f, name: str) -> dict | None:
     H, W = (int(v) for v in f[f"rays_{name}_HW"])
     K, c2w = f[f"rays_{name}_K"].astype(float), f[f"rays_{name}_c2w"].astype(float)
-    o_ref, d_ref = f[f"rays_{name}_o"].astype(float), f[f"rays_{name}_d"].astype(float)
     case = f"{H}x{W} camera ({name})"
-    pair = _as_pair(c.call(get_rays, H, W, as_tensor(K), as_tensor(c2w), case=case), c, case)
+    K_t, c2w_t = as_tensor(K), as_tensor(c2w)  # the kit's trainer passes float32 tensors
+    raw = c.call(get_rays, H, W, K_t, c2w_t, case=case)
+    pair = _as_pair(raw, c, case)
     if pair is None:
-        return
+        return None
+    tensor_gate(c, case, "rays_d", raw[1], K_t)
     o, d = pair
+    d_ref = f[f"rays_{name}_d"].astype(float)
     if d.shape == (W, H, 3) and close(np.swapaxes(d, 0, 1), d_ref):
-        c.fail(f"{case}: rays_d has shape (W, H, 3) = {d.shape}: meshgrid ij/xy transposition; use "
-               "torch.meshgrid(u, v, indexing='xy') (or indexing='ij' with (v, u)) so that rows are image rows v")
-        return
+        c.fail(f"{case}: rays_d has shape (W, H, 3) = {d.shape}: you built the pixel grid with meshgrid's ij/xy "
+               "transposed; use torch.meshgrid(u, v, indexing='xy') (or indexing='ij' with (v, u)) so that rows are "
+               "image rows v", named="meshgrid")
+        return None
     if d.shape == (H * W, 3):
         c.fail(f"{case}: rays_d has shape {d.shape}: return one ray per pixel as (H, W, 3) (reshape at the end)")
-        return
+        return None
     if not c.shape(d, (H, W, 3), f"{case}: rays_d"):
-        return
+        return None
+    labels = {label for label, arr in _stored(f, f"rays_{name}_d") if label in RAY_HINTS and close(d, arr)}
+    d_cam = d @ c2w[:3, :3]
+    if not labels and np.all(d_cam[..., 2] < 0):
+        labels.add("backwards")
+    return {"case": case, "name": name, "o": o, "d": d, "H": H, "W": W, "labels": labels, "c2w": c2w}
+
+
+def _stored(f: dict, prefix: str) -> list[tuple[str, np.ndarray]]:
+    return [(k[len(prefix) + 2:], f[k].astype(float)) for k in sorted(f) if k.startswith(prefix + "__")]
+
+
+def _camera_verdicts(c: Check, f, r: dict, named: str | None) -> None:
+    case, name, o, d, H, W = (r[k] for k in ("case", "name", "o", "d", "H", "W"))
+    d_ref, o_ref = f[f"rays_{name}_d"].astype(float), f[f"rays_{name}_o"].astype(float)
     if close(d, d_ref):
         c.expect(True, f"{case}: rays_d matches the reference (one ray per pixel, OpenCV axes, z_cam = 1)", "")
     else:
-        hint = match_variant(d, stored_variants(f, f"rays_{name}_d", RAY_HINTS))
-        if hint is None:
-            d_cam = d @ c2w[:3, :3]
-            if np.all(d_cam[..., 2] < 0):
-                hint = "rays point backwards (z_cam < 0): the camera looks along +z in the kit's OpenCV axes"
-            else:
-                err = float(np.abs(d - d_ref).max())
-                hint = (f"rays_d differs from the reference (max error {err:.3g}): the camera-frame direction of "
-                        "pixel (u, v) is ((u - cx) / fx, (v - cy) / fy, 1), rotated by c2w[:3, :3]")
-        c.fail(f"{case}: {hint}")
+        err = float(np.abs(d - d_ref).max())
+        hint = (RAY_HINTS.get(named) or "rays point backwards (z_cam < 0): the camera looks along +z in the kit's "
+                "OpenCV axes") if named else (
+            f"rays_d differs from the reference (max error {err:.3g}): the camera-frame direction of pixel (u, v) is "
+            "((u - cx) / fx, (v - cy) / fy, 1), rotated by c2w[:3, :3]")
+        c.fail(f"{case}: {hint}", named=named)
     if o.shape == (3,) or o.shape == (1, 1, 3):
         c.fail(f"{case}: rays_o has shape {o.shape}: repeat the camera centre for every pixel "
                "(rays_o.expand(H, W, 3) or torch.broadcast_to)")
@@ -198,8 +223,10 @@ def check_get_rays(get_rays: Callable) -> None:
     """
     f = load_fixture(FIXTURE)
     with Check("get_rays") as c:
-        for name in RAY_CASES:
-            _check_one_camera(c, get_rays, f, name)
+        runs = [r for r in (_one_camera(c, get_rays, f, name) for name in RAY_CASES) if r is not None]
+        named = unique_key([r["labels"] for r in runs if not close(r["d"], f[f"rays_{r['name']}_d"].astype(float))])
+        for r in runs:
+            _camera_verdicts(c, f, r, named)
 
 
 # --------------------------------------------------------------------------- stratified sampling
@@ -211,75 +238,95 @@ declare_defining("stratified_samples", {
 })
 
 
-def _bins(near: float, far: float, S: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """The two accepted stratifications: ``{name: (lower (S,), upper (S,))}``."""
+def _bins(near, far, S: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The two accepted stratifications: ``{name: (lower, upper)}``, ``(S,)`` for float bounds, ``(R, S)`` for
+    ``(R,)`` bounds."""
+    near, far = np.asarray(near, float)[..., None], np.asarray(far, float)[..., None]
     z = near + (far - near) * np.arange(S) / (S - 1)
-    mids = 0.5 * (z[1:] + z[:-1])
+    mids = 0.5 * (z[..., 1:] + z[..., :-1])
     edges = near + (far - near) * np.arange(S + 1) / S
-    return {"kit": (np.concatenate([[near], mids]), np.concatenate([mids, [far]])),
-            "paper": (edges[:-1], edges[1:])}
+    return {"kit": (np.concatenate([near + 0 * mids[..., :1], mids], -1), np.concatenate([mids, far + 0 * mids[..., :1]], -1)),
+            "paper": (edges[..., :-1], edges[..., 1:])}
 
 
-def _check_evaluation(c: Check, fn: Callable, near: float, far: float, S: int, R: int, z_ref: np.ndarray) -> None:
-    case = f"evaluation (perturb=False), near={near:.3g}, far={far:.3g}, {S} samples, {R} rays"
+def _check_evaluation(c: Check, fn: Callable, near, far, S: int, R: int, z_ref: np.ndarray, case: str) -> None:
+    short = case.split(", near=")[0]
     z = to_numpy(c.call(fn, near, far, S, R, False, case=case))
-    if z is None or not c.shape(z, (R, S), f"evaluation (perturb=False), {S} samples, {R} rays: z_vals"):
+    if z is None or not c.shape(z, (R, S), f"{short}: z_vals"):
         return
     if close(z, z_ref):
-        c.expect(True, "evaluation (perturb=False): the evenly spaced depths of the reference, the same for every ray", "")
+        c.expect(True, f"{short}: the evenly spaced depths of the reference"
+                 + (", the same for every ray" if np.ndim(near) == 0 else ", each ray between its own near and far"), "")
         return
     z2 = to_numpy(c.call(fn, near, far, S, R, False, case=case))
     lo, up = _bins(near, far, S)["kit"]
     inside = np.all((z >= lo - 1e-6) & (z <= up + 1e-6))
-    step = (far - near) / S
+    near_a, far_a = np.broadcast_to(np.asarray(near, float), (R,))[:, None], np.broadcast_to(np.asarray(far, float), (R,))[:, None]
+    step = (far_a - near_a) / S
+    named = "eval"
     if z2 is not None and not close(z, z2):
         hint = "two calls give different depths: jitter in evaluation; perturb=False must give fixed, evenly " \
                "spaced depths (jitter only in training)"
-    elif inside and not close(z, np.broadcast_to(z[:1], z.shape)):
+    elif inside and np.ndim(near) == 0 and not close(z, np.broadcast_to(z[:1], z.shape)):
         hint = "the depths differ between rays: jitter in evaluation (perturb=False must not jitter)"
-    elif close(z, np.broadcast_to(near + step * np.arange(S), z.shape)):
+    elif close(z, near_a + step * np.arange(S)):
         hint = "the last depth is not far: use torch.linspace(near, far, n_samples)"
-    elif close(z, np.broadcast_to(near + step * (np.arange(S) + 0.5), z.shape)):
+    elif close(z, near_a + step * (np.arange(S) + 0.5)):
         hint = "the depths are the centres of S equal bins: in evaluation use torch.linspace(near, far, n_samples)"
     else:
-        hint = "z_vals are not evenly spaced from near to far (expected torch.linspace(near, far, n_samples) for every ray)"
-    c.fail(f"{case}: {hint}")
+        hint = ("z_vals are not evenly spaced from near to far (expected torch.linspace(near, far, n_samples) for every "
+                "ray, near and far of that ray)")
+        named = None
+    c.fail(f"{case}: {hint}", named=named and hint[:30])
 
 
-def _bin_hint(zt: np.ndarray, near: float, far: float, S: int) -> str:
+def _bin_hint(zt: np.ndarray, near, far, S: int) -> tuple[str, str | None]:
+    """What is wrong with training samples that leave their bins, and the mistake's key when the samples show it."""
     lo, up = _bins(near, far, S)["kit"]
-    z_even = near + (far - near) * np.arange(S) / (S - 1)
     out = int(np.sum((zt < lo - 1e-6) | (zt > up + 1e-6)))
     unsorted = bool(np.any(np.diff(zt, axis=1) < 0))
-    rel = (zt - z_even) / (far - near)
-    what = f"{out} samples leave their bin" + (" and the depths come out unsorted" if unsorted else "")
-    if rel.min() > -1e-6 and rel.max() > 1.5 / S or rel.min() < -1.5 / S:
-        why = "the jitter is scaled by far - near: scale the uniform numbers by the bin width (upper - lower)"
-    elif zt.min() < near - 1e-6 or zt.max() > far + 1e-6:
-        why = ("samples fall outside [near, far]: the first bin starts at near and the last ends at far (jitter "
-               "z_i by +-half a bin only inside, with lower = [near, mids], upper = [mids, far])")
-    else:
-        why = ("draw z = lower + (upper - lower) * u with u uniform in [0, 1), lower = [near, mids], "
-               "upper = [mids, far], mids the midpoints of the evaluation depths")
-    return f"{what}: {why}"
+    near_a = np.broadcast_to(np.asarray(near, float), (zt.shape[0],))[:, None]
+    far_a = np.broadcast_to(np.asarray(far, float), (zt.shape[0],))[:, None]
+    what = f"{out} samples leave their bin" + (" and the depths come out unsorted" if unsorted else
+                                              " (the depths are sorted, but sample i is not inside bin i)")
+    scaled = (zt - lo) / (far_a - near_a)  # the jitter in units of far - near
+    if unsorted and scaled.min() > -1e-6 and scaled.max() < 1 + 1e-6 and (zt > far_a + 1e-6).any():
+        return (f"{what}: your jitter is scaled by far - near (samples beyond far): scale the uniform numbers by the "
+                "bin width (upper - lower)"), "jitter_far_near"
+    z_even = near_a + (far_a - near_a) * np.arange(S) / (S - 1)
+    span = float(np.ptp(zt - z_even, axis=1).max() / ((far_a - near_a) / (S - 1)).min())  # in bin widths
+    if span > 1.5:
+        return (f"{what}: your jitter spans {span:.1f} bin widths ({span / (S - 1):.0%} of far - near): a sample must "
+                "stay in its bin, scale the uniform numbers by the bin width (upper - lower), not by far - near"), None
+    if zt.min() < (near_a - 1e-6).min() or (zt > far_a + 1e-6).any():
+        return (f"{what}; samples fall outside [near, far]: the first bin starts at near and the last ends at far "
+                "(lower = [near, mids], upper = [mids, far])"), None
+    return (f"{what}: draw z = lower + (upper - lower) * u with u uniform in [0, 1), lower = [near, mids], "
+            "upper = [mids, far], mids the midpoints of the evaluation depths"), None
 
 
-def _check_training(c: Check, fn: Callable, near: float, far: float, S: int, R: int, seed: int, z_ref,
-                    again: bool) -> None:
-    """One training case; ``again``: call a second time with the same seed (reproducibility)."""
+def _gen(seed: int):
     import torch
 
-    case = f"training (perturb=True), near={near:.3g}, far={far:.3g}, {S} samples, {R} rays"
-    short = f"training (perturb=True), {S} samples, {R} rays"
-    zt = to_numpy(c.call(fn, near, far, S, R, True, generator=torch.Generator().manual_seed(seed), case=case))
+    return torch.Generator().manual_seed(int(seed))
+
+
+def _check_training(c: Check, fn: Callable, near, far, S: int, R: int, seed: int, z_ref, again: bool,
+                    case: str) -> None:
+    """One training case; ``again``: the randomness (same seed, other seeds, torch's global generator untouched)."""
+    import torch
+
+    short = case.split(", near=")[0] if ", near=" in case else case
+    zt = to_numpy(c.call(fn, near, far, S, R, True, generator=_gen(seed), case=case))
     if zt is None or not c.shape(zt, (R, S), f"{short}: z_vals"):
         return
     c.gate(not close(zt, z_ref), f"{short}: the depths are jittered",
            f"{case}: no jitter: with perturb=True draw one uniform sample inside each bin")
     fits = {k: np.all((zt >= lo - 1e-6) & (zt <= up + 1e-6)) for k, (lo, up) in _bins(near, far, S).items()}
     kind = next((k for k, ok in fits.items() if ok), None)
+    bin_hint, key = _bin_hint(zt, near, far, S)
     c.expect(kind is not None, f"{short}: every sample lies in its own bin, so the depths are sorted",
-             f"{case}: {_bin_hint(zt, near, far, S)}", defining=BINS)
+             f"{case}: {bin_hint}", defining=BINS, named=key)
     lo, up = _bins(near, far, S)[kind or "kit"]
     off = (zt - lo) / (up - lo)
     varied_s, varied_r = np.ptp(off, axis=1).min() > 1e-3, np.ptp(off, axis=0).min() > 1e-3
@@ -292,12 +339,28 @@ def _check_training(c: Check, fn: Callable, near: float, far: float, S: int, R: 
                  "in [0, 1) and place the sample at lower + (upper - lower) * u")
     if not again:
         return
-    zt2 = to_numpy(c.call(fn, near, far, S, R, True, generator=torch.Generator().manual_seed(seed), case=case))
+    saved = torch.get_rng_state()
+    try:
+        torch.manual_seed(20261124)
+        before = torch.get_rng_state()
+        zt2 = to_numpy(c.call(fn, near, far, S, R, True, generator=_gen(seed), case=case))
+        touched = not torch.equal(torch.get_rng_state(), before)
+    finally:
+        torch.set_rng_state(saved)
     usable = zt2 is not None and np.shape(zt2) == np.shape(zt)  # an unusable second answer fails the gate too
     c.gate(usable and close(zt, zt2), f"{short}: the same generator seed gives the same samples",
-           f"{case}: the same seed gave different samples: pass generator=generator to torch.rand" if usable else
+           f"{case}: the same generator seed gave different samples: draw the uniform numbers from the generator "
+           "argument, torch.rand(..., generator=generator)" if usable else
            f"{case}: a second call with the same seed returned nothing usable (shape {np.shape(zt2)}, expected "
            f"{np.shape(zt)})")
+    c.gate(not touched, f"{short}: torch's global random state is left untouched",
+           f"{case}: the call changed torch's global random state (torch.manual_seed or torch.rand without the "
+           "generator): draw from the generator argument only")
+    zt3 = to_numpy(c.call(fn, near, far, S, R, True, generator=_gen(seed + 1), case=case))
+    c.gate(zt3 is not None and np.shape(zt3) == np.shape(zt) and not close(zt, zt3),
+           f"{short}: another generator seed gives other samples",
+           f"{case}: two generator seeds gave the same samples: draw the uniform numbers from the generator argument "
+           "(not from a generator or seed of your own)")
 
 
 def check_stratified_samples(stratified_samples: Callable) -> None:
@@ -305,16 +368,33 @@ def check_stratified_samples(stratified_samples: Callable) -> None:
 
     Evaluation (``perturb=False``) must give the reference's evenly spaced depths for every ray;
     training (``perturb=True``) one uniform sample inside each of the S bins, independent per ray
-    and sample, reproducible with the given ``torch.Generator`` (three cases of the fixture).
+    and sample, drawn from the given ``torch.Generator`` (same seed, same samples; another seed,
+    other samples; torch's global generator untouched). near and far come as floats and, as the
+    kit's fast preset passes them (per-ray ray-box bounds), as ``(R,)`` float32 tensors.
     """
+    import torch
+
     f = load_fixture(FIXTURE)
     with Check("stratified_samples") as c:
         near, far, S, R = (float(v) for v in f["strat_args"])
-        _check_evaluation(c, stratified_samples, near, far, int(S), int(R), f["strat_z"].astype(float))
+        S, R = int(S), int(R)
+        _check_evaluation(c, stratified_samples, near, far, S, R, f["strat_z"].astype(float),
+                          f"evaluation (perturb=False), near={near:.3g}, far={far:.3g}, {S} samples, {R} rays")
         for k, (near, far, S, R, seed) in enumerate(f["strat_train_args"]):
             S, R = int(S), int(R)
             _check_training(c, stratified_samples, float(near), float(far), S, R, int(seed),
-                            f[f"strat_train_z_{k}"].astype(float), again=k == 0)
+                            f[f"strat_train_z_{k}"].astype(float), again=k == 0,
+                            case=f"training (perturb=True), near={float(near):.3g}, far={float(far):.3g}, {S} samples, "
+                                 f"{R} rays")
+        if "strat_ray_near" in f:  # near and far per ray, as the kit's trainer passes them
+            near_r, far_r = f["strat_ray_near"], f["strat_ray_far"]
+            S, R, seed = int(f["strat_ray_S"]), len(near_r), int(f["strat_ray_seed"])
+            tn, tf = torch.as_tensor(near_r, dtype=torch.float32), torch.as_tensor(far_r, dtype=torch.float32)
+            label = f"{S} samples, {R} rays, near and far per ray ((R,) tensors)"
+            _check_evaluation(c, stratified_samples, tn, tf, S, R, f["strat_ray_z"].astype(float),
+                              f"evaluation (perturb=False), {label}")
+            _check_training(c, stratified_samples, tn, tf, S, R, seed, f["strat_ray_z"].astype(float), again=False,
+                            case=f"training (perturb=True), {label}")
 
 
 # --------------------------------------------------------------------------- query points
@@ -372,9 +452,10 @@ def check_query_points(query_points: Callable) -> None:
                 continue
             if not c.shape(p, (R, S, 3), f"{case}: pts"):
                 continue
+            hint = match_variant(p, stored_variants(f, f"query_{k}_pts", QUERY_HINTS))
             c.expect(close(p, ref), f"{case}: pts = o + t d matches the reference",
-                     f"{case}: " + (match_variant(p, stored_variants(f, f"query_{k}_pts", QUERY_HINTS))
-                                    or "pts differs from o + t d (pts[r, s] = rays_o[r] + z_vals[r, s] * rays_d[r])"))
+                     f"{case}: " + (hint or "pts differs from o + t d (pts[r, s] = rays_o[r] + z_vals[r, s] * rays_d[r])"),
+                     named=hint and hint[:30])
 
 
 # --------------------------------------------------------------------------- positional encoding
@@ -398,38 +479,56 @@ ENCODING_HINTS = {
     "no_identity_no_pi": "missing identity term: the encoding starts with x itself; missing pi factor: use "
                          "sin(2^k pi x) and cos(2^k pi x)",
 }
+ENCODING_HINTS["identity_last"] = ("you put the identity term x last: it goes first, [x, sin(2^0 pi x), cos(2^0 pi x), "
+                                   "...]")
 ENCODING_CASES = (("pos10", "positions, L={L}"), ("dir4", "directions, L={L}"), ("noid3", "include_input=False, L={L}"),
                   ("batch2", "a batch of shape {shape}, L={L}"))
 
 
 def check_positional_encoding(positional_encoding: Callable) -> None:
-    """Check ``positional_encoding(x (..., D), n_freqs, include_input=True) -> (..., D (include_input + 2 L))``."""
+    """Check ``positional_encoding(x (..., D), n_freqs, include_input=True) -> (..., D (include_input + 2 L))``.
+
+    Called with float32 tensors, as the NeRF of notebook 07 calls it: the encoding must be a tensor of x's dtype.
+    A stored mistake is named only when it explains every case the encoding fails.
+    """
     f = load_fixture(FIXTURE)
     with Check("positional_encoding") as c:
+        runs = []
         for key, label in ENCODING_CASES:
             xin, ref = f[f"enc_{key}_x"].astype(float), f[f"enc_{key}"].astype(float)
             L, inc = (int(v) for v in f[f"enc_{key}_args"])
             inc = bool(inc)
             case = label.format(L=L, shape=xin.shape)
-            out = to_numpy(c.call(positional_encoding, as_tensor(xin), L, include_input=inc, case=case))
+            x_t = as_tensor(xin)
+            raw = c.call(positional_encoding, x_t, L, include_input=inc, case=case)
+            out = to_numpy(raw)
             if out is None:
                 continue
+            tensor_gate(c, case, "the encoding", raw, x_t)
             D = xin.shape[-1]
             want = (*xin.shape[:-1], D * (int(inc) + 2 * L))
             if out.shape != want:
                 hint = ""
                 if inc and out.shape == (*xin.shape[:-1], 2 * L * D):
-                    hint = ": missing identity term (the encoding starts with x itself)"
+                    hint = ": missing identity term (with include_input=True the encoding starts with x itself)"
                 elif not inc and out.shape == (*xin.shape[:-1], (1 + 2 * L) * D):
-                    hint = ": with include_input=False leave out the identity term x"
+                    hint = ": with include_input=False leave out the identity term x (you included it)"
                 elif out.shape[:-1] != xin.shape[:-1]:
                     hint = ": keep the leading (batch) axes and concatenate along the last axis"
                 c.fail(f"{case}: the encoding has shape {out.shape}, expected {want}{hint}")
                 continue
+            labels = {lab for lab, arr in _stored(f, f"enc_{key}") if lab in ENCODING_HINTS
+                      and close(out, arr, rtol=1e-3, atol=2e-3)}
+            if inc and close(out[..., -D:], xin) and close(out[..., :-D], ref[..., D:], rtol=1e-3, atol=2e-3):
+                labels.add("identity_last")
+            runs.append((case, out, ref, labels))
+        failing = [labels for case, out, ref, labels in runs if not close(out, ref, rtol=1e-3, atol=2e-3)]
+        named = unique_key(failing)
+        for case, out, ref, labels in runs:
             if close(out, ref, rtol=1e-3, atol=2e-3):  # float32 sin(2^9 pi x) is good to ~1e-4
-                c.expect(True, f"{case}: shape {want} and values match the reference", "")
+                c.expect(True, f"{case}: shape and values match the reference", "")
                 continue
-            hint = match_variant(out, stored_variants(f, f"enc_{key}", ENCODING_HINTS), rtol=1e-3, atol=2e-3)
-            c.fail(f"{case}: " + (hint or f"the values differ from the reference (max error "
-                                          f"{float(np.abs(out - ref).max()):.3g}); compare with the formula above: "
-                                          "[x, sin(2^0 pi x), cos(2^0 pi x), ..., cos(2^(L-1) pi x)]"))
+            c.fail(f"{case}: " + (ENCODING_HINTS[named] if named else
+                                  f"the values differ from the reference (max error {float(np.abs(out - ref).max()):.3g}); "
+                                  "compare with the formula above: [x, sin(2^0 pi x), cos(2^0 pi x), ..., "
+                                  "cos(2^(L-1) pi x)] (x only with include_input=True)"), named=named)

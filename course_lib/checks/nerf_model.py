@@ -252,34 +252,53 @@ def _linear_params(model) -> list | None:
     return out
 
 
-def _layer_hint(mine: list[tuple[int, int]], ref: list[tuple[int, int]], cfg: dict) -> tuple[str, bool]:
-    """The likely mistake from the layer tables, and whether it is the skip connection's."""
+def _layer_hint(mine: list[tuple[int, int]], ref: list[tuple[int, int]], cfg: dict) -> tuple[str, bool, str | None]:
+    """What the layer table shows: ``(text, whether the skip input is what is wrong, the mistake's key)``.
+
+    A mistake is named only when the layers that differ from the documented ones are exactly the layers
+    that mistake gives; otherwise the text lists the missing and unexpected layers.
+    """
     cm, cr = Counter(mine), Counter(ref)
-    missing, extra = list((cr - cm).elements()), list((cm - cr).elements())
-    W, enc, encd = cfg["width"], 3 * (1 + 2 * cfg["pos_freqs"]), 3 * (1 + 2 * cfg["dir_freqs"])
-    hints, skip = [], False
-    if (W + enc, W) in missing and (W + 3, W) in extra:
-        hints.append(f"the skip concatenates the raw position x (3 values): concatenate the ENCODED position γ(x) "
-                     f"({enc} + {W} inputs)")
-        skip = True
-    elif (W + enc, W) in missing:
-        hints.append(f"no skip connection: after trunk layer {cfg['skips'][0]} concatenate the encoded input again, "
-                     f"h = torch.cat([γ(x), h], -1), so that the next layer takes {enc} + {W} inputs")
-        skip = True
-    if (enc, W) in missing and (3, W) in extra:
-        hints.append(f"the positions are not encoded: the first layer takes γ(x) ({enc} inputs), not x (3)")
-    if any(i == W + encd for i, _ in missing) and any(i == W for i, o in extra if o == cfg["view_width"]):
-        hints.append(f"the view direction is not used: the colour branch takes [feature, γ(d)] ({W} + {encd} inputs)")
-    if any(o == 4 for _, o in extra):
-        hints.append("one head with 4 outputs: the density comes from the position branch (W -> 1) and the colour "
-                     "from the view-dependent branch (-> 3)")
+    missing, extra = cr - cm, cm - cr
+    W, VW = cfg["width"], cfg["view_width"]
+    enc, encd = 3 * (1 + 2 * cfg["pos_freqs"]), 3 * (1 + 2 * cfg["dir_freqs"])
+    d = f"layers (in, out): missing {sorted(missing.elements())}, unexpected {sorted(extra.elements())}"
+    skip_in = (W + enc, W)
+
+    def exactly(miss: list, ext: list) -> bool:
+        return missing == Counter(miss) and extra == Counter(ext)
+
+    patterns = [
+        ("no_skip", [skip_in], [(W, W)], True,
+         f"no skip connection: after trunk layer {cfg['skips'][0]} concatenate the encoded input again, "
+         f"h = torch.cat([γ(x), h], -1), so that the next layer takes {enc} + {W} inputs"),
+        ("raw_skip", [skip_in], [(W + 3, W)], True,
+         f"the skip concatenates the raw position x (3 values): concatenate the ENCODED position γ(x) ({enc} + {W} "
+         "inputs)"),
+        ("not_encoded", [(enc, W), skip_in], [(3, W), (W + 3, W)], False,
+         f"the positions are not encoded: the first layer and the skip take γ(x) ({enc} inputs), not x (3)"),
+        ("not_encoded_first", [(enc, W)], [(3, W)], False,
+         f"the positions are not encoded: the first layer takes γ(x) ({enc} inputs), not x (3)"),
+        ("view_unused", [(W + encd, VW)], [(W, VW)], False,
+         f"the view direction is not used: the colour branch takes [feature, γ(d)] ({W} + {encd} inputs)"),
+        ("view_raw", [(W + encd, VW)], [(W + 3, VW)], False,
+         f"the colour branch takes the raw viewing direction (3 values): use its encoding γ(d) ({encd} values)"),
+        ("view_in_trunk", [(enc, W), skip_in, (W + encd, VW)], [(enc + encd, W), (W + enc + encd, W), (W, VW)], False,
+         "the viewing direction enters the trunk (its first layer takes [γ(x), γ(d)]): the density must not depend "
+         "on the view; feed γ(d) only to the colour branch, [feature, γ(d)]"),
+    ]
+    for key, miss, ext, skip, text in patterns:
+        if exactly(miss, ext):
+            return text, skip, key
     if not missing and not extra and mine != ref:
         pos = [i for i, (n_in, _) in enumerate(mine) if n_in == W + enc]
-        hints.append(f"the skip input goes into layer {pos[0] if pos else '?'} of the trunk; with skips="
-                     f"{cfg['skips']} the output of layer {cfg['skips'][0]} (0-based) is concatenated with γ(x), so "
-                     f"layer {cfg['skips'][0] + 1} takes {enc} + {W} inputs")
-    detail = f"missing {missing}, unexpected {extra}" if (missing or extra) else ""
-    return "; ".join(hints + ([f"layers (in, out): {detail}"] if detail else [])) or "layers in another order", skip
+        return (f"the skip input goes into layer {pos[0] if pos else '?'} of the trunk; with skips={cfg['skips']} the "
+                f"output of layer {cfg['skips'][0]} (0-based) is concatenated with γ(x), so layer "
+                f"{cfg['skips'][0] + 1} takes {enc} + {W} inputs"), True, "skip_position"
+    if any(o == 4 for _, o in extra.elements()):
+        return ("one head with 4 outputs: the density comes from the position branch (W -> 1) and the colour from the "
+                f"view-dependent branch (-> 3); {d}"), False, None
+    return d, False, None
 
 
 def _outputs(c: Check, model, pts, dirs, lead, case: str):
@@ -382,9 +401,9 @@ def _check_config(c: Check, NeRF, f, name: str, pts, dirs, lead, seed: int) -> N
     own = None
     if model is not FAILED:
         ref_layers, mine = expected_layers(cfg), layer_table(model)
-        hint, skip_mistake = _layer_hint(mine, ref_layers, cfg)  # a missing skip is named here
+        hint, skip_mistake, key = _layer_hint(mine, ref_layers, cfg)  # a missing skip is named here
         c.gate(sorted(mine) == sorted(ref_layers), f"{case}: {len(ref_layers)} linear layers of the documented sizes",
-               f"{case}: {hint}", defining=SKIP if skip_mistake else None)
+               f"{case}: {hint}", defining=SKIP if skip_mistake else None, named=key)
         own = _outputs(c, model, pts, dirs, lead, case)
     if own is not None and name == "default":
         _own_init_gates(c, model, *own, pts, dirs, lead, case)
@@ -405,13 +424,16 @@ def _check_config(c: Check, NeRF, f, name: str, pts, dirs, lead, seed: int) -> N
                   f"the density differs: check the ReLU after every trunk layer, the skip (γ(x) concatenated with "
                   f"the output of trunk layer {cfg['skips'][0]}) and that sigma is read off the last trunk layer")
     c.expect(trunk_ok, f"{with_w}, the trunk and its skip input compute the reference's features",
-             f"{with_w}: {trunk_hint}", defining=SKIP if trunk_ok else None)
+             f"{with_w}: {trunk_hint}", defining=SKIP if trunk_ok else None,
+             named="no_trunk_relu" if trunk_hint.startswith("no ReLU") else None)
     act = next((why for why, g in DENSITY_VARIANTS if close(sigma, g(raw))), None)
     ok_sig = close(sigma, ref_sigma)
     c.expect(ok_sig, f"{with_w}, sigma = ReLU(density head) equals the reference's",
              f"{with_w}: " + (act or "sigma differs from the reference's (see the line above)"),
-             defining=RELU if ok_sig or act is not None else None)
-    c.expect(close(rgb, ref_rgb), f"{with_w}, rgb equals the reference's", f"{with_w}: " + _rgb_hint(f, name, rgb, trunk_ok))
+             defining=RELU if ok_sig or act is not None else None, named=act and act[:30])
+    rgb_hint = _rgb_hint(f, name, rgb, trunk_ok)
+    c.expect(close(rgb, ref_rgb), f"{with_w}, rgb equals the reference's", f"{with_w}: " + rgb_hint,
+             named=rgb_hint[:30] if rgb_hint.startswith(("a ReLU", "rgb outside")) else None)
 
 
 def _rgb_hint(f, name: str, rgb: np.ndarray, trunk_ok: bool) -> str:
@@ -421,7 +443,7 @@ def _rgb_hint(f, name: str, rgb: np.ndarray, trunk_ok: bool) -> str:
     if feat is not None and close(rgb, feat.astype(float)):
         return "a ReLU on the feature layer: the feature vector has no activation (only the view layer has a ReLU)"
     if rgb.min() < 0 or rgb.max() > 1:
-        return "rgb outside [0, 1]: sigmoid on the RGB head"
+        return "rgb outside [0, 1]: no sigmoid on the RGB head (put torch.sigmoid on it)"
     return ("rgb differs: the colour is sigmoid(rgb_head(relu(view_layer(torch.cat([feature(h), γ(d)], -1))))), "
             "with γ(d) the encoded viewing direction")
 
@@ -479,4 +501,4 @@ def check_psnr(psnr: Callable) -> None:
                 continue
             hint = next((why for why, g in PSNR_VARIANTS if abs(v - g(mse)) < 1e-3 * max(1.0, abs(g(mse)))), None)
             c.fail(f"{case}: got {v:.3f} dB, expected {want:.3f} for mse = {mse:.4g}: "
-                   + (hint or "PSNR = -10 log10(mse) for images in [0, 1] (peak 1)"))
+                   + (hint or "PSNR = -10 log10(mse) for images in [0, 1] (peak 1)"), named=hint and hint[:30])

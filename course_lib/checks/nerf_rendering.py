@@ -29,7 +29,7 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import FAILED, Check, declare_defining, load_fixture
+from course_lib.checks.core import FAILED, Check, declare_defining, load_fixture, unique_key
 from course_lib.checks.nerf_data import close, to_numpy
 
 __all__ = ["check_volume_render", "RENDER_HINTS"]
@@ -114,70 +114,86 @@ def _call(c: Check, fn, args, white: bool, case: str):
     return res
 
 
-def _check_slabs(c: Check, volume_render: Callable, f) -> None:
-    """Rays through slabs of constant density: behind a slab of density sigma and thickness L, exp(-sigma L)."""
+def _slab_eval(c: Check, volume_render: Callable, f) -> dict | None:
     args = tuple(f[f"slab_{k}"] for k in ("rgb", "sigma", "z_vals", "rays_d"))
-    trans = f["slab_trans"].astype(float)
     case = "rays through slabs of constant density"
     res = _call(c, volume_render, args, True, case)
     if res is None:
-        return
+        return None
+    trans = f["slab_trans"].astype(float)
+    absorbed = res["weights"].sum(-1)  # the light the samples absorb: sum_i w_i = 1 - exp(-sigma L)
+    ok = bool(np.allclose(absorbed, 1.0 - trans, atol=1e-4))
+    labels = {lab for lab, arr in _variants(f, "slab", "weights")
+              if lab in RENDER_HINTS and close(res["weights"], arr, rtol=1e-3, atol=1e-5)}
+    return {"case": case, "res": res, "ok": ok, "labels": labels, "absorbed": absorbed, "trans": trans}
+
+
+def _slab_verdicts(c: Check, e: dict, named: str | None) -> None:
+    case, res, ok, trans = e["case"], e["res"], e["ok"], e["trans"]
     c.gate(True, f"{case}: returns rgb_map, depth_map, acc_map, weights of the right shapes", "")
-    acc = res["acc_map"]
-    ok = np.allclose(acc, 1.0 - trans, atol=1e-4)
     if ok:
         c.expect(True, f"{case}: the light that gets through is exp(-sigma L)", "", defining=DELTA)
     else:
-        label = _which(f, "slab", "weights", res["weights"], rtol=1e-3, atol=1e-5) or _which(f, "slab", "acc_map", acc,
-                                                                                            atol=1e-4)
-        hint = RENDER_HINTS[label] if label else (f"acc_map = {np.round(acc, 3).tolist()}, expected 1 - exp(-sigma L) = "
-                                                  f"{np.round(1 - trans, 3).tolist()}")
-        c.fail(f"{case}: {hint}", defining=DELTA if label in NO_DELTA else None)
+        hint = RENDER_HINTS[named] if named else (
+            f"the weights absorb {np.round(e['absorbed'], 3).tolist()} of the light, expected 1 - exp(-sigma L) = "
+            f"{np.round(1 - trans, 3).tolist()}: alpha_i = 1 - exp(-sigma_i delta_i), w_i = T_i alpha_i")
+        c.fail(f"{case}: {hint}", defining=DELTA if named in NO_DELTA else None, named=named)
+    acc = res["acc_map"]
     c.gate(np.allclose(res["weights"].sum(-1), acc, atol=1e-4), f"{case}: acc_map is the sum of the weights",
-           f"{case}: acc_map must be the sum of the weights along each ray")
-    if ok:  # the colour only makes sense once the opacity is right
+           f"{case}: acc_map is not the sum of the weights along each ray (acc_map = sum_i w_i; yours differs by up to "
+           f"{float(np.abs(res['weights'].sum(-1) - acc).max()):.3g})")
+    if ok and np.allclose(res["weights"].sum(-1), acc, atol=1e-4):  # the colour only makes sense once the opacity is right
         want = np.stack([np.ones_like(trans), trans, trans], axis=1)  # red matter in front of a white background
         c.expect(np.allclose(res["rgb_map"], want, atol=1e-3), f"{case}: the colour is red matter over the white background",
                  f"{case}: rgb_map should be sum_i w_i c_i + (1 - acc_map) (white background); "
                  f"expected {np.round(want, 3).tolist()}, got {np.round(res['rgb_map'], 3).tolist()}")
 
 
-def _check_random(c: Check, volume_render: Callable, f, white: bool) -> None:
-    """Random rays (unnormalized directions, an empty ray, density only in the last sample) vs the reference."""
+def _random_eval(c: Check, volume_render: Callable, f, white: bool) -> dict | None:
     args = tuple(f[k] for k in ("rgb", "sigma", "z_vals", "rays_d"))
     bg = "white" if white else "black"
     case = f"random rays, {bg} background"
     res = _call(c, volume_render, args, white, case)
     if res is None:
-        return
+        return None
+    ok = close(res["weights"], f[f"{bg}_weights"].astype(float), rtol=1e-3, atol=1e-5)
+    labels = {lab for lab, arr in _variants(f, bg, "weights")
+              if lab in RENDER_HINTS and close(res["weights"], arr, rtol=1e-3, atol=1e-5)}
+    return {"case": case, "res": res, "ok": ok, "labels": labels, "bg": bg, "white": white}
+
+
+def _random_verdicts(c: Check, f, e: dict, named: str | None) -> None:
+    case, res, bg, white = e["case"], e["res"], e["bg"], e["white"]
     ref = {k: f[f"{bg}_{k}"].astype(float) for k in KEYS}
-    if close(res["weights"], ref["weights"], rtol=1e-3, atol=1e-5):
+    if e["ok"]:
         c.expect(True, f"{case}: weights match the reference", "", defining=DELTA)
     else:
-        label = _which(f, bg, "weights", res["weights"], rtol=1e-3, atol=1e-5)
-        c.fail(f"{case}: " + (RENDER_HINTS[label] if label else
+        c.fail(f"{case}: " + (RENDER_HINTS[named] if named else
                               "weights differ from the reference: w_i = T_i (1 - exp(-sigma_i delta_i)), "
                               "T_i = prod_{j<i} exp(-sigma_j delta_j), delta_i = (z_{i+1} - z_i) |d|, delta_S = 1e10"),
-               defining=DELTA if label in NO_DELTA else None)
+               defining=DELTA if named in NO_DELTA else None, named=named)
         return
     c.expect(close(res["acc_map"], ref["acc_map"], rtol=1e-3), f"{case}: acc_map matches the reference",
-             f"{case}: acc_map must be the sum of the weights along each ray")
+             f"{case}: acc_map is not the sum of the weights along each ray (acc_map = sum_i w_i)")
     if close(res["rgb_map"], ref["rgb_map"], rtol=1e-3):
         c.expect(True, f"{case}: rgb_map matches the reference", "")
     else:
         other = f[f"{bg}__other_background_rgb_map"].astype(float)
+        named_bg = None
         if close(res["rgb_map"], other, rtol=1e-3):
             hint = ("no white background: add (1 - acc_map) to rgb_map when white_background=True" if white else
                     "white background added although white_background=False")
+            named_bg = "background"
         else:
             hint = "rgb_map = sum_i w_i c_i (+ (1 - acc_map) on a white background)"
-        c.fail(f"{case}: {hint}")
+        c.fail(f"{case}: {hint}", named=named_bg)
     if close(res["depth_map"], ref["depth_map"], rtol=1e-3):
         c.expect(True, f"{case}: depth_map matches the reference", "")
     else:
         norm = f[f"{bg}__depth_normalized_depth_map"].astype(float)
+        normed = close(res["depth_map"], norm, rtol=1e-3)
         c.fail(f"{case}: " + ("depth_map divided by acc_map: the kit's depth is the expected depth sum_i w_i z_i"
-                              if close(res["depth_map"], norm, rtol=1e-3) else "depth_map = sum_i w_i z_i"))
+                              if normed else "depth_map = sum_i w_i z_i"), named="depth_normalized" if normed else None)
 
 
 def check_volume_render(volume_render: Callable) -> None:
@@ -187,6 +203,10 @@ def check_volume_render(volume_render: Callable) -> None:
     """
     f = load_fixture(FIXTURE)
     with Check("volume_render") as c:
-        _check_slabs(c, volume_render, f)
-        for white in (True, False):
-            _check_random(c, volume_render, f, white)
+        slab = _slab_eval(c, volume_render, f)
+        runs = [r for r in (_random_eval(c, volume_render, f, white) for white in (True, False)) if r is not None]
+        named = unique_key([e["labels"] for e in ([slab] if slab else []) + runs if not e["ok"]])
+        if slab is not None:
+            _slab_verdicts(c, slab, named)
+        for e in runs:
+            _random_verdicts(c, f, e, named)

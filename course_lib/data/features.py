@@ -181,9 +181,9 @@ def keep_geometric_inliers(pairs: dict, rng: np.random.Generator, threshold_px: 
                            min_matches: int = 15) -> tuple[dict, dict]:
     """Keep the matches of each pair that fit one fundamental matrix; drop pairs with too few.
 
-    This is plumbing, not the lesson (the lesson's RANSAC is
-    :func:`course_lib.sfm.fundamental.ransac`, which the SfM pipeline runs again on the written
-    matches, and which the student kit leaves out): OpenCV's ``findFundamentalMat(FM_RANSAC)``
+    This is plumbing, not the lesson (the lesson's RANSAC is notebook 01's ``ransac_fundamental``,
+    which the SfM pipeline runs again on the written matches: the student's own in the student kit,
+    :func:`course_lib.sfm.fundamental.ransac` in the instructor's kit): OpenCV's ``findFundamentalMat(FM_RANSAC)``
     (C++, fast on the hundreds of mostly empty pairs of a 40-view capture). ``cv2.setRNGSeed``
     with a seed drawn from ``rng`` makes it repeatable.
 

@@ -9,7 +9,9 @@
 * :mod:`~course_lib.instructor.grade` grades a submission: :mod:`~course_lib.instructor.extract`
   cuts each exercise out of its notebook, :mod:`~course_lib.instructor.scan` flags what gets no
   credit, :mod:`~course_lib.instructor.student_process` runs it in a sandboxed process
-  (:mod:`~course_lib.instructor.sandbox`, a script of its own), and
-  :mod:`~course_lib.instructor.nbval_run` runs the notebooks under nbval in the same sandbox.
+  (:mod:`~course_lib.instructor.sandbox`: the wire format, bubblewrap's jail and the server that runs
+  inside it), :mod:`~course_lib.instructor.hidden` checks it in a worker on the exercise's clock, and
+  :mod:`~course_lib.instructor.nbval_run` runs the notebooks under nbval in the same sandbox; the
+  limits and budgets are in :mod:`~course_lib.instructor.settings`.
 * :mod:`~course_lib.instructor.refresh` stores new check verdicts in the notebooks.
 """

@@ -1,7 +1,8 @@
 """Totals for a student's whole process tree: memory and processes in a cgroup of its own, where one can be made.
 
-:meth:`Cgroup.create` makes one cgroup per sandboxed process (the hidden checks of one exercise, or
-nbval of one notebook) under the first base where this user may create cgroups:
+:meth:`Cgroup.create` makes one cgroup per submission, and inside it one per exercise (the student's
+sandboxed process and the grader's worker that decodes and checks its replies) and one per notebook
+under nbval, under the first base where this user may create cgroups:
 
 * cgroup v2: ``$COURSE_GRADER_CGROUP`` (a cgroup delegated to the grading user, as the CI template
   makes it), else the root of the hierarchy when it is writable (the grader runs as root);
@@ -83,9 +84,12 @@ class Cgroup:
     notes: list[str] = field(default_factory=list)
 
     @classmethod
-    def create(cls, memory_bytes: int, processes: int) -> "Cgroup | None":
-        """A new cgroup with these totals, or None where this user cannot make one."""
+    def create(cls, memory_bytes: int, processes: int, parent: "Cgroup | None" = None) -> "Cgroup | None":
+        """A new cgroup with these totals (inside ``parent``: bounded by its totals too), or None where this user
+        cannot make one."""
         name = f"course-grade-{os.getpid()}-{next(_COUNTER)}"
+        if parent is not None:
+            return cls._create_in(parent, name, memory_bytes, processes)
         base = _v2_base()
         if base is not None:
             path = os.path.join(base, name)
@@ -99,6 +103,27 @@ class Cgroup:
             except OSError:
                 _remove([path])
         return cls._create_v1(name, memory_bytes, processes)
+
+    @classmethod
+    def _create_in(cls, parent: "Cgroup", name: str, memory_bytes: int, processes: int) -> "Cgroup | None":
+        paths = [os.path.join(p, name) for p in parent.paths]
+        try:
+            if parent.version == 2:
+                _write(os.path.join(parent.paths[0], "cgroup.subtree_control"), "+memory +pids")
+            for p in paths:
+                os.mkdir(p)
+            if parent.version == 2:
+                _write(os.path.join(paths[0], "memory.max"), str(int(memory_bytes)))
+                if os.path.exists(os.path.join(paths[0], "memory.swap.max")):
+                    _write(os.path.join(paths[0], "memory.swap.max"), "0")
+                _write(os.path.join(paths[0], "pids.max"), str(int(processes)))
+            else:
+                _write(os.path.join(paths[0], "memory.limit_in_bytes"), str(int(memory_bytes)))
+                _write(os.path.join(paths[1], "pids.max"), str(int(processes)))
+        except OSError:
+            _remove(list(reversed(paths)))
+            return None
+        return cls(parent.version, paths, memory_bytes, processes)
 
     @classmethod
     def _create_v1(cls, name: str, memory_bytes: int, processes: int) -> "Cgroup | None":
@@ -130,6 +155,15 @@ class Cgroup:
     def describe(self) -> dict:
         return {"memory": f"{self.memory_bytes} bytes for the whole process tree (cgroup v{self.version})",
                 "processes": f"{self.processes} for the whole process tree (cgroup v{self.version} pids)"}
+
+    def peak_bytes(self) -> int | None:
+        """The most memory the cgroup held at once (None where the kernel does not say)."""
+        name = "memory.peak" if self.version == 2 else "memory.max_usage_in_bytes"
+        try:
+            with open(os.path.join(self.paths[0], name)) as f:
+                return int(f.read().split()[0])
+        except (OSError, ValueError, IndexError):
+            return None
 
     def oom_killed(self) -> bool:
         """Whether the kernel killed a process of the tree for using more memory than the total."""

@@ -1,4 +1,9 @@
-"""``python -m course_lib grade SUBMISSION_DIR``: grade a student's kit (see :mod:`course_lib.instructor.grade`)."""
+"""``python -m course_lib grade SUBMISSION_DIR``: grade a student's kit (see :mod:`course_lib.instructor.grade`).
+
+The grader refuses to run a student's code that it cannot isolate: where bubblewrap is missing or cannot make
+a sandbox here, it stops with one line (exit status 2) that says what is missing and how to enable it.
+``--insecure`` grades without a sandbox, for a trusted local run; the report and the feedback say so.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +11,8 @@ import argparse
 import json
 import sys
 from pathlib import Path
+
+from course_lib.instructor.settings import DEFAULT_EXERCISE_SECONDS, DEFAULT_SUBMISSION_SECONDS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -17,15 +24,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--exercises", nargs="+", default=None, metavar="NAME", help="grade only these exercises")
     parser.add_argument("--hidden-seed", type=int, default=None,
                         help="seed of the hidden cases (default: random, written into the report)")
-    parser.add_argument("--timeout", type=float, default=20.0,
-                        help="wall-clock seconds for the hidden checks of one exercise (default 20; at least 10x "
+    parser.add_argument("--timeout", type=float, default=DEFAULT_EXERCISE_SECONDS,
+                        help=f"wall-clock seconds for the hidden checks of one exercise, the grader's checks of its "
+                             f"results and its call-backs included (default {DEFAULT_EXERCISE_SECONDS:g}, so that correct "
+                             "but slow code is graded; at least 10x "
                              "the reference's time + 5 s)")
+    parser.add_argument("--submission-timeout", type=float, default=DEFAULT_SUBMISSION_SECONDS,
+                        help=f"wall-clock seconds for everything of one submission, nbval included (default "
+                             f"{DEFAULT_SUBMISSION_SECONDS:g}); what is not graded by then gets no credit")
     parser.add_argument("--cell-timeout", type=float, default=120.0, help="seconds for one notebook cell under nbval")
     parser.add_argument("--nbval-jobs", type=int, default=2, help="notebooks run under nbval at the same time")
     parser.add_argument("--no-nbval", action="store_true", help="skip the nbval run (hidden checks only)")
     parser.add_argument("--allow-reference", action="store_true",
                         help="instructor self-test: the reference notebooks may call the reference solutions")
     parser.add_argument("--notebooks-dir", type=Path, default=None, help="instructor notebooks (default: notebooks/)")
+    parser.add_argument("--insecure", action="store_true",
+                        help="run the students' code without a sandbox (a trusted local run only; written into the "
+                             "report and the feedback)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
         args.submission, notebooks=args.notebooks, exercises=args.exercises, salt=args.hidden_seed,
         timeout=args.timeout, cell_timeout=args.cell_timeout, run_nbval=not args.no_nbval,
         allow_reference=args.allow_reference, notebooks_dir=args.notebooks_dir or NOTEBOOKS_DIR,
-        nbval_jobs=args.nbval_jobs,
+        nbval_jobs=args.nbval_jobs, insecure=args.insecure, submission_timeout=args.submission_timeout,
     )
     md = to_markdown(report)
     if args.json:
@@ -60,13 +75,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _warn(report: dict) -> None:
-    """Warnings for the instructor: a weaker sandbox than intended, files of the submission left out."""
+    """Warnings for the instructor: a run without a sandbox, no cgroup, files of the submission left out."""
     box = report.get("isolation", {}).get("hidden checks", {})
-    if box and not (box.get("namespaces") and box.get("read_only")):
-        print(f"warning: the sandbox ran without Linux user namespaces ({box.get('note') or 'not available'}): the "
-              "students' code had the student release on its path and resource limits, but could read what this user "
-              "can read. Grade on a machine that allows unprivileged user namespaces.", file=sys.stderr)
-    elif box and "cgroup" not in str(box.get("memory", "")):
+    if report.get("insecure"):
+        print("warning: --insecure: the students' code ran without a sandbox, as this user (the report says so)",
+              file=sys.stderr)
+    elif box and "whole process tree" not in str(box.get("memory", "")):
         print(f"note: no cgroup could be made, so memory and processes are limited per process ({box.get('processes')})"
               "; see the CI template for a delegated cgroup ($COURSE_GRADER_CGROUP).", file=sys.stderr)
     left_out = report.get("submission", {}).get("left out", [])

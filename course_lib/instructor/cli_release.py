@@ -12,7 +12,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--notebooks-dir", type=Path, default=None, help="instructor notebooks (default: notebooks/)")
     parser.add_argument("--verify", action="store_true",
                         help="then execute the released notebooks inside the kit and report any error other than "
-                             "NotImplementedError (a few minutes)")
+                             "NotImplementedError, and any module, name or file the kit's text names but the kit "
+                             "lacks (a few minutes)")
     parser.add_argument("--force", action="store_true", help="replace a non-empty folder that is not an earlier release")
 
 
@@ -42,7 +43,15 @@ def run(args: argparse.Namespace) -> int:
         for name, found in problems.items():
             print(f"{name}: " + ("runs in the kit (only NotImplementedError where exercises are missing)"
                                  if not found else "; ".join(found)))
-        if any(problems.values()):
-            print("error: some released notebooks fail in the student kit", file=sys.stderr)
+        from course_lib.instructor.release_names import dangling_references
+
+        dangling = dangling_references(args.out_dir)
+        for line in dangling:
+            print(f"text: {line}")
+        print(f"the kit's text names only what the kit has ({'no' if not dangling else len(dangling)} dangling "
+              "references)")
+        if any(problems.values()) or dangling:
+            print("error: some released notebooks fail in the student kit, or its text names what it lacks",
+                  file=sys.stderr)
             return 1
     return 0

@@ -18,10 +18,15 @@ reference verdicts and check cells come from the instructor's side, never from t
    proxy (:mod:`course_lib.instructor.student_process`): each call sends the inputs as data to a sandboxed
    process that holds only the student's extracted code and the *student release* of
    ``course_lib`` (no reference solution on its path or in its view of the disk), and the
-   outputs come back as data (JSON and ``np.save`` arrays, never pickle). That process has a
-   wall-clock budget per exercise: a looping exercise is stopped at its limit, an exercise that
-   ends the process is named (``os._exit``), and either costs only itself. Its score is
-   :func:`course_lib.checks.core.score` of its hidden checks relative to the reference's.
+   outputs come back as data (JSON and ``np.save`` arrays, never pickle). The check itself runs
+   in a worker of the grader, in the exercise's cgroup. **One clock, one memory cap** per
+   exercise (:func:`course_lib.instructor.settings.exercise_seconds`) and per submission
+   (``submission_timeout``, a cgroup for all of it): the student's code, the decoding of its
+   replies, the check's work on them and the earlier steps it calls back all count; a looping
+   exercise is stopped at its limit, an exercise that ends the process is named (``os._exit``),
+   and either costs only itself. Its score is :func:`course_lib.checks.core.score` of its hidden
+   checks relative to the reference's; an exercise whose every call raised
+   ``NotImplementedError`` (the released stub) is "not attempted", in one line.
    **Each exercise on its own:** the earlier exercises that its code calls (``ransac_fundamental``
    → ``eight_point``, ``pnp_ransac`` → ``pnp_linear``, ``NeRF`` → ``positional_encoding``, ...) are
    answered there by their reference, through a call-back to the grader
@@ -30,11 +35,28 @@ reference verdicts and check cells come from the instructor's side, never from t
    are restored to the reference source and outputs, in the same sandbox (the student release on
    ``PYTHONPATH``, a temporary copy of the submission as working directory, resource limits,
    namespaces). A notebook whose exercise looped or exited in its hidden run is run again with
-   that exercise cut short, so the loop costs its time limit once.
+   that exercise cut short, so the loop costs its time limit once. **Each mistake charged once:**
+   under nbval a later exercise runs the student's own earlier functions; when its check cell
+   fails there and an earlier exercise it calls failed its own hidden checks, the cell is judged
+   again with the reference standing in for those earlier exercises (its check on the notebook's
+   cases, the call-back of step 3), so the earlier mistake does not cost the later exercise.
+5. **Slow code is graded.** An exercise's budget (:data:`DEFAULT_TIMEOUT`, 120 s) lets correct but
+   slow code finish (a dense Jacobian, a residual per view); the feedback says when it was slow.
 
 Points per exercise (default 10): 90 % times the hidden score, plus 10 % when all hidden checks
 pass *and* the notebook's check cell printed the reference verdict under nbval. What the sandbox
 enforced on this machine is written into the report (``isolation``).
+
+**Fail closed.** Before anything of a submission runs, the grader starts one sandbox and checks it
+(:mod:`course_lib.instructor.sandbox.jail`); where it cannot be made or verified, grading stops with
+one line (:class:`~course_lib.instructor.sandbox.jail.IsolationError`). ``insecure=True``
+(``--insecure``, a trusted local run) grades without a sandbox and says so in the report and the
+feedback.
+
+**Feedback is data** (:func:`to_markdown`): every text that can hold the student's words (messages
+of their exceptions, names of their files) is shown in fenced blocks, stripped of control
+characters, each message and the whole feedback capped; the totals are written by the grader above
+any of it.
 """
 
 from __future__ import annotations
@@ -61,7 +83,10 @@ from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ExerciseSpec, Noteboo
 from course_lib.instructor.plan import release_plan
 from course_lib.instructor.nbval_run import NbvalRun
 from course_lib.instructor.placement import Placement, place_exercises, restored
-from course_lib.instructor.student_process import Isolation, Limits, student_library
+from course_lib.instructor.cgroups import Cgroup
+from course_lib.instructor.sandbox.jail import IsolationError
+from course_lib.instructor.settings import (DEFAULT_EXERCISE_SECONDS, DEFAULT_SUBMISSION_SECONDS, Clock, Isolation,
+                                            Limits, exercise_seconds, nbval_seconds, student_library)
 from course_lib.instructor.submission import SubmissionCopy, copy_submission
 from course_lib.instructor.extract import extract_exercise
 from course_lib.instructor.hidden import HiddenJob, build_hidden_fixtures, run_hidden, run_reference
@@ -70,11 +95,18 @@ from course_lib.instructor.scan import scan_exercise, scan_notebook
 from course_lib.paths import REPO_ROOT
 from course_lib.validate import KitInputError
 
-__all__ = ["HiddenCases", "prepare_hidden", "grade_submission", "to_markdown", "HIDDEN_SHARE"]
+__all__ = ["HiddenCases", "prepare_hidden", "grade_submission", "preflight", "to_markdown", "HIDDEN_SHARE",
+           "IsolationError"]
 
 HIDDEN_SHARE = 0.9  # of an exercise's points: the hidden checks; the rest: nbval verdict (with all hidden passing)
 MAX_FEEDBACK_LINES = 6
-DEFAULT_TIMEOUT = 20.0  # s for the hidden checks of one exercise (the reference needs at most ~1 s; see grade_speed)
+DEFAULT_TIMEOUT = DEFAULT_EXERCISE_SECONDS  # s for the hidden checks of one exercise (settings.exercise_seconds)
+#: Characters of one feedback message, messages of one exercise, and bytes of the whole Markdown feedback (a GitHub
+#: comment holds 65 536 characters).
+MAX_MESSAGE_CHARS, MAX_MESSAGES, MAX_FEEDBACK_BYTES = 600, 16, 60_000
+#: An exercise whose hidden checks take longer than this, and than 10 times the reference's (plus 5 s), is graded and
+#: told that it is slow.
+SLOW_NOTE_SECONDS = 20.0
 
 
 @dataclass
@@ -169,7 +201,8 @@ class ExerciseGrade:
     points: float
     max_points: float
     feedback: list[str]
-    status: str  # full, detail, partial, zero, flagged, timeout, exit, error, missing, deleted, reordered, check-edited, tampered
+    status: str  # full, detail, partial, zero, not attempted, flagged, timeout, exit, error, missing, deleted, reordered,
+    # check-edited, tampered
     hidden: dict = field(default_factory=dict)
     nbval: str = "not run"
 
@@ -197,6 +230,9 @@ class _Run:
     pending: dict = field(default_factory=dict)  # notebook -> [(grade, spec, extracted code)]
     sandbox_seen: dict = field(default_factory=dict)
     kit: list = field(default_factory=list)  # [(exercise, reference)] of the whole kit, in order (the earlier steps)
+    clock: Clock = field(default_factory=lambda: Clock(None))  # the submission's one clock
+    cgroup: Cgroup | None = None  # the submission's cgroup (its exercises' and notebooks' cgroups inside)
+    steps_of: dict = field(default_factory=dict)  # (notebook, exercise) -> (extracted code, the earlier steps it calls)
 
 
 def grade_submission(
@@ -214,6 +250,8 @@ def grade_submission(
     notebooks_dir: Path = NOTEBOOKS_DIR,
     nbval_jobs: int = 2,
     limits: Limits | None = None,
+    insecure: bool = False,
+    submission_timeout: float = DEFAULT_SUBMISSION_SECONDS,
 ) -> dict:
     """Grade a submission folder (a student kit, or a folder of notebooks) and return the report dict.
 
@@ -225,8 +263,9 @@ def grade_submission(
         exercises: grade only these exercises.
         hidden: hidden cases prepared by :func:`prepare_hidden` (made here when None).
         salt: the hidden seed (random when None; it is written into the report).
-        timeout: wall-clock seconds for the hidden checks of one exercise (the process start, the definitions
-            and every call together); at least 10 times the reference's time on the same cases plus 5 s.
+        timeout: wall-clock seconds for the hidden checks of one exercise (its definitions, every call, the
+            grader's checks of the results and the call-backs together, once its process started); at least 10
+            times the reference's time on the same cases plus 5 s (:func:`~.settings.exercise_seconds`).
         cell_timeout: seconds for one notebook cell under nbval.
         run_nbval: run the notebooks under nbval.
         allow_reference: the instructor's self-test: calls of the reference solution are allowed.
@@ -234,31 +273,80 @@ def grade_submission(
         notebooks_dir: the instructor notebooks.
         nbval_jobs: notebooks run under nbval at the same time.
         limits: the students' processes' limits (default :class:`Limits`).
+        insecure: grade without a sandbox (a trusted local run; the report and the feedback say so).
+        submission_timeout: wall-clock seconds for everything of this submission (the hidden checks and nbval);
+            what is not graded by then gets no credit, and the feedback says so.
+
+    Raises:
+        IsolationError: the students' code cannot be run isolated here (and ``insecure`` is False): one line that
+            says what is missing and how to enable it. Nothing of the submission ran.
     """
     t0 = time.perf_counter()
+    clock = Clock(submission_timeout)
     if not Path(submission).is_dir():
         raise KitInputError(f"{submission} is not a folder: pass the student's kit (or a folder with their notebooks)")
     specs, omitted, kit = _specs_to_grade(notebooks_dir, notebooks, exercises)
-    with _scratch(workdir) as work:
-        copy = copy_submission(submission, work / "submission")
+    if not insecure:
+        preflight(notebooks_dir, limits)  # one line, and no grading, where the sandbox cannot be made or verified
+    with _scratch(workdir) as work, _shared_folder() as shared:
+        copy = copy_submission(submission, shared / "submission")
         hidden = _ready_hidden(hidden, specs, salt, work, notebooks_dir, timeout)
         iso = Isolation.for_grading(hidden.library if not allow_reference else REPO_ROOT,
                                     [work, Path(hidden.fixtures_dir)], notebooks_dir, self_test=allow_reference,
-                                    limits=limits)
-        run = _Run(specs, omitted, hidden, iso, copy, timeout, allow_reference, kit=kit)
-        for s in specs:
-            _plan_notebook(run, s, _find_notebooks(copy.root) / s.name)
-        nbval_run = _start_nbval(run, cell_timeout, nbval_jobs) if run_nbval and run.to_nbval else None
-        for s, nb, places, tamper in run.plans:
-            for e in s.exercises:
-                run.grades.append(_structure_and_scans(run, s, e, nb, places, tamper))
-        _hidden_checks(run, nbval_run)
-        if nbval_run is not None:
-            _add_nbval(run, nbval_run)
+                                    insecure=insecure, limits=limits)
+        run = _Run(specs, omitted, hidden, iso, copy, timeout, allow_reference, kit=kit, clock=clock,
+                   cgroup=None if insecure else Cgroup.create(iso.limits.submission_memory_bytes,
+                                                               4 * iso.limits.processes_total))
+        nbval_run = None
+        try:
+            for s in specs:
+                _plan_notebook(run, s, _find_notebooks(copy.root) / s.name)
+            nbval_run = _start_nbval(run, cell_timeout, nbval_jobs) if run_nbval and run.to_nbval else None
+            for s, nb, places, tamper in run.plans:
+                for e in s.exercises:
+                    run.grades.append(_structure_and_scans(run, s, e, nb, places, tamper))
+            _hidden_checks(run, nbval_run)
+            if nbval_run is not None:
+                _add_nbval(run, nbval_run)
+        finally:
+            if nbval_run is not None:
+                nbval_run.stop()
+            if run.cgroup is not None:
+                run.cgroup.close()
         report = _report(run.grades, hidden, time.perf_counter() - t0, allow_reference)
-        report["submission"] = {"files": copy.files, "bytes": copy.bytes, "left out": copy.refused}
-        report["isolation"] = {"hidden checks": run.sandbox_seen, "nbval": nbval_run.sandbox if nbval_run else {}}
+        report["insecure"] = bool(insecure)
+        report["budgets"] = {"exercise seconds (at least)": float(timeout),
+                             "submission seconds": float(submission_timeout),
+                             "nbval seconds per notebook": nbval_seconds(cell_timeout) if run_nbval else None,
+                             "memory bytes per exercise": iso.limits.memory_total_bytes,
+                             "memory bytes per submission": iso.limits.submission_memory_bytes if run.cgroup else None}
+        report["submission"] = {"files": copy.files, "bytes": copy.bytes,
+                                "left out": [_cap(r, 300) for r in copy.refused[:50]]}
+        report["isolation"] = {"insecure": bool(insecure), "hidden checks": run.sandbox_seen,
+                               "nbval": nbval_run.sandbox if nbval_run else {}}
         return report
+
+
+def preflight(notebooks_dir: Path = NOTEBOOKS_DIR, limits: Limits | None = None) -> None:
+    """Make one sandbox and check it, before anything of a submission is read or run.
+
+    Raises:
+        IsolationError: it cannot be made or does not check out (one line: what is missing, how to enable it).
+    """
+    from course_lib.instructor.student_process import StudentProcess
+
+    with _shared_folder() as lib:  # an empty library: the sandbox itself is what is checked here
+        iso = Isolation.for_grading(lib, [], notebooks_dir, limits=limits)
+        with StudentProcess(iso, "", "preflight", None, 30.0):
+            pass
+
+
+@contextlib.contextmanager
+def _shared_folder():
+    """A folder the students' sandboxes may read (their copy of the submission), outside the grader's scratch."""
+    with tempfile.TemporaryDirectory(prefix="course-grade-submission-") as tmp:
+        os.chmod(tmp, 0o755)
+        yield Path(tmp)
 
 
 def _ready_hidden(hidden: HiddenCases | None, specs: list[NotebookSpec], salt: int | None, work: Path,
@@ -350,7 +438,8 @@ def _exc_text(exc: BaseException) -> str:
 
 def _start_nbval(run: _Run, cell_timeout: float, jobs: int) -> NbvalRun:
     """Start nbval on every readable notebook (a notebook whose exercise loops is restarted later)."""
-    nbval_run = NbvalRun(run.submission.root, run.iso, cell_timeout, jobs=jobs)
+    nbval_run = NbvalRun(run.submission.root, run.iso, cell_timeout, jobs=jobs, timeout=nbval_seconds(cell_timeout),
+                         deadline=run.clock.deadline, cgroup=run.cgroup)
     for name, nbv in run.to_nbval.items():
         nbval_run.submit(name, nbv)
     return nbval_run
@@ -423,9 +512,17 @@ def _hidden_checks(run: _Run, nbval_run: NbvalRun | None) -> None:
     for s, nb, places, _ in run.plans:
         ended = {}  # exercises whose process ran out of time or ended: their check cells are not run again
         for g, e, ex in run.pending.get(s.name, []):
+            if run.clock.expired():
+                g.status, g.points, seen = "timeout", 0.0, {}
+                g.feedback.append(f"not graded: the time for grading the whole submission ({run.clock.seconds:g} s) "
+                                  "ran out before this exercise")
+                continue
+            steps = earlier_steps(ex.code, e.name, run.kit)
+            run.steps_of[(s.name, e.name)] = (ex, steps)
             try:
-                seen = _grade_hidden(g, e, ex, run.hidden, run.timeout, run.iso, run.allow_reference,
-                                     run.submission.root, earlier_steps(ex.code, e.name, run.kit))
+                seen = _grade_hidden(g, e, ex, run, steps)
+            except IsolationError:
+                raise  # no sandbox, no grading
             except Exception as exc:  # noqa: BLE001 - the grader never dies on a submission
                 g.status, g.points, seen = "error", 0.0, {}
                 g.feedback.append(f"{e.name}: the grader could not run its hidden checks ({_exc_text(exc)})")
@@ -452,15 +549,51 @@ def _add_nbval(run: _Run, nbval_run: NbvalRun) -> None:
             g.nbval = "not run" if r is None else ("pass" if r == "pass" else "fail")
             if g.status != "full":
                 continue
+            weak = _weak_earlier(run, s.name, e.name)
             if g.nbval == "pass":
                 g.points = round(e.points, 2)
                 g.feedback[0] = (f"full marks: all {g.hidden['total']} hidden checks pass and the check cell "
                                  "prints the reference verdict")
+            elif weak and _check_cell_with_reference(run, e):
+                g.points, g.nbval = round(e.points, 2), "pass (reference standing in)"
+                g.feedback[0] = (f"full marks: all {g.hidden['total']} hidden checks pass, and with the reference "
+                                 f"standing in for your {' and '.join(weak)} (graded on its own) the check cell prints "
+                                 "the reference verdict")
             else:
                 why = nbval_notes.get(s.name) or (r if r else "no result")
                 g.feedback.append(f"in your notebook the check cell of {e.name} does not print the reference "
                                   f"verdict when the notebook runs top to bottom ({_short(why)}); restart the "
                                   f"kernel, run all cells, and fix what differs (−{(1 - HIDDEN_SHARE) * 100:.0f} %)")
+
+
+def _weak_earlier(run: _Run, notebook: str, name: str) -> list[str]:
+    """The earlier exercises that ``name``'s code calls and whose own hidden checks did not all pass."""
+    _, steps = run.steps_of.get((notebook, name), (None, {}))
+    status = {g.name: g.status for g in run.grades}
+    return [n for n in steps if status.get(n) not in (None, "full", "detail")]
+
+
+def _check_cell_with_reference(run: _Run, e: ExerciseSpec) -> bool:
+    """Whether the exercise's check cell prints the reference verdict with the reference standing in for the earlier
+    exercises its code calls: its check on the notebook's own (public) cases, the student's function in the sandbox
+    and the earlier steps answered by their references (the hidden checks' call-back, :mod:`.oracle`).
+
+    Each mistake is charged once (issue 29): under nbval a later exercise runs the student's own earlier functions,
+    so an earlier mistake would cost the later exercise its nbval share too; this is that share's verdict then.
+    """
+    from course_lib.paths import FIXTURES_DIR
+
+    ex, steps = run.steps_of[(e.notebook, e.name)]
+    budget = exercise_seconds(run.timeout, run.hidden.reference_seconds.get(_key(e), 0.0), calls_back=True)
+    if run.clock.expired():
+        return False
+    try:
+        out = run_hidden(HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(FIXTURES_DIR), e.reference,
+                                   run.allow_reference, str(run.submission.root), steps), budget, run.iso,
+                         cgroup_parent=run.cgroup, deadline=run.clock.deadline)
+    except Exception:  # noqa: BLE001 - the grader never dies on a submission; the share stays unearned
+        return False
+    return out.status == "ok" and out.result is not None and out.result.ok
 
 
 def _without_ended(nb, places: dict[str, Placement], ended: dict[str, tuple[str, int]]):
@@ -477,23 +610,29 @@ def _without_ended(nb, places: dict[str, Placement], ended: dict[str, tuple[str,
     return nb
 
 
-def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, hidden: HiddenCases, timeout: float, iso: Isolation,
-                  allow_reference: bool, submission: Path, steps: dict[str, str]) -> dict:
+def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, run: _Run, steps: dict[str, str]) -> dict:
     """Run the hidden checks of one exercise (its function in a sandboxed process) and fill in its grade.
 
     ``steps``: the earlier exercises its code calls, answered by their references (:mod:`.oracle`).
     Returns what the student's process was confined by.
     """
-    budget = round(max(timeout, 10 * hidden.reference_seconds.get(_key(e), 0.0) + 5), 1)
+    hidden = run.hidden
+    budget = exercise_seconds(run.timeout, hidden.reference_seconds.get(_key(e), 0.0), calls_back=bool(steps))
     out = run_hidden(HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(hidden.fixtures_dir),
-                               e.reference, allow_reference, str(submission), steps), budget, iso)
+                               e.reference, run.allow_reference, str(run.submission.root), steps), budget, run.iso,
+                     cgroup_parent=run.cgroup, deadline=run.clock.deadline)
     ref = hidden.reference_passing.get(_key(e), [])
     matched = sum((Counter(out.passing) & Counter(ref)).values())
-    g.hidden = {"passed": matched, "total": len(ref), "seconds": round(out.seconds, 1)}
+    g.hidden = {"passed": matched, "total": len(ref), "seconds": round(out.seconds, 1), "budget seconds": budget,
+                "memory": out.memory}
     if out.status == "timeout":
         g.status = "timeout"
         g.feedback.append(f"{e.name} did not finish on the hidden cases: {out.message}. No credit; "
                           "the other exercises were graded.")
+        return out.sandbox
+    if not out.attempted:
+        g.status = "not attempted"
+        g.feedback = [f"not attempted: your {e.name} still raises NotImplementedError (the released stub)"]
         return out.sandbox
     if out.status == "exit":
         g.status = "exit"
@@ -528,6 +667,12 @@ def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, hidden: HiddenCases, ti
                               "they count as failed")
         if len(fails) > MAX_FEEDBACK_LINES:
             g.feedback.append(f"... and {len(fails) - MAX_FEEDBACK_LINES} more")
+    slow = max(SLOW_NOTE_SECONDS, 10 * hidden.reference_seconds.get(_key(e), 0.0) + 5)
+    if out.seconds > slow:
+        g.feedback.append(f"note: correct answers are graded however long they take within {budget:g} s, but your "
+                          f"{e.name} is slow: its hidden checks took {out.seconds:.0f} s, the reference's "
+                          f"{hidden.reference_seconds.get(_key(e), 0.0):.1g} s (vectorize the residuals, give least_squares "
+                          "the Jacobian's sparsity)")
     if _key(e) in hidden.reference_notes:
         g.feedback.append("note: " + hidden.reference_notes[_key(e)])
     return out.sandbox
@@ -546,6 +691,19 @@ def _short(text: str, n: int = 160) -> str:
     return text if len(text) <= n else text[: n - 3] + "..."
 
 
+def _cap(text: str, n: int = MAX_MESSAGE_CHARS) -> str:
+    """``text`` on one line, without control characters, at most ``n`` characters (student text is data)."""
+    text = _CONTROL.sub(" ", str(text))
+    text = " ".join(text.split())
+    return text if len(text) <= n else text[: n - 30] + f" ... ({len(text) - n + 30} characters left out)"
+
+
+#: Control characters, ANSI escapes, and the Unicode characters that reorder or hide text (bidi overrides,
+#: zero-width joiners): never shown from a student's text.
+_CONTROL = re.compile(r"\x1b\[[0-9;?]*[ -/]*[@-~]|[\x00-\x08\x0b-\x1f\x7f-\x9f\u200b-\u200f\u202a-\u202e"
+                      r"\u2060-\u2069\ufeff]")
+
+
 def _report(grades: list[ExerciseGrade], hidden: HiddenCases, seconds: float, allow_reference: bool) -> dict:
     notebooks = []
     for name in sorted({g.notebook for g in grades}):
@@ -559,41 +717,72 @@ def _report(grades: list[ExerciseGrade], hidden: HiddenCases, seconds: float, al
         "instructor_self_test": allow_reference,
         "seconds": round(seconds, 1),
         "notebooks": notebooks,
-        "exercises": [asdict(g) for g in grades],
+        "exercises": [dict(asdict(g), feedback=[_cap(f, 2000) for f in g.feedback[:MAX_MESSAGES]]) for g in grades],
     }
 
 
 def to_markdown(report: dict) -> str:
-    """Feedback for the student, as Markdown (also the GitHub job summary)."""
-    lines = ["# Grading feedback", "", f"**Total: {report['total']:g} / {report['max']:g} points**", ""]
-    lines += ["| notebook | exercise | points | status |", "|---|---|---:|---|"]
+    """Feedback for the student, as Markdown (also the GitHub job summary and the CI template's issue comment).
+
+    Feedback is data: the grader writes the title, the totals and the table of points (exercise names come from the
+    instructor's notebooks) before any text that can hold the student's words; every such text (the feedback
+    messages, which quote the student's exceptions, and the names of their files) is shown in a fenced block whose
+    fence is longer than any run of backticks in it, without control characters, each message at most
+    :data:`MAX_MESSAGE_CHARS` characters and :data:`MAX_MESSAGES` per exercise; the whole feedback stays under
+    :data:`MAX_FEEDBACK_BYTES` (the details of the last exercises are left out, saying so, past it).
+    """
+    head = ["# Grading feedback", "", f"**Total: {report['total']:g} / {report['max']:g} points**", ""]
+    if report.get("insecure"):
+        head += ["**Graded with `--insecure`: your code ran without the grader's sandbox (a trusted local run).**", ""]
+    head += ["| notebook | exercise | points | status | seconds |", "|---|---|---:|---|---:|"]
     for g in report["exercises"]:
-        lines.append(f"| {g['notebook']} | `{g['name']}` | {g['points']:g} / {g['max_points']:g} | {g['status']} |")
-    lines.append("")
-    for nb in report["notebooks"]:
-        lines += [f"## {nb['notebook']}: {nb['points']:g} / {nb['max_points']:g}", ""]
-        for g in (g for g in report["exercises"] if g["notebook"] == nb["notebook"]):
-            lines.append(f"### `{g['name']}`: {g['points']:g} / {g['max_points']:g}")
-            lines.append("")
-            for f in g["feedback"]:
-                lines.append(f"- {f}")
-            if g["nbval"] != "not run":
-                lines.append(f"- nbval check cell: {g['nbval']}")
-            lines.append("")
+        secs = g.get("hidden", {}).get("seconds")
+        head.append(f"| {g['notebook']} | `{g['name']}` | {g['points']:g} / {g['max_points']:g} | {g['status']} | "
+                    f"{'' if secs is None else format(secs, 'g')} |")
+    head.append("")
+    tail = [f"<sub>hidden seed {report['hidden_seed']}, graded in {report['seconds']:g} s{_sandbox_line(report)}"
+            "</sub>", ""]
     left_out = report.get("submission", {}).get("left out", [])
     if left_out:
-        lines += ["## Files of your submission the grader did not copy", ""]
-        lines += [f"- {_short(r)}" for r in left_out[:20]] + [""]
-    lines.append(f"<sub>hidden seed {report['hidden_seed']}, graded in {report['seconds']:g} s{_sandbox_line(report)}</sub>")
-    return "\n".join(lines) + "\n"
+        tail = ["## Files of your submission the grader did not copy", "",
+                *_fenced([_cap(r, 300) for r in left_out[:20]]), ""] + tail
+    budget = MAX_FEEDBACK_BYTES - len("\n".join(head + tail).encode()) - 400
+    body: list[str] = []
+    skipped = 0
+    for nb in report["notebooks"]:
+        part = [f"## {nb['notebook']}: {nb['points']:g} / {nb['max_points']:g}", ""]
+        for g in (g for g in report["exercises"] if g["notebook"] == nb["notebook"]):
+            part += [f"### `{g['name']}`: {g['points']:g} / {g['max_points']:g}", ""]
+            lines = [f"- {_cap(f)}" for f in g["feedback"][:MAX_MESSAGES]]
+            if len(g["feedback"]) > MAX_MESSAGES:
+                lines.append(f"- ... and {len(g['feedback']) - MAX_MESSAGES} more messages")
+            if g["nbval"] != "not run":
+                lines.append(f"- nbval check cell: {g['nbval']}")
+            block = _fenced(lines) + [""] if lines else []
+            if len("\n".join(body + part + block).encode()) > budget:
+                skipped += 1
+                block = ["*(details left out: the feedback is capped at "
+                         f"{MAX_FEEDBACK_BYTES // 1000} kB; your instructor has them all)*", ""]
+            part += block
+        body += part
+    return "\n".join(head + body + tail) + "\n"
+
+
+def _fenced(lines: list[str]) -> list[str]:
+    """``lines`` as one fenced block of plain text (a fence longer than any run of backticks inside)."""
+    longest = max((len(m) for ln in lines for m in re.findall(r"`+", ln)), default=0)
+    fence = "`" * max(3, longest + 1)
+    return [fence + "text", *lines, fence]
 
 
 def _sandbox_line(report: dict) -> str:
     """One line on what confined the student's code (from the report's ``isolation``)."""
     box = report.get("isolation", {}).get("hidden checks", {})
+    if report.get("insecure"):
+        return "; no sandbox (--insecure)"
     if not isinstance(box, dict) or not box:
         return ""
     if box.get("namespaces") is True and box.get("read_only") is True:
-        totals = "cgroup totals" if "cgroup" in str(box.get("memory", "")) else "per-process limits"
-        return f"; sandbox: namespaces, no network, an allow-listed read-only file system, {totals}"
-    return "; sandbox: resource limits and import path only"
+        totals = "cgroup totals" if "whole process tree" in str(box.get("memory", "")) else "per-process limits"
+        return f"; sandbox: bubblewrap, namespaces, no network, an allow-listed read-only file system, {totals}"
+    return "; sandbox: unknown"

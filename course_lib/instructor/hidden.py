@@ -5,10 +5,12 @@
   ``numpy.random.default_rng`` salted by a grading-time seed, so the synthetic scenes are new; seed
   0, which the checks reuse for the student's own RANSAC calls, is kept. They stay in this
   process.
-* :func:`run_hidden` runs the check function of the exercise *in this process* on those cases
-  (:func:`course_lib.checks.core.using_cases`); the student's function it receives is a proxy for
+* :func:`run_hidden` runs the check function of the exercise on those cases
+  (:func:`course_lib.checks.core.using_cases`) in a worker forked from the grader, inside the
+  exercise's cgroup and on the exercise's clock; the student's function it receives is a proxy for
   the same function in a sandboxed process (:class:`course_lib.instructor.student_process.StudentProcess`)
-  that holds only the student's code and the student release of ``course_lib``.
+  that holds only the student's code and the student release of ``course_lib``. The grader itself
+  only waits for the worker's verdict (data) and stops the worker when the exercise's time is up.
   :func:`run_reference` runs the instructor's solution here, for the expected verdicts.
 """
 
@@ -135,8 +137,10 @@ class HiddenOutcome:
     lines: list[str] = field(default_factory=list)  # the verdict lines ("  ✔ ..." / "  ✘ ...")
     message: str = ""
     seconds: float = 0.0
-    result: object = None  # the CheckResult of the hidden checks (computed in the grader's process)
+    result: object = None  # the CheckResult of the hidden checks (computed in the exercise's worker)
     sandbox: dict = field(default_factory=dict)  # what the student's process was confined by
+    attempted: bool = True  # False: every call of the student's function raised NotImplementedError (the stub)
+    memory: dict = field(default_factory=dict)  # worker peak growth, exercise cgroup peak, largest reply (bytes)
 
     @property
     def passing(self) -> list[str]:
@@ -184,47 +188,226 @@ def run_reference(job: HiddenJob) -> HiddenOutcome:
                          seconds=time.perf_counter() - t0)
 
 
-def run_hidden(job: HiddenJob, timeout: float = 60.0, isolation=None) -> HiddenOutcome:
-    """Run the hidden checks of one exercise: the check here, the student's function in its own process.
+def run_hidden(job: HiddenJob, timeout: float = 60.0, isolation=None, cgroup_parent=None,
+               deadline: float | None = None) -> HiddenOutcome:
+    """Run the hidden checks of one exercise: the check in a worker of the grader, the student's function in its
+    own sandboxed process.
+
+    **One clock, one memory cap.** The worker is forked from the grader (it has the hidden cases and the full
+    library) into the exercise's cgroup (``cgroup_parent``'s child, with the memory total of
+    :class:`~course_lib.instructor.settings.Limits`), where the student's process and the oracle's worker run too:
+    everything the exercise causes (the student's code, the decoding of its replies, the check's work on them, the
+    earlier steps it calls back) shares one memory total and one wall clock. The grader waits for the worker's
+    verdict until ``timeout`` seconds after the student's process started (plus
+    :data:`~course_lib.instructor.settings.GRACE_SECONDS`, and never past ``deadline``, the submission's), then
+    stops the worker and everything in its cgroup. The outcome's ``seconds`` is the real time spent.
 
     Args:
         job: the exercise, its extracted code and its check.
-        timeout: wall-clock seconds for everything the student's process does for this exercise.
-        isolation: the grading run's :class:`course_lib.instructor.student_process.Isolation`.
+        timeout: the exercise's budget in seconds (:func:`course_lib.instructor.settings.exercise_seconds`).
+        isolation: the grading run's :class:`course_lib.instructor.settings.Isolation`.
+        cgroup_parent: the submission's cgroup (None: none could be made).
+        deadline: the submission's deadline (``time.monotonic()``), or None.
+
+    Raises:
+        IsolationError: the student's sandbox could not be made or verified (nothing of the student's ran).
     """
     import time
 
-    from course_lib.instructor.oracle import ALLOWANCE, Oracle
+    from course_lib.instructor.sandbox import jail, wire
+    from course_lib.instructor.settings import GRACE_SECONDS, START_SECONDS
+
+    t0 = time.monotonic()
+    end = lambda until: min(until, deadline) if deadline is not None else until  # noqa: E731
+    cgroup = isolation.cgroup(parent=cgroup_parent) if isolation is not None else None
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the worker
+        try:
+            os.close(r)
+            _worker(job, timeout, isolation, cgroup, w)
+        finally:
+            os._exit(0)
+    os.close(w)
+    outcome, budget_end = None, end(t0 + START_SECONDS + timeout + GRACE_SECONDS)
+    why = ""
+    try:
+        while outcome is None:
+            try:
+                head, _ = wire.read_frame_before(r, budget_end, 64 << 20)
+            except TimeoutError:
+                why = "timeout"
+                break
+            except (EOFError, OSError, wire.WireError):
+                why = "ended"
+                break
+            if head.get("event") == "started":
+                budget_end = end(time.monotonic() + timeout + GRACE_SECONDS)
+            elif head.get("event") == "isolation":
+                raise jail.IsolationError(str(head.get("message", "the sandbox could not be verified")))
+            elif head.get("event") == "outcome":
+                outcome = head
+    finally:
+        os.close(r)
+        try:
+            os.kill(pid, 9) if outcome is None else None
+            os.waitpid(pid, 0)
+        except ChildProcessError:
+            pass
+        peak = cgroup.peak_bytes() if cgroup is not None else None
+        oom = cgroup.oom_killed() if cgroup is not None else False
+        if cgroup is not None:
+            cgroup.close()
+    dt = time.monotonic() - t0
+    if outcome is None:
+        if why == "timeout":
+            past = deadline is not None and time.monotonic() >= deadline - 0.5
+            msg = (f"stopped after {dt:.1f} s: " + ("the submission's time for grading ran out" if past else
+                   f"your code, the grader's checks of its results and the earlier steps it called took longer "
+                   f"than the exercise's time limit ({timeout:g} s)"))
+            return HiddenOutcome("timeout", message=msg, seconds=dt, memory={"cgroup peak bytes": peak})
+        if oom:
+            return HiddenOutcome("exit", message=f"stopped after {dt:.1f} s: your code and the grader's work on its "
+                                                 f"results used more memory than the exercise's limit "
+                                                 f"({isolation.limits.memory_total_bytes >> 20} MiB in all)",
+                                 seconds=dt, memory={"cgroup peak bytes": peak})
+        return HiddenOutcome("error", message=f"the grader's worker for this exercise ended unexpectedly after "
+                                              f"{dt:.1f} s", seconds=dt, memory={"cgroup peak bytes": peak})
+    out = _outcome_from(outcome, dt)
+    out.memory["cgroup peak bytes"] = peak
+    return out
+
+
+def _worker(job: HiddenJob, timeout: float, isolation, cgroup, w: int) -> None:
+    """The exercise's worker: the student's process, the check, the verdict sent to the grader as JSON."""
+    import resource
+    import time
+
+    from course_lib.instructor.oracle import Oracle
+    from course_lib.instructor.sandbox import jail, wire
     from course_lib.instructor.student_process import RemoteFunction, StudentProcess
 
-    t0 = time.perf_counter()
-    torch = job.check_module.startswith("course_lib.checks.nerf")
-    oracle = Oracle(job.name, job.steps, ALLOWANCE * timeout)  # earlier steps answered by the reference
-    with StudentProcess(isolation, job.code, job.name, job.submission, timeout, torch=torch, oracle=oracle) as proc:
-        hello = proc.hello
-        if proc.ended:
-            return HiddenOutcome("timeout" if proc.event == "timeout" else "exit", message=proc.ended,
-                                 seconds=time.perf_counter() - t0)
-        if not hello.get("ok"):
-            return HiddenOutcome("error", message=f"defining {job.name} failed: {hello.get('type')}: "
-                                 f"{hello.get('message')}{hello.get('where', '')}", seconds=time.perf_counter() - t0,
-                                 sandbox=hello.get("sandbox", {}))
-        if not hello.get("found"):
-            return HiddenOutcome("error", message=f"the exercise code does not define {job.name}",
-                                 seconds=time.perf_counter() - t0, sandbox=hello.get("sandbox", {}))
+    for fd in _open_fds():  # nothing of the grader's other work (nbval's pipes) is held here
+        if fd > 2 and fd != w:
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+    rss0 = _status_kib("VmRSS")
+    if cgroup is not None:
+        cgroup.enter()
+    else:  # no cgroup: the worker's own address space is bounded
+        extra = isolation.limits.memory_total_bytes if isolation is not None else 4 << 30
+        vm = _status_kib("VmSize") << 10
         try:
-            result, _ = run_check(job.check_module, job.check_function, job.fixtures_dir, RemoteFunction(proc, job.name))
-        except Exception as exc:  # noqa: BLE001 - a check that cannot finish is the grader's problem, reported
-            return HiddenOutcome("error", message=f"the grader failed: {type(exc).__name__}: {exc}",
-                                 seconds=time.perf_counter() - t0, sandbox=hello.get("sandbox", {}))
-        dt = time.perf_counter() - t0
-        if proc.ended:
-            status = "timeout" if proc.event == "timeout" else "exit"
-            return HiddenOutcome(status, lines=list(result.lines) if result else [], message=proc.ended, seconds=dt,
-                                 result=result, sandbox=hello.get("sandbox", {}))
-    if result is None:
-        return HiddenOutcome("error", message="the check recorded no verdict", seconds=dt)
-    return HiddenOutcome("ok", lines=list(result.lines), result=result, seconds=dt, sandbox=hello.get("sandbox", {}))
+            resource.setrlimit(resource.RLIMIT_AS, (vm + extra, vm + extra))
+        except (ValueError, OSError):
+            pass
+    single_thread_math()
+    t0 = time.perf_counter()
+
+    def send(head: dict) -> None:
+        head["memory"] = {"worker peak growth bytes": max(0, _status_kib("VmHWM") - rss0) << 10}
+        wire.write_frame(w, head)
+
+    try:
+        reference = _reference(job.reference) if job.reference else None
+        torch = job.check_module.startswith("course_lib.checks.nerf")
+        oracle = Oracle(job.name, job.steps)  # earlier steps answered by the reference, on this exercise's clock
+        with StudentProcess(isolation, job.code, job.name, job.submission, timeout, torch=torch, oracle=oracle,
+                            cgroup=cgroup) as proc:
+            wire.write_frame(w, {"event": "started"})
+            hello = proc.hello
+            box = hello.get("sandbox", getattr(proc, "sandbox", {}))
+            if proc.ended:
+                send(_outcome_dict("timeout" if proc.event == "timeout" else "exit", message=proc.ended,
+                                   seconds=time.perf_counter() - t0, sandbox=box))
+                return
+            if not hello.get("ok"):
+                send(_outcome_dict("error", message=f"defining {job.name} failed: {hello.get('type')}: "
+                                   f"{str(hello.get('message'))[:2000]}{hello.get('where', '')}",
+                                   seconds=time.perf_counter() - t0, sandbox=box))
+                return
+            if not hello.get("found"):
+                send(_outcome_dict("error", message=f"the exercise code does not define {job.name}",
+                                   seconds=time.perf_counter() - t0, sandbox=box))
+                return
+            fn = RemoteFunction(proc, job.name, reference)
+            try:
+                result, _ = run_check(job.check_module, job.check_function, job.fixtures_dir, fn)
+            except Exception as exc:  # noqa: BLE001 - a check that cannot finish is the grader's problem, reported
+                send(_outcome_dict("error", message=f"the grader failed: {type(exc).__name__}: {str(exc)[:500]}",
+                                   seconds=time.perf_counter() - t0, sandbox=box))
+                return
+            attempted = not (fn.calls and fn.not_implemented == fn.calls)
+            status = ("timeout" if proc.event == "timeout" else "exit") if proc.ended else "ok"
+            if status == "ok" and result is None:
+                status = "error"
+            send(_outcome_dict(status, result=result, message=proc.ended or ("" if result is not None else
+                               "the check recorded no verdict"), seconds=time.perf_counter() - t0, sandbox=box,
+                               attempted=attempted, largest_reply=proc.largest_reply))
+    except jail.IsolationError as exc:
+        wire.write_frame(w, {"event": "isolation", "message": str(exc)})
+    except BaseException as exc:  # noqa: BLE001 - reported to the grader, never raised there
+        send(_outcome_dict("error", message=f"the grader failed: {type(exc).__name__}: {str(exc)[:500]}",
+                           seconds=time.perf_counter() - t0))
+
+
+def _reference(spec: str):
+    """The reference function ``"module:attr"`` (the expected answers of the student's calls), or None."""
+    try:
+        module, attr = spec.split(":")
+        return getattr(importlib.import_module(module), attr)
+    except Exception:  # noqa: BLE001 - without it, declared sizes are bounded by the plain limits
+        return None
+
+
+#: Characters of one verdict line and lines of one check sent from the worker (student text can be in them).
+LINE_CHARS, MAX_LINES = 2000, 400
+
+
+def _outcome_dict(status: str, result=None, message: str = "", seconds: float = 0.0, sandbox: dict | None = None,
+                  attempted: bool = True, largest_reply: int = 0) -> dict:
+    res = None
+    if result is not None:
+        res = {"exercise": str(result.exercise), "passed": int(result.passed), "total": int(result.total),
+               "lines": [str(ln)[:LINE_CHARS] for ln in result.lines[:MAX_LINES]],
+               "verdicts": [{"ok": bool(v.ok), "text": str(v.text)[:LINE_CHARS], "kind": str(v.kind),
+                             "defining": v.defining} for v in result.verdicts[:MAX_LINES]]}
+    return {"event": "outcome", "status": status, "message": str(message)[:LINE_CHARS], "seconds": float(seconds),
+            "result": res, "sandbox": {str(k): str(v)[:300] if not isinstance(v, bool) else v
+                                       for k, v in (sandbox or {}).items()}, "attempted": bool(attempted),
+            "largest_reply": int(largest_reply)}
+
+
+def _outcome_from(head: dict, seconds: float) -> HiddenOutcome:
+    """The worker's verdict as a :class:`HiddenOutcome` (``seconds``: the real time the grader measured)."""
+    res = head.get("result")
+    result = None
+    if isinstance(res, dict):
+        result = core.CheckResult(res["exercise"], res["passed"], res["total"], list(res["lines"]),
+                                  [core.Verdict(v["ok"], v["text"], v["kind"], v["defining"]) for v in res["verdicts"]])
+    return HiddenOutcome(head.get("status", "error"), lines=list(result.lines) if result else [],
+                         message=head.get("message", ""), seconds=seconds, result=result,
+                         sandbox=head.get("sandbox") or {}, attempted=bool(head.get("attempted", True)),
+                         memory=dict(head.get("memory") or {},
+                                     **{"largest reply bytes": int(head.get("largest_reply", 0))}))
+
+
+def _open_fds() -> list[int]:
+    try:
+        return [int(f) for f in os.listdir("/proc/self/fd")]
+    except OSError:
+        return []
+
+
+def _status_kib(key: str) -> int:
+    """A ``/proc/self/status`` figure in KiB (0 where there is none)."""
+    try:
+        with open("/proc/self/status") as f:
+            return next(int(ln.split()[1]) for ln in f if ln.startswith(key + ":"))
+    except (OSError, StopIteration, ValueError, IndexError):
+        return 0
 
 
 def single_thread_math() -> None:

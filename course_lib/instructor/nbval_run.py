@@ -1,55 +1,72 @@
-"""nbval over a submission's notebooks, each in its own sandboxed pytest process.
+"""nbval over a submission's notebooks, each in its own sandboxed pytest process, on the submission's clock.
 
 Each notebook runs in a fresh copy of the grader's copy of the submission (its working directory),
-with the student release's ``course_lib`` first on ``PYTHONPATH``, resource limits and (where Linux
-allows it) the sandbox of :mod:`course_lib.instructor.sandbox`. pytest reads no configuration and
-no ``conftest.py`` of the submission (``-c /dev/null --noconftest``), and no module of the notebooks'
-folder can stand in for pytest's own (``python -P``).
+with the student release's ``course_lib`` first on ``PYTHONPATH``, in the sandbox of
+:mod:`course_lib.instructor.sandbox.jail` (checked before the notebook runs, like every student's
+process), in a cgroup of its own inside the submission's. pytest reads no configuration and no
+``conftest.py`` of the submission (``-c /dev/null --noconftest``), no module of the notebooks' folder
+can stand in for pytest's own (``python -P``), and its junit report goes through a pipe that only the
+(undumpable) pytest and the launcher hold (:func:`course_lib.instructor.sandbox.server.launch`).
+
+**One clock.** A notebook gets :func:`course_lib.instructor.settings.nbval_seconds` for all its runs
+together (the reruns after a cell that timed out included), and never more than what is left of the
+submission's time; a run that does not finish by then counts as not run.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import re
+import select
 import shutil
 import subprocess
 import sys
 import tempfile
 import threading
+import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import nbformat
 
-from course_lib.instructor.student_process import CHILD_SCRIPT, Isolation, kill_tree
+from course_lib.instructor.sandbox import jail, wire
+from course_lib.instructor.settings import START_SECONDS, Isolation
+from course_lib.instructor.student_process import kill_tree
 
 __all__ = ["NbvalRun", "MAX_NBVAL_RERUNS"]
 
 MAX_NBVAL_RERUNS = 3  # reruns of a notebook after cells that timed out
+REPORT_LIMIT = 16 << 20  # bytes of one junit report
 
 
 class NbvalRun:
     """pytest --nbval over notebooks, one sandboxed pytest process per notebook, ``jobs`` at a time, in the background.
 
-    Each notebook runs in a fresh copy of the submission (its working directory), with the student
-    release's ``course_lib`` first on ``PYTHONPATH``, resource limits, and (where Linux allows it)
-    the sandbox of :mod:`course_lib.instructor.sandbox`: no network, an allow-listed read-only file
-    system, a size-limited tmpfs for what it writes, totals for the process tree.
+    Args:
+        submission: the grader's copy of the submission.
+        isolation: the run's :class:`~course_lib.instructor.settings.Isolation`.
+        cell_timeout: seconds for one cell.
+        jobs: notebooks at the same time.
+        timeout: seconds for one notebook, its reruns included.
+        deadline: the submission's deadline (``time.monotonic()``), or None.
+        cgroup: the submission's cgroup (each notebook gets one inside it), or None.
     """
 
     def __init__(self, submission: Path, isolation: Isolation, cell_timeout: float, jobs: int = 2,
-                 timeout: float = 1800.0):
+                 timeout: float = 1800.0, deadline: float | None = None, cgroup=None):
         from concurrent.futures import ThreadPoolExecutor
 
         self.submission, self.iso = Path(submission), isolation
         self.cell_timeout, self.timeout = cell_timeout, timeout
+        self.deadline, self.cgroup = deadline, cgroup
         self.pool = ThreadPoolExecutor(max_workers=max(1, jobs))
         self.futures: dict[str, object] = {}
         self.sandbox: dict = {}
+        self.seconds: dict[str, float] = {}
         self._lock = threading.Lock()
         self._procs: dict[str, subprocess.Popen] = {}
         self._replace: dict[str, object] = {}
+        self._stopped = False
 
     def submit(self, name: str, nb) -> None:
         self.futures[name] = self.pool.submit(self._run, name, nb)
@@ -66,17 +83,34 @@ class NbvalRun:
         if proc is not None:
             kill_tree(proc.pid)
 
-    def _run(self, name: str, nb) -> tuple[dict[tuple[str, int], str], str]:
-        while True:
-            with self._lock:
-                nb = self._replace.pop(name, nb)
-            out = self._one(name, nb)
-            with self._lock:
-                if name not in self._replace:
-                    return out
+    def stop(self) -> None:
+        """Stop every notebook still running (the grading ended, or was refused); idempotent."""
+        with self._lock:
+            self._stopped = True
+            procs = list(self._procs.values())
+        for proc in procs:
+            kill_tree(proc.pid)
+        self.pool.shutdown(wait=True, cancel_futures=True)
 
-    def _one(self, name: str, nb) -> tuple[dict[tuple[str, int], str], str]:
-        """Run one notebook; after a cell that timed out (nbval skips the rest), run the rest again."""
+    def _run(self, name: str, nb) -> tuple[dict[tuple[str, int], str], str]:
+        t0 = time.monotonic()
+        end = t0 + self.timeout
+        if self.deadline is not None:
+            end = min(end, self.deadline)
+        try:
+            while True:
+                with self._lock:
+                    nb = self._replace.pop(name, nb)
+                out = self._one(name, nb, end)
+                with self._lock:
+                    if name not in self._replace:
+                        return out
+        finally:
+            self.seconds[name] = round(time.monotonic() - t0, 1)
+
+    def _one(self, name: str, nb, end: float) -> tuple[dict[tuple[str, int], str], str]:
+        """Run one notebook; after a cell that timed out (nbval skips the rest), run the rest again, while time is
+        left (``end``)."""
         tmp = Path(tempfile.mkdtemp(prefix="course-nbval-"))
         try:
             os.chmod(tmp, 0o755)
@@ -89,8 +123,11 @@ class NbvalRun:
                 with self._lock:
                     if name in self._replace:
                         return results, "replaced"
+                if time.monotonic() >= end:
+                    return results, (f"nbval of {name} did not finish within its time ({self.timeout:g} s for all "
+                                     "its runs, or the submission's time ran out)")
                 nbformat.write(nb, seed / "notebooks" / name)
-                res, note = self._pytest(tmp, seed, name, attempt)
+                res, note = self._pytest(tmp, seed, name, attempt, end)
                 if note:
                     return results, note
                 results.update({k: v for k, v in res.items() if k[1] > done_upto})
@@ -107,60 +144,112 @@ class NbvalRun:
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
 
-    def _pytest(self, tmp: Path, seed: Path, name: str, attempt: int):
-        """One sandboxed pytest run; its junit report comes out through a file the sandbox never holds."""
-        work = tmp / f"work{attempt}"  # the sandbox's working copy (in its own tmpfs; on this disk without namespaces)
-        stage = tmp / f"stage{attempt}"
-        for d in (work, stage):
-            d.mkdir()
-        nb_dir = work / "notebooks"
-        junit_in = nb_dir / ".nbval.junit.xml"
-        junit_out, report_out = tmp / f"junit{attempt}.xml", tmp / f"sandbox{attempt}.json"
-        fds = [os.open(p, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600) for p in (junit_out, report_out)]
-        cfg = {"sandbox": self.iso.sandbox_config(stage, work, seed), "cwd": str(nb_dir),
-               "collect": str(junit_in), "collect_fd": fds[0], "report_fd": fds[1]}
-        (tmp / f"sandbox{attempt}.cfg.json").write_text(json.dumps(cfg))
-        cmd = [sys.executable, "-S", "-E", str(CHILD_SCRIPT), "exec", str(tmp / f"sandbox{attempt}.cfg.json"), "--",
-               *self.pytest_command(name, junit_in)]
-        cgroup = self.iso.cgroup()
+    def _pytest(self, tmp: Path, seed: Path, name: str, attempt: int, end: float):
+        """One sandboxed pytest run, until ``end`` at the latest; its junit report comes out through the launcher."""
+        insecure = self.iso.insecure
+        stage = tmp / f"run{attempt}"
+        stage.mkdir()
+        work = str(stage / "work") if insecure else jail.WORK
+        nb_dir = os.path.join(work, "notebooks")
+        report_r, report_w = os.pipe()
+        go_r, go_w = os.pipe()
+        collect_r, collect_w = os.pipe()
+        cfg = {"cwd": work, "nb_dir": nb_dir, "seed": str(seed) if insecure else jail.SEED, "python": sys.executable,
+               "argv": self.pytest_command(name, "{junit}", nb_dir), "hide": [str(h) for h in self.iso.hide],
+               "keep": [str(k) for k in self.iso.keep], "library": str(self.iso.library), "report_fd": report_w,
+               "go_fd": go_r, "collect_fd": collect_w, "own_pid_namespace": not insecure}
+        server_dir = jail.install_server(stage / "grader", cfg)
+        fds = [report_w, go_r, collect_w]
+        info_r = seccomp = None
+        staged: dict = {}
+        if insecure:
+            cmd = [sys.executable, "-S", "-E", "-B", str(server_dir / "server.py"), "exec",
+                   str(server_dir / "config.json")]
+        else:
+            if jail.bwrap_path() is None:
+                raise jail.IsolationError(jail.refusal("bubblewrap (bwrap) is not installed", jail.INSTALL))
+            info_r, info_w = os.pipe()
+            program = jail.seccomp_filter()
+            if program is not None:
+                seccomp, w = os.pipe()
+                os.write(w, program)
+                os.close(w)
+            fds += [info_w] + ([seccomp] if seccomp is not None else [])
+            staged = jail.staging(self.iso.read_only(), stage / "stage") if os.getuid() == 0 else {}
+            cmd = jail.command(self.iso, "exec", server_dir, seed, info_w, seccomp, staged)
+        cgroup = self.iso.cgroup(parent=self.cgroup)
+        proc = None
         try:
             with self._lock:  # its own session, so that whatever the notebook started is stopped with it
-                if name in self._replace:
+                if name in self._replace or self._stopped:
                     return {}, "replaced"
-                proc = subprocess.Popen(cmd, cwd=work, env=self._env(work), stdout=subprocess.DEVNULL,
-                                        stderr=subprocess.DEVNULL, pass_fds=fds, start_new_session=True,
-                                        preexec_fn=self.iso.preexec(self.timeout, cgroup))
+                launch = jail.preexec(self.iso.limits, max(1.0, end - time.monotonic()), cgroup,
+                                      as_student=not insecure and os.getuid() == 0, staged=staged)
+                try:
+                    proc = subprocess.Popen(cmd, cwd=stage, env=self._env(work), stdin=subprocess.DEVNULL,
+                                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, pass_fds=fds,
+                                            start_new_session=True, preexec_fn=launch)
+                except (OSError, subprocess.SubprocessError) as exc:
+                    if insecure:
+                        raise
+                    raise jail.IsolationError(jail.refusal(jail.launch_failure(exc, staged))) from None
                 self._procs[name] = proc
             for fd in fds:
                 os.close(fd)
             fds = []
+            started = time.monotonic() + START_SECONDS
+            info = jail.read_info(info_r, started) if info_r is not None else {}
             try:
-                proc.wait(timeout=self.timeout)
+                head, _ = wire.read_frame_before(report_r, started, 1 << 20)
+                facts = head.get("facts") if isinstance(head.get("facts"), dict) else {}
+            except (TimeoutError, EOFError, OSError, wire.WireError):
+                facts = None
+            if not insecure:
+                if not info or facts is None:
+                    if proc.poll() is not None and not info:
+                        raise jail.IsolationError(jail.refusal(f"bubblewrap could not make the sandbox of nbval "
+                                                               f"(exit code {proc.returncode})"))
+                    return {}, f"nbval of {name} did not start"
+                missing = jail.verify(facts, info, self.iso, seccomp is not None)
+                if missing:
+                    raise jail.IsolationError(jail.refusal("the sandbox of nbval is not isolated: "
+                                                           + "; ".join(missing), jail.REPORT))
+                box = jail.describe(facts, info, self.iso, seccomp is not None)
+            else:
+                box = {"tool": "none (--insecure)", "namespaces": False, "read_only": False}
+            os.write(go_w, _go_frame())
+            junit, complete = _read_until(collect_r, end, REPORT_LIMIT)
+            if not complete:
+                return {}, f"nbval did not finish {name} within its time"
+            try:
+                proc.wait(timeout=max(1.0, end - time.monotonic()))
             except subprocess.TimeoutExpired:
-                return {}, f"nbval did not finish {name} within {self.timeout:g} s"
-            finally:
+                return {}, f"nbval did not finish {name} within its time"
+        finally:
+            for fd in fds + [report_r, go_w, collect_r] + ([info_r] if info_r is not None else []):
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+            if proc is not None:
                 kill_tree(proc.pid)
                 proc.wait()
                 with self._lock:
                     self._procs.pop(name, None)
-        finally:
-            for fd in fds:
-                os.close(fd)
             if cgroup is not None:
                 cgroup.close()
-        self._read_report(report_out, cgroup)
-        junit = junit_out if junit_out.stat().st_size else junit_in  # without namespaces: on this disk
+        self._record_sandbox(box, cgroup)
         return _read_junit(junit, name)
 
-    def pytest_command(self, name: str, junit: Path) -> list[str]:
-        """nbval of notebook ``name``: no conftest.py and no pytest configuration of the submission is read."""
-        safe_path = ["-P"] if sys.version_info >= (3, 11) else []  # no module of the notebooks' folder shadows pytest's
-        return [sys.executable, *safe_path, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--noconftest", "-c", os.devnull,
-                "--rootdir", str(junit.parent), "--nbval-lax", "--nbval-current-env",
-                f"--nbval-cell-timeout={int(self.cell_timeout)}", f"--junitxml={junit}", name]
+    def pytest_command(self, name: str, junit: str, rootdir: str) -> list[str]:
+        """pytest's arguments for nbval of notebook ``name``: no conftest.py and no pytest configuration of the
+        submission is read (the launcher runs them with ``python -B -P``: no module of the notebooks' folder
+        shadows pytest's)."""
+        return ["-q", "-p", "no:cacheprovider", "--noconftest", "-c", os.devnull, "--rootdir", rootdir, "--nbval-lax",
+                "--nbval-current-env", f"--nbval-cell-timeout={int(self.cell_timeout)}", f"--junitxml={junit}", name]
 
-    def _env(self, work: Path) -> dict:
-        home = work / ".home"
+    def _env(self, work: str) -> dict:
+        home = Path(work) / ".home"
         env = {k: v for k, v in os.environ.items() if k in ("PATH", "LANG", "LC_ALL", "TZ")}
         env.update(COURSE_LIB_QUICK="1", PYTHONDONTWRITEBYTECODE="1", PYTHONPATH=str(self.iso.library),
                    HOME=str(home), JUPYTER_RUNTIME_DIR=str(home / "runtime"), JUPYTER_DATA_DIR=str(home / "data"),
@@ -170,17 +259,10 @@ class NbvalRun:
             env["COURSE_DATA"] = os.environ["COURSE_DATA"]
         return env
 
-    def _read_report(self, path: Path, cgroup) -> None:
-        """What the sandbox enforced (written by the launcher before the notebook ran), with the totals."""
-        if self.sandbox:
-            return
-        try:
-            box = json.loads(path.read_text() or "{}")
-        except ValueError:
-            box = {}
-        if isinstance(box, dict) and box:
-            box.update(self.iso.limits.totals(cgroup))
-            self.sandbox = box
+    def _record_sandbox(self, box: dict, cgroup) -> None:
+        """What the sandbox enforced (checked before the notebook ran), with the totals."""
+        if not self.sandbox:
+            self.sandbox = dict(box, **self.iso.limits.totals(cgroup))
 
     def results(self) -> tuple[dict[tuple[str, int], str], dict[str, str]]:
         """``{(notebook, code cell index): "pass" or a failure text}`` and ``{notebook: note}`` for runs that failed."""
@@ -190,6 +272,8 @@ class NbvalRun:
                 fut = self.futures[name]
                 try:
                     res, note = fut.result()
+                except jail.IsolationError:
+                    raise  # no sandbox, no grading
                 except Exception as exc:  # noqa: BLE001 - the grader never dies on a submission
                     res, note = {}, f"nbval could not run {name} ({type(exc).__name__}: {str(exc)[:200]})"
                 if self.futures[name] is fut:
@@ -197,7 +281,6 @@ class NbvalRun:
             out.update(res)
             if note:
                 notes[name] = note
-        self.pool.shutdown()
         return out, notes
 
 
@@ -212,12 +295,32 @@ def _other_notebooks(submission: Path):
     return ignore
 
 
-def _read_junit(junit: Path, name: str) -> tuple[dict[tuple[str, int], str], str]:
-    if not junit.exists():
+def _go_frame() -> bytes:
+    data = wire.pack({"op": "go"}, [])
+    return len(data).to_bytes(8, "little") + data
+
+
+def _read_until(fd: int, end: float, limit: int) -> tuple[bytes, bool]:
+    """What arrives on ``fd`` until the other side closes it (``complete``) or ``end``; at most ``limit`` bytes kept."""
+    got, size = [], 0
+    while True:
+        left = end - time.monotonic()
+        if left <= 0 or not select.select([fd], [], [], left)[0]:
+            return b"".join(got), False
+        b = os.read(fd, 1 << 16)
+        if not b:
+            return b"".join(got), True
+        if size < limit:
+            got.append(b[:limit - size])
+            size += len(b)
+
+
+def _read_junit(junit: bytes, name: str) -> tuple[dict[tuple[str, int], str], str]:
+    if not junit:
         return {}, f"nbval did not run {name}"
     results = {}
     try:
-        cases = list(ET.parse(junit).iter("testcase"))
+        cases = list(ET.fromstring(junit).iter("testcase"))
     except Exception as exc:  # noqa: BLE001 - a broken report is that notebook's note
         return {}, f"nbval's report of {name} cannot be read ({type(exc).__name__})"
     for tc in cases:

@@ -10,7 +10,7 @@ that X's extracted code binds (:func:`earlier_steps`) are answered by their **re
 a synchronous call-back:
 
 * in X's sandboxed process, after the student's code is loaded, each such name of ``__main__`` is
-  rebound to a neutral wire stub (``sandbox.oracle_stub``: it holds no reference code, it sends its
+  rebound to a neutral wire stub (``sandbox.server.oracle_stub``: it holds no reference code, it sends its
   arguments as data and returns the answer; the kit's stand-ins of the same name find it there);
 * the grader, while it waits for X's reply, receives the stub's request and passes its arguments on,
   undecoded, to an :class:`Oracle`: a worker process forked from the grader (it has the full
@@ -21,14 +21,12 @@ a synchronous call-back:
   another interface; values that cannot be sent as data) is answered by the student's own function.
 
 Bounds (per exercise): at most :data:`MAX_CALLS` call-backs (then X's process is stopped), each
-request and each result at most ``sandbox.MAX_REPLY`` bytes (the stub refuses a larger argument
-with a ``ValueError``), and the call-backs' time (the grader's and the worker's, and
-:data:`ROUND_TRIP_SECONDS` of transport each) is credited to X's budget up to ``seconds``
-(:data:`ALLOWANCE` times the exercise's own budget); past that it counts as X's time, and a
-reference that runs longer than what is left is stopped (its worker is killed, and the stub raises
-``TimeoutError``). The
+request and each result at most ``wire.MAX_REPLY`` bytes (the stub refuses a larger argument
+with a ``ValueError``), and **one clock**: the call-backs' time is X's time, on X's budget
+(:func:`course_lib.instructor.settings.exercise_seconds`), and a reference that runs longer than
+what is left of it is stopped (its worker is killed, and the stub raises ``TimeoutError``). The
 worker, not the grader, decodes the student's data and runs the reference, under an address-space
-limit, so nothing the student sends can stop or exhaust the grader.
+limit and in the exercise's cgroup, so nothing the student sends can stop or exhaust the grader.
 
 Only the exercises that come *before* X in the kit (notebook order, then cell order) and that X's
 code binds are answered, never X itself, and only while X is graded; an earlier exercise that is a
@@ -55,25 +53,18 @@ import importlib
 import inspect
 import os
 import resource
-import select
 import signal
-import struct
 import symtable
 import time
 
-from course_lib.instructor import sandbox as wire
+from course_lib.instructor.sandbox import wire
 
-__all__ = ["ALLOWANCE", "MAX_CALLS", "ROUND_TRIP_SECONDS", "Oracle", "earlier_steps"]
+__all__ = ["MAX_CALLS", "Oracle", "earlier_steps"]
 
 #: Call-backs the grader answers while it grades one exercise; one more stops the exercise's process. An honest
 #: ransac_fundamental makes ~800 on the hidden cases (eight_point and sampson_distance per sample); one without the
 #: adaptive stop (a mistake the checks name) ~20 000, at ~3 ms each on a loaded 2-core machine.
 MAX_CALLS = 50_000
-#: Seconds of a call-back's transport on the student's side (encoding, two pipe hops), credited with the grader's.
-ROUND_TRIP_SECONDS = 2e-3
-#: The worker's time credited to an exercise, in multiples of its budget (so an exercise takes at most
-#: (1 + ALLOWANCE) times its budget in all).
-ALLOWANCE = 5.0
 #: Address space a worker may add to what it inherited from the grader.
 WORKER_EXTRA_BYTES = 4 << 30
 
@@ -108,12 +99,10 @@ class Oracle:
     Args:
         exercise: the exercise being graded.
         steps: ``{name: "module:attr"}`` of the earlier exercises it may call (:func:`earlier_steps`).
-        seconds: the call-backs' time credited to the exercise's budget (beyond it, the time is the exercise's).
     """
 
-    def __init__(self, exercise: str, steps: dict[str, str], seconds: float):
+    def __init__(self, exercise: str, steps: dict[str, str]):
         self.exercise, self.steps = exercise, dict(steps)
-        self.allowance = float(seconds)
         self.calls = 0
         self.pid: int | None = None
         self.fds: tuple[int, int] | None = None
@@ -122,35 +111,30 @@ class Oracle:
     def names(self) -> list[str]:
         return sorted(self.steps)
 
-    def answer(self, head: dict, arrays: list, student_left: float) -> tuple[dict, list]:
-        """The reply to one call-back request (``head``: its name, args and kwargs as wire trees)."""
+    def answer(self, head: dict, arrays: list, seconds_left: float) -> tuple[dict, list]:
+        """The reply to one call-back request (``head``: its name, args and kwargs as wire trees), within
+        ``seconds_left`` (what is left of the exercise's budget)."""
         self.calls += 1
         name = head.get("name")
         if name not in self.steps:
             return _error("LookupError", f"the grader answers no call of {str(name)[:80]!r} while it grades "
                                          f"{self.exercise}"), []
-        wait = max(0.0, student_left) + self.allowance
+        wait = max(0.0, seconds_left)
         t0 = time.monotonic()
         try:
             self._start()
             wire.write_frame(self.fds[1], {"name": name, "args": head.get("args"), "kwargs": head.get("kwargs")},
                              arrays)
-            reply = _read_frame(self.fds[0], t0 + wait, wire.MAX_REPLY + (1 << 20))
+            reply = wire.read_frame_before(self.fds[0], t0 + wait, wire.MAX_REPLY + (1 << 20))
         except TimeoutError:
             self._stop()
-            reply = (_error("TimeoutError", f"the grader's {name} did not finish in {wait:.0f} s on these arguments "
-                                            f"(while {self.exercise} is graded)"), [])
+            reply = (dict(_error("TimeoutError", f"the grader's {name} did not finish on these arguments in the "
+                                                 f"{wait:.1f} s left of {self.exercise}'s time"), deadline=True), [])
         except (OSError, EOFError, ValueError, wire.WireError) as exc:
             self._stop()
             reply = (_error("RuntimeError", f"the grader's {name} could not answer ({type(exc).__name__}: "
                                             f"{str(exc)[:200]})"), [])
         return reply
-
-    def credit(self, seconds: float) -> float:
-        """The part of ``seconds`` (the worker's time) that does not count against the exercise's budget."""
-        given = min(max(0.0, seconds), self.allowance)
-        self.allowance -= given
-        return given
 
     def _start(self) -> None:
         if self.pid is not None:
@@ -188,27 +172,6 @@ class Oracle:
 
 def _error(kind: str, message: str) -> dict:
     return {"ok": False, "type": kind, "builtin": True, "message": message}
-
-
-def _read_frame(fd: int, deadline: float, limit: int) -> tuple[dict, list]:
-    """The next frame on ``fd`` before ``deadline`` (``TimeoutError``), at most ``limit`` bytes (``WireError``)."""
-
-    def read(n: int) -> bytes:
-        buf = bytearray()
-        while len(buf) < n:
-            left = deadline - time.monotonic()
-            if left <= 0 or not select.select([fd], [], [], left)[0]:
-                raise TimeoutError
-            b = os.read(fd, min(n - len(buf), 1 << 20))
-            if not b:
-                raise EOFError("the worker ended")
-            buf += b
-        return bytes(buf)
-
-    (n,) = struct.unpack("<Q", read(8))
-    if n > limit:
-        raise wire.WireError(f"a result of {n >> 20} MiB, more than the limit ({limit >> 20} MiB)")
-    return wire.unpack(read(n))
 
 
 def _worker(req: int, rep: int, steps: dict[str, str]) -> None:

@@ -264,7 +264,7 @@ def redact_module(path: Path, names: list[str], exercise_notebook: dict[str, str
                     "# This stand-in calls your own " + target + " from the running notebook.",
                     "from course_lib.student import stand_in as _kit_stand_in  # noqa: E402",
                     "",
-                    f"{target} = _kit_stand_in({target!r}, {nb!r})",
+                    f"{target} = _kit_stand_in({target!r}, {nb!r}, __name__)",
                 ]
             else:
                 new = []

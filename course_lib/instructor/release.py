@@ -127,6 +127,7 @@ __pycache__/
 .ipynb_checkpoints/
 outputs/
 *.egg-info/
+solutions/
 """
 
 
@@ -139,18 +140,22 @@ def student_readme(specs: list[NotebookSpec], plan: ReleasePlan) -> str:
         pts = sum(e.points for e in s.exercises)
         rows.append(f"| `notebooks/{s.name}` | {names} | {pts:g} |")
     total = sum(e.points for s in specs for e in s.exercises)
-    redacted = sorted({n for names in plan.redact.values() for n in names})
-    carry = ""
-    if redacted:
-        carry = (
-            "\n## Using your earlier solutions\n\n"
-            "Some parts of the kit build on functions that are exercises themselves (for example the NeRF\n"
-            "trainer renders with `volume_render`). In this kit those library functions call **your own**\n"
-            "function of the same name from the running notebook: "
-            + ", ".join(f"`{n}`" for n in redacted)
-            + ".\nIf a cell stops with `NotImplementedError: ... is an exercise of notebooks/...`, define your\n"
-            "solution of that exercise in the notebook you are working on (paste its cell) and run it.\n"
-        )
+    carry = """
+## Your solutions travel with you
+
+Parts of the kit build on exercises: the SfM pipeline of notebooks 05 and 10 runs your RANSAC,
+pose, triangulation, PnP and residuals; the NeRF trainer and renderer of notebooks 08-10 use your
+`get_rays`, `stratified_samples`, `query_points`, `positional_encoding`, `NeRF` and
+`volume_render`. You never copy code for that: **running an exercise's cell saves your function**
+(with the imports, helper functions and constants it uses from the notebook) to
+`solutions/<name>.py`, and the kit uses it from there, in any later notebook, in a fresh kernel
+and under `pytest`. Run the cell again after a change to save the new version. (A function of that
+name defined in the notebook you are running comes first.)
+
+If a cell stops with `NotImplementedError: get_rays is an exercise of notebooks/06_nerf_data_and_rays.ipynb`, write
+that exercise in the notebook it names and run its cell, then run the cell that stopped again.
+`solutions/` is made from your notebooks (git ignores it); the grader grades the notebooks.
+"""
     n_nb = sum(1 for s in specs if s.exercises)
     return f"""# SfM + NeRF course kit: student release
 
@@ -320,14 +325,22 @@ ALLOWED_ERRORS = ("NotImplementedError",)
 CONSEQUENCES = ("NameError", "KitInputError", "FileNotFoundError")
 
 
-def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float = 300.0) -> dict[str, list[str]]:
+def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float = 300.0,
+                   solutions: Path | None = None,
+                   allowed_errors: tuple[str, ...] = ALLOWED_ERRORS) -> dict[str, list[str]]:
     """Execute the released notebooks inside the released kit and list what is wrong.
 
     The kernel sees the kit's own ``course_lib`` (``PYTHONPATH=out_dir``), so the left-out reference
-    solutions are really absent. Allowed: cells that stop with ``NotImplementedError`` (an exercise
+    solutions are really absent. The saved solutions (:mod:`course_lib.student`) go to
+    ``solutions`` (default: an empty scratch folder, so nothing of an earlier run is used and
+    nothing is written into the kit). Allowed: cells that stop with ``NotImplementedError`` (an exercise
     not written yet, or a kit function that needs it) and, after such a cell, its consequences
-    (``NameError`` for the names it would have defined, a missing file it would have written). Not allowed: any other error, an error in a check cell
-    (checks turn a student's error into a verdict), or a check cell that prints nothing.
+    (``NameError`` for the names it would have defined, a missing file it would have written). Not
+    allowed: any other error, an error in an exercise's check cell (checks turn a student's error
+    into a verdict), or an exercise's check cell that prints nothing. (The check cells of notebooks
+    without exercises, 09 and 10, report on runs that need the student's earlier exercises: their
+    errors follow the rule of the other cells.)
+    ``allowed_errors=()`` allows no error at all (a release filled with solutions: every cell must run).
 
     Returns:
         ``{notebook: [problems]}`` (empty lists when the release is sound).
@@ -338,13 +351,19 @@ def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float 
 
     out_dir = Path(out_dir).resolve()
     problems: dict[str, list[str]] = {}
+    manifest = json.loads((out_dir / "RELEASE_MANIFEST.json").read_text())
+    exercise_checks = {nb["name"]: {e["check_cell"] for e in nb["exercises"]} for nb in manifest["notebooks"]}
     paths = sorted((out_dir / "notebooks").glob("*.ipynb"))
     if only:
         paths = [p for p in paths if any(p.name.startswith(o) for o in only)]
-    old_env = {k: os.environ.get(k) for k in ("PYTHONPATH", "COURSE_LIB_QUICK", "MPLBACKEND")}
+    import tempfile
+
+    old_env = {k: os.environ.get(k) for k in ("PYTHONPATH", "COURSE_LIB_QUICK", "MPLBACKEND", "COURSE_LIB_SOLUTIONS")}
     os.environ["PYTHONPATH"] = str(out_dir) + (os.pathsep + old_env["PYTHONPATH"] if old_env["PYTHONPATH"] else "")
     os.environ["COURSE_LIB_QUICK"] = "1"
     os.environ["MPLBACKEND"] = "Agg"
+    scratch = tempfile.TemporaryDirectory(prefix="kit-solutions-")
+    os.environ["COURSE_LIB_SOLUTIONS"] = str(solutions) if solutions is not None else scratch.name
     try:
         for p in paths:
             nb = nbformat.read(p, as_version=4)
@@ -361,17 +380,18 @@ def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float 
                 if cell.cell_type != "code":
                     continue
                 errors = [o for o in cell.outputs if o.output_type == "error"]
-                is_check = cell.source.lstrip().startswith(CHECK_MARK)
+                is_check = cell.source.lstrip().startswith(CHECK_MARK) and i in exercise_checks.get(p.name, ())
                 if is_check and (errors or not stream_text(cell).strip()):
                     found.append(f"cell {i}: the check cell " + (f"raised {errors[0].ename}" if errors else "printed nothing"))
                 for e in errors:
-                    if e.ename in ALLOWED_ERRORS or (e.ename in CONSEQUENCES and failed_before):
+                    if e.ename in allowed_errors or (e.ename in CONSEQUENCES and failed_before):
                         failed_before = True
                         continue
                     found.append(f"cell {i}: {e.ename}: {e.evalue}")
                     failed_before = True
             problems[p.name] = found
     finally:
+        scratch.cleanup()
         for k, v in old_env.items():
             if v is None:
                 os.environ.pop(k, None)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import ast
 import re
 
+from course_lib.exercises import EXERCISES
 from course_lib.instructor.notebooks import resolve_import
 from course_lib.instructor.extract import code_cells
 
@@ -65,6 +66,7 @@ def scan_exercise(tree: ast.Module, reference: str | None, omitted: set[str]) ->
     """
     found: list[str] = []
     ref_mod, ref_attr = reference.split(":") if reference else (None, None)
+    engines = EXERCISES[ref_attr].engines if ref_attr in EXERCISES else ()
     aliases: dict[str, str] = {}  # local name -> module
     for node in ast.walk(tree):
         if isinstance(node, (ast.Import, ast.ImportFrom)):
@@ -73,8 +75,14 @@ def scan_exercise(tree: ast.Module, reference: str | None, omitted: set[str]) ->
                 if top in FORBIDDEN_MODULES:
                     found.append(f"imports {mod} (line {node.lineno}): exercise code may not reach the interpreter, "
                                  "files or other processes")
-                if mod.startswith("course_lib.grading") or mod == "course_lib" and attr == "grading":
-                    found.append(f"imports the check machinery {mod} (line {node.lineno})")
+                if _is_check_module(mod, attr):
+                    found.append(f"imports the check machinery {mod if attr is None else mod + '.' + attr} "
+                                 f"(line {node.lineno})")
+                for engine in engines:
+                    if f"{mod}.{attr}" == engine or (attr is None and engine.startswith(mod + ".")
+                                                     and isinstance(node, ast.ImportFrom)):
+                        found.append(f"imports {engine} (line {node.lineno}), the kit's engine that computes "
+                                     f"{ref_attr} with your own functions: write {ref_attr} yourself")
                 if mod in omitted:
                     found.append(f"imports {mod} (line {node.lineno}), the instructor's reference solution, which is "
                                  "not part of the student kit")
@@ -106,6 +114,11 @@ def scan_exercise(tree: ast.Module, reference: str | None, omitted: set[str]) ->
             found.append(f"defines the special method {node.name} (line {node.lineno}), which could change how the "
                          "checks compare results")
     found += _reached_by_name(tree, aliases, f"{ref_mod}.{ref_attr}" if ref_mod else None, omitted)
+    for node in ast.walk(tree):  # an engine built on the graded exercise, reached by an attribute chain
+        path = _dotted(node, aliases) if isinstance(node, ast.Attribute) else None
+        if path in engines:
+            found.append(f"calls {path} (line {node.lineno}), the kit's engine that computes {ref_attr} with your "
+                         f"own functions: write {ref_attr} yourself")
     return sorted(set(found))
 
 

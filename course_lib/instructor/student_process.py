@@ -1,45 +1,51 @@
-"""The grader's side of the separation: the student's functions run in another process, called as data.
+"""The grader's side of the separation: the student's functions run in a sandboxed process, called as data.
 
-The check function of an exercise runs in the grader's own process, with the full library and the
-hidden cases. The student's function it receives is a :class:`RemoteFunction`: each call encodes
-the arguments as data (:mod:`course_lib.instructor.sandbox`'s wire format: JSON and ``np.save``
-arrays, never pickle), sends them to a :class:`StudentProcess` that holds only the student's
-extracted code and the *student release* of ``course_lib`` (:func:`student_library`), and
-decodes the result. An ``nn.Module`` the student's class builds stays in that process; the grader
-gets a :class:`RemoteModule` with the module's parameters and linear layers, whose forward pass
-sends the (possibly replaced) parameters and the inputs back to the student's process.
+The check function of an exercise runs in the grader's exercise worker
+(:func:`course_lib.instructor.hidden.run_hidden`), with the full library and the hidden cases. The
+student's function it receives is a :class:`RemoteFunction`: each call encodes the arguments as data (:mod:`course_lib.instructor.sandbox.wire`:
+JSON and ``np.save`` arrays, never pickle), sends them to a :class:`StudentProcess` that holds only the
+student's extracted code and the *student release* of ``course_lib``
+(:func:`course_lib.instructor.settings.student_library`), and decodes the result. An ``nn.Module`` the
+student's class builds stays in that process; the grader gets a :class:`RemoteModule` with the module's
+parameters and linear layers, whose forward pass sends the (possibly replaced) parameters and the inputs
+back to the student's process.
 
-The student's process (see :mod:`course_lib.instructor.sandbox` for the sandbox itself):
+The student's process:
 
-* starts with ``python -S -E`` (no ``site``: the instructor's editable install is not on its
-  path) and ``sys.path`` = the student release, then the standard library and site-packages;
+* runs :mod:`course_lib.instructor.sandbox.server` inside bubblewrap (:mod:`course_lib.instructor.sandbox.jail`):
+  its own namespaces, an allow-listed read-only view, a size-limited tmpfs, no capabilities, a seccomp
+  filter; as :data:`~course_lib.instructor.settings.STUDENT_UID` when the grader is root. Before any of the
+  student's code runs, the server reports what confines it and the grader checks it
+  (:func:`~course_lib.instructor.sandbox.jail.verify`): a sandbox the grader cannot verify ends the grading
+  (:class:`~course_lib.instructor.sandbox.jail.IsolationError`), unless the run is ``insecure``;
+* starts as ``python -S -E -B`` (no ``site``: the instructor's editable install is not on its path; no
+  bytecode written) with ``sys.path`` = the student release, then the standard library and site-packages;
 * works in a fresh copy of the grader's copy of the submission (regular files only,
   :mod:`course_lib.instructor.submission`); its output goes to a file there;
-* has resource limits (:class:`Limits`: CPU seconds, address space, file size, processes) and, where
-  a cgroup can be made, totals of memory and processes for everything it starts;
-* on Linux with unprivileged user namespaces: no network, its own PID and IPC namespaces and
-  ``/proc``, a fresh root that shows only an allow-list read-only (the Python installation, the
-  student release, system libraries: :meth:`Isolation.read_only`), a size-limited tmpfs for what it
-  writes, no capabilities;
+* has resource limits (:class:`~course_lib.instructor.settings.Limits`) and the totals of its exercise's cgroup;
 * receives the grader's global numpy and torch random states with every call (so that
   ``torch.manual_seed(0)`` in a check seeds the student's initialisation as it would in the
   notebook); nothing of the student's process flows back but the results (not its random state);
 * may call back (:mod:`course_lib.instructor.oracle`): while the grader waits for a reply, a request
   of the stubs bound in place of the earlier exercises the code calls is answered by the reference
-  of that exercise (run by the oracle's worker, not by the grader); the oracle's time is added to the
-  exercise's deadline up to its allowance, and more call-backs than ``oracle.MAX_CALLS`` end the process;
-* has one wall-clock budget per exercise (its definitions and every call together, counted once
-  the process has started and imported numpy and torch, which has a limit of its own,
-  :data:`START_SECONDS`): when it runs out, the process is killed and every later call fails at
-  once, so a looping exercise costs at most its own limit. ``os._exit`` is reported as such before the process ends.
+  of that exercise; the call-back's time is the exercise's (one clock), and more call-backs than
+  ``oracle.MAX_CALLS`` end the process;
+* has one wall-clock budget per exercise (its definitions, every call, the decoding of its replies and
+  the call-backs together, counted once the process has started and imported numpy and torch, which
+  has a limit of its own, :data:`~course_lib.instructor.settings.START_SECONDS`): when it runs out, the
+  process is killed and every later call fails at once. ``os._exit`` is reported as such.
+
+A reply is checked before anything is built from it: at most ``wire.MAX_REPLY`` bytes, read as they
+arrive; a header of at most ``wire.MAX_HEADER`` bytes and ``wire.MAX_NODES`` values; arrays whose size
+equals what they declare; a sparse matrix whose declared shape is within :data:`SPARSE_SLACK` times the
+size of the expected answer's (:meth:`StudentProcess.call`'s ``expect``: the reference's result on the
+same arguments); a module whose layers match the weights it sent.
 """
 
 from __future__ import annotations
 
 import builtins
-import json
 import os
-import resource
 import select
 import shutil
 import signal
@@ -48,178 +54,14 @@ import subprocess
 import sys
 import tempfile
 import time
-import dataclasses
-from dataclasses import dataclass, field
 from pathlib import Path
 
-from course_lib.instructor import sandbox as wire
-from course_lib.instructor.cgroups import Cgroup
-from course_lib.paths import REPO_ROOT
+import numpy as np
 
-__all__ = ["Limits", "Isolation", "StudentProcess", "RemoteFunction", "RemoteModule", "StudentProcessEnded",
-           "student_library", "CHILD_SCRIPT", "SYSTEM_PATHS"]
+from course_lib.instructor.sandbox import jail, wire
+from course_lib.instructor.settings import START_SECONDS, Isolation
 
-CHILD_SCRIPT = Path(wire.__file__).resolve()
-#: Seconds for a student's process to start (the interpreter, the sandbox, the numpy and torch imports: the kit's own
-#: work, not the student's, and ~20 s for torch on a loaded 2-core machine); the exercise's budget starts after.
-START_SECONDS = 120.0
-
-
-@dataclass
-class Limits:
-    """Resource limits of a student's sandboxed process tree.
-
-    Per process (``setrlimit`` in the child before it starts): CPU seconds, address space, file size,
-    processes (``RLIMIT_NPROC``: counted per user namespace in the sandbox; not enforced for uid 0). For the
-    whole tree: ``memory_total_bytes`` and ``processes_total`` in a cgroup of its own where this user can
-    make one (:class:`course_lib.instructor.cgroups.Cgroup`), and ``disk_bytes`` for everything it may write
-    (one tmpfs, where user namespaces are available).
-    """
-
-    cpu_seconds: int = 300  # RLIMIT_CPU (an exercise's process gets its wall-clock budget + 30 s; nbval its timeout)
-    memory_bytes: int = 8 << 30  # RLIMIT_AS (torch needs a few GiB of address space)
-    file_bytes: int = 256 << 20  # RLIMIT_FSIZE: largest file it may write
-    processes: int = 512  # RLIMIT_NPROC (threads count; not enforced by Linux for uid 0)
-    memory_total_bytes: int = 6 << 30  # the whole process tree (cgroup), tmpfs pages included
-    processes_total: int = 512  # the whole process tree (cgroup pids), threads included
-    disk_bytes: int = 1 << 30  # the working copy, /tmp and /dev/shm together (tmpfs)
-
-    def apply(self) -> None:
-        """Set the per-process limits in this process (a limit the platform refuses is left as it is)."""
-        for name, value in (("RLIMIT_CPU", (int(self.cpu_seconds), int(self.cpu_seconds) + 5)),
-                            ("RLIMIT_AS", (int(self.memory_bytes),) * 2), ("RLIMIT_FSIZE", (int(self.file_bytes),) * 2),
-                            ("RLIMIT_CORE", (0, 0)), ("RLIMIT_NPROC", (int(self.processes),) * 2)):
-            which = getattr(resource, name, None)
-            if which is None:
-                continue
-            try:
-                soft, hard = resource.getrlimit(which)
-                cap = lambda v: v if hard == resource.RLIM_INFINITY else min(v, hard)  # noqa: E731
-                resource.setrlimit(which, (cap(value[0]), cap(value[1])))
-            except (ValueError, OSError):
-                pass
-
-    def totals(self, cgroup: Cgroup | None) -> dict:
-        """What bounds the whole process tree: the cgroup's totals, or what stands in for them."""
-        if cgroup is not None:
-            return cgroup.describe()
-        nproc = (f"RLIMIT_NPROC {self.processes} per user namespace" if os.getuid() != 0 else
-                 "not bounded (no cgroup can be made here, and RLIMIT_NPROC does not apply to uid 0)")
-        return {"memory": f"{self.memory_bytes} bytes of address space per process (RLIMIT_AS; no cgroup can be "
-                          "made here)", "processes": nproc}
-
-
-#: Folders and files of the host a student's process sees (read-only), besides Python and the student release.
-SYSTEM_PATHS = ["/usr", "/bin", "/sbin", "/lib", "/lib32", "/lib64", "/libx32", "/etc/ld.so.cache", "/etc/ld.so.conf",
-                "/etc/ld.so.conf.d", "/etc/localtime", "/etc/passwd", "/etc/group", "/etc/nsswitch.conf", "/etc/hosts",
-                "/etc/alternatives", "/etc/fonts", "/sys/devices/system/cpu"]
-
-
-@dataclass
-class Isolation:
-    """Where a grading run's student processes get their library, and what they may see.
-
-    Attributes:
-        library: the folder whose ``course_lib`` the student's code imports (the student release).
-        hide: folders never shown (the instructor's kit and library, the grader's scratch folder): left out
-            of the student's view, and covered by an empty folder where they lie inside a folder it sees.
-        keep: folders inside ``hide`` that stay visible read-only (the Python environment).
-        namespaces: use Linux user namespaces where the kernel allows them.
-        limits: resource limits.
-    """
-
-    library: Path
-    hide: list[Path] = field(default_factory=list)
-    keep: list[Path] = field(default_factory=list)
-    namespaces: bool = True
-    limits: Limits = field(default_factory=Limits)
-
-    @classmethod
-    def for_grading(cls, library: Path, secret: list[Path], notebooks_dir: Path, self_test: bool = False,
-                    namespaces: bool = True, limits: Limits | None = None) -> "Isolation":
-        """The isolation of a grading run: hide the kit and the notebooks (unless ``self_test``) and ``secret``
-        (the grader's scratch folder, the hidden cases)."""
-        import course_lib
-
-        hide = [Path(p).resolve() for p in secret]
-        if not self_test:  # the kit, and the instructor's library wherever it is installed
-            hide += [REPO_ROOT.resolve(), Path(notebooks_dir).resolve(), Path(course_lib.__file__).resolve().parent]
-        hide = sorted({h for h in hide if not any(h != o and h.is_relative_to(o) for o in hide)})
-        keep = [Path(p).resolve() for p in _python_homes()]
-        keep = [k for k in keep if any(k.is_relative_to(h) for h in hide)]
-        return cls(Path(library), hide, keep, namespaces, limits or Limits())
-
-    def read_only(self) -> list[str]:
-        """The allow-list: the host paths a student's process sees, read-only."""
-        paths = [str(Path(self.library).resolve())] + [str(Path(p).resolve()) for p in _python_homes()]
-        return sorted({p for p in paths + SYSTEM_PATHS if os.path.lexists(p)}, key=len)
-
-    def sandbox_config(self, stage: Path, work: Path, seed: Path | None) -> dict:
-        """The sandbox of one process: a fresh root in ``stage``, its working folder ``work`` filled from ``seed``."""
-        ro = self.read_only()
-        inside = lambda h: any(Path(h).is_relative_to(r) for r in ro)  # noqa: E731
-        return {"namespaces": self.namespaces,
-                "root": {"stage": str(stage), "read_only": ro, "hide": [str(h) for h in self.hide if inside(h)
-                                                                         and not any(Path(k).is_relative_to(h)
-                                                                                     for k in self.keep)],
-                         "work": str(work), "seed": str(Path(seed).resolve()) if seed else None,
-                         "disk_bytes": int(self.limits.disk_bytes)}}
-
-    def python_path(self) -> list[str]:
-        """The student's ``sys.path`` after the library: the grader's, minus the kit and ``''``."""
-        out = []
-        for p in sys.path:
-            if not p or p in out:
-                continue
-            rp = Path(p).resolve()
-            if not any(rp.is_relative_to(Path(h).resolve()) for h in _python_homes()):
-                continue  # only the Python installation is in the student's view (not the grader's script folder)
-            if any(rp.is_relative_to(h) for h in self.hide) and not any(rp.is_relative_to(k) for k in self.keep):
-                continue
-            if rp == REPO_ROOT.resolve():
-                continue
-            out.append(p)
-        return out
-
-    def preexec(self, cpu_seconds: float | None = None, cgroup: Cgroup | None = None):
-        """The ``preexec_fn`` that sets the limits (``cpu_seconds`` replaces the CPU limit) and enters ``cgroup``."""
-        limits = self.limits if cpu_seconds is None else dataclasses.replace(self.limits,
-                                                                              cpu_seconds=int(cpu_seconds) + 1)
-
-        def run() -> None:
-            if cgroup is not None:
-                cgroup.enter()
-            limits.apply()
-
-        return run
-
-    def cgroup(self) -> Cgroup | None:
-        """A cgroup with this isolation's totals for one process tree (None where none can be made)."""
-        if not self.namespaces:
-            return None
-        return Cgroup.create(self.limits.memory_total_bytes, self.limits.processes_total)
-
-
-def _python_homes() -> list[str]:
-    """The folders of the Python installation (the environment and the interpreter it was made from)."""
-    homes = {sys.prefix, sys.base_prefix, sys.exec_prefix, sys.base_exec_prefix,
-             os.path.dirname(os.path.dirname(os.path.realpath(sys.executable)))}
-    return sorted(h for h in homes if h and h != "/")
-
-
-def student_library(out_dir: Path, notebooks_dir: Path | None = None) -> Path:
-    """Write the student release's ``course_lib`` and ``data`` into ``out_dir`` (what a student's code may import)."""
-    from course_lib.instructor.notebooks import NOTEBOOKS_DIR
-    from course_lib.instructor.release import release_files
-
-    files = release_files(Path(notebooks_dir or NOTEBOOKS_DIR))
-    out_dir = Path(out_dir)
-    for rel, data in sorted(files.items()):
-        if rel.startswith(("course_lib/", "data/")):
-            dst = out_dir / rel
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            dst.write_bytes(data)
-    return out_dir
+__all__ = ["StudentProcess", "RemoteFunction", "RemoteModule", "StudentProcessEnded", "kill_tree"]
 
 
 class StudentProcessEnded(Exception):
@@ -234,8 +76,8 @@ _EXC_TYPES: dict[str, type] = {}
 
 
 def _student_exception(reply: dict) -> BaseException:
-    name = wire._ident(reply.get("type", "Exception"), "Exception")
-    msg = str(reply.get("message", "")) + str(reply.get("where", ""))
+    name = wire.ident(reply.get("type", "Exception"), "Exception")
+    msg = str(reply.get("message", ""))[:2000] + str(reply.get("where", ""))[:100]
     cls = getattr(builtins, name, None) if reply.get("builtin") else None
     if not (isinstance(cls, type) and issubclass(cls, Exception)) or cls is StopIteration:
         cls = _EXC_TYPES.setdefault(name, type(name, (StudentError,), {}))
@@ -256,68 +98,142 @@ class StudentProcess:
     """One student's exercise code in its own sandboxed process, called by the grader with data.
 
     Args:
-        iso: the grading run's :class:`Isolation`.
+        iso: the grading run's :class:`~course_lib.instructor.settings.Isolation`.
         code: the extracted exercise code (imports, helpers and the def).
         name: the exercise (the name the code defines).
-        submission: the student's folder (copied; the copy is the process's working directory).
+        submission: the grader's copy of the student's folder (copied again into the process's working folder).
         budget: wall-clock seconds for everything this process does for the grader.
         torch: import torch at start (the NeRF exercises).
         oracle: answers the call-backs of the earlier exercises the code calls (:mod:`course_lib.instructor.oracle`);
             their names are bound to stubs in the process after the code is loaded.
+        cgroup: the cgroup the process enters (None: the caller's own, e.g. the exercise worker's).
+
+    Raises:
+        IsolationError: the sandbox cannot be made or verified (and the run is not ``insecure``).
     """
 
     def __init__(self, iso: Isolation, code: str, name: str, submission: Path | None, budget: float,
-                 torch: bool = False, oracle=None):
-        self.iso, self.name, self.budget, self.oracle = iso, name, float(budget), oracle
+                 torch: bool = False, oracle=None, cgroup=None):
+        self.iso, self.name, self.budget, self.oracle, self.cgroup = iso, name, float(budget), oracle, cgroup
         self.t0 = time.monotonic()
-        self.deadline = self.t0 + max(self.budget, START_SECONDS)  # the start: Python, numpy and torch imports
+        self.deadline = self.t0 + START_SECONDS  # the start: Python, numpy and torch imports
         self.ended: str | None = None  # why the process is gone (feedback for the student)
         self.event: str | None = None  # "timeout", "exit", "crash", "protocol", "limit"
         self.hello: dict = {}
+        self.largest_reply = 0
+        self.req_w = self.rep_r = -1
+        self.proc = None
+        self.info: dict = {}
+        self.sandbox: dict = {}
         self.tmp = Path(tempfile.mkdtemp(prefix="course-student-"))
         os.chmod(self.tmp, 0o755)
-        self.cwd = self.tmp / "work"  # filled from the submission's copy inside the sandbox
-        self.cwd.mkdir()
-        stage = self.tmp / "stage"
-        stage.mkdir()
-        seed = Path(submission) if submission is not None and Path(submission).is_dir() else None
+        try:
+            self._start(code, submission, torch)
+        except BaseException:
+            self.close()
+            raise
+
+    def _start(self, code: str, submission: Path | None, torch: bool) -> None:
+        iso = self.iso
+        seed = Path(submission).resolve() if submission is not None and Path(submission).is_dir() else None
+        insecure = iso.insecure
+        cwd = str(self.tmp / "work") if insecure else jail.WORK
         req_r, self.req_w = os.pipe()
         self.rep_r, rep_w = os.pipe()
-        cfg = {"sandbox": iso.sandbox_config(stage, self.cwd, seed), "cwd": str(self.cwd), "path": str(iso.library),
-               "sys_path": iso.python_path(), "code": code, "name": name, "torch": bool(torch),
-               "req_fd": req_r, "rep_fd": rep_w, "oracle": oracle.names if oracle is not None else []}
-        (self.tmp / "config.json").write_text(json.dumps(cfg))
+        cfg = {"cwd": cwd, "seed": (str(seed) if insecure else jail.SEED) if seed else None,
+               "path": str(iso.library), "sys_path": iso.python_path(), "code": code, "name": self.name,
+               "torch": bool(torch), "req_fd": req_r, "rep_fd": rep_w, "hide": [str(h) for h in iso.hide],
+               "keep": [str(k) for k in iso.keep], "library": str(iso.library),
+               "oracle": self.oracle.names if self.oracle is not None else []}
+        server_dir = jail.install_server(self.tmp / "grader", cfg)
         env = {k: v for k, v in os.environ.items() if k in ("PATH", "LANG", "LC_ALL", "TZ")}
-        env.update(HOME=str(self.cwd), TMPDIR="/tmp", OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
-                   MKL_NUM_THREADS="1", PYTHONDONTWRITEBYTECODE="1", MPLBACKEND="Agg", COURSE_LIB_QUICK="1")
-        self.cgroup = iso.cgroup()
-        self.largest_reply = 0
-        self.unpacked_at = time.monotonic()
-        self.proc = subprocess.Popen(
-            [sys.executable, "-S", "-E", str(CHILD_SCRIPT), "serve", str(self.tmp / "config.json")],
-            cwd=self.cwd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-            pass_fds=(req_r, rep_w), start_new_session=True,
-            preexec_fn=iso.preexec(self.budget + 30, self.cgroup))
-        os.close(req_r)
-        os.close(rep_w)
-        self.sandbox = self._sandbox_report(iso)
+        env.update(HOME=cwd, TMPDIR="/tmp", OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1",
+                   PYTHONDONTWRITEBYTECODE="1", MPLBACKEND="Agg", COURSE_LIB_QUICK="1")
+        fds = [req_r, rep_w]
+        info_r = seccomp = None
+        staged: dict = {}
+        if insecure:
+            argv = [sys.executable, "-S", "-E", "-B", str(server_dir / "server.py"), "serve",
+                    str(server_dir / "config.json")]
+        else:
+            if jail.bwrap_path() is None:
+                raise jail.IsolationError(jail.refusal("bubblewrap (bwrap) is not installed", jail.INSTALL))
+            if os.getuid() == 0 and jail.STUDENT_UID == 0:
+                raise jail.IsolationError(jail.refusal("COURSE_GRADER_STUDENT_UID is 0, the grading user's uid",
+                                                       "set it to an unprivileged uid (default 65534)"))
+            info_r, info_w = os.pipe()
+            program = jail.seccomp_filter()
+            if program is not None:
+                seccomp, w = os.pipe()
+                os.write(w, program)
+                os.close(w)
+            fds += [info_w] + ([seccomp] if seccomp is not None else [])
+            staged = jail.staging(iso.read_only(), self.tmp / "stage") if os.getuid() == 0 else {}
+            argv = jail.command(iso, "serve", server_dir, seed, info_w, seccomp, staged)
+        stderr = open(self.tmp / "stderr.txt", "wb")
+        try:
+            self.proc = subprocess.Popen(
+                argv, cwd=self.tmp, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=stderr,
+                pass_fds=fds, start_new_session=True,
+                preexec_fn=jail.preexec(iso.limits, self.budget + 30, self.cgroup,
+                                        as_student=not insecure and os.getuid() == 0, staged=staged))
+        except (OSError, subprocess.SubprocessError) as exc:  # the launcher could not even start (preexec_fn)
+            if insecure:
+                raise
+            raise jail.IsolationError(jail.refusal(jail.launch_failure(exc, staged))) from None
+        finally:
+            stderr.close()
+            for fd in fds:
+                os.close(fd)
+        info = jail.read_info(info_r, time.monotonic() + START_SECONDS) if info_r is not None else {}
+        self.info = info  # bwrap's: the sandbox's host pid and namespaces
+        if info_r is not None:
+            os.close(info_r)
+        first = self._receive()
+        if not insecure and (not info or (first is None and self.event != "timeout")):
+            self._refuse_start()
+        facts = first[0].get("facts") if first is not None and first[0].get("event") == "sandbox" else None
+        if not isinstance(facts, dict):
+            facts = {}
+        if first is None:  # the process did not start in time: none of the student's code ran
+            self.ended = (f"the process for your {self.name} did not start within {START_SECONDS:g} s (the machine is "
+                          "overloaded); none of your code ran")
+            self.sandbox = {"note": "the process did not start"}
+            return
+        if insecure:
+            self.sandbox = {"tool": "none (--insecure)", "namespaces": False, "read_only": False,
+                            "note": "--insecure: the student's code ran without a sandbox, as the grading user"}
+        else:
+            missing = jail.verify(facts, info, iso, seccomp is not None)
+            if missing:
+                self.kill()
+                raise jail.IsolationError(jail.refusal("the sandbox is not isolated: " + "; ".join(missing),
+                                                     jail.REPORT))
+            self.sandbox = jail.describe(facts, info, iso, seccomp is not None)
+        self.sandbox.update(iso.limits.totals(self.cgroup))
+        self._send({"op": "go"}, [])
+        self.t0 = time.monotonic()  # the exercise's budget counts from here: its definitions and every call
+        self.deadline = self.t0 + self.budget
         reply = self._receive() if not self.ended else None
         if reply is not None:
             self.hello = reply[0]
         self.hello["sandbox"] = self.sandbox  # the grader's record, never the student's
 
-    def _sandbox_report(self, iso: Isolation) -> dict:
-        """What confines the process: its first frame (written before any code of the student's ran) and the totals."""
-        first = self._receive()
-        self.t0 = time.monotonic()  # the exercise's budget counts from here: its definitions and every call
-        self.deadline = self.t0 + self.budget
-        box = first[0].get("sandbox") if first is not None and first[0].get("event") == "sandbox" else None
-        if not isinstance(box, dict):
-            box = {"note": "the process did not report its sandbox"}
-        box = {str(k): v if isinstance(v, (str, bool)) else str(v) for k, v in box.items()}
-        box.update(iso.limits.totals(self.cgroup))
-        return box
+    def _refuse_start(self) -> None:
+        """bwrap did not make the sandbox (or the server in it did not report): one line, and no grading."""
+        try:
+            self.proc.wait(timeout=2)
+        except subprocess.TimeoutExpired:
+            pass
+        self.kill()
+        try:
+            text = (self.tmp / "stderr.txt").read_text(errors="replace")[:2000]
+        except OSError:
+            text = ""
+        lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+        said = [ln for ln in lines if ln.startswith("bwrap:")] or lines[-1:]
+        why = said[0] if said else (self.ended or f"bwrap ended with exit code {self.proc.returncode}")
+        raise jail.IsolationError(jail.refusal(f"bubblewrap could not make the sandbox ({why[:300]})"))
 
     # -- the connection ------------------------------------------------------------------------
     def _remaining(self) -> float:
@@ -336,6 +252,11 @@ class StudentProcess:
             buf += b
         return buf
 
+    def _timeout_text(self) -> str:
+        return (f"stopped after {self.seconds:.1f} s: an endless loop, or far too slow (the time limit of one "
+                f"exercise is {self.budget:g} s, for your code, the grader's checks of its results and the earlier "
+                "steps it calls)")
+
     def _receive(self) -> tuple[dict, list] | None:
         """The next reply; None (and :attr:`ended` set) when the process ended, ran out of time or sent no reply."""
         try:
@@ -345,11 +266,9 @@ class StudentProcess:
                                      f"(the limit is {wire.MAX_REPLY >> 20} MiB)")
             self.largest_reply = max(self.largest_reply, n)
             data = self._read_exact(n)
-            self.unpacked_at = time.monotonic()  # a call-back's time counts from here (see _answer_oracle)
             head, arrays = wire.unpack(data)
         except TimeoutError:
-            self._end("timeout", f"stopped after {self.budget:g} s: an endless loop, or far too slow "
-                                 f"(the time limit of one exercise is {self.budget:g} s)")
+            self._end("timeout", self._timeout_text())
             return None
         except EOFError:
             self._end_from_exit()
@@ -370,8 +289,9 @@ class StudentProcess:
         except subprocess.TimeoutExpired:
             rc = None
         if self.cgroup is not None and self.cgroup.oom_killed():
-            why = ("the process running your function (with the processes it started) used more memory than the "
-                   f"limit ({self.iso.limits.memory_total_bytes >> 20} MiB in all) and was stopped")
+            why = ("the process running your function (with the processes it started and the grader's work on its "
+                   f"results) used more memory than the limit ({self.cgroup.memory_bytes >> 20} MiB in all) and "
+                   "was stopped")
         elif rc is not None and rc > 128 and rc - 128 in (signal.SIGXCPU, signal.SIGKILL):
             why = f"the process running your function used up its CPU time limit ({int(self.budget) + 31} s)"
         elif rc is not None and (rc < 0 or rc > 128):
@@ -396,7 +316,7 @@ class StudentProcess:
                     raise TimeoutError
                 view = view[os.write(self.req_w, view[: 1 << 16]):]
         except TimeoutError:
-            self._end("timeout", f"stopped after {self.budget:g} s: an endless loop, or far too slow")
+            self._end("timeout", self._timeout_text())
             return False
         except (BrokenPipeError, OSError):
             self._end_from_exit()
@@ -404,10 +324,13 @@ class StudentProcess:
         return True
 
     # -- calls ------------------------------------------------------------------------------------
-    def call(self, args: tuple, kwargs: dict, handle: int | None = None, params: list | None = None):
-        """Call the student's object (or handle) with data; the result as data, or the student's exception raised."""
-        import numpy as np
+    def call(self, args: tuple, kwargs: dict, handle: int | None = None, params: list | None = None, expect=None):
+        """Call the student's object (or handle) with data; the result as data, or the student's exception raised.
 
+        ``expect``: a function of no arguments that returns the expected answer of this call (the reference's
+        result); it is called only when the reply declares something it does not send (a sparse matrix's shape),
+        which is then checked against the expected answer's before anything is built.
+        """
         if self.ended:
             raise StudentProcessEnded(self.ended)
         arrays: list = []
@@ -430,10 +353,19 @@ class StudentProcess:
         reply, out = got
         if not reply.get("ok"):
             if reply.get("wire"):
-                raise TypeError(reply.get("message", "the result cannot be sent to the grader"))
+                raise TypeError(str(reply.get("message", "the result cannot be sent to the grader"))[:2000])
             raise _student_exception(reply)
         try:
-            value = wire.decode(reply["value"], out, module_proxy=lambda tree, arrs: RemoteModule.make(self, tree, arrs))
+            sizes = wire.declared(reply.get("value"))
+            wire.declared(reply.get("callbacks"))
+        except Exception as exc:  # noqa: BLE001 - a forged reply ends this exercise, not the grading
+            self._end("protocol", f"the process running your function sent a malformed reply ({type(exc).__name__}: "
+                                  f"{str(exc)[:200]})")
+            raise StudentProcessEnded(self.ended) from None
+        _check_sparse(self.name, [s for s in sizes if s[0] == "sparse"], expect)
+        try:
+            value = wire.decode(reply["value"], out,
+                                module_proxy=lambda tree, arrs: RemoteModule.make(self, tree, arrs))
             replay = wire.decode(reply.get("callbacks"), out) or []
             replay = [(callbacks[int(i)], tuple(a), dict(k)) for i, a, k in replay]
         except Exception as exc:  # noqa: BLE001 - a forged reply ends this exercise, not the grading
@@ -442,17 +374,17 @@ class StudentProcess:
             raise StudentProcessEnded(self.ended) from None
         for cb, a, k in replay:
             cb(*a, **k)  # the grader's callbacks, replayed in order after the call
+        self._rng_in(reply.get("rng"), out)
+        self._generators_in(reply.get("gens"), out, args, kwargs)
         return value
 
     def _answer_oracle(self, head: dict, arrays: list) -> tuple[dict, list] | None:
         """Answer a call-back of the student's code (an earlier exercise, by its reference); then the next frame.
 
-        The grader's time on it (from the request's arrival to the reply's departure, plus
-        :data:`~course_lib.instructor.oracle.ROUND_TRIP_SECONDS` for the transport on the student's side) is added
-        to the exercise's deadline, up to the oracle's allowance; more call-backs than
-        :data:`~course_lib.instructor.oracle.MAX_CALLS` end the process.
+        Its time is the exercise's (one clock): the reference is stopped when the exercise's time is up. More
+        call-backs than :data:`~course_lib.instructor.oracle.MAX_CALLS` end the process.
         """
-        from course_lib.instructor.oracle import MAX_CALLS, ROUND_TRIP_SECONDS
+        from course_lib.instructor.oracle import MAX_CALLS
 
         if self.oracle is None or self.oracle.calls >= MAX_CALLS:
             why = (f"your {self.name} called the earlier exercises ({', '.join(self.oracle.names)}) more than "
@@ -460,16 +392,52 @@ class StudentProcess:
                    if self.oracle is not None else "the process asked the grader for an earlier step it does not need")
             self._end("limit", why)
             return None
-        t0 = self.unpacked_at
         reply, out = self.oracle.answer(head, arrays, self._remaining())
+        if self._remaining() <= 0 or reply.get("deadline"):  # the exercise's time ran out in the call-back
+            self._end("timeout", self._timeout_text())
+            return None
         sent = self._send(reply, out)
-        self.deadline += self.oracle.credit(time.monotonic() - t0 + ROUND_TRIP_SECONDS)
         return self._receive() if sent else None
 
     @staticmethod
-    def _rng_out(arrays: list) -> dict:
+    def _rng_in(state, arrays: list) -> None:
+        """The global random states the student's call left, set here: as in a notebook, a function that seeds or
+        draws from np.random (or torch's global generator) changes its caller's state (the checks test that it does
+        not). A state that cannot be set is ignored."""
+        if not isinstance(state, dict):
+            return
         import numpy as np
 
+        try:
+            if state.get("np") is not None:
+                np.random.set_state(tuple(wire.decode(state["np"], arrays)))
+            torch = sys.modules.get("torch")
+            if torch is not None and state.get("torch") is not None:
+                torch.set_rng_state(wire.decode(state["torch"], arrays))
+        except Exception:  # noqa: BLE001 - a malformed state changes nothing
+            pass
+
+    @staticmethod
+    def _generators_in(gens, arrays: list, args: tuple, kwargs: dict) -> None:
+        """The states of the generator arguments after the student's call, set in the caller's generators: as in a
+        notebook, an rng the function drew from has advanced (the checks test that the function draws from it)."""
+        import numpy as np
+
+        torch = sys.modules.get("torch")
+        for entry in gens if isinstance(gens, list) else []:
+            try:
+                (kind, at), tree = entry
+                mine = args[int(at)] if kind == "a" else kwargs[str(at)]
+                theirs = wire.decode(tree, arrays)
+                if isinstance(mine, np.random.Generator) and isinstance(theirs, np.random.Generator):
+                    mine.bit_generator.state = theirs.bit_generator.state
+                elif torch is not None and isinstance(mine, torch.Generator) and isinstance(theirs, torch.Generator):
+                    mine.set_state(theirs.get_state())
+            except Exception:  # noqa: BLE001 - a malformed entry changes nothing
+                continue
+
+    @staticmethod
+    def _rng_out(arrays: list) -> dict:
         out = {"np": wire.encode(list(np.random.get_state()), arrays)}
         torch = sys.modules.get("torch")
         if torch is not None:
@@ -478,19 +446,18 @@ class StudentProcess:
 
     # -- the end ------------------------------------------------------------------------------------
     def kill(self) -> None:
-        if self.proc.poll() is None:
+        if self.proc is not None and self.proc.poll() is None:
             kill_tree(self.proc.pid)
-        if self.cgroup is not None:
-            self.cgroup.close()
-        try:
-            self.proc.wait(timeout=5)
-        except subprocess.TimeoutExpired:  # pragma: no cover
-            pass
+        if self.proc is not None:
+            try:
+                self.proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:  # pragma: no cover
+                pass
 
     def close(self) -> None:
         if self.oracle is not None:
             self.oracle.close()
-        if self.proc.poll() is None and not self.ended:
+        if self.proc is not None and self.proc.poll() is None and not self.ended:
             try:
                 os.set_blocking(self.req_w, False)
                 os.write(self.req_w, struct.pack("<Q", len(b := wire.pack({"op": "bye"}, []))) + b)
@@ -501,13 +468,12 @@ class StudentProcess:
             except subprocess.TimeoutExpired:
                 pass
         self.kill()
-        if self.cgroup is not None:
-            self.cgroup.close()
         for fd in (self.req_w, self.rep_r):
             try:
                 os.close(fd)
             except OSError:
                 pass
+        self.req_w = self.rep_r = -1
         shutil.rmtree(self.tmp, ignore_errors=True)
 
     def __enter__(self) -> "StudentProcess":
@@ -521,12 +487,66 @@ class StudentProcess:
         return time.monotonic() - self.t0
 
 
+def _shapes_of(value, out: set, depth: int = 0) -> set:
+    """The shapes of every array and sparse matrix in an expected answer (tuples, lists, dicts, records)."""
+    if depth > 20:
+        return out
+    sparse = sys.modules.get("scipy.sparse")
+    if sparse is not None and sparse.issparse(value):
+        out.add(tuple(int(n) for n in value.shape))
+    elif isinstance(value, np.ndarray) or hasattr(value, "shape") and hasattr(value, "dtype"):
+        out.add(tuple(int(n) for n in value.shape))
+    elif isinstance(value, (tuple, list)):
+        for v in list(value)[:1000]:
+            _shapes_of(v, out, depth + 1)
+    elif isinstance(value, dict):
+        for v in list(value.values())[:1000]:
+            _shapes_of(v, out, depth + 1)
+    elif hasattr(value, "__dict__") and not isinstance(value, type):
+        for v in list(vars(value).values())[:1000]:
+            _shapes_of(v, out, depth + 1)
+    return out
+
+
+#: A declared sparse matrix is built when it has at most this many times the cells of the expected answer's largest
+#: matrix (a transposed or miscounted pattern still reaches the check, which names the mistake), plus a few.
+SPARSE_SLACK, SPARSE_EXTRA_CELLS = 4, 4096
+
+
+def _check_sparse(name: str, sparse: list[tuple], expect) -> None:
+    """Refuse (``ValueError``, as the student's function would raise it), before it is built, a declared sparse
+    matrix much larger than the expected answer (the reference's result on the same arguments): more than
+    :data:`SPARSE_SLACK` times the cells of its largest matrix; without an expected answer, more than
+    ``wire.MAX_SPARSE_CELLS`` cells."""
+    if not sparse:
+        return
+    shapes = None
+    if expect is not None:
+        try:
+            shapes = _shapes_of(expect(), set())
+        except Exception:  # noqa: BLE001 - the reference cannot answer this call: the plain bound applies
+            shapes = None
+    cells = lambda shape: int(np.prod(shape, dtype=object)) if shape else 1  # noqa: E731
+    limit = (SPARSE_SLACK * max(map(cells, shapes), default=0) + SPARSE_EXTRA_CELLS if shapes is not None
+             else wire.MAX_SPARSE_CELLS)
+    for _, path, shape in sparse:
+        if cells(shape) > limit:
+            want = (f"the expected answer has shape {' or '.join(str(s) for s in sorted(shapes)[:3])}"
+                    if shapes else f"no exercise returns more than {limit} cells")
+            raise ValueError(f"your {name} returned a sparse matrix of shape {shape} (at {path}); {want}, so the "
+                             "grader did not build it")
+
+
 def kill_tree(pid: int) -> None:
-    """SIGKILL a sandbox launcher, its process group and its direct children.
+    """SIGKILL a sandbox launcher (bwrap), its process group and its direct children.
 
     The launcher's child is process 1 of the sandbox's PID namespace: when it dies, Linux kills
     every process in that namespace, including those that left the process group (``setsid``).
+    It is killed first, and the launcher (which reaps it and then exits) is given a moment before it
+    is killed too, so that no zombie is left to the host's init.
     """
+    import time
+
     try:
         kids = [int(k) for t in os.listdir(f"/proc/{pid}/task")
                 for k in open(f"/proc/{pid}/task/{t}/children").read().split()]
@@ -537,6 +557,14 @@ def kill_tree(pid: int) -> None:
             os.kill(k, signal.SIGKILL)
         except (ProcessLookupError, PermissionError):
             pass
+    for _ in range(50 if kids else 0):  # the launcher reaps its child and exits on its own
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                if f.read().rsplit(")", 1)[1].split()[0] == "Z":
+                    break
+        except OSError:
+            break
+        time.sleep(0.01)
     for kill, target in ((os.killpg, pid), (os.kill, pid)):
         try:
             kill(target, signal.SIGKILL)
@@ -550,17 +578,45 @@ def _grad_enabled() -> bool:
 
 
 class RemoteFunction:
-    """The student's function (or class) as the check sees it: each call goes to the student's process."""
+    """The student's function (or class) as the check sees it: each call goes to the student's process.
 
-    def __init__(self, proc: StudentProcess, name: str):
-        self._proc = proc
+    Args:
+        proc: the student's process.
+        name: the exercise.
+        reference: the reference of the exercise (or None): the expected answer of a call whose reply declares
+            what it does not send (:meth:`StudentProcess.call`).
+
+    Attributes:
+        calls: calls made; ``not_implemented``: calls that raised ``NotImplementedError`` (an untouched stub).
+    """
+
+    def __init__(self, proc: StudentProcess, name: str, reference=None):
+        self._proc, self._reference = proc, reference
         self.__name__ = self.__qualname__ = name
+        self.calls = self.not_implemented = 0
 
     def __call__(self, *args, **kwargs):
-        return self._proc.call(args, kwargs)
+        self.calls += 1
+        ref = self._reference
+        expect = (lambda: ref(*_copies(args), **_copies(kwargs))) if ref is not None else None
+        try:
+            return self._proc.call(args, kwargs, expect=expect)
+        except NotImplementedError:
+            self.not_implemented += 1
+            raise
 
     def __repr__(self) -> str:
         return f"<your {self.__name__}, running in its own process>"
+
+
+def _copies(value):
+    """Arrays copied (the reference must not change the check's inputs)."""
+    import copy
+
+    try:
+        return copy.deepcopy(value)
+    except Exception:  # noqa: BLE001 - a value that cannot be copied is passed as it is
+        return value
 
 
 class RemoteModule:
@@ -570,11 +626,12 @@ class RemoteModule:
 
     @classmethod
     def make(cls, proc: StudentProcess, tree: dict, arrays: list):
+        layers = wire.check_module_tree(tree, arrays)  # before anything is built
         if RemoteModule._cls is None:
             RemoteModule._cls = _remote_module_class()
-        name = wire._ident(tree.get("n", "Module"), "Module")
+        name = wire.ident(tree.get("n", "Module"), "Module")
         sub = type(name, (RemoteModule._cls,), {})
-        return sub(proc, tree, arrays)
+        return sub(proc, tree, arrays, layers)
 
 
 def _remote_module_class():
@@ -584,13 +641,13 @@ def _remote_module_class():
         """A student's ``nn.Module`` living in the student's process: its parameters and linear layers are mirrored here;
         ``forward`` sends the current parameters and the inputs there and returns the result."""
 
-        def __init__(self, proc: StudentProcess, tree: dict, arrays: list):
+        def __init__(self, proc: StudentProcess, tree: dict, arrays: list, layers: list):
             super().__init__()
             names, mirror = [], []
             for name, k in tree["params"]:
-                names.append(str(name))
+                names.append(str(name)[:200])
                 mirror.append(torch.nn.Parameter(torch.from_numpy(arrays[int(k)].copy())))
-            linear = [torch.nn.Linear(int(i), int(o), bias=bool(b), device="meta") for i, o, b in tree["linear"]]
+            linear = [torch.nn.Linear(i, o, bias=b, device="meta") for i, o, b in layers]
             object.__setattr__(self, "_r", {"proc": proc, "h": int(tree["h"]), "names": names, "mirror": mirror,
                                             "linear": linear})
 

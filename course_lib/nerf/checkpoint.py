@@ -20,17 +20,26 @@ from course_lib.nerf.presets import TrainConfig
 from course_lib.nerf.scene import SceneBounds
 from course_lib.validate import KitInputError
 
-__all__ = ["CHECKPOINT", "save_checkpoint", "load_checkpoint", "build_model"]
+__all__ = ["CHECKPOINT", "save_checkpoint", "load_checkpoint", "build_model", "nerf_arguments"]
 
 #: the file name in a training output folder
 CHECKPOINT = "checkpoint.pt"
 
 
+def nerf_arguments(cfg: TrainConfig) -> dict:
+    """The arguments the kit builds ``NeRF`` with: those its stub documents (notebook 07), plus
+    ``density`` only where the config asks for the reference's non-default ``"softplus"``."""
+    kw = dict(depth=cfg.depth, width=cfg.width, skips=tuple(cfg.skips), pos_freqs=cfg.pos_freqs,
+              dir_freqs=cfg.dir_freqs, use_viewdirs=cfg.use_viewdirs, view_width=cfg.view_width)
+    if cfg.density != "relu":
+        kw["density"] = cfg.density
+    return kw
+
+
 def build_model(cfg: TrainConfig, bounds: SceneBounds, resolution: int | None = None):
     """The model(s) of a config: ``(model, model_fine or None)``; weights from the global torch RNG."""
     if cfg.model == "nerf":
-        kw = dict(depth=cfg.depth, width=cfg.width, skips=tuple(cfg.skips), pos_freqs=cfg.pos_freqs,
-                  dir_freqs=cfg.dir_freqs, use_viewdirs=cfg.use_viewdirs, view_width=cfg.view_width, density=cfg.density)
+        kw = nerf_arguments(cfg)
         fine = NeRF(**kw) if (cfg.fine and cfg.n_importance > 0) else None
         return NeRF(**kw), fine
     if cfg.model == "grid":
@@ -48,7 +57,9 @@ def save_checkpoint(path: Path, state, camera: dict | None = None) -> None:
     model, fine = state.model, state.model_fine
     torch.save({
         "camera": camera, "device": str(state.device),
-        "model": model.state_dict(), "model_config": model.config(), "model_kind": state.config.model,
+        "model": model.state_dict(), "model_kind": state.config.model,
+        "model_config": model.config() if hasattr(model, "config") else {**nerf_arguments(state.config),
+                                                                         "skips": list(state.config.skips)},
         "model_fine": fine.state_dict() if fine is not None else None,
         "optimizer": state.optimizer.state_dict(), "step": state.step, "train_seconds": state.clock.train_seconds,
         "wall_seconds": state.clock.spent(), "config": state.config.to_dict(), "bounds": state.bounds.to_dict(),
@@ -66,6 +77,8 @@ def _rebuild(ck: dict):
                           sh_degree=mc.get("sh_degree", 0))
         return model, None
     kw = {**mc, "skips": tuple(mc["skips"])}
+    if kw.get("density") == "relu":  # the default: not passed (the stub of notebook 07 has no such argument)
+        kw.pop("density")
     return NeRF(**kw), (NeRF(**kw) if ck["model_fine"] is not None else None)
 
 

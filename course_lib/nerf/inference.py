@@ -22,8 +22,10 @@ so a render shows exactly what the loss saw), and skips what cannot change the p
   ``color_threshold``, and added straight to its ray;
 * **chunks sized to the device** (:func:`course_lib.nerf.device.render_chunk`).
 
-Within a segment the compositing is the NeRF quadrature (``alpha = 1 - exp(-sigma delta)``,
-``T`` an exclusive product); across segments ``T`` carries over. The MLP has no occupancy grid:
+Within a segment the compositing is ``volume_render`` (notebook 08; in the student kit the
+student's own), given one more sample of zero density one interval beyond the segment so that its
+last interval is the real gap (:func:`course_lib.nerf.render.composite`); across segments ``T``
+carries over (each segment's weights are scaled by the transmittance before it). The MLP has no occupancy grid:
 :func:`render_view` renders it with :func:`course_lib.nerf.render.render_chunked` (also without
 gradients).
 """
@@ -37,8 +39,8 @@ import torch
 
 from course_lib.nerf.device import render_chunk
 from course_lib.nerf.grid import GridField, corners, read_corners, voxel_rows
-from course_lib.nerf.rays import get_rays
-from course_lib.nerf.render import LAST_DELTA, render_chunked
+from course_lib.nerf.rays import camera_rays
+from course_lib.nerf.render import LAST_DELTA, composite, render_chunked
 from course_lib.validate import KitInputError
 
 __all__ = ["RenderSettings", "trilinear_rows", "corners", "read_corners", "grid_tables", "march_grid", "render_rays_forward", "render_view", "render_views", "evaluate",
@@ -208,11 +210,11 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
     depth, acc, marched = rays_o.new_zeros(R), rays_o.new_zeros(R), rays_o.new_zeros(R)
     t0, t1 = _ray_interval(field, rays_o, rays_d, s)
     alive = torch.nonzero(t1 - t0 > 2e-4).squeeze(1)  # rays that cross the box (a miss has t1 = t0 + 1e-4)
-    delta = (t1 - t0) / (S - 1) * torch.linalg.norm(rays_d, dim=-1)  # world length of every interval
     vs = field.voxel_size
     dirs = rays_d / torch.linalg.norm(rays_d, dim=-1, keepdim=True)
     T = rays_o.new_ones(R)
-    offsets = torch.arange(segment, device=rays_o.device, dtype=rays_o.dtype)
+    no_color = rays_o.new_zeros(1, 1, 3)  # the weights need no colours: they are read only where a weight counts
+    offsets = torch.arange(segment + 1, device=rays_o.device, dtype=rays_o.dtype)
     density_table, feature_table, occupancy_table = grid_tables(field) if tables is None else tables
     density_flat = density_table.reshape(-1)
     occupied, threshold = _occupancy_test(field, occupancy_table, s.box_bounds), max(s.color_threshold, 0.0)
@@ -221,8 +223,9 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
         if alive.numel() == 0:
             break
         L = min(segment, S - first)
-        u = ((first + offsets[:L]) / (S - 1))[None, :]  # the depths of stratified_samples, bit for bit
-        z = t0[alive, None] * (1.0 - u) + t1[alive, None] * u  # (A, L)
+        u = ((first + offsets[:L + 1]) / (S - 1))[None, :]  # the depths of stratified_samples, bit for bit
+        z_ext = t0[alive, None] * (1.0 - u) + t1[alive, None] * u  # (A, L + 1): the segment and the next depth
+        z = z_ext[:, :L]
         p = torch.addcmul(ray_a[alive, None, :], ray_b[alive, None, :], z[..., None]).reshape(-1, 3)
         sel = occupied(p)
         sigma = z.new_zeros(z.numel())
@@ -230,9 +233,11 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
             idx, wc = corners(field.shape, p[sel])
             raw = torch.linalg.vecdot(density_flat.index_select(0, idx.reshape(-1)).reshape(idx.shape), wc)
             sigma[sel] = torch.nn.functional.softplus(raw + field.shift) / vs
-        alpha = 1.0 - torch.exp(-sigma.reshape(-1, L) * delta[alive, None])
-        trans = torch.cumprod(torch.cat([T[alive, None], 1.0 - alpha + 1e-10], dim=1), dim=1)  # T before each sample
-        w = alpha * trans[:, :-1]
+        # volume_render on the segment, plus the next depth with density 0: the last interval is the real gap
+        sigma_ext = torch.cat([sigma.reshape(-1, L), z.new_zeros(len(alive), 1)], dim=1)
+        seg = composite(no_color.expand(len(alive), L + 1, 3), sigma_ext, z_ext, rays_d[alive], white_background=False)
+        T_alive = T[alive]
+        w = seg["weights"][:, :L] * T_alive[:, None]  # weights within the segment, times T before it
         if sel.numel():
             w_sel = w.reshape(-1)[sel]
             lit = torch.nonzero(w_sel > threshold).squeeze(1)  # among the occupied samples (weight 0 elsewhere)
@@ -243,8 +248,9 @@ def march_grid(field: GridField, rays_o: torch.Tensor, rays_d: torch.Tensor, s: 
         depth.index_add_(0, alive, (w * z).sum(dim=1))
         acc.index_add_(0, alive, w.sum(dim=1))
         marched.index_add_(0, alive, torch.full_like(z[:, 0], float(L)))
-        T[alive] = trans[:, -1]
-        alive = alive[trans[:, -1] > min_transmittance]
+        T_next = T_alive * (1.0 - seg["acc_map"])
+        T[alive] = T_next
+        alive = alive[T_next > min_transmittance]
     if s.white_background:
         rgb = rgb + (1.0 - acc[:, None])
     return dict(rgb_map=rgb.clamp(0, 1), depth_map=depth, acc_map=acc, samples=marched)
@@ -286,13 +292,11 @@ def render_view(model, model_fine, cfg, bounds, H: int, W: int, K, c2w, tables=N
 
     Introduced in ``notebooks/08_nerf_rendering_and_training.ipynb``.
     """
-    p = next(model.parameters())
-    c2w_t = torch.as_tensor(np.asarray(c2w, dtype=np.float32) if not isinstance(c2w, torch.Tensor) else c2w,
-                            dtype=p.dtype).to(p.device)
+    device = next(model.parameters()).device
     was = model.training
     model.eval()
     try:
-        o, d = get_rays(H, W, K, c2w_t)
+        o, d = camera_rays(H, W, K, c2w, device=device)
         out = render_rays_forward(model, model_fine, o.reshape(-1, 3), d.reshape(-1, 3), RenderSettings.of(cfg, bounds, model),
                                   tables)
     finally:

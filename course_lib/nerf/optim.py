@@ -30,7 +30,7 @@ small share of the grid. With channels-last grids and the fused dense update ove
 step of the fast preset at the end of a 5-minute run on the building at 400 px (119 x 147 x 175
 voxels x 13 values, 2 CPU threads) takes 138 ms with the dense update and 158 ms with the sparse
 one (after 300 steps, with one thread and channel-major grids: 0.83x at 400 px, 0.76x at 200 px;
-``benchmarks/nerf_step_vs_render.py``). So the fast preset keeps the dense update and the sparse
+``benchmarks/nerf_step_vs_render.py`` of the instructor's kit). So the fast preset keeps the dense update and the sparse
 one is opt-in (``TrainConfig.grid_sparse_adam``, ``nerf train --sparse-adam``): for grids much
 larger than the batch's footprint (800 px grids, small batches).
 """

@@ -12,6 +12,10 @@ the camera, and the "depth" that volume rendering returns is the z-depth of the 
 
 Shapes are NeRF's common vocabulary: ``rays_o, rays_d (R, 3)``, ``z_vals (R, S)``, ``pts (R, S, 3)``.
 Functions take and return torch tensors; the device and floating dtype follow ``c2w``.
+
+The kit's own code (trainer, renders, notebooks 07-10) makes rays with :func:`camera_rays`, which
+calls the exercise ``get_rays`` exactly as its stub documents (in the student kit: the student's
+own ``get_rays``, :mod:`course_lib.student`).
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ import torch
 
 from course_lib.validate import KitInputError
 
-__all__ = ["get_rays", "stratified_samples", "query_points", "ray_box_intersection"]
+__all__ = ["get_rays", "stratified_samples", "query_points", "ray_box_intersection", "camera_rays"]
 
 
 def _as_tensor(x, like: torch.Tensor | None = None, name: str = "x") -> torch.Tensor:
@@ -161,3 +165,47 @@ def ray_box_intersection(rays_o: torch.Tensor, rays_d: torch.Tensor, box_min, bo
     t_near = torch.minimum(t0, t1).amax(dim=-1)
     t_far = torch.maximum(t0, t1).amin(dim=-1)
     return t_near, t_far
+
+
+def camera_rays(H: int, W: int, K, c2w, device=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The rays of one view, by ``get_rays`` called exactly as its stub documents.
+
+    The kit's one call of the exercise ``get_rays`` (the trainer, the renders, the notebooks): ``H``,
+    ``W`` as Python ints, ``K`` a ``(3, 3)`` and ``c2w`` a ``(4, 4)`` float32 tensor on one device
+    (numpy, float64 and ``(3, 4)`` poses are converted first); the result is checked and returned
+    as float32.
+
+    Args:
+        H, W: image size in pixels. K: ``(3, 3)`` intrinsics. c2w: ``(4, 4)`` or ``(3, 4)``
+            camera-to-world, OpenCV axes (numpy or torch).
+        device: where the rays go (default: ``c2w``'s device if it is a tensor, else the CPU).
+
+    Returns:
+        ``rays_o (H, W, 3)``, ``rays_d (H, W, 3)`` float32 tensors on ``device``.
+
+    Raises:
+        KitInputError: bad camera, or ``get_rays`` returned something else than its stub documents.
+    """
+    if device is None:
+        device = c2w.device if isinstance(c2w, torch.Tensor) else torch.device("cpu")
+    c2w_t = _as_tensor(c2w, name="c2w").to(device=device, dtype=torch.float32)
+    if tuple(c2w_t.shape) == (3, 4):
+        c2w_t = torch.cat([c2w_t, torch.tensor([[0.0, 0.0, 0.0, 1.0]], device=device)], dim=0)
+    if tuple(c2w_t.shape) != (4, 4):
+        raise KitInputError(f"c2w has shape {tuple(c2w_t.shape)}: expected one (4, 4) camera-to-world matrix")
+    K_t = _as_tensor(K, name="K").to(device=device, dtype=torch.float32)
+    if tuple(K_t.shape) != (3, 3):
+        raise KitInputError(f"K has shape {tuple(K_t.shape)}: expected (3, 3)")
+    if int(H) != H or int(W) != W or H < 1 or W < 1:
+        raise KitInputError(f"H, W = {H}, {W}: expected positive integers (image height and width)")
+    out = get_rays(int(H), int(W), K_t, c2w_t)
+    if not isinstance(out, (tuple, list)) or len(out) != 2:
+        raise KitInputError(f"get_rays returned a {type(out).__name__}: its docstring documents (rays_o, rays_d)")
+    rays = []
+    for name, r in zip(("rays_o", "rays_d"), out):
+        r = torch.as_tensor(r)
+        if tuple(r.shape) != (int(H), int(W), 3):
+            raise KitInputError(f"get_rays returned {name} of shape {tuple(r.shape)}: expected (H, W, 3) = "
+                                f"({int(H)}, {int(W)}, 3), rows first (torch.meshgrid(..., indexing='xy'))")
+        rays.append(r.to(device=device, dtype=torch.float32))
+    return rays[0], rays[1]

@@ -23,16 +23,16 @@ from __future__ import annotations
 
 import torch
 
-from course_lib.nerf.rays import get_rays, query_points, stratified_samples
+from course_lib.nerf.rays import camera_rays, query_points, stratified_samples
 from course_lib.validate import KitInputError
 
-__all__ = ["volume_render", "sample_pdf", "render_rays", "render_chunked", "render_image"]
+__all__ = ["volume_render", "composite", "sample_pdf", "render_rays", "render_chunked", "render_image"]
 
 LAST_DELTA = 1e10
 
 
 def volume_render(rgb: torch.Tensor, sigma: torch.Tensor, z_vals: torch.Tensor, rays_d: torch.Tensor,
-                  white_background: bool = True, last_delta: float | None = LAST_DELTA) -> dict[str, torch.Tensor]:
+                  white_background: bool = True) -> dict[str, torch.Tensor]:
     """Composite samples along each ray (the NeRF quadrature).
 
     Args:
@@ -41,10 +41,9 @@ def volume_render(rgb: torch.Tensor, sigma: torch.Tensor, z_vals: torch.Tensor, 
         z_vals: ``(R, S)`` sorted sample depths (in units of ``|rays_d|``).
         rays_d: ``(R, 3)`` ray directions (unnormalized; deltas are scaled by their norm).
         white_background: add ``1 - acc`` (white behind the scene).
-        last_delta: length of the last interval (in units of ``z_vals``): 1e10, "to infinity",
-            as the paper; ``None`` repeats the previous interval (for a field that ends at the
-            last sample, such as a voxel grid in its box: with 1e10 its boundary voxels would
-            stop every ray and take the background's colour).
+
+    The last interval is 1e10, "to infinity", as in the paper (the kit's :func:`composite` gives a
+    field that ends at its last sample a real last interval).
 
     Returns:
         dict with ``rgb_map (R, 3)``, ``depth_map (R,)`` (``sum w z``, in the units of ``z_vals``),
@@ -60,8 +59,7 @@ def volume_render(rgb: torch.Tensor, sigma: torch.Tensor, z_vals: torch.Tensor, 
     if rays_d.shape != (sigma.shape[0], 3):
         raise KitInputError(f"rays_d has shape {tuple(rays_d.shape)}: expected ({sigma.shape[0]}, 3)")
     dists = z_vals[:, 1:] - z_vals[:, :-1]
-    last = dists[:, -1:] if last_delta is None else torch.full_like(z_vals[:, :1], last_delta)
-    dists = torch.cat([dists, last], dim=-1)  # (R, S)
+    dists = torch.cat([dists, torch.full_like(z_vals[:, :1], LAST_DELTA)], dim=-1)  # (R, S)
     dists = dists * torch.linalg.norm(rays_d, dim=-1, keepdim=True)
     alpha = 1.0 - torch.exp(-sigma * dists)
     # exclusive cumulative product: T_1 = 1, T_i = prod_{j<i} (1 - alpha_j); 1e-10 keeps it > 0 (as the paper's code)
@@ -73,6 +71,47 @@ def volume_render(rgb: torch.Tensor, sigma: torch.Tensor, z_vals: torch.Tensor, 
     if white_background:
         rgb_map = rgb_map + (1.0 - acc_map[..., None])
     return dict(rgb_map=rgb_map, depth_map=depth_map, acc_map=acc_map, weights=weights, transmittance=trans, alpha=alpha)
+
+
+def composite(rgb: torch.Tensor, sigma: torch.Tensor, z_vals: torch.Tensor, rays_d: torch.Tensor,
+              white_background: bool = True, last_delta: float | None = LAST_DELTA) -> dict[str, torch.Tensor]:
+    """The kit's call of :func:`volume_render`: exactly its documented arguments, its result checked.
+
+    ``last_delta=None`` gives the last sample the previous interval instead of 1e10, for a field
+    that ends at its last sample (a voxel grid in its box: with 1e10 its boundary voxels would stop
+    every ray and take the background's colour). ``volume_render`` has no such argument, so one
+    sample of zero density is appended one interval beyond the last (it stops nothing: ``alpha = 0``)
+    and dropped from the weights afterwards.
+
+    Args:
+        rgb, sigma, z_vals, rays_d, white_background: as :func:`volume_render`.
+        last_delta: ``1e10`` (:data:`LAST_DELTA`, the paper) or None (the previous interval).
+
+    Returns:
+        dict with ``rgb_map (R, 3)``, ``depth_map (R,)``, ``acc_map (R,)``, ``weights (R, S)``.
+    """
+    S = z_vals.shape[-1]
+    if last_delta is None:
+        if S < 2:
+            raise KitInputError("last_delta=None repeats the previous interval: it needs at least 2 samples per ray")
+        z_vals = torch.cat([z_vals, 2.0 * z_vals[:, -1:] - z_vals[:, -2:-1]], dim=-1)
+        sigma = torch.cat([sigma, torch.zeros_like(sigma[:, :1])], dim=-1)
+        rgb = torch.cat([rgb, torch.zeros_like(rgb[:, :1])], dim=-2)
+    elif last_delta != LAST_DELTA:
+        raise KitInputError(f"last_delta={last_delta}: expected {LAST_DELTA:g} (the paper) or None (the previous interval)")
+    out = volume_render(rgb, sigma, z_vals, rays_d, white_background=white_background)
+    if not isinstance(out, dict) or not {"rgb_map", "depth_map", "acc_map", "weights"} <= set(out):
+        have = sorted(out) if isinstance(out, dict) else type(out).__name__
+        raise KitInputError(f"volume_render returned {have}: its docstring documents a dict with rgb_map, depth_map, "
+                            "acc_map and weights")
+    R = z_vals.shape[0]
+    res = {k: out[k] for k in ("rgb_map", "depth_map", "acc_map", "weights")}
+    if tuple(res["weights"].shape) != (R, z_vals.shape[-1]) or tuple(res["rgb_map"].shape) != (R, 3):
+        raise KitInputError(f"volume_render returned rgb_map {tuple(res['rgb_map'].shape)}, weights "
+                            f"{tuple(res['weights'].shape)}: expected ({R}, 3) and ({R}, {z_vals.shape[-1]})")
+    if last_delta is None:
+        res["weights"] = res["weights"][:, :S]
+    return res
 
 
 def sample_pdf(bins: torch.Tensor, weights: torch.Tensor, n_samples: int, perturb: bool = False,
@@ -126,14 +165,22 @@ def _run_model(model, pts: torch.Tensor, viewdirs: torch.Tensor, z_vals, rays_d,
         # Two passes: density everywhere (cheap for grid models), colour only where the weight
         # is above the threshold -- empty space and hidden points cost nothing.
         sigma = model.density(pts)
-        out = volume_render(torch.zeros_like(pts), sigma, z_vals, rays_d, white_background=False, last_delta=last_delta)
+        out = composite(torch.zeros_like(pts), sigma, z_vals, rays_d, white_background=False, last_delta=last_delta)
         mask = out["weights"] > color_threshold
         rgb = torch.zeros_like(pts)
         if mask.any():
             rgb = rgb.index_put((mask,), model.color(pts[mask], dirs[mask]))
     else:
         rgb, sigma = model(pts, dirs)
-    return volume_render(rgb, sigma, z_vals, rays_d, white_background, last_delta)
+    return composite(rgb, sigma, z_vals, rays_d, white_background, last_delta)
+
+
+def _checked(t, shape: tuple, name: str, like: torch.Tensor) -> torch.Tensor:
+    """An exercise's tensor result, checked against the shape its stub documents, on ``like``'s device and dtype."""
+    t = torch.as_tensor(t)
+    if tuple(t.shape) != tuple(shape):
+        raise KitInputError(f"{name} returned shape {tuple(t.shape)}: expected {tuple(shape)} (see its docstring)")
+    return t.to(device=like.device, dtype=like.dtype)
 
 
 def render_rays(model, rays_o: torch.Tensor, rays_d: torch.Tensor, near, far, n_samples: int,
@@ -155,7 +202,7 @@ def render_rays(model, rays_o: torch.Tensor, rays_d: torch.Tensor, near, far, n_
         generator: torch Generator for the jitter.
         color_threshold: if > 0 and the model has ``density``/``color`` methods, evaluate colours
             only where the weight exceeds it (a speed-up for grid models).
-        last_delta: the last interval, see :func:`volume_render`.
+        last_delta: the last interval, see :func:`composite`.
 
     Returns:
         dict of the (fine, if any) pass: ``rgb_map (R, 3)``, ``depth_map (R,)``, ``acc_map (R,)``,
@@ -172,15 +219,16 @@ def render_rays(model, rays_o: torch.Tensor, rays_d: torch.Tensor, near, far, n_
     if not isinstance(far, torch.Tensor):
         far = torch.full((R,), float(far), device=rays_o.device, dtype=rays_o.dtype)
     viewdirs = rays_d / torch.linalg.norm(rays_d, dim=-1, keepdim=True)
-    z_vals = stratified_samples(near, far, n_samples, R, perturb, generator=generator)
-    pts = query_points(rays_o, rays_d, z_vals)
+    z_vals = _checked(stratified_samples(near, far, n_samples, R, perturb, generator=generator), (R, n_samples),
+                      "stratified_samples", rays_o)
+    pts = _checked(query_points(rays_o, rays_d, z_vals), (R, n_samples, 3), "query_points", rays_o)
     out = _run_model(model, pts, viewdirs, z_vals, rays_d, white_background, color_threshold, last_delta)
     out["z_vals"] = z_vals
     if n_importance > 0:
         z_mid = 0.5 * (z_vals[:, 1:] + z_vals[:, :-1])
         z_new = sample_pdf(z_mid, out["weights"][:, 1:-1], n_importance, perturb=perturb, generator=generator)
         z_all, _ = torch.sort(torch.cat([z_vals, z_new], dim=-1), dim=-1)
-        pts = query_points(rays_o, rays_d, z_all)
+        pts = _checked(query_points(rays_o, rays_d, z_all), (*z_all.shape, 3), "query_points", rays_o)
         fine = _run_model(model_fine if model_fine is not None else model, pts, viewdirs, z_all, rays_d,
                           white_background, color_threshold, last_delta)
         fine["z_vals"] = z_all
@@ -244,12 +292,10 @@ def render_image(model, H: int, W: int, K, c2w, near, far, n_samples: int, n_imp
     Introduced in ``notebooks/08_nerf_rendering_and_training.ipynb``.
     """
     try:
-        p = next(model.parameters())
-        device, dtype = p.device, p.dtype
+        device = next(model.parameters()).device
     except (StopIteration, AttributeError):
-        device, dtype = torch.device("cpu"), torch.float32
-    c2w_t = torch.as_tensor(c2w, dtype=dtype, device=device) if not isinstance(c2w, torch.Tensor) else c2w.to(device, dtype)
-    rays_o, rays_d = get_rays(H, W, K, c2w_t)
+        device = torch.device("cpu")
+    rays_o, rays_d = camera_rays(H, W, K, c2w, device=device)
     out = render_chunked(model, rays_o.reshape(-1, 3), rays_d.reshape(-1, 3), near, far, n_samples, n_importance,
                          model_fine, white_background=white_background, chunk=chunk, color_threshold=color_threshold,
                          ray_bounds=ray_bounds, last_delta=last_delta)

@@ -5,8 +5,10 @@
   (:meth:`SceneBounds.with_box`), it is never changed in place.
 * :class:`TrainingRays` -- the training images (uint8, on the training device: 100 views at
   800 x 800 take 192 MB) and their cameras; :meth:`TrainingRays.sample` draws a batch of random
-  pixels across all images and makes their rays on the fly (nothing per pixel is stored besides
-  its colour).
+  pixels across all images and makes their rays on the fly from ``get_rays`` (the exercise of
+  notebook 06: in the student kit the student's own) in the camera frame, rotated by each
+  pixel's view (nothing per pixel is stored besides its colour and one direction per pixel of
+  the image grid).
 
 Introduced in ``notebooks/08_nerf_rendering_and_training.ipynb``.
 """
@@ -20,6 +22,8 @@ import numpy as np
 import torch
 
 from course_lib.data.blender import BlenderData
+from course_lib.nerf.rays import camera_rays
+from course_lib.validate import KitInputError
 
 __all__ = ["SceneBounds", "scene_bounds", "TrainingRays"]
 
@@ -110,9 +114,19 @@ def scene_bounds(c2w: np.ndarray, K: np.ndarray, W: int) -> SceneBounds:
 class TrainingRays:
     """The training images and cameras on the device; random batches of their pixels' rays.
 
+    The rays come from ``get_rays`` (:func:`course_lib.nerf.rays.camera_rays`): once for the
+    identity pose, which gives every pixel's direction in the camera frame, ``d_cam (H W, 3)``;
+    a pixel of view ``i`` then has ``rays_o = C_i``, ``rays_d = R_i d_cam``. That is what
+    ``get_rays`` computes for view ``i`` itself, and it is checked on three views: a ``get_rays``
+    whose rays do not turn with the camera stops here with a message, instead of training on rays
+    that its renders would not use.
+
     Args:
         data: the training views (float or uint8 images).
         device: where the colours and cameras live.
+
+    Raises:
+        KitInputError: ``get_rays`` of a view differs from the rotated camera-frame rays.
     """
 
     def __init__(self, data: BlenderData, device: torch.device):
@@ -121,11 +135,26 @@ class TrainingRays:
             images = (images.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
         self.colors = images.reshape(-1, 3).to(device)
         self.n_views, self.H, self.W = len(data), int(data.H), int(data.W)
-        self.R = torch.as_tensor(np.asarray(data.c2w)[:, :3, :3], dtype=torch.float32, device=device)  # (N, 3, 3)
-        self.C = torch.as_tensor(np.asarray(data.c2w)[:, :3, 3], dtype=torch.float32, device=device)  # (N, 3)
-        K = np.asarray(data.K, float)
-        self.fx, self.fy, self.cx, self.cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+        c2w = np.asarray(data.c2w)
+        self.R = torch.as_tensor(c2w[:, :3, :3], dtype=torch.float32, device=device)  # (N, 3, 3)
+        self.C = torch.as_tensor(c2w[:, :3, 3], dtype=torch.float32, device=device)  # (N, 3)
         self.device = device
+        _, d_cam = camera_rays(self.H, self.W, data.K, torch.eye(4, device=device), device=device)
+        self.d_cam = d_cam.reshape(-1, 3)  # (H W, 3): every pixel's direction in the camera frame
+        for i in sorted({0, self.n_views // 2, self.n_views - 1}):
+            self._check_view(i, data.K, c2w[i])
+
+    def _check_view(self, i: int, K, c2w: np.ndarray) -> None:
+        o, d = camera_rays(self.H, self.W, K, c2w, device=self.device)
+        want_d = (self.d_cam @ self.R[i].T).reshape(o.shape)
+        scale = float(want_d.abs().max()) + float(self.C[i].abs().max())
+        err_o = float((o - self.C[i]).abs().max())
+        err_d = float((d - want_d).abs().max())
+        if max(err_o, err_d) > 1e-4 * max(scale, 1.0):
+            raise KitInputError(
+                f"get_rays of training view {i} is not the camera-frame rays turned by its pose (largest difference: "
+                f"{err_o:.3g} in rays_o, {err_d:.3g} in rays_d): rays_o must be c2w[:3, 3] and rays_d = c2w[:3, :3] @ "
+                "d_cam for every pixel (notebook 06's check cell of get_rays says which property fails)")
 
     def __len__(self) -> int:
         return self.colors.shape[0]
@@ -133,14 +162,10 @@ class TrainingRays:
     def rays(self, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``rays_o (B, 3), rays_d (B, 3)`` of the pixels ``index (B,)`` (flat over view, row, column).
 
-        The same rays as :func:`course_lib.nerf.rays.get_rays` of the pixel's view (camera-frame
-        z component 1), made for these pixels only.
+        The rays of ``get_rays`` of the pixel's view, made for these pixels only.
         """
         view = index // (self.H * self.W)
-        rest = index % (self.H * self.W)
-        v, u = (rest // self.W).float(), (rest % self.W).float()
-        d_cam = torch.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, torch.ones_like(u)], dim=-1)
-        rays_d = torch.einsum("bij,bj->bi", self.R[view], d_cam)
+        rays_d = torch.einsum("bij,bj->bi", self.R[view], self.d_cam[index % (self.H * self.W)])
         return self.C[view], rays_d
 
     def sample(self, n: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -33,7 +33,7 @@ Jacobian
 
 Gauge (the ambiguity BA cannot resolve)
     Images alone fix the scene only up to a similarity (7 degrees of freedom: rotation,
-    translation, scale). :func:`bundle_adjust` removes them by holding camera ``ref_camera``
+    translation, scale). :func:`adjust` removes them by holding camera ``ref_camera``
     (default 0) fixed (6 parameters) and one coordinate of the translation of a second camera,
     ``scale_camera`` (default: the one farthest from ``ref_camera``): the coordinate ``k`` with the
     largest ``|R_s (C_s - C_ref)|_k``, the direction in which a change of scale about the fixed
@@ -51,6 +51,13 @@ Solver
     Jacobian), optionally with its robust losses (``loss="huber"``, ``f_scale`` in pixels). Both
     reach the same minimum (tested).
 
+Who computes what
+    :func:`adjust` is the kit's bundle adjuster (the SfM pipeline's, ``python -m course_lib sfm``).
+    It projects with the exercise :func:`reprojection_residuals` and takes the Jacobian's columns
+    from the exercise :func:`jacobian_sparsity` (:mod:`course_lib.exercises`): in the instructor's
+    kit the references below, in the student kit the student's own functions of notebook 05.
+    :func:`bundle_adjust` is the reference of the notebook's exercise (it calls :func:`adjust`).
+
 Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
 """
 
@@ -65,6 +72,7 @@ import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
 from course_lib.conventions import camera_center
+from course_lib.exercises import call
 from course_lib.sfm import lm
 from course_lib.sfm.visibility import observation_list
 from course_lib.threads import single_threaded_blas
@@ -79,6 +87,7 @@ __all__ = [
     "reprojection_jacobian",
     "BAResult",
     "bundle_adjust",
+    "adjust",
     "reprojection_error_stats",
 ]
 
@@ -181,17 +190,32 @@ def jacobian_sparsity(n_cameras: int, n_points: int, camera_idx: np.ndarray, poi
     Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
     """
     camera_idx, point_idx = _check_indices(n_cameras, n_points, camera_idx, point_idx)
-    cols = _block_columns(n_cameras, camera_idx, point_idx)
+    cam_cols = 6 * camera_idx[:, None] + np.arange(6)
+    pt_cols = 6 * n_cameras + 3 * point_idx[:, None] + np.arange(3)
+    cols = np.repeat(np.hstack([cam_cols, pt_cols]), 2, axis=0)  # (2K, 9): rows 2k and 2k+1
     data = np.ones(cols.shape, dtype=np.int8)
     return _csr_from_blocks(data, cols, 6 * n_cameras + 3 * n_points)
 
 
-def _block_columns(n_cameras: int, camera_idx: np.ndarray, point_idx: np.ndarray) -> np.ndarray:
-    """``(2K, 9)`` column indices of the nine non-zeros of each residual row."""
-    cam_cols = 6 * camera_idx[:, None] + np.arange(6)
-    pt_cols = 6 * n_cameras + 3 * point_idx[:, None] + np.arange(3)
-    cols = np.hstack([cam_cols, pt_cols])  # (K, 9)
-    return np.repeat(cols, 2, axis=0)  # rows 2k and 2k+1
+def _block_columns(n_cameras: int, n_points: int, camera_idx: np.ndarray, point_idx: np.ndarray) -> np.ndarray:
+    """``(2K, 9)`` column indices of the nine non-zeros of each residual row, from the exercise :func:`jacobian_sparsity`.
+
+    Raises:
+        KitInputError: the pattern does not have 9 entries in every row (the message says where).
+    """
+    S = call("jacobian_sparsity", n_cameras, n_points, camera_idx, point_idx)
+    S = sp.csr_matrix(S)
+    shape = (2 * len(camera_idx), 6 * n_cameras + 3 * n_points)
+    if S.shape != shape:
+        raise KitInputError(f"jacobian_sparsity returned shape {S.shape}: expected (2K, 6M + 3N) = {shape}")
+    S.eliminate_zeros()
+    S.sort_indices()
+    per_row = np.diff(S.indptr)
+    if (per_row != 9).any():
+        r = int(np.flatnonzero(per_row != 9)[0])
+        raise KitInputError(f"jacobian_sparsity has {per_row[r]} non-zeros in row {r}: every residual row has 9 (the 6 "
+                            "columns of its camera and the 3 of its point)")
+    return S.indices.reshape(-1, 9).astype(np.int64)
 
 
 def _csr_from_blocks(data: np.ndarray, cols: np.ndarray, n_cols: int) -> sp.csr_matrix:
@@ -236,7 +260,7 @@ def reprojection_jacobian(
     camera_idx, point_idx = _check_indices(n_cameras, n_points, camera_idx, point_idx)
     params = np.asarray(params, float)
     blocks = _jacobian_blocks(params, n_cameras, n_points, camera_idx, point_idx, np.asarray(K, float))
-    cols = _block_columns(n_cameras, camera_idx, point_idx)
+    cols = _block_columns(n_cameras, n_points, camera_idx, point_idx)
     return _csr_from_blocks(blocks.reshape(-1, 9), cols, 6 * n_cameras + 3 * n_points)
 
 
@@ -270,7 +294,7 @@ def _schur_lm(x0_full, free, n_cameras, n_points, obs, K, loss, f_scale, max_ite
     X0 = x0_full[6 * M :].reshape(N, 3)
 
     def on_step(it, cams, pts, cost):
-        if it > 0:  # bundle_adjust records the start itself
+        if it > 0:  # adjust records the start itself
             record(np.concatenate([cams.ravel(), pts.ravel()]), it)
 
     res = lm.solve(
@@ -289,7 +313,7 @@ def _schur_lm(x0_full, free, n_cameras, n_points, obs, K, loss, f_scale, max_ite
 
 @dataclass
 class BAResult:
-    """What :func:`bundle_adjust` returns.
+    """What :func:`adjust` returns.
 
     Attributes:
         R_cw: ``(M, 3, 3)`` refined rotations. t_cw: ``(M, 3)``. X: ``(N, 3)`` refined points
@@ -448,7 +472,7 @@ class _Problem:
         # Column map full -> reduced (-1 = fixed); the kept pattern is the same at every evaluation.
         col_map = -np.ones(self.free.size, dtype=np.int64)
         col_map[self.free_idx] = np.arange(self.free_idx.size)
-        cols_red = col_map[_block_columns(self.n_cameras, self.obs.camera_idx, self.obs.point_idx)]
+        cols_red = col_map[_block_columns(self.n_cameras, self.n_points, self.obs.camera_idx, self.obs.point_idx)]
         self.keep = cols_red >= 0
         self.indptr = np.concatenate([[0], np.cumsum(self.keep.sum(axis=1))])
         self.cols_kept = cols_red[self.keep]
@@ -460,7 +484,8 @@ class _Problem:
 
     def residuals_full(self, p: np.ndarray) -> np.ndarray:
         o = self.obs
-        return reprojection_residuals(p, self.n_cameras, self.n_points, o.camera_idx, o.point_idx, o.uv, self.K)
+        r = call("reprojection_residuals", p, self.n_cameras, self.n_points, o.camera_idx, o.point_idx, o.uv, self.K)
+        return r.reshape(-1)
 
     def residuals(self, xr: np.ndarray) -> np.ndarray:
         return self.residuals_full(self.full(xr))
@@ -518,12 +543,12 @@ def _solve_trf(problem: _Problem, record: _Recorder, loss, f_scale, max_iteratio
     return problem.full(res.x), n_iter, int(res.nfev), bool(res.success), str(res.message)
 
 
-#: Solvers of :func:`bundle_adjust` and robust losses, with what they are (for the messages).
+#: Solvers of :func:`adjust` and robust losses, with what they are (for the messages).
 METHODS = {"lm": "the kit's Schur-complement Levenberg-Marquardt", "trf": "scipy's least_squares"}
 LOSSES = {"linear": "plain least squares", "huber": "robust", "soft_l1": "robust", "cauchy": "robust"}
 
 
-def bundle_adjust(
+def adjust(
     K: np.ndarray,
     R_cw: np.ndarray,
     t_cw: np.ndarray,
@@ -606,3 +631,17 @@ def bundle_adjust(
         seconds=seconds, cost_history=record.history, iterates=record.iterates, gauge=gauge,
         success=success, message=message, method=method,
     )
+
+
+def bundle_adjust(K: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, X: np.ndarray, uv: np.ndarray, **options) -> BAResult:
+    """The reference of the exercise ``bundle_adjust``: :func:`adjust`, with the same arguments.
+
+    Args:
+        K, R_cw, t_cw, X, uv: as :func:`adjust`. **options: any keyword of :func:`adjust`.
+
+    Returns:
+        :class:`BAResult` (the notebook's exercise returns ``(R_cw, t_cw, X)``).
+
+    Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
+    """
+    return adjust(K, R_cw, t_cw, X, uv, **options)

@@ -1,6 +1,6 @@
 """Sparse Levenberg-Marquardt for bundle adjustment, with the Schur complement on the points.
 
-This is the kit's ONE bundle adjuster: :func:`course_lib.sfm.bundle_adjustment.bundle_adjust`
+This is the kit's ONE bundle adjuster: :func:`course_lib.sfm.bundle_adjustment.adjust`
 (the lesson, 6 parameters per camera, ``K`` fixed) and ``python -m course_lib ba`` (the "Bundle
 Adjustment in the Large" problems, 9 parameters per camera) both call :func:`solve`. What changes
 between them is only the camera model, a small object with two methods (:class:`CameraModel`).
@@ -48,7 +48,7 @@ Damping strategy
 Gauge
     Reprojections do not change under a similarity of the world (7 degrees of freedom), so
     ``J^T J`` is singular along 7 directions. :func:`solve` takes masks of fixed parameters: the
-    lesson's :func:`~course_lib.sfm.bundle_adjustment.bundle_adjust` fixes one camera and one
+    lesson's :func:`~course_lib.sfm.bundle_adjustment.adjust` fixes one camera and one
     translation coordinate of a second one; for BAL problems (like Ceres and the SciPy cookbook)
     nothing is fixed: the damping ``lam D`` makes every step well defined, the gauge drifts freely
     and harmlessly, and the cost (which is gauge-invariant) is what is compared.
@@ -183,6 +183,9 @@ class PinholeCamera:
     """The lesson's camera: ``K`` fixed (shared), 6 parameters ``(r, t_cw)`` in the kit's OpenCV axes.
 
     ``x_c = R(r) X + t``, ``(u, v) = (K x_c)[:2] / z_c`` (:func:`course_lib.conventions.project`).
+    The projection is notebook 05's exercise ``reprojection_residuals`` (called with observations
+    at 0: in the instructor's kit the reference, in the student kit the student's own; see
+    :mod:`course_lib.exercises`); the Jacobian is the kit's, analytic.
     """
 
     param_names = ("rx", "ry", "rz", "tx", "ty", "tz")
@@ -192,17 +195,21 @@ class PinholeCamera:
         self.K = intrinsics(K)
 
     def project(self, cameras, X, cam_idx):
-        P, _, _ = _rigid(cameras, X, cam_idx, False)
-        xh = P @ self.K.T
-        return xh[:, :2] / xh[:, 2:3]
+        from course_lib.exercises import call
+
+        n = len(cam_idx)
+        params = np.concatenate([np.asarray(cameras, float).ravel(), np.asarray(X, float).ravel()])
+        r = call("reprojection_residuals", params, len(cameras), n, np.asarray(cam_idx, np.int64), np.arange(n),
+                 np.zeros((n, 2)), self.K)
+        return r.reshape(n, 2)
 
     def project_jacobian(self, cameras, X, cam_idx):
+        proj = self.project(cameras, X, cam_idx)
         P, dP_dr, Rk = _rigid(cameras, X, cam_idx, True)
         K = self.K
         x, y, z = P[:, 0], P[:, 1], P[:, 2]
         iz = 1.0 / z
-        fx, s, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
-        proj = np.stack([(fx * x + s * y) * iz + cx, fy * y * iz + cy], axis=1)
+        fx, s, fy = K[0, 0], K[0, 1], K[1, 1]
         G = np.zeros((len(z), 2, 3))  # d proj / d P
         G[:, 0, 0] = fx * iz
         G[:, 0, 1] = s * iz

@@ -28,6 +28,11 @@ When a model cannot grow further and two or more images are left, ``run_sfm`` st
 from those (:meth:`IncrementalMapper.begin_model`), as COLMAP does. All thresholds are fields of
 :class:`MapperOptions`, each with COLMAP's default beside it.
 
+The steps of notebooks 02-04 are called through :func:`course_lib.exercises.call`, exactly as their
+stubs document: in the instructor's kit they are the reference solutions, in the student kit the
+student's own functions. The bundle adjustments (:func:`course_lib.sfm.bundle_adjustment.adjust`)
+project with the exercise ``reprojection_residuals`` of notebook 05.
+
 Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
 """
 
@@ -39,7 +44,8 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 
 from course_lib.conventions import camera_center, projection_matrix
-from course_lib.sfm.bundle_adjustment import bundle_adjust
+from course_lib.exercises import call, caller
+from course_lib.sfm.bundle_adjustment import adjust
 from course_lib.sfm.reconstruction import Reconstruction, error_summary, reprojection_error_matrix, triangulation_angles_deg
 from course_lib.validate import KitInputError
 
@@ -105,7 +111,7 @@ class MapperOptions:
             images); in between, only the new points are refined (non-linear triangulation, the
             cameras fixed) and filtered. Default 1.0: after every registration (on 16 views, 1.2
             saves about 15 % of the CPU time and changes the rotation error by +-10 %: 0.137 ->
-            0.156 deg on ``ring-groups-s0`` of ``benchmarks/sfm_vs_colmap.py``, 1.11x COLMAP's;
+            0.156 deg on ``ring-groups-s0`` of ``benchmarks/sfm_vs_colmap.py`` (instructor's kit), 1.11x COLMAP's;
             the kit keeps every BA and makes the growth's BAs short instead, ``ba_max_iterations``).
             (COLMAP ``ba_global_images_ratio`` 1.1, with a local BA of the 6 nearest images after
             every registration; OpenSfM ``bundle_new_points_ratio`` 1.2.)
@@ -221,8 +227,8 @@ def spread_score(uv: np.ndarray, image_size: tuple[int, int], levels: int = 6) -
 
 @dataclass
 class InitialPair:
-    """A candidate initial pair: ``images (a, b)``, the two-view ``choice`` (:class:`~course_lib.sfm.triangulation.PoseChoice`,
-    camera ``a`` at the origin), ``score`` (points in front with an angle >= ``init_min_angle_deg``),
+    """A candidate initial pair: ``images (a, b)``, the two-view ``choice`` (``choose_pose``'s result with
+    ``R_cw, t_cw, X, in_front, counts``, :func:`course_lib.exercises.call`; camera ``a`` at the origin), ``score`` (points in front with an angle >= ``init_min_angle_deg``),
     RANSAC ``inliers`` and the ``median_angle_deg`` of the points in front."""
 
     images: tuple[int, int]
@@ -366,9 +372,6 @@ class IncrementalMapper:
 
     def score_pair(self, a: int, b: int) -> InitialPair | None:
         """The two-view start of pair ``(a, b)`` (camera ``a`` at the origin), or None where it is degenerate."""
-        from course_lib.sfm.essential import essential_from_fundamental, pose_candidates
-        from course_lib.sfm.triangulation import choose_pose
-
         if (a, b) in self._scored:
             return self._scored[(a, b)]
         F, inl = self.pairs[(a, b)]
@@ -377,7 +380,8 @@ class IncrementalMapper:
         result = None
         if not self.is_degenerate(a, b):
             try:
-                choice = choose_pose(*pose_candidates(essential_from_fundamental(F, self.K)), self.K, x1, x2)
+                E = call("essential_from_fundamental", F, self.K)
+                choice = call("choose_pose", *call("pose_candidates", E), self.K, x1, x2)
             except KitInputError:
                 choice = None
             if choice is not None:
@@ -433,8 +437,6 @@ class IncrementalMapper:
 
     def initialize(self, pair: InitialPair) -> bool:
         """Start a model from ``pair``: triangulate, bundle-adjust and filter; False (model reset) if too few points remain."""
-        from course_lib.sfm.triangulation import triangulate_linear, triangulate_nonlinear
-
         t0 = time.perf_counter()
         self.begin_model()
         (a, b), o = pair.images, self.opts
@@ -447,9 +449,9 @@ class IncrementalMapper:
         js = np.flatnonzero(self.candidate[:, a] & self.candidate[:, b])
         n_new = 0
         if len(js):
-            X0 = triangulate_linear(self._P(a), self._P(b), self.uv[js, a], self.uv[js, b])
+            X0 = call("triangulate_linear", self._P(a), self._P(b), self.uv[js, a], self.uv[js, b])
             # as in triangulate_image: the BA that follows refines the points, where there is one
-            n_new = self._accept(js, X0, triangulate_nonlinear if o.bundle_adjustment != "incremental" else None)
+            n_new = self._accept(js, X0, caller("triangulate_nonlinear") if o.bundle_adjustment != "incremental" else None)
         stage = {"stage": "initial pair", "images": [a, b], "new_points": n_new, "points": int(self.has_X.sum()),
                  "reprojection_before_ba": self.observation_stats()}
         if o.bundle_adjustment == "incremental" and n_new >= o.init_min_points:  # never a BA on (almost) nothing
@@ -487,30 +489,26 @@ class IncrementalMapper:
 
     def register_next_image(self, i: int) -> tuple[dict | None, str | None]:
         """PnP RANSAC + non-linear PnP for image ``i``: ``(info, None)``, or ``(None, why it failed)``."""
-        from course_lib.sfm.pnp import pnp_nonlinear, pnp_ransac
-
         o = self.opts
         js = np.flatnonzero(self.has_X & self.candidate[:, i])
         need = max(6, o.min_pnp_inliers)
         if len(js) < need:
             return None, f"too few 2D-3D matches: {len(js)} of its features see triangulated points, PnP needs {need}"
         try:
-            res = pnp_ransac(self.X[js], self.uv[js, i], self.K, self.rng, threshold_px=o.pnp_threshold_px)
+            res = call("pnp_ransac", self.X[js], self.uv[js, i], self.K, self.rng, threshold_px=o.pnp_threshold_px)
         except KitInputError as exc:
             return None, f"PnP RANSAC failed on {len(js)} 2D-3D matches ({exc})"
         inl = np.asarray(res.inliers, bool)
         if inl.sum() < o.min_pnp_inliers:
             return None, (f"too few PnP inliers: {int(inl.sum())} of {len(js)} 2D-3D matches within {o.pnp_threshold_px} px, "
                           f"need {o.min_pnp_inliers}")
-        self.R[i], self.t[i] = pnp_nonlinear(self.X[js[inl]], self.uv[js[inl], i], self.K, res.R_cw, res.t_cw)
+        self.R[i], self.t[i] = call("pnp_nonlinear", self.X[js[inl]], self.uv[js[inl], i], self.K, res.R_cw, res.t_cw)
         self.registered[i] = True
         self.candidate[js[~inl], i] = False
         return {"correspondences": int(len(js)), "pnp_inliers": int(inl.sum()), "ransac_iterations": int(res.n_iters)}, None
 
     def triangulate_image(self, new: int) -> int:
         """Triangulate the tracks image ``new`` shares with every registered image (widest baseline first); new points."""
-        from course_lib.sfm.triangulation import triangulate_linear, triangulate_nonlinear
-
         regs = [k for k in np.flatnonzero(self.registered) if k != new]
         todo = ~self.has_X & self.candidate[:, new]
         C = self.centers()
@@ -520,12 +518,12 @@ class IncrementalMapper:
         for k in regs:
             js = np.flatnonzero(todo & self.candidate[:, k] & ~np.isfinite(X0).all(axis=1))
             if len(js):
-                X0[js] = triangulate_linear(self._P(new), self._P(k), self.uv[js, new], self.uv[js, k])
+                X0[js] = call("triangulate_linear", self._P(new), self._P(k), self.uv[js, new], self.uv[js, k])
         js = np.flatnonzero(np.isfinite(X0).all(axis=1))
         if len(js) == 0:
             return 0
         # the non-linear refinement is left to the bundle adjustment that follows, where there is one
-        refine = triangulate_nonlinear if self.opts.bundle_adjustment != "incremental" else None
+        refine = caller("triangulate_nonlinear") if self.opts.bundle_adjustment != "incremental" else None
         return self._accept(js, X0[js], refine)
 
     def _accept(self, js: np.ndarray, X0: np.ndarray, triangulate_nonlinear=None) -> int:
@@ -572,8 +570,6 @@ class IncrementalMapper:
           observing cameras farthest apart, checked as in :meth:`triangulate_image`; the next BA
           refines it): early on, its cameras may have been poorly placed.
         """
-        from course_lib.sfm.triangulation import triangulate_linear
-
         regs = np.flatnonzero(self.registered)
         seen = self.visible & self.registered[None, :]
         rejected = seen & ~self.candidate & self.has_X[:, None]
@@ -588,7 +584,7 @@ class IncrementalMapper:
         for a, b in pairs:  # widest baseline first
             js = np.flatnonzero(todo & seen[:, a] & seen[:, b] & ~np.isfinite(X0).all(axis=1))
             if len(js):
-                X0[js] = triangulate_linear(self._P(a), self._P(b), self.uv[js, a], self.uv[js, b])
+                X0[js] = call("triangulate_linear", self._P(a), self._P(b), self.uv[js, a], self.uv[js, b])
         js = np.flatnonzero(np.isfinite(X0).all(axis=1))
         n_new = self._accept(js, X0[js]) if len(js) else 0
         return {"observations_back": int(back.sum()), "tracks_tried": int(todo.sum()), "points_new": int(n_new)}
@@ -619,7 +615,7 @@ class IncrementalMapper:
         uv = np.where(self.inlier[np.ix_(pts, cams)][..., None], self.uv[np.ix_(pts, cams)], np.nan)
         if len(pts) == 0 or not np.isfinite(uv).any():
             return {"skipped": "no points to adjust"}
-        res = bundle_adjust(self.K, self.R[cams], self.t[cams], self.X[pts], uv, loss=loss, f_scale=f_scale,
+        res = adjust(self.K, self.R[cams], self.t[cams], self.X[pts], uv, loss=loss, f_scale=f_scale,
                             max_iterations=max_iterations, ref_camera=int(np.flatnonzero(cams == self.ref)[0]),
                             ftol=ftol, xtol=1e-10)
         self.R[cams], self.t[cams], self.X[pts] = res.R_cw, res.t_cw, res.X
@@ -719,14 +715,12 @@ class IncrementalMapper:
 
     def _refine_points(self, points: np.ndarray) -> int:
         """Non-linear triangulation of the ``(T,)`` bool ``points`` with the cameras fixed; returns how many."""
-        from course_lib.sfm.triangulation import triangulate_nonlinear
-
         js = np.flatnonzero(points & self.has_X)
         if len(js) == 0:
             return 0
         regs = np.flatnonzero(self.registered)
         uv = np.where(self.inlier[js][:, regs][..., None], self.uv[js][:, regs], np.nan)
-        self.X[js] = triangulate_nonlinear(self.K, self.R[regs], self.t[regs], uv, self.X[js])
+        self.X[js] = call("triangulate_nonlinear", self.K, self.R[regs], self.t[regs], uv, self.X[js])
         return int(len(js))
 
     def finish(self) -> None:

@@ -7,10 +7,11 @@ a real feature of another point, the two points' tracks become one, and a track 
 features in one image is useless. So the pipeline builds its tracks in two steps:
 
 1. **Verify every pair** (notebook 01, :func:`ransac_every_pair`): RANSAC on F with the
-   normalized 8-point algorithm and the Sampson distance, the one RANSAC of
-   :mod:`course_lib.sfm.fundamental`, with the random samples drawn and solved in batches
-   (:func:`verify_pair`): one batched factorization for many 8-point problems instead of a
-   Python loop over them. Only the inlier matches go on.
+   normalized 8-point algorithm and the Sampson distance. In the instructor's kit that is the one
+   RANSAC of :mod:`course_lib.sfm.fundamental`, with the random samples drawn and solved in
+   batches (:func:`verify_pair`): one batched factorization for many 8-point problems instead of
+   a Python loop over them; in the student kit, the student's own ``ransac_fundamental`` and
+   ``sampson_distance``. Only the inlier matches go on.
 2. **Join the inliers** (:func:`join_tracks`): features are nodes ``(image, u, v)`` (equal
    pixels are the same feature) and verified matches are edges. Edges are added by union-find
    (:class:`course_lib.data.p3.UnionFind`), the most trustworthy first (pairs with more inliers
@@ -27,8 +28,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from course_lib.data.p3 import UnionFind
-from course_lib.sfm.fundamental import ransac
+from course_lib.exercises import call
 from course_lib.validate import KitInputError
+
+try:  # the instructor's kit: notebook 01's RANSAC with batched samples and a preemptive test (faster)
+    from course_lib.sfm.fundamental import ransac
+except ImportError:  # the student kit: your ransac_fundamental and sampson_distance of notebook 01
+    ransac = None
 
 __all__ = ["PairVerification", "Tracks", "verify_pair", "ransac_every_pair", "join_tracks", "verified_tracks"]
 
@@ -68,11 +74,13 @@ def verify_pair(
 ) -> PairVerification:
     """RANSAC on F (8-point samples, Sampson distance, adaptive stop), samples solved in batches.
 
-    The RANSAC of notebook 01, :func:`course_lib.sfm.fundamental.ransac` with the batched
+    The RANSAC of notebook 01 (in the instructor's kit), :func:`course_lib.sfm.fundamental.ransac` with the batched
     8-point solver and Sampson distance: draw 8 matches, fit F, count the matches within
     ``threshold_px``, stop after ``log(1 - confidence) / log(1 - w⁸)`` samples for the best
     inlier ratio ``w``; then refit F on the inliers while the inlier set grows. Here ``batch``
-    samples are drawn and solved at once.
+    samples are drawn and solved at once. In the student kit (no reference RANSAC) the student's
+    own ``ransac_fundamental`` and ``sampson_distance`` of notebook 01 verify the pair, called as
+    their stubs document (``batch`` and ``bailout`` are not used there).
 
     Args:
         x1, x2: ``(N, 2)`` matching pixels of the two images.
@@ -96,12 +104,30 @@ def verify_pair(
     if n < 8:
         none.note = f"{n} matches: the 8-point algorithm needs at least 8"
         return none
+    if ransac is None:
+        return _verify_with_exercises(x1, x2, rng, threshold_px, confidence, max_iters, none)
     res = ransac(x1, x2, rng, threshold=threshold_px, confidence=confidence, max_iters=max_iters, batch=batch,
                  bailout=bailout)
     if res is None:
         none.n_iters, none.note = max_iters, "only degenerate 8-point samples (all matches on a line or repeated?)"
         return none
     return PairVerification(res.F, res.inliers, res.distances, res.n_iters)
+
+
+def _verify_with_exercises(x1, x2, rng, threshold_px, confidence, max_iters, none: PairVerification) -> PairVerification:
+    """:func:`verify_pair` by the exercises ``ransac_fundamental`` and ``sampson_distance`` (the student kit)."""
+    try:
+        res = call("ransac_fundamental", x1, x2, rng, threshold_px, confidence, max_iters)
+    except KitInputError as exc:
+        none.n_iters, none.note = max_iters, f"ransac_fundamental found no F ({exc})"
+        return none
+    F = np.asarray(res.F, float)
+    inliers = np.asarray(res.inliers, bool).reshape(-1)
+    if F.shape != (3, 3) or inliers.shape != (len(x1),):
+        raise KitInputError(f"ransac_fundamental returned F {F.shape} and inliers {inliers.shape}: expected (3, 3) and "
+                            f"({len(x1)},) (see its docstring)")
+    d = np.asarray(call("sampson_distance", F, x1, x2), float).reshape(-1)
+    return PairVerification(F, inliers, d, int(res.n_iters))
 
 
 def ransac_every_pair(matches: dict, rng: np.random.Generator, threshold_px: float = 1.0, **kw) -> dict:

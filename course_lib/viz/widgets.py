@@ -11,8 +11,8 @@ API::
     ransac_threshold_widget(img1, img2, x1 (N,2), x2 (N,2), ransac_fn, rng_seed=0,
                             thresholds=(0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0),
                             value=1.0, max_lines=200) -> VBox
-        ransac_fn(x1, x2, rng, threshold_px) -> result with .inliers (N,) bool (e.g.
-        course_lib.sfm.fundamental.ransac_fundamental, or the student's function). For each
+        ransac_fn(x1, x2, rng, threshold_px) -> result with .inliers (N,) bool (the student's
+        ransac_fundamental; in the instructor's kit also course_lib.sfm.fundamental's). For each
         threshold RANSAC runs with a fresh numpy.random.default_rng(rng_seed) and the matches
         are redrawn (inliers green, outliers red) with the inlier count.
         children: (slider, label HTML, Output).

@@ -52,10 +52,10 @@ def _norm_variant(center=True, target=np.sqrt(2), rms=False, per_axis=False, inv
     "fn, phrase",
     [
         (_norm_variant(center=False), "subtract the mean"),
-        (_norm_variant(target=1.0), "the mean distance is 1"),
+        (_norm_variant(target=1.0), "the mean distance to the centroid is 1,"),
         (_norm_variant(rms=True), "RMS distance"),
         (_norm_variant(per_axis=True), "one scale s for both axes"),
-        (_norm_variant(inverse=True), "T is the inverse"),
+        (_norm_variant(inverse=True), "you returned the inverse of T"),
         (lambda x: (_ for _ in ()).throw(NotImplementedError), "not implemented yet"),
     ],
 )
@@ -89,16 +89,22 @@ def _eight_variant(normalize=True, transpose=False, rank2=True, unit=True, denor
 @pytest.mark.parametrize(
     "fn, phrase",
     [
-        (_eight_variant(normalize=False), "not normalized"),
-        (_eight_variant(transpose=True), "transposed F"),
+        (_eight_variant(normalize=False), "on raw pixels (not normalized)"),
+        (_eight_variant(transpose=True), "your F is transposed"),
         (_eight_variant(rank2=False), "rank 3"),
-        (_eight_variant(unit=False), "unit Frobenius norm"),
-        (_eight_variant(denormalize=False), "denormalize"),
+        (_eight_variant(denormalize=False), "still in normalized coordinates"),
     ],
 )
 def test_check_eight_point_names_mistakes(fn, phrase, capsys):
     ok, out = verdict(checks.check_eight_point, fn, capsys)
     assert not ok and phrase in out, out
+
+
+def test_check_eight_point_accepts_any_scale_and_sign(capsys):
+    """F is defined up to scale and sign: 7 F and -F pass every check (one rule for equivalences)."""
+    for fn in (_eight_variant(unit=False), lambda x1, x2: -reference.eight_point(x1, x2)):
+        ok, out = verdict(checks.check_eight_point, fn, capsys)
+        assert ok, out
 
 
 def _sampson_parts(F, x1, x2):
@@ -115,7 +121,7 @@ def _sampson_parts(F, x1, x2):
         (lambda F, x1, x2: np.abs(_sampson_parts(F, x1, x2)[0]), "algebraic error"),
         (lambda F, x1, x2: np.abs(_sampson_parts(F, x1, x2)[0]) / np.hypot(*_sampson_parts(F, x1, x2)[2][:, :2].T),
          "its epipolar line F x1 only"),
-        (lambda F, x1, x2: reference.sampson_distance(F.T, x1, x2), "transposed F"),
+        (lambda F, x1, x2: reference.sampson_distance(F.T, x1, x2), "you used the transposed F"),
     ],
 )
 def test_check_sampson_distance_names_mistakes(fn, phrase, capsys):
@@ -169,7 +175,7 @@ def _ransac_no_refit(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=
     [
         (_ransac_algebraic, "algebraic error"),
         (_ransac_fixed_iters, "log(1 - confidence)"),
-        (_ransac_global_rng, "same seeded rng differ"),
+        (_ransac_global_rng, "same seeded rng (and another np.random state) differ"),
         (_ransac_no_refit, "refit"),
     ],
 )

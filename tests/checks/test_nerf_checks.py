@@ -96,14 +96,14 @@ def make_get_rays(indexing="xy", signs=(1, 1, 1), center=None, offset=0.0, norma
 
 
 @pytest.mark.parametrize("kwargs,words", [
-    ({"indexing": "ij"}, ["meshgrid ij/xy"]),
+    ({"indexing": "ij"}, ["meshgrid's ij/xy"]),
     ({"signs": (1, -1, -1)}, ["OpenGL"]),
     ({"signs": (1, 1, -1)}, ["backwards"]),
     ({"signs": (1, -1, 1)}, ["y is flipped"]),
     ({"center": "half"}, ["principal point"]),
     ({"offset": 0.5}, ["half-pixel"]),
     ({"normalize": True}, ["normalized"]),
-    ({"rotate": "RT"}, ["transposed"]),
+    ({"rotate": "RT"}, ["transpose"]),
     ({"rotate": None}, ["not rotated"]),
     ({"expand": False}, ["repeat the camera centre"]),
 ])

@@ -148,7 +148,7 @@ def test_checks_pass_a_textbook_implementation(check, fn, capsys):
 
 
 @pytest.mark.parametrize("check, fn, words", [
-    (gpnp.check_pnp_linear, _no_orthogonalization, "forgot to orthogonalize"),
+    (gpnp.check_pnp_linear, _no_orthogonalization, "orthogonalize the 3 x 3 block"),
     (gpnp.check_pnp_linear, _no_sign_fix, "det R = -1"),
     (gpnp.check_pnp_linear, _with(lambda R, t: (-R, t)), "det R = -1"),
     (gpnp.check_pnp_linear, _with(lambda R, t: (R.T, t)), "R_wc"),
@@ -165,7 +165,7 @@ def test_checks_pass_a_textbook_implementation(check, fn, capsys):
     (gpnp.check_pnp_nonlinear, _nl_gd, "increased the RMS reprojection error"),
     (gpnp.check_pnp_nonlinear, lambda X, x, K, R, t: (R.copy(), t.copy()), "did not move"),
     (gpnp.check_pnp_nonlinear, _nl_nine, "not a rotation"),
-    (gpnp.check_pnp_nonlinear, _nl_halfway, "run to convergence"),
+    (gpnp.check_pnp_nonlinear, _nl_halfway, "to convergence"),
 ])
 def test_checks_name_the_mistake(check, fn, words, capsys):
     text, result = run_check(check, fn, capsys)

@@ -97,11 +97,11 @@ def _choose_returning(transform):
 
 
 @pytest.mark.parametrize("check, fn, words", [
-    (gtri.check_triangulate_linear, lambda *a: _dlt_homogeneous(*a)[:, :3], "divide by the homogeneous coordinate"),
+    (gtri.check_triangulate_linear, lambda *a: _dlt_homogeneous(*a)[:, :3], "without dividing by the homogeneous"),
     (gtri.check_triangulate_linear, lambda *a: _dlt_homogeneous(*a), "homogeneous points"),
     (gtri.check_triangulate_linear, lambda *a: tri.triangulate_linear(*a).T, "transpose"),
     (gtri.check_triangulate_linear, lambda P1, P2, x1, x2: tri.triangulate_linear(P1, P2, x1[:, ::-1], x2[:, ::-1]),
-     "u goes with the first row"),
+     "median reprojection error"),  # the reference's DLT with u and v swapped: not the stored mistake exactly
     (gtri.check_choose_pose, _choose_with(lambda R, C, X: (X[:, 2] < 0) & ((X - C) @ R[2] < 0)), "points behind"),
     (gtri.check_choose_pose, _choose_with(lambda R, C, X: (X - C) @ R[2] > 0), "checks only camera 2"),
     (gtri.check_choose_pose, _choose_with(lambda R, C, X: X[:, 2] > 0), "checks only camera 1"),
@@ -115,7 +115,7 @@ def _choose_returning(transform):
     (gtri.check_triangulate_nonlinear, lambda K, R, t, uv, X0: tri.triangulate_nonlinear(K, R[:2], t[:2], uv[:, :2], X0),
      "only the first two views"),
     (gtri.check_triangulate_nonlinear, lambda K, R, t, uv, X0: 0.5 * (X0 + tri.triangulate_nonlinear(K, R, t, uv, X0)),
-     "run the solver to convergence"),
+     "to convergence"),
     (gtri.check_triangulate_nonlinear, lambda K, R, t, uv, X0: np.full_like(X0, np.nan), "NaN"),
 ])
 def test_checks_name_the_mistake(check, fn, words, capsys):

@@ -95,14 +95,18 @@ def _replace_def(source: str, name: str, code: str) -> str:
     return "\n".join(lines[:start] + code.rstrip("\n").splitlines() + lines[node.end_lineno:]) + "\n"
 
 
-def honest_submission(dest: Path, variant: bool = False, notebooks: list[str] | None = None) -> tuple[Path, set[str]]:
+def honest_submission(dest: Path, variant: bool = False, notebooks: list[str] | None = None,
+                      picked: dict[str, Honest] | None = None) -> tuple[Path, set[str]]:
     """Write the student release to ``dest`` with every exercise that has an honest solution filled in.
+
+    Args:
+        picked: ``{exercise: solution}`` to fill in instead of :func:`choose`'s (the main ones fill the rest).
 
     Returns:
         the submission folder and the exercises that were filled in.
     """
     write_release(dest)
-    picked = choose(variant)
+    picked = {**choose(variant), **(picked or {})}
     filled = set()
     for spec in kit_specs(NOTEBOOKS_DIR, only=notebooks):
         path = Path(dest) / "notebooks" / spec.name

@@ -7,7 +7,7 @@ on purpose: what stops them is the separation (the student's code runs in a proc
 only the student release of ``course_lib``, sees neither the instructor's kit nor the hidden
 cases, and can write only its own temporary folder). For the stealth route the test first shows
 that the same code earns full marks when it runs with the instructor's library, so the attack is
-real. ``test_attack_table`` prints the table (``pytest -s``).
+real. ``test_attack_table`` prints the table (``pytest -s`` or ``ATTACK_TABLE=1``).
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import ast
 import hashlib
 import json
 import os
+import re
 import resource
 import textwrap
 from pathlib import Path
@@ -26,7 +27,7 @@ import pytest
 from course_lib.instructor.grade import grade_submission, prepare_hidden, to_markdown
 from course_lib.instructor.notebooks import NOTEBOOKS_DIR, kit_specs
 from course_lib.instructor.release import stub_notebook
-from course_lib.instructor.student_process import Limits
+from course_lib.instructor.settings import Limits
 from course_lib.paths import REPO_ROOT
 
 NB01 = "01_fundamental_matrix.ipynb"
@@ -205,11 +206,12 @@ def test_honest_gets_full_hidden_marks_and_the_untouched_release_zero(tmp_path, 
     iso = g["isolation"]["hidden checks"]
     assert "namespaces" in iso
     g0 = grade_eight_point(submission(tmp_path / "release", None), hidden)
-    assert g0["points"] == 0 and any("not implemented yet" in f for f in g0["feedback"]), g0
+    assert g0["points"] == 0 and g0["status"] == "not attempted" and len(g0["feedback"]) == 1, g0
 
 
-def test_attack_table(tmp_path, hidden, capsys):
-    """Every attack with its points and the first lines of its feedback (printed with ``pytest -s``)."""
+def test_attack_table(tmp_path, hidden, capsys, request):
+    """Every attack with its points and the first lines of its feedback (printed with ``pytest -s`` or
+    ``ATTACK_TABLE=1``)."""
     (tmp_path / "outside.txt").write_text("original")
     attacks = [
         ("honest eight_point", HONEST, None),
@@ -233,9 +235,8 @@ def test_attack_table(tmp_path, hidden, capsys):
         rows.append((what, g["points"], g["max_points"], g["status"], " / ".join(g["feedback"][:2])[:230],
                      report["seconds"]))
     with capsys.disabled():
-        print("\n| attack | points | status | feedback | s |\n|---|---:|---|---|---:|")
-        for what, pts, mx, status, fb, sec in rows:
-            print(f"| {what} | {pts:g} / {mx:g} | {status} | {fb} | {sec:g} |")
+        show_table(request, "Issue 14", ["attack", "points", "status", "feedback", "s"],
+                   [(what, f"{pts:g} / {mx:g}", status, fb, f"{sec:g}") for what, pts, mx, status, fb, sec in rows])
     assert rows[0][1] == 9 and all(r[1] == 0 for r in rows[1:]), json.dumps(rows, indent=1, ensure_ascii=False)
 
 
@@ -384,7 +385,7 @@ def test_forged_and_giant_reply_frames_cost_only_that_exercise(tmp_path, hidden,
     """Class 7: a frame that claims 2 GiB (written in pieces), one just under the reply limit full of garbage, a
     forged frame whose array is a zip archive, and deep JSON: each ends that exercise; the grader's memory stays
     flat and the other exercise (normalize_points) is still graded."""
-    from course_lib.instructor.sandbox import MAX_REPLY
+    from course_lib.instructor.sandbox.wire import MAX_REPLY
 
     zip_frame = ("b'\\x50\\x4b\\x03\\x04' + b'\\x00' * 64")
     payloads = {
@@ -551,3 +552,383 @@ def test_conftest_pytest_ini_and_shadowing_modules_are_not_loaded_by_nbval(tmp_p
     g = {x["name"]: x for x in report["exercises"]}
     assert g["eight_point"]["points"] == 0 and g["eight_point"]["nbval"] == "fail", g["eight_point"]
     assert g["normalize_points"]["points"] == 10 and g["normalize_points"]["nbval"] == "pass", g["normalize_points"]
+
+
+# =============================================================================================
+# Issue 33: a grader that fails closed and stays bounded (the third red-team table)
+# =============================================================================================
+#
+# Each attack is a submission built here (none copies the issue's), graded next to the folders of
+# ``outside`` (snapshotted: nothing outside the submission may change). Every row asserts its points
+# (0), the grader's peak memory (this process's, and the exercise worker's growth) and time.
+# ``ATTACK_TABLE=1`` or ``pytest -s`` prints the table.
+
+ROWS33: list[tuple] = []
+NB05 = "05_bundle_adjustment.ipynb"
+
+
+def show_table(request, title: str, head: list[str], rows: list[tuple]) -> None:
+    """Print a Markdown table, only when asked (``pytest -s`` or ``ATTACK_TABLE=1``): ``pytest -q`` stays quiet."""
+    if not (os.environ.get("ATTACK_TABLE") or request.config.getoption("capture") == "no"):
+        return
+    print(f"\n{title}\n\n| " + " | ".join(head) + " |\n|" + "---|" * len(head))
+    for row in rows:
+        print("| " + " | ".join(str(x) for x in row) + " |")
+
+
+def filled(root: Path, nb_name: str, bodies: dict[str, str], extra_cells: list[str] = ()) -> Path:
+    """A submission: the release of ``nb_name`` with ``bodies`` pasted into their stubs, and ``extra_cells`` after
+    the first cell."""
+    nb = stub_notebook(nbformat.read(NOTEBOOKS_DIR / nb_name, as_version=4), nb_name)
+    for name, body in bodies.items():
+        fill(nb, name, body)
+    for k, cell in enumerate(extra_cells):
+        nb.cells.insert(1 + k, nbformat.v4.new_code_cell(cell))
+    (root / "notebooks").mkdir(parents=True, exist_ok=True)
+    nbformat.write(nb, root / "notebooks" / nb_name)
+    return root
+
+
+def rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def graded_row(what: str, report: dict, name: str, rss_before: float, klass: str) -> dict:
+    """The row of one attack (and its checks: points 0, the grader's memory)."""
+    g = next(x for x in report["exercises"] if x["name"] == name)
+    mem = g.get("hidden", {}).get("memory", {}) or {}
+    worker = (mem.get("worker peak growth bytes") or 0) / 2**20
+    cgroup = (mem.get("cgroup peak bytes") or 0) / 2**20
+    grown = rss_mib() - rss_before
+    ROWS33.append((klass, what, f"{g['points']:g} / {g['max_points']:g}", g["status"], f"{report['seconds']:.1f}",
+                   f"{g.get('hidden', {}).get('seconds', 0):g}", f"{rss_mib():.0f} (+{grown:.0f})", f"{worker:.0f}",
+                   f"{cgroup:.0f}", _short_cell(g["feedback"][0] if g["feedback"] else "")))
+    assert g["points"] == 0, (what, g)
+    assert grown < 100, f"{what}: the grader grew by {grown:.0f} MiB"
+    assert worker < 512, f"{what}: the exercise's worker grew by {worker:.0f} MiB"
+    return g
+
+
+def _short_cell(text: str) -> str:
+    text = " ".join(text.split()).replace("|", "/")
+    return text if len(text) < 150 else text[:147] + "..."
+
+
+PROC_WALK = f"""
+    os = {SYS}["os"]
+    re = {SYS}["re"]
+    opener = {SYS}["builtins"].open
+    seen = []
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit():
+            continue
+        for what in ("cwd", "root", "exe"):
+            try:
+                seen.append(os.readlink(f"/proc/{{pid}}/{{what}}"))
+            except OSError:
+                pass
+        for what in ("environ", "cmdline", "mountinfo"):
+            try:
+                seen.append(opener(f"/proc/{{pid}}/{{what}}", "rb").read().decode(errors="replace"))
+            except OSError:
+                pass
+    tried = set()
+    for path in set(re.findall(r"/[A-Za-z0-9_.@+-][A-Za-z0-9_./@+-]*", " ".join(seen))):
+        parts = path.rstrip("/").split("/")
+        for k in range(len(parts), 1, -1):
+            folder = "/".join(parts[:k])
+            if folder in tried:
+                continue
+            tried.add(folder)
+            try:
+                src = opener(folder + "/course_lib/sfm/fundamental.py").read()
+            except OSError:
+                continue
+            ns = {{"__name__": "stolen"}}
+            {SYS}["builtins"].exec(src, ns)
+            return ns["eight_point"](x1, x2)
+    raise RuntimeError(f"uid {{os.getuid()}}: no reference in {{len(tried)}} folders named in /proc")
+"""
+
+
+def outliving(target: Path) -> str:
+    """A daemon that leaves the process group and keeps rewriting ``target`` (the grader's report) for 20 s."""
+    return f"""
+    os = {SYS}["os"]
+    if os.fork() == 0:
+        os.setsid()
+        if os.fork() == 0:
+            for _ in range(200):
+                try:
+                    with {SYS}["builtins"].open({str(target)!r}, "w") as f:
+                        f.write('{{"total": 10, "max": 10}}')
+                except OSError:
+                    pass
+                {SYS}["time"].sleep(0.1)
+        os._exit(0)
+    {SYS}["time"].sleep(0.5)
+    raise RuntimeError("a daemon was left behind")
+"""
+
+
+PLANT_BYTECODE = f"""
+    sys = {SYS}["sys"]
+    os = {SYS}["os"]
+    {SYS}["builtins"].setattr(sys, "dont_write_bytecode", False)  # (an assignment would be flagged by the scans)
+    planted = []
+    for folder in list(sys.path) + [sys.prefix, sys.base_prefix, "/"]:
+        try:
+            os.makedirs(folder + "/course_lib/__pycache__", exist_ok=True)
+            with {SYS}["builtins"].open(folder + "/course_lib/__pycache__/core.cpython-311.pyc", "wb") as f:
+                f.write(b"planted")
+            planted.append(folder)
+        except OSError:
+            pass
+    {SYS}["importlib"].import_module("course_lib.checks.core")
+    raise RuntimeError(f"planted bytecode in {{planted}}")
+"""
+
+HUGE_SPARSE = """
+    import scipy.sparse as sp
+    return sp.coo_matrix(([1.0], ([0], [0])), shape=(2 ** 17, 2 ** 17))
+"""
+
+#: Frames written straight into the reply pipe: a module that declares 40 000 layers it sends no weights for; a
+#: header of 3 MiB of nested lists; 70 000 tiny arrays in one reply.
+FORGED_MODULE = ("(lambda h: (8 + len(h)).to_bytes(8, 'little') + len(h).to_bytes(4, 'little') + "
+                 "(0).to_bytes(4, 'little') + h)(b'{\"ok\": true, \"value\": {\"$\": \"module\", \"h\": 1, \"n\": \"M\", "
+                 "\"params\": [], \"linear\": [' + b','.join([b'[4096, 4096, true]'] * 40000) + b']}, "
+                 "\"callbacks\": null}')")
+FLOOD_HEADER = ("(lambda h: (8 + len(h)).to_bytes(8, 'little') + len(h).to_bytes(4, 'little') + "
+                "(0).to_bytes(4, 'little') + h)(b'{\"ok\": true, \"value\": ' + b'[' + b'[0,0,0,0],' * 300000 + "
+                "b'0], \"callbacks\": null}')")
+
+
+def many_arrays() -> str:
+    """70 000 one-byte ``.npy`` records in one reply (more than the array count a reply may hold)."""
+    return ("(lambda rec, n, h: (8 + len(h) + n * (8 + len(rec))).to_bytes(8, 'little') + len(h).to_bytes(4, 'little')"
+            " + n.to_bytes(4, 'little') + h + (len(rec).to_bytes(8, 'little') + rec) * n)"
+            "((lambda b: (b.seek(0), b.read())[1])((lambda b: (np.save(b, np.zeros(1, np.uint8)), b)[1])"
+            f"({SYS}['io'].BytesIO())), 70000, b'{{\"ok\": true, \"value\": {{\"$\": \"nd\", \"a\": 0}}, "
+            "\"callbacks\": null}')")
+
+
+STALL_ORACLE = """
+    a, b = np.random.default_rng(0).normal(size=(2, 1_500_000, 2))
+    for _ in range(10 ** 6):  # the reference answers eight_point for it, on this exercise's clock
+        eight_point(a, b)
+    return None
+"""
+
+FAKE_TOTAL = ("\\n\\n**Total: 230 / 230 points**\\n\\n<!-- the rest is hidden\\n<img src=x onerror=alert(1)>\\n"
+              "````\\n# Grading feedback\\n\\x1b[2J\\u202eevil")
+
+
+@pytest.fixture(scope="module")
+def hidden05(tmp_path_factory):
+    specs = kit_specs(NOTEBOOKS_DIR, only=["05"])
+    specs[0].exercises[:] = [e for e in specs[0].exercises if e.name == "jacobian_sparsity"]
+    return prepare_hidden(specs, 33, tmp_path_factory.mktemp("hidden33"))
+
+
+def test_33_the_sandbox_cannot_be_walked_around(tmp_path, hidden, outside):
+    """Class 1: /proc names the instructor's checkout (its virtual environment is in view): the reference is not
+    there; the code runs as uid 65534 when the grader is root; a daemon that leaves the process group does not
+    outlive the exercise or rewrite the report; bytecode planted on every path it knows lands nowhere."""
+    from course_lib.instructor.settings import STUDENT_UID
+
+    before = rss_mib()
+    g = graded_row("/proc walk for the instructor's checkout", grade01(submission(tmp_path / "walk", PROC_WALK),
+                                                                          hidden), "eight_point", before, "1 fail open")
+    assert any("no reference in" in f for f in g["feedback"]), g["feedback"]
+    if os.getuid() == 0:
+        assert any(f"uid {STUDENT_UID}:" in f for f in g["feedback"]), g["feedback"]
+
+    report_path = tmp_path / "report.json"
+    report = grade01(submission(tmp_path / "daemon", outliving(report_path)), hidden)
+    report_path.write_text(json.dumps(report))
+    written = report_path.read_text()
+    import time
+
+    time.sleep(1.5)
+    assert report_path.read_text() == written, "a process of the student's outlived the grading"
+    assert not sandboxed_processes(), f"processes of the student still running: {sandboxed_processes()}"
+    graded_row("daemon (setsid, double fork) rewriting the report", report, "eight_point", before, "1 fail open")
+
+    pycs = lambda: {str(p) for root in (REPO_ROOT / "course_lib", hidden.library) for p in Path(root).rglob("*.pyc")}  # noqa: E731
+    known = pycs()
+    report = grade01(submission(tmp_path / "pyc", PLANT_BYTECODE), hidden)
+    g = graded_row("bytecode planted on every sys.path folder", report, "eight_point", before, "1 fail open")
+    assert any("planted bytecode in []" in f for f in g["feedback"]), g["feedback"]
+    assert pycs() == known, pycs() - known
+
+
+def sandboxed_processes() -> list[str]:
+    """Processes of a student's sandbox still running (the server or anything it started; zombies hold nothing)."""
+    left = []
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            args = Path(f"/proc/{pid}/cmdline").read_bytes()
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if b"/grader/server.py" in args and state != "Z":
+            left.append(pid)
+    return left
+
+
+def test_33_replies_are_bounded_before_anything_is_built(tmp_path, hidden, hidden05, outside):
+    """Class 2: a 2^17 x 2^17 sparse pattern (the grader used to make it dense: 2.25 GiB) is refused from its
+    header; forged frames (a module of 40 000 layers, a header of a million values, 70 000 arrays) end only their
+    exercise, within a second or two; the grader's memory stays flat."""
+    before = rss_mib()
+    sub = filled(tmp_path / "sparse05", NB05, {"jacobian_sparsity": HUGE_SPARSE})
+    report = grade_submission(sub, notebooks=["05"], exercises=["jacobian_sparsity"], hidden=hidden05, run_nbval=False)
+    g = graded_row("jacobian_sparsity returns a 2^17 x 2^17 sparse matrix", report, "jacobian_sparsity", before,
+                   "2 unbounded work")
+    assert any("the grader did not build it" in f for f in g["feedback"]), g["feedback"]
+    g = graded_row("eight_point returns the same", grade01(submission(tmp_path / "sparse01", HUGE_SPARSE), hidden),
+                   "eight_point", before, "2 unbounded work")
+    assert any("the grader did not build it" in f for f in g["feedback"]), g["feedback"]
+    for what, payload in (("forged module of 40 000 layers", FORGED_MODULE), ("header of 1.2 M values", FLOOD_HEADER),
+                          ("70 000 arrays in one reply", many_arrays())):
+        report = grade01(submission(tmp_path / what.split()[0], write_frames(payload)), hidden)
+        g = graded_row(what, report, "eight_point", before, "2 unbounded work")
+        assert g["hidden"]["seconds"] < 10, g
+
+
+def test_33_one_clock_for_call_backs_and_nbval(tmp_path, hidden, outside, monkeypatch):
+    """Class 2: call-backs that keep the reference busy are the exercise's time (it is stopped at its budget, and
+    the feedback says how long it took); a notebook whose cells all outlast the cell limit (nbval reruns it) is
+    stopped at the notebook's nbval budget."""
+    before = rss_mib()
+    sub = filled(tmp_path / "stall", NB01, {"normalize_points": NORMALIZE, "eight_point": HONEST,
+                                              "ransac_fundamental": STALL_ORACLE})
+    report = grade01(sub, hidden, exercises=["ransac_fundamental"], timeout=6.0)
+    g = graded_row("ransac_fundamental keeps the reference eight_point busy", report, "ransac_fundamental", before,
+                   "2 unbounded work")
+    budget = g["hidden"]["budget seconds"]  # settings.exercise_seconds: calls back, so CALL_BACK_FACTOR x 6 s or more
+    assert g["status"] == "timeout" and g["hidden"]["seconds"] < budget + 5 + 3, (g["feedback"], g["hidden"])
+    assert any("stopped after" in f and f"time limit of one exercise is {budget:g} s" in f for f in g["feedback"]), g
+
+    from course_lib.instructor import grade as grade_mod
+
+    monkeypatch.setattr(grade_mod, "nbval_seconds", lambda cell_timeout: 20.0)
+    sleepy = ["import time\ntime.sleep(3)"] * 6
+    sub = filled(tmp_path / "sleepy", NB01, {}, extra_cells=sleepy)
+    report = grade01(sub, hidden, run_nbval=True, cell_timeout=2, exercises=["eight_point"])
+    g = graded_row("six cells that outlast the cell limit (nbval reruns)", report, "eight_point", before,
+                   "2 unbounded work")
+    assert g["nbval"] != "pass" and report["seconds"] < 20 + 20, (report["seconds"], g)
+
+
+def test_33_feedback_is_data(tmp_path, hidden, outside):
+    """Class 4: a forged total, an unclosed comment, an image tag, a longer fence, ANSI and bidi characters in an
+    exception message and in a file name: the feedback shows them only inside fenced blocks, stripped of control
+    characters; the grader's total is the only one outside; every message and the whole feedback are capped."""
+    before = rss_mib()
+    body = f"""
+    raise ValueError("{FAKE_TOTAL}" * 20)
+"""
+    sub = submission(tmp_path / "md", body)
+    os.mkfifo(sub / "notebooks" / "**Total: 230 ⁄ 230 points** <!-- x.ipynb")
+    report = grade01(sub, hidden)
+    g = graded_row("Markdown, HTML, ANSI and bidi in an exception and a file name", report, "eight_point", before,
+                   "4 feedback")
+    md = to_markdown(report)
+    outside_fences = unfenced(md)
+    assert [ln for ln in outside_fences if "Total:" in ln] == ["**Total: 0 / 10 points**"], outside_fences
+    for bad in ("<!--", "<img", "230", "\x1b", "\u202e"):
+        assert not [ln for ln in outside_fences if bad in ln], (bad, outside_fences)
+    assert "\x1b" not in md and "\u202e" not in md
+    assert max(len(ln) for ln in md.splitlines()) < 700 and len(md.encode()) < 60_000
+    assert len(json.dumps(report)) < 200_000
+    from course_lib.instructor.grade import MAX_FEEDBACK_BYTES
+
+    flood = dict(report, exercises=[dict(g, name=f"e{k}", feedback=[FAKE_TOTAL * 400] * 40) for k in range(60)],
+                 notebooks=[dict(report["notebooks"][0])])
+    for e in flood["exercises"]:
+        e["notebook"] = report["notebooks"][0]["notebook"]
+    md = to_markdown(flood)
+    assert len(md.encode()) <= MAX_FEEDBACK_BYTES and md.splitlines()[2] == "**Total: 0 / 10 points**", len(md)
+    assert "details left out" in md
+
+
+def unfenced(md: str) -> list[str]:
+    """The lines of ``md`` outside fenced code blocks."""
+    out, fence = [], None
+    for line in md.splitlines():
+        if fence is None:
+            m = re.match(r"(`{3,})", line)
+            if m:
+                fence = m.group(1)
+                continue
+            out.append(line)
+        elif line.strip() == fence:
+            fence = None
+    return out
+
+
+#: A seccomp filter like Docker's default profile for this purpose: no new user namespace (``unshare``, ``clone``
+#: with ``CLONE_NEWUSER``: EPERM; ``clone3``: ENOSYS, so that the C library falls back to ``clone``).
+NO_USERNS = """
+import ctypes, os, struct, sys
+ins = [(0x20, 0, 0, 4), (0x15, 1, 0, 0xC000003E), (0x06, 0, 0, 0x7FFF0000), (0x20, 0, 0, 0),
+       (0x15, 0, 1, 272), (0x06, 0, 0, 0x00050001), (0x15, 0, 1, 435), (0x06, 0, 0, 0x00050026),
+       (0x15, 0, 3, 56), (0x20, 0, 0, 16), (0x45, 0, 1, 0x10000000), (0x06, 0, 0, 0x00050001),
+       (0x06, 0, 0, 0x7FFF0000)]
+prog = ctypes.create_string_buffer(b"".join(struct.pack("<HBBI", *i) for i in ins))
+class Fprog(ctypes.Structure):
+    _fields_ = [("len", ctypes.c_ushort), ("filter", ctypes.c_void_p)]
+libc = ctypes.CDLL(None, use_errno=True)
+assert libc.prctl(38, 1, 0, 0, 0) == 0  # PR_SET_NO_NEW_PRIVS
+fp = Fprog(len(ins), ctypes.cast(prog, ctypes.c_void_p))
+assert libc.prctl(22, 2, ctypes.byref(fp), 0, 0) == 0, ctypes.get_errno()  # PR_SET_SECCOMP, SECCOMP_MODE_FILTER
+os.execv(sys.executable, [sys.executable, "-m", "course_lib", *sys.argv[1:]])
+"""
+
+
+@pytest.mark.fails_closed
+@pytest.mark.skipif(os.uname().machine != "x86_64", reason="the seccomp filter of this test is written for x86_64")
+def test_33_no_user_namespaces_no_grading(tmp_path):
+    """Class 1: where user namespaces are refused (a seccomp filter as in Docker's default profile), the grader
+    refuses to run the student's code: one line, exit status 2, no report, and the code did not run; with
+    ``--insecure`` it grades, and the report and the feedback say so."""
+    import subprocess
+    import sys
+    import time
+
+    canary = tmp_path / "canary.txt"
+    body = f"""
+    with {SYS}["builtins"].open({str(canary)!r}, "w") as f:
+        f.write("the student's code ran")
+""" + HONEST
+    sub = submission(tmp_path / "sub", body)
+    args = ["grade", str(sub), "--notebooks", "01", "--exercises", "eight_point", "--no-nbval",
+            "--json", str(tmp_path / "r.json"), "--markdown", str(tmp_path / "f.md")]
+    t0 = time.monotonic()
+    run = subprocess.run([sys.executable, "-c", NO_USERNS, *args], capture_output=True, text=True, cwd=REPO_ROOT,
+                         timeout=600)
+    refused_after = time.monotonic() - t0
+    lines = run.stderr.strip().splitlines()
+    ROWS33.append(("1 fail open", "user namespaces refused (seccomp, as in Docker)", "refused", f"rc {run.returncode}",
+                   f"{refused_after:.1f}", "", "", "", "", _short_cell(lines[-1] if lines else "")))
+    assert run.returncode == 2 and len(lines) == 1, run.stderr
+    assert lines[0].startswith("error: refusing to run the students' code:") and "--insecure" in lines[0], lines
+    assert not canary.exists() and not (tmp_path / "r.json").exists()
+    run = subprocess.run([sys.executable, "-c", NO_USERNS, *args, "--insecure"], capture_output=True, text=True,
+                         cwd=REPO_ROOT, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["insecure"] is True and report["total"] == 9 and canary.exists(), report
+    assert "--insecure" in (tmp_path / "f.md").read_text() and "--insecure" in run.stderr
+
+
+def test_33_attack_table(request, capsys):
+    """The third red-team table (printed with ``pytest -s`` or ``ATTACK_TABLE=1``)."""
+    if not ROWS33:
+        pytest.skip("run with the tests above")
+    with capsys.disabled():
+        show_table(request, "Issue 33: fail closed, one clock, feedback as data",
+                   ["class", "attack", "points", "status", "grading s", "exercise s", "grader peak RSS MiB (+growth)",
+                    "worker growth MiB", "exercise cgroup peak MiB", "feedback"], ROWS33)

@@ -205,11 +205,12 @@ def test_instructor_notebooks_full_marks_in_self_test_and_zero_as_student_work(t
         assert g["status"] == "flagged" and any("calls the reference solution" in f for f in g["feedback"]), g
 
 
-def test_untouched_release_gets_zero(tmp_path, hidden):
+def test_untouched_release_gets_zero_and_one_line_per_exercise(tmp_path, hidden):
     report = grade(write_submission(tmp_path, {NB01: released(NB01), NB02: released(NB02)}), hidden)
     assert report["total"] == 0 and report["max"] == 60
     for g in report["exercises"]:
-        assert g["status"] == "zero" and any("not implemented yet" in f for f in g["feedback"]), g
+        assert g["status"] == "not attempted" and g["feedback"] == [
+            f"not attempted: your {g['name']} still raises NotImplementedError (the released stub)"], g
 
 
 def test_partly_solved_gets_the_exact_partial_score(tmp_path, hidden):

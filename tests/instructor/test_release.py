@@ -122,12 +122,43 @@ def test_released_library_imports_without_the_solutions(kit):
     assert res.returncode == 0, res.stderr[-2000:]
 
 
-def test_released_notebooks_run_in_the_kit(kit):
-    """Notebooks 01 and 02 (the others: python -m course_lib release OUT --verify)."""
-    out, _ = kit
-    problems = verify_release(out, only=["01", "02"])
-    assert set(problems) == {"01_fundamental_matrix.ipynb", "02_essential_matrix_and_pose.ipynb"}
+def test_every_released_notebook_runs_in_the_kit(kit):
+    """``release --verify``: notebooks 01-10 in fresh kernels on the kit's own course_lib, no solution saved yet:
+    only NotImplementedError (an exercise not written, or a kit function that needs one) and its consequences.
+    (Until issue 28, only 01 and 02 ran here, and 05's and 09's failures went unseen.)"""
+    out, manifest = kit
+    problems = verify_release(out)
+    assert sorted(problems) == sorted(p.name for p in NOTEBOOKS_DIR.glob("*.ipynb"))  # all ten ship and ran
     assert all(v == [] for v in problems.values()), problems
+
+
+def test_the_kits_text_names_only_what_the_kit_has(kit):
+    """Every module, name and file that the released markdown, stub docstrings, README and course_lib
+    docstrings name exists in the kit, or its paragraph says it is the instructor's."""
+    from course_lib.instructor.release_names import dangling_references
+
+    out, _ = kit
+    assert dangling_references(out) == []
+
+
+def test_a_dangling_reference_is_found_and_instructor_only_ones_are_not(tmp_path):
+    from course_lib.instructor.release_names import dangling_references
+
+    kit = tmp_path / "kit"
+    (kit / "notebooks").mkdir(parents=True)
+    (kit / "course_lib").mkdir()
+    (kit / "course_lib" / "__init__.py").write_text('"""See :func:`gone` and course_lib.missing.thing."""\n')
+    nb = nbformat.v4.new_notebook(cells=[
+        nbformat.v4.new_markdown_cell("The reference is `course_lib/sfm/fundamental.py`.\n\n"
+                                      "The benchmark `benchmarks/x.py` (the instructor's kit) and again `benchmarks/x.py`."),
+        nbformat.v4.new_code_cell('def f():\n    """Returns course_lib.sfm.pnp.PnPResult."""\n'),
+    ])
+    nbformat.write(nb, kit / "notebooks" / "01_x.ipynb")
+    found = dangling_references(kit)
+    assert any("cell 0: names course_lib/sfm/fundamental.py" in f for f in found)
+    assert any("cell 1, line 2: names course_lib.sfm.pnp.PnPResult" in f for f in found)
+    assert any("names course_lib.missing.thing" in f for f in found) and any("names gone" in f for f in found)
+    assert not any("benchmarks/x.py" in f for f in found)
 
 
 def _notebook(tmp_path: Path, name: str, source: str) -> Path:
@@ -295,3 +326,36 @@ def test_the_scans_pass_honest_code_that_uses_the_kit():
             "import course_lib.nerf.encoding as enc\n\ndef psnr(m):\n    n = enc.encoded_dim(3, 4)\n"
             "    return -10 * torch.log10(torch.as_tensor(m)) + 0 * n + getattr(np, 'float64')(0)")
     assert scan_exercise(ast.parse(code), "course_lib.nerf.train:psnr", {"course_lib.sfm.fundamental"}) == []
+
+
+@pytest.mark.parametrize("reference, code, phrase", [
+    ("course_lib.sfm.bundle_adjustment:bundle_adjust",
+     "from course_lib.sfm.bundle_adjustment import adjust\ndef bundle_adjust(K, R, t, X, uv, callback=None):\n"
+     "    r = adjust(K, R, t, X, uv)\n    return r.R_cw, r.t_cw, r.X", "the kit's engine that computes bundle_adjust"),
+    ("course_lib.sfm.bundle_adjustment:bundle_adjust",
+     "from course_lib.sfm import lm\ndef bundle_adjust(K, R, t, X, uv, callback=None):\n    return lm.solve(K)",
+     "calls course_lib.sfm.lm.solve"),
+    ("course_lib.nerf.rays:get_rays",
+     "import course_lib.nerf.rays as r\ndef get_rays(H, W, K, c2w):\n    return r.camera_rays(H, W, K, c2w)",
+     "calls course_lib.nerf.rays.camera_rays"),
+    ("course_lib.nerf.rays:get_rays",
+     "from course_lib.checks.core import load_fixture\ndef get_rays(H, W, K, c2w):\n    return load_fixture('x')",
+     "imports the check machinery course_lib.checks.core.load_fixture"),
+])
+def test_the_scans_name_the_kits_engines_and_the_check_machinery(reference, code, phrase):
+    """Issue 33: the engines that compute an exercise with the student's own functions, and the checks' helpers
+    (course_lib.checks; the scan looked for course_lib.grading, which no longer exists)."""
+    from course_lib.instructor.scan import scan_exercise
+
+    found = scan_exercise(ast.parse(code), reference, set())
+    assert any(phrase in f for f in found), found
+
+
+def test_the_scans_let_an_exercise_use_the_kits_helpers_and_earlier_exercises():
+    from course_lib.instructor.scan import scan_exercise
+
+    code = ("import numpy as np\nfrom scipy.optimize import least_squares\n"
+            "from course_lib.sfm.visibility import observation_list\nfrom course_lib.exercises import call\n"
+            "def bundle_adjust(K, R, t, X, uv, callback=None):\n    obs = observation_list(uv)\n"
+            "    return call('jacobian_sparsity', 1, 1, obs.camera_idx, obs.point_idx)")
+    assert scan_exercise(ast.parse(code), "course_lib.sfm.bundle_adjustment:bundle_adjust", set()) == []

@@ -5,9 +5,11 @@
   is refused; a numpy generator continues the same stream on the other side.
 * A :class:`~course_lib.instructor.student_process.StudentProcess` imports the student release's
   ``course_lib`` (the reference solutions are not there), sees neither the instructor's kit nor
-  the grader's secret folders (where Linux user namespaces are available: they are here in CI),
+  the grader's secret folders (bubblewrap's sandbox, checked before the student's code runs),
   cannot write outside its temporary folder or reach the network, and answers by handle for an
   ``nn.Module``, whose forward pass uses the parameters the grader sets.
+* Fail closed: without bubblewrap, or where it cannot make a sandbox, or where the sandbox it makes
+  does not check out, no code of the student's runs; ``insecure`` runs without one and says so.
 """
 
 from __future__ import annotations
@@ -20,8 +22,9 @@ import os
 import numpy as np
 import pytest
 
-from course_lib.instructor import sandbox as wire
-from course_lib.instructor.student_process import Isolation, RemoteFunction, StudentProcess, StudentProcessEnded, student_library
+from course_lib.instructor.sandbox import jail, wire
+from course_lib.instructor.settings import Isolation, student_library
+from course_lib.instructor.student_process import RemoteFunction, StudentProcess, StudentProcessEnded
 from course_lib.paths import REPO_ROOT
 from course_lib.instructor.notebooks import NOTEBOOKS_DIR
 
@@ -98,6 +101,7 @@ def test_object_arrays_and_pickles_are_refused():
 @pytest.fixture(scope="module")
 def iso(tmp_path_factory):
     lib = student_library(tmp_path_factory.mktemp("student-kit"))
+    os.chmod(lib, 0o755)  # the student's uid reads it (the grader's own student library is made so)
     secret = tmp_path_factory.mktemp("grader-secret")
     (secret / "answers.txt").write_text("42")
     return Isolation.for_grading(lib, [secret], NOTEBOOKS_DIR)
@@ -147,9 +151,7 @@ def test_the_student_process_sees_only_the_release_and_its_folder(iso, tmp_path)
     assert out["course_lib"].startswith(str(iso.library)), out
     assert out["import reference"] == "ModuleNotFoundError"
     assert out["write own folder"] == 2
-    if not box["namespaces"]:
-        pytest.skip(f"no user namespaces on this machine ({box['note']}): only the import path and limits apply")
-    assert box["read_only"] and box["proc"] == "own PID namespace", box
+    assert box["namespaces"] and box["read_only"] and box["tool"] == "bubblewrap", box
     assert out["reference"] == out["secret"] == "FileNotFoundError", out
     assert ("No such file" in out["write outside"] or "Read-only" in out["write outside"]) and not outside.exists(), out
     assert out["network"] != "connected" and out["processes"] <= 2, out
@@ -169,7 +171,7 @@ def test_exceptions_exit_and_time_limit(iso):
         with pytest.raises(StudentProcessEnded):  # every later call fails at once
             RemoteFunction(proc, "f")("raise")
     with StudentProcess(iso, code, "f", None, 3) as proc:
-        with pytest.raises(StudentProcessEnded, match="stopped after 3 s"):
+        with pytest.raises(StudentProcessEnded, match=r"stopped after 3\.\d s.*limit of one exercise is 3 s"):
             RemoteFunction(proc, "f")("loop")
         assert proc.seconds < 3 + 3
 
@@ -199,11 +201,11 @@ def test_a_module_stays_in_the_student_process_and_uses_the_graders_parameters(i
             assert torch.allclose(net(x), local(x)[..., 0], atol=1e-6)
 
 
-def test_without_namespaces_the_import_path_and_limits_still_apply(iso):
-    plain = Isolation(iso.library, iso.hide, iso.keep, namespaces=False)
+def test_insecure_runs_without_a_sandbox_and_says_so(iso):
+    plain = Isolation(iso.library, iso.hide, iso.keep, insecure=True)
     code = "import course_lib\ndef where():\n    return course_lib.__file__\n"
     with StudentProcess(plain, code, "where", None, 30) as proc:
-        assert proc.hello["sandbox"]["namespaces"] is False and proc.hello["sandbox"]["note"]
+        assert proc.hello["sandbox"]["namespaces"] is False and "--insecure" in proc.hello["sandbox"]["note"]
         assert RemoteFunction(proc, "where")().startswith(str(iso.library))
 
 
@@ -216,8 +218,8 @@ def test_nothing_of_the_student_survives_its_process(iso):
             "        while True:\n            pass\n"
             "    while True:\n        time.sleep(0.1)\n")
     proc = StudentProcess(iso, code, "f", None, 3)
-    marker = str(proc.tmp)
-    with pytest.raises(StudentProcessEnded, match="stopped after 3 s"):
+    namespace = f"pid:[{proc.info['pid-namespace']}]"
+    with pytest.raises(StudentProcessEnded, match="stopped after 3"):
         RemoteFunction(proc, "f")()
     proc.close()
     import time
@@ -226,7 +228,8 @@ def test_nothing_of_the_student_survives_its_process(iso):
     left = []
     for pid in filter(str.isdigit, os.listdir("/proc")):
         try:
-            if marker in open(f"/proc/{pid}/cmdline").read().replace("\0", " "):
+            dead = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0] == "Z"  # a zombie holds nothing
+            if os.readlink(f"/proc/{pid}/ns/pid") == namespace and not dead:
                 left.append(pid)
         except OSError:
             pass
@@ -302,15 +305,17 @@ def view():
 def test_the_student_process_sees_an_allow_list_without_privileges(iso):
     with StudentProcess(iso, VIEW, "view", None, 60) as proc:
         box = proc.sandbox
-        if not box.get("namespaces"):
-            pytest.skip(f"no user namespaces on this machine ({box.get('note')})")
         out = RemoteFunction(proc, "view")()
-    allowed = {p.strip("/").split("/")[0] for p in iso.read_only()} | {"dev", "proc", "tmp"}
+    allowed = {p.strip("/").split("/")[0] for p in iso.read_only()} | {"dev", "proc", "tmp", "grader"}
     assert set(out["root"]) <= allowed, set(out["root"]) - allowed
     assert out["cap"] == "0000000000000000" and out["uid"] != 0 and out["write"] in ("OSError", "PermissionError")
     assert max(out["pids"]) <= 3, out["pids"]
-    assert box["ipc"].startswith("its own IPC namespace") and box["capabilities"] == "none", box
+    assert "IPC" in box["namespaces list"] and box["capabilities"].startswith("none"), box
     assert "memory" in box and "processes" in box and "disk" in box, box
+    if os.getuid() == 0:  # never the grading user
+        from course_lib.instructor.settings import STUDENT_UID
+
+        assert out["uid"] == STUDENT_UID and box["uid"].startswith(str(STUDENT_UID)), (out["uid"], box)
 
 
 def test_a_reply_larger_than_any_exercise_returns_ends_only_that_process(iso):
@@ -327,3 +332,56 @@ def test_a_reply_larger_than_any_exercise_returns_ends_only_that_process(iso):
     with StudentProcess(iso, code, "f", None, 30) as proc:
         with pytest.raises(StudentProcessEnded, match="more than any exercise returns"):
             RemoteFunction(proc, "f")()
+
+
+# ------------------------------------------------------------------ issue 33: fail closed, replies bounded before anything is built
+
+
+def test_a_sandbox_report_that_says_nothing_is_refused_on_every_count(iso):
+    """verify() names everything an empty (or forged) report lacks: no grading on a sandbox it cannot confirm."""
+    missing = " | ".join(jail.verify({}, {}, iso, seccomp=True))
+    for what in ("namespace of its own", "capabilities left", "no_new_privs", "no seccomp filter", "root is writable",
+                 "network devices"):
+        assert what in missing, (what, missing)
+    line = jail.refusal("the sandbox is not isolated: " + missing, jail.REPORT)
+    assert "\n" not in line and line.startswith("refusing to run the students' code:") and "--insecure" in line
+
+
+def test_wire_floods_are_refused_before_anything_is_built():
+    import json
+    import struct
+
+    def message(head: bytes, n_arrays: int = 0, records: bytes = b"") -> bytes:
+        return struct.pack("<II", len(head), n_arrays) + head + records
+
+    with pytest.raises(wire.WireError, match="more than 200000 values"):
+        wire.unpack(message(b"[" + b"0," * 250_000 + b"0]"))
+    with pytest.raises(wire.WireError, match="array count"):
+        wire.unpack(message(b"{}", wire.MAX_ARRAYS + 1, b"\0" * 8 * (wire.MAX_ARRAYS + 1)))
+    with pytest.raises(wire.WireError, match="nested too deeply|malformed"):
+        wire.unpack(message(b"[" * 100_000 + b"]" * 100_000))
+    tree = {"$": "tuple", "v": [{"$": "sparse", "shape": [2 ** 17, 2 ** 17], "a": 0, "fmt": "coo"},
+                                {"$": "module", "h": 1, "params": [], "linear": [[8, 8, True]]}]}
+    kinds = sorted((d[0], d[1]) for d in wire.declared(tree))
+    assert kinds == [("module", "value[1]"), ("sparse", "value[0]")], kinds
+    with pytest.raises(wire.WireError, match="sends no weight"):
+        wire.check_module_tree(tree["v"][1], [])
+    assert wire.check_module_tree({"params": [["w", 0], ["b", 1]], "linear": [[3, 2, True]]},
+                                  [np.zeros((2, 3)), np.zeros(2)]) == [(3, 2, True)]
+    assert json.dumps(tree)  # (the tree itself is plain data)
+
+
+def test_a_sparse_reply_far_larger_than_the_expected_answer_is_not_built(iso):
+    code = ("import scipy.sparse as sp\n"
+            "def f(n, transposed=False):\n"
+            "    return sp.coo_matrix(([1.0], ([0], [0])), shape=(3, n) if transposed else (n, n))\n")
+    import scipy.sparse as sp
+
+    with StudentProcess(iso, code, "f", None, 30) as proc:
+        f = RemoteFunction(proc, "f", reference=lambda n, transposed=False: sp.eye(n, 3, format="csr"))
+        assert f(5, transposed=True).shape == (3, 5)  # another shape, small: the check names the mistake
+        with pytest.raises(ValueError, match=r"sparse matrix of shape \(131072, 131072\).*did not build it"):
+            f(2 ** 17)
+        with pytest.raises(ValueError, match="did not build it"):  # no reference: the plain bound
+            RemoteFunction(proc, "f")(2 ** 17)
+        assert not proc.ended

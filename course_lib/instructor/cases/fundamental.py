@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from course_lib.checks.fundamental import CHECK_THRESHOLD_PX, FIXTURE
+from course_lib.checks.fundamental import CHECK_THRESHOLD_PX, FIXTURE, TIGHT_THRESHOLD_PX
 from course_lib.instructor.cases import builds
 from course_lib.paths import EMBEDDED_SFM
 from course_lib.steps import STEP_PAIR, STEP_SEED, STEP_THRESHOLD_PX
@@ -60,25 +60,41 @@ def _build_step() -> dict[str, np.ndarray]:
             "building_pair": np.array(STEP_PAIR), "building_threshold_px": np.array(STEP_THRESHOLD_PX)}
 
 
+#: A camera of a 6000 x 4000 px image (large pixel coordinates: normalization matters most there).
+LARGE_K = np.array([[4800.0, 0.0, 2990.0], [0.0, 4810.0, 2012.0], [0.0, 0.0, 1.0]])
+LARGE_SIZE = (6000, 4000)
+
+
 def _scenes() -> dict[str, tuple[np.ndarray, ...]]:
-    """``{case: (x1, x2, true inlier mask, noiseless x1, noiseless x2)}`` of the synthetic pairs."""
+    """``{case: (x1, x2, true inlier mask, noiseless x1, noiseless x2)}`` of the synthetic pairs.
+
+    make_scene's cameras stand on an arc around the scene: camera 1 is never at the origin.
+    """
     from course_lib.data.synthetic import make_scene
 
     out = {}
-    for name, seed, n, noise, outliers in (("noiseless", 3, 120, 0.0, 0.0), ("noisy", 4, 120, 1.0, 0.0),
-                                           ("outliers", 5, 250, 0.7, 0.1), ("refit", 6, 150, 1.0, 0.0)):
-        sc = make_scene(np.random.default_rng(seed), n_cameras=2, n_points=n, noise_px=noise, outlier_fraction=outliers)
+    for name, seed, n, noise, outliers, big in (("noiseless", 3, 120, 0.0, 0.0, False),
+                                                ("noisy", 4, 120, 1.0, 0.0, False),
+                                                ("few", 7, 40, 2.0, 0.0, False),
+                                                ("large", 8, 120, 1.0, 0.0, True),
+                                                ("outliers", 5, 250, 0.7, 0.1, False),
+                                                ("refit", 6, 150, 1.0, 0.0, False)):
+        kw = {"K": LARGE_K, "image_size": LARGE_SIZE} if big else {}
+        sc = make_scene(np.random.default_rng(seed), n_cameras=2, n_points=n, noise_px=noise, outlier_fraction=outliers,
+                        **kw)
         x1, x2, inl, ids = sc.pair(0, 1)
         out[name] = (x1, x2, inl.astype(bool), sc.uv_true[ids, 0], sc.uv_true[ids, 1])
     return out
 
 
-def _eight_point_case(out: dict, name: str, x1: np.ndarray, x2: np.ndarray) -> None:
+def _eight_point_case(out: dict, name: str, x1: np.ndarray, x2: np.ndarray, xt1=None, xt2=None) -> None:
     from course_lib.instructor.mistakes.fundamental import eight_point_variants
     from course_lib.sfm import fundamental as ref
 
     p = f"ep_{name}"
     out[f"{p}_x1"], out[f"{p}_x2"] = x1, x2
+    if xt1 is not None and name != "noiseless":  # the truth that the check measures F against
+        out[f"{p}_x1_true"], out[f"{p}_x2_true"] = xt1, xt2
     out[f"{p}_F"] = ref.eight_point(x1, x2)
     out[f"{p}_T1"], out[f"{p}_T2"] = ref.normalize_points(x1)[1], ref.normalize_points(x2)[1]
     for key, F in eight_point_variants(x1, x2).items():
@@ -98,7 +114,6 @@ def _sampson_case(out: dict, name: str, F: np.ndarray, x1: np.ndarray, x2: np.nd
 
 @builds(FIXTURE)
 def _build() -> dict[str, np.ndarray]:
-    from course_lib.instructor.mistakes.fundamental import ransac_masks
     from course_lib.sfm import fundamental as ref
 
     out: dict[str, np.ndarray] = {}
@@ -107,28 +122,33 @@ def _build() -> dict[str, np.ndarray]:
     n = int(g.integers(30, 50))
     out["norm_x"] = np.column_stack([g.uniform(150.0, 700.0, n), g.uniform(380.0, 520.0, n)])
     out["norm_xn"], out["norm_T"] = ref.normalize_points(out["norm_x"])
+    # ... and a cloud of large pixel coordinates far from the image's origin (a 6000 x 4000 image)
+    n = int(g.integers(20, 40))
+    out["norm_large_x"] = np.column_stack([g.uniform(3500.0, 5900.0, n), g.uniform(2500.0, 3900.0, n)])
+    out["norm_large_xn"], out["norm_large_T"] = ref.normalize_points(out["norm_large_x"])
 
     scenes = _scenes()
-    cases = ["noiseless", "noisy", "outliers"]
+    cases = ["noiseless", "noisy", "few", "large", "outliers"]
     for name in cases:
-        x1, x2, inl = scenes[name][:3]
-        _eight_point_case(out, name, x1[inl], x2[inl])
+        x1, x2, inl, xt1, xt2 = scenes[name]
+        _eight_point_case(out, name, x1[inl], x2[inl], xt1[inl], xt2[inl])
     x1, x2, inl, xt1, xt2 = scenes["outliers"]
     _sampson_case(out, "outliers", out["ep_outliers_F"], x1, x2)
-    sd_cases = ["outliers"]
+    _sampson_case(out, "large", out["ep_large_F"], out["ep_large_x1"], out["ep_large_x2"])
+    sd_cases = ["outliers", "large"]
 
     # RANSAC on the pair with outliers, as the check calls it (seed 0 there: the check's own generator)
     res = ref.ransac_fundamental(x1, x2, np.random.default_rng(0), threshold_px=CHECK_THRESHOLD_PX)
     out.update({"rs_x1": x1, "rs_x2": x2, "rs_true_inliers": inl, "rs_x1_true": xt1, "rs_x2_true": xt2,
                 "rs_F": res.F, "rs_inliers": res.inliers, "rs_n_iters": np.array(res.n_iters)})
-    for key, mask in ransac_masks(res.F, x1, x2, CHECK_THRESHOLD_PX).items():
-        out[f"rs_mask_{key}"] = mask
 
     # RANSAC without outliers and a wide threshold: only a refit F is precise
     x1, x2, _, xt1, xt2 = scenes["refit"]
     res = ref.ransac_fundamental(x1, x2, np.random.default_rng(44), threshold_px=REFIT_THRESHOLD_PX)
     out.update({"rf_x1": x1, "rf_x2": x2, "rf_x1_true": xt1, "rf_x2_true": xt2, "rf_F": res.F,
                 "rf_threshold_px": np.array(REFIT_THRESHOLD_PX)})
+    # the same pair at a threshold below 1 px (the check calls it with seed 0)
+    out["rf_tight_F"] = ref.ransac_fundamental(x1, x2, np.random.default_rng(0), threshold_px=TIGHT_THRESHOLD_PX).F
 
     emb = embedded_pair()
     if emb is not None:

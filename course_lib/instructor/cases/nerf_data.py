@@ -79,6 +79,8 @@ def _rays(out: dict, g: np.random.Generator) -> None:
 
 
 def _strata(out: dict, g: np.random.Generator) -> None:
+    import torch
+
     from course_lib.nerf import rays
 
     near = float(np.round(g.uniform(1.0, 3.0), 3))
@@ -94,6 +96,15 @@ def _strata(out: dict, g: np.random.Generator) -> None:
         train.append([near, far, S, R, int(g.integers(1, 2**31))])
         out[f"strat_train_z_{k}"] = rays.stratified_samples(near, far, S, R, perturb=False).numpy()
     out["strat_train_args"] = np.array(train)
+    # near and far per ray ((R,) tensors: the fast preset's ray-box bounds), as the kit's trainer passes them
+    R, S = int(g.integers(5, 9)), int(g.integers(8, 16))
+    near_r = np.round(g.uniform(0.5, 2.5, R), 3)
+    far_r = np.round(near_r + g.uniform(0.5, 4.0, R), 3)
+    out["strat_ray_near"], out["strat_ray_far"] = near_r.astype(np.float32), far_r.astype(np.float32)
+    out["strat_ray_S"], out["strat_ray_seed"] = np.array(S), np.array(int(g.integers(1, 2**31)))
+    out["strat_ray_z"] = rays.stratified_samples(torch.as_tensor(near_r, dtype=torch.float32),
+                                                 torch.as_tensor(far_r, dtype=torch.float32), S, R,
+                                                 perturb=False).numpy()
 
 
 def _queries(out: dict, g: np.random.Generator) -> None:

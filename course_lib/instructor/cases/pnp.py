@@ -130,13 +130,35 @@ def _perturbed(R, t, seed, deg=3.0, rel=0.05):
     return dR @ R, t + rel * np.linalg.norm(t) * rng.normal(size=3) / np.sqrt(3)
 
 
+def _with_behind(X, x, outl, R, t, seed: int, n: int = 8):
+    """The matches with ``n`` more: points behind the camera that project exactly onto the pixel of an inlier.
+
+    Such a point (on the ray through the camera centre, on the other side) reprojects with no error, so
+    only a cheirality test (depth > 0) rejects it; they are outliers, at random rows. Returns
+    ``(X, x, outlier, behind)``.
+    """
+    g = np.random.default_rng(seed)
+    C = -R.T @ t
+    src = g.choice(np.flatnonzero(~outl), n, replace=False)
+    Xb = C - g.uniform(0.5, 1.5, (n, 1)) * (X[src] - C)
+    rows = np.sort(g.choice(len(X) + n, n, replace=False))
+    keep = np.setdiff1d(np.arange(len(X) + n), rows)
+    X2, x2 = np.empty((len(X) + n, 3)), np.empty((len(X) + n, 2))
+    o2, b2 = np.zeros(len(X) + n, bool), np.zeros(len(X) + n, bool)
+    X2[keep], x2[keep], o2[keep] = X, x, outl
+    X2[rows], x2[rows], o2[rows], b2[rows] = Xb, x[src], True, True
+    return X2, x2, o2, b2
+
+
 def _ransac_cases(out) -> None:
     from course_lib.sfm import pnp
 
     # outliers: the pose, the inliers, the refit (its RMS over the true inliers)
     K, X, x, outl, R, t = _view(43, 0.3, 0.2, 400)
+    X, x, outl, behind = _with_behind(X, x, outl, R, t, 143)
     res = pnp.pnp_ransac(X, x, K, np.random.default_rng(RANSAC_SEED), threshold_px=THRESHOLD_PX)
     out.update({"ransac_syn_K": K, "ransac_syn_X": X, "ransac_syn_x": x, "ransac_syn_outlier": outl,
+                "ransac_syn_behind": behind,
                 "ransac_syn_true_R": R, "ransac_syn_true_t": t, "ransac_syn_R": res.R_cw, "ransac_syn_t": res.t_cw,
                 "ransac_syn_inliers": res.inliers, "ransac_syn_noise": np.array(0.3)})
     # the threshold in pixels: 1 px noise, threshold 3 px

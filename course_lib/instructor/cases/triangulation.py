@@ -62,6 +62,22 @@ def _build() -> dict[str, np.ndarray]:
         out.update({f"lin_{name}_P1": P1, f"lin_{name}_P2": P2, f"lin_{name}_x1": x1, f"lin_{name}_x2": x2,
                     f"lin_{name}_X": tri.triangulate_linear(P1, P2, x1, x2), f"lin_{name}_Xtrue": sc.X[ids]})
         _store_linear_mistakes(out, f"lin_{name}")
+    # a vertical baseline (camera 2 above camera 1, neither at the origin): the depth comes from v, so a system
+    # that drops a v row, or mixes up u and v, is far off here even when a horizontal baseline hides it
+    from course_lib.data.synthetic import WPI_LIKE_K, look_at
+
+    g = np.random.default_rng(13)
+    target = g.normal(0.0, 1.0, 3) + np.array([0.0, 0.0, 10.0])
+    Xv = target + g.uniform([-3.0, -2.0, -1.5], [3.0, 2.0, 1.5], size=(80, 3))
+    C1 = target + np.array([g.uniform(-1, 1), 0.0, -9.0])
+    C2 = C1 + np.array([g.uniform(-0.1, 0.1), -1.5, g.uniform(-0.2, 0.2)])  # y down: camera 2 is above
+    (R1, t1), (R2, t2) = look_at(C1, target), look_at(C2, target)
+    P1, P2 = projection_matrix(WPI_LIKE_K, R1, t1), projection_matrix(WPI_LIKE_K, R2, t2)
+    x1 = project(WPI_LIKE_K, R1, t1, Xv) + g.normal(0.0, 1.0, (80, 2))
+    x2 = project(WPI_LIKE_K, R2, t2, Xv) + g.normal(0.0, 1.0, (80, 2))
+    out.update({"lin_vertical_P1": P1, "lin_vertical_P2": P2, "lin_vertical_x1": x1, "lin_vertical_x2": x2,
+                "lin_vertical_X": tri.triangulate_linear(P1, P2, x1, x2), "lin_vertical_Xtrue": Xv})
+    _store_linear_mistakes(out, "lin_vertical")
 
     # -- choose_pose: candidates from the true E; two scenes whose correct candidate has another index
     for name, seed in (("syn_a", 21), ("syn_b", 24)):
@@ -213,6 +229,9 @@ def _store_pose_case(out, key, Rc, Cc, K, x1, x2, tri) -> None:
     order[[right, target]] = order[[target, right]]
     Rc, Cc = Rc[order], Cc[order]
     ch = tri.choose_pose(Rc, Cc, K, x1, x2)
+    P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])  # the points of every candidate: an X of another one is named
+    out[f"{key}_X_all"] = np.stack([tri.triangulate_linear(P1, K @ np.hstack([Rc[k], (-Rc[k] @ Cc[k])[:, None]]), x1, x2)
+                                    for k in range(4)])
     out.update({f"{key}_R": Rc, f"{key}_C": Cc, f"{key}_K": K, f"{key}_x1": x1, f"{key}_x2": x2,
                 f"{key}_R_cw": ch.R_cw, f"{key}_t_cw": ch.t_cw, f"{key}_X": ch.X, f"{key}_in_front": ch.in_front,
                 f"{key}_counts": ch.counts, f"{key}_index": np.array(ch.index),

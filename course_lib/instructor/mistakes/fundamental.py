@@ -12,7 +12,7 @@ import numpy as np
 from course_lib.conventions import fix_sign, to_homogeneous
 from course_lib.sfm import fundamental as ref
 
-__all__ = ["eight_point_variants", "sampson_variants", "ransac_masks"]
+__all__ = ["eight_point_variants", "sampson_variants"]
 
 
 def _solve(a: np.ndarray, b: np.ndarray, rank2: bool = True) -> np.ndarray:
@@ -76,10 +76,3 @@ def sampson_variants(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> dict[str,
         "wrong_gradient": np.abs(e) / np.sqrt(l2[:, 0] ** 2 + l2[:, 1] ** 2 + wrong_l1[:, 0] ** 2 + wrong_l1[:, 1] ** 2),
         "pixels_not_homogeneous_1": np.abs(e) / np.sqrt(g2 + l2[:, 2] ** 2 + l1[:, 2] ** 2),
     }
-
-
-def ransac_masks(F: np.ndarray, x1: np.ndarray, x2: np.ndarray, threshold_px: float) -> dict[str, np.ndarray]:
-    """Inlier masks (N,) of the right rule and of the classic wrong rules, for the reference's final F."""
-    d = ref.sampson_distance(F, x1, x2)
-    e = np.abs(np.sum(to_homogeneous(x2) * (to_homogeneous(x1) @ _unit(F).T), axis=1))
-    return {"right": d < threshold_px, "squared": d**2 < threshold_px, "algebraic": e < threshold_px}

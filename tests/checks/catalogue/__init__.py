@@ -39,6 +39,7 @@ class Mistake:
     fn: Callable  # the buggy version
     names: tuple[str, ...]  # the verdict names the mistake: all of these (lower case) appear in it
     defining: str | None = None  # the defining property it breaks, if any
+    batch: str = "classic"  # "classic": the mistakes the checks were built from; "29": written for issue 29
 
 
 @dataclass
@@ -49,6 +50,16 @@ class Honest:
     style: str  # what is particular about it, in a few words
     check: Callable
     fn: Callable
+
+
+def misnamed(m: Mistake, result: core.CheckResult) -> list[str]:
+    """The failed verdicts that confidently name a mistake (:attr:`core.Verdict.named`) that is not ``m``.
+
+    A verdict names ``m`` when all of ``m.names`` appear in its text; one that names another mistake is
+    a confident wrong name, the worst feedback (issue 29).
+    """
+    return [v.text for v in result.verdicts
+            if not v.ok and v.named and not all(w.lower() in v.text.lower() for w in m.names)]
 
 
 def run_check(check: Callable, fn: Callable) -> tuple[core.CheckResult, str]:

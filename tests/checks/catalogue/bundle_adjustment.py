@@ -343,7 +343,7 @@ MISTAKES = [
     M("bundle_adjust", "stopped after 3 evaluations", gba.check_bundle_adjustment, ba_three_evaluations,
       ("stopped before the minimum",)),
     M("bundle_adjust", "observations beyond 1 px dropped", gba.check_bundle_adjustment, ba_drops_observations,
-      ("another cost",)),
+      ("not the least-squares minimum",)),
 ]
 
 #: Correct solutions: they must score full marks.
@@ -379,3 +379,189 @@ def _trivial() -> list:
 
 #: Constants of the right shape: they pass the shape gates and trivially satisfied properties, and must earn nothing.
 TRIVIAL = _trivial()
+
+
+# ============================================================================ issue 29: written as students write them
+# From the notebook's text and the stub's docstring, with an error students make; then valid variants (among them
+# the honest but slow: residuals one observation at a time, a dense Jacobian).
+
+def visibility_u_positive(track_uv):  # "seen" tested as u > 0: a pixel at u <= 0 counts as unseen
+    return track_uv[..., 0] > 0
+
+
+def residuals_indices_swapped(params, n_cameras, n_points, camera_idx, point_idx, uv, K):  # camera_idx <-> point_idx
+    cams = params[: 6 * n_cameras].reshape(-1, 6)
+    pts = params[6 * n_cameras:].reshape(-1, 3)
+    c, j = point_idx % n_cameras, camera_idx  # the point index used for the camera and the other way round
+    R = Rotation.from_rotvec(cams[c, :3]).as_matrix()
+    xc = np.einsum("kij,kj->ki", R, pts[j]) + cams[c, 3:]
+    q = xc @ K.T
+    return (q[:, :2] / q[:, 2:] - uv).ravel()
+
+
+def residuals_no_principal_point(params, n_cameras, n_points, camera_idx, point_idx, uv, K):  # f x / z only
+    cams = params[: 6 * n_cameras].reshape(-1, 6)
+    pts = params[6 * n_cameras:].reshape(-1, 3)
+    R = Rotation.from_rotvec(cams[camera_idx, :3]).as_matrix()
+    xc = np.einsum("kij,kj->ki", R, pts[point_idx]) + cams[camera_idx, 3:]
+    proj = np.column_stack([K[0, 0] * xc[:, 0] / xc[:, 2], K[1, 1] * xc[:, 1] / xc[:, 2]])
+    return (proj - uv).ravel()
+
+
+def residuals_t_as_centre(params, n_cameras, n_points, camera_idx, point_idx, uv, K):  # x_cam = R (X - t)
+    cams = params[: 6 * n_cameras].reshape(-1, 6)
+    pts = params[6 * n_cameras:].reshape(-1, 3)
+    R = Rotation.from_rotvec(cams[camera_idx, :3]).as_matrix()
+    xc = np.einsum("kij,kj->ki", R, pts[point_idx] - cams[camera_idx, 3:])
+    q = xc @ K.T
+    return (q[:, :2] / q[:, 2:] - uv).ravel()
+
+
+def sparsity_rotation_columns_only(n_cameras, n_points, camera_idx, point_idx):  # 3 camera columns, not 6
+    A = scipy.sparse.lil_matrix((2 * len(camera_idx), 6 * n_cameras + 3 * n_points), dtype=int)
+    for k, (c, j) in enumerate(zip(camera_idx, point_idx)):
+        for r in (2 * k, 2 * k + 1):
+            A[r, 6 * c: 6 * c + 3] = 1
+            A[r, 6 * n_cameras + 3 * j: 6 * n_cameras + 3 * j + 3] = 1
+    return A
+
+
+def sparsity_point_stride_one(n_cameras, n_points, camera_idx, point_idx):  # point j's columns at 6M + j, no 3j
+    A = scipy.sparse.lil_matrix((2 * len(camera_idx), 6 * n_cameras + 3 * n_points), dtype=int)
+    for k, (c, j) in enumerate(zip(camera_idx, point_idx)):
+        for r in (2 * k, 2 * k + 1):
+            A[r, 6 * c: 6 * c + 6] = 1
+            A[r, 6 * n_cameras + j: 6 * n_cameras + j + 3] = 1
+    return A
+
+
+def _ba29(K, R_cw, t_cw, X, uv, callback=None, dtype=float, cameras_only=False, loss="linear", cb_params=False):
+    M, N = len(R_cw), len(X)
+    cam, pt, obs = observation_arrays(uv)
+    p0 = pack_params(R_cw, t_cw, X)
+    S = jacobian_sparsity(M, N, cam, pt)
+    if cameras_only:  # the points are left where they are: only the 6M camera parameters go to the solver
+        Xf = p0[6 * M:]
+        fun = lambda q: reprojection_residuals(np.concatenate([q, Xf]), M, N, cam, pt, obs, K)  # noqa: E731
+        hook = None if callback is None else (lambda q: callback(*unpack_params(np.concatenate([q, Xf]), M, N)))
+        q = least_squares(fun, p0[: 6 * M], jac_sparsity=scipy.sparse.csr_matrix(S)[:, : 6 * M], x_scale="jac",
+                          method="trf", callback=hook).x
+        return unpack_params(np.concatenate([q, Xf]), M, N)
+
+    def fun(p):
+        return reprojection_residuals(p, M, N, cam, pt, obs, K).astype(dtype)
+
+    hook = None
+    if callback is not None:
+        hook = (lambda x: callback(x)) if cb_params else (lambda x: callback(*unpack_params(x, M, N)))
+    res = least_squares(fun, p0, jac_sparsity=S, method="trf", x_scale="jac", loss=loss, callback=hook)
+    return unpack_params(res.x, M, N)
+
+
+def ba_float32_residuals(K, R_cw, t_cw, X, uv, callback=None):  # residuals cast to float32 "to save memory"
+    return _ba29(K, R_cw, t_cw, X, uv, callback, dtype=np.float32)
+
+
+def ba_points_not_optimized(K, R_cw, t_cw, X, uv, callback=None):
+    return _ba29(K, R_cw, t_cw, X, uv, callback, cameras_only=True)
+
+
+def ba_soft_l1(K, R_cw, t_cw, X, uv, callback=None):  # a robust loss "against outliers": another cost
+    return _ba29(K, R_cw, t_cw, X, uv, callback, loss="soft_l1")
+
+
+def ba_callback_gets_params(K, R_cw, t_cw, X, uv, callback=None):  # callback(x): the parameter vector, as scipy does
+    return _ba29(K, R_cw, t_cw, X, uv, callback, cb_params=True)
+
+
+# -- valid variants -----------------------------------------------------------------------------------------------
+def visibility_matrix__all_nan(track_uv):
+    """Unseen where both coordinates are NaN (they always come together)."""
+    return ~np.all(np.isnan(track_uv), axis=-1)
+
+
+def reprojection_residuals__float32(params, n_cameras, n_points, camera_idx, point_idx, uv, K):
+    """The residuals computed and returned in float32."""
+    p = np.asarray(params, np.float32)
+    cams = p[: 6 * n_cameras].reshape(n_cameras, 6)
+    pts = p[6 * n_cameras:].reshape(n_points, 3)
+    R = Rotation.from_rotvec(cams[camera_idx, :3]).as_matrix().astype(np.float32)
+    xc = np.einsum("kij,kj->ki", R, pts[point_idx]) + cams[camera_idx, 3:]
+    q = xc @ K.astype(np.float32).T
+    return (q[:, :2] / q[:, 2:] - uv.astype(np.float32)).ravel()
+
+
+def reprojection_residuals__per_observation(params, n_cameras, n_points, camera_idx, point_idx, uv, K):
+    """Slow but correct: a Rotation object per observation, in a Python loop."""
+    r = []
+    for c, j, (u, v) in zip(camera_idx, point_idx, uv):
+        cam = params[6 * c: 6 * c + 6]
+        Xj = params[6 * n_cameras + 3 * j: 6 * n_cameras + 3 * j + 3]
+        x = K @ (Rotation.from_rotvec(cam[:3]).apply(Xj) + cam[3:])
+        r += [x[0] / x[2] - u, x[1] / x[2] - v]
+    return np.array(r)
+
+
+def jacobian_sparsity__bool_kron(n_cameras, n_points, camera_idx, point_idx):
+    """A dense bool array: one-hot rows of cameras and points expanded with np.kron."""
+    cams = np.kron(np.eye(n_cameras, dtype=bool)[camera_idx], np.ones((2, 6), dtype=bool))
+    pts = np.kron(np.eye(n_points, dtype=bool)[point_idx], np.ones((2, 3), dtype=bool))
+    return np.hstack([cams, pts])
+
+
+def bundle_adjust__dense_jacobian(K, R_cw, t_cw, X, uv, callback=None):
+    """Slow but correct: no jac_sparsity, so least_squares estimates the whole dense Jacobian."""
+    M, N = len(R_cw), len(X)
+    cam, pt, obs = observation_arrays(uv)
+    res = least_squares(reprojection_residuals, pack_params(R_cw, t_cw, X), x_scale="jac",
+                        args=(M, N, cam, pt, obs, K),
+                        callback=None if callback is None else (lambda x: callback(*unpack_params(x, M, N))))
+    return unpack_params(res.x, M, N)
+
+
+def bundle_adjust__no_x_scale(K, R_cw, t_cw, X, uv, callback=None):
+    """least_squares' defaults apart from the sparsity (no x_scale), callback through the keyword form."""
+    M, N = len(R_cw), len(X)
+    cam, pt, obs = observation_arrays(uv)
+
+    def report(intermediate_result):
+        if callback is not None:
+            callback(*unpack_params(intermediate_result.x, M, N))
+
+    res = least_squares(lambda p: reprojection_residuals(p, M, N, cam, pt, obs, K), pack_params(R_cw, t_cw, X),
+                        jac_sparsity=jacobian_sparsity(M, N, cam, pt), callback=report)
+    return unpack_params(res.x, M, N)
+
+
+MISTAKES += [
+    M("visibility_matrix", "seen tested as u > 0", gba.check_visibility_matrix, visibility_u_positive,
+      ("entries",), batch="29"),
+    M("reprojection_residuals", "camera_idx and point_idx swapped", gba.check_reprojection_residuals,
+      residuals_indices_swapped, ("max difference",), batch="29"),
+    M("reprojection_residuals", "principal point missing", gba.check_reprojection_residuals,
+      residuals_no_principal_point, ("max difference",), batch="29"),
+    M("reprojection_residuals", "x_cam = R (X - t)", gba.check_reprojection_residuals, residuals_t_as_centre,
+      ("max difference",), batch="29"),
+    M("jacobian_sparsity", "3 columns per camera", gba.check_jacobian_sparsity, sparsity_rotation_columns_only,
+      ("differ",), batch="29"),
+    M("jacobian_sparsity", "point columns 6M + j", gba.check_jacobian_sparsity, sparsity_point_stride_one,
+      ("6m + 3j",), batch="29"),
+    M("bundle_adjust", "points not optimized", gba.check_bundle_adjustment, ba_points_not_optimized,
+      ("points",), batch="29"),
+    M("bundle_adjust", "soft_l1 loss", gba.check_bundle_adjustment, ba_soft_l1, ("minimum",), batch="29"),
+    M("bundle_adjust", "callback(x) with the parameter vector", gba.check_bundle_adjustment, ba_callback_gets_params,
+      ("callback",), batch="29"),
+]
+
+HONEST += [
+    Honest("visibility_matrix", "NaN in both coordinates", gba.check_visibility_matrix, visibility_matrix__all_nan),
+    Honest("reprojection_residuals", "float32", gba.check_reprojection_residuals, reprojection_residuals__float32),
+    Honest("reprojection_residuals", "one observation at a time (slow)", gba.check_reprojection_residuals,
+           reprojection_residuals__per_observation),
+    Honest("jacobian_sparsity", "dense bool, np.kron", gba.check_jacobian_sparsity, jacobian_sparsity__bool_kron),
+    Honest("bundle_adjust", "dense Jacobian (slow)", gba.check_bundle_adjustment, bundle_adjust__dense_jacobian),
+    Honest("bundle_adjust", "no x_scale, keyword callback", gba.check_bundle_adjustment, bundle_adjust__no_x_scale),
+    # written as a mistake (issue 29's probe: residuals cast to float32), it reaches the minimum: valid
+    Honest("bundle_adjust", "residuals cast to float32", gba.check_bundle_adjustment, ba_float32_residuals),
+]
+

@@ -156,7 +156,7 @@ def pose_candidates__proper_svd(E):
 M = Mistake
 MISTAKES = [
     M("essential_from_fundamental", "singular values not corrected", ges.check_essential_from_fundamental,
-      essential_uncorrected, ("not corrected", "(1, 1, 0)"), defining="singular values (1, 1, 0)"),
+      essential_uncorrected, ("did not correct", "(1, 1, 0)"), defining="singular values (s, s, 0)"),
     M("essential_from_fundamental", "K F Kᵀ", ges.check_essential_from_fundamental, essential_wrong_order,
       ("k f kᵀ",)),
     M("pose_candidates", "det R = -1 not fixed", ges.check_pose_candidates, pose_candidates_no_det_fix,
@@ -165,13 +165,13 @@ MISTAKES = [
       ("not the camera centre",)),
     M("pose_candidates", "C = -R t", ges.check_pose_candidates, pose_candidates_C_minus_R_t, ("c = -r t",)),
     M("pose_candidates", "only one rotation", ges.check_pose_candidates, pose_candidates_one_rotation,
-      ("only one rotation",)),
+      ("one rotation",)),
     M("essential_from_fundamental", "K⁻ᵀ F K⁻¹", ges.check_essential_from_fundamental, essential_inverse_K,
       ("turns an e into an f",)),
     M("essential_from_fundamental", "Fᵀ used", ges.check_essential_from_fundamental, essential_F_transposed,
-      ("fᵀ was used",)),
+      ("you used fᵀ",)),
     M("essential_from_fundamental", "singular values (1, s2/s1, 0)", ges.check_essential_from_fundamental,
-      essential_kept_singular_values, ("not corrected",), defining="singular values (1, 1, 0)"),
+      essential_kept_singular_values, ("did not correct",), defining="singular values (s, s, 0)"),
 ]
 
 #: Correct solutions: they must score full marks.
@@ -183,11 +183,7 @@ HONEST = [
     Honest("pose_candidates", "U and V made rotations first", ges.check_pose_candidates, pose_candidates__proper_svd),
     Honest("essential_from_fundamental", "the reference solution", ges.check_essential_from_fundamental, res.essential_from_fundamental),
     Honest("pose_candidates", "the reference solution", ges.check_pose_candidates, res.pose_candidates),
-]
-
-
-#: Correct maths in another form than the docstring's: full hidden-check points, a detail (≤ 1 point of 10).
-DETAIL = [
+    # equivalences (issue 29: one rule, full marks): E up to scale, the candidates in another order
     Honest("essential_from_fundamental", "diag((s1 + s2) / 2, same, 0)", ges.check_essential_from_fundamental,
            essential_average_singular_value),
     Honest("pose_candidates", "grouped by the sign of C (+, +, -, -)", ges.check_pose_candidates,
@@ -205,3 +201,133 @@ def _trivial() -> list:
 
 #: Constants of the right shape: they pass the shape gates and trivially satisfied properties, and must earn nothing.
 TRIVIAL = _trivial()
+
+
+# ============================================================================ issue 29: written as students write them
+# From the notebook's text and the stub's docstring, with an error students make; then valid variants in other
+# documented forms (E up to scale, -E, float32, another candidate order), which must get full marks.
+
+def essential_v_not_transposed(F, K):  # numpy's third output is Vᵀ, used as if it were V (MATLAB's [U, S, V])
+    U, S, V = np.linalg.svd(K.T @ F @ K)
+    return U @ np.diag([1, 1, 0]) @ V.T
+
+
+def essential_one_K(F, K):  # E = Kᵀ F: the second K forgotten
+    U, S, Vt = np.linalg.svd(K.T @ F)
+    return U @ np.diag([1.0, 1.0, 0.0]) @ Vt
+
+
+def essential_normalized_not_projected(F, K):  # "singular values (1, 1, 0)" read as "divide by the largest"
+    E = K.T @ F @ K
+    return E / np.linalg.svd(E, compute_uv=False)[0]
+
+
+def pose_candidates_v_not_transposed(E):  # U W V with numpy's Vᵀ taken for V
+    W = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]], float)
+    U, S, V = np.linalg.svd(E)
+    Rs, Cs = [], []
+    for R in (U @ W @ V.T, U @ W.T @ V.T):
+        for t in (U[:, 2], -U[:, 2]):
+            C = -R.T @ t
+            if np.linalg.det(R) < 0:
+                R, C = -R, -C
+            Rs.append(R)
+            Cs.append(C)
+    return np.array(Rs), np.array(Cs)
+
+
+def pose_candidates_det_equals_minus_one(E):  # the flip tested with det(R) == -1: float rounding never equals
+    W = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]], float)
+    U, S, Vt = np.linalg.svd(E)
+    Rs, Cs = [], []
+    for R in (U @ W @ Vt, U @ W.T @ Vt):
+        for t in (U[:, 2], -U[:, 2]):
+            C = -R.T @ t
+            if np.linalg.det(R) == -1:
+                R, C = -R, -C
+            Rs.append(R)
+            Cs.append(C)
+    return np.array(Rs), np.array(Cs)
+
+
+# -- valid variants -----------------------------------------------------------------------------------------------
+def essential_from_fundamental__up_to_scale(F, K):
+    """E = Kᵀ F K projected to (s, s, 0) with s the mean of the two: correct up to scale."""
+    U, s, Vt = np.linalg.svd(K.T @ F @ K)
+    m = (s[0] + s[1]) / 2
+    return U @ np.diag([m, m, 0.0]) @ Vt
+
+
+def essential_from_fundamental__negated_float32(F, K):
+    """-E in float32 (E is defined up to sign)."""
+    U, _, Vt = np.linalg.svd((K.T @ F @ K).astype(np.float32))
+    return -(U @ np.diag(np.array([1, 1, 0], np.float32)) @ Vt)
+
+
+def pose_candidates__w_transposed(E):
+    """W taken as the rotation by -90° (Wᵀ): the same four candidates, in another order."""
+    W = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    U, _, Vt = np.linalg.svd(E)
+    Rs, Cs = [], []
+    for R in (U @ W @ Vt, U @ W.T @ Vt):
+        for sign in (1.0, -1.0):
+            C = -R.T @ (sign * U[:, 2])
+            if np.linalg.det(R) < 0:
+                R, C = -R, -C
+            Rs.append(R)
+            Cs.append(C)
+    return np.array(Rs), np.array(Cs)
+
+
+def pose_candidates__only_R_flipped(E):
+    """det fixed by flipping R alone: C and -C are both in the list, so the four candidates are the same set."""
+    W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    U, _, Vt = np.linalg.svd(E)
+    Rs, Cs = [], []
+    for R in (U @ W @ Vt, U @ W.T @ Vt):
+        R = R if np.linalg.det(R) > 0 else -R
+        c = Vt[2] / np.linalg.norm(Vt[2])  # the right null vector of E: the centre's direction
+        Rs += [R, R]
+        Cs += [c, -c]
+    return np.array(Rs), np.array(Cs)
+
+
+def pose_candidates__float32(E):
+    """float32 throughout."""
+    E = np.asarray(E, np.float32)
+    W = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]], np.float32)
+    U, _, Vt = np.linalg.svd(E)
+    Rs, Cs = [], []
+    for R in (U @ W @ Vt, U @ W.T @ Vt):
+        for sign in (1, -1):
+            C = -R.T @ (sign * U[:, 2])
+            if np.linalg.det(R) < 0:
+                R, C = -R, -C
+            Rs.append(R)
+            Cs.append(C / np.linalg.norm(C))
+    return np.array(Rs, np.float32), np.array(Cs, np.float32)
+
+
+MISTAKES += [
+    M("essential_from_fundamental", "Vᵀ used as V", ges.check_essential_from_fundamental, essential_v_not_transposed,
+      ("kᵀ f k",), batch="29"),
+    M("essential_from_fundamental", "E = Kᵀ F", ges.check_essential_from_fundamental, essential_one_K, ("kᵀ f k",),
+      batch="29"),
+    M("essential_from_fundamental", "divided by the largest singular value", ges.check_essential_from_fundamental,
+      essential_normalized_not_projected, ("singular values",), defining="singular values (s, s, 0)", batch="29"),
+    M("pose_candidates", "Vᵀ used as V", ges.check_pose_candidates, pose_candidates_v_not_transposed,
+      ("factor e",), batch="29"),
+    M("pose_candidates", "det(R) == -1", ges.check_pose_candidates, pose_candidates_det_equals_minus_one,
+      ("det -1",), defining="det R = +1", batch="29"),
+]
+
+HONEST += [
+    Honest("essential_from_fundamental", "up to scale, (s, s, 0)", ges.check_essential_from_fundamental,
+           essential_from_fundamental__up_to_scale),
+    Honest("essential_from_fundamental", "-E in float32", ges.check_essential_from_fundamental,
+           essential_from_fundamental__negated_float32),
+    Honest("pose_candidates", "W as the -90° rotation (another order)", ges.check_pose_candidates,
+           pose_candidates__w_transposed),
+    Honest("pose_candidates", "only R flipped, C = ±V[:, 2]", ges.check_pose_candidates, pose_candidates__only_R_flipped),
+    Honest("pose_candidates", "float32 throughout", ges.check_pose_candidates, pose_candidates__float32),
+]

@@ -337,19 +337,19 @@ M = Mistake
 MISTAKES = [
     M("normalize_points", "centroid not removed", gfu.check_normalize_points, normalize_no_centroid,
       ("subtract the mean",)),
-    M("normalize_points", "mean distance 1", gfu.check_normalize_points, normalize_mean_one, ("mean distance is 1",)),
+    M("normalize_points", "mean distance 1", gfu.check_normalize_points, normalize_mean_one, ("mean distance to the centroid is 1",)),
     M("normalize_points", "one scale per axis", gfu.check_normalize_points, normalize_two_scales,
       ("different scales",)),
-    M("normalize_points", "T inverted", gfu.check_normalize_points, normalize_T_inverted, ("t is the inverse",)),
+    M("normalize_points", "T inverted", gfu.check_normalize_points, normalize_T_inverted, ("inverse of t",)),
     M("normalize_points", "RMS distance sqrt(2)", gfu.check_normalize_points, normalize_rms, ("rms distance",)),
     M("normalize_points", "scale from the uncentred points", gfu.check_normalize_points, normalize_uncentred_scale,
       ("uncentred points",)),
     M("normalize_points", "homogeneous points returned", gfu.check_normalize_points, normalize_homogeneous,
       ("drop the homogeneous 1",)),
-    M("eight_point", "no rank-2 step", gfu.check_eight_point, eight_point_no_rank2, ("rank 3", "enforce rank 2"),
+    M("eight_point", "no rank-2 step", gfu.check_eight_point, eight_point_no_rank2, ("rank 3", "zero the smallest singular value"),
       defining="rank 2"),
     M("eight_point", "not normalized", gfu.check_eight_point, eight_point_unnormalized, ("not normalized",)),
-    M("eight_point", "F transposed", gfu.check_eight_point, eight_point_transposed, ("transposed f",)),
+    M("eight_point", "F transposed", gfu.check_eight_point, eight_point_transposed, ("f is transposed",)),
     M("eight_point", "not denormalized", gfu.check_eight_point, eight_point_not_denormalized,
       ("still in normalized coordinates",)),
     M("eight_point", "denormalized T1ᵀ F T2", gfu.check_eight_point, eight_point_denormalized_swapped,
@@ -362,7 +362,7 @@ MISTAKES = [
       ("its epipolar line f x1 only",)),
     M("sampson_distance", "symmetric epipolar distance", gfu.check_sampson_distance, sampson_symmetric,
       ("symmetric epipolar distance",)),
-    M("sampson_distance", "F x2 for Fᵀ x2", gfu.check_sampson_distance, sampson_wrong_gradient, ("not f x2",)),
+    M("sampson_distance", "F x2 for Fᵀ x2", gfu.check_sampson_distance, sampson_wrong_gradient, ("you took f x2",)),
     M("sampson_distance", "signed distance", gfu.check_sampson_distance, sampson_signed, ("absolute value",)),
     M("ransac_fundamental", "threshold on the algebraic error", gfu.check_ransac_fundamental, ransac_algebraic,
       ("algebraic error", "sampson_distance(f, x1, x2) < threshold_px")),
@@ -421,3 +421,292 @@ def _trivial() -> list:
 
 #: Constants of the right shape: they pass the shape gates and trivially satisfied properties, and must earn nothing.
 TRIVIAL = _trivial()
+
+
+# ============================================================================ issue 29: written as students write them
+# Each from the notebook's text and the stub's docstring, with an error students make (not from the checks'
+# messages); calls of earlier exercises use the reference, as in grading. Then correct variants in other
+# valid forms and conventions (F / F[2, 2], -F, float32, one normalization for both images, ...).
+
+def normalize_points_std(x):  # "mean distance sqrt(2)" read as "standard deviation sqrt(2)"
+    c = x.mean(axis=0)
+    s = np.sqrt(2) / np.std(x - c)
+    T = np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1]])
+    return (x - c) * s, T
+
+
+def normalize_points_inverted_ratio(x):  # s = mean distance / sqrt(2): the ratio upside down
+    c = x.mean(axis=0)
+    d = np.linalg.norm(x - c, axis=1).mean()
+    s = d / np.sqrt(2)
+    T = np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1]])
+    return (x - c) * s, T
+
+
+def normalize_points_translation_unscaled(x):  # x_n right, but T translates by -c, not -s c
+    c = x.mean(axis=0)
+    s = np.sqrt(2) / np.mean(np.sqrt(((x - c) ** 2).sum(axis=1)))
+    T = np.array([[s, 0, -c[0]], [0, s, -c[1]], [0, 0, 1]])
+    return s * (x - c), T
+
+
+def normalize_points_scaled_not_centred(x):  # pixels scaled, never centred: both the scale and x_n use raw x
+    s = np.sqrt(2) / np.linalg.norm(x, axis=1).mean()
+    T = np.diag([s, s, 1.0])
+    return x * s, T
+
+
+def normalize_points_max_distance(x):  # the largest distance becomes sqrt(2)
+    c = x.mean(axis=0)
+    s = np.sqrt(2) / np.linalg.norm(x - c, axis=1).max()
+    T = np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1]])
+    return (x - c) * s, T
+
+
+def _rows(a, b):
+    u1, v1 = a[:, 0], a[:, 1]
+    u2, v2 = b[:, 0], b[:, 1]
+    return np.stack([u2 * u1, u2 * v1, u2, v2 * u1, v2 * v1, v2, u1, v1, np.ones(len(a))], axis=1)
+
+
+def eight_point_rank2_after_denormalizing(x1, x2):  # the rank-2 step in pixels, after T2ᵀ F T1
+    a, T1 = rfu.normalize_points(x1)
+    b, T2 = rfu.normalize_points(x2)
+    F = np.linalg.svd(_rows(a, b))[2][-1].reshape(3, 3)
+    F = T2.T @ F @ T1
+    U, S, Vt = np.linalg.svd(F)
+    S[2] = 0
+    F = U @ np.diag(S) @ Vt
+    return F / np.linalg.norm(F)
+
+
+def eight_point_column_of_vt(x1, x2):  # the null vector read as the last COLUMN of Vt (MATLAB's V(:, end))
+    a, T1 = rfu.normalize_points(x1)
+    b, T2 = rfu.normalize_points(x2)
+    U, S, Vt = np.linalg.svd(_rows(a, b))
+    F = Vt[:, -1].reshape(3, 3)
+    U, S, Vt = np.linalg.svd(F)
+    S[2] = 0
+    F = T2.T @ U @ np.diag(S) @ Vt @ T1
+    return F / np.linalg.norm(F)
+
+
+def eight_point_zeroes_largest(x1, x2):  # "zero the smallest singular value" with S assumed ascending
+    a, T1 = rfu.normalize_points(x1)
+    b, T2 = rfu.normalize_points(x2)
+    F = np.linalg.svd(_rows(a, b))[2][-1].reshape(3, 3)
+    U, S, Vt = np.linalg.svd(F)
+    S[0] = 0
+    F = T2.T @ U @ np.diag(S) @ Vt @ T1
+    return F / np.linalg.norm(F)
+
+
+def eight_point_first_eight(x1, x2):  # "8-point": only the first 8 matches go into A
+    a, T1 = rfu.normalize_points(x1[:8])
+    b, T2 = rfu.normalize_points(x2[:8])
+    F = np.linalg.svd(_rows(a, b))[2][-1].reshape(3, 3)
+    U, S, Vt = np.linalg.svd(F)
+    F = T2.T @ U @ np.diag([S[0], S[1], 0]) @ Vt @ T1
+    return F / np.linalg.norm(F)
+
+
+def sampson_numerator_swapped(F, x1, x2):  # x1ᵀ F x2 on top, the right lines below
+    h1, h2 = _h(x1), _h(x2)
+    num = np.einsum("ni,ij,nj->n", h1, F, h2)
+    Fx1, Ftx2 = h1 @ F.T, h2 @ F
+    return np.abs(num) / np.sqrt(Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2)
+
+
+def sampson_lines_transposed(F, x1, x2):  # the lines as Fᵀ x1 and F x2 (row-vector confusion), numerator right
+    h1, h2 = _h(x1), _h(x2)
+    num = np.sum(h2 * (h1 @ F.T), axis=1)
+    l2, l1 = h1 @ F, h2 @ F.T
+    return np.abs(num) / np.sqrt(l2[:, 0] ** 2 + l2[:, 1] ** 2 + l1[:, 0] ** 2 + l1[:, 1] ** 2)
+
+
+def sampson_mean(F, x1, x2):  # returns the mean distance, one number
+    h1, h2 = _h(x1), _h(x2)
+    Fx1, Ftx2 = h1 @ F.T, h2 @ F
+    e = np.sum(h2 * Fx1, axis=1)
+    return float(np.mean(np.abs(e) / np.sqrt(Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2)))
+
+
+def sampson_in_normalized_coordinates(F, x1, x2):  # normalizes the points first "for stability": no longer pixels
+    a, T1 = rfu.normalize_points(x1)
+    b, T2 = rfu.normalize_points(x2)
+    Fn = np.linalg.inv(T2).T @ F @ np.linalg.inv(T1)
+    h1, h2 = _h(a), _h(b)
+    l2, l1 = h1 @ Fn.T, h2 @ Fn
+    e = np.sum(h2 * l2, axis=1)
+    return np.abs(e) / np.sqrt(l2[:, 0] ** 2 + l2[:, 1] ** 2 + l1[:, 0] ** 2 + l1[:, 1] ** 2)
+
+
+def _ransac29(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000, rule="right", own=None,
+              bad_formula=False):
+    g = rng
+    if own == "seeded":
+        g = np.random.default_rng(0)
+    elif own == "global":
+        np.random.seed(0)
+    n = len(x1)
+    best_inl, n_iters, N = np.zeros(n, bool), 0, max_iters
+    while n_iters < min(N, max_iters):
+        idx = np.random.choice(n, 8, replace=False) if own == "global" else g.choice(n, 8, replace=False)
+        d = rfu.sampson_distance(rfu.eight_point(x1[idx], x2[idx]), x1, x2)
+        inl = d < threshold_px**2 if rule == "squared_threshold" else d < threshold_px
+        n_iters += 1
+        if inl.sum() > best_inl.sum():
+            best_inl = inl
+            w = inl.mean()
+            if w >= 1:
+                N = 0
+            elif bad_formula:
+                N = math.log(1 - confidence) / math.log(1 - w) ** 8
+            else:
+                N = math.log(1 - confidence) / math.log(1 - w**8)
+    F = rfu.eight_point(x1[best_inl], x2[best_inl])
+    d = rfu.sampson_distance(F, x1, x2)
+    return rfu.RansacResult(F, d < threshold_px**2 if rule == "squared_threshold" else d < threshold_px, n_iters)
+
+
+def ransac_threshold_squared(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):  # d < thr²
+    return _ransac29(x1, x2, rng, threshold_px, confidence, max_iters, rule="squared_threshold")
+
+
+def ransac_own_seeded_generator(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
+    return _ransac29(x1, x2, rng, threshold_px, confidence, max_iters, own="seeded")  # default_rng(0), rng unused
+
+
+def ransac_seeds_global(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
+    return _ransac29(x1, x2, rng, threshold_px, confidence, max_iters, own="global")  # np.random.seed(0) inside
+
+
+def ransac_count_formula_parenthesized(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
+    return _ransac29(x1, x2, rng, threshold_px, confidence, max_iters, bad_formula=True)  # log(1 - w) ** 8
+
+
+# -- valid variants (issue 29: every one full marks through the real grader) -------------------------------------
+def _unit_f(x1, x2):
+    """The normalized 8-point F of unit norm (written inline: no call of the exercise itself)."""
+    a, T1 = normalize_points(x1)
+    b, T2 = normalize_points(x2)
+    F = np.linalg.svd(_rows(a, b))[2][-1].reshape(3, 3)
+    U, S, Vt = np.linalg.svd(F)
+    return T2.T @ U @ np.diag([S[0], S[1], 0]) @ Vt @ T1
+
+
+def eight_point__f33_one(x1, x2):
+    """F scaled so that F[2, 2] = 1 (the other common normalization of F)."""
+    F = _unit_f(x1, x2)
+    return F / F[2, 2]
+
+
+def eight_point__negated(x1, x2):
+    """-F of unit norm, the sign not fixed: F is defined up to sign."""
+    F = _unit_f(x1, x2)
+    F = F / np.linalg.norm(F)
+    return -F if F.flat[np.argmax(np.abs(F))] > 0 else F
+
+
+def eight_point__float32(x1, x2):
+    """The whole computation in float32."""
+    x1, x2 = x1.astype(np.float32), x2.astype(np.float32)
+    a, T1 = normalize_points__float32(x1)
+    b, T2 = normalize_points__float32(x2)
+    A = _rows(a, b).astype(np.float32)
+    F = np.linalg.svd(A)[2][-1].reshape(3, 3)
+    U, S, Vt = np.linalg.svd(F)
+    F = T2.T @ U @ np.diag(np.array([S[0], S[1], 0], np.float32)) @ Vt @ T1
+    return (F / np.linalg.norm(F)).astype(np.float32)
+
+
+def eight_point__one_normalization(x1, x2):
+    """One similarity for both images (from all the points of both): still a valid normalization."""
+    a, T = normalize_points(np.vstack([x1, x2]))
+    n = len(x1)
+    F = np.linalg.svd(_rows(a[:n], a[n:]))[2][-1].reshape(3, 3)
+    U, S, Vt = np.linalg.svd(F)
+    F = T.T @ U @ np.diag([S[0], S[1], 0]) @ Vt @ T
+    return F / np.linalg.norm(F)
+
+
+def normalize_points__float32(x):
+    """float32 throughout."""
+    x = np.asarray(x, np.float32)
+    c = x.mean(axis=0)
+    s = np.float32(np.sqrt(2)) / np.linalg.norm(x - c, axis=1).mean()
+    T = np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1]], np.float32)
+    return ((x - c) * s).astype(np.float32), T
+
+
+def sampson_distance__float32(F, x1, x2):
+    """float32 throughout, Sampson's error then its root."""
+    F = F.astype(np.float32)
+    h1 = np.column_stack([x1, np.ones(len(x1))]).astype(np.float32)
+    h2 = np.column_stack([x2, np.ones(len(x2))]).astype(np.float32)
+    Fx1, Ftx2 = h1 @ F.T, h2 @ F
+    e = np.sum(h2 * Fx1, axis=1)
+    return np.sqrt(e**2 / (Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2))
+
+
+def ransac_fundamental__ties_kept(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000):
+    """Samples from rng.permutation, a sample as good as the best replaces it (>=), inliers by <=, N rounded up."""
+    n, best, n_iters, N = len(x1), None, 0, max_iters
+    while n_iters < min(N, max_iters):
+        idx = rng.permutation(n)[:8]
+        n_iters += 1
+        inl = sampson_distance(eight_point(x1[idx], x2[idx]), x1, x2) <= threshold_px
+        if best is None or inl.sum() >= best.sum():
+            best = inl
+            w = inl.mean()
+            N = 0 if w == 1 else (max_iters if w == 0 else np.ceil(np.log(1 - confidence) / np.log(1 - w**8)))
+    F = eight_point(x1[best], x2[best])
+    return F, sampson_distance(F, x1, x2) <= threshold_px, n_iters
+
+
+MISTAKES += [
+    M("normalize_points", "std of the coordinates sqrt(2)", gfu.check_normalize_points, normalize_points_std,
+      ("mean distance",), batch="29"),
+    M("normalize_points", "scale ratio upside down", gfu.check_normalize_points, normalize_points_inverted_ratio,
+      ("mean distance",), batch="29"),
+    M("normalize_points", "T translates by -c, not -s c", gfu.check_normalize_points,
+      normalize_points_translation_unscaled, ("translates by -c",), batch="29"),
+    M("normalize_points", "scaled but not centred", gfu.check_normalize_points, normalize_points_scaled_not_centred,
+      ("centroid",), batch="29"),
+    M("normalize_points", "largest distance sqrt(2)", gfu.check_normalize_points, normalize_points_max_distance,
+      ("mean distance",), batch="29"),
+    M("eight_point", "rank 2 enforced after denormalizing", gfu.check_eight_point,
+      eight_point_rank2_after_denormalizing, ("epipolar",), batch="29"),
+    M("eight_point", "null vector from a column of Vt", gfu.check_eight_point, eight_point_column_of_vt,
+      ("epipolar",), batch="29"),
+    M("eight_point", "largest singular value zeroed", gfu.check_eight_point, eight_point_zeroes_largest,
+      ("epipolar",), batch="29"),
+    M("eight_point", "only the first 8 matches", gfu.check_eight_point, eight_point_first_eight, ("epipolar",),
+      batch="29"),
+    M("sampson_distance", "numerator x1ᵀ F x2", gfu.check_sampson_distance, sampson_numerator_swapped,
+      ("sampson",), batch="29"),
+    M("sampson_distance", "lines Fᵀ x1 and F x2", gfu.check_sampson_distance, sampson_lines_transposed,
+      ("sampson",), batch="29"),
+    M("sampson_distance", "the mean, one number", gfu.check_sampson_distance, sampson_mean, ("shape",), batch="29"),
+    M("sampson_distance", "in normalized coordinates", gfu.check_sampson_distance,
+      sampson_in_normalized_coordinates, ("sampson",), batch="29"),
+    M("ransac_fundamental", "d < threshold²", gfu.check_ransac_fundamental, ransac_threshold_squared,
+      ("threshold",), batch="29"),
+    M("ransac_fundamental", "own default_rng(0)", gfu.check_ransac_fundamental, ransac_own_seeded_generator,
+      ("seed",), batch="29"),
+    M("ransac_fundamental", "np.random.seed(0) inside", gfu.check_ransac_fundamental, ransac_seeds_global,
+      ("global",), batch="29"),
+    M("ransac_fundamental", "N = log(1 - p) / log(1 - w) ** 8", gfu.check_ransac_fundamental,
+      ransac_count_formula_parenthesized, ("n_iters",), batch="29"),
+]
+
+HONEST += [
+    Honest("eight_point", "F / F[2, 2]", gfu.check_eight_point, eight_point__f33_one),
+    Honest("eight_point", "-F", gfu.check_eight_point, eight_point__negated),
+    Honest("eight_point", "float32 throughout", gfu.check_eight_point, eight_point__float32),
+    Honest("eight_point", "one normalization for both images", gfu.check_eight_point, eight_point__one_normalization),
+    Honest("normalize_points", "float32 throughout", gfu.check_normalize_points, normalize_points__float32),
+    Honest("sampson_distance", "float32 throughout", gfu.check_sampson_distance, sampson_distance__float32),
+    Honest("ransac_fundamental", "permutation samples, ties kept, <=", gfu.check_ransac_fundamental,
+           ransac_fundamental__ties_kept),
+]

@@ -36,8 +36,10 @@ def get_rays__inverse_K(H, W, K, c2w):
 
 
 def stratified_samples(near, far, n_samples, n_rays, perturb, generator=None):
-    """Plain code: the kit's bins around the evaluation depths."""
-    z = torch.linspace(near, far, n_samples).expand(n_rays, n_samples)
+    """Plain code: the kit's bins around the evaluation depths; near and far floats or (R,) tensors (per ray)."""
+    near = torch.as_tensor(near, dtype=torch.float32).reshape(-1, 1)
+    far = torch.as_tensor(far, dtype=torch.float32).reshape(-1, 1)
+    z = (near + (far - near) * torch.linspace(0, 1, n_samples)).expand(n_rays, n_samples)
     if not perturb:
         return z.clone()
     mids = (z[:, 1:] + z[:, :-1]) / 2
@@ -47,9 +49,12 @@ def stratified_samples(near, far, n_samples, n_rays, perturb, generator=None):
 
 
 def stratified_samples__paper_equal_bins(near, far, n_samples, n_rays, perturb, generator=None):
-    """The NeRF paper's equation (2): S equal bins of width (far - near) / S, one uniform sample in each."""
+    """The NeRF paper's equation (2): S equal bins of width (far - near) / S, one uniform sample in each; near and far
+    floats or (R,) tensors."""
+    near = torch.as_tensor(near, dtype=torch.float32)[..., None]
+    far = torch.as_tensor(far, dtype=torch.float32)[..., None]
     if not perturb:
-        return torch.linspace(near, far, n_samples).repeat(n_rays, 1)
+        return (near + (far - near) * torch.linspace(0, 1, n_samples)).expand(n_rays, n_samples).clone()
     width = (far - near) / n_samples
     start = near + width * torch.arange(n_samples, dtype=torch.float32)
     return start + width * torch.rand((n_rays, n_samples), generator=generator)
@@ -182,7 +187,7 @@ M = Mistake
 MISTAKES = [
     M("get_rays", "OpenGL camera axes", gnd.check_get_rays, _rays(signs=(1, -1, -1)), ("opengl",)),
     M("get_rays", "meshgrid ij", gnd.check_get_rays, get_rays_ij, ("meshgrid",)),
-    M("get_rays", "rotation transposed", gnd.check_get_rays, _rays(rotate="RT"), ("transposed",)),
+    M("get_rays", "rotation transposed", gnd.check_get_rays, _rays(rotate="RT"), ("rotated with the transpose",)),
     M("get_rays", "principal point at W / 2", gnd.check_get_rays, _rays(centre=2.0), ("principal point",)),
     M("get_rays", "half-pixel offset (near miss)", gnd.check_get_rays, _rays(offset=0.5), ("half-pixel",)),
     M("get_rays", "normalized directions (near miss)", gnd.check_get_rays, _rays(normalize=True), ("normalized",)),
@@ -208,7 +213,7 @@ MISTAKES = [
     M("query_points", "directions normalized", gnd.check_query_points, query_normalized,
       ("directions are normalized",)),
     M("query_points", "no new axes: a broadcasting error", gnd.check_query_points, query_no_axes,
-      ("broadcasting error", "rays_o[:, None, :]")),
+      ("rays_o[:, None, :]",)),
     M("query_points", "rays broadcast along the samples (near miss)", gnd.check_query_points, query_wrong_axis,
       ("broadcast along the samples axis",)),
     M("positional_encoding", "no identity term", gnd.check_positional_encoding, _encoding(identity=False),
@@ -251,3 +256,172 @@ def _trivial() -> list:
 
 #: Constants of the right shape: they pass the shape gates and trivially satisfied properties, and must earn nothing.
 TRIVIAL = _trivial()
+
+
+# ============================================================================ issue 29: written as students write them
+# From the notebook's text and the stub's docstring, with an error students make; then valid variants in the call
+# forms the kit uses later (float32 K and c2w, near/far as floats or (R,) tensors, a generator).
+
+def get_rays_fx_for_both(H, W, K, c2w):  # one focal length for both axes
+    f = K[0, 0]
+    u, v = torch.meshgrid(torch.arange(W, dtype=torch.float32), torch.arange(H, dtype=torch.float32), indexing="xy")
+    d = torch.stack([(u - K[0, 2]) / f, (v - K[1, 2]) / f, torch.ones_like(u)], -1)
+    return c2w[:3, 3].expand(H, W, 3), d @ c2w[:3, :3].T
+
+
+def get_rays_origin_negated(H, W, K, c2w):  # the origin as -t, as for a world-to-camera matrix
+    u, v = torch.meshgrid(torch.arange(W, dtype=torch.float32), torch.arange(H, dtype=torch.float32), indexing="xy")
+    d = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], -1)
+    return (-c2w[:3, 3]).expand(H, W, 3), d @ c2w[:3, :3].T
+
+
+def get_rays_float64(H, W, K, c2w):  # the pixel grid in float64 ("more precise"): float64 rays from float32 inputs
+    j, i = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    K, c2w = K.double(), c2w.double()
+    d = torch.stack([(i - K[0, 2]) / K[0, 0], (j - K[1, 2]) / K[1, 1], torch.ones_like(i)], -1)
+    return c2w[:3, 3].expand(H, W, 3), (d[..., None, :] * c2w[:3, :3]).sum(-1)
+
+
+def get_rays_numpy(H, W, K, c2w):  # written with numpy: numpy arrays come back, no tensors
+    K, c2w = np.asarray(K), np.asarray(c2w)
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, dtype=float)], -1)
+    return np.broadcast_to(c2w[:3, 3], (H, W, 3)), d @ c2w[:3, :3].T
+
+
+def stratified_manual_seed(near, far, n_samples, n_rays, perturb, generator=None):  # seeds torch's global RNG
+    z = torch.linspace(near, far, n_samples).expand(n_rays, n_samples)
+    if not perturb:
+        return z.clone()
+    torch.manual_seed(0)
+    mids = 0.5 * (z[:, 1:] + z[:, :-1])
+    lo, hi = torch.cat([z[:, :1], mids], 1), torch.cat([mids, z[:, -1:]], 1)
+    return lo + (hi - lo) * torch.rand(n_rays, n_samples)
+
+
+def stratified_unstratified(near, far, n_samples, n_rays, perturb, generator=None):  # uniform depths, sorted
+    if not perturb:
+        return torch.linspace(near, far, n_samples).repeat(n_rays, 1)
+    z = near + (far - near) * torch.rand(n_rays, n_samples, generator=generator)
+    return torch.sort(z, dim=1).values
+
+
+def stratified_floats_only(near, far, n_samples, n_rays, perturb, generator=None):  # near, far as Python floats only
+    near, far = float(near), float(far)
+    z = torch.linspace(near, far, n_samples).expand(n_rays, n_samples)
+    if not perturb:
+        return z.clone()
+    mids = 0.5 * (z[:, 1:] + z[:, :-1])
+    lo, hi = torch.cat([z[:, :1], mids], 1), torch.cat([mids, z[:, -1:]], 1)
+    return lo + (hi - lo) * torch.rand(n_rays, n_samples, generator=generator)
+
+
+def stratified_numpy_jitter(near, far, n_samples, n_rays, perturb, generator=None):  # np.random for the jitter
+    z = torch.linspace(near, far, n_samples).expand(n_rays, n_samples)
+    if not perturb:
+        return z.clone()
+    mids = 0.5 * (z[:, 1:] + z[:, :-1])
+    lo, hi = torch.cat([z[:, :1], mids], 1), torch.cat([mids, z[:, -1:]], 1)
+    return lo + (hi - lo) * torch.as_tensor(np.random.uniform(size=(n_rays, n_samples)), dtype=torch.float32)
+
+
+def stratified_one_jitter_per_sample(near, far, n_samples, n_rays, perturb, generator=None):  # rand(S): all rays alike
+    z = torch.linspace(near, far, n_samples).expand(n_rays, n_samples)
+    if not perturb:
+        return z.clone()
+    mids = 0.5 * (z[:, 1:] + z[:, :-1])
+    lo, hi = torch.cat([z[:, :1], mids], 1), torch.cat([mids, z[:, -1:]], 1)
+    return lo + (hi - lo) * torch.rand(n_samples, generator=generator)
+
+
+def query_points_samples_first(rays_o, rays_d, z_vals):  # (S, R, 3): the samples axis first
+    return rays_o[None] + z_vals.T[..., None] * rays_d[None]
+
+
+def encoding_include_input_ignored(x, n_freqs, include_input=True):  # x always first
+    out = [x]
+    for k in range(n_freqs):
+        out += [torch.sin(2**k * math.pi * x), torch.cos(2**k * math.pi * x)]
+    return torch.cat(out, -1)
+
+
+def encoding_identity_last(x, n_freqs, include_input=True):  # the identity term appended at the end
+    out = []
+    for k in range(n_freqs):
+        out += [torch.sin(2**k * math.pi * x), torch.cos(2**k * math.pi * x)]
+    if include_input:
+        out.append(x)
+    return torch.cat(out, -1)
+
+
+def encoding_numpy(x, n_freqs, include_input=True):  # np.sin: a float64 numpy array comes back
+    x = np.asarray(x)
+    out = [x] if include_input else []
+    for k in range(n_freqs):
+        out += [np.sin(2**k * np.pi * x), np.cos(2**k * np.pi * x)]
+    return np.concatenate(out, axis=-1)
+
+
+# -- valid variants -----------------------------------------------------------------------------------------------
+def get_rays__pixel_grid_matmul(H, W, K, c2w):
+    """Homogeneous pixel grid times K⁻¹ᵀ and the rotation's transpose, in K's dtype and device."""
+    v, u = torch.meshgrid(torch.arange(H, dtype=K.dtype, device=K.device),
+                          torch.arange(W, dtype=K.dtype, device=K.device), indexing="ij")
+    pix = torch.stack([u, v, torch.ones_like(u)], -1)
+    d = pix @ torch.linalg.inv(K).T @ c2w[:3, :3].T
+    return c2w[:3, 3].expand_as(d), d
+
+
+def stratified_samples__per_ray_bounds(near, far, n_samples, n_rays, perturb, generator=None):
+    """near, far as floats or (R,) tensors: the evenly spaced depths built per ray by broadcasting."""
+    near = torch.as_tensor(near, dtype=torch.float32).reshape(-1, 1).expand(n_rays, 1)
+    far = torch.as_tensor(far, dtype=torch.float32).reshape(-1, 1).expand(n_rays, 1)
+    t = torch.linspace(0.0, 1.0, n_samples)
+    z = near + (far - near) * t
+    if not perturb:
+        return z
+    mids = 0.5 * (z[:, 1:] + z[:, :-1])
+    lo, hi = torch.cat([z[:, :1], mids], 1), torch.cat([mids, z[:, -1:]], 1)
+    return lo + (hi - lo) * torch.rand(z.shape, generator=generator)
+
+
+def positional_encoding__frequency_table(x, n_freqs, include_input=True):
+    """A (L,) table of frequencies, sin and cos interleaved per frequency with stack / reshape."""
+    f = (2.0 ** torch.arange(n_freqs, dtype=x.dtype, device=x.device)) * math.pi
+    a = x.unsqueeze(-2) * f.unsqueeze(-1)  # (..., L, D)
+    sc = torch.stack([torch.sin(a), torch.cos(a)], -2).reshape(*x.shape[:-1], 2 * n_freqs * x.shape[-1])
+    return torch.cat([x, sc], -1) if include_input else sc
+
+
+MISTAKES += [
+    M("get_rays", "fx for both axes", gnd.check_get_rays, get_rays_fx_for_both, ("fy",), batch="29"),
+    M("get_rays", "origin -t", gnd.check_get_rays, get_rays_origin_negated, ("c2w[:3, 3]",), batch="29"),
+    M("get_rays", "float64 rays from float32 K", gnd.check_get_rays, get_rays_float64, ("float32",), batch="29"),
+    M("get_rays", "numpy arrays returned", gnd.check_get_rays, get_rays_numpy, ("tensor",), batch="29"),
+    M("stratified_samples", "torch.manual_seed(0) inside", gnd.check_stratified_samples, stratified_manual_seed,
+      ("generator",), batch="29"),
+    M("stratified_samples", "no stratification: sorted uniform depths", gnd.check_stratified_samples,
+      stratified_unstratified, ("bin",), defining="in their bins", batch="29"),
+    M("stratified_samples", "near, far as floats only", gnd.check_stratified_samples, stratified_floats_only,
+      ("(r,)",), batch="29"),
+    M("stratified_samples", "np.random for the jitter", gnd.check_stratified_samples, stratified_numpy_jitter,
+      ("generator",), batch="29"),
+    M("stratified_samples", "one jitter for all rays", gnd.check_stratified_samples, stratified_one_jitter_per_sample,
+      ("every ray",), batch="29"),
+    M("query_points", "samples axis first", gnd.check_query_points, query_points_samples_first, ("shape",),
+      batch="29"),
+    M("positional_encoding", "include_input ignored", gnd.check_positional_encoding, encoding_include_input_ignored,
+      ("include_input=false",), batch="29"),
+    M("positional_encoding", "identity term last", gnd.check_positional_encoding, encoding_identity_last,
+      ("identity term x last",), batch="29"),
+    M("positional_encoding", "numpy returned", gnd.check_positional_encoding, encoding_numpy, ("tensor",),
+      batch="29"),
+]
+
+HONEST += [
+    Honest("get_rays", "pixel grid @ K⁻¹ᵀ, K's dtype", gnd.check_get_rays, get_rays__pixel_grid_matmul),
+    Honest("stratified_samples", "per-ray near/far by broadcasting", gnd.check_stratified_samples,
+           stratified_samples__per_ray_bounds),
+    Honest("positional_encoding", "frequency table, stack / reshape", gnd.check_positional_encoding,
+           positional_encoding__frequency_table),
+]

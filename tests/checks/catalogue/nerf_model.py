@@ -208,3 +208,110 @@ def _trivial() -> list:
 
 #: Constants of the right shape: they pass the shape gates and trivially satisfied properties, and must earn nothing.
 TRIVIAL = _trivial()
+
+
+# ============================================================================ issue 29: written as students write them
+# From the notebook's text and the stub's docstring, with an error students make; then valid variants.
+
+class NeRF_viewdirs_in_trunk(NeRF):
+    """γ(d) concatenated with γ(x) at the input of the trunk (and again at the skip): the density sees the view."""
+
+    def __init__(self, depth=8, width=256, skips=(4,), pos_freqs=10, dir_freqs=4, use_viewdirs=True, view_width=128):
+        super().__init__(depth, width, skips, pos_freqs, dir_freqs, use_viewdirs, view_width)
+        n_in = 3 + 6 * pos_freqs + 3 + 6 * dir_freqs
+        layers = []
+        for i in range(depth):
+            layers.append(nn.Linear(n_in, width))
+            n_in = width + 3 + 6 * pos_freqs + 3 + 6 * dir_freqs if i in skips else width
+        self.trunk = nn.ModuleList(layers)
+        self.sigma_head = nn.Linear(n_in, 1)
+        self.feature = nn.Linear(n_in, width)
+        self.view_layer = nn.Linear(width, view_width)
+
+    def forward(self, pts, viewdirs):
+        x = torch.cat([positional_encoding(pts, self.pos_freqs), positional_encoding(viewdirs, self.dir_freqs)], -1)
+        h = x
+        for i, layer in enumerate(self.trunk):
+            h = torch.relu(layer(h))
+            if i in self.skips:
+                h = torch.cat([x, h], -1)
+        sigma = torch.relu(self.sigma_head(h)).squeeze(-1)
+        rgb = torch.sigmoid(self.rgb_head(torch.relu(self.view_layer(self.feature(h)))))
+        return rgb, sigma
+
+
+class NeRF_density_after_feature(NeRF):
+    """sigma read off the feature layer's output instead of the trunk's."""
+
+    def __init__(self, depth=8, width=256, skips=(4,), pos_freqs=10, dir_freqs=4, use_viewdirs=True, view_width=128):
+        super().__init__(depth, width, skips, pos_freqs, dir_freqs, use_viewdirs, view_width)
+        self.sigma_head = nn.Linear(width, 1)
+
+    def forward(self, pts, viewdirs):
+        x = positional_encoding(pts, self.pos_freqs)
+        h = x
+        for i, layer in enumerate(self.trunk):
+            h = torch.relu(layer(h))
+            if i in self.skips:
+                h = torch.cat([x, h], -1)
+        feat = self.feature(h)
+        sigma = torch.relu(self.sigma_head(feat)).squeeze(-1)
+        d = positional_encoding(viewdirs, self.dir_freqs)
+        return torch.sigmoid(self.rgb_head(torch.relu(self.view_layer(torch.cat([feat, d], -1))))), sigma
+
+
+class NeRF_skip_after_fifth(NeRF):
+    """The skip one layer late: "after the 4th layer" counted from 1 (i == 5 in 0-based indices)."""
+
+    def __init__(self, depth=8, width=256, skips=(4,), pos_freqs=10, dir_freqs=4, use_viewdirs=True, view_width=128):
+        super().__init__(depth, width, tuple(s + 1 for s in skips), pos_freqs, dir_freqs, use_viewdirs, view_width)
+
+
+class NeRF_raw_viewdirs(NeRF):
+    """The viewing direction fed unencoded into the colour branch (3 inputs, not γ(d))."""
+
+    def __init__(self, depth=8, width=256, skips=(4,), pos_freqs=10, dir_freqs=4, use_viewdirs=True, view_width=128):
+        super().__init__(depth, width, skips, pos_freqs, dir_freqs, use_viewdirs, view_width)
+        self.view_layer = nn.Linear(width + 3, view_width)
+
+    def forward(self, pts, viewdirs):
+        x = positional_encoding(pts, self.pos_freqs)
+        h = x
+        for i, layer in enumerate(self.trunk):
+            h = torch.relu(layer(h))
+            if i in self.skips:
+                h = torch.cat([x, h], -1)
+        sigma = torch.relu(self.sigma_head(h)).squeeze(-1)
+        v = torch.relu(self.view_layer(torch.cat([self.feature(h), viewdirs], -1)))
+        return torch.sigmoid(self.rgb_head(v)), sigma
+
+
+def psnr__rmse_twenty(mse):
+    """20 log10(1 / RMSE): the same number."""
+    return 20 * torch.log10(1 / torch.sqrt(torch.as_tensor(mse)))
+
+
+def psnr__natural_log_ratio(mse):
+    """10 ln(1 / mse) / ln 10 with numpy."""
+    return 10 * np.log(1 / float(mse)) / np.log(10)
+
+
+def psnr_mse_in_percent(mse):  # the MSE of 8-bit images expected: mse * 255 ** 2 / 255 ** 2 "to be safe" ... then 255
+    return 10 * torch.log10(255.0 / torch.as_tensor(mse))
+
+
+MISTAKES += [
+    M("NeRF", "view direction fed into the trunk", gnm.check_nerf_model, NeRF_viewdirs_in_trunk,
+      ("viewing direction",), batch="29"),
+    M("NeRF", "density off the feature layer", gnm.check_nerf_model, NeRF_density_after_feature, ("density",),
+      batch="29"),
+    M("NeRF", "skip one layer late", gnm.check_nerf_model, NeRF_skip_after_fifth, ("layer",),
+      batch="29"),
+    M("NeRF", "unencoded viewing direction", gnm.check_nerf_model, NeRF_raw_viewdirs, ("γ(d)",), batch="29"),
+    M("psnr", "255 / mse", gnm.check_psnr, psnr_mse_in_percent, ("-10 log10(mse)",), batch="29"),
+]
+
+HONEST += [
+    Honest("psnr", "20 log10(1 / RMSE)", gnm.check_psnr, psnr__rmse_twenty),
+    Honest("psnr", "natural logs, numpy", gnm.check_psnr, psnr__natural_log_ratio),
+]

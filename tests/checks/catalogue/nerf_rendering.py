@@ -134,3 +134,71 @@ def _trivial() -> list:
 
 #: Constants of the right shape: they pass the shape gates and trivially satisfied properties, and must earn nothing.
 TRIVIAL = _trivial()
+
+
+# ============================================================================ issue 29: written as students write them
+# From the notebook's text and the stub's docstring, with an error students make; then valid variants.
+
+def _vr29(rgb, sigma, z_vals, rays_d, white_background=True, acc="weights", norm="per_ray", bg_axis=True,
+          normalize_weights=False):
+    d = z_vals[:, 1:] - z_vals[:, :-1]
+    d = torch.cat([d, torch.full_like(z_vals[:, :1], 1e10)], -1)
+    d = d * (rays_d.norm(dim=-1, keepdim=True) if norm == "per_ray" else rays_d.norm())
+    alpha = 1 - torch.exp(-sigma * d)
+    T = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], -1), -1)
+    w = T * alpha
+    if normalize_weights:
+        w = w / w.sum(-1, keepdim=True).clamp_min(1e-10)
+    acc_map = alpha.sum(-1) if acc == "alphas" else w.sum(-1)
+    rgb_map = (w[..., None] * rgb).sum(-2)
+    if white_background:
+        rgb_map = rgb_map + ((1 - acc_map)[..., None] if bg_axis else (1 - acc_map))
+    return {"rgb_map": rgb_map, "depth_map": (w * z_vals).sum(-1), "acc_map": acc_map, "weights": w}
+
+
+def volume_render_acc_sum_of_alphas(rgb, sigma, z_vals, rays_d, white_background=True):  # acc = Σ α
+    return _vr29(rgb, sigma, z_vals, rays_d, white_background, acc="alphas")
+
+
+def volume_render_one_norm_for_all_rays(rgb, sigma, z_vals, rays_d, white_background=True):  # |d| of the whole tensor
+    return _vr29(rgb, sigma, z_vals, rays_d, white_background, norm="global")
+
+
+def volume_render_background_no_axis(rgb, sigma, z_vals, rays_d, white_background=True):  # (R, 3) + (R,)
+    return _vr29(rgb, sigma, z_vals, rays_d, white_background, bg_axis=False)
+
+
+def volume_render_weights_normalized(rgb, sigma, z_vals, rays_d, white_background=True):  # w / Σ w "so they sum to 1"
+    return _vr29(rgb, sigma, z_vals, rays_d, white_background, normalize_weights=True)
+
+
+# -- valid variants -----------------------------------------------------------------------------------------------
+def volume_render__float64_inside(rgb, sigma, z_vals, rays_d, white_background=True):
+    """Everything in float64 inside, returned in the input's dtype; alpha through expm1."""
+    dt = sigma.dtype
+    rgb, sigma, z, d = rgb.double(), sigma.double(), z_vals.double(), rays_d.double()
+    delta = torch.diff(z, dim=-1, append=z[:, -1:] + 1e10) * torch.linalg.vector_norm(d, dim=-1)[:, None]
+    delta[:, -1] = 1e10 * torch.linalg.vector_norm(d, dim=-1) / torch.linalg.vector_norm(d, dim=-1)
+    alpha = -torch.expm1(-sigma * delta)
+    T = torch.exp(-torch.cumsum(torch.cat([torch.zeros_like(delta[:, :1]), (sigma * delta)[:, :-1]], 1), 1))
+    w = T * alpha
+    acc = w.sum(1)
+    out = {"rgb_map": (w[..., None] * rgb).sum(1) + (1 - acc[:, None]) * float(white_background),
+           "depth_map": (w * z).sum(1), "acc_map": acc, "weights": w}
+    return {k: v.to(dt) for k, v in out.items()}
+
+
+MISTAKES += [
+    M("volume_render", "acc = Σ α", gnr.check_volume_render, volume_render_acc_sum_of_alphas, ("acc_map",),
+      batch="29"),
+    M("volume_render", "one |d| for all rays", gnr.check_volume_render, volume_render_one_norm_for_all_rays,
+      ("weights",), batch="29"),
+    M("volume_render", "background without a new axis", gnr.check_volume_render, volume_render_background_no_axis,
+      ("rgb_map",), batch="29"),
+    M("volume_render", "weights normalized to sum 1", gnr.check_volume_render, volume_render_weights_normalized,
+      ("weights",), batch="29"),
+]
+
+HONEST += [
+    Honest("volume_render", "float64 inside, expm1", gnr.check_volume_render, volume_render__float64_inside),
+]

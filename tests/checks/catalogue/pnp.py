@@ -353,15 +353,15 @@ def pnp_nonlinear_quaternion(X, x, K, R_cw, t_cw):
 M = Mistake
 MISTAKES = [
     M("pnp_linear", "R not orthogonalized", gpn.check_pnp_linear, pnp_linear_no_orthogonalization,
-      ("not orthonormal", "orthogonalize"), defining="R is a rotation"),
+      ("not a rotation", "orthogonalize"), defining="R is a rotation"),
     M("pnp_linear", "sign of P not fixed", gpn.check_pnp_linear, pnp_linear_no_sign_fix, ("det r = -1",),
       defining="R is a rotation"),
-    M("pnp_linear", "R_wc returned", gpn.check_pnp_linear, pnp_linear_transposed, ("transposed",)),
+    M("pnp_linear", "R_wc returned", gpn.check_pnp_linear, pnp_linear_transposed, ("you returned r_wc",)),
     M("pnp_linear", "C returned as t", gpn.check_pnp_linear, pnp_linear_center_as_t, ("c vs t",)),
     M("pnp_linear", "DLT on pixel coordinates", gpn.check_pnp_linear, pnp_linear_pixels, ("pixel coordinates",)),
     M("pnp_linear", "t not divided by the scale of P", gpn.check_pnp_linear, pnp_linear_raw_scale,
       ("wrong scale",)),
-    M("pnp_ransac", "squared error vs threshold", gpn.check_pnp_ransac, pnp_ransac_squared, ("squared error",)),
+    M("pnp_ransac", "squared error vs threshold", gpn.check_pnp_ransac, pnp_ransac_squared, ("squared reprojection error",)),
     M("pnp_ransac", "inverted inlier mask", gpn.check_pnp_ransac, pnp_ransac_inverted, ("inverted",)),
     M("pnp_ransac", "no final refit", gpn.check_pnp_ransac, pnp_ransac_no_refit, ("refit pnp_linear on all",)),
     M("pnp_ransac", "mask of the best sample after the refit", gpn.check_pnp_ransac, pnp_ransac_stale_mask,
@@ -373,9 +373,9 @@ MISTAKES = [
     M("pnp_ransac", "confidence ignored", gpn.check_pnp_ransac, pnp_ransac_ignores_confidence,
       ("the confidence argument",)),
     M("pnp_ransac", "error in normalized coordinates", gpn.check_pnp_ransac, pnp_ransac_normalized_error,
-      ("normalized coordinates",)),
+      ("in pixels",)),
     M("pnp_ransac", "threshold_px ignored", gpn.check_pnp_ransac, pnp_ransac_constant_threshold,
-      ("not a constant",)),
+      ("whatever threshold_px was passed",)),
     M("pnp_nonlinear", "returns the start", gpn.check_pnp_nonlinear, pnp_nonlinear_unchanged, ("did not move",)),
     M("pnp_nonlinear", "optimizes the 9 entries of R", gpn.check_pnp_nonlinear, pnp_nonlinear_nine_entries,
       ("not a rotation",)),
@@ -386,7 +386,7 @@ MISTAKES = [
     M("pnp_nonlinear", "only t optimized", gpn.check_pnp_nonlinear, pnp_nonlinear_only_t, ("only t moved",)),
     M("pnp_nonlinear", "stopped after 2 evaluations", gpn.check_pnp_nonlinear, pnp_nonlinear_two_evaluations,
       ("not at the least-squares optimum",)),
-    M("pnp_nonlinear", "returns R_wc", gpn.check_pnp_nonlinear, pnp_nonlinear_returns_R_wc, ("transposed",)),
+    M("pnp_nonlinear", "returns R_wc", gpn.check_pnp_nonlinear, pnp_nonlinear_returns_R_wc, ("you returned r_wc",)),
 ]
 
 #: Correct solutions: they must score full marks.
@@ -414,3 +414,201 @@ def _trivial() -> list:
 
 #: Constants of the right shape: they pass the shape gates and trivially satisfied properties, and must earn nothing.
 TRIVIAL = _trivial()
+
+
+# ============================================================================ issue 29: written as students write them
+# From the notebook's text and the stub's docstring, with an error students make; then valid variants.
+
+def _dlt29(xn, X):
+    rows = []
+    for (u, v), Xi in zip(xn, X):
+        Xh = np.append(Xi, 1.0)
+        rows.append(np.concatenate([Xh, np.zeros(4), -u * Xh]))
+        rows.append(np.concatenate([np.zeros(4), Xh, -v * Xh]))
+    return np.linalg.svd(np.array(rows))[2][-1]
+
+
+def pnp_linear_row_vector_Kinv(X, x, K):  # x_n = x_h @ K⁻¹: row vectors multiplied without the transpose
+    xn = np.column_stack([x, np.ones(len(x))]) @ np.linalg.inv(K)
+    P = _dlt29(xn[:, :2], X).reshape(3, 4)
+    if np.linalg.det(P[:, :3]) < 0:
+        P = -P
+    U, S, Vt = np.linalg.svd(P[:, :3])
+    return U @ Vt, P[:, 3] / S.mean()
+
+
+def pnp_linear_reshape_4x3(X, x, K):  # the 12-vector reshaped (4, 3) and transposed, column by column
+    xn = (np.linalg.inv(K) @ np.column_stack([x, np.ones(len(x))]).T).T
+    P = _dlt29(xn[:, :2], X).reshape(4, 3).T
+    if np.linalg.det(P[:, :3]) < 0:
+        P = -P
+    U, S, Vt = np.linalg.svd(P[:, :3])
+    return U @ Vt, P[:, 3] / S.mean()
+
+
+def pnp_linear_flip_only_R(X, x, K):  # det < 0 fixed on R alone, t keeps the sign the SVD gave
+    xn = (np.linalg.inv(K) @ np.column_stack([x, np.ones(len(x))]).T).T
+    P = _dlt29(xn[:, :2], X).reshape(3, 4)
+    U, S, Vt = np.linalg.svd(P[:, :3])
+    R = U @ Vt
+    t = P[:, 3] / S.mean()
+    if np.linalg.det(R) < 0:
+        R = -R
+    return R, t
+
+
+def _ransac29(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000, rule="right", sample=6, own=False):
+    g = np.random.default_rng(0) if own else rng
+    n, best, n_iters, N = len(X), None, 0, max_iters
+    def errs(R, t):
+        Xc = X @ R.T + t
+        q = Xc @ K.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            e = np.linalg.norm(q[:, :2] / q[:, 2:] - x, axis=1)
+        if rule != "no_cheirality":
+            e[Xc[:, 2] <= 0] = np.inf
+        return e
+    def inl_of(R, t):
+        e = errs(R, t)
+        return e < threshold_px**2 if rule == "squared_threshold" else e < threshold_px
+    while n_iters < min(N, max_iters):
+        n_iters += 1
+        idx = g.choice(n, sample, replace=False)
+        try:
+            R, t = rpn.pnp_linear(X[idx], x[idx], K)
+        except Exception:  # noqa: BLE001 - a degenerate sample
+            continue
+        inl = inl_of(R, t)
+        if best is None or inl.sum() > best[2].sum():
+            best = (R, t, inl)
+            w = inl.mean()
+            N = 1 if w == 1 else (np.log(1 - confidence) / np.log(1 - w**6) if w > 0 else max_iters)
+    R, t, inl = best
+    if inl.sum() >= 6:
+        R, t = rpn.pnp_linear(X[inl], x[inl], K)
+        inl = inl_of(R, t)
+    return R, t, inl, n_iters
+
+
+def pnp_ransac_no_cheirality(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000):
+    return _ransac29(X, x, K, rng, threshold_px, confidence, max_iters, rule="no_cheirality")
+
+
+def pnp_ransac_threshold_squared(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000):
+    return _ransac29(X, x, K, rng, threshold_px, confidence, max_iters, rule="squared_threshold")  # e < thr²
+
+
+def pnp_ransac_own_seeded_generator(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000):
+    return _ransac29(X, x, K, rng, threshold_px, confidence, max_iters, own=True)  # default_rng(0), rng unused
+
+
+def pnp_ransac_four_point_samples(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000):
+    return _ransac29(X, x, K, rng, threshold_px, confidence, max_iters, sample=4)  # "P3P uses 4": too few for the DLT
+
+
+def _rv29(X, x, K, R_cw, t_cw, free="both", scalar=False, flat=True):
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    r0 = Rotation.from_matrix(R_cw).as_rotvec()
+
+    def res(p):
+        r = p[:3] if free != "t" else r0
+        t = p[3:] if free == "both" else (t_cw if free == "R" else p)
+        q = (X @ Rotation.from_rotvec(r).as_matrix().T + t) @ K.T
+        e = q[:, :2] / q[:, 2:] - x
+        if scalar:
+            return np.sum(e**2)
+        return e.ravel() if flat else e
+
+    p0 = r0 if free == "R" else np.concatenate([r0, t_cw])
+    p = least_squares(res, p0).x
+    return Rotation.from_rotvec(p[:3]).as_matrix(), (t_cw.copy() if free == "R" else p[3:])
+
+
+def pnp_nonlinear_only_R(X, x, K, R_cw, t_cw):  # the rotation optimized, t kept at the start
+    return _rv29(X, x, K, R_cw, t_cw, free="R")
+
+
+def pnp_nonlinear_scalar_residual(X, x, K, R_cw, t_cw):  # the sum of squares returned to least_squares
+    return _rv29(X, x, K, R_cw, t_cw, scalar=True)
+
+
+def pnp_nonlinear_residual_not_flat(X, x, K, R_cw, t_cw):  # the (N, 2) residual array, not raveled
+    return _rv29(X, x, K, R_cw, t_cw, flat=False)
+
+
+# -- valid variants -----------------------------------------------------------------------------------------------
+def pnp_linear__float32(X, x, K):
+    """The DLT in float32, R and t returned as float32."""
+    X, x, K = X.astype(np.float32), x.astype(np.float32), K.astype(np.float32)
+    xn = np.column_stack([x, np.ones(len(x), np.float32)]) @ np.linalg.inv(K).T
+    mu = X.mean(axis=0)
+    s = np.float32(np.sqrt(3.0)) / np.linalg.norm(X - mu, axis=1).mean()
+    T = np.diag(np.array([s, s, s, 1], np.float32))
+    T[:3, 3] = -s * mu
+    Xh = np.column_stack([(X - mu) * s, np.ones(len(X), np.float32)])
+    A = np.zeros((2 * len(X), 12), np.float32)
+    A[0::2, 0:4], A[0::2, 8:12] = Xh, -xn[:, :1] * Xh
+    A[1::2, 4:8], A[1::2, 8:12] = Xh, -xn[:, 1:2] * Xh
+    P = np.linalg.svd(A)[2][-1].reshape(3, 4) @ T
+    P = P if np.linalg.det(P[:, :3]) > 0 else -P
+    U, S, Vt = np.linalg.svd(P[:, :3])
+    R = (U @ Vt).astype(np.float32)
+    M = np.concatenate([np.cross(np.eye(3, dtype=np.float32), m) for m in xn])  # rows e_i x m: (m x .)ᵀ
+    b = -np.concatenate([np.cross(np.eye(3, dtype=np.float32), m) @ (R @ Xj) for m, Xj in zip(xn, X)])
+    t = np.linalg.lstsq(M, b, rcond=None)[0].astype(np.float32)
+    return R, t
+
+
+def pnp_nonlinear__rodrigues_by_hand_lm(X, x, K, R_cw, t_cw):
+    """Rodrigues' formula written by hand, method='lm' (Levenberg-Marquardt), returns float32."""
+    from scipy.optimize import least_squares
+
+    def rot(r):
+        th = np.linalg.norm(r)
+        if th < 1e-12:
+            return np.eye(3)
+        k = r / th
+        Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+        return np.eye(3) + np.sin(th) * Kx + (1 - np.cos(th)) * Kx @ Kx
+
+    c = np.clip((np.trace(R_cw) - 1) / 2, -1, 1)
+    th = np.arccos(c)
+    axis = np.array([R_cw[2, 1] - R_cw[1, 2], R_cw[0, 2] - R_cw[2, 0], R_cw[1, 0] - R_cw[0, 1]])
+    r0 = np.zeros(3) if th < 1e-12 else axis / (2 * np.sin(th)) * th
+
+    def res(p):
+        q = (X @ rot(p[:3]).T + p[3:]) @ K.T
+        return (q[:, :2] / q[:, 2:] - x).ravel()
+
+    p = least_squares(res, np.concatenate([r0, t_cw]), method="lm", xtol=1e-12, ftol=1e-12).x
+    return rot(p[:3]).astype(np.float32), p[3:].astype(np.float32)
+
+
+MISTAKES += [
+    M("pnp_linear", "x_h @ K⁻¹ (no transpose)", gpn.check_pnp_linear, pnp_linear_row_vector_Kinv,
+      ("reprojection",), batch="29"),
+    M("pnp_linear", "P reshaped (4, 3)ᵀ", gpn.check_pnp_linear, pnp_linear_reshape_4x3, ("reprojection",),
+      batch="29"),
+    M("pnp_linear", "det fixed on R alone", gpn.check_pnp_linear, pnp_linear_flip_only_R, ("translation off",),
+      batch="29"),
+    M("pnp_ransac", "no cheirality test", gpn.check_pnp_ransac, pnp_ransac_no_cheirality, ("behind",), batch="29"),
+    M("pnp_ransac", "e < threshold²", gpn.check_pnp_ransac, pnp_ransac_threshold_squared, ("threshold",),
+      batch="29"),
+    M("pnp_ransac", "own default_rng(0)", gpn.check_pnp_ransac, pnp_ransac_own_seeded_generator, ("seed",),
+      batch="29"),
+    M("pnp_ransac", "4-point samples", gpn.check_pnp_ransac, pnp_ransac_four_point_samples, ("6",), batch="29"),
+    M("pnp_nonlinear", "only R optimized", gpn.check_pnp_nonlinear, pnp_nonlinear_only_R, ("optimum",),
+      batch="29"),
+    M("pnp_nonlinear", "scalar residual", gpn.check_pnp_nonlinear, pnp_nonlinear_scalar_residual, ("optimum",),
+      batch="29"),
+    M("pnp_nonlinear", "(N, 2) residual", gpn.check_pnp_nonlinear, pnp_nonlinear_residual_not_flat,
+      ("1-d",), batch="29"),
+]
+
+HONEST += [
+    Honest("pnp_linear", "float32 throughout", gpn.check_pnp_linear, pnp_linear__float32),
+    Honest("pnp_nonlinear", "Rodrigues by hand, method='lm', float32 results", gpn.check_pnp_nonlinear,
+           pnp_nonlinear__rodrigues_by_hand_lm),
+]

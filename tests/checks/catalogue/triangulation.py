@@ -275,7 +275,7 @@ def triangulate_nonlinear__gauss_newton(K, R_cws, t_cws, uv, X0):
 M = Mistake
 MISTAKES = [
     M("triangulate_linear", "P1 and P2 swapped in A", gtr.check_triangulate_linear, triangulate_swapped_cameras,
-      ("cameras are swapped",)),
+      ("swapped the cameras",)),
     M("triangulate_linear", "no division by X_h[3]", gtr.check_triangulate_linear, triangulate_homogeneous,
       ("divide by the last coordinate",)),
     M("triangulate_linear", "largest singular vector", gtr.check_triangulate_linear, triangulate_largest_vector,
@@ -295,23 +295,23 @@ MISTAKES = [
     M("triangulate_nonlinear", "projection not divided by z", gtr.check_triangulate_nonlinear,
       triangulate_nonlinear_no_depth_division, ("without dividing by its depth",)),
     M("triangulate_nonlinear", "R transposed", gtr.check_triangulate_nonlinear, triangulate_nonlinear_R_transposed,
-      ("r is transposed",)),
+      ("r transposed",)),
     M("triangulate_nonlinear", "NaN set to 0", gtr.check_triangulate_nonlinear, triangulate_nonlinear_nan_as_zero,
       ("pixels (0, 0)",)),
     M("triangulate_nonlinear", "cross-multiplied residual", gtr.check_triangulate_nonlinear,
       triangulate_nonlinear_cross_multiplied, ("cross-multiplied",)),
     M("triangulate_nonlinear", "partly seen points not refined", gtr.check_triangulate_nonlinear,
-      triangulate_nonlinear_skips_partly_seen, ("were not refined",)),
+      triangulate_nonlinear_skips_partly_seen, ("did not refine",)),
     M("triangulate_nonlinear", "homogeneous point not divided", gtr.check_triangulate_nonlinear,
       triangulate_nonlinear_homogeneous, ("homogeneous point",)),
     M("triangulate_linear", "u and v swapped", gtr.check_triangulate_linear, triangulate_uv_swapped,
-      ("u and v are swapped",)),
+      ("swapped u and v",)),
     M("triangulate_linear", "cameras swapped, cross-product rows", gtr.check_triangulate_linear,
-      triangulate_swapped_cross_product, ("cameras are swapped",)),
+      triangulate_swapped_cross_product, ("reprojection error",)),
     M("choose_pose", "R_cw transposed", gtr.check_choose_pose, choose_pose_R_transposed, ("r_cw is transposed",)),
     M("choose_pose", "C returned as t_cw", gtr.check_choose_pose, choose_pose_C_for_t, ("t_cw is the camera centre",)),
     M("choose_pose", "cheirality sign flipped", gtr.check_choose_pose, choose_pose_sign_flipped,
-      ("sign of the cheirality test is flipped",), defining="in front of both cameras"),
+      ("the sign is flipped",), defining="in front of both cameras"),
 ]
 
 #: Correct solutions: they must score full marks.
@@ -342,3 +342,206 @@ def _trivial() -> list:
 
 #: Constants of the right shape: they pass the shape gates and trivially satisfied properties, and must earn nothing.
 TRIVIAL = _trivial()
+
+
+# ============================================================================ issue 29: written as students write them
+# From the notebook's text and the stub's docstring, with an error students make; then valid variants.
+
+def triangulate_three_rows(P1, P2, x1, x2):  # the last row of camera 2 forgotten: 3 equations for 4 unknowns
+    X = []
+    for (u1, v1), (u2, v2) in zip(x1, x2):
+        A = np.array([u1 * P1[2] - P1[0], v1 * P1[2] - P1[1], u2 * P2[2] - P2[0]])
+        Xh = np.linalg.svd(A)[2][-1]
+        X.append(Xh[:3] / Xh[3])
+    return np.array(X)
+
+
+def triangulate_divides_by_abs(P1, P2, x1, x2):  # "divide by the last coordinate" done with its absolute value
+    X = []
+    for (u1, v1), (u2, v2) in zip(x1, x2):
+        A = np.array([u1 * P1[2] - P1[0], v1 * P1[2] - P1[1], u2 * P2[2] - P2[0], v2 * P2[2] - P2[1]])
+        Xh = np.linalg.svd(A)[2][-1]
+        X.append(Xh[:3] / abs(Xh[3]))
+    return np.array(X)
+
+
+def triangulate_normalized_pixels(P1, P2, x1, x2):  # pixels taken through K⁻¹ although P already holds K
+    K = np.array([[700.0, 0, 320], [0, 700.0, 240], [0, 0, 1]])  # K read off the notebook's printout
+    Ki = np.linalg.inv(K)
+    y1 = (np.column_stack([x1, np.ones(len(x1))]) @ Ki.T)[:, :2]
+    y2 = (np.column_stack([x2, np.ones(len(x2))]) @ Ki.T)[:, :2]
+    return rtr.triangulate_linear(P1, P2, y1, y2)
+
+
+def triangulate_columns_of_P(P1, P2, x1, x2):  # P[:, k] (columns) where the rows p_kᵀ belong
+    X = []
+    for (u1, v1), (u2, v2) in zip(x1, x2):
+        A = np.array([u1 * P1[:, 2] - P1[:, 0], v1 * P1[:, 2] - P1[:, 1], u2 * P2[:, 2] - P2[:, 0],
+                      v2 * P2[:, 2] - P2[:, 1]])
+        A = np.column_stack([A, np.zeros(4)]) if A.shape[1] == 3 else A
+        Xh = np.linalg.svd(A)[2][-1]
+        X.append(Xh[:3] / Xh[3])
+    return np.array(X)
+
+
+def choose_pose_P2_with_C(R, C, K, x1, x2):  # camera 2 built as K [R | C]: the centre where t belongs
+    P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
+    counts, keep = np.zeros(4, int), []
+    for k in range(4):
+        X = rtr.triangulate_linear(P1, K @ np.hstack([R[k], C[k][:, None]]), x1, x2)
+        front = (X[:, 2] > 0) & ((X - C[k]) @ R[k][2] > 0)
+        counts[k] = front.sum()
+        keep.append((X, front))
+    k = int(np.argmax(counts))
+    return R[k], -R[k] @ C[k], keep[k][0], keep[k][1], counts
+
+
+def choose_pose_argmin(R, C, K, x1, x2):  # the candidate with the FEWEST points in front
+    P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
+    counts, keep = np.zeros(4, int), []
+    for k in range(4):
+        t = -R[k] @ C[k]
+        X = rtr.triangulate_linear(P1, K @ np.column_stack([R[k], t]), x1, x2)
+        front = (X[:, 2] > 0) & ((X - C[k]) @ R[k][2] > 0)
+        counts[k] = front.sum()
+        keep.append((t, X, front))
+    k = int(np.argmin(counts))
+    return R[k], keep[k][0], keep[k][1], keep[k][2], counts
+
+
+def choose_pose_last_loop_points(R, C, K, x1, x2):  # X and in_front leak out of the loop: candidate 3's
+    P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
+    counts = np.zeros(4, int)
+    for k in range(4):
+        t = -R[k] @ C[k]
+        X = rtr.triangulate_linear(P1, K @ np.column_stack([R[k], t]), x1, x2)
+        in_front = (X[:, 2] > 0) & ((X - C[k]) @ R[k][2] > 0)
+        counts[k] = in_front.sum()
+    best = int(np.argmax(counts))
+    return R[best], -R[best] @ C[best], X, in_front, counts
+
+
+def _nl29(K, R_cws, t_cws, uv, X0, project, skip_nan=True, **kw):
+    from scipy.optimize import least_squares
+
+    X = np.array(X0, float)
+    for j in range(len(X0)):
+        views = [i for i in range(len(R_cws)) if not skip_nan or np.isfinite(uv[j, i]).all()]
+        if len(views) < 2:
+            continue
+        X[j] = least_squares(lambda p: np.concatenate([project(p, i) - uv[j, i] for i in views]), X0[j], **kw).x
+    return X
+
+
+def triangulate_nonlinear_nan_kept(K, R_cws, t_cws, uv, X0):  # every view used, NaN observations included
+    def project(p, i):
+        q = K @ (R_cws[i] @ p + t_cws[i])
+        return q[:2] / q[2]
+
+    return _nl29(K, R_cws, t_cws, uv, X0, project, skip_nan=False)
+
+
+def triangulate_nonlinear_huber(K, R_cws, t_cws, uv, X0):  # a robust loss "to be safe": another cost
+    def project(p, i):
+        q = K @ (R_cws[i] @ p + t_cws[i])
+        return q[:2] / q[2]
+
+    return _nl29(K, R_cws, t_cws, uv, X0, project, loss="huber", f_scale=0.5)
+
+
+def triangulate_nonlinear_t_as_centre(K, R_cws, t_cws, uv, X0):  # x_cam = R (X - t): t taken for the centre
+    def project(p, i):
+        q = K @ (R_cws[i] @ (p - t_cws[i]))
+        return q[:2] / q[2]
+
+    return _nl29(K, R_cws, t_cws, uv, X0, project)
+
+
+# -- valid variants -----------------------------------------------------------------------------------------------
+def triangulate_linear__inhomogeneous_lstsq(P1, P2, x1, x2):
+    """X_h[3] = 1 fixed and the 4 x 3 system solved by least squares (the inhomogeneous method)."""
+    X = np.empty((len(x1), 3))
+    for k, ((u1, v1), (u2, v2)) in enumerate(zip(x1, x2)):
+        A = np.array([u1 * P1[2] - P1[0], v1 * P1[2] - P1[1], u2 * P2[2] - P2[0], v2 * P2[2] - P2[1]])
+        X[k] = np.linalg.lstsq(A[:, :3], -A[:, 3], rcond=None)[0]
+    return X
+
+
+def triangulate_linear__float32_rows_negated(P1, P2, x1, x2):
+    """Rows p1ᵀ - u p3ᵀ (the other sign), computed in float32."""
+    P1, P2 = P1.astype(np.float32), P2.astype(np.float32)
+    x1, x2 = x1.astype(np.float32), x2.astype(np.float32)
+    out = np.empty((len(x1), 3), np.float32)
+    for k in range(len(x1)):
+        A = np.stack([P1[0] - x1[k, 0] * P1[2], P1[1] - x1[k, 1] * P1[2], P2[0] - x2[k, 0] * P2[2],
+                      P2[1] - x2[k, 1] * P2[2]])
+        Xh = np.linalg.svd(A)[2][-1]
+        out[k] = Xh[:3] / Xh[3]
+    return out
+
+
+def choose_pose__float32(R, C, K, x1, x2):
+    """Cheirality with the depths in both camera frames, the chosen pose and points returned in float32."""
+    P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
+    results = []
+    for k in range(4):
+        t = -R[k] @ C[k]
+        X = triangulate_linear(P1, K @ np.column_stack([R[k], t]), x1, x2)
+        front = (X[:, 2] > 0) & ((X @ R[k].T + t)[:, 2] > 0)
+        results.append((t, X, front))
+    counts = np.array([int(r[2].sum()) for r in results])
+    k = int(np.argmax(counts))
+    t, X, front = results[k]
+    return R[k].astype(np.float32), t.astype(np.float32), X.astype(np.float32), front, counts
+
+
+def triangulate_nonlinear__per_view_residuals(K, R_cws, t_cws, uv, X0):
+    """Slow but correct: one small residual function per view, called in a Python loop, numeric Jacobian."""
+    from scipy.optimize import least_squares
+
+    def one_view(i, u):
+        def r(p):
+            q = K @ (R_cws[i] @ p + t_cws[i])
+            return np.array([q[0] / q[2] - u[0], q[1] / q[2] - u[1]])
+        return r
+
+    X = np.array(X0, dtype=float)
+    for j in range(len(X)):
+        fs = [one_view(i, uv[j, i]) for i in range(len(R_cws)) if not np.isnan(uv[j, i, 0])]
+        if len(fs) >= 2:
+            X[j] = least_squares(lambda p: np.concatenate([f(p) for f in fs]), X0[j], x_scale="jac").x
+    return X
+
+
+MISTAKES += [
+    M("triangulate_linear", "three rows in A", gtr.check_triangulate_linear, triangulate_three_rows,
+      ("reprojection",), batch="29"),
+    M("triangulate_linear", "divided by |w|", gtr.check_triangulate_linear, triangulate_divides_by_abs,
+      ("sign",), batch="29"),
+    M("triangulate_linear", "pixels through K⁻¹ with P = K[R|t]", gtr.check_triangulate_linear,
+      triangulate_normalized_pixels, ("reprojection",), batch="29"),
+    M("triangulate_linear", "columns of P for its rows", gtr.check_triangulate_linear, triangulate_columns_of_P,
+      ("reprojection",), batch="29"),
+    M("choose_pose", "camera 2 as K [R | C]", gtr.check_choose_pose, choose_pose_P2_with_C, ("candidate",),
+      batch="29"),
+    M("choose_pose", "argmin of the counts", gtr.check_choose_pose, choose_pose_argmin, ("fewest",),
+      defining="in front of both cameras", batch="29"),
+    M("choose_pose", "X of the last candidate tried", gtr.check_choose_pose, choose_pose_last_loop_points,
+      ("x",), batch="29"),
+    M("triangulate_nonlinear", "NaN observations kept", gtr.check_triangulate_nonlinear,
+      triangulate_nonlinear_nan_kept, ("leave out the views",), batch="29"),
+    M("triangulate_nonlinear", "Huber loss", gtr.check_triangulate_nonlinear, triangulate_nonlinear_huber,
+      ("optimum",), batch="29"),
+    M("triangulate_nonlinear", "x_cam = R (X - t)", gtr.check_triangulate_nonlinear, triangulate_nonlinear_t_as_centre,
+      ("reprojection error",), batch="29"),
+]
+
+HONEST += [
+    Honest("triangulate_linear", "inhomogeneous least squares", gtr.check_triangulate_linear,
+           triangulate_linear__inhomogeneous_lstsq),
+    Honest("triangulate_linear", "rows negated, float32", gtr.check_triangulate_linear,
+           triangulate_linear__float32_rows_negated),
+    Honest("choose_pose", "float32 results", gtr.check_choose_pose, choose_pose__float32),
+    Honest("triangulate_nonlinear", "one residual function per view (slow)", gtr.check_triangulate_nonlinear,
+           triangulate_nonlinear__per_view_residuals),
+]

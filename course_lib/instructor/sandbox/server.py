@@ -1,0 +1,446 @@
+"""The program that runs inside a student's sandbox: it serves the student's function, or launches nbval.
+
+The grader copies this file and :mod:`wire` into a folder of its own, shows it read-only in the
+sandbox (``/grader``) and runs it there with ``python -S -E -B /grader/server.py``: it needs nothing
+but the standard library (numpy and torch are imported when the student's code or the data need
+them), writes no bytecode, and never runs with the instructor's library on its path. The sandbox
+itself (namespaces, the read-only allow-list, the tmpfs, the limits) is made *around* it by
+:mod:`jail` (bubblewrap) before it starts.
+
+Two commands:
+
+``server.py serve CONFIG.json``
+    Copy the submission (``CONFIG["seed"]``) into the working folder, put the student release's
+    library (``CONFIG["path"]``) first on ``sys.path``, import numpy (and torch), then report what
+    confines this process (:func:`facts`) as the first frame on the reply pipe and wait for the
+    grader's ``go``: no code of the student's runs before the grader has checked the report
+    (:func:`course_lib.instructor.sandbox.jail.verify`). Then run the student's extracted exercise
+    code in a fresh ``__main__`` module and answer calls from the grader on file descriptors
+    ``req_fd`` (requests) and ``rep_fd`` (replies): each request names a function or an object
+    handle and carries its arguments as data; each reply carries the result as data, or the
+    exception the student's code raised. Objects that are not data (an ``nn.Module``) stay here and
+    are answered by handle. The earlier exercises named in ``CONFIG["oracle"]`` are rebound, after
+    the student's code ran, to :func:`oracle_stub`\\ s: while a call runs, a stub sends its arguments
+    to the grader (an ``oracle`` event on the reply pipe) and waits for the answer on the request
+    pipe (:mod:`course_lib.instructor.oracle`).
+
+``server.py exec CONFIG.json``
+    The nbval launcher. It makes itself undumpable (no process of the sandbox can read its memory
+    or its file descriptors), copies the submission, reports :func:`facts` on ``report_fd`` and
+    waits for ``go`` on ``go_fd``; then runs ``CONFIG["argv"]`` (pytest with nbval) as an undumpable
+    process that writes its junit report into a pipe only it holds (``{junit}`` in the arguments).
+    After pytest ended, it kills every other process of the sandbox (inside a PID namespace of
+    its own) and copies the report, at most 16 MiB, to the grader's ``collect_fd``. The student's
+    notebook never holds, and cannot reach, the report the grader reads.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+try:  # inside the sandbox this file runs as a script next to wire.py; the grader imports it as a module
+    from . import wire
+except ImportError:  # pragma: no cover - the sandbox
+    import wire
+
+WireError, decode, encode = wire.WireError, wire.decode, wire.encode
+read_frame, write_frame, ident = wire.read_frame, wire.write_frame, wire.ident
+MAX_REPLY = wire.MAX_REPLY
+
+NAMESPACES = ("user", "mnt", "pid", "net", "ipc", "uts")
+PR_SET_DUMPABLE = 4
+REQ_FD, REP_FD = -1, -1  # set from the configuration
+
+
+# ---------------------------------------------------------------------------------------------
+# What confines this process, as it sees it (checked by the grader before any code of the student's runs)
+# ---------------------------------------------------------------------------------------------
+
+
+def facts(hide: list[str], keep: list[str] = (), readable: list[str] = ()) -> dict:
+    """What this process can observe about its own confinement.
+
+    ``ns``: its namespaces (``/proc/self/ns``); ``status``: capabilities, ``NoNewPrivs`` and seccomp
+    (``/proc/self/status``); ``writable``: the mount points it could write to (``/proc/self/mountinfo``);
+    ``root_read_only``; ``visible``: which of the ``hide`` paths (the kit, the grader's scratch, the
+    hidden cases) it can see anything of, besides the ``keep`` paths inside them (the Python environment);
+    ``unreadable``: which of the ``readable`` folders (the student release) it cannot read; ``net``: its
+    network interfaces.
+    """
+    out: dict = {"uid": os.getuid(), "gid": os.getgid(), "pid": os.getpid(), "ns": {}, "status": {}}
+    for ns in NAMESPACES:
+        try:
+            out["ns"][ns] = os.readlink(f"/proc/self/ns/{ns}")
+        except OSError:
+            out["ns"][ns] = None
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key in ("CapEff", "CapPrm", "CapBnd", "CapAmb", "NoNewPrivs", "Seccomp"):
+                    out["status"][key] = value.strip()
+    except OSError:
+        pass
+    writable = []
+    try:
+        with open("/proc/self/mountinfo") as f:
+            for line in f:
+                parts = line.split()
+                if len(parts) > 5 and "rw" in parts[5].split(","):
+                    writable.append(parts[4])
+    except OSError:
+        writable = ["(no /proc/self/mountinfo)"]
+    out["writable"] = sorted(set(writable))
+    try:
+        out["root_read_only"] = bool(os.statvfs("/").f_flag & os.ST_RDONLY)
+    except OSError:
+        out["root_read_only"] = False
+    out["visible"] = [h for h in hide if _sees(h, keep)]
+    out["unreadable"] = [p for p in readable if not os.access(p, os.R_OK | os.X_OK)]
+    try:
+        with open("/proc/net/dev") as f:
+            out["net"] = sorted(ln.split(":")[0].strip() for ln in f.readlines()[2:] if ":" in ln)
+    except OSError:
+        out["net"] = ["(no /proc/net/dev)"]
+    return out
+
+
+def _sees(hidden: str, keep) -> bool:
+    """Whether anything of the folder ``hidden`` is in view, besides the way to the ``keep`` paths inside it."""
+    if not os.path.lexists(hidden):
+        return False
+    if not os.path.isdir(hidden) or os.path.islink(hidden):
+        return True
+    inside = [k for k in keep if k.startswith(hidden.rstrip("/") + "/")]
+    if not inside:
+        return bool(os.listdir(hidden))
+    allowed = {k[len(hidden.rstrip("/")) + 1:].split("/")[0] for k in inside}
+    for name in os.listdir(hidden):
+        if name not in allowed:
+            return True
+        path = os.path.join(hidden, name)
+        if path not in inside and _sees(path, inside):
+            return True
+    return False
+
+
+def _facts(cfg: dict) -> dict:
+    return facts(cfg.get("hide", []), cfg.get("keep", []), [cfg["library"]] if cfg.get("library") else [])
+
+
+def _undumpable() -> None:
+    """No other process of the sandbox (same user, no capabilities) may read this one's memory or descriptors."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).prctl(PR_SET_DUMPABLE, 0, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+
+
+def _seed(cfg: dict) -> None:
+    """The working folder: a copy of the grader's copy of the submission (regular files only)."""
+    import shutil
+
+    os.makedirs(cfg["cwd"], exist_ok=True)
+    if cfg.get("seed") and os.path.isdir(cfg["seed"]):
+        shutil.copytree(cfg["seed"], cfg["cwd"], dirs_exist_ok=True, symlinks=False)
+
+
+def _await_go(fd: int) -> None:
+    """Wait for the grader's ``go`` (after it checked :func:`facts`); anything else ends this process."""
+    try:
+        msg, _ = read_frame(fd, limit=1 << 16)
+    except (EOFError, OSError, WireError):
+        os._exit(3)
+    if msg.get("op") != "go":
+        os._exit(3)
+
+
+# ---------------------------------------------------------------------------------------------
+# Serving the student's code
+# ---------------------------------------------------------------------------------------------
+
+
+def _trace_line(exc: BaseException) -> str:
+    import traceback
+
+    for fr in reversed(traceback.extract_tb(exc.__traceback__)):
+        if fr.filename == "<your notebook>":
+            return f" (line {fr.lineno} of your exercise code)"
+    return ""
+
+
+def _exc_reply(exc: BaseException) -> dict:
+    try:
+        message = str(exc)[:2000]
+    except Exception:  # noqa: BLE001 - a __str__ of the student's that raises
+        message = "(its message cannot be shown)"
+    return {"ok": False, "type": ident(type(exc).__name__, "Exception"),
+            "builtin": type(exc).__module__ == "builtins", "message": message, "where": _trace_line(exc)}
+
+
+def _guard_exit(fd: int) -> None:
+    """``os._exit`` says who ended the process before it ends it (a process the student's code forked ends quietly:
+    it is not the process the grader talks to)."""
+    import posix
+
+    real = posix._exit
+    me = os.getpid()
+
+    def _exit(code=0):
+        try:
+            if os.getpid() == me:
+                write_frame(fd, {"event": "exit", "how": "os._exit", "code": int(code) if isinstance(code, int) else 1})
+        finally:
+            real(code)
+
+    os._exit = posix._exit = _exit
+
+
+def serve(cfg: dict) -> None:
+    import types
+
+    global REQ_FD, REP_FD
+    REQ_FD, REP_FD = int(cfg["req_fd"]), int(cfg["rep_fd"])
+    _seed(cfg)
+    os.chdir(cfg["cwd"])
+    sys.path[:] = [cfg["path"]] + [p for p in cfg["sys_path"] if p]
+    for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[k] = "1"
+    import numpy  # noqa: F401 - the wire format needs it
+
+    if cfg.get("torch"):
+        import torch
+
+        torch.set_num_threads(1)
+    # ready: the exercise's time starts with the grader's go (the imports above are the kit's, not the student's)
+    write_frame(REP_FD, {"event": "sandbox", "facts": _facts(cfg)})
+    _await_go(REQ_FD)
+    req, rep = REQ_FD, REP_FD
+    _guard_exit(rep)
+    log = open(os.path.join(cfg["cwd"], ".grader-output.txt"), "w")  # the student's prints go here
+    os.dup2(log.fileno(), 1)
+    os.dup2(log.fileno(), 2)
+    module = types.ModuleType("__main__")
+    module.__file__ = os.path.join(cfg["cwd"], "exercise.py")
+    sys.modules["__main__"] = module
+    handles: dict = {}
+    try:
+        exec(compile(cfg["code"], "<your notebook>", "exec"), module.__dict__)  # noqa: S102 - sandboxed
+        target = module.__dict__.get(cfg["name"])
+        for step in cfg.get("oracle", ()):  # the earlier exercises it calls: answered by the grader from now on
+            if step in module.__dict__ and step != cfg["name"] and not isinstance(module.__dict__[step], type):
+                module.__dict__[step] = oracle_stub(step, cfg["name"], module.__dict__[step])
+        hello = {"ok": True, "found": target is not None, "callable": callable(target)}
+    except BaseException as exc:  # noqa: BLE001 - reported to the grader
+        target, hello = None, _exc_reply(exc)
+    write_frame(rep, hello)
+    while True:
+        try:
+            msg, arrays = read_frame(req)
+        except EOFError:
+            break
+        if msg.get("op") == "bye":
+            break
+        calls: list = []
+        try:
+            def recorder(i):
+                def cb(*args, **kwargs):
+                    calls.append((i, args, kwargs))
+
+                return cb
+
+            args = decode(msg["args"], arrays, recorder)
+            kwargs = decode(msg["kwargs"], arrays, recorder)
+            gens = _generators(args, kwargs)
+            _set_rng(msg.get("rng"), arrays)
+            fn = target if msg.get("h") is None else handles[int(msg["h"])]
+            if msg.get("h") is not None and msg.get("params"):
+                _load_params(fn, msg["params"], arrays)
+            grad = _grad_mode(msg.get("grad", True))
+            with grad:
+                value = fn(*args, **kwargs)
+            out: list = []
+            tree = encode(value, out, handles=handles)
+            cb_tree = encode([[i, list(a), k] for i, a, k in calls], out)
+            reply = {"ok": True, "value": tree, "callbacks": cb_tree, "rng": _get_rng(out),
+                     "gens": [[where, encode(g, out)] for where, g in gens]}
+        except BaseException as exc:  # noqa: BLE001 - the student's exception, as data
+            out, reply = [], _exc_reply(exc)
+            if isinstance(exc, WireError):
+                reply["wire"] = True
+        write_frame(rep, reply, out)
+
+
+def _generators(args, kwargs) -> list:
+    """``[[where, generator]]``: the random generators among the call's arguments (``where``: ``["a", i]`` or
+    ``["k", name]``); their states after the call go back with the reply, so that, as in a notebook, the caller's
+    generator has advanced by what the student's function drew from it."""
+    np, torch = wire._np(), wire._torch()
+    kinds = tuple(k for k in (getattr(np.random, "Generator", None), getattr(torch, "Generator", None)) if k)
+    out = [[["a", i], a] for i, a in enumerate(args) if isinstance(a, kinds)]
+    return out + [[["k", k], v] for k, v in kwargs.items() if isinstance(v, kinds)]
+
+
+def oracle_stub(step: str, exercise: str, own):
+    """A plain function in place of the student's earlier exercise ``step`` while ``exercise`` is graded.
+
+    It holds no reference code: it sends its arguments to the grader as data and returns the grader's
+    answer (the reference's result, :mod:`course_lib.instructor.oracle`), or raises the reference's error.
+    A call the reference cannot answer (arguments that do not fit its signature, or values that cannot
+    be sent) goes to the student's ``own`` function, as in the notebook.
+    """
+
+    def stub(*args, **kwargs):
+        out: list = []
+        try:
+            head = {"event": "oracle", "name": step, "args": encode(tuple(args), out),
+                    "kwargs": encode(dict(kwargs), out)}
+        except WireError:
+            return own(*args, **kwargs)
+        size = sum(a.nbytes for a in out)
+        if size > MAX_REPLY:
+            raise ValueError(f"{step} was called with {size >> 20} MiB of arguments: while {exercise} is graded, "
+                             f"the grader answers {step} for at most {MAX_REPLY >> 20} MiB")
+        write_frame(REP_FD, head, out)
+        reply, arrays = read_frame(REQ_FD)
+        if reply.get("ok"):
+            return decode(reply.get("value"), arrays)
+        if reply.get("unbound"):
+            return own(*args, **kwargs)
+        raise _oracle_error(reply, step, exercise)
+
+    stub.__name__ = stub.__qualname__ = step
+    stub.__doc__ = f"{step}, answered by the grader with the reference's result while {exercise} is graded."
+    return stub
+
+
+def _oracle_error(reply: dict, step: str, exercise: str) -> Exception:
+    """The reference's exception, as the student's code sees it (a builtin type where it was one)."""
+    import builtins
+
+    name = ident(reply.get("type", "RuntimeError"), "RuntimeError")
+    cls = getattr(builtins, name, None) if reply.get("builtin") else None
+    msg = (f"{reply.get('message', '')} (raised by the grader's reference {step}, which answers for your {step} "
+           f"while {exercise} is graded)")
+    if not (isinstance(cls, type) and issubclass(cls, Exception)) or cls is StopIteration:
+        cls, msg = RuntimeError, f"{name}: {msg}"
+    try:
+        return cls(msg)
+    except Exception:  # noqa: BLE001 - exception types with other constructors
+        return RuntimeError(f"{name}: {msg}")
+
+
+def _grad_mode(enabled: bool):
+    import contextlib
+
+    torch = sys.modules.get("torch")
+    return torch.set_grad_enabled(bool(enabled)) if torch is not None else contextlib.nullcontext()
+
+
+def _load_params(module, params: list, arrays: list) -> None:
+    import torch
+
+    mine = dict(module.named_parameters())
+    with torch.no_grad():
+        for name, k in params:
+            if name in mine:
+                mine[name].copy_(torch.from_numpy(arrays[int(k)]))
+
+
+def _set_rng(state, arrays) -> None:
+    if not state:
+        return
+    import numpy as np
+
+    if state.get("np") is not None:
+        np.random.set_state(tuple(decode(state["np"], arrays)))
+    torch = sys.modules.get("torch")
+    if torch is not None and state.get("torch") is not None:
+        torch.set_rng_state(decode(state["torch"], arrays))
+
+
+def _get_rng(arrays: list) -> dict:
+    import numpy as np
+
+    out = {"np": encode(list(np.random.get_state()), arrays)}
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        out["torch"] = encode(torch.get_rng_state(), arrays)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# The nbval launcher
+# ---------------------------------------------------------------------------------------------
+
+#: pytest, started undumpable: the student's kernel (same user, no capabilities) cannot open its descriptors.
+PYTEST_BOOT = ("import ctypes, sys\nctypes.CDLL(None).prctl(4, 0, 0, 0, 0)\nimport pytest\n"
+               "sys.exit(pytest.main(sys.argv[1:]))\n")
+REPORT_LIMIT = 16 << 20
+
+
+def launch(cfg: dict) -> int:
+    """Run pytest (``cfg["argv"]``) after the grader's go; its junit report goes to ``collect_fd``. The exit code."""
+    import subprocess
+    import threading
+
+    _undumpable()
+    _seed(cfg)
+    report_fd, go_fd, collect_fd = int(cfg["report_fd"]), int(cfg["go_fd"]), int(cfg["collect_fd"])
+    write_frame(report_fd, {"event": "sandbox", "facts": _facts(cfg)})
+    os.close(report_fd)
+    _await_go(go_fd)
+    os.close(go_fd)
+    r, w = os.pipe()
+    argv = [a.replace("{junit}", f"/proc/self/fd/{w}") for a in cfg["argv"]]
+    got: list[bytes] = []
+
+    def read() -> None:
+        size = 0
+        while True:
+            b = os.read(r, 1 << 16)
+            if not b:
+                return
+            if size < REPORT_LIMIT:
+                got.append(b[:REPORT_LIMIT - size])
+                size += len(b)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    proc = subprocess.Popen([cfg["python"], "-B", "-P", "-c", PYTEST_BOOT, *argv], cwd=cfg["nb_dir"],
+                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            pass_fds=(w,))
+    os.close(w)
+    rc = proc.wait()
+    if cfg.get("own_pid_namespace"):  # every process the notebook left behind (never outside a PID namespace)
+        try:
+            os.kill(-1, 9)
+        except OSError:
+            pass
+    reader.join(5)
+    data = b"".join(got)
+    view = memoryview(data)
+    while view:
+        view = view[os.write(collect_fd, view):]
+    os.close(collect_fd)
+    return rc
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) == 2 and argv[0] in ("serve", "exec"):
+        with open(argv[1]) as f:
+            cfg = json.load(f)
+        if argv[0] == "serve":
+            serve(cfg)
+            return 0
+        return launch(cfg)
+    print("usage: server.py serve CONFIG.json | server.py exec CONFIG.json", file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,93 @@
+"""The student's path: a fresh release, filled by the literal student, runs notebooks 01-10 and gets full marks.
+
+The literal-student catalogue (:mod:`tests.student.literal`: every exercise written from the
+released notebook's text and stub only, keeping the dtypes it is given) fills a fresh student
+release (:func:`course_lib.instructor.release.write_release`, filled by :mod:`tests.student.fill`
+the way a student fills it). Then, as a student who works through the course:
+
+1. every notebook 01-10 runs in order, each in a fresh kernel whose ``course_lib`` is the
+   release's (:func:`course_lib.instructor.release.verify_release` with no error allowed: it
+   checks ``course_lib.__file__`` inside the kernel), in quick mode (``COURSE_LIB_QUICK=1``);
+   no cell may end in an error;
+2. the kit's grader (:func:`course_lib.instructor.grade.grade_submission`) gives the filled
+   release full marks: every hidden check and every check cell's verdict.
+
+The catalogue is also held to each check function on its own (fast, no notebook), so a
+failure of the notebook run is the kit's, not the catalogue's.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+import pytest
+
+from course_lib.instructor.notebooks import kit_specs
+from course_lib.instructor.release import verify_release, write_release
+from tests.student.fill import catalogue, fill_release
+from tests.student.literal import MODULES
+
+#: Every notebook of the course, in the order a student works through them.
+COURSE = ("01", "02", "03", "04", "05", "06", "07", "08", "09", "10")
+GRADE_SEED = 2026
+
+
+@pytest.fixture(scope="module")
+def filled_release(tmp_path_factory):
+    kit = tmp_path_factory.mktemp("literal") / "kit"
+    write_release(kit)
+    filled = fill_release(kit)
+    unfilled = {s.name: [e.name for e in s.exercises if e.name not in {f.split(".")[0] for f in filled.get(s.name, [])}]
+                for s in kit_specs()}
+    assert not any(unfilled.values()), f"exercises the filler found no stub of in the release: {unfilled}"
+    return kit, filled
+
+
+def test_the_catalogue_holds_every_exercise_of_the_kit():
+    exercises = {e.name for s in kit_specs() for e in s.exercises}
+    have = {name.split(".")[0] for name in catalogue()}
+    assert exercises <= have, f"no literal solution for {sorted(exercises - have)} in tests/student/literal"
+
+
+CHECKS = {  # exercise -> (check module, check function), as the notebooks call them
+    e.name: (e.check_module, e.check_function) for s in kit_specs() for e in s.exercises
+}
+
+
+@pytest.mark.parametrize("exercise", sorted(CHECKS))
+def test_each_literal_solution_passes_its_check(exercise, capsys):
+    """Each literal solution on its own, through the check its notebook's check cell calls (no ✘)."""
+    module, function = CHECKS[exercise]
+    check = getattr(importlib.import_module(module), function)
+    solution = next(getattr(m, exercise) for m in (importlib.import_module(f"tests.student.literal.{n}")
+                                                   for n in MODULES) if hasattr(m, exercise))
+    check(solution)
+    out = capsys.readouterr().out
+    assert "✘" not in out, out
+
+
+def test_the_filled_release_runs_notebooks_01_to_10_in_order_without_an_error(filled_release):
+    kit, filled = filled_release
+    released = sorted(p.name for p in (kit / "notebooks").glob("*.ipynb"))
+    missing = [n for n in COURSE if not any(name.startswith(n) for name in released)]
+    problems = verify_release(kit, only=list(COURSE), allowed_errors=())
+    errors = {name: found for name, found in problems.items() if found}
+    assert not missing and not errors, "\n".join(
+        [f"notebooks/{n}*: not in the release" for n in missing]
+        + [f"{name}: {'; '.join(p[:400] for p in found)}" for name, found in errors.items()])
+
+
+def test_the_filled_release_gets_full_marks(filled_release):
+    from course_lib.instructor.grade import grade_submission
+
+    kit, _ = filled_release
+    try:
+        report = grade_submission(kit, salt=GRADE_SEED)
+    except Exception as exc:  # noqa: BLE001 - a grader that refuses to run without its isolation
+        if any(w in str(exc).lower() for w in ("isolation", "namespace", "sandbox")):
+            pytest.skip(f"the grader refuses to grade here: {exc}")
+        raise
+    short = {f"{g['notebook'][:2]} {g['name']}": (g["points"], g["status"], g["nbval"], g["feedback"][:3])
+             for g in report["exercises"] if g["points"] < g["max_points"]}
+    assert report["total"] == report["max"] and not short, f"{report['total']} / {report['max']}: {short}"
+    assert report["max"] == sum(e.points for s in kit_specs() for e in s.exercises)
