@@ -23,9 +23,9 @@ building's sun. The frame is NeRF's (z up, the object within about ``[-0.8, 0.8]
 :func:`make_excavator_datasets` renders each view once at the largest size (2 x 2 rays per pixel)
 and writes every size by area downscaling (``cv2.INTER_AREA`` of the RGBA image, as NeRF's
 half-resolution loaders do): the 200 and 400 px scenes are the 800 px scene made smaller, as a
-lego 200/400/800 split would be. It is made by a command, ``python benchmarks/nerf_speed.py --scene
-excavator`` (about 10 minutes on 2 cores, into the git-ignored ``outputs/bench-excavator/``); the
-renders are never committed.
+lego 200/400/800 split would be. It is made by a command of the instructor's repository,
+``python benchmarks/nerf_speed.py --scene excavator`` (about 10 minutes on 2 cores, into the
+git-ignored ``outputs/bench-excavator/``); the renders are never committed.
 """
 
 from __future__ import annotations
