@@ -314,9 +314,14 @@ class Check:
         text = pass_msg if ok else fail_msg
         self.verdicts.append(Verdict(ok, text, kind, defining, None if ok else named))
         self.unanswered_call = None
-        for case in self.answered:
-            if case == self.case or f"{case}:" in text:  # "case A: ..." names case A (not "case A1")
-                self.answered[case] = True
+        # a verdict answers the cases it names ("case A: ..." names case A, not "case A1"), and the case of the last
+        # call when it names none or names that case's stem ("NeRF(): ..." after a call of case "NeRF() forward");
+        # a check that records its verdicts after all its calls names each case
+        named = [case for case in self.answered if f"{case}:" in text]
+        if self.case in self.answered and (not named or any(self.case.startswith(n + " ") for n in named)):
+            named.append(self.case)
+        for case in named:
+            self.answered[case] = True
         if ok:
             self.passed += 1
             self.lines.append(f"  {PASS} {pass_msg}")

@@ -330,9 +330,11 @@ def _check_training(c: Check, fn: Callable, near, far, S: int, R: int, seed: int
     lo, up = _bins(near, far, S)[kind or "kit"]
     off = (zt - lo) / (up - lo)
     varied_s, varied_r = np.ptp(off, axis=1).min() > 1e-3, np.ptp(off, axis=0).min() > 1e-3
-    c.expect(varied_s and varied_r, f"{short}: independent jitter for every ray and every sample",
+    # the offsets inside the bins mean something only when the samples are in their bins (a constant is not jitter)
+    c.expect(kind is not None and varied_s and varied_r, f"{short}: independent jitter for every ray and every sample",
              f"{case}: the same jitter for every {'sample' if not varied_s else 'ray'}: draw a (n_rays, n_samples) "
-             "array of uniform numbers")
+             "array of uniform numbers" if kind is not None else
+             f"{case}: the jitter cannot be judged while the samples are not in their bins (see above)")
     if kind is not None:
         c.expect(off.min() < 0.25 and off.max() > 0.75, f"{short}: the jitter covers the whole bin",
                  f"{case}: the samples cover only [{off.min():.2f}, {off.max():.2f}] of their bins: draw u uniform "

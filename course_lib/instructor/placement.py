@@ -7,6 +7,7 @@ check cells back (source and verdict) before the notebook runs under nbval.
 
 from __future__ import annotations
 
+import ast
 import json
 import re
 from dataclasses import dataclass
@@ -67,6 +68,11 @@ def place_exercises(nb, spec: NotebookSpec) -> dict[str, Placement]:
             if getattr(node, "name", None) in names and node.__class__.__name__ in ("FunctionDef", "ClassDef",
                                                                                    "AsyncFunctionDef"):
                 defs.setdefault(node.name, []).append(i)
+            # ``ransac_fundamental = my_ransac``: the exercise bound by assignment is defined in this cell too
+            for target in (node.targets if isinstance(node, ast.Assign) else
+                           [node.target] if isinstance(node, ast.AnnAssign) and node.value is not None else []):
+                if isinstance(target, ast.Name) and target.id in names:
+                    defs.setdefault(target.id, []).append(i)
     out: dict[str, Placement] = {}
     used: set[int] = set()
     for e in spec.exercises:  # intact check cells first: they are unambiguous

@@ -118,8 +118,11 @@ def _verify_with_exercises(x1, x2, rng, threshold_px, confidence, max_iters, non
     """:func:`verify_pair` by the exercises ``ransac_fundamental`` and ``sampson_distance`` (the student kit)."""
     try:
         res = call("ransac_fundamental", x1, x2, rng, threshold_px, confidence, max_iters)
-    except KitInputError as exc:
-        none.n_iters, none.note = max_iters, f"ransac_fundamental found no F ({exc})"
+    except NotImplementedError:
+        raise  # the stand-in: it names the notebook to finish
+    except Exception as exc:  # noqa: BLE001 - a pair your RANSAC cannot verify (few or bad matches) is left out
+        none.n_iters = max_iters
+        none.note = f"your ransac_fundamental raised {type(exc).__name__} on these {len(x1)} matches: {str(exc)[:200]}"
         return none
     F = np.asarray(res.F, float)
     inliers = np.asarray(res.inliers, bool).reshape(-1)

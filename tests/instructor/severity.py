@@ -66,6 +66,13 @@ def _module_nodes(module, root_names: list[str], exclude: set[str]) -> list[str]
     return extra + parts
 
 
+def _bind(exercise: str, name: str, is_class: bool) -> str:
+    """A top-level ``def`` (or ``class``) of the exercise's name around ``name``, as the grader cuts exercises out."""
+    if is_class:
+        return f"class {exercise}({name}):\n    pass"
+    return f"def {exercise}(*args, **kwargs):\n    return {name}(*args, **kwargs)"
+
+
 def mistake_source(m: Mistake) -> str:
     """The code of a mistake as it goes into its exercise cell (defining the exercise's name)."""
     fn = m.fn
@@ -74,7 +81,7 @@ def mistake_source(m: Mistake) -> str:
     if "<locals>" not in fn.__qualname__:
         parts = _module_nodes(module, [fn.__name__], others)
         if fn.__name__ != m.exercise:
-            parts.append(f"{m.exercise} = {fn.__name__}")
+            parts.append(_bind(m.exercise, fn.__name__, inspect.isclass(fn)))
         return "\n\n\n".join(parts) + "\n"
     factory = fn.__qualname__.split(".")[0]
     params = inspect.signature(getattr(module, factory)).parameters
@@ -86,7 +93,8 @@ def mistake_source(m: Mistake) -> str:
                 cells[name] = cell.cell_contents
     args = ", ".join(f"{k}={v!r}" for k, v in cells.items())
     parts = _module_nodes(module, [factory], others)
-    parts.append(f"{m.exercise} = {factory}({args})")
+    parts.append(f"_made = {factory}({args})")
+    parts.append(_bind(m.exercise, "_made", inspect.isclass(fn)))
     return "\n\n\n".join(parts) + "\n"
 
 
