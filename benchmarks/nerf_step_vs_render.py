@@ -43,12 +43,13 @@ def trained_state(size: int, iters: int):
 
     from course_lib.data.blender import load_blender
     from course_lib.nerf.presets import preset
-    from course_lib.nerf.train import _start, train
+    from course_lib.nerf.run import RunClock
+    from course_lib.nerf.train import start_state, train
 
     data = _building(size)
     tr, te = load_blender(data, "train", dtype="uint8"), load_blender(data, "test", dtype="uint8")
     out = REPO / "outputs" / f"bench-step-{size}"
-    cfg = preset("fast", iters=iters, threads=1, snapshot_every=0, checkpoint_every=0, grid_resolution=0)
+    cfg = preset("fast", iters=iters, minutes=None, threads=1, snapshot_every=0, checkpoint_every=0, grid_resolution=0)
     if not (out / "checkpoint.pt").exists():
         print(f"training {iters} steps at {size} px into {out} ...", flush=True)
         t = time.perf_counter()
@@ -58,7 +59,8 @@ def trained_state(size: int, iters: int):
     from course_lib.threads import set_torch_threads
 
     set_torch_threads(1)
-    state, _ = _start(tr, resolve(cfg, tr.H, tr.W), __import__("torch").device("cpu"), out / "checkpoint.pt", True)
+    cfg = resolve(cfg, tr.H, tr.W)
+    state, _ = start_state(tr, cfg, __import__("torch").device("cpu"), RunClock.of(cfg), out / "checkpoint.pt")
     state.progress = 1.0
     return state, te
 

@@ -54,6 +54,7 @@ __all__ = [
     "build_scene",
     "render",
     "cast_rays",
+    "cast_rays_grouped",
     "sfm_cameras",
     "nerf_cameras",
     "orbit_camera",
@@ -368,8 +369,36 @@ def _sky(d: np.ndarray) -> np.ndarray:
     return (1 - e) * np.array([0.78, 0.85, 0.93]) + e * np.array([0.35, 0.55, 0.85])
 
 
+def cast_rays_grouped(surfaces: list[Surface], groups, C: np.ndarray, d: np.ndarray):
+    """:func:`cast_rays` for a scene of parts: each part's surfaces are tested only by the rays near it.
+
+    Args:
+        surfaces: the scene. C: ``(3,)`` the rays' origin. d: ``(N, 3)`` directions.
+        groups: list of ``(first, stop, center (3,), radius)``: surfaces ``first:stop`` lie inside
+            the sphere ``(center, radius)``; a ray that misses the sphere cannot hit them.
+
+    Returns:
+        As :func:`cast_rays` (surface indices into ``surfaces``).
+    """
+    N = d.shape[0]
+    best, sid = np.full(N, np.inf), np.full(N, -1, int)
+    bs, bt = np.zeros(N), np.zeros(N)
+    dn = d / np.linalg.norm(d, axis=1, keepdims=True)
+    for first, stop, center, radius in groups:
+        oc = np.asarray(center, float) - C
+        along = dn @ oc  # distance along the ray to the point closest to the centre
+        near = np.nonzero((oc @ oc - along * along <= radius * radius) & (along > -radius))[0]
+        if near.size == 0:
+            continue
+        lam, k, s, t = cast_rays(surfaces[first:stop], C, d[near])
+        better = lam < best[near]
+        idx = near[better]
+        best[idx], sid[idx], bs[idx], bt[idx] = lam[better], k[better] + first, s[better], t[better]
+    return best, sid, bs, bt
+
+
 def render(surfaces: list[Surface], K: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, image_size: tuple[int, int],
-           supersample: int = 2, background: str = "sky", chunk: int = 300_000) -> tuple[np.ndarray, np.ndarray]:
+           supersample: int = 2, background: str = "sky", chunk: int = 300_000, groups=None) -> tuple[np.ndarray, np.ndarray]:
     """Ray-cast an image of the scene.
 
     Args:
@@ -380,6 +409,8 @@ def render(surfaces: list[Surface], K: np.ndarray, R_cw: np.ndarray, t_cw: np.nd
         background: ``"sky"`` (a gradient, alpha 1 everywhere) or ``"transparent"`` (alpha 0 where
             rays miss; the returned RGB is the mean over the hits, i.e. *not* premultiplied).
         chunk: rays per batch (memory).
+        groups: optional bounding spheres of the scene's parts (:func:`cast_rays_grouped`): the same
+            image, faster for scenes of many small parts.
 
     Returns:
         ``rgb (H, W, 3)`` float in [0, 1] and ``alpha (H, W)`` float in [0, 1] (fraction of hits).
@@ -401,7 +432,7 @@ def render(surfaces: list[Surface], K: np.ndarray, R_cw: np.ndarray, t_cw: np.nd
     hit = np.zeros(d.shape[0], bool)
     for a in range(0, d.shape[0], chunk):
         dd = d[a:a + chunk]
-        lam, sid, s, t = cast_rays(surfaces, C, dd)
+        lam, sid, s, t = cast_rays(surfaces, C, dd) if groups is None else cast_rays_grouped(surfaces, groups, C, dd)
         out = np.zeros((dd.shape[0], 3))
         _shade(surfaces, sid, dd, out, s, t)
         miss = sid < 0

@@ -11,6 +11,7 @@
 * :mod:`course_lib.nerf.schedule` - the grid's training schedule, as callbacks the field supplies.
 * :mod:`course_lib.nerf.inference` - forward-only rendering: evaluation, snapshots, novel views (08-09).
 * :mod:`course_lib.nerf.checkpoint` - checkpoints, written during training, read on any device.
-* :mod:`course_lib.nerf.train` - the training loop, its clock and its outputs.
-* :mod:`course_lib.nerf.cli` - ``python -m course_lib nerf train|render``.
+* :mod:`course_lib.nerf.train` - the training loop (08).
+* :mod:`course_lib.nerf.run` - around the loop: the run's clock, its outputs (snapshots, checkpoints, evaluations), the progress bar.
+* :mod:`course_lib.nerf.cli` - ``python -m course_lib nerf train|eval|render`` (options made from :class:`TrainConfig`).
 """

@@ -61,8 +61,8 @@ def save_checkpoint(path: Path, state, camera: dict | None = None) -> None:
         "model_config": model.config() if hasattr(model, "config") else {**nerf_arguments(state.config),
                                                                          "skips": list(state.config.skips)},
         "model_fine": fine.state_dict() if fine is not None else None,
-        "optimizer": state.optimizer.state_dict(), "step": state.step, "train_seconds": state.train_seconds,
-        "wall_seconds": state.wall_seconds, "config": state.config.to_dict(), "bounds": state.bounds.to_dict(),
+        "optimizer": state.optimizer.state_dict(), "step": state.step, "train_seconds": state.clock.train_seconds,
+        "wall_seconds": state.clock.spent(), "config": state.config.to_dict(), "bounds": state.bounds.to_dict(),
         "history": state.history, "generator_state": state.generator.get_state(),
         "torch_rng_state": torch.get_rng_state(),
     }, path.with_suffix(".tmp"))

@@ -1,26 +1,36 @@
-"""``python -m course_lib nerf train|render``: train a NeRF on a Blender scene, render novel views.
+"""``python -m course_lib nerf train|eval|render``: train a NeRF on a Blender scene, measure it, render novel views.
 
 Examples::
 
-    python -m course_lib nerf train --out outputs/nerf-fast --minutes 5 --preset fast
+    python -m course_lib nerf train --out outputs/nerf-fast --preset fast
     python -m course_lib nerf train ../shared/data/nerf-lego-100 --out outputs/lego-paper --minutes 5 --preset paper
+    python -m course_lib nerf eval outputs/lego-paper ../shared/data/nerf-lego-100   # PSNR on every test view
     python -m course_lib nerf render outputs/nerf-fast/checkpoint.pt --out outputs/nerf-fast/path
     python -m course_lib nerf train --device cuda --minutes 1 --out outputs/nerf-gpu     # an NVIDIA GPU
 
-``train`` writes ``OUT/metrics.json`` (test PSNR, iterations, seconds, preset, loss/PSNR history),
-``OUT/test/<view>.png`` (renders of the evaluated test views), ``OUT/snapshots/step_XXXXXX.png`` (the held-out
-view during training, a preview at most 400 px on its longest side) and ``OUT/checkpoint.pt``; run it again with the same ``--out`` to resume
-(``--minutes`` and ``--iters`` are totals). ``render`` writes ``OUT/path.gif`` and
-``OUT/frame_XXX.png`` along a circle around the scene.
+``train``'s options are made from :class:`~course_lib.nerf.presets.TrainConfig`: one option per
+field (``n_samples`` -> ``--n-samples``; a switch ``--fine`` / ``--no-fine``), its help the field's
+docstring, its default the preset's (``--preset``, default ``fast``) -- so the command line and
+``train(data, config="fast")`` in a notebook run the same thing. Shorter names kept from earlier
+versions: ``--batch``, ``--samples``, ``--importance``, ``--sparse-adam``, ``--black-background``.
 
-``--minutes`` is the budget of the whole run: loading the images, training, snapshots, checkpoints
-and the final evaluation. Everything outside training stays below 10 % of it: loading, snapshots and
-checkpoints within 5 % of the training time (a due snapshot waits while it would not fit; the fast
-preset checkpoints at most once a minute, so a crash loses about a minute), and the
-final evaluation renders the test views that fit in 3 % of the budget: all of them when they fit,
-else a fixed, evenly spread subset (the summary says how many; ``--eval-all`` renders all of them,
-whatever the time). Renders (evaluation, snapshots, ``render``) run forward
-only, with empty-space skipping and early ray termination (:mod:`course_lib.nerf.inference`).
+``train`` writes ``OUT/metrics.json`` (the PSNR, iterations, seconds, preset, loss/PSNR history),
+``OUT/test/<view>.png`` (renders of the evaluated test views), ``OUT/snapshots/step_XXXXXX.png``
+(the held-out view during training, a preview at most 200 px on its longest side) and
+``OUT/checkpoint.pt``; run it again with the same ``--out`` to resume (``--minutes`` and
+``--iters`` are totals). ``eval`` renders every view of a split with a checkpoint and prints its
+mean PSNR. ``render`` writes ``OUT/path.gif`` and ``OUT/frame_XXX.png`` along a circle around the
+scene.
+
+``--minutes`` (default 5) is the budget of the whole run: loading the images, training, snapshots,
+checkpoints and the final evaluation. Everything outside training stays below 10 % of it:
+loading, snapshots and checkpoints within 5 % of the training time (a due snapshot waits while it
+would not fit; the fast preset checkpoints at most once a minute, so a crash loses about a
+minute), and the final evaluation renders every test view when they fit in 3 % of the budget at
+the speed it measures on the first one; when they do not, at least 8 evenly spread views, and the
+summary calls that "PSNR on k of n test views" (``--eval-all`` renders all of them whatever the
+time; ``nerf eval`` afterwards). Renders (evaluation, snapshots, ``render``) run forward only,
+with empty-space skipping and early ray termination (:mod:`course_lib.nerf.inference`).
 
 ``--device auto`` (the default) trains and renders on a CUDA GPU if there is one, else on an Apple
 GPU (MPS), else on the CPU, and says which; a checkpoint written on one device loads on any other.
@@ -30,8 +40,12 @@ Ctrl-C during ``train`` saves a checkpoint and says how to resume (exit status 1
 from __future__ import annotations
 
 import argparse
+import ast
 import json
+import re
 import time
+import typing
+from dataclasses import fields
 from pathlib import Path
 
 from course_lib.nerf.device import DEVICE_CHOICES
@@ -40,42 +54,111 @@ from course_lib.validate import KitInputError, output_dir
 
 DEVICE_HELP = "cpu, cuda (NVIDIA GPU), mps (Apple GPU) or auto: CUDA, then MPS, then the CPU (default: auto)"
 
+#: shorter option names kept from earlier versions of the command line
+ALIASES = {"batch_rays": ("--batch",), "n_samples": ("--samples",), "n_importance": ("--importance",),
+           "grid_sparse_adam": ("--sparse-adam",)}
+#: fields that are not options of their own (the preset is chosen with --preset)
+NOT_OPTIONS = {"preset"}
+
+
+def _none_or(kind):
+    def parse(text: str):
+        return None if text.strip().lower() == "none" else kind(text)
+
+    parse.__name__ = kind.__name__  # argparse names the type in its error messages
+    return parse
+
+
+def _python_value(text: str):
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a Python literal, e.g. ((0, 0.4), (0.06, 0.8))") from None
+
+
+def _plain(doc: str) -> str:
+    """A docstring's reST as plain text: ``:class:`~a.b.C``` -> ``C``, double backquotes dropped."""
+    doc = re.sub(r":\w+:`~?([^`]+)`", lambda m: m.group(1).split(".")[-1], doc)
+    return doc.replace("``", "")
+
+
+def _option(hint) -> dict:
+    """argparse keywords for a field of this type."""
+    if typing.get_origin(hint) is typing.Annotated:
+        hint = typing.get_args(hint)[0]
+    if hint is bool:
+        return {"action": argparse.BooleanOptionalAction}
+    if typing.get_origin(hint) is typing.Literal:
+        choices = typing.get_args(hint)
+        return {"type": type(choices[0]), "choices": choices}
+    args = typing.get_args(hint)
+    if type(None) in args:  # X | None
+        kind = next(a for a in args if a is not type(None))
+        return {"type": _none_or(kind), "metavar": kind.__name__.upper()}
+    if hint in (int, float, str):
+        return {"type": hint, "metavar": hint.__name__.upper()}
+    return {"type": _python_value, "metavar": "TUPLE"}
+
+
+def add_config_options(parser: argparse.ArgumentParser) -> None:
+    """One option per :class:`TrainConfig` field, grouped by its section, its help from the field's docstring.
+
+    Every option defaults to "not given" (the preset's value); :func:`config_from_args` applies the given ones.
+    """
+    from course_lib.nerf.presets import PRESETS, TrainConfig, field_docs
+
+    docs = field_docs(TrainConfig)
+    hints = typing.get_type_hints(TrainConfig, include_extras=True)
+    groups: dict[str, argparse._ArgumentGroup] = {}
+    for f in fields(TrainConfig):
+        if f.name in NOT_OPTIONS:
+            continue
+        section, doc = docs.get(f.name, ("", ""))
+        if section not in groups:
+            groups[section] = parser.add_argument_group(f"{section} (TrainConfig)" if section else "TrainConfig")
+        defaults = {name: getattr(cfg, f.name) for name, cfg in PRESETS.items()}
+        shown = (f"default {next(iter(defaults.values()))!r}" if len(set(map(repr, defaults.values()))) == 1
+                 else "; ".join(f"{name}: {v!r}" for name, v in defaults.items()))
+        text = f"{_plain(doc)} ({shown})".replace("%", "%%")
+        groups[section].add_argument("--" + f.name.replace("_", "-"), *ALIASES.get(f.name, ()), dest=f.name,
+                                     default=argparse.SUPPRESS, help=text, **_option(hints[f.name]))
+        if f.name == "white_background":
+            groups[section].add_argument("--black-background", dest="white_background", action="store_false",
+                                         default=argparse.SUPPRESS, help="the same as --no-white-background")
+
+
+def config_from_args(args):
+    """The preset ``args.preset`` with the options that were given on the command line."""
+    from course_lib.nerf.presets import TrainConfig, preset
+
+    names = {f.name for f in fields(TrainConfig)} - NOT_OPTIONS
+    return preset(args.preset, **{k: v for k, v in vars(args).items() if k in names})
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    sub = parser.add_subparsers(dest="nerf_command", metavar="{train,render}")
-    t = sub.add_parser("train", help="train on a Blender-format scene (default: the embedded scene)")
+    from course_lib.nerf.presets import PRESETS
+
+    sub = parser.add_subparsers(dest="nerf_command", metavar="{train,eval,render}")
+    t = sub.add_parser("train", help="train on a Blender-format scene (default: the embedded scene)",
+                       description="Train a NeRF. Every TrainConfig field is an option; its default is the preset's.")
     t.add_argument("data", nargs="?", default=None,
                    help=f"scene folder with transforms_train.json (default: {EMBEDDED_NERF})")
     t.add_argument("--out", required=True, help="output folder (metrics.json, test/, snapshots/, checkpoint.pt)")
-    t.add_argument("--preset", choices=["paper", "fast"], default="fast", help="training preset (default: fast)")
-    t.add_argument("--minutes", type=float, default=None,
-                   help="time budget of the whole run in minutes: loading, training, final evaluation "
-                        "(total, resumes count; default 5 without --iters)")
-    t.add_argument("--iters", type=int, default=None, help="maximum number of steps (total)")
-    t.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    t.add_argument("--downscale", type=int, default=1, help="shrink the images by this integer factor")
-    t.add_argument("--batch", type=int, default=None, help="rays per step (preset default otherwise)")
-    t.add_argument("--samples", type=int, default=None,
-                   help="coarse samples per ray (default: the preset's; fast: from the grid resolution)")
-    t.add_argument("--grid-resolution", type=int, default=None,
-                   help="final voxels along the box's longest side (fast preset; default: from the image size)")
-    t.add_argument("--importance", type=int, default=None, help="fine samples per ray (hierarchical sampling)")
-    t.add_argument("--fine", action="store_true", help="train a separate fine network (paper preset)")
-    t.add_argument("--near", type=float, default=None, help="near bound of the rays (default: from the cameras)")
-    t.add_argument("--far", type=float, default=None, help="far bound of the rays (default: from the cameras)")
+    t.add_argument("--preset", choices=sorted(PRESETS), default="fast", help="training preset (default: fast)")
     t.add_argument("--device", default="auto", metavar="{" + ",".join(DEVICE_CHOICES) + "}", help=DEVICE_HELP)
-    t.add_argument("--threads", type=int, default=None, help="torch threads (-1: auto, 1 on a busy machine)")
-    t.add_argument("--snapshot-every", type=int, default=None, help="render the held-out view every N steps")
-    t.add_argument("--checkpoint-seconds", type=float, default=None,
-                   help="at most one checkpoint per this many seconds of the run (fast preset: 60; 0: no limit)")
-    t.add_argument("--black-background", action="store_true", help="composite RGBA onto black instead of white")
-    t.add_argument("--eval-all", action="store_true",
-                   help="evaluate all test views at the end, even where they do not fit in --minutes")
-    t.add_argument("--sparse-adam", action="store_true",
-                   help="fast preset: Adam only on the voxels each step read (lazy Adam; see course_lib/nerf/optim.py)")
+    t.add_argument("--downscale", type=int, default=1, help="shrink the images by this integer factor")
     t.add_argument("--gif", action="store_true", help="also render novel views along a circle (OUT/path.gif)")
     t.add_argument("--no-resume", action="store_true", help="ignore an existing checkpoint in --out")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_config_options(t)
+    e = sub.add_parser("eval", help="PSNR of a checkpoint on every view of a scene's test split")
+    e.add_argument("checkpoint", help="checkpoint.pt written by `nerf train` (or its output folder)")
+    e.add_argument("data", help="scene folder with transforms_test.json (the scene the checkpoint was trained on)")
+    e.add_argument("--split", choices=("test", "val", "train"), default="test", help="which views (default: test)")
+    e.add_argument("--downscale", type=int, default=None,
+                   help="shrink the images by this factor (default: to the checkpoint's training size)")
+    e.add_argument("--out", default=None, help="also write the renders (PNG) and eval.json into this folder")
+    e.add_argument("--device", default="auto", metavar="{" + ",".join(DEVICE_CHOICES) + "}", help=DEVICE_HELP)
     r = sub.add_parser("render", help="render novel views along a circle from a checkpoint (GIF + PNGs)")
     r.add_argument("checkpoint", help="checkpoint.pt written by `nerf train` (or its output folder)")
     r.add_argument("--out", required=True, help="output folder for path.gif and frame_XXX.png")
@@ -86,67 +169,54 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.set_defaults(_parser=parser)
 
 
-def _load_scene(folder, downscale: int, white: bool, dtype: str = "uint8"):
-    from course_lib.data.blender import load_blender
-
+def _scene_folder(folder, split: str = "train") -> Path:
     folder = Path(folder)
     if not folder.exists():
-        raise KitInputError(f"scene folder {folder} not found (expected a folder with transforms_train.json)")
-    if not (folder / "transforms_train.json").exists():
-        raise KitInputError(f"{folder} has no transforms_train.json: is it a NeRF Blender scene folder?")
-    train_data = load_blender(folder, "train", downscale=downscale, white_background=white, dtype=dtype)
+        raise KitInputError(f"scene folder {folder} not found (expected a folder with transforms_{split}.json)")
+    if not (folder / f"transforms_{split}.json").exists():
+        raise KitInputError(f"{folder} has no transforms_{split}.json: is it a NeRF Blender scene folder?")
+    return folder
+
+
+def _load_scene(folder, downscale: int, white: bool):
+    from course_lib.data.blender import load_blender
+
+    folder = _scene_folder(folder)
+    train_data = load_blender(folder, "train", downscale=downscale, white_background=white, dtype="uint8")
     test_data = None
     for split in ("test", "val"):
         if (folder / f"transforms_{split}.json").exists():
-            test_data = load_blender(folder, split, downscale=downscale, white_background=white, dtype=dtype)
+            test_data = load_blender(folder, split, downscale=downscale, white_background=white, dtype="uint8")
             break
     return train_data, test_data
 
 
+def _where(device) -> str:
+    from course_lib.nerf.device import device_name
+
+    return device.type if device.type == "cpu" else device_name(device)  # the CPU's threads are set by train()
+
+
 def _train(args) -> int:
-    from course_lib.nerf.device import device_name, pick_device
-    from course_lib.nerf.presets import preset
+    from course_lib.nerf.device import pick_device
+    from course_lib.nerf.checkpoint import CHECKPOINT
     from course_lib.nerf.inference import circular_path, render_path, save_gif
-    from course_lib.nerf.train import CHECKPOINT, TrainingInterrupted, train
+    from course_lib.nerf.presets import resolve
+    from course_lib.nerf.train import TrainingInterrupted, train
 
     started_at = time.perf_counter()  # --minutes covers the loading too
     device = pick_device(args.device)
+    cfg = config_from_args(args)
     data = Path(args.data) if args.data else EMBEDDED_NERF
     if args.data is None and not (data / "transforms_train.json").exists():
         raise KitInputError(f"the embedded NeRF scene {data} is not there (run `python -m course_lib make-data`) "
                             "or pass a scene folder, e.g. ../shared/data/nerf-lego-100")
-    train_data, test_data = _load_scene(data, args.downscale, not args.black_background)
+    train_data, test_data = _load_scene(data, args.downscale, cfg.white_background)
     out = output_dir(args.out)
-    over = {"seed": args.seed, "white_background": not args.black_background}
-    if args.minutes is not None:
-        if args.minutes <= 0:
-            raise KitInputError(f"--minutes {args.minutes}: expected a positive number")
-        over["minutes"] = args.minutes
-    if args.iters is not None:
-        over["iters"] = args.iters
-    for name, key in (("batch", "batch_rays"), ("samples", "n_samples"), ("importance", "n_importance"),
-                      ("near", "near"), ("far", "far"), ("threads", "threads"), ("snapshot_every", "snapshot_every"),
-                      ("grid_resolution", "grid_resolution"), ("checkpoint_seconds", "checkpoint_seconds")):
-        v = getattr(args, name)
-        if v is not None:
-            over[key] = v
-    if args.eval_all:
-        over["eval_all"] = True
-    if args.sparse_adam:
-        over["grid_sparse_adam"] = True
-    if args.fine:
-        over["fine"] = True
-        over.setdefault("n_importance", 128)
-    if args.minutes is None and args.iters is None:
-        over["minutes"] = 5.0
-    cfg = preset(args.preset, **over)
-    if device.type == "cpu":
-        from course_lib.threads import set_torch_threads
-
-        set_torch_threads(cfg.threads)
-    budget = f"{cfg.minutes:g} min" if cfg.minutes else f"{cfg.iters} steps"
+    run = resolve(cfg, train_data.H, train_data.W)
+    budget = f"{run.minutes:g} min" if run.minutes else f"{run.iters} steps"
     print(f"training {cfg.preset} on {data} ({len(train_data)} views {train_data.W}x{train_data.H}, "
-          f"{len(test_data) if test_data else 0} test views) for {budget} on {device_name(device)} -> {out}")
+          f"{len(test_data) if test_data else 0} test views) for {budget} on {_where(device)} -> {out}")
     if not args.no_resume and (out / CHECKPOINT).exists():
         print(f"resuming from {out / CHECKPOINT} (--no-resume starts afresh)")
     try:
@@ -159,18 +229,60 @@ def _train(args) -> int:
         print("\ninterrupted before training started; nothing saved", flush=True)
         return 130
     m = res.metrics
-    tp = f"{m['test_psnr']:.2f} dB" if m.get("test_psnr") is not None else "n/a (no test split)"
-    if m.get("test_psnr") is not None and m["n_test_views"] < m["n_test_views_available"]:
-        tp += (f" on {m['n_test_views']} of {m['n_test_views_available']} test views (an evenly spread subset: "
-               "all of them do not fit in --minutes; --eval-all renders every one)")
-    print(f"{m['iterations']} steps in {m['train_seconds']:.0f} s of training on {m['device']} ({m['stopped_by']}), "
-          f"{m['wall_seconds']:.0f} s wall ({100 * m['overhead_fraction']:.0f} % outside training); test PSNR {tp}; "
+    if m.get("final_psnr") is None:
+        result = "no test split, no test PSNR"
+    else:
+        result = f"{m['final_psnr_label']}: {m['final_psnr']:.2f} dB"
+        if m["test_psnr"] is None:
+            result += (f" (all {m['n_test_views_available']} do not fit in {100 * run.final_eval_share:g} % of --minutes "
+                       f"at {m['first_view_seconds']:.1f} s a view; `python -m course_lib nerf eval {out} {data}` "
+                       "renders every one)")
+    print(f"{m['iterations']} steps in {m['train_seconds']:.0f} s of training on {m['device_name']} ({m['stopped_by']}), "
+          f"{m['wall_seconds']:.0f} s wall ({100 * m['overhead_fraction']:.0f} % outside training); {result}; "
           f"metrics: {out / 'metrics.json'}")
     if args.gif:
         path = circular_path(train_data.c2w, res.bounds.center, n_frames=40)
         frames = render_path(res.model, res.model_fine, res.config, res.bounds, train_data.H, train_data.W,
                              train_data.K, path, progress=not args.quiet)
         print(f"novel views: {save_gif(out / 'path.gif', frames)}")
+    return 0
+
+
+def _eval(args) -> int:
+    from course_lib.data.blender import load_blender
+    from course_lib.nerf.checkpoint import load_checkpoint
+    from course_lib.nerf.device import device_name, pick_device
+    from course_lib.nerf.inference import evaluate, save_png
+    from course_lib.nerf.run import psnr_label
+
+    device = pick_device(args.device)
+    ck = load_checkpoint(args.checkpoint, device)
+    cfg, cam = ck["cfg"], ck.get("camera")
+    folder = _scene_folder(args.data, args.split)
+    downscale = args.downscale
+    data = load_blender(folder, args.split, downscale=downscale or 1, white_background=cfg.white_background, dtype="uint8")
+    if downscale is None and cam is not None and (data.W, data.H) != (cam["W"], cam["H"]):
+        factor = data.W // cam["W"]
+        if factor < 1 or (data.W // factor, data.H // factor) != (cam["W"], cam["H"]):
+            raise KitInputError(f"{folder} has {data.W}x{data.H} px views but the checkpoint was trained on "
+                                f"{cam['W']}x{cam['H']} px: pass --downscale (or the scene it was trained on)")
+        data = load_blender(folder, args.split, downscale=factor, white_background=cfg.white_background, dtype="uint8")
+    t = time.perf_counter()
+    mean, per_view, renders = evaluate(ck["model"], ck["model_fine"], cfg, ck["bounds"], data,
+                                       return_renders=args.out is not None)
+    seconds = time.perf_counter() - t
+    label = psnr_label(len(data), len(data)) if args.split == "test" else f"PSNR on all {len(data)} {args.split} views"
+    result = {"checkpoint": str(args.checkpoint), "data": str(folder), "split": args.split, "step": ck["step"],
+              "psnr": round(mean, 3), "label": label, "n_views": len(data), "image_size": [data.W, data.H],
+              "psnr_per_view": {n: round(v, 3) for n, v in zip(data.names, per_view)}, "seconds": round(seconds, 2),
+              "device": device_name(device)}
+    if args.out is not None:
+        out = output_dir(args.out)
+        for name, img in zip(data.names, renders):
+            save_png(out / f"{name}.png", img)
+        (out / "eval.json").write_text(json.dumps(result, indent=1))
+    print(f"{label}: {mean:.2f} dB (checkpoint step {ck['step']}; {len(data)} views of {data.W}x{data.H} px rendered "
+          f"in {seconds:.1f} s on {device_name(device)})")
     return 0
 
 
@@ -207,6 +319,4 @@ def run(args) -> int:
     if getattr(args, "nerf_command", None) is None:
         args._parser.print_help()
         return 0
-    if args.nerf_command == "train":
-        return _train(args)
-    return _render(args)
+    return {"train": _train, "eval": _eval, "render": _render}[args.nerf_command](args)

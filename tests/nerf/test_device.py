@@ -11,7 +11,9 @@ import torch
 from course_lib.nerf import device as dev
 from course_lib.nerf.device import available_devices, pick_device, render_chunk
 from course_lib.nerf.presets import preset
-from course_lib.nerf.train import load_checkpoint, render_view, train
+from course_lib.nerf.checkpoint import load_checkpoint
+from course_lib.nerf.inference import render_view
+from course_lib.nerf.train import train
 from course_lib.validate import KitInputError
 
 from tests.nerf.test_train import make_scene

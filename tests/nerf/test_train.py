@@ -12,7 +12,10 @@ from course_lib.data.blender import BlenderData, intrinsics_from_fov, write_blen
 from course_lib.data.synthetic import look_at
 from course_lib.nerf.presets import preset
 from course_lib.nerf.render import render_image
-from course_lib.nerf.train import circular_path, load_checkpoint, scene_bounds, train
+from course_lib.nerf.checkpoint import build_model, load_checkpoint
+from course_lib.nerf.inference import circular_path
+from course_lib.nerf.scene import scene_bounds
+from course_lib.nerf.train import train
 
 
 class Ball(torch.nn.Module):
@@ -47,7 +50,8 @@ def scene():
 
 def tiny_nerf_config(**kw):
     base = dict(depth=2, width=32, skips=(), pos_freqs=4, dir_freqs=2, view_width=16, density="softplus",
-                n_samples=16, batch_rays=256, lr=5e-3, lr_final=5e-3, snapshot_every=0, checkpoint_every=0, threads=1)
+                n_samples=16, batch_rays=256, lr=5e-3, lr_final=5e-3, snapshot_every=0, checkpoint_every=0, threads=1,
+                minutes=None)
     base.update(kw)
     return preset("paper", **base)
 
@@ -162,7 +166,7 @@ def test_resume_gives_the_same_state(scene, tmp_path):
 def test_checkpoints_at_most_every_checkpoint_seconds(scene, tmp_path, monkeypatch):
     # checkpoint_every is in steps, checkpoint_seconds spaces them in time: with a long spacing only
     # the final checkpoint is written (a checkpoint of a large grid takes about a second)
-    import course_lib.nerf.train as tr
+    import course_lib.nerf.run as tr
 
     saved = []
     real = tr.save_checkpoint
@@ -187,16 +191,27 @@ def test_time_budget_covers_the_whole_run(scene, tmp_path):
     assert m["test_psnr"] is not None and m["n_test_views"] >= 1
 
 
-def test_final_evaluation_of_a_subset(scene):
-    # a final evaluation that does not fit in its share of the budget renders an evenly spread subset
-    # of the test views (the same ones every time), and says so; eval_all renders them all
+def test_final_evaluation_renders_every_view_that_fits(scene):
+    # the final evaluation times its first view and renders all of them when they fit in its share of
+    # the budget; else at least final_eval_min_views evenly spread ones (the same every time), and only a
+    # mean over all views is called the test PSNR; eval_all renders them all whatever the time
     from course_lib.nerf.inference import spread_views
 
     assert spread_views(25, 5) == [0, 6, 12, 18, 24] and spread_views(3, 10) == [0, 1, 2]
-    cfg = tiny_nerf_config(iters=10**6, minutes=0.03, final_eval_share=1e-6)
-    res = train(scene.subset(range(4)), scene.subset(range(4, 8)), cfg, progress=False)
-    assert res.metrics["test_views"] == [0] and res.metrics["n_test_views_available"] == 4
-    res = train(scene.subset(range(4)), scene.subset(range(4, 8)), replace(cfg, eval_all=True), progress=False)
+    train4, test4 = scene.subset(range(4)), scene.subset(range(4, 8))
+    cfg = tiny_nerf_config(iters=10**6, minutes=0.03)
+    m = train(train4, test4, cfg, progress=False).metrics  # 16 x 16 px views: all of them fit
+    assert m["test_views"] == [0, 1, 2, 3] and m["test_psnr"] == m["final_psnr"] is not None
+    assert m["final_psnr_label"] == "test PSNR on all 4 test views" and m["first_view_seconds"] > 0
+    squeezed = replace(cfg, final_eval_share=1e-9)
+    m = train(train4, test4, squeezed, progress=False).metrics  # nothing fits: at least 8 views, here all 4
+    assert m["test_views"] == [0, 1, 2, 3] and m["test_psnr"] is not None
+    res = train(train4, test4, replace(squeezed, final_eval_min_views=2), progress=False)
+    m = res.metrics
+    assert m["test_views"] == [0, 3] and m["n_test_views_available"] == 4 and res.test_renders.shape[0] == 2
+    assert m["test_psnr"] is None and m["final_psnr_label"] == "PSNR on 2 of 4 test views"
+    assert m["final_psnr"] == pytest.approx(np.mean(m["final_psnr_per_view"]), abs=2e-3)
+    res = train(train4, test4, replace(squeezed, final_eval_min_views=2, eval_all=True), progress=False)
     assert res.metrics["test_views"] == [0, 1, 2, 3] and res.test_renders.shape[0] == 4
 
 
@@ -209,7 +224,7 @@ def test_circular_path(scene):
         assert M[2, 1] < 0
 
 
-def test_cli_train_and_render(scene, tmp_path):
+def test_cli_train_eval_and_render(scene, tmp_path, capsys):
     from course_lib.__main__ import main
 
     folder = tmp_path / "scene"
@@ -219,7 +234,18 @@ def test_cli_train_and_render(scene, tmp_path):
     out = tmp_path / "out"
     rc = main(["nerf", "train", str(folder), "--out", str(out), "--preset", "fast", "--iters", "5", "--quiet",
                "--threads", "1", "--samples", "16", "--batch", "128"])
-    assert rc == 0 and json.loads((out / "metrics.json").read_text())["iterations"] == 5
+    m = json.loads((out / "metrics.json").read_text())
+    assert rc == 0 and m["iterations"] == 5 and m["test_views"] == [0, 1]
+    # nerf eval: the PSNR of any checkpoint on every view of a split (here the same as the run's own)
+    capsys.readouterr()
+    assert main(["nerf", "eval", str(out), str(folder), "--out", str(tmp_path / "eval")]) == 0
+    said = capsys.readouterr().out
+    assert said.startswith("test PSNR on all 2 test views: ") and "checkpoint step 5" in said
+    ev = json.loads((tmp_path / "eval" / "eval.json").read_text())
+    assert ev["psnr"] == pytest.approx(m["test_psnr"], abs=1e-2) and sorted(ev["psnr_per_view"]) == ["test_000", "test_001"]
+    assert (tmp_path / "eval" / "test_001.png").exists()
+    assert main(["nerf", "eval", str(out), str(folder), "--split", "val"]) == 2  # no such split: a clear error
+    assert "has no transforms_val.json" in capsys.readouterr().err
     rc = main(["nerf", "render", str(out / "checkpoint.pt"), "--out", str(tmp_path / "views"), "--frames", "3"])
     assert rc == 0 and (tmp_path / "views" / "path.gif").exists() and (tmp_path / "views" / "frame_002.png").exists()
     assert main(["nerf", "train", str(tmp_path / "nope"), "--out", str(out)]) == 2
@@ -316,7 +342,7 @@ def test_grid_resume_across_rebox_and_upsample(scene, tmp_path, sh):
 def test_grid_box_bounds_switch(scene):
     # box_bounds=False (notebook 09's ablation): the grid's rays are sampled between the scene's
     # near and far like the MLP's; the default samples only the stretch inside the grid's box
-    from course_lib.nerf.train import build_model, ray_bounds_of
+    from course_lib.nerf.train import ray_bounds_of
 
     cfg = preset("fast", grid_schedule=(), grid_resolution=12)
     bounds = scene_bounds(scene.c2w, scene.K, scene.W)
