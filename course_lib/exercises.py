@@ -1,8 +1,9 @@
 """The exercises of the notebooks, and how the kit's own code calls them.
 
 Parts of the kit build on exercises: the SfM pipeline (:mod:`course_lib.sfm.pipeline`, notebooks 05
-and 10) chains RANSAC on F, the essential matrix, triangulation, PnP and the bundle adjuster's
-residuals; the NeRF trainer and renderer (notebooks 08-10) make rays, samples and encodings and
+and 10) chains RANSAC on F (and the 8-point refit of a carried F), the pose candidates and the
+cheirality choice of the initial pair (whose E is OpenCV's five-point estimate, not the lesson's
+route), triangulation, PnP and the bundle adjuster's residuals; the NeRF trainer and renderer (notebooks 08-10) make rays, samples and encodings and
 composite with ``volume_render``. In the instructor's kit those calls reach the reference solutions;
 in the student kit (``python -m course_lib release``) they reach **the student's own functions**
 (:mod:`course_lib.student`: the function defined in the running notebook, or the one saved when the
