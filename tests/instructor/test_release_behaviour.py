@@ -431,6 +431,15 @@ def _limits():  # in the probe process, before it starts: no memory blow-up, no 
 
     resource.setrlimit(resource.RLIMIT_AS, (ADDRESS_SPACE, ADDRESS_SPACE))
     resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
+    # bounded on its own too: a probe whose test was stopped (Ctrl-C, a killed pytest) must not run on
+    resource.setrlimit(resource.RLIMIT_CPU, (PROCESS_SECONDS, PROCESS_SECONDS + 10))
+    try:  # and it dies with the test's process (Linux: PR_SET_PDEATHSIG)
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))
+    except (OSError, AttributeError):
+        pass
 
 
 def _run(kit, cases, tmp_path, max_selections=48) -> dict:
