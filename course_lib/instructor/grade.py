@@ -671,11 +671,19 @@ def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, run: _Run, steps: dict[
     if out.seconds > slow:
         g.feedback.append(f"note: correct answers are graded however long they take within {budget:g} s, but your "
                           f"{e.name} is slow: its hidden checks took {out.seconds:.0f} s, the reference's "
-                          f"{hidden.reference_seconds.get(_key(e), 0.0):.1g} s (vectorize the residuals, give least_squares "
-                          "the Jacobian's sparsity)")
+                          f"{hidden.reference_seconds.get(_key(e), 0.0):.1g} s ({_SLOW_HINTS.get(e.name, _SLOW_HINT)})")
     if _key(e) in hidden.reference_notes:
         g.feedback.append("note: " + hidden.reference_notes[_key(e)])
     return out.sandbox
+
+
+#: What usually makes an exercise slow: Python loops where numpy works on all rows at once.
+_SLOW_HINT = "look for Python loops over points, matches or rays that numpy can do on all rows at once"
+_SLOW_HINTS = {
+    "triangulate_nonlinear": "one residual function for all views and points, vectorized, is much faster",
+    "pnp_nonlinear": "compute the residuals of all points at once, without a Python loop",
+    "bundle_adjust": "vectorize the residuals and give least_squares the Jacobian's sparsity (jac_sparsity)",
+}
 
 
 def _not_run(result, reference) -> int:

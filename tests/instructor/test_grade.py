@@ -91,7 +91,7 @@ SOLUTIONS = {
 
 #: One typical mistake per exercise, and a phrase the feedback must contain.
 MISTAKES = {
-    "normalize_points": (SOLUTIONS["normalize_points"].replace("np.sqrt(2.0)", "1.0"), "the mean distance is 1"),
+    "normalize_points": (SOLUTIONS["normalize_points"].replace("np.sqrt(2.0)", "1.0"), "the mean distance to the centroid is 1"),
     "eight_point": ("""
         A = np.stack([x2[:, 0] * x1[:, 0], x2[:, 0] * x1[:, 1], x2[:, 0], x2[:, 1] * x1[:, 0], x2[:, 1] * x1[:, 1],
                       x2[:, 1], x1[:, 0], x1[:, 1], np.ones(len(x1))], axis=1)
@@ -104,10 +104,10 @@ MISTAKES = {
                          "squared error"),
     "ransac_fundamental": (SOLUTIONS["ransac_fundamental"].replace("n_iters < min(needed, max_iters)",
                                                                    "n_iters < max_iters"),
-                           "update the number of iterations"),
+                           "updated with the best ratio so far"),
     "essential_from_fundamental": ("""
         return K.T @ F @ K
-    """, "not corrected"),
+    """, "did not correct the singular values"),
     "pose_candidates": (SOLUTIONS["pose_candidates"].replace("if np.linalg.det(R) < 0:", "if False:"), "det -1"),
 }
 
