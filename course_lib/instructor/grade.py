@@ -469,7 +469,8 @@ def _structure_and_scans(run: _Run, s: NotebookSpec, e: ExerciseSpec, nb, places
         g.feedback.append(f"the grader could not take {e.name} out of the notebook ({_exc_text(exc)}); no credit")
         return g
     if run.allow_reference:
-        flags = [f for f in flags if "reference solution" not in f]
+        # the instructor's notebooks call the reference and the kit's engines (which stand on the references there)
+        flags = [f for f in flags if "reference solution" not in f and "the kit's engine" not in f]
     if flags:
         g.status = "flagged"
         g.feedback += [f"your {e.name} {f}" for f in flags[:4]]
