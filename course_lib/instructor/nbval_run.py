@@ -160,23 +160,13 @@ class NbvalRun:
                "go_fd": go_r, "collect_fd": collect_w, "own_pid_namespace": not insecure}
         server_dir = jail.install_server(stage / "grader", cfg)
         fds = [report_w, go_r, collect_w]
-        info_r = seccomp = None
-        staged: dict = {}
+        info_r, staged, filtered = None, {}, False
         if insecure:
             cmd = [sys.executable, "-S", "-E", "-B", str(server_dir / "server.py"), "exec",
                    str(server_dir / "config.json")]
         else:
-            if jail.bwrap_path() is None:
-                raise jail.IsolationError(jail.refusal("bubblewrap (bwrap) is not installed", jail.INSTALL))
-            info_r, info_w = os.pipe()
-            program = jail.seccomp_filter()
-            if program is not None:
-                seccomp, w = os.pipe()
-                os.write(w, program)
-                os.close(w)
-            fds += [info_w] + ([seccomp] if seccomp is not None else [])
-            staged = jail.staging(self.iso.read_only(), stage / "stage") if os.getuid() == 0 else {}
-            cmd = jail.command(self.iso, "exec", server_dir, seed, info_w, seccomp, staged)
+            cmd, more, info_r, staged, filtered = jail.sandboxed(self.iso, "exec", server_dir, seed, stage / "stage")
+            fds += more
         cgroup = self.iso.cgroup(parent=self.cgroup)
         proc = None
         try:
@@ -210,11 +200,11 @@ class NbvalRun:
                         raise jail.IsolationError(jail.refusal(f"bubblewrap could not make the sandbox of nbval "
                                                                f"(exit code {proc.returncode})"))
                     return {}, f"nbval of {name} did not start"
-                missing = jail.verify(facts, info, self.iso, seccomp is not None)
+                missing = jail.verify(facts, info, self.iso, filtered)
                 if missing:
                     raise jail.IsolationError(jail.refusal("the sandbox of nbval is not isolated: "
                                                            + "; ".join(missing), jail.REPORT))
-                box = jail.describe(facts, info, self.iso, seccomp is not None)
+                box = jail.describe(facts, info, self.iso, filtered)
             else:
                 box = {"tool": "none (--insecure)", "namespaces": False, "read_only": False}
             os.write(go_w, _go_frame())

@@ -150,26 +150,13 @@ class StudentProcess:
         env.update(HOME=cwd, TMPDIR="/tmp", OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1",
                    PYTHONDONTWRITEBYTECODE="1", MPLBACKEND="Agg", COURSE_LIB_QUICK="1")
         fds = [req_r, rep_w]
-        info_r = seccomp = None
-        staged: dict = {}
+        info_r, staged, filtered = None, {}, False
         if insecure:
             argv = [sys.executable, "-S", "-E", "-B", str(server_dir / "server.py"), "serve",
                     str(server_dir / "config.json")]
         else:
-            if jail.bwrap_path() is None:
-                raise jail.IsolationError(jail.refusal("bubblewrap (bwrap) is not installed", jail.INSTALL))
-            if os.getuid() == 0 and jail.STUDENT_UID == 0:
-                raise jail.IsolationError(jail.refusal("COURSE_GRADER_STUDENT_UID is 0, the grading user's uid",
-                                                       "set it to an unprivileged uid (default 65534)"))
-            info_r, info_w = os.pipe()
-            program = jail.seccomp_filter()
-            if program is not None:
-                seccomp, w = os.pipe()
-                os.write(w, program)
-                os.close(w)
-            fds += [info_w] + ([seccomp] if seccomp is not None else [])
-            staged = jail.staging(iso.read_only(), self.tmp / "stage") if os.getuid() == 0 else {}
-            argv = jail.command(iso, "serve", server_dir, seed, info_w, seccomp, staged)
+            argv, more, info_r, staged, filtered = jail.sandboxed(iso, "serve", server_dir, seed, self.tmp / "stage")
+            fds += more
         stderr = open(self.tmp / "stderr.txt", "wb")
         try:
             self.proc = subprocess.Popen(
@@ -204,12 +191,12 @@ class StudentProcess:
             self.sandbox = {"tool": "none (--insecure)", "namespaces": False, "read_only": False,
                             "note": "--insecure: the student's code ran without a sandbox, as the grading user"}
         else:
-            missing = jail.verify(facts, info, iso, seccomp is not None)
+            missing = jail.verify(facts, info, iso, filtered)
             if missing:
                 self.kill()
                 raise jail.IsolationError(jail.refusal("the sandbox is not isolated: " + "; ".join(missing),
                                                      jail.REPORT))
-            self.sandbox = jail.describe(facts, info, iso, seccomp is not None)
+            self.sandbox = jail.describe(facts, info, iso, filtered)
         self.sandbox.update(iso.limits.totals(self.cgroup))
         self._send({"op": "go"}, [])
         self.t0 = time.monotonic()  # the exercise's budget counts from here: its definitions and every call

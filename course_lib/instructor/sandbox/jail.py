@@ -51,7 +51,7 @@ from course_lib.instructor.settings import STUDENT_UID
 from course_lib.validate import KitInputError
 
 __all__ = ["IsolationError", "bwrap_path", "command", "install_server", "verify", "read_info", "seccomp_filter",
-           "preexec", "refusal", "STUDENT_UID", "HOW_TO_ENABLE", "INSTALL", "REPORT", "WORK", "SEED"]
+           "preexec", "sandboxed", "refusal", "STUDENT_UID", "HOW_TO_ENABLE", "INSTALL", "REPORT", "WORK", "SEED"]
 
 #: The working folder of a student's process inside the sandbox, and where the grader's copy of the submission is.
 WORK = "/tmp/work"
@@ -181,6 +181,35 @@ def command(iso, mode: str, server_dir: Path, seed: Path | None, info_fd: int, s
     if seccomp_fd is not None:
         args += ["--seccomp", str(seccomp_fd)]
     return args + ["--", sys.executable, "-S", "-E", "-B", f"{SERVER}/server.py", mode, f"{SERVER}/config.json"]
+
+
+def sandboxed(iso, mode: str, server_dir: Path, seed: Path | None, stage_dir: Path):
+    """Everything needed to start ``server.py MODE`` in a sandbox, refused (:class:`IsolationError`) when it cannot be.
+
+    Refuses without bubblewrap, and when the student's uid would be the grading user's (the grader is root and
+    ``COURSE_GRADER_STUDENT_UID`` is 0). Makes the pipe ``bwrap`` reports to, the seccomp filter's pipe and, for a
+    grader that runs as root, the staged read-only folders (:func:`staging`, under ``stage_dir``).
+
+    Returns:
+        ``(argv, fds, info_r, staged, filtered)``: the command line (:func:`command`), the descriptors the process
+        must inherit (the caller closes them once it started), the read end of bwrap's report, the staged folders,
+        and whether a seccomp filter is applied.
+    """
+    if bwrap_path() is None:
+        raise IsolationError(refusal("bubblewrap (bwrap) is not installed", INSTALL))
+    if os.getuid() == 0 and STUDENT_UID == 0:
+        raise IsolationError(refusal("COURSE_GRADER_STUDENT_UID is 0, the grading user's uid",
+                                     "set it to an unprivileged uid (default 65534)"))
+    info_r, info_w = os.pipe()
+    seccomp = None
+    program = seccomp_filter()
+    if program is not None:
+        seccomp, w = os.pipe()
+        os.write(w, program)
+        os.close(w)
+    staged = staging(iso.read_only(), stage_dir) if os.getuid() == 0 else {}
+    argv = command(iso, mode, server_dir, seed, info_w, seccomp, staged)
+    return argv, [info_w] + ([seccomp] if seccomp is not None else []), info_r, staged, seccomp is not None
 
 
 def preexec(limits, cpu_seconds: float | None, cgroup, as_student: bool, staged: dict[str, str] | None = None):
