@@ -43,6 +43,22 @@ def _top_level(tree: ast.Module) -> dict[str, ast.stmt]:
     return out
 
 
+def needed_nodes(tree: ast.Module, top: dict, roots: list, exclude: set[str]) -> list:
+    """The module-level statements of ``tree`` that ``roots`` use, transitively, in the module's order
+    (``top``: :func:`_top_level`; names in ``exclude`` are not followed)."""
+    need, todo = [], list(roots)
+    while todo:
+        node = todo.pop()
+        if node in need:
+            continue
+        need.append(node)
+        for n in ast.walk(node):
+            if isinstance(n, ast.Name) and n.id in top and n.id not in exclude and top[n.id] is not node:
+                todo.append(top[n.id])
+    order = {id(n): k for k, n in enumerate(tree.body)}
+    return sorted(need, key=lambda n: order[id(n)])
+
+
 def honest_source(h: Honest) -> str:
     """The code of one honest solution as it goes into its exercise cell (imports, helpers, the def)."""
     module = importlib.import_module(h.fn.__module__)
@@ -50,19 +66,8 @@ def honest_source(h: Honest) -> str:
     top = _top_level(tree)
     others = exercise_names() - {h.exercise}
     root = top[h.fn.__name__]
-    need, todo = [], [root]
-    while todo:
-        node = todo.pop()
-        if node in need:
-            continue
-        need.append(node)
-        for n in ast.walk(node):
-            if isinstance(n, ast.Name) and n.id in top and n.id not in others and top[n.id] is not node:
-                if not n.id.startswith("tests"):
-                    todo.append(top[n.id])
-    order = {id(n): k for k, n in enumerate(tree.body)}
     parts = []
-    for node in sorted(need, key=lambda n: order[id(n)]):
+    for node in needed_nodes(tree, top, [root], others):
         if node is root:
             node = ast.parse(ast.unparse(node)).body[0]
             node.name = h.exercise

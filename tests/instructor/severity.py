@@ -29,7 +29,7 @@ import nbformat
 from course_lib.instructor.grade import grade_submission, prepare_hidden
 from course_lib.instructor.notebooks import NOTEBOOKS_DIR, kit_specs
 from tests.checks.catalogue import Mistake, collect
-from tests.instructor.honest import _replace_def, _top_level, exercise_names, honest_submission
+from tests.instructor.honest import _replace_def, _top_level, exercise_names, honest_submission, needed_nodes
 
 #: The catalogue's own names, never part of a mistake's code (``M = Mistake``, the lists).
 CATALOGUE_NAMES = {"M", "Mistake", "Honest", "MISTAKES", "HONEST", "TRIVIAL", "DETAIL"}
@@ -44,19 +44,9 @@ def _module_nodes(module, root_names: list[str], exclude: set[str]) -> list[str]
     tree = ast.parse(inspect.getsource(module))
     top = _top_level(tree)
     exclude = set(exclude) | CATALOGUE_NAMES
-    need, todo = [], [top[n] for n in root_names]
     extra: list[str] = []
-    while todo:
-        node = todo.pop()
-        if node in need:
-            continue
-        need.append(node)
-        for n in ast.walk(node):
-            if isinstance(n, ast.Name) and n.id in top and n.id not in exclude and top[n.id] is not node:
-                todo.append(top[n.id])
-    order = {id(n): k for k, n in enumerate(tree.body)}
     parts = []
-    for node in sorted(need, key=lambda n: order[id(n)]):
+    for node in needed_nodes(tree, top, [top[n] for n in root_names], exclude):
         if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("tests"):
             src = importlib.import_module(node.module)
             used = [a.name for a in node.names if a.name not in ("Honest", "Mistake")]
