@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import resource
+import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -327,6 +328,23 @@ class ProgressBar:
         self.bar.close()
 
 
+def peak_memory_mb() -> float:
+    """The peak resident memory of this process's own address space, in MB.
+
+    Linux's ``VmHWM`` (reset by ``exec``), not ``ru_maxrss``, which a process started by ``fork`` + ``exec``
+    inherits from its parent: a benchmark that rendered a large scene before starting ``nerf train`` would
+    charge the run with the benchmark's own peak. ``ru_maxrss`` where ``/proc`` is not there (macOS: bytes).
+    """
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return round(int(line.split()[1]) / 1024.0, 1)
+    except OSError:
+        pass
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(rss / (2**20 if sys.platform == "darwin" else 1024.0), 1)
+
+
 def run_metrics(state, train_data: BlenderData, stopped_by: str, steps: int, resumed: dict | None, final: dict) -> dict:
     """What ``metrics.json`` holds: the result, the speeds, the time outside training by kind, the config, the history.
 
@@ -353,7 +371,7 @@ def run_metrics(state, train_data: BlenderData, stopped_by: str, steps: int, res
     }
     if state.device.type == "cuda":
         m["peak_gpu_memory_mb"] = round(torch.cuda.max_memory_allocated(state.device) / 2**20, 1)
-    m["peak_memory_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
+    m["peak_memory_mb"] = peak_memory_mb()
     # wall time of this call = training steps + everything else (setup, snapshots, evaluations, checkpoints,
     # the caller's callback, the final evaluation): the overhead, with its parts
     outside = wall - clock.trained_now()
