@@ -38,7 +38,7 @@ import numpy as np
 
 from course_lib.conventions import camera_center, rotation_angle_deg
 from course_lib.checks.core import FAILED, RTOL, Check, load_fixture
-from course_lib.steps import observation_arrays
+from course_lib.starting_points import observation_arrays
 
 __all__ = [
     "check_visibility_matrix",
@@ -277,7 +277,7 @@ def _cost(K, R, t, X, uv) -> float:
 
 def _pose_error(R, t, X, R_true, t_true, X_true):
     """Largest rotation difference (degrees) and centre distance after aligning the points (similarity)."""
-    from course_lib.evaluate import align_similarity
+    from course_lib.alignment import align_similarity
 
     s, Ra, ta = align_similarity(X, X_true)
     rot = max(rotation_angle_deg(R[i] @ Ra.T, R_true[i]) for i in range(len(R)))

@@ -13,7 +13,7 @@
   notebook needs are left out, with every module that imports them (:func:`release_plan`); solution
   modules that the kit itself builds on (the NeRF trainer imports :mod:`course_lib.nerf.render`)
   are shipped *redacted*: their exercise functions are replaced by a stand-in that calls the
-  student's own function of the same name (:mod:`course_lib.student`).
+  student's own function of the same name (:mod:`course_lib.saved_solutions`).
 * ``data/`` (the embedded scenes and the fixtures behind the check cells), ``environment.txt``,
   ``conftest.py``, a ``pyproject.toml`` whose pytest runs the notebooks, a ``README.md`` for
   students, and ``RELEASE_MANIFEST.json`` (exercises, their check cells, reference verdicts,
@@ -331,7 +331,7 @@ def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float 
     """Execute the released notebooks inside the released kit and list what is wrong.
 
     The kernel sees the kit's own ``course_lib`` (``PYTHONPATH=out_dir``), so the left-out reference
-    solutions are really absent. The saved solutions (:mod:`course_lib.student`) go to
+    solutions are really absent. The saved solutions (:mod:`course_lib.saved_solutions`) go to
     ``solutions`` (default: an empty scratch folder, so nothing of an earlier run is used and
     nothing is written into the kit). Allowed: cells that stop with ``NotImplementedError`` (an exercise
     not written yet, or a kit function that needs it) and, after such a cell, its consequences

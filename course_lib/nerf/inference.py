@@ -320,9 +320,9 @@ def preview_camera(H: int, W: int, K, max_side: int) -> tuple[int, int, np.ndarr
     """The camera ``(H, W, K)`` shrunk so that its longest side is at most ``max_side`` pixels (0: as it is).
 
     The same view at fewer pixels (a snapshot's preview): ``K`` scaled about the pixel centres
-    (:func:`course_lib.data.match_cli.scale_intrinsics`).
+    (:func:`course_lib.data.cli_match.scale_intrinsics`).
     """
-    from course_lib.data.match_cli import scale_intrinsics
+    from course_lib.data.cli_match import scale_intrinsics
 
     K = np.asarray(K, dtype=float)
     s = min(1.0, max_side / max(H, W)) if max_side else 1.0

@@ -35,7 +35,7 @@ each other at every operation and run many times slower than one.
 Every default lives here, in :class:`TrainConfig` or a preset: ``train(data, config="fast")`` and
 ``python -m course_lib nerf train`` run the same thing. Every field can be overridden
 (``preset("fast", n_samples=96)``, ``dataclasses.replace(cfg, n_samples=96)``, or the CLI's
-``--n-samples 96``: :mod:`course_lib.nerf.cli` makes one option per field, its help from the
+``--n-samples 96``: :mod:`course_lib.nerf.cli_nerf` makes one option per field, its help from the
 field's docstring).
 """
 

@@ -35,7 +35,7 @@ CASE_MODULES = (
 )
 
 _BUILDERS: dict[str, Callable[[], dict[str, np.ndarray]]] = {}
-#: Fixtures that are a notebook's starting point (:mod:`course_lib.steps`), not cases of a check:
+#: Fixtures that are a notebook's starting point (:mod:`course_lib.starting_points`), not cases of a check:
 #: public by design, and never built for (or read by) the hidden checks.
 STEP_FIXTURES: set[str] = set()
 #: fixture name -> the check module it feeds (``course_lib.checks.<module>``)

@@ -17,7 +17,7 @@ import numpy as np
 from course_lib.checks.bundle_adjustment import FIXTURE, RESIDUAL_VARIANTS
 from course_lib.instructor.cases import builds
 from course_lib.paths import EMBEDDED_SFM
-from course_lib.steps import reconstruction_before_ba
+from course_lib.starting_points import reconstruction_before_ba
 
 
 @builds("bundle_adjustment_step", step=True)

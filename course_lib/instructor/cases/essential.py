@@ -13,7 +13,7 @@ import numpy as np
 
 from course_lib.checks.essential import FIXTURE
 from course_lib.instructor.cases import builds
-from course_lib.steps import STEP_PAIR, STEP_SEED, STEP_THRESHOLD_PX
+from course_lib.starting_points import STEP_PAIR, STEP_SEED, STEP_THRESHOLD_PX
 
 @builds(FIXTURE)
 def _build() -> dict[str, np.ndarray]:

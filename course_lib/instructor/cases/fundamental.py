@@ -4,7 +4,7 @@ Built from :mod:`course_lib.sfm.fundamental`: the fixture ``fundamental`` holds 
 (synthetic pairs, a random subset of the embedded pair's matches, what the classic mistakes give
 on them: :mod:`course_lib.instructor.mistakes.fundamental`); the step fixture ``fundamental_step``
 holds the reference F and inliers of the embedded pair that notebook 02 starts from
-(:func:`course_lib.steps.two_view_step`). The checks are in :mod:`course_lib.checks.fundamental`.
+(:func:`course_lib.starting_points.two_view_step`). The checks are in :mod:`course_lib.checks.fundamental`.
 
 Every random choice comes from a seeded ``np.random.default_rng`` (never seed 0, which the hidden
 checks keep unsalted), so the hidden cases of a grading run are new scenes and a new subset of the
@@ -20,7 +20,7 @@ import numpy as np
 from course_lib.checks.fundamental import CHECK_THRESHOLD_PX, FIXTURE, TIGHT_THRESHOLD_PX
 from course_lib.instructor.cases import builds
 from course_lib.paths import EMBEDDED_SFM
-from course_lib.steps import STEP_PAIR, STEP_SEED, STEP_THRESHOLD_PX
+from course_lib.starting_points import STEP_PAIR, STEP_SEED, STEP_THRESHOLD_PX
 
 #: RANSAC threshold of the refit case (no outliers, 1 px noise: every match is an inlier).
 REFIT_THRESHOLD_PX = 5.0

@@ -17,7 +17,7 @@ from course_lib.checks.pnp import FIXTURE, RANSAC_SEED, THRESHOLD_PX
 from course_lib.conventions import fix_sign
 from course_lib.instructor.cases import builds
 from course_lib.paths import EMBEDDED_SFM
-from course_lib.steps import two_view_reconstruction
+from course_lib.starting_points import two_view_reconstruction
 
 #: The threshold of the threshold case (pixels): its noise (1 px) puts many inliers between sqrt(3) and 3 px.
 THRESHOLD_CASE_PX = 3.0

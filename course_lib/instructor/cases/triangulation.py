@@ -14,7 +14,7 @@ from course_lib.conventions import project
 from course_lib.checks.triangulation import FIXTURE
 from course_lib.instructor.cases import builds
 from course_lib.paths import EMBEDDED_SFM
-from course_lib.steps import STEP_PAIR, relative_truth, two_view_input
+from course_lib.starting_points import STEP_PAIR, relative_truth, two_view_input
 
 #: The most matches stored per embedded case (keeps the fixture small).
 MAX_EMBEDDED = 300
