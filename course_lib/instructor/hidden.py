@@ -21,7 +21,6 @@ import importlib
 import io
 import multiprocessing as mp
 import os
-import sys
 import traceback
 import types
 from dataclasses import dataclass, field
@@ -30,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from course_lib.checks import core
+from course_lib.threads import single_thread_math
 
 __all__ = [
     "build_hidden_fixtures",
@@ -408,15 +408,6 @@ def _status_kib(key: str) -> int:
             return next(int(ln.split()[1]) for ln in f if ln.startswith(key + ":"))
     except (OSError, StopIteration, ValueError, IndexError):
         return 0
-
-
-def single_thread_math() -> None:
-    """One thread for OpenBLAS (numpy, scipy) and torch in this process: the same numbers on every run."""
-    from course_lib.threads import set_blas_threads
-
-    set_blas_threads(1)
-    if "torch" in sys.modules:
-        sys.modules["torch"].set_num_threads(1)
 
 
 def _child_main(conn, fn, args):

@@ -58,6 +58,7 @@ import symtable
 import time
 
 from course_lib.instructor.sandbox import wire
+from course_lib.threads import single_thread_math
 
 __all__ = ["MAX_CALLS", "Oracle", "earlier_steps"]
 
@@ -176,8 +177,6 @@ def _error(kind: str, message: str) -> dict:
 
 def _worker(req: int, rep: int, steps: dict[str, str]) -> None:
     """The worker's loop: decode a request, run the reference, send the result (or its exception) as data."""
-    from course_lib.instructor.hidden import single_thread_math
-
     try:
         open_fds = [int(f) for f in os.listdir("/proc/self/fd")]
     except OSError:  # no /proc: the grader's other files stay open in the worker (it runs only the reference)
