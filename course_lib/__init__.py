@@ -24,7 +24,7 @@ __version__ = "0.1.0"
 def _install_saving() -> None:
     """In a student kit's Jupyter kernel: running an exercise's cell saves it for later notebooks (:mod:`course_lib.saved_solutions`)."""
     try:
-        from course_lib import saved_solutions
+        from course_lib import saved_solutions  # deferred: `import course_lib` loads no submodule (start-up)
 
         saved_solutions.install()
     except Exception:  # noqa: BLE001 - importing the kit never fails because of it

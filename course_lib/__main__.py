@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
-    from course_lib.validate import KitInputError
+    from course_lib.validate import KitInputError  # deferred: numpy, not needed by --help (start-up)
 
     runner = importlib.import_module(COMMANDS[args.command][0]).run
     try:

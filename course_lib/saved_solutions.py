@@ -37,6 +37,7 @@ import types
 from pathlib import Path
 from typing import Any, Callable
 
+from course_lib.exercises import EXERCISES
 from course_lib.paths import REPO_ROOT
 
 __all__ = ["stand_in", "find_student_solution", "solutions_dir", "save_solution", "solution_source",
@@ -74,7 +75,6 @@ def _usable(obj: Any) -> bool:
 def _notebook_for(name: str, notebook: str | None) -> str:
     if notebook:
         return notebook
-    from course_lib.exercises import EXERCISES
 
     return EXERCISES[name].notebook if name in EXERCISES else "?"
 
@@ -310,7 +310,6 @@ def save_solution(name: str, obj: Any, namespace: dict, folder: Path | None = No
     folder = solutions_dir() if folder is None else Path(folder)
     if folder is None or is_stub(obj):
         return None
-    from course_lib.exercises import EXERCISES
 
     nb = EXERCISES[name].notebook if name in EXERCISES else "a notebook"
     src, problems = solution_source(name, obj, namespace)
@@ -376,8 +375,6 @@ class _Saver:
         self.seen: dict[str, int] = {}
 
     def __call__(self, result=None) -> None:
-        from course_lib.exercises import EXERCISES
-
         ns = self.shell.user_ns
         for name in EXERCISES:
             obj = ns.get(name)

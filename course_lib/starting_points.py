@@ -161,7 +161,7 @@ def relative_truth(folder, pair) -> tuple[np.ndarray, np.ndarray] | None:
     gt = Path(folder) / "ground_truth.json"
     if not gt.exists():
         return None
-    from course_lib.data.building import load_ground_truth
+    from course_lib.data.building import load_ground_truth  # deferred: cv2 + the renderer, not at every check import
 
     _, _, R_cw, t_cw = load_ground_truth(folder)
     i, j = pair

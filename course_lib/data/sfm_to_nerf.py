@@ -71,7 +71,12 @@ from pathlib import Path
 
 import numpy as np
 
+from course_lib.data import building as b
+from course_lib.data.blender import intrinsics_from_fov, write_blender
+from course_lib.data.building import NERF_RADIUS, orbit_camera
 from course_lib.data.camera import undistort_image
+from course_lib.data.cli_match import scale_intrinsics
+from course_lib.data.colmap import read_colmap_text
 from course_lib.validate import KitInputError, intrinsics, output_dir
 
 __all__ = ["NerfFrame", "normalization", "to_nerf_frame", "resample_images", "sfm_to_nerf", "orbit_c2w", "render_building_views"]
@@ -151,9 +156,6 @@ def resample_images(images: list[np.ndarray], K, width: int) -> tuple[np.ndarray
     """
     import cv2
 
-    from course_lib.data.blender import intrinsics_from_fov
-    from course_lib.data.cli_match import scale_intrinsics
-
     K = intrinsics(K)
     H, W = images[0].shape[:2]
     width = int(width)
@@ -205,9 +207,6 @@ def sfm_to_nerf(sfm_out, images_dir, out, size: int = 100, test_every: int = 8, 
     Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
     """
     import cv2
-
-    from course_lib.data.blender import write_blender
-    from course_lib.data.colmap import read_colmap_text
 
     sfm_out, images_dir, out = Path(sfm_out), Path(images_dir), Path(out)
     if not sfm_out.exists():
@@ -290,8 +289,6 @@ def orbit_c2w(n: int, elevations_deg=(25.0, 50.0), radius: float | None = None, 
 
     Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
     """
-    from course_lib.data.building import NERF_RADIUS, orbit_camera
-
     radius = NERF_RADIUS if radius is None else float(radius)
     per = int(n) // len(elevations_deg)
     if per < 1:
@@ -319,9 +316,6 @@ def render_building_views(c2w: np.ndarray, size: int, supersample: int = 2, seed
 
     Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
     """
-    from course_lib.data import building as b
-    from course_lib.data.blender import intrinsics_from_fov
-
     rng = np.random.default_rng((b.DEFAULT_SEED if seed is None else seed) + 1)  # as make_nerf_dataset
     surfaces = b.build_scene(rng, ground="slab", rho=40.0)
     K = intrinsics_from_fov(size, size, b.NERF_CAMERA_ANGLE_X)

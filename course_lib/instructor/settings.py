@@ -19,7 +19,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import course_lib
 from course_lib.instructor.cgroups import Cgroup
+from course_lib.instructor.notebooks import NOTEBOOKS_DIR
+from course_lib.instructor.release import release_files
 from course_lib.paths import REPO_ROOT
 
 __all__ = ["Limits", "Isolation", "Clock", "student_library", "exercise_seconds", "nbval_seconds", "SYSTEM_PATHS",
@@ -188,8 +191,6 @@ class Isolation:
                     insecure: bool = False, limits: Limits | None = None) -> "Isolation":
         """The isolation of a grading run: hide the kit and the notebooks (unless ``self_test``) and ``secret``
         (the grader's scratch folder, the hidden cases)."""
-        import course_lib
-
         hide = [Path(p).resolve() for p in secret]
         if not self_test:  # the kit, and the instructor's library wherever it is installed
             hide += [REPO_ROOT.resolve(), Path(notebooks_dir).resolve(), Path(course_lib.__file__).resolve().parent]
@@ -243,9 +244,6 @@ def python_homes() -> list[str]:
 
 def student_library(out_dir: Path, notebooks_dir: Path | None = None) -> Path:
     """Write the student release's ``course_lib`` and ``data`` into ``out_dir`` (what a student's code may import)."""
-    from course_lib.instructor.notebooks import NOTEBOOKS_DIR
-    from course_lib.instructor.release import release_files
-
     files = release_files(Path(notebooks_dir or NOTEBOOKS_DIR))
     out_dir = Path(out_dir)
     for rel, data in sorted(files.items()):

@@ -45,6 +45,7 @@ same arguments); a module whose layers match the weights it sent.
 from __future__ import annotations
 
 import builtins
+import copy
 import os
 import select
 import shutil
@@ -58,6 +59,7 @@ from pathlib import Path
 
 import numpy as np
 
+from course_lib.instructor.oracle import MAX_CALLS
 from course_lib.instructor.sandbox import jail, wire
 from course_lib.instructor.settings import START_SECONDS, Isolation
 
@@ -371,8 +373,6 @@ class StudentProcess:
         Its time is the exercise's (one clock): the reference is stopped when the exercise's time is up. More
         call-backs than :data:`~course_lib.instructor.oracle.MAX_CALLS` end the process.
         """
-        from course_lib.instructor.oracle import MAX_CALLS
-
         if self.oracle is None or self.oracle.calls >= MAX_CALLS:
             why = (f"your {self.name} called the earlier exercises ({', '.join(self.oracle.names)}) more than "
                    f"{MAX_CALLS} times; the grader answers at most that many calls per exercise"
@@ -393,7 +393,6 @@ class StudentProcess:
         not). A state that cannot be set is ignored."""
         if not isinstance(state, dict):
             return
-        import numpy as np
 
         try:
             if state.get("np") is not None:
@@ -408,8 +407,6 @@ class StudentProcess:
     def _generators_in(gens, arrays: list, args: tuple, kwargs: dict) -> None:
         """The states of the generator arguments after the student's call, set in the caller's generators: as in a
         notebook, an rng the function drew from has advanced (the checks test that the function draws from it)."""
-        import numpy as np
-
         torch = sys.modules.get("torch")
         for entry in gens if isinstance(gens, list) else []:
             try:
@@ -532,8 +529,6 @@ def kill_tree(pid: int) -> None:
     It is killed first, and the launcher (which reaps it and then exits) is given a moment before it
     is killed too, so that no zombie is left to the host's init.
     """
-    import time
-
     try:
         kids = [int(k) for t in os.listdir(f"/proc/{pid}/task")
                 for k in open(f"/proc/{pid}/task/{t}/children").read().split()]
@@ -598,8 +593,6 @@ class RemoteFunction:
 
 def _copies(value):
     """Arrays copied (the reference must not change the check's inputs)."""
-    import copy
-
     try:
         return copy.deepcopy(value)
     except Exception:  # noqa: BLE001 - a value that cannot be copied is passed as it is
