@@ -32,9 +32,10 @@ import numpy as np
 from course_lib.checks import core
 from course_lib.instructor.cases import builders
 from course_lib.instructor.oracle import Oracle
+from course_lib.instructor.remote import RemoteFunction
 from course_lib.instructor.sandbox import jail, wire
 from course_lib.instructor.settings import GRACE_SECONDS, START_SECONDS
-from course_lib.instructor.student_process import RemoteFunction, StudentProcess
+from course_lib.instructor.student_process import StudentProcess
 from course_lib.threads import single_thread_math
 
 __all__ = [

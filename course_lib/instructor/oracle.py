@@ -39,7 +39,7 @@ The stubs exist only in X's process, and Y's grade comes from Y's own process, w
 student's function (no stub of Y is bound there: an exercise is never its own earlier step). Y's
 hidden checks call Y directly; nothing that happens in X's process reaches them.
 
-The NeRF model (a :class:`~course_lib.instructor.student_process.RemoteModule`) is no exception:
+The NeRF model (a :class:`~course_lib.instructor.remote.RemoteModule`) is no exception:
 its forward pass runs in the student's process, where ``positional_encoding`` is the stub, so the
 network is fed the reference's encoding of whatever it encodes (this replaced the earlier table of
 stored encodings that the grader bound there). Gradients do not flow through a call-back (the

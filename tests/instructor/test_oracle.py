@@ -29,9 +29,10 @@ from course_lib.instructor import oracle as oracle_mod
 from course_lib.instructor.grade import HIDDEN_SHARE, grade_submission, prepare_hidden
 from course_lib.instructor.notebooks import NOTEBOOKS_DIR, kit_specs, python_source
 from course_lib.instructor.oracle import Oracle, earlier_steps
+from course_lib.instructor.remote import RemoteFunction
 from course_lib.instructor.sandbox import wire
 from course_lib.instructor.settings import Isolation, student_library
-from course_lib.instructor.student_process import RemoteFunction, StudentProcess, StudentProcessEnded
+from course_lib.instructor.student_process import StudentProcess, StudentProcessEnded
 from tests.instructor.honest import honest_submission
 
 NOTEBOOKS = ["01", "03", "04", "07"]

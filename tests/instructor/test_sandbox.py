@@ -22,9 +22,10 @@ import os
 import numpy as np
 import pytest
 
+from course_lib.instructor.remote import RemoteFunction
 from course_lib.instructor.sandbox import jail, wire
 from course_lib.instructor.settings import Isolation, student_library
-from course_lib.instructor.student_process import RemoteFunction, StudentProcess, StudentProcessEnded
+from course_lib.instructor.student_process import StudentProcess, StudentProcessEnded
 from course_lib.paths import REPO_ROOT
 from course_lib.instructor.notebooks import NOTEBOOKS_DIR
 
