@@ -72,7 +72,7 @@ from pathlib import Path
 import numpy as np
 
 from course_lib.data import building as b
-from course_lib.data.blender import intrinsics_from_fov, write_blender
+from course_lib.data.blender import intrinsics_from_fov, read_rgb, write_blender
 from course_lib.data.building import NERF_RADIUS, orbit_camera
 from course_lib.data.camera import undistort_image
 from course_lib.data.cli_match import scale_intrinsics
@@ -206,8 +206,6 @@ def sfm_to_nerf(sfm_out, images_dir, out, size: int = 100, test_every: int = 8, 
 
     Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
     """
-    import cv2
-
     sfm_out, images_dir, out = Path(sfm_out), Path(images_dir), Path(out)
     if not sfm_out.exists():
         raise KitInputError(f"SfM output not found: {sfm_out}")
@@ -223,15 +221,7 @@ def sfm_to_nerf(sfm_out, images_dir, out, size: int = 100, test_every: int = 8, 
     images = []
     for name in model.image_names:
         src = Path(alpha_dir) / name if alpha_dir is not None else images_dir / name
-        img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise KitInputError(f"cannot read the image {src} named in the model: pass --images with the folder the SfM ran on")
-        if img.ndim == 2:
-            img = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
-        elif img.shape[2] == 4:
-            img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA)
-        else:
-            img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        img = read_rgb(src, hint="it is named in the model: pass --images with the folder the SfM ran on")
         if img.dtype != np.uint8:
             img = (img / 257).astype(np.uint8)
         images.append(img)
