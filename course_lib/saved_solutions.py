@@ -72,13 +72,6 @@ def _usable(obj: Any) -> bool:
     return obj is not None and callable(obj) and not getattr(obj, "__kit_stand_in__", False)
 
 
-def _notebook_for(name: str, notebook: str | None) -> str:
-    if notebook:
-        return notebook
-
-    return EXERCISES[name].notebook if name in EXERCISES else "?"
-
-
 def find_student_solution(name: str) -> Any:
     """The student's ``name``: the running notebook's (``__main__``), else the saved one, else None.
 
