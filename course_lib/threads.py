@@ -83,8 +83,7 @@ def set_blas_threads(n: int) -> None:
 def single_threaded_blas():
     """Hold BLAS to one thread inside the ``with`` block (restored afterwards).
 
-    Measured on a loaded 2-core machine: the 441 x 441 Cholesky of the Ladybug problem took 4 ms
-    on one thread, 80-400 ms on two.
+    Small factorizations on a busy machine run many times faster on one thread than on two.
     """
     try:
         from threadpoolctl import threadpool_limits
@@ -135,7 +134,7 @@ def cores_in_use(interval: float = 0.2) -> float:
     """How many cores the machine's other work keeps busy now: sampled from ``/proc/stat`` over ``interval`` s.
 
     Not the load average: it lags by a minute, so a run started right after another one would take
-    the machine for busy (measured: a 5-minute NeRF run started 1 s after another got one thread of two).
+    the machine for busy.
     Where ``/proc/stat`` is missing (macOS, Windows), the 1-minute load average; 0 when neither is known.
     """
     import time

@@ -64,7 +64,7 @@ __all__ = ["MAX_CALLS", "Oracle", "earlier_steps"]
 
 #: Call-backs the grader answers while it grades one exercise; one more stops the exercise's process. An honest
 #: ransac_fundamental makes ~800 on the hidden cases (eight_point and sampson_distance per sample); one without the
-#: adaptive stop (a mistake the checks name) ~20 000, at ~3 ms each on a loaded 2-core machine.
+#: adaptive stop (a mistake the checks name) ~20 000: the cap lets that one be graded (docs/benchmarks.md).
 MAX_CALLS = 50_000
 #: Address space a worker may add to what it inherited from the grader.
 WORKER_EXTRA_BYTES = 4 << 30

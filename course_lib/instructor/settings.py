@@ -33,13 +33,12 @@ __all__ = ["Limits", "Isolation", "Clock", "student_library", "exercise_seconds"
 # Budgets: the one place where the grader's clocks are set
 # ---------------------------------------------------------------------------------------------
 
-#: Seconds of an exercise's hidden checks by default (``--timeout``; the reference needs at most ~1 s).
-#: Seconds for the hidden checks of one exercise (the reference needs at most ~1 s). Correct but slow code is graded: a
-#: dense finite-difference Jacobian in bundle_adjust (~25 s a call on a loaded 2-core machine, two calls), one residual
-#: function per view in triangulate_nonlinear; an endless loop costs this once, and the submission's clock bounds all.
+#: Seconds for the hidden checks of one exercise by default (``--timeout``). Correct but slow code is graded (a dense
+#: finite-difference Jacobian in bundle_adjust, one residual function per view in triangulate_nonlinear); an endless
+#: loop costs this once, and the submission's clock bounds all. The measurements behind it: docs/benchmarks.md.
 DEFAULT_EXERCISE_SECONDS = 120.0
 #: Seconds for a student's process to start (the interpreter, the sandbox, the numpy and torch imports: the kit's own
-#: work, not the student's, and ~20 s for torch on a loaded 2-core machine); the exercise's budget starts after.
+#: work, not the student's; torch's import is the slow part, docs/benchmarks.md); the exercise's budget starts after.
 START_SECONDS = 120.0
 #: Seconds the grader may take past an exercise's budget to finish what it was doing (decoding the last reply,
 #: the check's last comparison) before it stops the exercise's worker outright.
@@ -50,9 +49,8 @@ DEFAULT_SUBMISSION_SECONDS = 1800.0
 
 
 #: An exercise that calls earlier exercises (answered by their references, one call-back each) gets this many times
-#: the budget of one that does not: a call-back costs ~1.3 ms of transport (measured: 2000 call-backs of
-#: normalize_points, 2.6 s), and an honest ransac_fundamental makes ~800 of them on the hidden cases, one without the
-#: adaptive stop (a mistake the checks name) ~20 000, about 26 s on an idle 2-core machine.
+#: the budget of one that does not: each call-back costs transport, and a RANSAC without the adaptive stop (a mistake
+#: the checks name) makes some 25 times the call-backs of an honest one (docs/benchmarks.md).
 CALL_BACK_FACTOR = 3.0
 
 
