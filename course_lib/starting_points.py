@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from course_lib.conventions import observed_entries
 from course_lib.fixtures import load_fixture
 from course_lib.paths import EMBEDDED_SFM
 
@@ -329,8 +330,8 @@ def observation_arrays(uv: np.ndarray):
     """``camera_idx (K,)``, ``point_idx (K,)``, ``uv_obs (K, 2)`` of the finite entries of ``uv (N, M, 2)``.
 
     One entry per observation (V_ij = 1), point by point: the layout of the residuals of bundle
-    adjustment. Introduced in notebooks/05_bundle_adjustment.ipynb.
+    adjustment (:func:`course_lib.conventions.observed_entries`, in the order notebook 05 unpacks).
+    Introduced in notebooks/05_bundle_adjustment.ipynb.
     """
-    uv = np.asarray(uv, float)
-    j, i = np.nonzero(np.isfinite(uv).all(axis=2))
-    return i.astype(np.int64), j.astype(np.int64), uv[j, i]
+    point_idx, camera_idx, uv_obs = observed_entries(uv)
+    return camera_idx, point_idx, uv_obs
