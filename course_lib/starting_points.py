@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from course_lib.conventions import observed_entries
+from course_lib.data.p3 import read_p3
 from course_lib.fixtures import load_fixture
 from course_lib.paths import EMBEDDED_SFM
 
@@ -97,7 +98,6 @@ def two_view_step(data_folder=None, pair: tuple[int, int] = STEP_PAIR) -> TwoVie
             K=f["building_K"], pair=pair, source="stored reference result (fixture 'fundamental_step')",
         )
     try:
-        from course_lib.data.p3 import read_p3
         from course_lib.sfm.fundamental import ransac_fundamental
     except ImportError as exc:  # a student release without the reference solutions
         raise FileNotFoundError(
@@ -127,7 +127,6 @@ def two_view_input(folder, pair: tuple[int, int] = STEP_PAIR, seed: int = STEP_S
         ``C_candidates (4, 3)``, ``n_matches`` (before RANSAC).
     """
     try:
-        from course_lib.data.p3 import read_p3
         from course_lib.sfm import essential, fundamental
     except ModuleNotFoundError as exc:  # the student release has no reference solutions
         raise RuntimeError(
@@ -232,7 +231,6 @@ def two_view_reconstruction(folder, new_image: int = NEW_IMAGE) -> dict[str, np.
         ``x_new (K, 2)``, ``ids_new (K,)``.
     """
     try:
-        from course_lib.data.p3 import read_p3
         from course_lib.sfm import triangulation as tri
     except ModuleNotFoundError as exc:
         raise RuntimeError(
@@ -287,7 +285,6 @@ def reconstruction_before_ba(folder, seed: int = STEP_SEED) -> dict[str, np.ndar
         ``inlier (T, M)`` bool (the observations in use), ``initial_pair (2,)``.
     """
     try:
-        from course_lib.data.p3 import read_p3
         from course_lib.sfm.pipeline import run_sfm
     except ModuleNotFoundError as exc:
         raise RuntimeError(
