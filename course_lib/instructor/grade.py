@@ -15,8 +15,8 @@ reference verdicts and check cells come from the instructor's side, never from t
 3. **Hidden checks, sealed by design.** The exercise's check function runs *here*, in the
    grader's process, on hidden cases (the fixtures rebuilt with a grading-time seed), and the
    reference's verdicts on the same cases are computed here too. The student's function is a
-   proxy (:mod:`course_lib.instructor.student_process`): each call sends the inputs as data to a sandboxed
-   process that holds only the student's extracted code and the *student release* of
+   proxy (:mod:`course_lib.instructor.remote`): each call sends the inputs as data to a sandboxed
+   process (:mod:`course_lib.instructor.student_process`) that holds only the student's extracted code and the *student release* of
    ``course_lib`` (no reference solution on its path or in its view of the disk), and the
    outputs come back as data (JSON and ``np.save`` arrays, never pickle). The check itself runs
    in a worker of the grader, in the exercise's cgroup. **One clock, one memory cap** per
