@@ -5,7 +5,7 @@ For every photo set, three runs:
 * **COLMAP end to end**: ``pycolmap.extract_features`` (its SIFT, one PINHOLE camera with the
   known K), ``pycolmap.match_exhaustive`` (its ratio test, cross-check and two-view geometric
   verification) and ``pycolmap.incremental_mapping`` (intrinsics held fixed);
-* **kit match -> COLMAP**: :func:`course_lib.data.match_cli.match_images` (the ``match``
+* **kit match -> COLMAP**: :func:`course_lib.data.cli_match.match_images` (the ``match``
   command) written as a P3 folder and read back, then COLMAP's verification and mapping on
   those matches (:func:`sfm_vs_colmap.run_colmap`, the same database route as the SfM
   benchmark), so the only difference to the first run is who matched;
@@ -48,9 +48,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from course_lib.data.match_cli import match_images  # noqa: E402
+from course_lib.data.cli_match import match_images  # noqa: E402
 from course_lib.data.p3 import read_calibration, read_p3, write_p3  # noqa: E402
-from course_lib.evaluate import pose_errors  # noqa: E402
+from course_lib.alignment import pose_errors  # noqa: E402
 from course_lib.paths import EMBEDDED_SFM, course_data  # noqa: E402
 from course_lib.sfm.pipeline import run_sfm  # noqa: E402
 from course_lib.validate import KitInputError  # noqa: E402
@@ -83,7 +83,7 @@ class PhotoSet:
 
 
 def _read_images(paths) -> list:
-    from course_lib.data.match_cli import load_images
+    from course_lib.data.cli_match import load_images
 
     return load_images(paths)
 
@@ -92,14 +92,14 @@ def course_set(name: str) -> PhotoSet | None:
     folder = course_data(name)
     if folder is None:
         return None
-    from course_lib.data.match_cli import list_images
+    from course_lib.data.cli_match import list_images
 
     return PhotoSet(name, _read_images(list_images(folder)), read_calibration(folder / "calibration.txt"))
 
 
 def embedded_set() -> PhotoSet:
     from course_lib.data.building import load_ground_truth
-    from course_lib.data.match_cli import list_images
+    from course_lib.data.cli_match import list_images
 
     K, names, R, t = load_ground_truth(EMBEDDED_SFM)
     return PhotoSet("embedded", _read_images(list_images(EMBEDDED_SFM)), K, R, t)
@@ -124,7 +124,7 @@ def ring_set(n: int, poor: bool, cache: Path | None) -> PhotoSet:
     import cv2
 
     from course_lib.data import building
-    from course_lib.data.match_cli import scale_intrinsics
+    from course_lib.data.cli_match import scale_intrinsics
 
     size = (640, 480)
     K = scale_intrinsics(building.WPI_LIKE_K, building.SFM_IMAGE_SIZE, size)

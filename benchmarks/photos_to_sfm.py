@@ -18,7 +18,7 @@ For every photo set, in one run on the same machine:
 
 Printed per set and run: images registered (largest model), the sizes of all models, 3-D points,
 mean and max rotation error (degrees) after a similarity alignment on the centres
-(:func:`course_lib.evaluate.pose_errors`; against the rendering's truth, or against COLMAP for real
+(:func:`course_lib.alignment.pose_errors`; against the rendering's truth, or against COLMAP for real
 photos), the focal length found (px) where it was estimated, seconds, and the kit's time over
 COLMAP's.
 
@@ -61,7 +61,7 @@ sys.path.insert(0, str(REPO_ROOT))
 
 from course_lib.data.camera import undistort_pixels  # noqa: E402
 from course_lib.data.colmap import read_colmap_text  # noqa: E402
-from course_lib.evaluate import pose_errors  # noqa: E402
+from course_lib.alignment import pose_errors  # noqa: E402
 from course_lib.paths import course_data  # noqa: E402
 
 DEFAULT_CACHE = REPO_ROOT / "outputs" / "photos-to-sfm"
@@ -132,7 +132,7 @@ def build_set(name: str, cache: Path) -> dict:
     import cv2
 
     from course_lib.data import building
-    from course_lib.data.match_cli import scale_intrinsics
+    from course_lib.data.cli_match import scale_intrinsics
 
     if name in ("wpi", "upenn"):
         folder = course_data(name)
@@ -242,7 +242,7 @@ def colmap_worker(photos: Path, work: Path, out: Path, calibration: Path | None,
     """The COLMAP process: its SIFT, exhaustive matching and verification, incremental mapping; poses to ``out``."""
     import pycolmap
 
-    from course_lib.data.match_cli import list_images
+    from course_lib.data.cli_match import list_images
     from course_lib.data.p3 import read_calibration
 
     pycolmap.logging.minloglevel = 2
@@ -290,7 +290,7 @@ def score(run: dict, names: list[str], R_ref, t_ref) -> dict:
 
 def compare(name: str, cache: Path, seed: int = 0) -> list[dict]:
     """Every run on one photo set; rows for the table."""
-    from course_lib.data.match_cli import list_images
+    from course_lib.data.cli_match import list_images
 
     ps = build_set(name, cache)
     if not ps:

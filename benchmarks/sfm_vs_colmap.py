@@ -19,7 +19,7 @@ stand-ins in a temporary copy (the kit's ``sfm`` command reads the image size fr
 Printed per scene and method: registered images (of the largest model) and the sizes of all
 models, 3-D points, mean reprojection error (pixels), mean and max rotation error (degrees) and
 mean centre error (% of the scene size) against the ground truth after a similarity alignment on
-rotations and centres (:func:`course_lib.evaluate.pose_errors`), the seconds of the whole
+rotations and centres (:func:`course_lib.alignment.pose_errors`), the seconds of the whole
 process and of the reconstruction alone inside it. For the course data (no ground truth) the
 pose columns compare the kit with COLMAP instead (marked ``vs COLMAP``).
 
@@ -58,7 +58,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from course_lib.data.p3 import read_p3  # noqa: E402
 from course_lib.data.synthetic import make_scene, write_scene_p3  # noqa: E402
 from course_lib.paths import EMBEDDED_SFM, course_data  # noqa: E402
-from course_lib.evaluate import pose_errors  # noqa: E402
+from course_lib.alignment import pose_errors  # noqa: E402
 from course_lib.sfm.pipeline import run_sfm  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent

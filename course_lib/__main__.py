@@ -1,8 +1,10 @@
 """Command line of the kit: ``python -m course_lib <command> ...``.
 
-Each command lives in a module that defines ``add_arguments(parser)`` and ``run(args) -> int``;
-this file only lists them, and imports only the module of the command that runs (``--help``
-imports none of them: torch, nbformat and plotly are loaded by the commands that use them).
+Each command ``X`` lives in ``cli_X.py`` (``-`` as ``_``) of the package it belongs to
+(``sfm/cli_sfm.py``, ``instructor/cli_grade.py``, ``data/cli_sfm_to_nerf.py`` ...), a module that
+defines ``add_arguments(parser)`` and ``run(args) -> int``; this file only lists them, and imports
+only the module of the command that runs (``--help`` imports none of them: torch, nbformat and
+plotly are loaded by the commands that use them).
 Bad input (a wrong path, a malformed file) ends with a one-line message that says what to fix
 and exit status 2, never a traceback.
 """
@@ -16,16 +18,16 @@ import sys
 
 #: command name -> (module, one-line help)
 COMMANDS = {
-    "sfm": ("course_lib.sfm.cli", "run the incremental SfM pipeline on a P3 folder (default: the embedded scene)"),
-    "nerf": ("course_lib.nerf.cli", "train a NeRF or render novel views from a checkpoint"),
-    "fixtures": ("course_lib.instructor.fixtures", "rebuild (or --check) the stored expected results behind the check cells"),
-    "refresh-checks": ("course_lib.instructor.refresh", "re-run notebooks in quick mode and store their check cells' new verdicts (only those cells)"),
-    "make-data": ("course_lib.data.cli", "regenerate the embedded synthetic data sets under data/"),
+    "sfm": ("course_lib.sfm.cli_sfm", "run the incremental SfM pipeline on a P3 folder (default: the embedded scene)"),
+    "nerf": ("course_lib.nerf.cli_nerf", "train a NeRF or render novel views from a checkpoint"),
+    "fixtures": ("course_lib.instructor.cli_fixtures", "rebuild (or --check) the stored expected results behind the check cells"),
+    "refresh-checks": ("course_lib.instructor.cli_refresh_checks", "re-run notebooks in quick mode and store their check cells' new verdicts (only those cells)"),
+    "make-data": ("course_lib.data.cli_make_data", "regenerate the embedded synthetic data sets under data/"),
     "release": ("course_lib.instructor.cli_release", "write the student kit: notebooks with solution stubs, no reference solutions"),
     "grade": ("course_lib.instructor.cli_grade", "grade a student's kit: nbval against the reference verdicts + hidden checks"),
-    "ba": ("course_lib.sfm.ba_cli", "bundle-adjust a 'Bundle Adjustment in the Large' problem with the kit's sparse LM"),
-    "match": ("course_lib.data.match_cli", "SIFT-match a folder of photos with known K into a P3 folder (your own photos -> course data)"),
-    "sfm-to-nerf": ("course_lib.data.sfm_to_nerf", "turn an SfM reconstruction (COLMAP text) + its images into a NeRF Blender data set"),
+    "ba": ("course_lib.sfm.cli_ba", "bundle-adjust a 'Bundle Adjustment in the Large' problem with the kit's sparse LM"),
+    "match": ("course_lib.data.cli_match", "SIFT-match a folder of photos with known K into a P3 folder (your own photos -> course data)"),
+    "sfm-to-nerf": ("course_lib.data.cli_sfm_to_nerf", "turn an SfM reconstruction (COLMAP text) + its images into a NeRF Blender data set"),
 }
 
 
@@ -60,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
-    from course_lib.validate import KitInputError
+    from course_lib.validate import KitInputError  # deferred: numpy, not needed by --help (start-up)
 
     runner = importlib.import_module(COMMANDS[args.command][0]).run
     try:

@@ -29,6 +29,11 @@ Shapes
     translations and centres have shape ``(3,)``; rotations ``(3, 3)`` with det = +1.
     Homogeneous points are rows too: ``(N, 3)`` for the image, ``(N, 4)`` for the world.
 
+Observations
+    What each image sees of each point is a ``(T, M, 2)`` array of pixels, ``uv[j, i]`` = point
+    ``j`` in image ``i``, NaN where unseen; as a list (the terms of the bundle-adjustment sum) it is
+    ``point_idx, camera_idx, uv_obs`` of the seen entries, point by point (:func:`observed_entries`).
+
 Images
     Index ``i`` in code is 0-based. The P3 matching files number images from 1; the loader
     converts and keeps the file names in ``image_names``. Images are ``(H, W, 3)`` uint8 RGB
@@ -60,6 +65,7 @@ __all__ = [
     "invert_pose",
     "compose_poses",
     "rotation_angle_deg",
+    "observed_entries",
 ]
 
 
@@ -182,3 +188,23 @@ def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     c = (np.trace(R) - 1.0) / 2.0
     return float(np.degrees(np.arctan2(s, c)))
+
+
+def observed_entries(uv: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The observation layout: the seen entries of ``uv (T, M, 2)``, point by point (row-major over ``(T, M)``).
+
+    Args:
+        uv: ``(T, M, 2)`` pixels of point ``j`` in image ``i`` at ``[j, i]``, NaN where not seen.
+        mask: optional ``(T, M)`` bool; only entries that are seen *and* True here are listed.
+
+    Returns:
+        ``point_idx (K,)`` int64, ``camera_idx (K,)`` int64, ``uv_obs (K, 2)``: one row per observation.
+
+    Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
+    """
+    uv = np.asarray(uv, float)
+    seen = np.isfinite(uv).all(axis=2)
+    if mask is not None:
+        seen &= mask
+    j, i = np.nonzero(seen)
+    return j.astype(np.int64), i.astype(np.int64), uv[j, i]

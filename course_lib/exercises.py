@@ -6,7 +6,7 @@ cheirality choice of the initial pair (whose E is OpenCV's five-point estimate, 
 route), triangulation, PnP and the bundle adjuster's residuals; the NeRF trainer and renderer (notebooks 08-10) make rays, samples and encodings and
 composite with ``volume_render``. In the instructor's kit those calls reach the reference solutions;
 in the student kit (``python -m course_lib release``) they reach **the student's own functions**
-(:mod:`course_lib.student`: the function defined in the running notebook, or the one saved when the
+(:mod:`course_lib.saved_solutions`: the function defined in the running notebook, or the one saved when the
 student ran the exercise's cell in its own notebook).
 
 Either way the kit calls an exercise exactly as its stub documents (the contract the check cells
@@ -128,7 +128,7 @@ def implementation(name: str) -> Callable:
 
     In the instructor's kit: the reference solution, ``getattr(module, name)``. In the student kit
     the reference module is left out or ships a stand-in in the exercise's place; either way the
-    result is a stand-in (:func:`course_lib.student.stand_in`) that calls the student's own
+    result is a stand-in (:func:`course_lib.saved_solutions.stand_in`) that calls the student's own
     function and says which notebook to finish where there is none yet.
     """
     ex = exercise_of(name)
@@ -138,7 +138,7 @@ def implementation(name: str) -> Callable:
                 raise ImportError(name)
             found = getattr(importlib.import_module(ex.module), name)
         except ImportError:  # the student kit: the reference module is left out
-            from course_lib.student import stand_in
+            from course_lib.saved_solutions import stand_in  # deferred: a cycle (saved_solutions reads EXERCISES)
 
             found = stand_in(name, ex.notebook, ex.module)
         _IMPLEMENTATIONS[name] = found

@@ -3,8 +3,9 @@
 * :func:`single_threaded_blas` holds OpenBLAS to one thread inside a ``with`` block (the sparse
   bundle adjuster: many small products and one small Cholesky factorization, where BLAS threads
   cost more than they save).
-* :func:`set_blas_threads` sets every loaded OpenBLAS to ``n`` threads (the grader: one thread, so
-  that the same inputs give the same numbers on every run).
+* :func:`set_blas_threads` sets every loaded OpenBLAS to ``n`` threads.
+* :func:`single_thread_math` sets OpenBLAS and (where loaded) torch to one thread: the grader's
+  processes, so that the same inputs give the same numbers on every run.
 * :func:`set_torch_threads` sets torch's intra-op threads: a number, torch's default, or "auto"
   (one thread on a machine whose cores are already busy).
 
@@ -20,7 +21,7 @@ import glob
 import os
 import sys
 
-__all__ = ["blas_thread_controls", "single_threaded_blas", "set_blas_threads", "set_torch_threads", "cores_in_use", "worker_count",
+__all__ = ["blas_thread_controls", "single_threaded_blas", "set_blas_threads", "set_torch_threads", "single_thread_math", "cores_in_use", "worker_count",
            "thread_map"]
 
 _BLAS_HANDLES: list | None = None
@@ -82,8 +83,7 @@ def set_blas_threads(n: int) -> None:
 def single_threaded_blas():
     """Hold BLAS to one thread inside the ``with`` block (restored afterwards).
 
-    Measured on a loaded 2-core machine: the 441 x 441 Cholesky of the Ladybug problem took 4 ms
-    on one thread, 80-400 ms on two.
+    Small factorizations on a busy machine run many times faster on one thread than on two.
     """
     try:
         from threadpoolctl import threadpool_limits
@@ -102,6 +102,13 @@ def single_threaded_blas():
     finally:
         for (_, set_), n in zip(controls, old):
             set_(int(n))
+
+
+def single_thread_math() -> None:
+    """One thread for OpenBLAS (numpy, scipy) and torch in this process: the same numbers on every run."""
+    set_blas_threads(1)
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(1)
 
 
 def set_torch_threads(threads: int) -> int:
@@ -127,7 +134,7 @@ def cores_in_use(interval: float = 0.2) -> float:
     """How many cores the machine's other work keeps busy now: sampled from ``/proc/stat`` over ``interval`` s.
 
     Not the load average: it lags by a minute, so a run started right after another one would take
-    the machine for busy (measured: a 5-minute NeRF run started 1 s after another got one thread of two).
+    the machine for busy.
     Where ``/proc/stat`` is missing (macOS, Windows), the 1-minute load average; 0 when neither is known.
     """
     import time

@@ -35,10 +35,12 @@ to students.
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
-from course_lib.conventions import camera_center, rotation_angle_deg
+from course_lib.alignment import align_similarity
 from course_lib.checks.core import FAILED, RTOL, Check, load_fixture
-from course_lib.steps import observation_arrays
+from course_lib.conventions import camera_center, rotation_angle_deg
+from course_lib.starting_points import observation_arrays
 
 __all__ = [
     "check_visibility_matrix",
@@ -76,8 +78,6 @@ def _as_array(out, c: Check, case: str):
     if out is FAILED:
         return None
     try:
-        import scipy.sparse as sp
-
         if sp.issparse(out):
             return out
         return np.asarray(out)
@@ -211,8 +211,6 @@ def _sparsity_mistake(A, exp, M: int, pt) -> str:
 
 
 def _sparsity_case(c: Check, fn, f, key: str, case: str) -> None:
-    import scipy.sparse as sp
-
     M, N = int(f[f"{key}_M"]), int(f[f"{key}_N"])
     cam, pt, exp = f[f"{key}_camera_idx"], f[f"{key}_point_idx"], f[f"{key}_expected"]
     S = _as_array(c.call(fn, M, N, cam, pt, case=case), c, case)
@@ -277,8 +275,6 @@ def _cost(K, R, t, X, uv) -> float:
 
 def _pose_error(R, t, X, R_true, t_true, X_true):
     """Largest rotation difference (degrees) and centre distance after aligning the points (similarity)."""
-    from course_lib.evaluate import align_similarity
-
     s, Ra, ta = align_similarity(X, X_true)
     rot = max(rotation_angle_deg(R[i] @ Ra.T, R_true[i]) for i in range(len(R)))
     cen = max(np.linalg.norm(s * Ra @ camera_center(R[i], t[i]) + ta - camera_center(R_true[i], t_true[i]))

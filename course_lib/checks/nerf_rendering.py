@@ -81,12 +81,6 @@ def _variants(f, case: str, key: str) -> list[tuple[str, np.ndarray]]:
     return out
 
 
-def _which(f, case: str, key: str, value, **tol) -> str | None:
-    """The label of the stored mistake of ``case`` whose ``key`` equals ``value``, else None."""
-    return next((label for label, arr in _variants(f, case, key) if label in RENDER_HINTS and close(value, arr, **tol)),
-                None)
-
-
 def _call(c: Check, fn, args, white: bool, case: str):
     import torch
 

@@ -173,16 +173,6 @@ def _points_numbers(A, ref, P1=None, P2=None, x1=None, x2=None) -> str:
     return text
 
 
-def _points_verdict(c: Check, X, ref, case: str, tol: float, pass_msg: str = "matches the reference") -> bool:
-    """Shape and closeness of triangulated points (no diagnosis: choose_pose's X)."""
-    A = _points_shape(c, X, ref.shape[0], case)
-    if A is None:
-        return False
-    if _points_close(A, ref, tol):
-        return c.expect(True, f"{case}: {pass_msg}", "")
-    return c.fail(f"{case}: {_points_numbers(A, ref)}")
-
-
 # --------------------------------------------------------------------------- triangulate_linear
 
 

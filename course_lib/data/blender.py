@@ -61,6 +61,7 @@ __all__ = [
     "opencv_to_opengl",
     "intrinsics_from_fov",
     "load_blender",
+    "read_rgb",
     "write_blender",
     "load_tiny_nerf_npz",
 ]
@@ -181,18 +182,30 @@ def _check_c2w(M: np.ndarray, where: str) -> np.ndarray:
     return M
 
 
-def _read_image(path: Path) -> np.ndarray:
-    """Read an image file as float32 RGB or RGBA in [0, 1] (8 or 16 bit)."""
+def read_rgb(path, hint: str = "the file is missing or not an image") -> np.ndarray:
+    """An image file as RGB or RGBA ``(H, W, 3 or 4)``, in its own dtype (uint8, or uint16 for 16-bit files).
+
+    Args:
+        path: the image file (anything ``cv2.imread`` reads).
+        hint: what to fix, in the error when the file cannot be read.
+
+    Raises:
+        KitInputError: ``"cannot read the image <path>: <hint>"``.
+    """
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise KitInputError(f"cannot read the image {path}: the file is missing or not an image")
-    scale = 65535.0 if img.dtype == np.uint16 else 255.0
+        raise KitInputError(f"cannot read the image {path}: {hint}")
     if img.ndim == 2:
-        img = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
-    elif img.shape[2] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA)
-    else:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+    if img.shape[2] == 4:
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def _read_image(path: Path) -> np.ndarray:
+    """Read an image file as float32 RGB or RGBA in [0, 1] (8 or 16 bit)."""
+    img = read_rgb(path)
+    scale = 65535.0 if img.dtype == np.uint16 else 255.0
     return img.astype(np.float32) / np.float32(scale)
 
 

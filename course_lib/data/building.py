@@ -44,6 +44,9 @@ from pathlib import Path
 import numpy as np
 
 from course_lib.conventions import camera_center, invert_pose
+from course_lib.data.blender import intrinsics_from_fov, write_blender
+from course_lib.data.features import tracks_from_images
+from course_lib.data.p3 import write_p3
 from course_lib.data.synthetic import WPI_LIKE_K, look_at
 from course_lib.validate import KitInputError, intrinsics, rotation, vector3
 
@@ -587,9 +590,6 @@ def make_sfm_dataset(folder, seed: int = DEFAULT_SEED, n_cameras: int = 6, quali
     Returns:
         Summary dict (tracks, raw matches per pair, track-building stats).
     """
-    from course_lib.data.features import tracks_from_images
-    from course_lib.data.p3 import write_p3
-
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     names = [f"{i + 1}.jpg" for i in range(n_cameras)]
@@ -640,8 +640,6 @@ def make_nerf_dataset(folder, seed: int = DEFAULT_SEED, n_train: int = 100, n_va
     Returns:
         Summary dict (number of views per split).
     """
-    from course_lib.data.blender import intrinsics_from_fov, write_blender
-
     folder = Path(folder)
     rng = np.random.default_rng(seed + 1)
     surfaces = build_scene(rng, ground="slab", rho=40.0)

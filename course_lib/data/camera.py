@@ -196,22 +196,23 @@ def undistort(xd: np.ndarray, k1: float, iterations: int = 20) -> np.ndarray:
     return x
 
 
-def undistort_pixels(uv: np.ndarray, K: np.ndarray, k1: float) -> np.ndarray:
-    """Pixels ``(..., 2)`` of a ``SIMPLE_RADIAL`` camera moved to where the pinhole ``K`` would see them (NaN stays NaN)."""
+def _in_normalized(fn, uv: np.ndarray, K: np.ndarray, k1: float) -> np.ndarray:
+    """``fn`` (:func:`distort` or :func:`undistort`) applied to pixels ``(..., 2)`` through normalized coordinates."""
     uv = np.asarray(uv, float)
     if k1 == 0.0:
         return uv.copy()
     f, c = np.array([K[0, 0], K[1, 1]]), np.array([K[0, 2], K[1, 2]])
-    return undistort((uv - c) / f, k1) * f + c
+    return fn((uv - c) / f, k1) * f + c
+
+
+def undistort_pixels(uv: np.ndarray, K: np.ndarray, k1: float) -> np.ndarray:
+    """Pixels ``(..., 2)`` of a ``SIMPLE_RADIAL`` camera moved to where the pinhole ``K`` would see them (NaN stays NaN)."""
+    return _in_normalized(undistort, uv, K, k1)
 
 
 def distort_pixels(uv: np.ndarray, K: np.ndarray, k1: float) -> np.ndarray:
     """The inverse of :func:`undistort_pixels`: pinhole pixels ``(..., 2)`` to where the ``SIMPLE_RADIAL`` camera sees them."""
-    uv = np.asarray(uv, float)
-    if k1 == 0.0:
-        return uv.copy()
-    f, c = np.array([K[0, 0], K[1, 1]]), np.array([K[0, 2], K[1, 2]])
-    return distort((uv - c) / f, k1) * f + c
+    return _in_normalized(distort, uv, K, k1)
 
 
 def undistort_image(img: np.ndarray, K: np.ndarray, k1: float) -> np.ndarray:

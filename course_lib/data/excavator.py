@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from course_lib.data.blender import intrinsics_from_fov, write_blender
 from course_lib.data.building import Surface, _draw_sign, _draw_window, _noise, nerf_cameras, render
 from course_lib.validate import KitInputError
 
@@ -286,8 +287,6 @@ def make_excavator_datasets(root, sizes=(200, 400, 800), seed: int = DEFAULT_SEE
     Returns:
         ``{size: folder}``.
     """
-    from course_lib.data.blender import intrinsics_from_fov, write_blender
-
     sizes = sorted({int(s) for s in sizes})
     top = sizes[-1]
     if any(s < 8 or top % s for s in sizes):

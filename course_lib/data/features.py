@@ -2,7 +2,7 @@
 
 What turns photos into correspondences (the P3 matches the SfM lessons read), in one place: the
 embedded scene is made with it (:mod:`course_lib.data.building`) and so are students' own photos
-(``python -m course_lib match``, :mod:`course_lib.data.match_cli`).
+(``python -m course_lib match``, :mod:`course_lib.data.cli_match`).
 
 1. :func:`detect_features`: OpenCV SIFT per image, keypoints sorted by position (so the result
    does not depend on OpenCV's threading), the +0.25 px offset of OpenCV's keypoints corrected

@@ -22,9 +22,10 @@ Introduced in ``notebooks/05_bundle_adjustment.ipynb`` (the several-models case)
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from course_lib.conventions import project, world_to_camera
-from course_lib.data.synthetic import WPI_LIKE_K, SyntheticScene, look_at
+from course_lib.data.synthetic import WPI_LIKE_K, SyntheticScene, look_at, make_scene
 
 __all__ = ["ring_cameras", "cylinder_points", "observe", "grouped_ring_scene", "texture_poor_ring_scene", "near_duplicate_scene"]
 
@@ -149,10 +150,6 @@ def near_duplicate_scene(rng: np.random.Generator, n_cameras: int = 6, twins: tu
     baseline (a pure rotation, nothing to triangulate). The twins are appended after the
     ``n_cameras`` cameras.
     """
-    from scipy.spatial.transform import Rotation
-
-    from course_lib.data.synthetic import make_scene
-
     base = make_scene(rng, n_cameras=n_cameras, n_points=n_points, outlier_fraction=0.0)
     R, t = list(base.R_cw), list(base.t_cw)
     for i in twins:

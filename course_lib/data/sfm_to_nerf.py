@@ -1,4 +1,7 @@
-"""``python -m course_lib sfm-to-nerf SFM_OUT --images IMAGES_DIR --out NERF_DIR``: SfM poses feed a NeRF.
+"""SfM poses feed a NeRF: a COLMAP text model + its images -> a NeRF data set (Blender format).
+
+The command ``python -m course_lib sfm-to-nerf SFM_OUT --images IMAGES_DIR --out NERF_DIR``
+(:mod:`course_lib.data.cli_sfm_to_nerf`) calls :func:`sfm_to_nerf`.
 
 A NeRF needs, for every training photo, the camera that took it: intrinsics and a
 camera-to-world pose. Structure from Motion gives exactly that (this is what COLMAP is used for
@@ -40,7 +43,7 @@ Images and intrinsics
     The Blender format knows one horizontal field of view: square pixels, principal point at the
     image centre ``((W-1)/2, (H-1)/2)`` (:func:`course_lib.data.blender.intrinsics_from_fov`). The
     photos are resized to ``size`` pixels wide (``cv2.INTER_AREA``; K scaled as in
-    :func:`course_lib.data.match_cli.scale_intrinsics`), then, if the principal point is off
+    :func:`course_lib.data.cli_match.scale_intrinsics`), then, if the principal point is off
     centre or ``fx != fy``, resampled by the homography ``K_blender K^-1`` (the same rays, a
     new pinhole). ``camera_angle_x = 2 atan(W / (2 f))``.
 
@@ -62,18 +65,21 @@ Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
 
 from __future__ import annotations
 
-import argparse
 import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from course_lib.data import building as b
+from course_lib.data.blender import intrinsics_from_fov, read_rgb, write_blender
+from course_lib.data.building import NERF_RADIUS, orbit_camera
 from course_lib.data.camera import undistort_image
+from course_lib.data.cli_match import scale_intrinsics
+from course_lib.data.colmap import read_colmap_text
 from course_lib.validate import KitInputError, intrinsics, output_dir
 
-__all__ = ["NerfFrame", "normalization", "to_nerf_frame", "resample_images", "sfm_to_nerf", "orbit_c2w", "render_building_views",
-           "add_arguments", "run"]
+__all__ = ["NerfFrame", "normalization", "to_nerf_frame", "resample_images", "sfm_to_nerf", "orbit_c2w", "render_building_views"]
 
 #: Margin of near/far around the unit sphere (Blender: near 2, far 6 around radius 1.5 at distance 4).
 MARGIN = 1.5
@@ -150,9 +156,6 @@ def resample_images(images: list[np.ndarray], K, width: int) -> tuple[np.ndarray
     """
     import cv2
 
-    from course_lib.data.blender import intrinsics_from_fov
-    from course_lib.data.match_cli import scale_intrinsics
-
     K = intrinsics(K)
     H, W = images[0].shape[:2]
     width = int(width)
@@ -203,11 +206,6 @@ def sfm_to_nerf(sfm_out, images_dir, out, size: int = 100, test_every: int = 8, 
 
     Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
     """
-    import cv2
-
-    from course_lib.data.blender import write_blender
-    from course_lib.data.colmap import read_colmap_text
-
     sfm_out, images_dir, out = Path(sfm_out), Path(images_dir), Path(out)
     if not sfm_out.exists():
         raise KitInputError(f"SfM output not found: {sfm_out}")
@@ -223,15 +221,7 @@ def sfm_to_nerf(sfm_out, images_dir, out, size: int = 100, test_every: int = 8, 
     images = []
     for name in model.image_names:
         src = Path(alpha_dir) / name if alpha_dir is not None else images_dir / name
-        img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise KitInputError(f"cannot read the image {src} named in the model: pass --images with the folder the SfM ran on")
-        if img.ndim == 2:
-            img = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
-        elif img.shape[2] == 4:
-            img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA)
-        else:
-            img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        img = read_rgb(src, hint="it is named in the model: pass --images with the folder the SfM ran on")
         if img.dtype != np.uint8:
             img = (img / 257).astype(np.uint8)
         images.append(img)
@@ -289,8 +279,6 @@ def orbit_c2w(n: int, elevations_deg=(25.0, 50.0), radius: float | None = None, 
 
     Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
     """
-    from course_lib.data.building import NERF_RADIUS, orbit_camera
-
     radius = NERF_RADIUS if radius is None else float(radius)
     per = int(n) // len(elevations_deg)
     if per < 1:
@@ -318,9 +306,6 @@ def render_building_views(c2w: np.ndarray, size: int, supersample: int = 2, seed
 
     Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
     """
-    from course_lib.data import building as b
-    from course_lib.data.blender import intrinsics_from_fov
-
     rng = np.random.default_rng((b.DEFAULT_SEED if seed is None else seed) + 1)  # as make_nerf_dataset
     surfaces = b.build_scene(rng, ground="slab", rho=40.0)
     K = intrinsics_from_fov(size, size, b.NERF_CAMERA_ANGLE_X)
@@ -331,26 +316,3 @@ def render_building_views(c2w: np.ndarray, size: int, supersample: int = 2, seed
         rgb, alpha = b.render(surfaces, K, R_cw, -R_cw @ C_world, (size, size), supersample=supersample, background="transparent")
         out.append(np.concatenate([rgb, alpha[..., None]], -1))
     return np.clip(np.round(np.stack(out) * 255), 0, 255).astype(np.uint8), K
-
-
-# --------------------------------------------------------------------------------------------- CLI
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("sfm_out", help="output folder of `python -m course_lib sfm` (with colmap/), or a COLMAP text model folder")
-    p.add_argument("--images", required=True, help="folder with the images named in the model (the P3 folder the SfM ran on)")
-    p.add_argument("--out", required=True, help="output NeRF folder (Blender format: transforms_train.json, transforms_test.json, images/)")
-    p.add_argument("--size", type=int, default=100, help="output image width in pixels (default 100; the height keeps the aspect)")
-    p.add_argument("--test-every", type=int, default=8, help="every n-th registered image becomes a test view (default 8; 0: none)")
-    p.add_argument("--percentile", type=float, default=95.0, help="robust radius of the points' sphere mapped to radius 1 (default 95)")
-    p.add_argument("--alpha-dir", default=None, help="optional folder of RGBA versions of the images (transparent background kept)")
-
-
-def run(args) -> int:
-    s = sfm_to_nerf(args.sfm_out, args.images, args.out, args.size, args.test_every, args.percentile, args.alpha_dir)
-    print(f"NeRF data set in {args.out}: {len(s['train'])} train + {len(s['test'])} test views at "
-          f"{s['image_size'][0]}x{s['image_size'][1]}, camera_angle_x {s['camera_angle_x']:.4f} rad; scene centred and "
-          f"scaled by {s['scale']:.4g} (points' sphere -> radius 1), cameras {s['camera_distance'][0]:.2f}-"
-          f"{s['camera_distance'][1]:.2f} from the origin, near/far for it {s['near']:.2f}/{s['far']:.2f}")
-    print(f"train it: python -m course_lib nerf train {args.out} --preset fast")
-    return 0

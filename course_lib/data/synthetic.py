@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from course_lib.conventions import camera_center, project, world_to_camera
+from course_lib.data.p3 import read_p3, write_p3
 
 __all__ = ["SyntheticScene", "make_scene", "look_at", "write_scene_p3", "WPI_LIKE_K", "OUTLIER_KINDS"]
 
@@ -202,8 +203,6 @@ def write_scene_p3(scene: SyntheticScene, folder):
         ``(P3Data, keep)``: the data read back with :func:`course_lib.data.p3.read_p3` and ``keep
         (N,)`` bool, the points that were written.
     """
-    from course_lib.data.p3 import read_p3, write_p3
-
     keep = scene.visible.sum(axis=1) >= 2
     M = scene.n_cameras
     rgb = np.full((int(keep.sum()), 3), 128, np.uint8)

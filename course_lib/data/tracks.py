@@ -9,7 +9,7 @@ nearest their epipolar line), with union-find (:class:`course_lib.data.p3.UnionF
 *refuses* a link that would put two different features of one image into one track: the track is
 split at the conflicting link instead of being dropped.
 
-``match`` writes its tracks this way (:mod:`course_lib.data.match_cli`), and ``sfm`` joins its
+``match`` writes its tracks this way (:mod:`course_lib.data.cli_match`), and ``sfm`` joins its
 verified tracks this way (:func:`course_lib.sfm.tracks.verified_tracks`).
 
 Introduced in ``notebooks/05_bundle_adjustment.ipynb``.

@@ -12,7 +12,10 @@ import json
 import sys
 from pathlib import Path
 
+from course_lib.instructor.grade import grade_submission, to_markdown
+from course_lib.instructor.notebooks import NOTEBOOKS_DIR
 from course_lib.instructor.settings import DEFAULT_EXERCISE_SECONDS, DEFAULT_SUBMISSION_SECONDS
+from course_lib.validate import KitInputError, output_dir
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -44,10 +47,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from course_lib.instructor.grade import grade_submission, to_markdown
-    from course_lib.instructor.notebooks import NOTEBOOKS_DIR
-    from course_lib.validate import KitInputError, output_dir
-
     for opt, path, example in (("--json", args.json, "report.json"), ("--markdown", args.markdown, "feedback.md")):
         if path is not None:  # checked before the grading, which takes minutes
             if path.is_dir():

@@ -6,6 +6,10 @@ import argparse
 import sys
 from pathlib import Path
 
+from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ReleaseError
+from course_lib.instructor.release import verify_release, write_release
+from course_lib.instructor.release_names import dangling_references
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("out_dir", type=Path, help="folder for the student kit (replaced if it holds an earlier release)")
@@ -18,9 +22,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ReleaseError
-    from course_lib.instructor.release import write_release
-
     try:
         manifest = write_release(args.out_dir, args.notebooks_dir or NOTEBOOKS_DIR, force=args.force)
     except ReleaseError as exc:
@@ -37,13 +38,10 @@ def run(args: argparse.Namespace) -> int:
     for note in manifest["notes"]:
         print(f"note: {note}")
     if args.verify:
-        from course_lib.instructor.release import verify_release
-
         problems = verify_release(args.out_dir)
         for name, found in problems.items():
             print(f"{name}: " + ("runs in the kit (only NotImplementedError where exercises are missing)"
                                  if not found else "; ".join(found)))
-        from course_lib.instructor.release_names import dangling_references
 
         dangling = dangling_references(args.out_dir)
         for line in dangling:

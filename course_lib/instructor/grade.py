@@ -15,8 +15,8 @@ reference verdicts and check cells come from the instructor's side, never from t
 3. **Hidden checks, sealed by design.** The exercise's check function runs *here*, in the
    grader's process, on hidden cases (the fixtures rebuilt with a grading-time seed), and the
    reference's verdicts on the same cases are computed here too. The student's function is a
-   proxy (:mod:`course_lib.instructor.student_process`): each call sends the inputs as data to a sandboxed
-   process that holds only the student's extracted code and the *student release* of
+   proxy (:mod:`course_lib.instructor.remote`): each call sends the inputs as data to a sandboxed
+   process (:mod:`course_lib.instructor.student_process`) that holds only the student's extracted code and the *student release* of
    ``course_lib`` (no reference solution on its path or in its view of the disk), and the
    outputs come back as data (JSON and ``np.save`` arrays, never pickle). The check itself runs
    in a worker of the grader, in the exercise's cgroup. **One clock, one memory cap** per
@@ -79,20 +79,29 @@ from pathlib import Path
 import nbformat
 
 from course_lib.checks.core import score_against
-from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ExerciseSpec, NotebookSpec, kit_specs, python_source
-from course_lib.instructor.plan import release_plan
-from course_lib.instructor.nbval_run import NbvalRun
-from course_lib.instructor.placement import Placement, place_exercises, restored
 from course_lib.instructor.cgroups import Cgroup
-from course_lib.instructor.sandbox.jail import IsolationError
-from course_lib.instructor.settings import (DEFAULT_EXERCISE_SECONDS, DEFAULT_SUBMISSION_SECONDS, Clock, Isolation,
-                                            Limits, exercise_seconds, nbval_seconds, student_library)
-from course_lib.instructor.submission import SubmissionCopy, copy_submission
 from course_lib.instructor.extract import extract_exercise
 from course_lib.instructor.hidden import HiddenJob, build_hidden_fixtures, run_hidden, run_reference
+from course_lib.instructor.nbval_run import NbvalRun
+from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ExerciseSpec, NotebookSpec, kit_specs, python_source
 from course_lib.instructor.oracle import earlier_steps
+from course_lib.instructor.placement import Placement, place_exercises, restored
+from course_lib.instructor.plan import release_plan
+from course_lib.instructor.sandbox.jail import IsolationError
 from course_lib.instructor.scan import scan_exercise, scan_notebook
-from course_lib.paths import REPO_ROOT
+from course_lib.instructor.settings import (
+    DEFAULT_EXERCISE_SECONDS,
+    DEFAULT_SUBMISSION_SECONDS,
+    Clock,
+    Isolation,
+    Limits,
+    exercise_seconds,
+    nbval_seconds,
+    student_library,
+)
+from course_lib.instructor.student_process import StudentProcess
+from course_lib.instructor.submission import SubmissionCopy, copy_submission
+from course_lib.paths import FIXTURES_DIR, REPO_ROOT
 from course_lib.validate import KitInputError
 
 __all__ = ["HiddenCases", "prepare_hidden", "grade_submission", "preflight", "to_markdown", "HIDDEN_SHARE",
@@ -333,8 +342,6 @@ def preflight(notebooks_dir: Path = NOTEBOOKS_DIR, limits: Limits | None = None)
     Raises:
         IsolationError: it cannot be made or does not check out (one line: what is missing, how to enable it).
     """
-    from course_lib.instructor.student_process import StudentProcess
-
     with _shared_folder() as lib:  # an empty library: the sandbox itself is what is checked here
         iso = Isolation.for_grading(lib, [], notebooks_dir, limits=limits)
         with StudentProcess(iso, "", "preflight", None, 30.0):
@@ -582,8 +589,6 @@ def _check_cell_with_reference(run: _Run, e: ExerciseSpec) -> bool:
     Each mistake is charged once (issue 29): under nbval a later exercise runs the student's own earlier functions,
     so an earlier mistake would cost the later exercise its nbval share too; this is that share's verdict then.
     """
-    from course_lib.paths import FIXTURES_DIR
-
     ex, steps = run.steps_of[(e.notebook, e.name)]
     budget = exercise_seconds(run.timeout, run.hidden.reference_seconds.get(_key(e), 0.0), calls_back=True)
     if run.clock.expired():

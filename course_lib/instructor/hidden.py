@@ -21,7 +21,7 @@ import importlib
 import io
 import multiprocessing as mp
 import os
-import sys
+import time
 import traceback
 import types
 from dataclasses import dataclass, field
@@ -30,6 +30,13 @@ from pathlib import Path
 import numpy as np
 
 from course_lib.checks import core
+from course_lib.instructor.cases import builders
+from course_lib.instructor.oracle import Oracle
+from course_lib.instructor.remote import RemoteFunction
+from course_lib.instructor.sandbox import jail, wire
+from course_lib.instructor.settings import GRACE_SECONDS, START_SECONDS
+from course_lib.instructor.student_process import StudentProcess
+from course_lib.threads import single_thread_math
 
 __all__ = [
     "build_hidden_fixtures",
@@ -63,8 +70,6 @@ def _salted_rng_factory(salt: int):
 
 def build_in_process(name: str, salt: int) -> dict[str, np.ndarray]:
     """The hidden cases of fixture ``name`` for a grading ``salt``, built in this process."""
-    from course_lib.instructor.cases import builders
-
     original, salted = _salted_rng_factory(salt)
     np.random.default_rng = salted
     try:
@@ -74,8 +79,6 @@ def build_in_process(name: str, salt: int) -> dict[str, np.ndarray]:
 
 
 def _build_hidden(out_dir: str, check_modules: list[str], salt: int) -> dict:
-    from course_lib.instructor.cases import builders
-
     single_thread_math()
     built = {}
     for name in builders(check_modules, steps=False):
@@ -171,8 +174,6 @@ def run_check(check_module: str, check_function: str, fixtures_dir: str, obj) ->
 
 def run_reference(job: HiddenJob) -> HiddenOutcome:
     """The instructor's solution on the hidden cases, in the grader's own process (the calibration)."""
-    import time
-
     t0 = time.perf_counter()
     module = types.ModuleType("__reference__")
     try:
@@ -212,11 +213,6 @@ def run_hidden(job: HiddenJob, timeout: float = 60.0, isolation=None, cgroup_par
     Raises:
         IsolationError: the student's sandbox could not be made or verified (nothing of the student's ran).
     """
-    import time
-
-    from course_lib.instructor.sandbox import jail, wire
-    from course_lib.instructor.settings import GRACE_SECONDS, START_SECONDS
-
     t0 = time.monotonic()
     end = lambda until: min(until, deadline) if deadline is not None else until  # noqa: E731
     cgroup = isolation.cgroup(parent=cgroup_parent) if isolation is not None else None
@@ -281,11 +277,6 @@ def run_hidden(job: HiddenJob, timeout: float = 60.0, isolation=None, cgroup_par
 def _worker(job: HiddenJob, timeout: float, isolation, cgroup, w: int) -> None:
     """The exercise's worker: the student's process, the check, the verdict sent to the grader as JSON."""
     import resource
-    import time
-
-    from course_lib.instructor.oracle import Oracle
-    from course_lib.instructor.sandbox import jail, wire
-    from course_lib.instructor.student_process import RemoteFunction, StudentProcess
 
     for fd in _open_fds():  # nothing of the grader's other work (nbval's pipes) is held here
         if fd > 2 and fd != w:
@@ -408,15 +399,6 @@ def _status_kib(key: str) -> int:
             return next(int(ln.split()[1]) for ln in f if ln.startswith(key + ":"))
     except (OSError, StopIteration, ValueError, IndexError):
         return 0
-
-
-def single_thread_math() -> None:
-    """One thread for OpenBLAS (numpy, scipy) and torch in this process: the same numbers on every run."""
-    from course_lib.threads import set_blas_threads
-
-    set_blas_threads(1)
-    if "torch" in sys.modules:
-        sys.modules["torch"].set_num_threads(1)
 
 
 def _child_main(conn, fn, args):

@@ -31,7 +31,6 @@ import nbformat
 
 from course_lib.instructor.sandbox import jail, wire
 from course_lib.instructor.settings import START_SECONDS, Isolation
-from course_lib.instructor.student_process import kill_tree
 
 __all__ = ["NbvalRun", "MAX_NBVAL_RERUNS"]
 
@@ -81,7 +80,7 @@ class NbvalRun:
             self._replace[name] = nb
             proc = self._procs.get(name)
         if proc is not None:
-            kill_tree(proc.pid)
+            jail.kill_tree(proc.pid)
 
     def stop(self) -> None:
         """Stop every notebook still running (the grading ended, or was refused); idempotent."""
@@ -89,7 +88,7 @@ class NbvalRun:
             self._stopped = True
             procs = list(self._procs.values())
         for proc in procs:
-            kill_tree(proc.pid)
+            jail.kill_tree(proc.pid)
         self.pool.shutdown(wait=True, cancel_futures=True)
 
     def _run(self, name: str, nb) -> tuple[dict[tuple[str, int], str], str]:
@@ -222,7 +221,7 @@ class NbvalRun:
                 except OSError:
                     pass
             if proc is not None:
-                kill_tree(proc.pid)
+                jail.kill_tree(proc.pid)
                 proc.wait()
                 with self._lock:
                     self._procs.pop(name, None)

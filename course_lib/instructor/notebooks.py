@@ -292,7 +292,7 @@ def library_definition(name: str) -> str | None:
     found = []
     for p in sorted(root.rglob("*.py")):
         rel = p.relative_to(REPO_ROOT).with_suffix("")
-        if "instructor" in rel.parts or "__pycache__" in rel.parts or p.name == "student.py":
+        if "instructor" in rel.parts or "__pycache__" in rel.parts or p.name == "saved_solutions.py":
             continue
         if name in _top_level_names(p):
             parts = list(rel.parts[:-1]) if rel.parts[-1] == "__init__" else list(rel.parts)

@@ -39,7 +39,7 @@ The stubs exist only in X's process, and Y's grade comes from Y's own process, w
 student's function (no stub of Y is bound there: an exercise is never its own earlier step). Y's
 hidden checks call Y directly; nothing that happens in X's process reaches them.
 
-The NeRF model (a :class:`~course_lib.instructor.student_process.RemoteModule`) is no exception:
+The NeRF model (a :class:`~course_lib.instructor.remote.RemoteModule`) is no exception:
 its forward pass runs in the student's process, where ``positional_encoding`` is the stub, so the
 network is fed the reference's encoding of whatever it encodes (this replaced the earlier table of
 stored encodings that the grader bound there). Gradients do not flow through a call-back (the
@@ -58,12 +58,13 @@ import symtable
 import time
 
 from course_lib.instructor.sandbox import wire
+from course_lib.threads import single_thread_math
 
 __all__ = ["MAX_CALLS", "Oracle", "earlier_steps"]
 
 #: Call-backs the grader answers while it grades one exercise; one more stops the exercise's process. An honest
 #: ransac_fundamental makes ~800 on the hidden cases (eight_point and sampson_distance per sample); one without the
-#: adaptive stop (a mistake the checks name) ~20 000, at ~3 ms each on a loaded 2-core machine.
+#: adaptive stop (a mistake the checks name) ~20 000: the cap lets that one be graded (docs/benchmarks.md).
 MAX_CALLS = 50_000
 #: Address space a worker may add to what it inherited from the grader.
 WORKER_EXTRA_BYTES = 4 << 30
@@ -176,8 +177,6 @@ def _error(kind: str, message: str) -> dict:
 
 def _worker(req: int, rep: int, steps: dict[str, str]) -> None:
     """The worker's loop: decode a request, run the reference, send the result (or its exception) as data."""
-    from course_lib.instructor.hidden import single_thread_math
-
     try:
         open_fds = [int(f) for f in os.listdir("/proc/self/fd")]
     except OSError:  # no /proc: the grader's other files stay open in the worker (it runs only the reference)

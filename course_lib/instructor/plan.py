@@ -5,7 +5,7 @@ that no released notebook needs are left out, with every module that imports the
 (:func:`release_plan`); solution modules that the kit itself builds on (the NeRF trainer imports
 :mod:`course_lib.nerf.render`) are shipped *redacted* (:func:`redact_module`): their exercise
 functions are replaced by a stand-in that calls the student's own function of the same name
-(:mod:`course_lib.student`). The instructor package never ships.
+(:mod:`course_lib.saved_solutions`). The instructor package never ships.
 
 Every exercise is accounted for in every shipped module, not only in the module its solution
 region imports: a top-level ``def``, ``class`` or assignment of an exercise's name in any module
@@ -141,7 +141,7 @@ def _account_for_exercises(plan: ReleasePlan, mods: dict[str, Path]) -> None:
     names = set(plan.exercise_notebook)
     omit = set(plan.omit)
     for m, path in sorted(mods.items()):
-        if m == "course_lib.student":
+        if m == "course_lib.saved_solutions":
             continue
         for name, used_inside in sorted(exercise_definitions(path, names).items()):
             where = plan.implementations.setdefault(name, {"left out": [], "stand-in": [], "ships": []})
@@ -253,7 +253,7 @@ def redact_module(path: Path, names: list[str], exercise_notebook: dict[str, str
                 new = [
                     f"# {target}: an exercise of notebooks/{nb}; the student kit leaves its reference solution out.",
                     "# This stand-in calls your own " + target + " from the running notebook.",
-                    "from course_lib.student import stand_in as _kit_stand_in  # noqa: E402",
+                    "from course_lib.saved_solutions import stand_in as _kit_stand_in  # noqa: E402",
                     "",
                     f"{target} = _kit_stand_in({target!r}, {nb!r}, __name__)",
                 ]

@@ -13,7 +13,7 @@
   notebook needs are left out, with every module that imports them (:func:`release_plan`); solution
   modules that the kit itself builds on (the NeRF trainer imports :mod:`course_lib.nerf.render`)
   are shipped *redacted*: their exercise functions are replaced by a stand-in that calls the
-  student's own function of the same name (:mod:`course_lib.student`).
+  student's own function of the same name (:mod:`course_lib.saved_solutions`).
 * ``data/`` (the embedded scenes and the fixtures behind the check cells), ``environment.txt``,
   ``conftest.py``, a ``pyproject.toml`` whose pytest runs the notebooks, a ``README.md`` for
   students, and ``RELEASE_MANIFEST.json`` (exercises, their check cells, reference verdicts,
@@ -31,12 +31,15 @@ student can edit.
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import tempfile
 from dataclasses import asdict
 from pathlib import Path
 
 import nbformat
 
+from course_lib import __version__
 from course_lib.instructor.notebooks import (
     CHECK_MARK,
     NOTEBOOKS_DIR,
@@ -47,8 +50,16 @@ from course_lib.instructor.notebooks import (
     sha256,
     stream_text,
 )
-from course_lib.instructor.plan import INSTRUCTOR_PACKAGE, SKIP_NAMES, ReleasePlan, course_lib_modules, imported_names, \
-    module_name, redact_module, release_plan
+from course_lib.instructor.plan import (
+    INSTRUCTOR_PACKAGE,
+    SKIP_NAMES,
+    ReleasePlan,
+    course_lib_modules,
+    imported_names,
+    module_name,
+    redact_module,
+    release_plan,
+)
 from course_lib.paths import REPO_ROOT
 
 __all__ = ["stub_source", "stub_notebook", "student_readme", "write_release", "release_files", "verify_release"]
@@ -293,7 +304,6 @@ def release_files(notebooks_dir: Path = NOTEBOOKS_DIR) -> dict[str, bytes]:
     for name in COPIED_FILES:
         if (REPO_ROOT / name).exists():
             files[name] = (REPO_ROOT / name).read_bytes()
-    from course_lib import __version__
 
     files["pyproject.toml"] = STUDENT_PYPROJECT.format(version=__version__).encode()
     files[".gitignore"] = STUDENT_GITIGNORE.encode()
@@ -331,7 +341,7 @@ def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float 
     """Execute the released notebooks inside the released kit and list what is wrong.
 
     The kernel sees the kit's own ``course_lib`` (``PYTHONPATH=out_dir``), so the left-out reference
-    solutions are really absent. The saved solutions (:mod:`course_lib.student`) go to
+    solutions are really absent. The saved solutions (:mod:`course_lib.saved_solutions`) go to
     ``solutions`` (default: an empty scratch folder, so nothing of an earlier run is used and
     nothing is written into the kit). Allowed: cells that stop with ``NotImplementedError`` (an exercise
     not written yet, or a kit function that needs it) and, after such a cell, its consequences
@@ -345,8 +355,6 @@ def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float 
     Returns:
         ``{notebook: [problems]}`` (empty lists when the release is sound).
     """
-    import os
-
     from nbclient import NotebookClient
 
     out_dir = Path(out_dir).resolve()
@@ -356,7 +364,6 @@ def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float 
     paths = sorted((out_dir / "notebooks").glob("*.ipynb"))
     if only:
         paths = [p for p in paths if any(p.name.startswith(o) for o in only)]
-    import tempfile
 
     old_env = {k: os.environ.get(k) for k in ("PYTHONPATH", "COURSE_LIB_QUICK", "MPLBACKEND", "COURSE_LIB_SOLUTIONS")}
     os.environ["PYTHONPATH"] = str(out_dir) + (os.pathsep + old_env["PYTHONPATH"] if old_env["PYTHONPATH"] else "")

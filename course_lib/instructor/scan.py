@@ -187,8 +187,6 @@ def scan_notebook(nb, intact_check_cells: set[int], check_names: set[str],
                         grading_aliases |= {(a.asname or a.name).split(".")[0] for a in node.names}
                     elif attr in CHECK_INTERNALS or mod.endswith(".core"):
                         found.append((i, f"imports {attr} from the check machinery"))
-                    elif attr.startswith("check_") and (attr not in check_names):
-                        pass
             targets = []
             if isinstance(node, (ast.Assign, ast.AugAssign, ast.AnnAssign)):
                 targets = node.targets if isinstance(node, ast.Assign) else [node.target]

@@ -19,7 +19,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import course_lib
 from course_lib.instructor.cgroups import Cgroup
+from course_lib.instructor.notebooks import NOTEBOOKS_DIR
+from course_lib.instructor.release import release_files
 from course_lib.paths import REPO_ROOT
 
 __all__ = ["Limits", "Isolation", "Clock", "student_library", "exercise_seconds", "nbval_seconds", "SYSTEM_PATHS",
@@ -30,13 +33,12 @@ __all__ = ["Limits", "Isolation", "Clock", "student_library", "exercise_seconds"
 # Budgets: the one place where the grader's clocks are set
 # ---------------------------------------------------------------------------------------------
 
-#: Seconds of an exercise's hidden checks by default (``--timeout``; the reference needs at most ~1 s).
-#: Seconds for the hidden checks of one exercise (the reference needs at most ~1 s). Correct but slow code is graded: a
-#: dense finite-difference Jacobian in bundle_adjust (~25 s a call on a loaded 2-core machine, two calls), one residual
-#: function per view in triangulate_nonlinear; an endless loop costs this once, and the submission's clock bounds all.
+#: Seconds for the hidden checks of one exercise by default (``--timeout``). Correct but slow code is graded (a dense
+#: finite-difference Jacobian in bundle_adjust, one residual function per view in triangulate_nonlinear); an endless
+#: loop costs this once, and the submission's clock bounds all. The measurements behind it: docs/benchmarks.md.
 DEFAULT_EXERCISE_SECONDS = 120.0
 #: Seconds for a student's process to start (the interpreter, the sandbox, the numpy and torch imports: the kit's own
-#: work, not the student's, and ~20 s for torch on a loaded 2-core machine); the exercise's budget starts after.
+#: work, not the student's; torch's import is the slow part, docs/benchmarks.md); the exercise's budget starts after.
 START_SECONDS = 120.0
 #: Seconds the grader may take past an exercise's budget to finish what it was doing (decoding the last reply,
 #: the check's last comparison) before it stops the exercise's worker outright.
@@ -47,9 +49,8 @@ DEFAULT_SUBMISSION_SECONDS = 1800.0
 
 
 #: An exercise that calls earlier exercises (answered by their references, one call-back each) gets this many times
-#: the budget of one that does not: a call-back costs ~1.3 ms of transport (measured: 2000 call-backs of
-#: normalize_points, 2.6 s), and an honest ransac_fundamental makes ~800 of them on the hidden cases, one without the
-#: adaptive stop (a mistake the checks name) ~20 000, about 26 s on an idle 2-core machine.
+#: the budget of one that does not: each call-back costs transport, and a RANSAC without the adaptive stop (a mistake
+#: the checks name) makes some 25 times the call-backs of an honest one (docs/benchmarks.md).
 CALL_BACK_FACTOR = 3.0
 
 
@@ -188,8 +189,6 @@ class Isolation:
                     insecure: bool = False, limits: Limits | None = None) -> "Isolation":
         """The isolation of a grading run: hide the kit and the notebooks (unless ``self_test``) and ``secret``
         (the grader's scratch folder, the hidden cases)."""
-        import course_lib
-
         hide = [Path(p).resolve() for p in secret]
         if not self_test:  # the kit, and the instructor's library wherever it is installed
             hide += [REPO_ROOT.resolve(), Path(notebooks_dir).resolve(), Path(course_lib.__file__).resolve().parent]
@@ -243,9 +242,6 @@ def python_homes() -> list[str]:
 
 def student_library(out_dir: Path, notebooks_dir: Path | None = None) -> Path:
     """Write the student release's ``course_lib`` and ``data`` into ``out_dir`` (what a student's code may import)."""
-    from course_lib.instructor.notebooks import NOTEBOOKS_DIR
-    from course_lib.instructor.release import release_files
-
     files = release_files(Path(notebooks_dir or NOTEBOOKS_DIR))
     out_dir = Path(out_dir)
     for rel, data in sorted(files.items()):

@@ -1,14 +1,12 @@
-"""The grader's side of the separation: the student's functions run in a sandboxed process, called as data.
+"""The grader's side of the separation: the student's code runs in a sandboxed process, called as data.
 
 The check function of an exercise runs in the grader's exercise worker
 (:func:`course_lib.instructor.hidden.run_hidden`), with the full library and the hidden cases. The
-student's function it receives is a :class:`RemoteFunction`: each call encodes the arguments as data (:mod:`course_lib.instructor.sandbox.wire`:
-JSON and ``np.save`` arrays, never pickle), sends them to a :class:`StudentProcess` that holds only the
-student's extracted code and the *student release* of ``course_lib``
-(:func:`course_lib.instructor.settings.student_library`), and decodes the result. An ``nn.Module`` the
-student's class builds stays in that process; the grader gets a :class:`RemoteModule` with the module's
-parameters and linear layers, whose forward pass sends the (possibly replaced) parameters and the inputs
-back to the student's process.
+student's function it receives is a proxy (:mod:`course_lib.instructor.remote`) whose calls go to a
+:class:`StudentProcess`: :meth:`StudentProcess.call` encodes the arguments as data
+(:mod:`course_lib.instructor.sandbox.wire`: JSON and ``np.save`` arrays, never pickle), sends them to
+the process, which holds only the student's extracted code and the *student release* of ``course_lib``
+(:func:`course_lib.instructor.settings.student_library`), and decodes the result.
 
 The student's process:
 
@@ -58,10 +56,12 @@ from pathlib import Path
 
 import numpy as np
 
+from course_lib.instructor import oracle as oracle_module
+from course_lib.instructor.remote import RemoteModule
 from course_lib.instructor.sandbox import jail, wire
 from course_lib.instructor.settings import START_SECONDS, Isolation
 
-__all__ = ["StudentProcess", "RemoteFunction", "RemoteModule", "StudentProcessEnded", "kill_tree"]
+__all__ = ["StudentProcess", "StudentProcessEnded"]
 
 
 class StudentProcessEnded(Exception):
@@ -371,11 +371,9 @@ class StudentProcess:
         Its time is the exercise's (one clock): the reference is stopped when the exercise's time is up. More
         call-backs than :data:`~course_lib.instructor.oracle.MAX_CALLS` end the process.
         """
-        from course_lib.instructor.oracle import MAX_CALLS
-
-        if self.oracle is None or self.oracle.calls >= MAX_CALLS:
+        if self.oracle is None or self.oracle.calls >= oracle_module.MAX_CALLS:  # read at the call (a test lowers it)
             why = (f"your {self.name} called the earlier exercises ({', '.join(self.oracle.names)}) more than "
-                   f"{MAX_CALLS} times; the grader answers at most that many calls per exercise"
+                   f"{oracle_module.MAX_CALLS} times; the grader answers at most that many calls per exercise"
                    if self.oracle is not None else "the process asked the grader for an earlier step it does not need")
             self._end("limit", why)
             return None
@@ -393,7 +391,6 @@ class StudentProcess:
         not). A state that cannot be set is ignored."""
         if not isinstance(state, dict):
             return
-        import numpy as np
 
         try:
             if state.get("np") is not None:
@@ -408,8 +405,6 @@ class StudentProcess:
     def _generators_in(gens, arrays: list, args: tuple, kwargs: dict) -> None:
         """The states of the generator arguments after the student's call, set in the caller's generators: as in a
         notebook, an rng the function drew from has advanced (the checks test that the function draws from it)."""
-        import numpy as np
-
         torch = sys.modules.get("torch")
         for entry in gens if isinstance(gens, list) else []:
             try:
@@ -434,7 +429,7 @@ class StudentProcess:
     # -- the end ------------------------------------------------------------------------------------
     def kill(self) -> None:
         if self.proc is not None and self.proc.poll() is None:
-            kill_tree(self.proc.pid)
+            jail.kill_tree(self.proc.pid)
         if self.proc is not None:
             try:
                 self.proc.wait(timeout=5)
@@ -524,142 +519,6 @@ def _check_sparse(name: str, sparse: list[tuple], expect) -> None:
                              "grader did not build it")
 
 
-def kill_tree(pid: int) -> None:
-    """SIGKILL a sandbox launcher (bwrap), its process group and its direct children.
-
-    The launcher's child is process 1 of the sandbox's PID namespace: when it dies, Linux kills
-    every process in that namespace, including those that left the process group (``setsid``).
-    It is killed first, and the launcher (which reaps it and then exits) is given a moment before it
-    is killed too, so that no zombie is left to the host's init.
-    """
-    import time
-
-    try:
-        kids = [int(k) for t in os.listdir(f"/proc/{pid}/task")
-                for k in open(f"/proc/{pid}/task/{t}/children").read().split()]
-    except OSError:
-        kids = []
-    for k in kids:
-        try:
-            os.kill(k, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
-    for _ in range(50 if kids else 0):  # the launcher reaps its child and exits on its own
-        try:
-            with open(f"/proc/{pid}/stat") as f:
-                if f.read().rsplit(")", 1)[1].split()[0] == "Z":
-                    break
-        except OSError:
-            break
-        time.sleep(0.01)
-    for kill, target in ((os.killpg, pid), (os.kill, pid)):
-        try:
-            kill(target, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
-
-
 def _grad_enabled() -> bool:
     torch = sys.modules.get("torch")
     return bool(torch.is_grad_enabled()) if torch is not None else True
-
-
-class RemoteFunction:
-    """The student's function (or class) as the check sees it: each call goes to the student's process.
-
-    Args:
-        proc: the student's process.
-        name: the exercise.
-        reference: the reference of the exercise (or None): the expected answer of a call whose reply declares
-            what it does not send (:meth:`StudentProcess.call`).
-
-    Attributes:
-        calls: calls made; ``not_implemented``: calls that raised ``NotImplementedError`` (an untouched stub).
-    """
-
-    def __init__(self, proc: StudentProcess, name: str, reference=None):
-        self._proc, self._reference = proc, reference
-        self.__name__ = self.__qualname__ = name
-        self.calls = self.not_implemented = 0
-
-    def __call__(self, *args, **kwargs):
-        self.calls += 1
-        ref = self._reference
-        expect = (lambda: ref(*_copies(args), **_copies(kwargs))) if ref is not None else None
-        try:
-            return self._proc.call(args, kwargs, expect=expect)
-        except NotImplementedError:
-            self.not_implemented += 1
-            raise
-
-    def __repr__(self) -> str:
-        return f"<your {self.__name__}, running in its own process>"
-
-
-def _copies(value):
-    """Arrays copied (the reference must not change the check's inputs)."""
-    import copy
-
-    try:
-        return copy.deepcopy(value)
-    except Exception:  # noqa: BLE001 - a value that cannot be copied is passed as it is
-        return value
-
-
-class RemoteModule:
-    """Placeholder; :meth:`make` builds the ``torch.nn.Module`` subclass (torch is imported lazily)."""
-
-    _cls = None
-
-    @classmethod
-    def make(cls, proc: StudentProcess, tree: dict, arrays: list):
-        layers = wire.check_module_tree(tree, arrays)  # before anything is built
-        if RemoteModule._cls is None:
-            RemoteModule._cls = _remote_module_class()
-        name = wire.ident(tree.get("n", "Module"), "Module")
-        sub = type(name, (RemoteModule._cls,), {})
-        return sub(proc, tree, arrays, layers)
-
-
-def _remote_module_class():
-    import torch
-
-    class _Remote(torch.nn.Module):
-        """A student's ``nn.Module`` living in the student's process: its parameters and linear layers are mirrored here;
-        ``forward`` sends the current parameters and the inputs there and returns the result."""
-
-        def __init__(self, proc: StudentProcess, tree: dict, arrays: list, layers: list):
-            super().__init__()
-            names, mirror = [], []
-            for name, k in tree["params"]:
-                names.append(str(name)[:200])
-                mirror.append(torch.nn.Parameter(torch.from_numpy(arrays[int(k)].copy())))
-            linear = [torch.nn.Linear(i, o, bias=b, device="meta") for i, o, b in layers]
-            object.__setattr__(self, "_r", {"proc": proc, "h": int(tree["h"]), "names": names, "mirror": mirror,
-                                            "linear": linear})
-
-        def parameters(self, recurse: bool = True):
-            yield from self._r["mirror"]
-
-        def named_parameters(self, prefix: str = "", recurse: bool = True, remove_duplicate: bool = True):
-            for n, p in zip(self._r["names"], self._r["mirror"]):
-                yield (f"{prefix}.{n}" if prefix else n), p
-
-        def modules(self):
-            yield self
-            yield from self._r["linear"]
-
-        def named_modules(self, memo=None, prefix: str = "", remove_duplicate: bool = True):
-            yield prefix, self
-            for i, m in enumerate(self._r["linear"]):
-                yield f"{prefix}.linear{i}" if prefix else f"linear{i}", m
-
-        def forward(self, *args, **kwargs):
-            r = self._r
-            params = [(n, p.detach().cpu().numpy()) for n, p in zip(r["names"], r["mirror"])]
-            return r["proc"].call(args, kwargs, handle=r["h"], params=params)
-
-        def extra_repr(self) -> str:
-            return "running in the student's process"
-
-    return _Remote

@@ -13,5 +13,5 @@
 * :mod:`course_lib.nerf.checkpoint` - checkpoints, written during training, read on any device.
 * :mod:`course_lib.nerf.train` - the training loop (08).
 * :mod:`course_lib.nerf.run` - around the loop: the run's clock, its outputs (snapshots, checkpoints, evaluations), the progress bar.
-* :mod:`course_lib.nerf.cli` - ``python -m course_lib nerf train|eval|render`` (options made from :class:`TrainConfig`).
+* :mod:`course_lib.nerf.cli_nerf` - ``python -m course_lib nerf train|eval|render`` (options made from :class:`TrainConfig`).
 """

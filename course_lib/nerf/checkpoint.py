@@ -18,6 +18,7 @@ from course_lib.nerf.grid import GridField
 from course_lib.nerf.model import NeRF
 from course_lib.nerf.presets import TrainConfig
 from course_lib.nerf.scene import SceneBounds
+from course_lib.nerf.schedule import target_resolution
 from course_lib.validate import KitInputError
 
 __all__ = ["CHECKPOINT", "save_checkpoint", "load_checkpoint", "build_model", "nerf_arguments"]
@@ -43,8 +44,6 @@ def build_model(cfg: TrainConfig, bounds: SceneBounds, resolution: int | None = 
         fine = NeRF(**kw) if (cfg.fine and cfg.n_importance > 0) else None
         return NeRF(**kw), fine
     if cfg.model == "grid":
-        from course_lib.nerf.schedule import target_resolution
-
         res = resolution or target_resolution(cfg, 0.0)
         return GridField(bounds["box_min"], bounds["box_max"], resolution=res, mlp_width=cfg.grid_mlp_width,
                          feature_dim=cfg.grid_feature_dim, dir_freqs=cfg.grid_dir_freqs, alpha_init=cfg.alpha_init,

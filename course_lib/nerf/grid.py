@@ -46,6 +46,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from course_lib.nerf.encoding import encoded_dim, positional_encoding
+from course_lib.nerf.rays import ray_box_intersection
+from course_lib.nerf.schedule import grid_callbacks
 from course_lib.validate import KitInputError
 
 __all__ = ["GridField", "Trilinear", "grid_shape", "sh_basis", "corners", "read_corners", "voxel_rows", "channels_last"]
@@ -314,14 +316,10 @@ class GridField(nn.Module):
 
     def training_callbacks(self, cfg) -> list:
         """What the trainer runs before/after steps: the grid's schedule (:func:`course_lib.nerf.schedule.grid_callbacks`)."""
-        from course_lib.nerf.schedule import grid_callbacks
-
         return grid_callbacks(self, cfg)
 
     def ray_bounds(self, rays_o: torch.Tensor, rays_d: torch.Tensor, near: float = 0.0):
         """Per-ray ``(t_near, t_far)`` of the box (rays that miss get an empty interval at ``near``)."""
-        from course_lib.nerf.rays import ray_box_intersection
-
         t0, t1 = ray_box_intersection(rays_o, rays_d, self.box_min, self.box_max)
         t0 = t0.clamp(min=near)
         t1 = torch.maximum(t1, t0 + 1e-4)

@@ -37,6 +37,8 @@ import math
 import numpy as np
 import torch
 
+from course_lib.data.cli_match import scale_intrinsics
+from course_lib.data.synthetic import look_at
 from course_lib.nerf.device import render_chunk
 from course_lib.nerf.grid import GridField, corners, read_corners, voxel_rows
 from course_lib.nerf.rays import camera_rays
@@ -320,10 +322,8 @@ def preview_camera(H: int, W: int, K, max_side: int) -> tuple[int, int, np.ndarr
     """The camera ``(H, W, K)`` shrunk so that its longest side is at most ``max_side`` pixels (0: as it is).
 
     The same view at fewer pixels (a snapshot's preview): ``K`` scaled about the pixel centres
-    (:func:`course_lib.data.match_cli.scale_intrinsics`).
+    (:func:`course_lib.data.cli_match.scale_intrinsics`).
     """
-    from course_lib.data.match_cli import scale_intrinsics
-
     K = np.asarray(K, dtype=float)
     s = min(1.0, max_side / max(H, W)) if max_side else 1.0
     if s >= 1.0:
@@ -399,8 +399,6 @@ def circular_path(c2w: np.ndarray, center, n_frames: int = 40, elevation_deg: fl
     Returns:
         ``(n_frames, 4, 4)`` camera-to-world matrices.
     """
-    from course_lib.data.synthetic import look_at
-
     if n_frames < 1:
         raise KitInputError(f"n_frames {n_frames}: expected at least 1")
     center = np.asarray(center, float)

@@ -26,12 +26,10 @@ the voxel rows, one contiguous block of memory.
 
 When the sparse update pays: the gathers and scatters of the touched voxels' values, gradients
 and moments cost several times a streamed pass per value, so it wins only where a step reads a
-small share of the grid. With channels-last grids and the fused dense update over voxel rows, a
-step of the fast preset at the end of a 5-minute run on the building at 400 px (119 x 147 x 175
-voxels x 13 values, 2 CPU threads) takes 138 ms with the dense update and 158 ms with the sparse
-one (after 300 steps, with one thread and channel-major grids: 0.83x at 400 px, 0.76x at 200 px;
-``benchmarks/nerf_step_vs_render.py`` of the instructor's kit). So the fast preset keeps the dense update and the sparse
-one is opt-in (``TrainConfig.grid_sparse_adam``, ``nerf train --sparse-adam``): for grids much
+small share of the grid. With channels-last grids and the fused dense update over voxel rows, the
+dense update is the faster one for the fast preset's grids and batches (measured on the building
+at 200 and 400 px, 2 CPU threads). So the fast preset keeps the dense update and the sparse one is
+opt-in (``TrainConfig.grid_sparse_adam``, ``nerf train --sparse-adam``): for grids much
 larger than the batch's footprint (800 px grids, small batches).
 """
 

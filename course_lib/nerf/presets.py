@@ -35,7 +35,7 @@ each other at every operation and run many times slower than one.
 Every default lives here, in :class:`TrainConfig` or a preset: ``train(data, config="fast")`` and
 ``python -m course_lib nerf train`` run the same thing. Every field can be overridden
 (``preset("fast", n_samples=96)``, ``dataclasses.replace(cfg, n_samples=96)``, or the CLI's
-``--n-samples 96``: :mod:`course_lib.nerf.cli` makes one option per field, its help from the
+``--n-samples 96``: :mod:`course_lib.nerf.cli_nerf` makes one option per field, its help from the
 field's docstring).
 """
 
@@ -250,9 +250,8 @@ def auto_grid_resolution(H: int, W: int, minutes: float | None = None) -> int:
     images show finer detail, so the grid grows with the image side -- but much more slowly than
     it, because a larger grid also costs more per step and needs more steps to be fitted:
     ``100 (side / 100)^0.3`` (123 at 200 px, 152 at 400 px, 187 at 800 px), times
-    ``(minutes / 5)^0.1`` for other budgets, within [64, 256]. Measured on the building at 400 px,
-    5 minutes, 2 CPU threads (test PSNR on all 25 views, steps): 136 voxels 30.71 dB (5612 steps),
-    152 voxels 31.12 dB (4506), 174 voxels 30.79 dB (3323), 200 voxels 29.75 dB (2338).
+    ``(minutes / 5)^0.1`` for other budgets, within [64, 256]: the best of the resolutions tried on
+    the building (the scene the presets are tuned on) at 2 CPU threads.
     """
     side = max(int(H), int(W))
     scale = (side / 100.0) ** 0.3 * ((minutes / 5.0) ** 0.1 if minutes else 1.0)
@@ -267,13 +266,8 @@ def auto_batch_rays(resolution: int) -> int:
     prior (about 20 ms of a 48 ms step at 152 voxels, 2 CPU threads). A larger grid therefore asks
     for a larger batch, or the step is mostly spent on voxels the batch never saw:
     ``2048 (resolution / 100)^K`` rays (:data:`BATCH_EXPONENT`), a multiple of 1024, at least 2048
-    (2048 at 100 px, 4096 at 400 px, 6144 at 800 px in 10 minutes). Measured on the building (test
-    PSNR on all 25 views, steps; 2 CPU threads unless said): 400 px, 152 voxels, 5 minutes: 2048
-    rays 31.38 dB (5705 steps), 4096 rays 31.84 dB (3634); with one thread 4096 rays 30.41 dB,
-    8192 rays 29.22 dB. 800 px, 200 voxels, 10 minutes: 2048 rays 30.97 dB (7901 steps), 8192 rays
-    31.24 dB (2715). With these batches on the held-out excavator (never tuned on, all 25 test
-    views): 34.65 dB at 100 px, 34.34 at 200, 32.97 at 400 (5 minutes), 32.10 at 800 (10 minutes,
-    1.6 GB peak); lego-100 33.00 dB (the instructor's ``benchmarks/nerf_speed.py``).
+    (2048 at 100 px, 4096 at 400 px, 6144 at 800 px in 10 minutes): the best of the batches tried
+    on the building at 400 and 800 px, 2 CPU threads.
     """
     return max(2048, 1024 * int(round(2.0 * (resolution / 100.0) ** BATCH_EXPONENT)))
 

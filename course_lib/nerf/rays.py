@@ -15,7 +15,7 @@ Functions take and return torch tensors; the device and floating dtype follow ``
 
 The kit's own code (trainer, renders, notebooks 07-10) makes rays with :func:`camera_rays`, which
 calls the exercise ``get_rays`` exactly as its stub documents (in the student kit: the student's
-own ``get_rays``, :mod:`course_lib.student`).
+own ``get_rays``, :mod:`course_lib.saved_solutions`).
 """
 
 from __future__ import annotations

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from course_lib.conventions import camera_center
+from course_lib.data.colmap import write_colmap_text
 from course_lib.sfm.bundle_adjustment import reprojection_error_stats
 from course_lib.validate import KitInputError
 
@@ -109,8 +110,6 @@ class Reconstruction:
 
     def write_colmap(self, folder) -> Path:
         """Write the model as COLMAP text files (:func:`course_lib.data.colmap.write_colmap_text`)."""
-        from course_lib.data.colmap import write_colmap_text
-
         return write_colmap_text(
             folder, self.K, self.image_size, self.image_names, self.R_cw, self.t_cw, self.registered, self.X, self.rgb,
             self.observations, camera_model=self.camera_model, k1=self.k1,

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from course_lib.conventions import observed_entries
 from course_lib.validate import KitInputError
 
 __all__ = ["visibility_matrix", "Observations", "observation_list", "observations_to_uv", "track_lengths"]
@@ -101,14 +102,11 @@ def observation_list(track_uv: np.ndarray, mask: np.ndarray | None = None) -> Ob
     Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
     """
     uv = _check_uv(track_uv)
-    vis = ~np.isnan(uv[..., 0])
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
-        if mask.shape != vis.shape:
-            raise KitInputError(f"mask has shape {mask.shape}: expected {vis.shape}, the shape of track_uv without the last axis")
-        vis &= mask
-    j, i = np.nonzero(vis)
-    return Observations(j.astype(np.int64), i.astype(np.int64), uv[j, i].copy())
+        if mask.shape != uv.shape[:2]:
+            raise KitInputError(f"mask has shape {mask.shape}: expected {uv.shape[:2]}, the shape of track_uv without the last axis")
+    return Observations(*observed_entries(uv, mask))
 
 
 def observations_to_uv(obs: Observations, n_points: int, n_cameras: int) -> np.ndarray:

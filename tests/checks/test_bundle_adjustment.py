@@ -45,7 +45,7 @@ def test_the_minimum_is_the_optimum_not_where_a_few_evaluations_stop():
     """The stored minimum is below what 3 evaluations of least_squares reach by more than the check's tolerance."""
     from scipy.optimize import least_squares
 
-    from course_lib.steps import observation_arrays
+    from course_lib.starting_points import observation_arrays
 
     f = load_fixture(gba.FIXTURE)
     K, R0, t0, X0, uv = (f[f"ba_{s}"] for s in ("K", "R0", "t0", "X0", "uv"))

@@ -9,8 +9,7 @@ from course_lib.conventions import to_homogeneous
 from course_lib.sfm.fundamental import RansacResult
 from course_lib.checks import core as grading_core
 from course_lib.checks import fundamental as checks
-from course_lib import steps
-from course_lib.paths import EMBEDDED_SFM
+from course_lib import starting_points
 from course_lib.sfm import fundamental as reference
 
 
@@ -185,11 +184,9 @@ def test_check_ransac_names_mistakes(fn, phrase, capsys):
 
 
 def test_two_view_step_is_the_reference_result():
-    if not (EMBEDDED_SFM / "matching1.txt").exists():
-        pytest.skip("the embedded scene data/synthetic-building is not there yet")
-    step = steps.two_view_step()
-    res = reference.ransac_fundamental(step.x1, step.x2, np.random.default_rng(steps.STEP_SEED),
-                                       threshold_px=steps.STEP_THRESHOLD_PX)
+    step = starting_points.two_view_step()
+    res = reference.ransac_fundamental(step.x1, step.x2, np.random.default_rng(starting_points.STEP_SEED),
+                                       threshold_px=starting_points.STEP_THRESHOLD_PX)
     np.testing.assert_allclose(step.F, res.F, atol=1e-9)
     np.testing.assert_array_equal(step.inliers, res.inliers)
 

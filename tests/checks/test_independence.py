@@ -1,7 +1,7 @@
 """The checks ship to students: they import no reference solution and run without one.
 
 ``course_lib.checks`` never imports ``course_lib.sfm``, ``course_lib.nerf`` or the instructor
-package, not even inside a function; the step inputs of the embedded scene (``course_lib.steps``)
+package, not even inside a function; the step inputs of the embedded scene (``course_lib.starting_points``)
 read stored fixtures. Both are tested statically (imports) and by running every check and every
 step input in a process where those packages cannot be imported.
 """
@@ -45,7 +45,7 @@ class Block(importlib.abc.MetaPathFinder):
             raise ModuleNotFoundError(name, name=name)
 sys.meta_path.insert(0, Block())
 import importlib, pkgutil
-import course_lib.checks, course_lib.steps as steps
+import course_lib.checks, course_lib.starting_points as starting_points
 def todo(*a, **k):
     raise NotImplementedError
 for m in pkgutil.iter_modules(course_lib.checks.__path__):
@@ -53,8 +53,8 @@ for m in pkgutil.iter_modules(course_lib.checks.__path__):
     for name in sorted(dir(mod)):
         if name.startswith("check_"):
             getattr(mod, name)(todo)
-print("two_view_step", steps.two_view_step().F.shape)
-for f in (steps.triangulation_input, steps.pnp_input, steps.bundle_adjustment_input):
+print("two_view_step", starting_points.two_view_step().F.shape)
+for f in (starting_points.triangulation_input, starting_points.pnp_input, starting_points.bundle_adjustment_input):
     print(f.__name__, sorted(f()))
 """
 

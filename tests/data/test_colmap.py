@@ -57,7 +57,7 @@ def test_round_trip(model):
 
 
 def test_pycolmap_reads_the_model(model):
-    pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is an optional cross-check (not in environment.txt)")
+    pycolmap = pytest.importorskip("pycolmap", reason="pycolmap (environment.txt) is needed for the COLMAP cross-check")
     rec = pycolmap.Reconstruction(str(model["folder"]))
     sc, reg = model["sc"], model["registered"]
     assert rec.num_reg_images() == 4

@@ -108,7 +108,7 @@ def test_matching_ships_without_the_sfm_reference():
     from pathlib import Path
 
     import course_lib.data.features as features
-    import course_lib.data.match_cli as match_cli
+    import course_lib.data.cli_match as match_cli
 
     for mod in (features, match_cli):
         tree = ast.parse(Path(mod.__file__).read_text())

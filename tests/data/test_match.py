@@ -1,4 +1,4 @@
-"""`match`: photos with known K -> P3 folder (course_lib.data.match_cli)."""
+"""`match`: photos with known K -> P3 folder (course_lib.data.cli_match)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from course_lib.__main__ import main
 from course_lib.data import building
-from course_lib.data.match_cli import list_images, match_folder, scale_intrinsics
+from course_lib.data.cli_match import list_images, match_folder, scale_intrinsics
 from course_lib.data.p3 import read_p3
 from course_lib.validate import KitInputError
 

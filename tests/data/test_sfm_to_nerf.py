@@ -13,7 +13,7 @@ from course_lib.data import building
 from course_lib.data.blender import intrinsics_from_fov, load_blender
 from course_lib.data.colmap import write_colmap_text
 from course_lib.data.sfm_to_nerf import normalization, resample_images, sfm_to_nerf
-from course_lib.evaluate import align_similarity
+from course_lib.alignment import align_similarity
 from course_lib.validate import KitInputError
 
 

@@ -60,7 +60,7 @@ class TestVerifyPair:
 @pytest.fixture(scope="module")
 def four_renders():
     """Four 400x300 renders of the building: photo 4 is the weakest (its best pair has < 100 matches)."""
-    from course_lib.data.match_cli import scale_intrinsics
+    from course_lib.data.cli_match import scale_intrinsics
 
     surfaces = building.build_scene(np.random.default_rng(3), ground="large", rho=40.0)
     R_cw, t_cw = building.sfm_cameras(np.random.default_rng(1), 4)

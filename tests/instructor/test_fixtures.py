@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from course_lib.instructor.fixtures import build_fixtures
+from course_lib.instructor.cli_fixtures import build_fixtures
 from course_lib.paths import REPO_ROOT
 
 

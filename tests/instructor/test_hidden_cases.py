@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from course_lib.instructor.cases import builders
-from course_lib.instructor.fixtures import same_arrays
+from course_lib.instructor.cli_fixtures import same_arrays
 from course_lib.instructor.hidden import build_in_process
 from course_lib.paths import FIXTURES_DIR
 

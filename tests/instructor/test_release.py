@@ -82,7 +82,7 @@ def test_reference_solutions_are_left_out_or_redacted(kit):
         assert mod in manifest["omitted_modules"]
         assert not (out / (mod.replace(".", "/") + ".py")).exists()
     assert not (out / "course_lib/instructor").exists(), "the instructor package never ships"
-    assert (out / "course_lib/checks/core.py").exists() and (out / "course_lib/steps.py").exists()
+    assert (out / "course_lib/checks/core.py").exists() and (out / "course_lib/starting_points.py").exists()
     for mod, names in manifest["redacted"].items():
         src = (out / (mod.replace(".", "/") + ".py")).read_text()
         for n in names:
@@ -109,7 +109,7 @@ def test_released_library_imports_without_the_solutions(kit):
         "    importlib.import_module(m.name)\n"
         "try:\n    import course_lib.sfm.fundamental\nexcept ImportError:\n    pass\n"
         "else:\n    raise SystemExit('the reference solution is importable')\n"
-        "from course_lib.checks.fundamental import check_eight_point\nfrom course_lib.steps import two_view_step\n"
+        "from course_lib.checks.fundamental import check_eight_point\nfrom course_lib.starting_points import two_view_step\n"
         "assert two_view_step().F.shape == (3, 3)\n"
         "from course_lib.nerf.render import volume_render\n"
         "try:\n    volume_render(None, None, None, None)\nexcept NotImplementedError as e:\n"

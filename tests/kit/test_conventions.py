@@ -6,7 +6,7 @@ import pytest
 from course_lib import conventions as cv
 from course_lib import validate
 from course_lib.data.synthetic import look_at, make_scene
-from course_lib.evaluate import align_similarity, pose_errors
+from course_lib.alignment import align_similarity, pose_errors
 
 
 def test_homogeneous_round_trip():

@@ -7,7 +7,7 @@ from dataclasses import fields, replace
 
 import pytest
 
-from course_lib.nerf import cli
+from course_lib.nerf import cli_nerf
 from course_lib.nerf.presets import (FINE_SAMPLES, PRESETS, FractionOfRun, TrainConfig, auto_batch_rays, field_docs,
                                      preset, resolve)
 from course_lib.validate import KitInputError
@@ -15,7 +15,7 @@ from course_lib.validate import KitInputError
 
 def parse(*argv):
     p = argparse.ArgumentParser()
-    cli.add_arguments(p)
+    cli_nerf.add_arguments(p)
     return p.parse_args(["train", "--out", "x", *argv])
 
 
@@ -72,20 +72,20 @@ class TestTrainConfig:
 class TestCommandLine:
     def test_one_option_per_field(self):
         p = argparse.ArgumentParser()
-        cli.add_arguments(p)
+        cli_nerf.add_arguments(p)
         train = next(a for a in p._actions if isinstance(a, argparse._SubParsersAction)).choices["train"]
         options = {opt for a in train._actions for opt in a.option_strings}
         for f in fields(TrainConfig):
-            if f.name not in cli.NOT_OPTIONS:
+            if f.name not in cli_nerf.NOT_OPTIONS:
                 assert "--" + f.name.replace("_", "-") in options, f.name
         assert {"--batch", "--samples", "--importance", "--sparse-adam", "--black-background", "--no-fine"} <= options
 
     @pytest.mark.parametrize("name", sorted(PRESETS))
     def test_no_options_is_the_preset(self, name):
-        assert cli.config_from_args(parse("--preset", name)) == preset(name)
+        assert cli_nerf.config_from_args(parse("--preset", name)) == preset(name)
 
     def test_options_set_fields(self):
-        cfg = cli.config_from_args(parse("--preset", "paper", "--fine", "--samples", "32", "--minutes", "1.5",
+        cfg = cli_nerf.config_from_args(parse("--preset", "paper", "--fine", "--samples", "32", "--minutes", "1.5",
                                          "--black-background", "--grid-schedule", "((0, 0.5), (0.2, 1.0))",
                                          "--near", "none", "--density", "softplus", "--no-perturb"))
         assert cfg == replace(preset("paper"), fine=True, n_samples=32, minutes=1.5, white_background=False,

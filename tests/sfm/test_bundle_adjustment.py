@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 from course_lib.conventions import camera_center, rotation_angle_deg
 from course_lib.data.synthetic import make_scene
 from course_lib.sfm import bundle_adjustment as ba
-from course_lib.evaluate import align_similarity
+from course_lib.alignment import align_similarity
 from course_lib.sfm.visibility import observation_list
 from course_lib.validate import KitInputError
 

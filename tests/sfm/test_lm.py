@@ -17,7 +17,7 @@ from course_lib.data.bal import FLIP_YZ, BALProblem, load_bal, write_bal
 from course_lib.data.synthetic import make_scene
 from course_lib.paths import course_data
 from course_lib.sfm import lm
-from course_lib.evaluate import align_similarity
+from course_lib.alignment import align_similarity
 from course_lib.validate import KitInputError
 
 LADYBUG_COOKBOOK_COST = 1.3409e4  # SciPy cookbook's final cost on Ladybug 49-7776 (all observations)

@@ -16,7 +16,7 @@ import pytest
 from course_lib.__main__ import main
 from course_lib.data.scenes import grouped_ring_scene, near_duplicate_scene, texture_poor_ring_scene
 from course_lib.data.synthetic import make_scene, write_scene_p3
-from course_lib.evaluate import pose_errors
+from course_lib.alignment import pose_errors
 from course_lib.paths import REPO_ROOT
 from course_lib.sfm.mapper import IncrementalMapper, MapperOptions, spread_score
 from course_lib.sfm.pipeline import run_sfm, verified_pairs_and_tracks

@@ -2,7 +2,7 @@
 
 Targets (measured here, see the module docstring of course_lib.sfm.pipeline):
 * embedded scene: all 6 images, rotation error <= 0.1 deg per camera and centre error <= 1 % of
-  the scene size after a similarity alignment (course_lib.evaluate.pose_errors);
+  the scene size after a similarity alignment (course_lib.alignment.pose_errors);
 * WPI Unity Hall: 5/5 images, >= 600 points, mean reprojection error <= 0.7 px;
 * UPenn Levine Hall: 6/6 images, >= 1400 points, mean reprojection error <= 1.0 px.
 The course data tests are skipped (with the reason) where /work/shared/data is absent.
@@ -17,7 +17,7 @@ from course_lib.data.building import load_ground_truth
 from course_lib.data.p3 import read_p3
 from course_lib.data.synthetic import make_scene, write_scene_p3
 from course_lib.paths import EMBEDDED_SFM, course_data
-from course_lib.evaluate import pose_errors
+from course_lib.alignment import pose_errors
 from course_lib.sfm.pipeline import Reconstruction, run_sfm
 from course_lib.validate import KitInputError
 

@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from course_lib.conventions import rotation_angle_deg
+from course_lib.data.p3 import read_p3
 from course_lib.data.synthetic import make_scene
+from course_lib.paths import course_data
 from course_lib.sfm.pnp import PnPResult, pnp_linear, pnp_nonlinear, pnp_ransac, pnp_reprojection_errors
 from course_lib.validate import KitInputError
 
@@ -123,13 +125,10 @@ def test_pycolmap_cross_check():
 
 
 def test_real_data_wpi_registration():
-    from course_lib.paths import course_data
-
     folder = course_data("wpi")
     if folder is None:
         pytest.skip("the course data (WPI) is not on this machine")
-    p3 = pytest.importorskip("course_lib.data.p3", reason="H4's P3 loader not there yet")
-    data = p3.read_p3(folder)
+    data = read_p3(folder)
     # 3-D points of image pair (0, 1) from OpenCV's two-view geometry (not the lesson here)
     m = data.matches[(0, 1)]
     E, mask = cv2.findEssentialMat(m.x1, m.x2, data.K, method=cv2.RANSAC, prob=0.999, threshold=1.0)

@@ -11,7 +11,7 @@ import pytest
 
 from course_lib.data.synthetic import make_scene, write_scene_p3
 from course_lib.paths import REPO_ROOT
-from course_lib.evaluate import pose_errors
+from course_lib.alignment import pose_errors
 
 pytest.importorskip("pycolmap", reason="pycolmap (environment.txt) is needed for the COLMAP cross-check")
 

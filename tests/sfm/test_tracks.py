@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from course_lib.data.synthetic import make_scene, write_scene_p3
-from course_lib.evaluate import align_cameras, pose_errors
+from course_lib.alignment import align_cameras, pose_errors
 from course_lib.sfm.fundamental import eight_point, eight_point_batch, sampson_distance
 from course_lib.sfm.tracks import join_tracks, ransac_every_pair, verified_tracks, verify_pair
 from course_lib.validate import KitInputError

@@ -7,6 +7,9 @@ import numpy as np
 import pytest
 
 from course_lib.conventions import projection_matrix, skew
+from course_lib.data.p3 import read_p3
+from course_lib.paths import course_data
+from course_lib.sfm.essential import pose_candidates
 from course_lib.sfm.triangulation import (
     choose_pose,
     reprojection_errors,
@@ -81,11 +84,10 @@ def test_choose_pose_picks_true_candidate_and_agrees_with_recoverpose():
     np.testing.assert_allclose(choice.X[choice.in_front] * s, X[choice.in_front], atol=0.5)
 
 
-def test_choose_pose_with_h1_candidates_if_available():
-    essential = pytest.importorskip("course_lib.sfm.essential", reason="H1's essential.py not there yet")
+def test_choose_pose_with_the_essential_candidates():
     sc, R, t, X = relative_scene(noise_px=0.3)
     E = skew(t[1]) @ R[1]
-    Rc, Cc = essential.pose_candidates(E / np.linalg.norm(E))
+    Rc, Cc = pose_candidates(E / np.linalg.norm(E))
     choice = choose_pose(Rc, Cc, sc.K, sc.uv[:, 0], sc.uv[:, 1])
     np.testing.assert_allclose(choice.R_cw, R[1], atol=1e-6)
     np.testing.assert_allclose(choice.t_cw, t[1] / np.linalg.norm(t[1]), atol=1e-6)
@@ -145,13 +147,10 @@ def test_pycolmap_cross_check():
 
 
 def test_real_data_wpi_pair():
-    from course_lib.paths import course_data
-
     folder = course_data("wpi")
     if folder is None:
         pytest.skip("the course data (WPI) is not on this machine")
-    p3 = pytest.importorskip("course_lib.data.p3", reason="H4's P3 loader not there yet")
-    data = p3.read_p3(folder)
+    data = read_p3(folder)
     m = data.matches[(0, 1)]
     # two-view geometry from OpenCV (not the lesson here): essential matrix + recoverPose
     E, mask = cv2.findEssentialMat(m.x1, m.x2, data.K, method=cv2.RANSAC, prob=0.999, threshold=1.0)

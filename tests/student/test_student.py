@@ -12,7 +12,7 @@ import sys
 import numpy as np
 import pytest
 
-from course_lib import student
+from course_lib import saved_solutions
 from course_lib.exercises import EXERCISES
 
 
@@ -23,13 +23,13 @@ def shell(tmp_path, monkeypatch):
 
     monkeypatch.setenv("COURSE_LIB_SOLUTIONS", str(tmp_path / "solutions"))
     main = sys.modules["__main__"]
-    student._LOADED.clear()
+    saved_solutions._LOADED.clear()
     sh = InteractiveShell.instance()
-    assert student.install(sh)
+    assert saved_solutions.install(sh)
     yield sh
     InteractiveShell.clear_instance()
     sys.modules["__main__"] = main
-    student._LOADED.clear()
+    saved_solutions._LOADED.clear()
 
 
 def run(sh, source: str):
@@ -44,7 +44,7 @@ def fresh_notebook(sh):
     for name in list(sys.modules):
         if name.startswith("_course_lib_saved_"):
             del sys.modules[name]
-    student._LOADED.clear()
+    saved_solutions._LOADED.clear()
 
 
 def test_running_the_cell_saves_the_function_with_its_helpers_imports_and_constants(shell, tmp_path):
@@ -72,7 +72,7 @@ def test_a_stub_is_not_saved_and_the_stand_in_names_the_notebook_to_finish(shell
     run(shell, 'def get_rays(H, W, K, c2w):\n    """doc"""\n    # YOUR CODE HERE\n    raise NotImplementedError("your code here")')
     assert not (tmp_path / "solutions").exists() or not list((tmp_path / "solutions").iterdir())
     fresh_notebook(shell)
-    stand_in = student.stand_in("get_rays", EXERCISES["get_rays"].notebook)
+    stand_in = saved_solutions.stand_in("get_rays", EXERCISES["get_rays"].notebook)
     with pytest.raises(NotImplementedError, match=r"get_rays is an exercise of notebooks/06_nerf_data_and_rays.ipynb"
                                                   r".*run its cell .*get_rays\.py"):
         stand_in(2, 2, None, None)
@@ -96,11 +96,11 @@ def test_classes_dataclasses_and_the_kits_stand_ins_travel(shell, tmp_path):
     nerf = (tmp_path / "solutions" / "NeRF.py").read_text()
     assert "from course_lib.nerf.encoding import positional_encoding" in nerf  # the kit's stand-in, by name
     fresh_notebook(shell)
-    res = student.find_student_solution("ransac_fundamental")(np.zeros((9, 2)), np.zeros((9, 2)), None)
+    res = saved_solutions.find_student_solution("ransac_fundamental")(np.zeros((9, 2)), np.zeros((9, 2)), None)
     assert res.n_iters == 1 and res.inliers.all()
     import torch
 
-    model = student.find_student_solution("NeRF")(depth=2)
+    model = saved_solutions.find_student_solution("NeRF")(depth=2)
     rgb, sigma = model(torch.zeros(5, 3), torch.zeros(5, 3))
     assert tuple(rgb.shape) == (5, 3) and tuple(sigma.shape) == (5,)
 
@@ -111,28 +111,28 @@ def test_what_cannot_travel_is_named_and_the_notebooks_own_function_comes_first(
     assert "without: TABLE (a ndarray of the notebook)" in capsys.readouterr().out
     assert "# Not saved" in (tmp_path / "solutions" / "sampson_distance.py").read_text()
     run(shell, "def sampson_distance(F, x1, x2):\n    return 'the notebook'")
-    assert student.find_student_solution("sampson_distance")(None, [], []) == "the notebook"
+    assert saved_solutions.find_student_solution("sampson_distance")(None, [], []) == "the notebook"
     fresh_notebook(shell)
-    assert student.find_student_solution("sampson_distance")(None, [], []) == "the notebook"  # saved again
+    assert saved_solutions.find_student_solution("sampson_distance")(None, [], []) == "the notebook"  # saved again
 
 
 def test_a_saved_solution_that_does_not_load_says_which_file_to_renew(tmp_path, monkeypatch):
     monkeypatch.setenv("COURSE_LIB_SOLUTIONS", str(tmp_path))
-    student._LOADED.clear()
+    saved_solutions._LOADED.clear()
     (tmp_path / "eight_point.py").write_text("import not_a_module_anywhere\n")
     with pytest.raises(RuntimeError, match=r"your saved eight_point .*eight_point\.py.* does not load: "
                                            r"ModuleNotFoundError.*Run its cell"):
-        student.load_saved_solution("eight_point")
-    assert student.load_saved_solution("pnp_linear") is None
+        saved_solutions.load_saved_solution("eight_point")
+    assert saved_solutions.load_saved_solution("pnp_linear") is None
 
 
 def test_the_instructors_kit_saves_nothing_and_the_grader_can_turn_saving_off(monkeypatch, tmp_path):
     monkeypatch.delenv("COURSE_LIB_SOLUTIONS", raising=False)
-    assert not student.is_student_kit() and student.solutions_dir() is None
-    assert not student.install(object())
+    assert not saved_solutions.is_student_kit() and saved_solutions.solutions_dir() is None
+    assert not saved_solutions.install(object())
     monkeypatch.setenv("COURSE_LIB_SOLUTIONS", str(tmp_path))  # the grader's folder of stand-ins: read, never written
     monkeypatch.setenv("COURSE_LIB_SAVE_SOLUTIONS", "0")
-    assert not student.install(object())
+    assert not saved_solutions.install(object())
 
 
 def test_two_notebooks_in_two_kernels(tmp_path):

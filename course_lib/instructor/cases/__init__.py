@@ -15,10 +15,13 @@ The student kit holds none of this: the checks it ships compare with stored arra
 
 from __future__ import annotations
 
+import functools
 import importlib
 from typing import Callable
 
 import numpy as np
+
+from course_lib.paths import EMBEDDED_SFM
 
 __all__ = ["builds", "builders", "CASE_MODULES", "STEP_FIXTURES"]
 
@@ -35,7 +38,7 @@ CASE_MODULES = (
 )
 
 _BUILDERS: dict[str, Callable[[], dict[str, np.ndarray]]] = {}
-#: Fixtures that are a notebook's starting point (:mod:`course_lib.steps`), not cases of a check:
+#: Fixtures that are a notebook's starting point (:mod:`course_lib.starting_points`), not cases of a check:
 #: public by design, and never built for (or read by) the hidden checks.
 STEP_FIXTURES: set[str] = set()
 #: fixture name -> the check module it feeds (``course_lib.checks.<module>``)
@@ -47,13 +50,21 @@ def builds(name: str, step: bool = False):
 
     Args:
         name: the fixture (``data/fixtures/<name>.npz``).
-        step: the fixture is a notebook's starting point (:data:`STEP_FIXTURES`), not check cases.
+        step: the fixture is a notebook's starting point (:data:`STEP_FIXTURES`), not check cases. It is
+            made from the embedded scene: before that is generated (``python -m course_lib make-data``)
+            the builder stores nothing (``{}``).
     """
 
     def register(fn):
-        _BUILDERS[name] = fn
         if step:
             STEP_FIXTURES.add(name)
+            built = fn
+
+            @functools.wraps(built)
+            def fn() -> dict[str, np.ndarray]:
+                return built() if (EMBEDDED_SFM / "ground_truth.json").exists() else {}
+
+        _BUILDERS[name] = fn
         CHECK_MODULE[name] = "course_lib.checks." + fn.__module__.rsplit(".", 1)[-1]
         return fn
 

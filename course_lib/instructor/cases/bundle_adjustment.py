@@ -13,30 +13,28 @@ stored with the cases: the shipped checks hold no implementation of the residual
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from course_lib.checks.bundle_adjustment import FIXTURE, RESIDUAL_VARIANTS
+from course_lib.data.synthetic import make_scene
 from course_lib.instructor.cases import builds
 from course_lib.paths import EMBEDDED_SFM
-from course_lib.steps import reconstruction_before_ba
+from course_lib.sfm import bundle_adjustment as ba
+from course_lib.sfm import visibility as vis
+from course_lib.starting_points import reconstruction_before_ba
 
 
 @builds("bundle_adjustment_step", step=True)
 def _build_step() -> dict[str, np.ndarray]:
-    if not (EMBEDDED_SFM / "ground_truth.json").exists():
-        return {}
     return reconstruction_before_ba(EMBEDDED_SFM)
 
 
 def _scene(seed, n_cameras, n_points, noise_px, outlier_fraction):
-    from course_lib.data.synthetic import make_scene
-
     return make_scene(np.random.default_rng(seed), n_cameras=n_cameras, n_points=n_points, noise_px=noise_px,
                       outlier_fraction=outlier_fraction)
 
 
 def _perturb(sc, seed, rot_deg=1.0, trans=0.2, pts=0.2):
-    from scipy.spatial.transform import Rotation
-
     rng = np.random.default_rng(seed)
     R, t = sc.R_cw.copy(), sc.t_cw.copy()
     for i in range(1, sc.n_cameras):
@@ -47,8 +45,6 @@ def _perturb(sc, seed, rot_deg=1.0, trans=0.2, pts=0.2):
 
 def residual_variant(name, params, M, N, cam, pt, uv, K) -> np.ndarray:
     """The residuals of a classic mistake (``name`` in :data:`RESIDUAL_VARIANTS`), for the check to recognise."""
-    from scipy.spatial.transform import Rotation
-
     if name == "points_first":
         X, cams = params[: 3 * N].reshape(N, 3), params[3 * N:].reshape(M, 6)
     else:
@@ -71,8 +67,6 @@ def _moved_reconstruction(seed: int, keep: float = 0.8) -> dict[str, np.ndarray]
     Returns:
         ``K, R_cw (M, 3, 3), t_cw (M, 3), X (N, 3), uv (N, M, 2)`` (the inlier observations, NaN elsewhere).
     """
-    from scipy.spatial.transform import Rotation
-
     st = reconstruction_before_ba(EMBEDDED_SFM)
     reg, has_X = st["registered"], np.isfinite(st["X"]).all(axis=1)
     uv = np.where(st["inlier"][..., None], st["track_uv"], np.nan)[has_X][:, reg]
@@ -136,9 +130,6 @@ def _ba_case(out, ba) -> None:
 
 @builds(FIXTURE)
 def _build() -> dict[str, np.ndarray]:
-    from course_lib.sfm import bundle_adjustment as ba
-    from course_lib.sfm import visibility as vis
-
     out: dict[str, np.ndarray] = {}
     # visibility: a small synthetic case (more points than cameras, so a transpose shows)
     sc = _scene(51, 4, 30, 0.5, 0.0)

@@ -12,16 +12,17 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib.checks.essential import FIXTURE
+from course_lib.data.synthetic import make_scene
 from course_lib.instructor.cases import builds
-from course_lib.steps import STEP_PAIR, STEP_SEED, STEP_THRESHOLD_PX
+from course_lib.instructor.cases.fundamental import embedded_pair, random_subset
+from course_lib.instructor.mistakes.essential import essential_variants
+from course_lib.sfm import essential as ref
+from course_lib.sfm.fundamental import eight_point, ransac_fundamental
+from course_lib.starting_points import STEP_PAIR, STEP_SEED, STEP_THRESHOLD_PX
+
 
 @builds(FIXTURE)
 def _build() -> dict[str, np.ndarray]:
-    from course_lib.data.synthetic import make_scene
-    from course_lib.sfm import essential as ref
-    from course_lib.instructor.mistakes.essential import essential_variants
-    from course_lib.sfm.fundamental import eight_point
-
     out: dict[str, np.ndarray] = {}
     cases = []
     for name, noise, seed in (("noiseless", 0.0, 21), ("noisy", 0.7, 22)):
@@ -37,9 +38,6 @@ def _build() -> dict[str, np.ndarray]:
         cases.append(name)
     # the embedded pair: the same reference result that two_view_step() serves to notebook 02
     # (recomputed here, so that this fixture does not depend on the order fixtures are built in)
-    from course_lib.instructor.cases.fundamental import embedded_pair, random_subset
-    from course_lib.sfm.fundamental import ransac_fundamental
-
     emb = embedded_pair()
     if emb is not None:
         x1, x2, K = emb

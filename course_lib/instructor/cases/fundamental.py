@@ -4,7 +4,7 @@ Built from :mod:`course_lib.sfm.fundamental`: the fixture ``fundamental`` holds 
 (synthetic pairs, a random subset of the embedded pair's matches, what the classic mistakes give
 on them: :mod:`course_lib.instructor.mistakes.fundamental`); the step fixture ``fundamental_step``
 holds the reference F and inliers of the embedded pair that notebook 02 starts from
-(:func:`course_lib.steps.two_view_step`). The checks are in :mod:`course_lib.checks.fundamental`.
+(:func:`course_lib.starting_points.two_view_step`). The checks are in :mod:`course_lib.checks.fundamental`.
 
 Every random choice comes from a seeded ``np.random.default_rng`` (never seed 0, which the hidden
 checks keep unsalted), so the hidden cases of a grading run are new scenes and a new subset of the
@@ -18,9 +18,13 @@ from pathlib import Path
 import numpy as np
 
 from course_lib.checks.fundamental import CHECK_THRESHOLD_PX, FIXTURE, TIGHT_THRESHOLD_PX
+from course_lib.data.p3 import read_p3
+from course_lib.data.synthetic import make_scene
 from course_lib.instructor.cases import builds
+from course_lib.instructor.mistakes.fundamental import eight_point_variants, sampson_variants
 from course_lib.paths import EMBEDDED_SFM
-from course_lib.steps import STEP_PAIR, STEP_SEED, STEP_THRESHOLD_PX
+from course_lib.sfm import fundamental as ref
+from course_lib.starting_points import STEP_PAIR, STEP_SEED, STEP_THRESHOLD_PX
 
 #: RANSAC threshold of the refit case (no outliers, 1 px noise: every match is an inlier).
 REFIT_THRESHOLD_PX = 5.0
@@ -33,7 +37,6 @@ def embedded_pair():
     """``(x1, x2, K)`` of the embedded pair, or None when data/synthetic-building is not there."""
     if not (Path(EMBEDDED_SFM) / "matching1.txt").exists():
         return None
-    from course_lib.data.p3 import read_p3
 
     data = read_p3(EMBEDDED_SFM)
     m = data.matches[STEP_PAIR]
@@ -48,8 +51,6 @@ def random_subset(n: int, seed: int, share: float = EMBEDDED_SHARE) -> np.ndarra
 
 @builds("fundamental_step", step=True)
 def _build_step() -> dict[str, np.ndarray]:
-    from course_lib.sfm import fundamental as ref
-
     emb = embedded_pair()
     if emb is None:
         return {}
@@ -70,8 +71,6 @@ def _scenes() -> dict[str, tuple[np.ndarray, ...]]:
 
     make_scene's cameras stand on an arc around the scene: camera 1 is never at the origin.
     """
-    from course_lib.data.synthetic import make_scene
-
     out = {}
     for name, seed, n, noise, outliers, big in (("noiseless", 3, 120, 0.0, 0.0, False),
                                                 ("noisy", 4, 120, 1.0, 0.0, False),
@@ -88,9 +87,6 @@ def _scenes() -> dict[str, tuple[np.ndarray, ...]]:
 
 
 def _eight_point_case(out: dict, name: str, x1: np.ndarray, x2: np.ndarray, xt1=None, xt2=None) -> None:
-    from course_lib.instructor.mistakes.fundamental import eight_point_variants
-    from course_lib.sfm import fundamental as ref
-
     p = f"ep_{name}"
     out[f"{p}_x1"], out[f"{p}_x2"] = x1, x2
     if xt1 is not None and name != "noiseless":  # the truth that the check measures F against
@@ -102,9 +98,6 @@ def _eight_point_case(out: dict, name: str, x1: np.ndarray, x2: np.ndarray, xt1=
 
 
 def _sampson_case(out: dict, name: str, F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> None:
-    from course_lib.instructor.mistakes.fundamental import sampson_variants
-    from course_lib.sfm import fundamental as ref
-
     p = f"sd_{name}"
     out[f"{p}_F"], out[f"{p}_x1"], out[f"{p}_x2"] = F, x1, x2
     out[f"{p}_d"] = ref.sampson_distance(F, x1, x2)
@@ -114,8 +107,6 @@ def _sampson_case(out: dict, name: str, F: np.ndarray, x1: np.ndarray, x2: np.nd
 
 @builds(FIXTURE)
 def _build() -> dict[str, np.ndarray]:
-    from course_lib.sfm import fundamental as ref
-
     out: dict[str, np.ndarray] = {}
     # normalize_points: an anisotropic cloud far from the origin (a strip of a building facade)
     g = np.random.default_rng(101)

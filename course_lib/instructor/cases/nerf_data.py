@@ -14,6 +14,7 @@ import numpy as np
 from course_lib.checks.nerf_data import ENCODING_CASES, FIXTURE, RAY_CASES, as_tensor
 from course_lib.instructor.cases import builds
 from course_lib.instructor.cases.nerf_variants import ENCODING_VARIANTS, encoding_variant
+from course_lib.nerf import encoding, rays
 
 
 def _look_at_c2w(center, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
@@ -62,8 +63,6 @@ def _ray_mistakes(H, W, K, c2w, d_ref) -> dict[str, np.ndarray]:
 
 
 def _rays(out: dict, g: np.random.Generator) -> None:
-    from course_lib.nerf import rays
-
     for name in RAY_CASES:
         H = int(g.integers(3, 6)) if name == "tiny" else int(g.integers(6, 9))
         W = H + int(g.integers(1, 4))
@@ -80,8 +79,6 @@ def _rays(out: dict, g: np.random.Generator) -> None:
 
 def _strata(out: dict, g: np.random.Generator) -> None:
     import torch
-
-    from course_lib.nerf import rays
 
     near = float(np.round(g.uniform(1.0, 3.0), 3))
     far = float(np.round(near + g.uniform(2.0, 5.0), 3))
@@ -108,8 +105,6 @@ def _strata(out: dict, g: np.random.Generator) -> None:
 
 
 def _queries(out: dict, g: np.random.Generator) -> None:
-    from course_lib.nerf import rays
-
     shapes = [(int(g.integers(3, 6)), int(g.integers(6, 9)))]
     n = int(g.integers(4, 7))
     shapes.append((n, n))  # R == S: a broadcast along the wrong axis gives no error, only wrong points
@@ -133,8 +128,6 @@ def _queries(out: dict, g: np.random.Generator) -> None:
 
 
 def _encodings(out: dict, g: np.random.Generator) -> None:
-    from course_lib.nerf import encoding
-
     x = g.uniform(-1.5, 1.5, size=(int(g.integers(5, 9)), 3)).astype(np.float32)
     dirs = g.normal(size=(int(g.integers(5, 9)), 3))
     dirs = (dirs / np.linalg.norm(dirs, axis=1, keepdims=True)).astype(np.float32)

@@ -13,6 +13,8 @@ import numpy as np
 from course_lib.checks.nerf_model import CONFIG_NAMES, FIXTURE, config_kwargs, copy_probe_weights
 from course_lib.instructor.cases import builds
 from course_lib.instructor.cases.nerf_variants import nerf_variants
+from course_lib.nerf.encoding import positional_encoding
+from course_lib.nerf.model import NeRF
 
 #: The paper's network: depth, width, skip, pos_freqs, dir_freqs, view_width (the constructor's defaults).
 DEFAULT_CONFIG = (8, 256, 4, 10, 4, 128)
@@ -40,9 +42,6 @@ def _inputs(g: np.random.Generator):
 @builds(FIXTURE)
 def _build() -> dict[str, np.ndarray]:
     import torch
-
-    from course_lib.nerf.encoding import positional_encoding
-    from course_lib.nerf.model import NeRF
 
     g = np.random.default_rng(7)
     out: dict[str, np.ndarray] = {"weight_seed": g.integers(1, 2**31, size=1)}

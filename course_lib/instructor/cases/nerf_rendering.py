@@ -13,6 +13,7 @@ import numpy as np
 from course_lib.checks.nerf_rendering import FIXTURE, KEYS
 from course_lib.instructor.cases import builds
 from course_lib.instructor.cases.nerf_variants import render_variants_of
+from course_lib.nerf.render import volume_render
 
 
 def _random_case(g: np.random.Generator):
@@ -52,8 +53,6 @@ def _slab_case(g: np.random.Generator):
 
 def _render(args, white: bool) -> dict[str, np.ndarray]:
     import torch
-
-    from course_lib.nerf.render import volume_render
 
     res = volume_render(*(torch.as_tensor(a) for a in args), white_background=white)
     return {k: res[k].numpy() for k in KEYS}

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from course_lib.nerf.encoding import positional_encoding
+
 __all__ = ["ENCODING_VARIANTS", "encoding_variant", "RENDER_VARIANTS", "render_variant", "render_variants_of",
            "nerf_variants"]
 
@@ -127,8 +129,6 @@ def nerf_variants(model, pts, dirs) -> dict[str, np.ndarray]:
     """
     import torch
     from torch.nn import functional as F
-
-    from course_lib.nerf.encoding import positional_encoding
 
     with torch.no_grad():
         x = positional_encoding(pts, model.pos_freqs)

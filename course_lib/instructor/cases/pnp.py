@@ -12,12 +12,17 @@ instructor's side, and stored with the cases: the shipped checks hold no impleme
 from __future__ import annotations
 
 import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from course_lib.checks.pnp import FIXTURE, RANSAC_SEED, THRESHOLD_PX
 from course_lib.conventions import fix_sign
+from course_lib.data.building import load_ground_truth
+from course_lib.data.synthetic import make_scene
 from course_lib.instructor.cases import builds
 from course_lib.paths import EMBEDDED_SFM
-from course_lib.steps import two_view_reconstruction
+from course_lib.sfm import pnp
+from course_lib.starting_points import two_view_reconstruction
 
 #: The threshold of the threshold case (pixels): its noise (1 px) puts many inliers between sqrt(3) and 3 px.
 THRESHOLD_CASE_PX = 3.0
@@ -25,25 +30,18 @@ THRESHOLD_CASE_PX = 3.0
 
 @builds("pnp_step", step=True)
 def _build_step() -> dict[str, np.ndarray]:
-    if not (EMBEDDED_SFM / "ground_truth.json").exists():
-        return {}  # the embedded scene is not generated yet (python -m course_lib make-data): nothing to store
     out = two_view_reconstruction(EMBEDDED_SFM)
-    if (EMBEDDED_SFM / "ground_truth.json").exists():
-        from course_lib.data.building import load_ground_truth
-
-        _, _, R_cw, t_cw = load_ground_truth(EMBEDDED_SFM)
-        i, j = (int(v) for v in out["pair"])
-        k = int(out["new_image"])
-        scale = np.linalg.norm(t_cw[j] - R_cw[j] @ R_cw[i].T @ t_cw[i])  # the true baseline of the pair
-        R = R_cw[k] @ R_cw[i].T
-        out["true_R_cw_new"] = R
-        out["true_t_cw_new"] = (t_cw[k] - R @ t_cw[i]) / scale
+    _, _, R_cw, t_cw = load_ground_truth(EMBEDDED_SFM)
+    i, j = (int(v) for v in out["pair"])
+    k = int(out["new_image"])
+    scale = np.linalg.norm(t_cw[j] - R_cw[j] @ R_cw[i].T @ t_cw[i])  # the true baseline of the pair
+    R = R_cw[k] @ R_cw[i].T
+    out["true_R_cw_new"] = R
+    out["true_t_cw_new"] = (t_cw[k] - R @ t_cw[i]) / scale
     return out
 
 
 def _view(seed, noise_px, outlier_fraction, n_points, image=2):
-    from course_lib.data.synthetic import make_scene
-
     sc = make_scene(np.random.default_rng(seed), n_cameras=4, n_points=n_points, noise_px=noise_px,
                     outlier_fraction=outlier_fraction)
     vis = sc.visible[:, image]
@@ -56,8 +54,6 @@ def _moved_embedded(seed: int, keep: float = 0.85):
     Returns:
         ``K (3, 3), X (N', 3), x (N', 2)``.
     """
-    from scipy.spatial.transform import Rotation
-
     st = two_view_reconstruction(EMBEDDED_SFM)
     K, X, x = st["K"], st["X_new"], st["x_new"]
     rng = np.random.default_rng(seed)
@@ -70,15 +66,11 @@ def _moved_embedded(seed: int, keep: float = 0.85):
 
 def _pixel_dlt(X, x):
     """A typical mistake: the DLT on pixel coordinates, then R = orthogonalized P[:, :3] (kept for its answer)."""
-    from course_lib.sfm import pnp
-
     return pnp.pnp_linear(X, x, np.eye(3))  # K = I: the DLT runs on the pixels themselves
 
 
 def _nine_entries_then_svd(X, x, K, R0, t0):
     """A classic near miss of pnp_nonlinear: least squares over the 9 entries of R and t, then R = U Vᵀ."""
-    from scipy.optimize import least_squares
-
     def res(p):
         xc = X @ p[:9].reshape(3, 3).T + p[9:]
         xh = xc @ K.T
@@ -92,9 +84,6 @@ def _nine_entries_then_svd(X, x, K, R0, t0):
 
 def _no_depth_division(X, x, K, R0, t0):
     """A classic mistake of pnp_nonlinear: the residual (K (R X + t))[:2] - x, never divided by the depth."""
-    from scipy.optimize import least_squares
-    from scipy.spatial.transform import Rotation
-
     def res(p):
         return ((X @ Rotation.from_rotvec(p[:3]).as_matrix().T + p[3:]) @ K.T)[:, :2].ravel() - x.ravel()
 
@@ -103,8 +92,6 @@ def _no_depth_division(X, x, K, R0, t0):
 
 
 def _nonlinear_case(out, key, K, X, x, R0, t0) -> None:
-    from course_lib.sfm import pnp
-
     R1, t1 = pnp.pnp_nonlinear(X, x, K, R0, t0)
     Rn, tn = _nine_entries_then_svd(X, x, K, R0, t0)
     Rd, td = _no_depth_division(X, x, K, R0, t0)
@@ -122,8 +109,6 @@ def _direction(t: np.ndarray) -> np.ndarray:
 
 def _perturbed(R, t, seed, deg=3.0, rel=0.05):
     """A start for pnp_nonlinear away from the optimum: R rotated by ``deg`` degrees, t moved by ``rel`` of |t|."""
-    from scipy.spatial.transform import Rotation
-
     rng = np.random.default_rng(seed)
     axis = rng.normal(size=3)
     dR = Rotation.from_rotvec(np.radians(deg) * axis / np.linalg.norm(axis)).as_matrix()
@@ -151,8 +136,6 @@ def _with_behind(X, x, outl, R, t, seed: int, n: int = 8):
 
 
 def _ransac_cases(out) -> None:
-    from course_lib.sfm import pnp
-
     # outliers: the pose, the inliers, the refit (its RMS over the true inliers)
     K, X, x, outl, R, t = _view(43, 0.3, 0.2, 400)
     X, x, outl, behind = _with_behind(X, x, outl, R, t, 143)
@@ -174,8 +157,6 @@ def _ransac_cases(out) -> None:
 
 @builds(FIXTURE)
 def _build() -> dict[str, np.ndarray]:
-    from course_lib.sfm import pnp
-
     out: dict[str, np.ndarray] = {}
     # pnp_linear: noiseless, noisy
     K, X, x, _, R, t = _view(41, 0.0, 0.0, 80)

@@ -9,20 +9,25 @@ from __future__ import annotations
 import zlib
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from course_lib.conventions import project
 from course_lib.checks.triangulation import FIXTURE
+from course_lib.conventions import project, projection_matrix, skew
+from course_lib.data.synthetic import WPI_LIKE_K, look_at, make_scene
 from course_lib.instructor.cases import builds
+from course_lib.instructor.cases.fundamental import random_subset
+from course_lib.instructor.mistakes.triangulation import cheirality_counts, linear_variants, nonlinear_variants
 from course_lib.paths import EMBEDDED_SFM
-from course_lib.steps import STEP_PAIR, relative_truth, two_view_input
+from course_lib.sfm import essential
+from course_lib.sfm import triangulation as tri
+from course_lib.sfm.fundamental import eight_point
+from course_lib.starting_points import STEP_PAIR, relative_truth, two_view_input
 
 #: The most matches stored per embedded case (keeps the fixture small).
 MAX_EMBEDDED = 300
 
 @builds("triangulation_step", step=True)
 def _build_step() -> dict[str, np.ndarray]:
-    if not (EMBEDDED_SFM / "ground_truth.json").exists():
-        return {}  # the embedded scene is not generated yet (python -m course_lib make-data): nothing to store
     out = two_view_input(EMBEDDED_SFM)
     truth = relative_truth(EMBEDDED_SFM, STEP_PAIR)
     if truth is not None:
@@ -31,8 +36,6 @@ def _build_step() -> dict[str, np.ndarray]:
 
 
 def _synthetic_two_view(seed: int, n_points: int, noise_px: float):
-    from course_lib.data.synthetic import make_scene
-
     sc = make_scene(np.random.default_rng(seed), n_cameras=3, n_points=n_points, noise_px=noise_px,
                     outlier_fraction=0.0, dropout=0.0)
     return sc
@@ -46,10 +49,6 @@ def _relative(sc, i, j):
 
 @builds(FIXTURE)
 def _build() -> dict[str, np.ndarray]:
-    from course_lib.conventions import projection_matrix, skew
-    from course_lib.sfm import essential
-    from course_lib.sfm import triangulation as tri
-
     out: dict[str, np.ndarray] = {}
     K = None
 
@@ -64,8 +63,6 @@ def _build() -> dict[str, np.ndarray]:
         _store_linear_mistakes(out, f"lin_{name}")
     # a vertical baseline (camera 2 above camera 1, neither at the origin): the depth comes from v, so a system
     # that drops a v row, or mixes up u and v, is far off here even when a horizontal baseline hides it
-    from course_lib.data.synthetic import WPI_LIKE_K, look_at
-
     g = np.random.default_rng(13)
     target = g.normal(0.0, 1.0, 3) + np.array([0.0, 0.0, 10.0])
     Xv = target + g.uniform([-3.0, -2.0, -1.5], [3.0, 2.0, 1.5], size=(80, 3))
@@ -91,8 +88,6 @@ def _build() -> dict[str, np.ndarray]:
 
     # -- a wide-baseline pair (135 degrees around a small object, close by): here forgetting "- C" or
     #    using the third column of R changes the answer, unlike in the narrow pairs above
-    from course_lib.data.synthetic import look_at
-
     rng = np.random.default_rng(27)
     Xw = rng.uniform(-1.0, 1.0, size=(60, 3))
     a1, a2 = rng.uniform(-0.05, 0.05), rng.uniform(2.3, 2.4)  # camera 2 about 135 degrees around the object
@@ -132,13 +127,6 @@ def _build() -> dict[str, np.ndarray]:
 
 
 def _embedded_cases(out: dict, tri) -> None:
-    from scipy.spatial.transform import Rotation
-
-    from course_lib.conventions import projection_matrix
-    from course_lib.instructor.cases.fundamental import random_subset
-    from course_lib.sfm import essential
-    from course_lib.sfm.fundamental import eight_point
-
     st = two_view_input(EMBEDDED_SFM)
     keep = random_subset(len(st["x1"]), 33)[:MAX_EMBEDDED]
     Ke, x1, x2 = st["K"], st["x1"][keep], st["x2"][keep]
@@ -176,8 +164,6 @@ def _with_behind(x1: np.ndarray, x2: np.ndarray, K, R, t, seed: int, n: int = 2)
 
 
 def _store_linear_mistakes(out: dict, key: str) -> None:
-    from course_lib.instructor.mistakes.triangulation import linear_variants
-
     for name, X in linear_variants(out[f"{key}_P1"], out[f"{key}_P2"], out[f"{key}_x1"], out[f"{key}_x2"]).items():
         out[f"{key}_mis_{name}"] = X
 
@@ -188,11 +174,6 @@ def _moving_pair(K, forward: bool, seed: int):
     Returns ``(R (4, 3, 3), C (4, 3), x1, x2, R_true, t_true)``; camera 1 is ``[I | 0]``, the
     50 to 70 points lie 5 to 9 units in front of it, 0.3 px noise.
     """
-    from scipy.spatial.transform import Rotation
-
-    from course_lib.conventions import skew
-    from course_lib.sfm import essential
-
     rng = np.random.default_rng(seed)
     n = int(rng.integers(50, 71))
     X = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.5, n), rng.uniform(5, 9, n)])
@@ -207,8 +188,6 @@ def _moving_pair(K, forward: bool, seed: int):
 
 def make_nl_scene():
     """The synthetic scene of the non-linear triangulation case: 3 views, 150 points, 1 px noise."""
-    from course_lib.data.synthetic import make_scene
-
     sc = make_scene(np.random.default_rng(31), n_cameras=3, n_points=150, noise_px=1.0, outlier_fraction=0.0, dropout=0.0)
     both = sc.visible[:, 0] & sc.visible[:, 1]  # X0 comes from views 0 and 1
     sc.X, sc.uv, sc.uv_true, sc.outlier = sc.X[both], sc.uv[both], sc.uv_true[both], sc.outlier[both]
@@ -222,8 +201,6 @@ def _store_pose_case(out, key, Rc, Cc, K, x1, x2, tri) -> None:
     The reference orders the candidates the same way on every machine, and the right one is often
     first; choose_pose must pick it by cheirality, never by position, so the cases put it elsewhere.
     """
-    from course_lib.instructor.mistakes.triangulation import cheirality_counts
-
     right, target = tri.choose_pose(Rc, Cc, K, x1, x2).index, 1 + zlib.crc32(key.encode()) % 3
     order = np.arange(4)
     order[[right, target]] = order[[target, right]]
@@ -239,8 +216,6 @@ def _store_pose_case(out, key, Rc, Cc, K, x1, x2, tri) -> None:
 
 
 def _store_nl_case(out, key, K, R_cws, t_cws, uv, X0, tri) -> None:
-    from course_lib.instructor.mistakes.triangulation import nonlinear_variants
-
     out.update({f"{key}_K": K, f"{key}_R": R_cws, f"{key}_t": t_cws, f"{key}_uv": uv, f"{key}_X0": X0,
                 f"{key}_X": tri.triangulate_nonlinear(K, R_cws, t_cws, uv, X0)})
     for name, X in nonlinear_variants(K, R_cws, t_cws, uv, X0).items():

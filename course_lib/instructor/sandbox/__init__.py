@@ -7,6 +7,7 @@
 * :mod:`~course_lib.instructor.sandbox.server`: the program that runs inside the sandbox (standard
   library only): it serves the student's function to the grader, or launches nbval.
 
-The grader's side of the connection is :mod:`course_lib.instructor.student_process`; the limits and
-budgets are in :mod:`course_lib.instructor.settings`.
+The grader's side of the connection is :mod:`course_lib.instructor.student_process` (the process) and
+:mod:`course_lib.instructor.remote` (the proxies a check calls); the limits and budgets are in
+:mod:`course_lib.instructor.settings`.
 """

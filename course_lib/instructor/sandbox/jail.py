@@ -30,7 +30,8 @@ reports what it observes (:func:`server.facts`: its namespaces, capabilities, ``
 writable mounts, the hidden folders it can see, its network interfaces) and waits for the
 grader's ``go``; ``bwrap --info-fd`` tells the grader the sandbox's process on the host, whose uid
 and namespaces the grader reads from ``/proc``. Anything missing ends the grading with one line
-(:class:`IsolationError`) that says what is missing and how to enable it. ``--insecure`` (a trusted
+(:class:`IsolationError`) that says what is missing and how to enable it. At its end a sandbox is
+killed as a whole (:func:`kill_tree`: the launcher, its process group and the PID namespace). ``--insecure`` (a trusted
 local run) skips the sandbox, and the report says so.
 """
 
@@ -41,6 +42,7 @@ import os
 import platform
 import select
 import shutil
+import signal
 import stat
 import struct
 import sys
@@ -51,7 +53,7 @@ from course_lib.instructor.settings import STUDENT_UID
 from course_lib.validate import KitInputError
 
 __all__ = ["IsolationError", "bwrap_path", "command", "install_server", "verify", "read_info", "seccomp_filter",
-           "preexec", "sandboxed", "refusal", "STUDENT_UID", "HOW_TO_ENABLE", "INSTALL", "REPORT", "WORK", "SEED"]
+           "preexec", "sandboxed", "refusal", "STUDENT_UID", "HOW_TO_ENABLE", "INSTALL", "REPORT", "WORK", "SEED", "kill_tree"]
 
 #: The working folder of a student's process inside the sandbox, and where the grader's copy of the submission is.
 WORK = "/tmp/work"
@@ -416,3 +418,36 @@ def seccomp_filter() -> bytes | None:
         prog.append((0x15, n_tests - 1 - k, 0, nr))  # BPF_JMP | BPF_JEQ | BPF_K -> deny
     prog += [(0x06, 0, 0, _RET_ALLOW), (0x06, 0, 0, _RET_EPERM)]
     return b"".join(struct.pack("<HBBI", *ins) for ins in prog)
+
+
+def kill_tree(pid: int) -> None:
+    """SIGKILL a sandbox launcher (bwrap), its process group and its direct children.
+
+    The launcher's child is process 1 of the sandbox's PID namespace: when it dies, Linux kills
+    every process in that namespace, including those that left the process group (``setsid``).
+    It is killed first, and the launcher (which reaps it and then exits) is given a moment before it
+    is killed too, so that no zombie is left to the host's init.
+    """
+    try:
+        kids = [int(k) for t in os.listdir(f"/proc/{pid}/task")
+                for k in open(f"/proc/{pid}/task/{t}/children").read().split()]
+    except OSError:
+        kids = []
+    for k in kids:
+        try:
+            os.kill(k, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+    for _ in range(50 if kids else 0):  # the launcher reaps its child and exits on its own
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                if f.read().rsplit(")", 1)[1].split()[0] == "Z":
+                    break
+        except OSError:
+            break
+        time.sleep(0.01)
+    for kill, target in ((os.killpg, pid), (os.kill, pid)):
+        try:
+            kill(target, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from course_lib.checks import bundle_adjustment as gba
 from course_lib.sfm import bundle_adjustment as rba
 from course_lib.sfm import visibility as rvi
-from course_lib.steps import observation_arrays
+from course_lib.starting_points import observation_arrays
 from tests.checks.catalogue import Honest, Mistake
 
 # ============================================================================ buggy versions

@@ -5,7 +5,7 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
-from course_lib.steps import observation_arrays  # imported by the notebook's first cells
+from course_lib.starting_points import observation_arrays  # imported by the notebook's first cells
 
 
 # --- given by the notebook (section 2), not exercises ------------------------------------------

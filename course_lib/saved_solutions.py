@@ -37,6 +37,7 @@ import types
 from pathlib import Path
 from typing import Any, Callable
 
+from course_lib.exercises import EXERCISES
 from course_lib.paths import REPO_ROOT
 
 __all__ = ["stand_in", "find_student_solution", "solutions_dir", "save_solution", "solution_source",
@@ -69,14 +70,6 @@ def solutions_dir() -> Path | None:
 
 def _usable(obj: Any) -> bool:
     return obj is not None and callable(obj) and not getattr(obj, "__kit_stand_in__", False)
-
-
-def _notebook_for(name: str, notebook: str | None) -> str:
-    if notebook:
-        return notebook
-    from course_lib.exercises import EXERCISES
-
-    return EXERCISES[name].notebook if name in EXERCISES else "?"
 
 
 def find_student_solution(name: str) -> Any:
@@ -310,7 +303,6 @@ def save_solution(name: str, obj: Any, namespace: dict, folder: Path | None = No
     folder = solutions_dir() if folder is None else Path(folder)
     if folder is None or is_stub(obj):
         return None
-    from course_lib.exercises import EXERCISES
 
     nb = EXERCISES[name].notebook if name in EXERCISES else "a notebook"
     src, problems = solution_source(name, obj, namespace)
@@ -376,8 +368,6 @@ class _Saver:
         self.seen: dict[str, int] = {}
 
     def __call__(self, result=None) -> None:
-        from course_lib.exercises import EXERCISES
-
         ns = self.shell.user_ns
         for name in EXERCISES:
             obj = ns.get(name)

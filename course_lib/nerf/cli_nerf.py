@@ -48,7 +48,13 @@ import typing
 from dataclasses import fields
 from pathlib import Path
 
-from course_lib.nerf.device import DEVICE_CHOICES
+from course_lib.data.blender import load_blender
+from course_lib.nerf.checkpoint import CHECKPOINT, load_checkpoint
+from course_lib.nerf.device import DEVICE_CHOICES, device_name, pick_device
+from course_lib.nerf.inference import circular_path, evaluate, render_path, save_gif, save_png
+from course_lib.nerf.presets import PRESETS, TrainConfig, field_docs, preset, resolve
+from course_lib.nerf.run import psnr_label
+from course_lib.nerf.train import TrainingInterrupted, train
 from course_lib.paths import EMBEDDED_NERF
 from course_lib.validate import KitInputError, output_dir
 
@@ -105,8 +111,6 @@ def add_config_options(parser: argparse.ArgumentParser) -> None:
 
     Every option defaults to "not given" (the preset's value); :func:`config_from_args` applies the given ones.
     """
-    from course_lib.nerf.presets import PRESETS, TrainConfig, field_docs
-
     docs = field_docs(TrainConfig)
     hints = typing.get_type_hints(TrainConfig, include_extras=True)
     groups: dict[str, argparse._ArgumentGroup] = {}
@@ -129,15 +133,11 @@ def add_config_options(parser: argparse.ArgumentParser) -> None:
 
 def config_from_args(args):
     """The preset ``args.preset`` with the options that were given on the command line."""
-    from course_lib.nerf.presets import TrainConfig, preset
-
     names = {f.name for f in fields(TrainConfig)} - NOT_OPTIONS
     return preset(args.preset, **{k: v for k, v in vars(args).items() if k in names})
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from course_lib.nerf.presets import PRESETS
-
     sub = parser.add_subparsers(dest="nerf_command", metavar="{train,eval,render}")
     t = sub.add_parser("train", help="train on a Blender-format scene (default: the embedded scene)",
                        description="Train a NeRF. Every TrainConfig field is an option; its default is the preset's.")
@@ -179,8 +179,6 @@ def _scene_folder(folder, split: str = "train") -> Path:
 
 
 def _load_scene(folder, downscale: int, white: bool):
-    from course_lib.data.blender import load_blender
-
     folder = _scene_folder(folder)
     train_data = load_blender(folder, "train", downscale=downscale, white_background=white, dtype="uint8")
     test_data = None
@@ -192,18 +190,10 @@ def _load_scene(folder, downscale: int, white: bool):
 
 
 def _where(device) -> str:
-    from course_lib.nerf.device import device_name
-
     return device.type if device.type == "cpu" else device_name(device)  # the CPU's threads are set by train()
 
 
 def _train(args) -> int:
-    from course_lib.nerf.device import pick_device
-    from course_lib.nerf.checkpoint import CHECKPOINT
-    from course_lib.nerf.inference import circular_path, render_path, save_gif
-    from course_lib.nerf.presets import resolve
-    from course_lib.nerf.train import TrainingInterrupted, train
-
     started_at = time.perf_counter()  # --minutes covers the loading too
     device = pick_device(args.device)
     cfg = config_from_args(args)
@@ -249,12 +239,6 @@ def _train(args) -> int:
 
 
 def _eval(args) -> int:
-    from course_lib.data.blender import load_blender
-    from course_lib.nerf.checkpoint import load_checkpoint
-    from course_lib.nerf.device import device_name, pick_device
-    from course_lib.nerf.inference import evaluate, save_png
-    from course_lib.nerf.run import psnr_label
-
     device = pick_device(args.device)
     ck = load_checkpoint(args.checkpoint, device)
     cfg, cam = ck["cfg"], ck.get("camera")
@@ -287,10 +271,6 @@ def _eval(args) -> int:
 
 
 def _render(args) -> int:
-    from course_lib.nerf.device import device_name, pick_device
-    from course_lib.nerf.checkpoint import load_checkpoint
-    from course_lib.nerf.inference import circular_path, render_path, save_gif, save_png
-
     device = pick_device(args.device)
     ck = load_checkpoint(args.checkpoint, device)
     out = output_dir(args.out)

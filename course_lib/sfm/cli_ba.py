@@ -18,7 +18,9 @@ import json
 import time
 from pathlib import Path
 
+from course_lib.data.bal import load_bal
 from course_lib.paths import course_data
+from course_lib.sfm import lm
 from course_lib.validate import KitInputError, output_dir
 
 
@@ -39,9 +41,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from course_lib.data.bal import load_bal
-    from course_lib.sfm import lm
-
     path = args.problem
     if path is None:
         path = course_data("bal-ladybug")

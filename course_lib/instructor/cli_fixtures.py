@@ -3,7 +3,7 @@
 The fixtures in ``data/fixtures/<name>.npz`` are made from the reference solutions by the case
 builders of :mod:`course_lib.instructor.cases`; the test suite rebuilds them and compares, to
 prove that they are current. They ship with the student kit: the check cells and the step inputs
-(:mod:`course_lib.steps`) read them, so the student kit runs and checks without the reference.
+(:mod:`course_lib.starting_points`) read them, so the student kit runs and checks without the reference.
 """
 
 from __future__ import annotations

@@ -34,6 +34,10 @@ from pathlib import Path
 
 import numpy as np
 
+from course_lib.data.p3 import read_p3
+from course_lib.paths import EMBEDDED_SFM
+from course_lib.sfm.mapper_options import parse_assignments
+from course_lib.sfm.pipeline import run_sfm
 from course_lib.validate import KitInputError, output_dir
 
 #: Default output folder, relative to the working directory (``outputs/`` is git-ignored).
@@ -76,6 +80,7 @@ def write_scene_html(rec, path: Path, title: str) -> Path:
     The other models (``rec.others``) are drawn beside the largest one, each in its own legend
     group, scaled to its size and shifted along x: their world frames are unrelated.
     """
+    # deferred: plotly, for --html only
     from course_lib.viz.scene3d import add_cameras, add_points, scene_figure, write_html
 
     fig = scene_figure(cameras=rec.cameras(), points=rec.points(), title=title, name="model 1")
@@ -100,11 +105,6 @@ def write_scene_html(rec, path: Path, title: str) -> Path:
 
 
 def run(args) -> int:
-    from course_lib.data.p3 import read_p3
-    from course_lib.paths import EMBEDDED_SFM
-    from course_lib.sfm.mapper_options import parse_assignments
-    from course_lib.sfm.pipeline import run_sfm
-
     t0 = time.perf_counter()
     cpu0 = time.process_time()
     data_dir = Path(args.data_dir) if args.data_dir else EMBEDDED_SFM

@@ -14,6 +14,7 @@ from __future__ import annotations
 import shutil
 import time
 
+from course_lib.data import building
 from course_lib.paths import DATA_DIR, EMBEDDED_NERF, EMBEDDED_SFM
 from course_lib.validate import output_dir
 
@@ -25,8 +26,6 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from course_lib.data import building
-
     seed = building.DEFAULT_SEED if args.seed is None else int(args.seed)
     out = output_dir(args.out)
     todo = ["sfm", "nerf"] if args.which == "all" else [args.which]

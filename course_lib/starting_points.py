@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from course_lib.conventions import observed_entries
+from course_lib.data.p3 import read_p3
 from course_lib.fixtures import load_fixture
 from course_lib.paths import EMBEDDED_SFM
 
@@ -96,7 +98,6 @@ def two_view_step(data_folder=None, pair: tuple[int, int] = STEP_PAIR) -> TwoVie
             K=f["building_K"], pair=pair, source="stored reference result (fixture 'fundamental_step')",
         )
     try:
-        from course_lib.data.p3 import read_p3
         from course_lib.sfm.fundamental import ransac_fundamental
     except ImportError as exc:  # a student release without the reference solutions
         raise FileNotFoundError(
@@ -126,7 +127,6 @@ def two_view_input(folder, pair: tuple[int, int] = STEP_PAIR, seed: int = STEP_S
         ``C_candidates (4, 3)``, ``n_matches`` (before RANSAC).
     """
     try:
-        from course_lib.data.p3 import read_p3
         from course_lib.sfm import essential, fundamental
     except ModuleNotFoundError as exc:  # the student release has no reference solutions
         raise RuntimeError(
@@ -161,7 +161,7 @@ def relative_truth(folder, pair) -> tuple[np.ndarray, np.ndarray] | None:
     gt = Path(folder) / "ground_truth.json"
     if not gt.exists():
         return None
-    from course_lib.data.building import load_ground_truth
+    from course_lib.data.building import load_ground_truth  # deferred: cv2 + the renderer, not at every check import
 
     _, _, R_cw, t_cw = load_ground_truth(folder)
     i, j = pair
@@ -231,7 +231,6 @@ def two_view_reconstruction(folder, new_image: int = NEW_IMAGE) -> dict[str, np.
         ``x_new (K, 2)``, ``ids_new (K,)``.
     """
     try:
-        from course_lib.data.p3 import read_p3
         from course_lib.sfm import triangulation as tri
     except ModuleNotFoundError as exc:
         raise RuntimeError(
@@ -286,7 +285,6 @@ def reconstruction_before_ba(folder, seed: int = STEP_SEED) -> dict[str, np.ndar
         ``inlier (T, M)`` bool (the observations in use), ``initial_pair (2,)``.
     """
     try:
-        from course_lib.data.p3 import read_p3
         from course_lib.sfm.pipeline import run_sfm
     except ModuleNotFoundError as exc:
         raise RuntimeError(
@@ -329,8 +327,8 @@ def observation_arrays(uv: np.ndarray):
     """``camera_idx (K,)``, ``point_idx (K,)``, ``uv_obs (K, 2)`` of the finite entries of ``uv (N, M, 2)``.
 
     One entry per observation (V_ij = 1), point by point: the layout of the residuals of bundle
-    adjustment. Introduced in notebooks/05_bundle_adjustment.ipynb.
+    adjustment (:func:`course_lib.conventions.observed_entries`, in the order notebook 05 unpacks).
+    Introduced in notebooks/05_bundle_adjustment.ipynb.
     """
-    uv = np.asarray(uv, float)
-    j, i = np.nonzero(np.isfinite(uv).all(axis=2))
-    return i.astype(np.int64), j.astype(np.int64), uv[j, i]
+    point_idx, camera_idx, uv_obs = observed_entries(uv)
+    return camera_idx, point_idx, uv_obs
