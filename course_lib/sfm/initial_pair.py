@@ -39,7 +39,8 @@ try:  # the instructor's kit: notebook 01's Sampson distance for many F at once
 except ImportError:  # the student kit: your sampson_distance of notebook 01
     sampson_distance_batch = None
 
-__all__ = ["H_INLIER_RATIO", "InitialPair", "pair_degeneracy", "calibrated_pose", "refine_pose", "fundamental_from_pose"]
+__all__ = ["H_INLIER_RATIO", "InitialPair", "pair_degeneracy", "calibrated_pose", "refine_pose", "fundamental_from_pose",
+           "fundamental_from_essential", "sampson_pixels"]
 
 #: A pair whose inliers a homography explains this well is degenerate for a two-view start.
 H_INLIER_RATIO = 0.8
@@ -106,8 +107,13 @@ def _skew(t: np.ndarray) -> np.ndarray:
 
 def fundamental_from_pose(K: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray) -> np.ndarray:
     """``F = K⁻ᵀ [t]ₓ R K⁻¹`` of camera 2 at ``(R_cw, t_cw)`` against camera 1 at the origin (unit norm)."""
+    return fundamental_from_essential(K, _skew(t_cw) @ R_cw)
+
+
+def fundamental_from_essential(K: np.ndarray, E: np.ndarray) -> np.ndarray:
+    """``F = K⁻ᵀ E K⁻¹`` (unit norm) of two cameras with the same ``K (3, 3)``; ``E (3, 3)``."""
     Ki = np.linalg.inv(K)
-    F = Ki.T @ _skew(t_cw) @ R_cw @ Ki
+    F = Ki.T @ E @ Ki
     return F / np.linalg.norm(F)
 
 
@@ -134,13 +140,13 @@ def refine_pose(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, R_cw: np.ndarray,
         return R, t / np.linalg.norm(t)
 
     def residuals(p):
-        return _sampson(fundamental_from_pose(K, *pose(p)), x1, x2)
+        return sampson_pixels(fundamental_from_pose(K, *pose(p)), x1, x2)
 
     sol = least_squares(residuals, np.zeros(5), method="lm", xtol=1e-10, ftol=1e-10, max_nfev=200)
     return pose(sol.x)
 
 
-def _sampson(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+def sampson_pixels(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """``(N,)`` Sampson distances (pixels) of the matches to ``F``: notebook 01's (the exercise in the student kit)."""
     if sampson_distance_batch is not None:
         return sampson_distance_batch(F[None], x1, x2)[0]
@@ -173,7 +179,7 @@ def calibrated_pose(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px:
     inl = mask.ravel().astype(bool)
     choice = call("choose_pose", *call("pose_candidates", np.array(E[:3])), K, x1[inl], x2[inl])
     R, t = refine_pose(x1[inl], x2[inl], K, choice.R_cw, choice.t_cw.reshape(3))
-    inl = _sampson(fundamental_from_pose(K, R, t), x1, x2) < threshold_px
+    inl = sampson_pixels(fundamental_from_pose(K, R, t), x1, x2) < threshold_px
     # the refinement cannot tell t from -t (the epipolar geometry is the same): the cheirality test decides again
     choice = call("choose_pose", *call("pose_candidates", _skew(t) @ R), K, x1[inl], x2[inl])
     R, t = choice.R_cw.reshape(3, 3), choice.t_cw.reshape(3)

@@ -30,6 +30,10 @@ class MapperOptions:
             (COLMAP two-view ``max_error`` 4 px.)
         min_pair_matches: a pair needs this many inliers to give tracks. (COLMAP
             ``min_num_matches`` 15, ``min_num_inliers`` 15.)
+        min_e_f_inlier_ratio: on photos verified by ``match``, a pair whose five-point E explains
+            less than this share of F's inliers gives no tracks (look-alike texture; 0: no check;
+            :func:`course_lib.sfm.tracks.check_calibrated`). (COLMAP ``min_E_F_inlier_ratio`` 0.95,
+            which labels such pairs rather than dropping them.)
         pnp_threshold_px: PnP RANSAC threshold on the reprojection error (px). (COLMAP
             ``abs_pose_max_error`` 12 px.)
         min_pnp_inliers: an image registers with at least this many PnP inliers. (COLMAP
@@ -93,6 +97,7 @@ class MapperOptions:
 
     f_threshold_px: float = 2.0
     min_pair_matches: int = 16
+    min_e_f_inlier_ratio: float = 0.9
     pnp_threshold_px: float = 8.0
     min_pnp_inliers: int = 20
     max_reproj_px: float = 4.0
@@ -141,7 +146,7 @@ class MapperOptions:
 
     def summary(self) -> dict:
         """The options the report records."""
-        keep = ("f_threshold_px", "pnp_threshold_px", "max_reproj_px", "final_max_reproj_px", "min_angle_deg",
+        keep = ("f_threshold_px", "min_e_f_inlier_ratio", "pnp_threshold_px", "max_reproj_px", "final_max_reproj_px", "min_angle_deg",
                 "bundle_adjustment", "ba_loss", "ba_f_scale", "ba_images_ratio", "ba_local_num_images", "final_ba_loss",
                 "final_ba_f_scale", "init_min_points", "min_model_size", "multiple_models", "refine_intrinsics")
         return {k: getattr(self, k) for k in keep}

@@ -13,6 +13,8 @@ every setting in one :class:`~course_lib.sfm.mapper.MapperOptions`:
    trusted pairs first; a link that would put two features of one image into one track is
    refused, so the track is split there instead of being dropped. (The P3 reader's tracks, joined
    from the raw matches, are not used: a few wrong matches chain unrelated tracks.)
+   Photos verified by ``match`` are checked by the five-point E as well: a pair whose E explains less
+   than ``min_e_f_inlier_ratio`` of F's inliers (look-alike texture) gives no tracks.
 2. **Initial pair** (notebooks 02, 03; ``find_initial_pair``, ``initialize``): the image with the
    most verified correspondences to other images first, then its partner with the most points
    triangulated at ``init_min_angle_deg`` or more; pure-rotation and planar pairs are named and
@@ -50,7 +52,7 @@ import numpy as np
 
 from course_lib.sfm.mapper import IncrementalMapper, MapperOptions
 from course_lib.sfm.mapper_options import relaxed
-from course_lib.sfm.tracks import verified_tracks, verify_pairs
+from course_lib.sfm.tracks import check_calibrated, verified_tracks, verify_pairs
 from course_lib.sfm.reconstruction import Reconstruction, image_size_of, reprojection_error_matrix, triangulation_angles_deg
 from course_lib.threads import single_threaded_blas
 from course_lib.validate import KitInputError, intrinsics
@@ -91,7 +93,8 @@ def run_sfm(data, rng: np.random.Generator, options: MapperOptions | None = None
     K = _check_inputs(data, rng)
     report: dict = {"n_images": len(data.image_names), "options": opts.summary()}
     with single_threaded_blas():
-        pairs, tracks = verified_pairs_and_tracks(data, rng, opts.f_threshold_px, opts.min_pair_matches, report)
+        pairs, tracks = verified_pairs_and_tracks(data, rng, opts.f_threshold_px, opts.min_pair_matches, report,
+                                                  opts.min_e_f_inlier_ratio)
         report["n_tracks"] = len(tracks.uv)
         t_ransac = time.perf_counter() - t_start
         tr = report["tracks"]
@@ -126,15 +129,24 @@ def _check_inputs(data, rng) -> np.ndarray:
     return K
 
 
-def verified_pairs_and_tracks(data, rng, threshold_px: float, min_matches: int, report: dict):
+def verified_pairs_and_tracks(data, rng, threshold_px: float, min_matches: int, report: dict,
+                              min_e_f_inlier_ratio: float = 0.0):
     """Stage 1: every pair verified (``match``'s verification where the folder carries it, else RANSAC on F), then
     tracks from the inlier matches only (:func:`course_lib.sfm.tracks.verify_pairs`).
+
+    Where the folder carries ``match``'s verification (photos) and ``min_e_f_inlier_ratio > 0``,
+    each verified pair is checked with the calibrated geometry (:func:`course_lib.sfm.tracks.check_calibrated`):
+    a pair whose five-point E explains less than that share of F's inliers is dropped (its row says
+    why), the others keep the matches E explains.
 
     Returns:
         ``pairs {(i, j): (F (3, 3), inliers (N,) bool)}`` of the pairs with at least ``min_matches``
         inliers, and the :class:`~course_lib.sfm.tracks.Tracks`; ``report`` gets ``pairs`` and ``tracks``.
     """
     ver, how = verify_pairs(data, rng, threshold_px)
+    if min_e_f_inlier_ratio > 0 and getattr(data, "two_view", None) is not None:
+        ver = check_calibrated(data, ver, rng, threshold_px, min_e_f_inlier_ratio)
+        how += f", checked by the five-point E (at least {min_e_f_inlier_ratio:g} of F's inliers)"
     report["verification"] = how
     pairs, rows = {}, []
     for (i, j), v in ver.items():

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from course_lib.data.synthetic import make_scene, write_scene_p3
 from course_lib.alignment import align_cameras, pose_errors
@@ -146,3 +147,110 @@ def test_align_cameras_recovers_a_similarity_of_a_collinear_path():
     np.testing.assert_allclose(s_, 1 / s, rtol=1e-9)
     pe = pose_errors(R2, t2, R_cw, t_cw)
     assert pe.rotation_deg.max() < 1e-5 and pe.center.max() < 1e-9
+
+
+# --- the calibrated check: pairs of look-alike texture that only F fits ---------------------------------------
+
+
+def _fundamental(K1, K2, R, t):
+    """``F = K2⁻ᵀ [t]ₓ R K1⁻¹`` (unit norm)."""
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    F = np.linalg.inv(K2).T @ tx @ R @ np.linalg.inv(K1)
+    return F / np.linalg.norm(F)
+
+
+def _look_alike_matches(x1, x2, F, rng, px=1.0):
+    """Wrong matches between two images' real features ``x1 (N1, 2)``, ``x2 (N2, 2)``: each feature of image 1 paired
+    with an unused feature of image 2 within ``px`` of its epipolar line of ``F`` (as repeated texture slides along
+    the lines of the F that RANSAC finds): ``(rows of x1, rows of x2)``."""
+    from course_lib.data.two_view import epipolar_distances
+
+    used, a, b = set(), [], []
+    for k in rng.permutation(len(x1)):
+        d = epipolar_distances(F, np.repeat(x1[k:k + 1], len(x2), axis=0), x2)
+        for m in np.flatnonzero(d < px):
+            if m not in used:
+                used.add(m)
+                a.append(k)
+                b.append(m)
+                break
+    return np.array(a, int), np.array(b, int)
+
+
+def look_alike_ring(tmp_path, seed=0, n_cameras=12):
+    """A ring of views around an object whose opposite sides look alike: the P3 folder as ``match`` writes it.
+
+    The right pairs (neighbours on the ring) carry their true F. Every pair of views more than 120
+    degrees apart -- which share no point -- gets the wrong matches of repeated texture: real
+    features of both photos that a generic F (not the geometry of two calibrated cameras) pairs
+    along its epipolar lines, 30 or more of them, carried as verified. Returns ``(scene, P3Data,
+    wrong pairs)``.
+    """
+    from course_lib.data.p3 import PairMatches
+    from course_lib.data.scenes import cylinder_points, observe, ring_cameras
+    from course_lib.data.synthetic import WPI_LIKE_K
+
+    rng = np.random.default_rng(seed)
+    R, t = ring_cameras(rng, n_cameras)
+    X, normal = cylinder_points(rng, 900)
+    sc = observe(rng, WPI_LIKE_K, R, t, X, normal, noise_px=0.5, dropout=0.1)
+    data, keep = write_scene_p3(sc, tmp_path)
+    K = sc.K
+    data.two_view = {}
+    for (i, j) in data.matches:
+        Rij = R[j] @ R[i].T
+        data.two_view[(i, j)] = _fundamental(K, K, Rij, t[j] - Rij @ t[i])
+    K_other = K.copy()
+    K_other[0, 0] *= 1.2
+    K_other[1, 1] *= 0.5
+    K_other[:2, 2] += (60.0, -40.0)
+    wrong = []
+    for i in range(n_cameras):
+        for j in range(i + 1, n_cameras):
+            gap = min(j - i, n_cameras - (j - i)) * 360.0 / n_cameras
+            if gap <= 120.0:
+                continue
+            x1 = sc.uv[keep][:, i][np.isfinite(sc.uv[keep][:, i, 0])]
+            x2 = sc.uv[keep][:, j][np.isfinite(sc.uv[keep][:, j, 0])]
+            # the F of another camera (other focal lengths in u and v, another centre): no E of the camera's K fits it
+            Rw = Rotation.from_rotvec([0.0, np.radians(rng.uniform(-20, 20)), 0.0]).as_matrix()
+            Fw = _fundamental(K, K_other, Rw, np.array([*rng.normal(0, 0.3, 2), 1.0]))
+            a, b = _look_alike_matches(x1, x2, Fw, rng)
+            assert len(a) >= 30, len(a)
+            data.matches[(i, j)] = PairMatches(x1[a], x2[b], np.full((len(a), 3), 128, np.uint8), np.full(len(a), -1))
+            data.two_view[(i, j)] = Fw
+            wrong.append((i, j))
+    return sc, data, wrong
+
+
+def test_calibrated_check_tells_look_alike_pairs_from_right_ones(tmp_path):
+    from course_lib.sfm.tracks import calibrated_check
+
+    sc, data, wrong = look_alike_ring(tmp_path)
+    right = [k for k in data.matches if k not in wrong and len(data.matches[k]) >= 30]
+    for key in right:
+        pm = data.matches[key]
+        inl, share = calibrated_check(pm.x1, pm.x2, sc.K, 2.0, 0)
+        assert share >= 0.95 and inl.shape == (len(pm),), (key, share)
+    for key in wrong:
+        pm = data.matches[key]
+        _, share = calibrated_check(pm.x1, pm.x2, sc.K, 2.0, 0)
+        assert share < 0.85, (key, share)
+    assert calibrated_check(np.zeros((4, 2)), np.zeros((4, 2)), sc.K, 2.0, 0)[1] == 0.0
+
+
+def test_look_alike_pairs_give_no_tracks_and_the_ring_is_right(tmp_path):
+    """Without the check the look-alike pairs join tracks of opposite sides of the object; with it each is
+    named, and the model of the ring has the true poses."""
+    from course_lib.sfm.pipeline import run_sfm
+
+    sc, data, wrong = look_alike_ring(tmp_path)
+    rec = run_sfm(data, np.random.default_rng(0))
+    notes = {tuple(p["pair"]): p.get("note", "") for p in rec.report["pairs"]}
+    assert all(notes[k].startswith("the five-point E explains") and "repeated texture" in notes[k] for k in wrong)
+    assert "checked by the five-point E" in rec.report["verification"]
+    assert rec.n_registered == sc.n_cameras
+    r = rec.registered
+    assert pose_errors(rec.R_cw[r], rec.t_cw[r], sc.R_cw[r], sc.t_cw[r]).rotation_deg.max() < 0.5
+    off = run_sfm(data, np.random.default_rng(0), min_e_f_inlier_ratio=0.0)  # the look-alike pairs feed tracks
+    assert sum(1 for p in off.report["pairs"] if tuple(p["pair"]) in wrong and "note" not in p) == len(wrong)
