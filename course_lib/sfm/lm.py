@@ -33,9 +33,8 @@ Schur complement (why BA scales)
     ``Y = V^-1 W^T`` of their observations stacked), so Python loops over camera pairs, never over
     points or observations. ``S`` is small (441 x 441 for the 49 Ladybug cameras) and solved densely
     by Cholesky; above ``dense_limit`` unknowns it is assembled sparse and solved with
-    ``scipy.sparse.linalg.spsolve`` (SuperLU). On Ladybug an iteration costs about 50 ms of CPU:
-    a third for the Jacobian and the blocks of the normal equations, half for ``W V^-1 W^T``, and
-    4 ms for the Cholesky factorization. BLAS is held to one thread meanwhile
+    ``scipy.sparse.linalg.spsolve`` (SuperLU). Most of an iteration goes to ``W V^-1 W^T`` and the
+    Jacobian's blocks, little to the factorization. BLAS is held to one thread meanwhile
     (:func:`course_lib.threads.single_threaded_blas`): its threads only cost time on products this small.
 
 Damping strategy
@@ -87,7 +86,6 @@ __all__ = [
     "right_jacobian_so3",
     "residuals",
     "jacobian",
-    "jacobian_blocks",
     "NormalEquations",
     "normal_equations",
     "schur_solve",
@@ -371,12 +369,6 @@ def residuals(model: CameraModel, cameras, points, cam_idx, pt_idx, obs) -> np.n
     """
     cameras, points, cam_idx, pt_idx, obs = _check_problem(model, cameras, points, cam_idx, pt_idx, obs)
     return model.project(cameras, points[pt_idx], cam_idx) - obs
-
-
-def jacobian_blocks(model: CameraModel, cameras, points, cam_idx, pt_idx):
-    """Per-observation blocks of the analytic Jacobian: ``(proj (K, 2), A (K, 2, n), B (K, 2, 3))``."""
-    cameras, points, cam_idx, pt_idx = _check_problem(model, cameras, points, cam_idx, pt_idx)
-    return model.project_jacobian(cameras, points[pt_idx], cam_idx)
 
 
 def jacobian(model: CameraModel, cameras, points, cam_idx, pt_idx) -> sp.csr_matrix:
