@@ -1,7 +1,10 @@
 """The incremental mapper: one object that holds a growing model, whose methods are the stages.
 
 Shaped like COLMAP's ``IncrementalMapper`` (``src/colmap/sfm/incremental_mapper.h``) and
-OpenSfM's ``reconstruction.py``. :func:`course_lib.sfm.pipeline.run_sfm` drives it:
+OpenSfM's ``reconstruction.py``. The stage methods change the model and return numbers;
+:func:`course_lib.sfm.pipeline.run_sfm` is the controller (COLMAP's ``IncrementalMapperController``):
+it calls them in this order, times them, and records their numbers and printed lines in a
+:class:`~course_lib.sfm.mapper_report.MapperReport`:
 
 1. :meth:`IncrementalMapper.find_initial_pair` yields candidate pairs in the order they are
    tried: first the images with the most verified correspondences to other images (summed over
@@ -18,6 +21,7 @@ OpenSfM's ``reconstruction.py``. :func:`course_lib.sfm.pipeline.run_sfm` drives 
 3. :meth:`IncrementalMapper.register_next_image`: PnP RANSAC then non-linear PnP on the image
    ranked first by the number *and spread* of its 2D-3D correspondences (:func:`spread_score`, as
    COLMAP's visibility pyramid). Images that fail are retried after every new registration.
+   :meth:`IncrementalMapper.add_image` does steps 3-5 for one image.
 4. :meth:`IncrementalMapper.triangulate_image`: the tracks the new image shares with *every*
    registered image (widest baseline first), so links grow beyond the initial pair's.
 5. :meth:`IncrementalMapper.adjust_bundle` and :meth:`IncrementalMapper.filter_points` after each
@@ -44,8 +48,6 @@ Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
 """
 
 from __future__ import annotations
-
-import time
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -154,7 +156,6 @@ class IncrementalMapper:
         self._scored: dict[tuple[int, int], InitialPair | None] = {}
         self._degenerate_checked: set = set()
         self.failed_starts: dict[tuple[int, int], int] = {}  # pairs that kept too few points: how many
-        self.say = print if options.verbose else (lambda *a, **k: None)
         self.begin_model()
 
     # --- state ------------------------------------------------------------------------------------
@@ -168,10 +169,6 @@ class IncrementalMapper:
         self.X = np.full((T, 3), np.nan)
         self.ref = -1  # the camera that fixes the gauge (the initial pair's first)
         self.n_at_last_ba = 0  # registered images at the last bundle adjustment of the whole model
-        self.stages: list[dict] = []
-        self.seconds: dict[str, float] = {}
-        self.initial: dict = {}
-        self.reasons = {}  # why an image did not register in this model (its latest attempt)
 
     def set_intrinsics(self, K: np.ndarray, k1: float) -> None:
         """Use ``K`` and the radial term ``k1``: :attr:`uv` becomes the undistorted pixels of the tracks."""
@@ -311,13 +308,18 @@ class IncrementalMapper:
         self.opts = options
         self._scored.clear()  # the scores count points above the angle
 
-    def initialize(self, pair: InitialPair) -> bool:
-        """Start a model from ``pair``: triangulate, bundle-adjust and filter; False (model reset) if too few points remain."""
-        t0 = time.perf_counter()
+    def initialize(self, pair: InitialPair) -> dict | None:
+        """Start a model from ``pair``: triangulate, bundle-adjust and filter.
+
+        Returns:
+            The stage's numbers (``new_points``, ``points``, reprojection errors before and after
+            the BA, ``ba``, ``filter``), or None when too few points remain (the model is reset and
+            :attr:`failed_starts` records the pair with its points).
+        """
         self.begin_model()
         (a, b), o = pair.images, self.opts
         if pair.choice is None:
-            return False
+            return None
         self.R[a], self.t[a] = np.eye(3), np.zeros(3)
         self.R[b], self.t[b] = pair.choice.R_cw, pair.choice.t_cw
         self.registered[[a, b]] = True
@@ -328,23 +330,15 @@ class IncrementalMapper:
             X0 = call("triangulate_linear", self._P(a), self._P(b), self.uv[js, a], self.uv[js, b])
             # as in triangulate_image: the BA that follows refines the points, where there is one
             n_new = self._accept(js, X0, caller("triangulate_nonlinear") if o.bundle_adjustment != "incremental" else None)
-        stage = {"stage": "initial pair", "images": [a, b], "new_points": n_new, "points": int(self.has_X.sum()),
-                 "reprojection_before_ba": self.observation_stats()}
+        stage = {"new_points": n_new, "points": int(self.has_X.sum()), "reprojection_before_ba": self.observation_stats()}
         if o.bundle_adjustment == "incremental" and n_new >= o.init_min_points:  # never a BA on (almost) nothing
             self._adjust_and_filter(stage, global_ba=True)
-        stage["seconds"] = round(time.perf_counter() - t0, 3)
         n = int(self.has_X.sum())
         if n < o.init_min_points:
-            self.say(f"initial pair {self.names[a]}, {self.names[b]}: only {n} points (need {o.init_min_points}); next candidate")
             self.failed_starts[(a, b)] = n
             self.begin_model()
-            return False
-        self.stages.append(stage)
-        self.initial = {"images": [a, b], "names": [self.names[a], self.names[b]], "ransac_inliers": pair.inliers,
-                        "pose_inliers": pair.pose_inliers, "score": pair.score, "points": n_new}
-        self.seconds["initial_pair"] = time.perf_counter() - t0
-        self.say(f"initial pair {self.names[a]}, {self.names[b]}: {n_new} points")
-        return True
+            return None
+        return stage
 
     # --- registration -----------------------------------------------------------------------------------
 
@@ -622,50 +616,19 @@ class IncrementalMapper:
 
     # --- growing and finishing a model ----------------------------------------------------------------
 
-    def grow(self) -> None:
-        """Register images until none is left or none can be (a stall).
+    def add_image(self, i: int) -> tuple[dict | None, str | None]:
+        """Register image ``i``, triangulate its new tracks, then a local or global BA and filtering.
 
-        The image ranked first by :meth:`next_images` is tried; one that fails waits until the next
-        registration (new points may let it in). At a stall with images left, :meth:`retriangulate`
-        runs once and the failed images are tried again if it brought points or observations back.
+        Returns:
+            ``(numbers, None)``: the PnP numbers of :meth:`register_next_image`, ``new_points``,
+            ``points``, the reprojection errors before and after the BA, ``ba``, ``filter`` and
+            ``points_after``; or ``(None, why it did not register)``.
         """
-        t_reg = time.perf_counter()
-        failed: set[int] = set()
-        retried = False
-        while True:
-            ranked = self.next_images(failed)
-            if not ranked:
-                if retried or not failed:
-                    break
-                t0 = time.perf_counter()
-                info = self.retriangulate()
-                self.stages.append({"stage": "retriangulate (stalled)", **info, "seconds": round(time.perf_counter() - t0, 3)})
-                retried = True
-                if info["points_new"] + info["observations_back"] == 0:
-                    break
-                failed.clear()
-                continue
-            i, n_corr = ranked[0]
-            if self._register_and_grow(i, n_corr):
-                failed.clear()  # new points may let a failed image in now
-                retried = False
-            else:
-                failed.add(i)
-        self.seconds["registration"] = self.seconds.get("registration", 0.0) + time.perf_counter() - t_reg
-
-    def _register_and_grow(self, i: int, n_corr: int) -> bool:
-        """Register image ``i``, triangulate its new tracks, adjust and filter; the stage goes into :attr:`stages`."""
-        t0 = time.perf_counter()
         info, why = self.register_next_image(i)
         if info is None:
-            self.reasons[i] = why
-            self.stages.append({"stage": "register", "image": i, "name": self.names[i], "registered": False,
-                                "correspondences": n_corr, "note": why})
-            self.say(f"not registered (yet): {self.names[i]}: {why}")
-            return False
+            return None, why
         n_new = self.triangulate_image(i)
-        stage = {"stage": "register", "image": i, "name": self.names[i], "registered": True, **info,
-                 "new_points": n_new, "points": int(self.has_X.sum())}
+        stage = {**info, "new_points": n_new, "points": int(self.has_X.sum())}
         if self.opts.bundle_adjustment == "incremental":
             global_ba = self.should_bundle()
             near = self.local_images(i) if not global_ba else None
@@ -675,11 +638,7 @@ class IncrementalMapper:
         else:
             stage["reprojection_before_ba"] = self.observation_stats()
         stage["points_after"] = int(self.has_X.sum())
-        stage["seconds"] = round(time.perf_counter() - t0, 3)
-        self.stages.append(stage)
-        self.say(f"registered {self.names[i]}: {info['pnp_inliers']}/{info['correspondences']} PnP inliers, "
-                 f"{n_new} new points, {int(self.has_X.sum())} points")
-        return True
+        return stage, None
 
     def _multiview_points(self) -> np.ndarray | None:
         """``(T,)`` points seen in 3+ images, or None when some camera has too few of them.
@@ -710,16 +669,16 @@ class IncrementalMapper:
         self.X[js] = call("triangulate_nonlinear", self.K, self.R[regs], self.t[regs], uv, self.X[js])
         return int(len(js))
 
-    def finish(self) -> None:
+    def finish(self) -> dict:
         """The final stage: re-triangulation, noise estimate, filtering, and the final bundle adjustment.
 
         Observations beyond ``4 sigma`` (within [1, 4] px) are removed and a final BA polishes the
         result (:func:`final_thresholds`); where enough points are seen three or more times, the
         cameras are refined with those first and the two-view points after them
-        (:meth:`_multiview_points`).
+        (:meth:`_multiview_points`). Returns the stage's numbers.
         """
-        t0, o = time.perf_counter(), self.opts
-        st = {"stage": "final", "reprojection_before_ba": self.observation_stats()}
+        o = self.opts
+        st = {"reprojection_before_ba": self.observation_stats()}
         if o.bundle_adjustment != "none":
             if o.bundle_adjustment == "final":
                 st["ba_robust"] = self.adjust_bundle(o.ba_loss, o.ba_f_scale, o.final_ba_max_iterations)
@@ -738,36 +697,25 @@ class IncrementalMapper:
                     st["ba_all_points"] = self.adjust_bundle(loss, fs, o.final_ba_max_iterations, ftol=1e-6)
             st["filter_after"] = self.filter_points(thr)
             st["reprojection_after_ba"] = self.observation_stats()
-        st["seconds"] = round(time.perf_counter() - t0, 3)
-        self.stages.append(st)
-        self.seconds["final_ba"] = self.seconds.get("final_ba", 0.0) + time.perf_counter() - t0
+        return st
 
     def end_model(self, rgb: np.ndarray) -> Reconstruction:
-        """The current model as a :class:`Reconstruction` (its images leave the pool of later models).
-
-        ``report`` holds this model's ``initial_pair``, ``stages``, ``final`` (without
-        ``left_out``, which :func:`~course_lib.sfm.pipeline.run_sfm` adds once all models exist),
-        ``camera`` and ``seconds``.
-        """
+        """The current model as a :class:`Reconstruction` (its images leave the pool of later models); the
+        controller gives it its ``report`` (:meth:`course_lib.sfm.mapper_report.MapperReport.model_report`)."""
         self.used |= self.registered
-        model = "SIMPLE_RADIAL" if self.refine else "PINHOLE"
-        rec = Reconstruction(K=self.K.copy(), image_names=list(self.names), image_size=self.image_size,
-                             registered=self.registered.copy(), R_cw=self.R.copy(), t_cw=self.t.copy(), X=self.X.copy(),
-                             rgb=rgb.copy(), track_uv=self.uv.copy(), inlier=self.inlier.copy(), k1=self.k1, camera_model=model)
-        stats = rec.error_stats()
-        camera = {"model": model, "K": np.round(self.K, 4).tolist(), "k1": round(self.k1, 6)}
+        return Reconstruction(K=self.K.copy(), image_names=list(self.names), image_size=self.image_size,
+                              registered=self.registered.copy(), R_cw=self.R.copy(), t_cw=self.t.copy(), X=self.X.copy(),
+                              rgb=rgb.copy(), track_uv=self.uv.copy(), inlier=self.inlier.copy(), k1=self.k1,
+                              camera_model=self.camera_model)
+
+    @property
+    def camera_model(self) -> str:
+        """``"SIMPLE_RADIAL"`` where the focal length and ``k1`` are refined, else ``"PINHOLE"``."""
+        return "SIMPLE_RADIAL" if self.refine else "PINHOLE"
+
+    def camera(self) -> dict:
+        """The camera the model used: ``model``, ``K``, ``k1``; where refined, the prior focal length and the refinements."""
+        camera = {"model": self.camera_model, "K": np.round(self.K, 4).tolist(), "k1": round(self.k1, 6)}
         if self.refine:
             camera.update(prior_focal_px=round(float(self.K0[0, 0]), 3), refinements=list(self.intrinsics_log))
-        rec.report = {"initial_pair": dict(self.initial), "stages": self.stages, "seconds": dict(self.seconds),
-                      "camera": camera, "final": {
-                          "registered_images": rec.n_registered,
-                          "registered": [self.names[i] for i in np.flatnonzero(rec.registered)],
-                          "points": rec.n_points,
-                          "observations": int(rec.inlier.sum()),
-                          "mean_track_length": round(float(rec.inlier.sum() / max(rec.n_points, 1)), 3),
-                          "mean_reprojection_error_px": round(stats["mean"], 4),
-                          "median_reprojection_error_px": round(stats["median"], 4),
-                          "rms_reprojection_error_px": round(stats["rms"], 4),
-                          "max_reprojection_error_px": round(stats["max"], 4),
-                      }}
-        return rec
+        return camera

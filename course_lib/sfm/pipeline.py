@@ -3,11 +3,14 @@
 :func:`run_sfm` takes the matches of a P3 folder (:func:`course_lib.data.p3.read_p3`) and returns
 the largest model as a :class:`~course_lib.sfm.reconstruction.Reconstruction` (poses of the
 registered images, 3-D points, inlier observations, a report of every stage), the other models in
-its ``others``. It is short: stage 1 here, the rest are the methods of
-:class:`~course_lib.sfm.mapper.IncrementalMapper` (shaped like COLMAP's ``IncrementalMapper``),
-every setting in one :class:`~course_lib.sfm.mapper.MapperOptions`:
+its ``others``. It is the controller (COLMAP's ``IncrementalMapperController``): stage 1 is
+:func:`course_lib.sfm.tracks.verified_pairs_and_tracks`, the rest are the methods of
+:class:`~course_lib.sfm.mapper.IncrementalMapper` (shaped like COLMAP's ``IncrementalMapper``), which
+return numbers; this module calls them in order, times them and records them in one
+:class:`~course_lib.sfm.mapper_report.MapperReport` per model. Every setting is in one
+:class:`~course_lib.sfm.mapper.MapperOptions`:
 
-1. **Verified tracks** (notebook 01, :func:`verified_pairs_and_tracks`, :mod:`course_lib.sfm.tracks`):
+1. **Verified tracks** (notebook 01, :func:`course_lib.sfm.tracks.verified_pairs_and_tracks`):
    RANSAC on F for every image pair (the 8-point algorithm and the Sampson distance, samples
    solved in batches), then the tracks are joined from the *inlier* matches only, by union-find,
    trusted pairs first; a link that would put two features of one image into one track is
@@ -19,8 +22,8 @@ every setting in one :class:`~course_lib.sfm.mapper.MapperOptions`:
    most verified correspondences to other images first, then its partner with the most points
    triangulated at ``init_min_angle_deg`` or more; pure-rotation and planar pairs are named and
    skipped; a pair that keeps fewer than ``init_min_points`` points after triangulation and BA is
-   dropped for the next. E from F, the four candidates and the cheirality test give the second
-   camera; the first is the world frame (``R = I, t = 0``), the baseline has length 1.
+   dropped for the next. The calibrated five-point E, its four candidates and the cheirality test
+   give the second camera; the first is the world frame (``R = I, t = 0``), the baseline has length 1.
 3. **Registration** (notebook 04; ``register_next_image``): the image whose 2D-3D
    correspondences are the most and the most spread out next: PnP RANSAC then non-linear PnP.
    Images that fail are tried again after every registration. This is how UPenn images 5 and 6,
@@ -52,13 +55,13 @@ import numpy as np
 
 from course_lib.sfm.mapper import IncrementalMapper, MapperOptions
 from course_lib.sfm.mapper_options import relaxed
-from course_lib.sfm.tracks import check_calibrated, verified_tracks, verify_pairs
+from course_lib.sfm.mapper_report import MapperReport
+from course_lib.sfm.tracks import verified_pairs_and_tracks
 from course_lib.sfm.reconstruction import Reconstruction, image_size_of, reprojection_error_matrix, triangulation_angles_deg
 from course_lib.threads import single_threaded_blas
 from course_lib.validate import KitInputError, intrinsics
 
-__all__ = ["Reconstruction", "MapperOptions", "run_sfm", "verified_pairs_and_tracks", "triangulation_angles_deg",
-           "reprojection_error_matrix"]
+__all__ = ["Reconstruction", "MapperOptions", "run_sfm", "triangulation_angles_deg", "reprojection_error_matrix"]
 
 
 def run_sfm(data, rng: np.random.Generator, options: MapperOptions | None = None, **overrides) -> Reconstruction:
@@ -129,66 +132,30 @@ def _check_inputs(data, rng) -> np.ndarray:
     return K
 
 
-def verified_pairs_and_tracks(data, rng, threshold_px: float, min_matches: int, report: dict,
-                              min_e_f_inlier_ratio: float = 0.0):
-    """Stage 1: every pair verified (``match``'s verification where the folder carries it, else RANSAC on F), then
-    tracks from the inlier matches only (:func:`course_lib.sfm.tracks.verify_pairs`).
-
-    Where the folder carries ``match``'s verification (photos) and ``min_e_f_inlier_ratio > 0``,
-    each verified pair is checked with the calibrated geometry (:func:`course_lib.sfm.tracks.check_calibrated`):
-    a pair whose five-point E explains less than that share of F's inliers is dropped (its row says
-    why), the others keep the matches E explains.
-
-    Returns:
-        ``pairs {(i, j): (F (3, 3), inliers (N,) bool)}`` of the pairs with at least ``min_matches``
-        inliers, and the :class:`~course_lib.sfm.tracks.Tracks`; ``report`` gets ``pairs`` and ``tracks``.
-    """
-    ver, how = verify_pairs(data, rng, threshold_px)
-    if min_e_f_inlier_ratio > 0 and getattr(data, "two_view", None) is not None:
-        ver = check_calibrated(data, ver, rng, threshold_px, min_e_f_inlier_ratio)
-        how += f", checked by the five-point E (at least {min_e_f_inlier_ratio:g} of F's inliers)"
-    report["verification"] = how
-    pairs, rows = {}, []
-    for (i, j), v in ver.items():
-        row = {"pair": [i, j], "names": [data.image_names[i], data.image_names[j]], "matches": len(v.inliers),
-               "inliers": v.n_inliers, "ransac_iterations": int(v.n_iters)}
-        if v.F is None or v.n_inliers < min_matches:
-            row["note"] = v.note or f"{v.n_inliers} inliers: too few to trust F"
-        else:
-            pairs[(i, j)] = (v.F, v.inliers)
-        rows.append(row)
-    tracks = verified_tracks(data, ver, min_inliers=min_matches)
-    report["pairs"] = rows
-    report["tracks"] = {"raw_tracks": int(data.n_tracks) if hasattr(data, "n_tracks") else None,
-                        "raw_observations": int(np.isfinite(np.asarray(data.track_uv, float)[..., 0]).sum()),
-                        "verified_tracks": tracks.stats["tracks"],
-                        "verified_observations": int(np.isfinite(tracks.uv[..., 0]).sum()),
-                        "verified_matches": tracks.stats["edges"],
-                        "refused_links": tracks.stats["refused_edges"]}
-    return pairs, tracks
-
-
 def _build_models(mapper: IncrementalMapper, rgb: np.ndarray, pairs: dict) -> tuple[list, list]:
     """Grow models until no pair of the images left can start one; ``(models, reasons)``, one reasons dict per model.
 
-    A model after the first with fewer than ``min_model_size`` images is discarded; its images
-    are left out with that reason.
+    Each model has its :class:`~course_lib.sfm.mapper_report.MapperReport`, which becomes its
+    ``report``. A model after the first with fewer than ``min_model_size`` images is discarded;
+    its images are left out with that reason.
     """
     opts = mapper.opts
     models, reasons, discarded = [], [], {}
     while len(models) < opts.max_models and (~mapper.used).sum() >= 2:
-        tried, relaxations = _start_model(mapper, relax=not models)
+        report = MapperReport(mapper.names, opts.verbose)
+        tried, relaxations = _start_model(mapper, report, relax=not models)
         if not mapper.registered.any():
             if not models:
                 raise KitInputError(_no_start_message(mapper, tried, pairs))
             break
-        mapper.grow()
-        mapper.finish()
+        _grow(mapper, report)
+        _finish(mapper, report)
         n = int(mapper.registered.sum())
-        mapper.grow()  # a last try for the images left out: the final BA and re-triangulation may let them in now
+        _grow(mapper, report)  # a last try for the images left out: the final BA and re-triangulation may let them in now
         if mapper.registered.sum() > n:
-            mapper.finish()
+            _finish(mapper, report)
         rec = mapper.end_model(rgb)
+        rec.report = report.model_report(rec, mapper.camera())
         rec.report["initial_pair"]["candidates"] = tried
         if relaxations:
             rec.report["initial_pair"]["relaxed"] = relaxations
@@ -198,7 +165,7 @@ def _build_models(mapper: IncrementalMapper, rgb: np.ndarray, pairs: dict) -> tu
             discarded.update({int(i): why for i in np.flatnonzero(rec.registered)})
             continue
         models.append(rec)
-        reasons.append(dict(mapper.reasons))
+        reasons.append(dict(report.reasons))
         if not opts.multiple_models:
             break
     for r in reasons:
@@ -206,7 +173,7 @@ def _build_models(mapper: IncrementalMapper, rgb: np.ndarray, pairs: dict) -> tu
     return models, reasons
 
 
-def _start_model(mapper: IncrementalMapper, relax: bool) -> tuple[list, list]:
+def _start_model(mapper: IncrementalMapper, report: MapperReport, relax: bool) -> tuple[list, list]:
     """Try the candidate pairs until one starts a model; ``(rows of the pairs tried, relaxations made)``.
 
     Where none does and ``relax`` (no model yet), the initialization is relaxed (a new options
@@ -218,13 +185,61 @@ def _start_model(mapper: IncrementalMapper, relax: bool) -> tuple[list, list]:
         if step:
             mapper.use_options(relaxed(mapper.opts))
             made.append({"min_pair_inliers": mapper.opts.min_pair_inliers, "init_min_angle_deg": mapper.opts.init_min_angle_deg})
-            mapper.say(f"no pair starts a model: relaxed to min_pair_inliers={mapper.opts.min_pair_inliers}, "
+            report.say(f"no pair starts a model: relaxed to min_pair_inliers={mapper.opts.min_pair_inliers}, "
                        f"init_min_angle_deg={mapper.opts.init_min_angle_deg}")
         for pair in mapper.find_initial_pair():
             tried.append(pair.row())
-            if mapper.initialize(pair):
+            t0 = time.perf_counter()
+            numbers = mapper.initialize(pair)
+            if numbers is not None:
+                report.started(pair, numbers, time.perf_counter() - t0)
                 return tried, made
+            if pair.images in mapper.failed_starts:
+                report.start_failed(pair.images, mapper.failed_starts[pair.images], mapper.opts.init_min_points)
     return tried, made
+
+
+def _grow(mapper: IncrementalMapper, report: MapperReport) -> None:
+    """Register images until none is left or none can be (a stall).
+
+    The image ranked first by :meth:`~course_lib.sfm.mapper.IncrementalMapper.next_images` is
+    tried; one that fails waits until the next registration (new points may let it in). At a stall
+    with images left, ``retriangulate`` runs once and the failed images are tried again if it
+    brought points or observations back.
+    """
+    failed: set[int] = set()
+    retried = False
+    with report.timing("registration"):
+        while True:
+            ranked = mapper.next_images(failed)
+            if not ranked:
+                if retried or not failed:
+                    break
+                t0 = time.perf_counter()
+                info = mapper.retriangulate()
+                report.retriangulated(info, time.perf_counter() - t0)
+                retried = True
+                if info["points_new"] + info["observations_back"] == 0:
+                    break
+                failed.clear()
+                continue
+            i, n_corr = ranked[0]
+            t0 = time.perf_counter()
+            numbers, why = mapper.add_image(i)
+            if numbers is None:
+                report.not_registered(i, n_corr, why)
+                failed.add(i)
+            else:
+                report.registered(i, numbers, time.perf_counter() - t0)
+                failed.clear()  # new points may let a failed image in now
+                retried = False
+
+
+def _finish(mapper: IncrementalMapper, report: MapperReport) -> None:
+    """The model's final stage (:meth:`~course_lib.sfm.mapper.IncrementalMapper.finish`), timed and recorded."""
+    t0 = time.perf_counter()
+    numbers = mapper.finish()
+    report.finished(numbers, time.perf_counter() - t0)
 
 
 def _no_start_message(mapper: IncrementalMapper, tried: list, pairs: dict) -> str:

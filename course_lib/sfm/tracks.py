@@ -4,7 +4,8 @@ A track is one 3-D point seen in several images. Joining raw matches into tracks
 reader does for the file, :mod:`course_lib.data.p3`) lets a few wrong matches chain unrelated
 points together: if feature A of image 1 is wrongly matched to feature B of image 3, which is
 a real feature of another point, the two points' tracks become one, and a track with two
-features in one image is useless. So the pipeline builds its tracks in two steps:
+features in one image is useless. So the pipeline builds its tracks in two steps
+(:func:`verified_pairs_and_tracks`, stage 1 of :func:`course_lib.sfm.pipeline.run_sfm`):
 
 1. **Verify every pair** (:func:`verify_pairs`). A P3 folder written by ``match`` carries its
    verification (each verified pair's F, :mod:`course_lib.data.two_view`): F is refit on its
@@ -52,7 +53,7 @@ except ImportError:  # the student kit: your ransac_fundamental, eight_point and
     _refit = eight_point_batch = ransac = sampson_distance_batch = None
 
 __all__ = ["PairVerification", "Tracks", "verify_pair", "ransac_every_pair", "from_carried_geometry", "verify_pairs",
-           "calibrated_check", "check_calibrated", "join_tracks", "verified_tracks"]
+           "verified_pairs_and_tracks", "calibrated_check", "check_calibrated", "join_tracks", "verified_tracks"]
 
 
 @dataclass
@@ -243,9 +244,8 @@ def calibrated_check(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px
 
     OpenCV's five-point essential matrix (``findEssentialMat``, USAC) on the pair's F-inliers with
     the camera's ``K``; a match is explained where its Sampson distance to ``F = K⁻ᵀ E K⁻¹`` is
-    below ``threshold_px``. On rendered rings around the building (``benchmarks/photos_to_sfm.py``)
-    right pairs kept a median 95 % of their F-inliers (10 % of them under 80 %: pairs with wrong
-    matches of their own), pairs of look-alike texture a median 60 % (a few up to 95 %).
+    below ``threshold_px``. Right pairs keep nearly all of their F-inliers, pairs of look-alike
+    texture far fewer (measured on rendered rings around the building).
 
     Args:
         x1, x2: ``(N, 2)`` the pair's F-inliers (pixels). K: ``(3, 3)``.
@@ -325,3 +325,42 @@ def verified_tracks(data, verifications: dict, min_inliers: int = 8) -> Tracks:
     tr = join_tracks(len(data.image_names), edges)
     tr.stats["pairs_used"] = used
     return tr
+
+
+def verified_pairs_and_tracks(data, rng, threshold_px: float, min_matches: int, report: dict,
+                              min_e_f_inlier_ratio: float = 0.0):
+    """Stage 1: every pair verified (``match``'s verification where the folder carries it, else RANSAC on F), then
+    tracks from the inlier matches only (:func:`course_lib.sfm.tracks.verify_pairs`).
+
+    Where the folder carries ``match``'s verification (photos) and ``min_e_f_inlier_ratio > 0``,
+    each verified pair is checked with the calibrated geometry (:func:`course_lib.sfm.tracks.check_calibrated`):
+    a pair whose five-point E explains less than that share of F's inliers is dropped (its row says
+    why), the others keep the matches E explains.
+
+    Returns:
+        ``pairs {(i, j): (F (3, 3), inliers (N,) bool)}`` of the pairs with at least ``min_matches``
+        inliers, and the :class:`~course_lib.sfm.tracks.Tracks`; ``report`` gets ``pairs`` and ``tracks``.
+    """
+    ver, how = verify_pairs(data, rng, threshold_px)
+    if min_e_f_inlier_ratio > 0 and getattr(data, "two_view", None) is not None:
+        ver = check_calibrated(data, ver, rng, threshold_px, min_e_f_inlier_ratio)
+        how += f", checked by the five-point E (at least {min_e_f_inlier_ratio:g} of F's inliers)"
+    report["verification"] = how
+    pairs, rows = {}, []
+    for (i, j), v in ver.items():
+        row = {"pair": [i, j], "names": [data.image_names[i], data.image_names[j]], "matches": len(v.inliers),
+               "inliers": v.n_inliers, "ransac_iterations": int(v.n_iters)}
+        if v.F is None or v.n_inliers < min_matches:
+            row["note"] = v.note or f"{v.n_inliers} inliers: too few to trust F"
+        else:
+            pairs[(i, j)] = (v.F, v.inliers)
+        rows.append(row)
+    tracks = verified_tracks(data, ver, min_inliers=min_matches)
+    report["pairs"] = rows
+    report["tracks"] = {"raw_tracks": int(data.n_tracks) if hasattr(data, "n_tracks") else None,
+                        "raw_observations": int(np.isfinite(np.asarray(data.track_uv, float)[..., 0]).sum()),
+                        "verified_tracks": tracks.stats["tracks"],
+                        "verified_observations": int(np.isfinite(tracks.uv[..., 0]).sum()),
+                        "verified_matches": tracks.stats["edges"],
+                        "refused_links": tracks.stats["refused_edges"]}
+    return pairs, tracks
