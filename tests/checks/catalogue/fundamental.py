@@ -165,7 +165,7 @@ def _ransac(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000, err
             best = (F, inl)
             w = inl.mean()
             if adaptive and 0 < w < 1:
-                need = math.log(1 - p) / math.log(1 - w**8)
+                need = math.log(1 - p) / math.log1p(-(w**8))  # log1p: 1 - w**8 rounds to 1 for a tiny w
             elif adaptive:
                 need = 0
     F, inl = best
