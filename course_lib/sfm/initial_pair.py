@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
@@ -40,7 +41,7 @@ except ImportError:  # the student kit: your sampson_distance of notebook 01
     sampson_distance_batch = None
 
 __all__ = ["H_INLIER_RATIO", "InitialPair", "pair_degeneracy", "calibrated_pose", "refine_pose", "fundamental_from_pose",
-           "fundamental_from_essential", "sampson_pixels"]
+           "fundamental_from_essential", "sampson_pixels", "five_point_essential"]
 
 #: A pair whose inliers a homography explains this well is degenerate for a two-view start.
 H_INLIER_RATIO = 0.8
@@ -153,6 +154,22 @@ def sampson_pixels(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     return np.asarray(call("sampson_distance", F, x1, x2), float).reshape(-1)
 
 
+def five_point_essential(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px: float,
+                         seed: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """OpenCV's five-point essential matrix inside USAC: ``(E (3, 3), inliers (N,) bool)``, or None where none is found.
+
+    Args:
+        x1, x2: ``(N, 2)`` matches (pixels), ``N >= 5``. K: ``(3, 3)`` of both cameras.
+        threshold_px: RANSAC threshold (pixels). seed: OpenCV's RANSAC seed (set before the call).
+    """
+    cv2.setRNGSeed(int(seed))
+    E, mask = cv2.findEssentialMat(np.ascontiguousarray(x1, np.float64), np.ascontiguousarray(x2, np.float64),
+                                   np.asarray(K, np.float64), cv2.USAC_ACCURATE, 0.999, float(threshold_px))
+    if E is None or mask is None or E.shape[0] < 3:
+        return None
+    return np.array(E[:3]), mask.ravel().astype(bool)
+
+
 def calibrated_pose(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px: float, seed: int):
     """The relative pose of a pair from the five-point essential matrix, refined: ``(choice, inliers (N,) bool)``.
 
@@ -167,17 +184,13 @@ def calibrated_pose(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px:
     Raises:
         KitInputError: fewer than 5 matches, or no essential matrix found.
     """
-    import cv2
-
     if len(x1) < 5:
         raise KitInputError(f"{len(x1)} matches: the five-point algorithm needs at least 5")
-    cv2.setRNGSeed(int(seed))
-    E, mask = cv2.findEssentialMat(np.ascontiguousarray(x1, np.float64), np.ascontiguousarray(x2, np.float64),
-                                   np.asarray(K, np.float64), cv2.USAC_ACCURATE, 0.999, threshold_px)
-    if E is None or mask is None or E.shape[0] < 3:
+    found = five_point_essential(x1, x2, K, threshold_px, seed)
+    if found is None:
         raise KitInputError("no essential matrix fits the matches (too few, or all on a line?)")
-    inl = mask.ravel().astype(bool)
-    choice = call("choose_pose", *call("pose_candidates", np.array(E[:3])), K, x1[inl], x2[inl])
+    E, inl = found
+    choice = call("choose_pose", *call("pose_candidates", E), K, x1[inl], x2[inl])
     R, t = refine_pose(x1[inl], x2[inl], K, choice.R_cw, choice.t_cw.reshape(3))
     inl = sampson_pixels(fundamental_from_pose(K, R, t), x1, x2) < threshold_px
     # the refinement cannot tell t from -t (the epipolar geometry is the same): the cheirality test decides again

@@ -44,7 +44,7 @@ import numpy as np
 
 from course_lib.data.tracks import Tracks, join_tracks
 from course_lib.exercises import call
-from course_lib.sfm.initial_pair import fundamental_from_essential, sampson_pixels
+from course_lib.sfm.initial_pair import five_point_essential, fundamental_from_essential, sampson_pixels
 from course_lib.validate import KitInputError
 
 try:  # the instructor's kit: notebook 01's RANSAC with batched samples and a preemptive test (faster)
@@ -254,18 +254,10 @@ def calibrated_check(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px
     Returns:
         The matches E explains and their share of the ``N`` (0 where no E is found or N < 5).
     """
-    import cv2
-
-    n = len(x1)
-    none = np.zeros(n, bool)
-    if n < 5:
-        return none, 0.0
-    cv2.setRNGSeed(int(seed))
-    E, _ = cv2.findEssentialMat(np.ascontiguousarray(x1, np.float64), np.ascontiguousarray(x2, np.float64),
-                                np.asarray(K, np.float64), cv2.USAC_ACCURATE, 0.999, float(threshold_px))
-    if E is None or E.shape[0] < 3:
-        return none, 0.0
-    inl = sampson_pixels(fundamental_from_essential(K, E[:3]), x1, x2) < threshold_px
+    found = five_point_essential(x1, x2, K, threshold_px, seed) if len(x1) >= 5 else None
+    if found is None:
+        return np.zeros(len(x1), bool), 0.0
+    inl = sampson_pixels(fundamental_from_essential(K, found[0]), x1, x2) < threshold_px
     return inl, float(inl.mean())
 
 
