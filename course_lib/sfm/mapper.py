@@ -36,7 +36,8 @@ it calls them in this order, times them, and records their numbers and printed l
 6. :meth:`IncrementalMapper.finish`: re-triangulation, noise estimate, the final filtering and BA.
 
 When a model cannot grow further and two or more images are left, ``run_sfm`` starts a new model
-from those (:meth:`IncrementalMapper.begin_model`), as COLMAP does. All thresholds are fields of
+from those (:meth:`IncrementalMapper.begin_model`), as COLMAP does; it may register the images of
+earlier models, and :meth:`IncrementalMapper.merge` carries it into an earlier model it overlaps. All thresholds are fields of
 :class:`~course_lib.sfm.mapper_options.MapperOptions`, each with COLMAP's default beside it.
 
 The steps of notebooks 02-04 are called through :func:`course_lib.exercises.call`, exactly as their
@@ -52,6 +53,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from course_lib.alignment import align_similarity
 from course_lib.conventions import camera_center, projection_matrix
 from course_lib.data.camera import undistort_pixels
 from course_lib.exercises import call, caller
@@ -126,9 +128,10 @@ class IncrementalMapper:
     """The state of one growing model and the stages that change it (COLMAP's ``IncrementalMapper``).
 
     The tracks (``track_uv``) are shared by every model; each model has its own poses, points and
-    observation flags, all indexed by track ``j`` and image ``i``. Images registered in an earlier
-    model (``used``) take no part in a later one. The intrinsics (``K``, ``k1``) belong to the
-    camera and carry over from one model to the next.
+    observation flags, all indexed by track ``j`` and image ``i``. A later model starts from two
+    images no earlier model registered (``used``) but may register images of earlier models as it
+    grows; one that shares enough of them with an earlier model is merged into it (:meth:`merge`).
+    The intrinsics (``K``, ``k1``) belong to the camera and carry over from one model to the next.
 
     Args:
         data: the :class:`course_lib.data.p3.P3Data` (its ``image_names`` and ``matches``).
@@ -169,6 +172,11 @@ class IncrementalMapper:
         self.X = np.full((T, 3), np.nan)
         self.ref = -1  # the camera that fixes the gauge (the initial pair's first)
         self.n_at_last_ba = 0  # registered images at the last bundle adjustment of the whole model
+
+    def state(self) -> dict:
+        """A copy of the model (registration, poses, points, observation flags, gauge), to :meth:`merge` with later."""
+        return {"registered": self.registered.copy(), "R": self.R.copy(), "t": self.t.copy(), "X": self.X.copy(),
+                "candidate": self.candidate.copy(), "ref": self.ref}
 
     def set_intrinsics(self, K: np.ndarray, k1: float) -> None:
         """Use ``K`` and the radial term ``k1``: :attr:`uv` becomes the undistorted pixels of the tracks."""
@@ -343,12 +351,13 @@ class IncrementalMapper:
     # --- registration -----------------------------------------------------------------------------------
 
     def next_images(self, skip=()) -> list[tuple[int, int]]:
-        """``[(image, correspondences), ...]`` of the free unregistered images not in ``skip``, best first.
+        """``[(image, correspondences), ...]`` of the unregistered images not in ``skip``, best first.
 
         Ranked by :func:`spread_score` of the pixels of their 2D-3D correspondences (features whose
-        track has a point), ties by image number.
+        track has a point), ties by image number. Images of earlier models are among them: a model
+        that reaches them can be merged with that model (:meth:`merge`).
         """
-        todo = [i for i in range(self.M) if not (self.registered[i] or self.used[i] or i in skip)]
+        todo = [i for i in range(self.M) if not (self.registered[i] or i in skip)]
         has_X = self.has_X
         rows = []
         for i in todo:
@@ -372,6 +381,9 @@ class IncrementalMapper:
         if inl.sum() < o.min_pnp_inliers:
             return None, (f"too few PnP inliers: {int(inl.sum())} of {len(js)} 2D-3D matches within {o.pnp_threshold_px} px, "
                           f"need {o.min_pnp_inliers}")
+        if inl.sum() < o.min_pnp_inlier_ratio * len(js):
+            return None, (f"too small a share of PnP inliers: {int(inl.sum())} of {len(js)} 2D-3D matches within "
+                          f"{o.pnp_threshold_px} px, need {o.min_pnp_inlier_ratio:.0%} (look-alike texture?)")
         self.R[i], self.t[i] = call("pnp_nonlinear", self.X[js[inl]], self.uv[js[inl], i], self.K, res.R_cw, res.t_cw)
         self.registered[i] = True
         self.candidate[js[~inl], i] = False
@@ -698,6 +710,82 @@ class IncrementalMapper:
             st["filter_after"] = self.filter_points(thr)
             st["reprojection_after_ba"] = self.observation_stats()
         return st
+
+    def merge(self, earlier: dict) -> tuple[dict | None, str | None]:
+        """Merge the current model into an ``earlier`` one (its :meth:`state`) that shares registered images with it.
+
+        A similarity (scale, rotation, translation) from the current model's frame to the earlier
+        one's is found by RANSAC on the points both models triangulated (the same tracks): three
+        points give a candidate (:func:`course_lib.alignment.align_similarity`); a point carried
+        over is an inlier when it reprojects within ``max_reproj_px`` in every image of the earlier
+        model that observes it. The best candidate is refitted on its inliers. Where at least
+        ``merge_min_inlier_ratio`` of the common points (and ``init_min_points``) are inliers, the images only the current
+        model has are carried into the earlier frame with their points (the earlier model keeps its
+        own poses and points where both have one), and a bundle adjustment of the whole model and
+        filtering follow. The merged model is the current one; its gauge is the earlier model's.
+
+        Returns:
+            ``(numbers, None)``: ``shared_images``, ``common_points``, ``inliers``, ``scale``,
+            ``images_added``, ``points_added`` and the BA's numbers; or ``(None, why not)``, the
+            current model unchanged.
+        """
+        o = self.opts
+        shared = earlier["registered"] & self.registered
+        if shared.sum() < o.merge_min_shared_images:
+            return None, f"{int(shared.sum())} shared images, need {o.merge_min_shared_images}"
+        X_e = earlier["X"]
+        common = np.flatnonzero(self.has_X & np.isfinite(X_e).all(axis=1))
+        if len(common) < 3:
+            return None, f"{len(common)} points in common, need 3"
+        regs_e = np.flatnonzero(earlier["registered"])
+        seen_e = earlier["candidate"][np.ix_(common, regs_e)]
+        uv_e = np.where(seen_e[..., None], self.uv[np.ix_(common, regs_e)], np.nan)
+
+        def inliers(s, Rs, Ts, rows=slice(None)):
+            E = reprojection_error_matrix(self.K, earlier["R"][regs_e], earlier["t"][regs_e],
+                                          s * self.X[common[rows]] @ Rs.T + Ts, uv_e[rows])
+            bad = np.where(np.isfinite(uv_e[rows][..., 0]), ~(E <= o.max_reproj_px), False)
+            return ~bad.any(axis=1) & seen_e[rows].any(axis=1)
+
+        # hypotheses are scored on at most 500 of the common points; RANSAC stops once 99.9 % sure
+        score_on = np.sort(self.rng.choice(len(common), min(len(common), 500), replace=False))
+        best, best_sim, n_iter, trial = 0, None, 200, 0
+        while trial < n_iter:
+            trial += 1
+            pick = self.rng.choice(len(common), 3, replace=False)
+            sim = align_similarity(self.X[common[pick]], X_e[common[pick]])
+            if not np.isfinite(sim[0]) or sim[0] <= 0 or not np.isfinite(sim[2]).all():
+                continue
+            n = int(inliers(*sim, rows=score_on).sum())
+            if n > best:
+                best, best_sim = n, sim
+                w = n / len(score_on)
+                n_iter = min(n_iter, int(np.ceil(np.log(1e-3) / np.log1p(-(w ** 3)))) if w < 1 else 1)
+        if best_sim is None or best < 3:
+            return None, f"no similarity carries {len(common)} common points onto the earlier model"
+        best = inliers(*best_sim)
+        s, Rs, Ts = align_similarity(self.X[common[best]], X_e[common[best]])
+        best = inliers(s, Rs, Ts)
+        if best.sum() < max(o.merge_min_inlier_ratio * len(common), o.init_min_points) or s <= 0:
+            return None, (f"one similarity carries only {int(best.sum())} of the {len(common)} common points onto the "
+                          f"earlier model (need {o.merge_min_inlier_ratio:.0%} and {o.init_min_points})")
+        new_images = np.flatnonzero(self.registered & ~earlier["registered"])
+        new_points = np.flatnonzero(self.has_X & ~np.isfinite(X_e).all(axis=1))
+        R, t, X, candidate = earlier["R"].copy(), earlier["t"].copy(), X_e.copy(), earlier["candidate"].copy()
+        for i in new_images:  # x = R_i X + t_i with X = Rs^T (X' - Ts) / s; scaled by s: R_i Rs^T X' + s t_i - R_i Rs^T Ts
+            R[i] = self.R[i] @ Rs.T
+            t[i] = s * self.t[i] - R[i] @ Ts
+            candidate[:, i] = self.candidate[:, i]
+        X[new_points] = s * self.X[new_points] @ Rs.T + Ts
+        self.R, self.t, self.X, self.candidate = R, t, X, candidate
+        self.registered = self.registered | earlier["registered"]
+        self.ref = earlier["ref"]
+        stage = {"shared_images": int(shared.sum()), "common_points": int(len(common)), "inliers": int(best.sum()),
+                 "scale": round(float(s), 6), "images_added": [int(i) for i in new_images], "points_added": int(len(new_points)),
+                 "reprojection_before_ba": self.observation_stats()}
+        if o.bundle_adjustment == "incremental":
+            self._adjust_and_filter(stage, global_ba=True)
+        return stage, None
 
     def end_model(self, rgb: np.ndarray) -> Reconstruction:
         """The current model as a :class:`Reconstruction` (its images leave the pool of later models); the

@@ -38,6 +38,9 @@ class MapperOptions:
             ``abs_pose_max_error`` 12 px.)
         min_pnp_inliers: an image registers with at least this many PnP inliers. (COLMAP
             ``abs_pose_min_num_inliers`` 30.)
+        min_pnp_inlier_ratio: ... and with at least this share of its 2D-3D matches among them: a
+            pose that explains a fifth of them was found among look-alike texture. (COLMAP
+            ``abs_pose_min_inlier_ratio`` 0.25.)
         max_reproj_px: observations reprojecting farther are dropped during the run. (COLMAP
             ``filter_max_reproj_error`` 4 px.)
         final_max_reproj_px: the threshold before the final BA; None: 4 x the noise level estimated
@@ -64,6 +67,14 @@ class MapperOptions:
         min_model_size: a model after the first one is kept only with this many images; its images
             are then left out with the reason. (COLMAP ``min_model_size`` 10, or 80 % of the images
             where fewer.)
+        merge_min_shared_images: a later model that shares this many registered images with an
+            earlier one is merged into it where the points agree
+            (:meth:`course_lib.sfm.mapper.IncrementalMapper.merge`). A later model starts from two
+            images no earlier model registered, but may register the images of earlier models as
+            it grows (COLMAP's models overlap the same way).
+        merge_min_inlier_ratio: the share of the points both models triangulated that one
+            similarity must carry onto the other (within ``max_reproj_px`` in every image of the
+            earlier model that sees them; at least ``init_min_points`` of them) for the merge to go ahead.
         bundle_adjustment: ``"incremental"`` (during the growth and at the end), ``"final"`` (once
             at the end) or ``"none"`` (the result *before* BA: notebook 05's starting point).
         ba_loss, ba_f_scale: robust loss of the BAs during the growth. (COLMAP: plain squares; the
@@ -100,6 +111,7 @@ class MapperOptions:
     min_e_f_inlier_ratio: float = 0.9
     pnp_threshold_px: float = 8.0
     min_pnp_inliers: int = 20
+    min_pnp_inlier_ratio: float = 0.25
     max_reproj_px: float = 4.0
     final_max_reproj_px: float | None = None
     min_angle_deg: float = 1.0
@@ -112,6 +124,8 @@ class MapperOptions:
     multiple_models: bool = True
     max_models: int = 10
     min_model_size: int = 3
+    merge_min_shared_images: int = 1
+    merge_min_inlier_ratio: float = 0.5
     bundle_adjustment: str = "incremental"
     ba_loss: str = "huber"
     ba_f_scale: float = 1.0
@@ -148,7 +162,8 @@ class MapperOptions:
         """The options the report records."""
         keep = ("f_threshold_px", "min_e_f_inlier_ratio", "pnp_threshold_px", "max_reproj_px", "final_max_reproj_px", "min_angle_deg",
                 "bundle_adjustment", "ba_loss", "ba_f_scale", "ba_images_ratio", "ba_local_num_images", "final_ba_loss",
-                "final_ba_f_scale", "init_min_points", "min_model_size", "multiple_models", "refine_intrinsics")
+                "final_ba_f_scale", "init_min_points", "min_model_size", "multiple_models",
+                "merge_min_shared_images", "refine_intrinsics")
         return {k: getattr(self, k) for k in keep}
 
 

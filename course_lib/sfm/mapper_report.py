@@ -25,6 +25,7 @@ class MapperReport:
             attempts), ``"retriangulate (stalled)"``, ``"final"``), each with its ``seconds``.
         seconds: seconds by kind (``initial_pair``, ``registration``, ``final_ba``).
         initial: the initial pair (images, names, RANSAC and pose inliers, score, points).
+        candidates: the rows of the initial pairs tried. relaxations: the relaxed settings tried, if any.
         reasons: why an image did not register in this model (its latest attempt), by image index.
     """
 
@@ -33,6 +34,8 @@ class MapperReport:
         self.stages: list[dict] = []
         self.seconds: dict[str, float] = {}
         self.initial: dict = {}
+        self.candidates: list[dict] = []
+        self.relaxations: list[dict] = []
         self.reasons: dict[int, str] = {}
 
     def say(self, line: str) -> None:
@@ -89,6 +92,20 @@ class MapperReport:
         self.stages.append({"stage": "final", **numbers, "seconds": round(seconds, 3)})
         self.seconds["final_ba"] = self.seconds.get("final_ba", 0.0) + seconds
 
+    def absorb(self, later: "MapperReport", numbers: dict, seconds: float) -> "MapperReport":
+        """This (earlier) model's report after the ``later`` model was merged into it (``numbers`` from
+        :meth:`~course_lib.sfm.mapper.IncrementalMapper.merge`): the later model's stages follow this
+        one's, then the merge; seconds add up; the initial pair stays this model's."""
+        self.stages += [{**st, "model": "merged"} for st in later.stages]
+        self.stages.append({"stage": "merge", **numbers, "seconds": round(seconds, 3)})
+        for kind, sec in later.seconds.items():
+            self.seconds[kind] = self.seconds.get(kind, 0.0) + sec
+        self.seconds["merge"] = self.seconds.get("merge", 0.0) + seconds
+        self.reasons.update(later.reasons)
+        self.say(f"merged a model of {len(numbers['images_added'])} new image(s) into this one: {numbers['shared_images']} "
+                 f"shared images, {numbers['inliers']}/{numbers['common_points']} common points agree")
+        return self
+
     # --- the model's report -----------------------------------------------------------------------------
 
     def model_report(self, rec, camera: dict) -> dict:
@@ -100,7 +117,12 @@ class MapperReport:
         and the keys shared by all models once every model exists.
         """
         stats = rec.error_stats()
-        return {"initial_pair": dict(self.initial), "stages": self.stages, "seconds": dict(self.seconds),
+        initial = {**self.initial, "candidates": self.candidates}
+        if self.relaxations:
+            initial["relaxed"] = self.relaxations
+        registered = {i for i in range(len(self.names)) if rec.registered[i]}
+        self.reasons = {i: why for i, why in self.reasons.items() if i not in registered}
+        return {"initial_pair": initial, "stages": self.stages, "seconds": dict(self.seconds),
                 "camera": camera, "final": {
                     "registered_images": rec.n_registered,
                     "registered": [self.names[i] for i in range(len(self.names)) if rec.registered[i]],

@@ -25,9 +25,11 @@ return numbers; this module calls them in order, times them and records them in 
    dropped for the next. The calibrated five-point E, its four candidates and the cheirality test
    give the second camera; the first is the world frame (``R = I, t = 0``), the baseline has length 1.
 3. **Registration** (notebook 04; ``register_next_image``): the image whose 2D-3D
-   correspondences are the most and the most spread out next: PnP RANSAC then non-linear PnP.
-   Images that fail are tried again after every registration. This is how UPenn images 5 and 6,
-   which share no matches with images 1 and 2, come in.
+   correspondences are the most and the most spread out next: PnP RANSAC then non-linear PnP; the
+   pose needs ``min_pnp_inliers`` inliers and ``min_pnp_inlier_ratio`` of the matches (a pose that
+   explains a fifth of them was found among look-alike texture). Images that fail are tried again
+   after every registration. This is how UPenn images 5 and 6, which share no matches with images
+   1 and 2, come in.
 4. **Triangulation** (notebook 03; ``triangulate_image``): the tracks the new image shares with
    every registered image, linear from its farthest partner, kept if in front, within
    ``max_reproj_px`` and seen under ``min_angle_deg`` or more.
@@ -38,7 +40,13 @@ return numbers; this module calls them in order, times them and records them in 
    ``4 sigma`` and a final BA (plain least squares for Gaussian-like errors, Cauchy for SIFT's heavy
    tail; cameras first with the points seen three or more times).
 6. **Several models**: where the model cannot grow and two or more images are left, a new model
-   starts from those (as COLMAP does); the largest is returned, the others in ``others``.
+   starts from two of those (as COLMAP does). It may register images of earlier models as it grows
+   (models overlap, as COLMAP's do); one that shares images with an earlier model is merged into it
+   where one similarity carries its points onto the earlier model's
+   (:meth:`~course_lib.sfm.mapper.IncrementalMapper.merge`), and the merged model grows on. A ring
+   that splits where one image has too few inliers from one side is closed from the other: on a
+   24-view ring without a calibration file, 17 + 7 images became one model of 24. The largest
+   model is returned, the others in ``others``.
 
 P3 data quirks handled upstream by the reader (:mod:`course_lib.data.p3`): duplicate rows are
 merged, features are identified by equal coordinates. Matches contain outliers on purpose
@@ -136,50 +144,83 @@ def _build_models(mapper: IncrementalMapper, rgb: np.ndarray, pairs: dict) -> tu
     """Grow models until no pair of the images left can start one; ``(models, reasons)``, one reasons dict per model.
 
     Each model has its :class:`~course_lib.sfm.mapper_report.MapperReport`, which becomes its
-    ``report``. A model after the first with fewer than ``min_model_size`` images is discarded;
-    its images are left out with that reason.
+    ``report``. A later model that registers images of an earlier one is merged into it
+    (:func:`_merge`) and the merged model grows on. A model after the first with fewer than
+    ``min_model_size`` images is discarded; its images are left out with that reason.
     """
     opts = mapper.opts
-    models, reasons, discarded = [], [], {}
-    while len(models) < opts.max_models and (~mapper.used).sum() >= 2:
+    built: list[tuple] = []  # (Reconstruction, MapperReport, the mapper's state) per model
+    discarded = {}
+    while len(built) < opts.max_models and (~mapper.used).sum() >= 2:
         report = MapperReport(mapper.names, opts.verbose)
-        tried, relaxations = _start_model(mapper, report, relax=not models)
+        _start_model(mapper, report, relax=not built)
         if not mapper.registered.any():
-            if not models:
-                raise KitInputError(_no_start_message(mapper, tried, pairs))
+            if not built:
+                raise KitInputError(_no_start_message(mapper, report.candidates, pairs))
             break
-        _grow(mapper, report)
-        _finish(mapper, report)
-        n = int(mapper.registered.sum())
-        _grow(mapper, report)  # a last try for the images left out: the final BA and re-triangulation may let them in now
-        if mapper.registered.sum() > n:
-            _finish(mapper, report)
+        _grow_and_finish(mapper, report)
+        report, built = _merge(mapper, report, built)
         rec = mapper.end_model(rgb)
         rec.report = report.model_report(rec, mapper.camera())
-        rec.report["initial_pair"]["candidates"] = tried
-        if relaxations:
-            rec.report["initial_pair"]["relaxed"] = relaxations
-        if models and rec.n_registered < opts.min_model_size:
+        if built and rec.n_registered < opts.min_model_size:
             why = (f"in a model of only {rec.n_registered} images ({', '.join(rec.report['final']['registered'])}): "
                    f"fewer than min_model_size={opts.min_model_size}, discarded")
             discarded.update({int(i): why for i in np.flatnonzero(rec.registered)})
             continue
-        models.append(rec)
-        reasons.append(dict(report.reasons))
+        built.append((rec, report, mapper.state()))
         if not opts.multiple_models:
             break
+    reasons = [dict(report.reasons) for _, report, _ in built]
     for r in reasons:
         r.update(discarded)
-    return models, reasons
+    return [rec for rec, _, _ in built], reasons
 
 
-def _start_model(mapper: IncrementalMapper, report: MapperReport, relax: bool) -> tuple[list, list]:
-    """Try the candidate pairs until one starts a model; ``(rows of the pairs tried, relaxations made)``.
+def _grow_and_finish(mapper: IncrementalMapper, report: MapperReport) -> None:
+    """Register what can be, finish, and give the images still left a last try (the final BA and re-triangulation may let them in)."""
+    _grow(mapper, report)
+    _finish(mapper, report)
+    n = int(mapper.registered.sum())
+    _grow(mapper, report)
+    if mapper.registered.sum() > n:
+        _finish(mapper, report)
+
+
+def _merge(mapper: IncrementalMapper, report: MapperReport, built: list) -> tuple[MapperReport, list]:
+    """Merge the mapper's model into every earlier model it shares images with; ``(its report, the models left)``.
+
+    Each merge (:meth:`~course_lib.sfm.mapper.IncrementalMapper.merge`) carries the model into the
+    earlier one's frame; the earlier model's report takes the later one's stages
+    (:meth:`~course_lib.sfm.mapper_report.MapperReport.absorb`). After a merge the merged model grows
+    on and is finished again: the images neither model could reach may register now.
+    """
+    merged = False
+    for k in range(len(built)):
+        rec, earlier, state = built[k]
+        if not (state["registered"] & mapper.registered).any():
+            continue
+        t0 = time.perf_counter()
+        numbers, why = mapper.merge(state)
+        if numbers is None:
+            names = rec.report["final"]["registered"]
+            report.say(f"not merged with the earlier model of {len(names)} images ({', '.join(names[:3])}, ...): {why}")
+            continue
+        report = earlier.absorb(report, numbers, time.perf_counter() - t0)
+        built[k] = None
+        merged = True
+    built = [b for b in built if b is not None]
+    if merged:
+        _grow_and_finish(mapper, report)
+    return report, built
+
+
+def _start_model(mapper: IncrementalMapper, report: MapperReport, relax: bool) -> None:
+    """Try the candidate pairs until one starts a model; the rows of the pairs tried and the relaxations made go to ``report``.
 
     Where none does and ``relax`` (no model yet), the initialization is relaxed (a new options
     object, :func:`~course_lib.sfm.mapper_options.relaxed`) and the candidates tried again.
     """
-    tried, made = [], []
+    tried, made = report.candidates, report.relaxations
     mapper.begin_model()
     for step in range(mapper.opts.init_relaxations + 1 if relax else 1):
         if step:
@@ -193,10 +234,9 @@ def _start_model(mapper: IncrementalMapper, report: MapperReport, relax: bool) -
             numbers = mapper.initialize(pair)
             if numbers is not None:
                 report.started(pair, numbers, time.perf_counter() - t0)
-                return tried, made
+                return
             if pair.images in mapper.failed_starts:
                 report.start_failed(pair.images, mapper.failed_starts[pair.images], mapper.opts.init_min_points)
-    return tried, made
 
 
 def _grow(mapper: IncrementalMapper, report: MapperReport) -> None:

@@ -133,6 +133,103 @@ def test_only_degenerate_pairs_is_one_clear_line_and_exit_2(tmp_path, capsys):
     assert len(err) == 1 and "1.png-2.png: pure rotation" in err[0] and "different positions" in err[0]
 
 
+
+def test_a_pose_that_explains_a_small_share_of_the_matches_is_refused(small_scene):
+    """COLMAP's abs_pose_min_inlier_ratio: a pose that explains only a small share of an image's 2D-3D matches was
+    found among look-alike texture. Here 70 right matches among 200 (the rest random pixels): registered at the
+    default share (25 %), refused at 50 % with the reason."""
+    _, data = small_scene
+    mapper, _ = _mapper(data)
+    assert mapper.initialize(mapper.score_pair(0, 1))
+    for i in (2, 3):
+        assert mapper.add_image(i)[0] is not None
+    js = np.flatnonzero(mapper.has_X & mapper.candidate[:, 4])
+    assert len(js) >= 200
+    mapper.candidate[js[200:], 4] = False
+    wrong = js[70:200]
+    mapper.uv[wrong, 4] = np.random.default_rng(1).uniform([0, 0], [800, 600], (len(wrong), 2))
+    state = mapper.state()
+    mapper.use_options(MapperOptions.from_keywords(mapper.opts, min_pnp_inlier_ratio=0.5))
+    numbers, why = mapper.register_next_image(4)
+    assert numbers is None and why.startswith("too small a share of PnP inliers:") and "of 200 2D-3D matches" in why
+    assert "need 50%" in why and not mapper.registered[4]
+    mapper.use_options(MapperOptions.from_keywords(mapper.opts, min_pnp_inlier_ratio=0.25))
+    numbers, why = mapper.register_next_image(4)
+    assert why is None and 60 <= numbers["pnp_inliers"] <= 75 and numbers["correspondences"] == 200
+    assert (state["candidate"] | ~mapper.candidate).all()  # only the outliers lost their flag
+
+
+def _grow_from(mapper, a, b, images):
+    """A model started from pair (a, b) and grown by ``images`` in that order (each must register)."""
+    assert mapper.initialize(mapper.score_pair(a, b))
+    for i in images:
+        numbers, why = mapper.add_image(i)
+        assert numbers is not None, why
+    mapper.finish()
+
+
+@pytest.fixture(scope="module")
+def six_views(tmp_path_factory):
+    sc = make_scene(np.random.default_rng(5), n_cameras=6, n_points=400, outlier_fraction=0.05)
+    data, _ = write_scene_p3(sc, tmp_path_factory.mktemp("p3"))
+    return sc, data
+
+
+def test_a_later_model_that_shares_images_is_merged_into_the_earlier_one(six_views):
+    """Two models with their own frames and scales (0, 1, 2, 3 and 2, 3, 4, 5): one similarity on their common
+    points carries the later into the earlier one's frame; all six cameras end up right, the gauge is the earlier's."""
+    sc, data = six_views
+    mapper, _ = _mapper(data)
+    _grow_from(mapper, 0, 1, [2, 3])
+    earlier = mapper.state()
+    mapper.begin_model()
+    _grow_from(mapper, 4, 5, [3, 2])
+    numbers, why = mapper.merge(earlier)
+    assert why is None and numbers["shared_images"] == 2 and numbers["images_added"] == [4, 5]
+    assert numbers["inliers"] >= 0.9 * numbers["common_points"] and numbers["ba"]["kind"] == "global"
+    assert mapper.registered.all() and mapper.ref == 0
+    np.testing.assert_allclose(mapper.R[0], np.eye(3), atol=1e-9)  # the earlier model's gauge
+    assert _rotation_error(mapper.R, mapper.t, mapper.registered, sc) < 0.2
+    assert np.nanmedian(mapper.errors()) < 1.0
+
+
+def test_a_model_whose_points_disagree_is_not_merged(six_views):
+    _, data = six_views
+    mapper, _ = _mapper(data)
+    _grow_from(mapper, 0, 1, [2, 3])
+    earlier = mapper.state()
+    earlier["X"] = earlier["X"][np.random.default_rng(0).permutation(len(earlier["X"]))]  # points on the wrong tracks
+    mapper.begin_model()
+    _grow_from(mapper, 4, 5, [3, 2])
+    before = mapper.state()
+    numbers, why = mapper.merge(earlier)
+    assert numbers is None and "common points onto the earlier model" in why
+    assert (mapper.registered == before["registered"]).all() and np.array_equal(mapper.X, before["X"], equal_nan=True)
+    mapper.begin_model()
+    numbers, why = mapper.merge(earlier)
+    assert numbers is None and why == "0 shared images, need 1"
+
+
+def test_run_sfm_merges_a_model_that_grows_into_an_earlier_one(six_views, monkeypatch):
+    """The controller's side: the first model is stopped at four images (the others fail to register once), the
+    second starts from the two images left, grows into the first and is merged: one model of six, both reports in it."""
+    sc, data = six_views
+    real = IncrementalMapper.register_next_image
+
+    def first_model_stops_at_four(self, i):
+        if not self.used.any() and self.registered.sum() >= 4:
+            return None, "held out by the test"
+        return real(self, i)
+
+    monkeypatch.setattr(IncrementalMapper, "register_next_image", first_model_stops_at_four)
+    rec = run_sfm(data, np.random.default_rng(0))
+    assert rec.n_registered == 6 and rec.others == [] and [m["registered_images"] for m in rec.report["models"]] == [6]
+    merges = [st for st in rec.report["stages"] if st["stage"] == "merge"]
+    assert len(merges) == 1 and len(merges[0]["images_added"]) == 2 and merges[0]["shared_images"] >= 2
+    assert any(st.get("model") == "merged" and st["stage"] == "initial pair" for st in rec.report["stages"])
+    assert rec.report["left_out"] == [] and "merge" in rec.report["seconds"]
+    assert _rotation_error(rec.R_cw, rec.t_cw, rec.registered, sc) < 0.2
+
 # --- the hard scenes against COLMAP on the same matches --------------------------------------------------
 
 
