@@ -163,7 +163,8 @@ def _print_summary(report: dict, data_dir: Path, models: list, folders: list, ou
         if d["name"] not in in_some:
             print(f"left out: {d['name']}: {d['reason']}")
     for d in report.get("degenerate_pairs", []):
-        print(f"degenerate pair (not used to start): {d['names'][0]}, {d['names'][1]}: {d['kind']}")
+        if d["kind"] != "mostly planar":
+            print(f"degenerate pair (not used to start): {d['names'][0]}, {d['names'][1]}: {d['kind']}")
     cam = report.get("camera", {})
     if cam.get("model") == "SIMPLE_RADIAL":
         print(f"camera refined (SIMPLE_RADIAL): f = {cam['K'][0][0]:.1f} px (from {cam['prior_focal_px']:.1f}), k1 = {cam['k1']:.4f}")

@@ -17,7 +17,10 @@ comes from the **calibrated** route, as COLMAP's initial pair does:
    fitted the pair's own inliers at a median Sampson distance of 24-26 px while F fitted them at
    0.2 px; the five-point pose keeps them all, and the pair can start a model.
 2. :func:`pair_degeneracy`: a pair that a homography explains (pure rotation, a planar scene) or
-   whose matches barely move (identical photos: no baseline) cannot start a model; it is named.
+   whose matches barely move (identical photos: no baseline) cannot start a model; it is named. A
+   pair that sees a plane and enough structure off it (``"mostly planar"``: a facade with a few
+   balconies) can: the five-point E is not degenerate for a plane, and the points off the plane
+   decide between the two poses a plane alone allows. The mapper tries such pairs after the others.
 
 Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
 """
@@ -66,22 +69,27 @@ class InitialPair:
                 "pose_inliers": self.pose_inliers, "median_angle_deg": round(self.median_angle_deg, 2)}
 
 
-def pair_degeneracy(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px: float) -> tuple[str, float]:
+def pair_degeneracy(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px: float,
+                    min_off_plane: int = 20) -> tuple[str, float]:
     """Can a pair start a reconstruction? Identical photos, pure rotation and planar scenes cannot.
 
     * **identical or near-identical photos**: the matches barely move (median displacement below
       :data:`course_lib.data.two_view.IDENTICAL_PX`): no baseline at all;
     * otherwise a homography ``H`` (OpenCV's RANSAC, ``threshold_px``) is fitted to the pair's
       inliers. If it explains more than :data:`H_INLIER_RATIO` of them: if ``K⁻¹ H K`` is a rotation
-      (equal singular values), the camera only turned (no baseline, nothing to triangulate),
-      otherwise the points lie on a plane (F is not unique).
+      (equal singular values), the camera only turned (no baseline, nothing to triangulate);
+      otherwise the points lie on a plane (F is not unique, and a plane alone allows two poses),
+      ``"planar"`` -- or ``"mostly planar"`` where ``min_off_plane`` or more matches lie off it:
+      those decide between the two poses, and the pair can start a model when no other can.
 
     Args:
         x1, x2: ``(N, 2)`` inlier matches. K: ``(3, 3)``. threshold_px: pixels.
+        min_off_plane: matches the homography does not explain that make a planar pair ``"mostly planar"``.
 
     Returns:
         ``(kind, ratio)``: kind ``""`` (fine), ``"identical or near-identical photos"``,
-        ``"pure rotation"`` or ``"planar"``; the share of the matches the homography explains.
+        ``"pure rotation"``, ``"planar"`` or ``"mostly planar"``; the share of the matches the
+        homography explains.
     """
     import cv2
 
@@ -99,7 +107,9 @@ def pair_degeneracy(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px:
     if ratio <= H_INLIER_RATIO:
         return "", ratio
     s = np.linalg.svd(np.linalg.inv(K) @ H @ K, compute_uv=False)
-    return ("pure rotation" if s[0] / s[2] < 1.02 else "planar"), ratio
+    if s[0] / s[2] < 1.02:
+        return "pure rotation", ratio
+    return ("mostly planar" if (~mask.ravel().astype(bool)).sum() >= min_off_plane else "planar"), ratio
 
 
 def _skew(t: np.ndarray) -> np.ndarray:

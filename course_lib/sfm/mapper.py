@@ -13,7 +13,8 @@ it calls them in this order, times them, and records their numbers and printed l
    ``init_min_angle_deg`` (a long baseline). The relative pose is the calibrated one: the
    five-point essential matrix, refined (:func:`course_lib.sfm.initial_pair.calibrated_pose`).
    Pairs that a homography explains (pure rotation, a plane) or whose matches do not move
-   (identical photos) are named and skipped (:func:`~course_lib.sfm.initial_pair.pair_degeneracy`).
+   (identical photos) are named and skipped (:func:`~course_lib.sfm.initial_pair.pair_degeneracy`);
+   pairs of a plane with enough structure off it (``"mostly planar"``) are tried after all others.
 2. :meth:`IncrementalMapper.initialize` places the pair (camera ``a`` is the world frame, the
    baseline has length 1), triangulates, bundle-adjusts and filters; a pair that keeps fewer than
    ``init_min_points`` points is dropped and the next candidate tried (bundle adjustment is never
@@ -245,15 +246,20 @@ class IncrementalMapper:
         return self.undistort(pm.x1[inl]), self.undistort(pm.x2[inl])
 
     def is_degenerate(self, a: int, b: int) -> bool:
-        """Whether pair ``(a, b)`` cannot start a model (:func:`pair_degeneracy`); such pairs are named in :attr:`degenerate`."""
+        """Whether pair ``(a, b)`` cannot start a model (:func:`pair_degeneracy`); such pairs, and the
+        ``"mostly planar"`` ones (tried after the others), are named in :attr:`degenerate`."""
         if (a, b) not in self._degenerate_checked:
             x1, x2 = self._pair_inliers(a, b)
-            kind, ratio = pair_degeneracy(x1, x2, self.K, self.opts.f_threshold_px)
+            kind, ratio = pair_degeneracy(x1, x2, self.K, self.opts.f_threshold_px, self.opts.init_min_points)
             self._degenerate_checked.add((a, b))
             if kind:
                 self.degenerate[(a, b)] = {"pair": [a, b], "names": [self.names[a], self.names[b]], "kind": kind,
                                            "homography_share": round(ratio, 3), "f_inliers": len(x1)}
-        return (a, b) in self.degenerate
+        return (a, b) in self.degenerate and not self.mostly_planar(a, b)
+
+    def mostly_planar(self, a: int, b: int) -> bool:
+        """Whether pair ``(a, b)`` sees mostly a plane, with enough off it to start a model when no other pair can."""
+        return self.degenerate.get((a, b), {}).get("kind") == "mostly planar"
 
     def score_pair(self, a: int, b: int) -> InitialPair | None:
         """The two-view start of pair ``(a, b)`` (camera ``a`` at the origin), or None where it is degenerate.
@@ -285,8 +291,9 @@ class IncrementalMapper:
 
         First images by :meth:`connectivity` (the most verified correspondences to the most
         images); for each, its partners with at least ``min_pair_inliers`` verified matches that are
-        not degenerate and score at least ``init_min_points``, best score first. At most
-        ``init_max_trials`` pairs; each once.
+        not degenerate and score at least ``init_min_points``, best score first. The ``"mostly
+        planar"`` pairs come after all others, best score first. At most ``init_max_trials`` pairs;
+        each once.
         """
         o = self.opts
         if o.initial_pair is not None and not self.used.any():
@@ -299,10 +306,13 @@ class IncrementalMapper:
         eligible = [k for k, (_, inl) in self.pairs.items()
                     if not self.used[list(k)].any() and inl.sum() >= o.min_pair_inliers]
         eligible = [k for k in eligible if not self.is_degenerate(*k)]  # all checked: every degenerate pair is named
+        planar = [k for k in eligible if self.mostly_planar(*k)]
+        eligible = [k for k in eligible if k not in planar]
         done: set = set()
-        for first in sorted(np.flatnonzero(conn > 0), key=lambda i: (-conn[i], i)):
-            found = [self.score_pair(*k) for k in eligible if first in k and k not in done and k not in self.failed_starts]
-            done |= {k for k in eligible if first in k}
+        groups = [[k for k in eligible if first in k] for first in sorted(np.flatnonzero(conn > 0), key=lambda i: (-conn[i], i))]
+        for group in groups + [planar]:
+            found = [self.score_pair(*k) for k in group if k not in done and k not in self.failed_starts]
+            done |= set(group)
             found = sorted((c for c in found if c is not None and c.score >= o.init_min_points),
                            key=lambda c: (c.score, c.inliers), reverse=True)
             for c in found:

@@ -21,8 +21,9 @@ return numbers; this module calls them in order, times them and records them in 
 2. **Initial pair** (notebooks 02, 03; ``find_initial_pair``, ``initialize``): the image with the
    most verified correspondences to other images first, then its partner with the most points
    triangulated at ``init_min_angle_deg`` or more; pure-rotation and planar pairs are named and
-   skipped; a pair that keeps fewer than ``init_min_points`` points after triangulation and BA is
-   dropped for the next. The calibrated five-point E, its four candidates and the cheirality test
+   skipped (a plane with enough structure off it, ``"mostly planar"``, is tried after the others,
+   as COLMAP starts from planar pairs); a pair that keeps fewer than ``init_min_points`` points
+   after triangulation and BA is dropped for the next. The calibrated five-point E, its four candidates and the cheirality test
    give the second camera; the first is the world frame (``R = I, t = 0``), the baseline has length 1.
 3. **Registration** (notebook 04; ``register_next_image``): the image whose 2D-3D
    correspondences are the most and the most spread out next: PnP RANSAC then non-linear PnP; the
@@ -87,7 +88,8 @@ def run_sfm(data, rng: np.random.Generator, options: MapperOptions | None = None
         The largest model (most images, then most points) as a :class:`Reconstruction`; the other
         models, largest first, in its ``others``. Its ``report`` holds ``pairs`` (matches / RANSAC
         inliers per pair), ``tracks`` (raw and verified tracks, refused links),
-        ``degenerate_pairs`` (pairs not used to start: ``"pure rotation"`` or ``"planar"``),
+        ``degenerate_pairs`` (pairs not used to start: ``"identical or near-identical photos"``,
+        ``"pure rotation"`` or ``"planar"``; and ``"mostly planar"``: tried after the others),
         ``initial_pair``, ``stages`` (one entry per registration attempt: PnP inliers, new points,
         reprojection error before and after BA, seconds), ``left_out`` (each image not in this
         model, with the reason), ``final`` (registered images, points, observations, mean / median
@@ -285,7 +287,7 @@ def _finish(mapper: IncrementalMapper, report: MapperReport) -> None:
 def _no_start_message(mapper: IncrementalMapper, tried: list, pairs: dict) -> str:
     """One line: why no image pair could start the reconstruction."""
     o = mapper.opts
-    degenerate = list(mapper.degenerate.values())
+    degenerate = [d for d in mapper.degenerate.values() if d["kind"] != "mostly planar"]
     why = "; ".join(f"{d['names'][0]}-{d['names'][1]}: {d['kind']}" + (
         " (no baseline: the matches do not move)" if d["kind"].startswith("identical") else
         f" (a homography explains {100 * d['homography_share']:.0f} % of the matches)") for d in degenerate[:6])

@@ -241,6 +241,20 @@ def test_planar_scene_is_a_named_error(base_scene, tmp_path):
         run_sfm(data, np.random.default_rng(0))
 
 
+def test_a_facade_with_structure_off_it_starts_after_the_other_pairs(base_scene, tmp_path):
+    """85 % of the points on one plane (a facade), the rest off it (balconies): every pair is "mostly planar"; the
+    five-point pose is not degenerate for a plane and the points off it pick the right one of its two poses."""
+    X = base_scene.X.copy()
+    on_plane = np.random.default_rng(1).random(len(X)) < 0.85
+    X[on_plane, 2] = 10.0
+    data, _ = write_scene_p3(_observe(base_scene.K, base_scene.R_cw, base_scene.t_cw, X, 4), tmp_path)
+    rec = run_sfm(data, np.random.default_rng(0))
+    _check_consistent(rec)
+    assert {d["kind"] for d in rec.report["degenerate_pairs"]} == {"mostly planar"}
+    assert rec.n_registered == 5
+    assert pose_errors(rec.R_cw, rec.t_cw, base_scene.R_cw, base_scene.t_cw).rotation_deg.max() < 0.2
+
+
 @pytest.mark.parametrize("n_seen, reason", [
     (18, "too few 2D-3D matches: 18 of its features see triangulated points, PnP needs 20"),
     (10, "no verified matches with any other image"),
