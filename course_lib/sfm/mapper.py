@@ -730,13 +730,14 @@ class IncrementalMapper:
         over is an inlier when it reprojects within ``max_reproj_px`` in every image of the earlier
         model that observes it. The best candidate is refitted on its inliers. Where at least
         ``merge_min_inlier_ratio`` of the common points (and ``init_min_points``) are inliers, the images only the current
-        model has are carried into the earlier frame with their points (the earlier model keeps its
-        own poses and points where both have one), and a bundle adjustment of the whole model and
-        filtering follow. The merged model is the current one; its gauge is the earlier model's.
+        model has are carried into the earlier frame with their points -- or, where the current
+        model is the larger, the earlier model's into the current frame -- the larger model keeping
+        its own poses and points where both have one; a bundle adjustment of the whole model and
+        filtering follow. The merged model is the current one, in the larger model's frame and gauge.
 
         Returns:
             ``(numbers, None)``: ``shared_images``, ``common_points``, ``inliers``, ``scale``,
-            ``images_added``, ``points_added`` and the BA's numbers; or ``(None, why not)``, the
+            ``images_added`` and ``points_added`` (what the smaller model brought), and the BA's numbers; or ``(None, why not)``, the
             current model unchanged.
         """
         o = self.opts
@@ -779,17 +780,23 @@ class IncrementalMapper:
         if best.sum() < max(o.merge_min_inlier_ratio * len(common), o.init_min_points) or s <= 0:
             return None, (f"one similarity carries only {int(best.sum())} of the {len(common)} common points onto the "
                           f"earlier model (need {o.merge_min_inlier_ratio:.0%} and {o.init_min_points})")
-        new_images = np.flatnonzero(self.registered & ~earlier["registered"])
-        new_points = np.flatnonzero(self.has_X & ~np.isfinite(X_e).all(axis=1))
-        R, t, X, candidate = earlier["R"].copy(), earlier["t"].copy(), X_e.copy(), earlier["candidate"].copy()
-        for i in new_images:  # x = R_i X + t_i with X = Rs^T (X' - Ts) / s; scaled by s: R_i Rs^T X' + s t_i - R_i Rs^T Ts
-            R[i] = self.R[i] @ Rs.T
-            t[i] = s * self.t[i] - R[i] @ Ts
-            candidate[:, i] = self.candidate[:, i]
-        X[new_points] = s * self.X[new_points] @ Rs.T + Ts
+        mine = self.state()
+        if mine["registered"].sum() >= earlier["registered"].sum():
+            # the current model is the larger: the earlier one's images and points come into its frame
+            base, other, s_, R_, T_ = mine, earlier, 1.0 / s, Rs.T, -Rs.T @ Ts / s
+        else:
+            base, other, s_, R_, T_ = earlier, mine, s, Rs, Ts
+        new_images = np.flatnonzero(other["registered"] & ~base["registered"])
+        new_points = np.flatnonzero(np.isfinite(other["X"]).all(axis=1) & ~np.isfinite(base["X"]).all(axis=1))
+        R, t, X, candidate = base["R"].copy(), base["t"].copy(), base["X"].copy(), base["candidate"].copy()
+        for i in new_images:  # x = R_i X + t_i with X = R_^T (X' - T_) / s_; scaled by s_: R_i R_^T X' + s_ t_i - R_i R_^T T_
+            R[i] = other["R"][i] @ R_.T
+            t[i] = s_ * other["t"][i] - R[i] @ T_
+            candidate[:, i] = other["candidate"][:, i]
+        X[new_points] = s_ * other["X"][new_points] @ R_.T + T_
         self.R, self.t, self.X, self.candidate = R, t, X, candidate
-        self.registered = self.registered | earlier["registered"]
-        self.ref = earlier["ref"]
+        self.registered = base["registered"] | other["registered"]
+        self.ref = base["ref"]
         stage = {"shared_images": int(shared.sum()), "common_points": int(len(common)), "inliers": int(best.sum()),
                  "scale": round(float(s), 6), "images_added": [int(i) for i in new_images], "points_added": int(len(new_points)),
                  "reprojection_before_ba": self.observation_stats()}

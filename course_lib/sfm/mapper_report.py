@@ -102,8 +102,8 @@ class MapperReport:
             self.seconds[kind] = self.seconds.get(kind, 0.0) + sec
         self.seconds["merge"] = self.seconds.get("merge", 0.0) + seconds
         self.reasons.update(later.reasons)
-        self.say(f"merged a model of {len(numbers['images_added'])} new image(s) into this one: {numbers['shared_images']} "
-                 f"shared images, {numbers['inliers']}/{numbers['common_points']} common points agree")
+        self.say(f"merged with an earlier model: {numbers['shared_images']} shared images, {numbers['inliers']}/"
+                 f"{numbers['common_points']} common points agree, {len(numbers['images_added'])} image(s) added")
         return self
 
     # --- the model's report -----------------------------------------------------------------------------
