@@ -21,7 +21,11 @@ it calls them in this order, times them, and records their numbers and printed l
    called on nothing).
 3. :meth:`IncrementalMapper.register_next_image`: PnP RANSAC then non-linear PnP on the image
    ranked first by the number *and spread* of its 2D-3D correspondences (:func:`spread_score`, as
-   COLMAP's visibility pyramid). Images that fail are retried after every new registration.
+   COLMAP's visibility pyramid). An image that sees too few triangulated points for PnP is
+   registered from its matches with two or more registered images instead
+   (:meth:`IncrementalMapper.register_from_pairs`, COLMAP's structure-less fallback; a ring whose
+   views overlap their neighbours but hardly the views two steps away has only two-view tracks
+   at its weak links). Images that fail are retried after every new registration.
    :meth:`IncrementalMapper.add_image` does steps 3-5 for one image.
 4. :meth:`IncrementalMapper.triangulate_image`: the tracks the new image shares with *every*
    registered image (widest baseline first), so links grow beyond the initial pair's.
@@ -62,6 +66,7 @@ from course_lib.sfm import lm
 from course_lib.sfm.bundle_adjustment import adjust
 from course_lib.sfm.initial_pair import H_INLIER_RATIO, InitialPair, calibrated_pose, pair_degeneracy
 from course_lib.sfm.mapper_options import MapperOptions
+from course_lib.sfm.structureless import pose_from_partners, refine_on_partners, sampson_signed
 from course_lib.sfm.reconstruction import Reconstruction, error_summary, reprojection_error_matrix, triangulation_angles_deg
 from course_lib.validate import KitInputError
 
@@ -182,6 +187,7 @@ class IncrementalMapper:
     def set_intrinsics(self, K: np.ndarray, k1: float) -> None:
         """Use ``K`` and the radial term ``k1``: :attr:`uv` becomes the undistorted pixels of the tracks."""
         self.K, self.k1 = np.asarray(K, float), float(k1)
+        self._relative: dict = {}  # five-point poses of pairs (register_from_pairs), on these pixels
         self.uv = undistort_pixels(self.uv_raw, self.K, self.k1)
 
     def undistort(self, x: np.ndarray) -> np.ndarray:
@@ -377,7 +383,77 @@ class IncrementalMapper:
         return [(i, n) for _, n, i in rows]
 
     def register_next_image(self, i: int) -> tuple[dict | None, str | None]:
-        """PnP RANSAC + non-linear PnP for image ``i``: ``(info, None)``, or ``(None, why it failed)``."""
+        """PnP RANSAC + non-linear PnP for image ``i``: ``(info, None)``, or ``(None, why it failed)``.
+
+        Where PnP fails and ``structure_less_fallback`` is on, the image is registered from its
+        matches with the registered images alone (:meth:`register_from_pairs`), as COLMAP does.
+        """
+        info, why = self._register_pnp(i)
+        if info is not None or not self.opts.structure_less_fallback:
+            return info, why
+        info, why_pairs = self.register_from_pairs(i)
+        return (info, None) if info is not None else (None, f"{why}; from its matches alone: {why_pairs}")
+
+    def _relative_pose(self, a: int, b: int):
+        """The five-point pose of image ``b`` relative to ``a`` for the verified pair ``(a, b)``: ``(R, t, inliers)`` or None (cached)."""
+        if (a, b) not in self._relative:
+            x1, x2 = self._pair_inliers(a, b)
+            try:
+                choice, inl = calibrated_pose(x1, x2, self.K, self.opts.init_max_error_px, int(self.rng.integers(2**31 - 1)))
+            except KitInputError:
+                choice = None
+            self._relative[(a, b)] = None if choice is None else (choice.R_cw, choice.t_cw, inl)
+        return self._relative[(a, b)]
+
+    def register_from_pairs(self, i: int) -> tuple[dict | None, str | None]:
+        """Register image ``i`` from its verified matches with registered images, without 3-D points (COLMAP's structure-less fallback).
+
+        The five-point pose of ``i`` relative to each registered partner gives its rotation and
+        the direction of its centre; two or more partners that agree on the rotation and see it
+        from different places fix the centre (:func:`course_lib.sfm.structureless.pose_from_partners`),
+        which is then refined on all their matches
+        (:func:`course_lib.sfm.structureless.refine_on_partners`). The pose must explain
+        ``min_pnp_inliers`` of the matches within ``f_threshold_px`` (Sampson distance) and
+        ``min_pnp_inlier_ratio`` of them. The two-view tracks it shares with the partners can then
+        be triangulated (:meth:`triangulate_image`).
+
+        Returns:
+            ``(info, None)`` as :meth:`register_next_image` (``correspondences``: the 2D-2D matches,
+            ``pnp_inliers``: those the pose explains, ``structure_less``: the partners), or ``(None, why)``.
+        """
+        o = self.opts
+        rows = []
+        for k in np.flatnonzero(self.registered):
+            key = (min(i, k), max(i, k))
+            if key not in self.pairs or (rel := self._relative_pose(*key)) is None:
+                continue
+            R_ab, t_ab, inl = rel
+            R_ki, t_ki = (R_ab, t_ab) if k == key[0] else (R_ab.T, -R_ab.T @ t_ab)
+            x_a, x_b = self._pair_inliers(*key)
+            x_k, x_i = (x_a, x_b) if k == key[0] else (x_b, x_a)
+            rows.append((int(k), R_ki, t_ki, x_k, x_i, int(inl.sum())))
+        if len(rows) < 2:
+            return None, f"{len(rows)} registered image(s) with verified matches, two are needed"
+        ks = [r[0] for r in rows]
+        found, why = pose_from_partners(self.R[ks], self.t[ks], np.stack([r[1] for r in rows]), np.stack([r[2] for r in rows]),
+                                        np.array([r[5] for r in rows], float))
+        if found is None:
+            return None, why
+        R, t, used = found
+        partners = [(self.R[r[0]], self.t[r[0]], r[3], r[4]) for r, u in zip(rows, used) if u]
+        R, t = refine_on_partners(self.K, R, t, partners)
+        n_all = sum(len(p[2]) for p in partners)
+        n_in = sum(int((np.abs(sampson_signed(self.K, *p[:2], R, t, *p[2:])) <= o.f_threshold_px).sum()) for p in partners)
+        if n_in < o.min_pnp_inliers or n_in < o.min_pnp_inlier_ratio * n_all:
+            return None, (f"the pose from {len(partners)} partners explains {n_in} of their {n_all} matches within "
+                          f"{o.f_threshold_px} px, need {o.min_pnp_inliers} and {o.min_pnp_inlier_ratio:.0%}")
+        self.R[i], self.t[i] = R, t
+        self.registered[i] = True
+        return {"correspondences": n_all, "pnp_inliers": n_in, "ransac_iterations": 0,
+                "structure_less": [self.names[r[0]] for r, u in zip(rows, used) if u]}, None
+
+    def _register_pnp(self, i: int) -> tuple[dict | None, str | None]:
+        """PnP RANSAC + non-linear PnP on image ``i``'s 2D-3D correspondences: ``(info, None)`` or ``(None, why)``."""
         o = self.opts
         js = np.flatnonzero(self.has_X & self.candidate[:, i])
         need = max(6, o.min_pnp_inliers)

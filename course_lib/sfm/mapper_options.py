@@ -41,6 +41,10 @@ class MapperOptions:
         min_pnp_inlier_ratio: ... and with at least this share of its 2D-3D matches among them: a
             pose that explains a fifth of them was found among look-alike texture. (COLMAP
             ``abs_pose_min_inlier_ratio`` 0.25.)
+        structure_less_fallback: an image PnP cannot register (too few triangulated points among
+            its features) is registered from its matches with two or more registered images
+            instead (:meth:`course_lib.sfm.mapper.IncrementalMapper.register_from_pairs`). (COLMAP
+            ``structure_less_registration_fallback``.)
         max_reproj_px: observations reprojecting farther are dropped during the run. (COLMAP
             ``filter_max_reproj_error`` 4 px.)
         final_max_reproj_px: the threshold before the final BA; None: 4 x the noise level estimated
@@ -112,6 +116,7 @@ class MapperOptions:
     pnp_threshold_px: float = 8.0
     min_pnp_inliers: int = 20
     min_pnp_inlier_ratio: float = 0.25
+    structure_less_fallback: bool = True
     max_reproj_px: float = 4.0
     final_max_reproj_px: float | None = None
     min_angle_deg: float = 1.0

@@ -73,8 +73,10 @@ class MapperReport:
         """Image ``i`` registered; ``numbers`` from :meth:`~course_lib.sfm.mapper.IncrementalMapper.add_image`."""
         self.stages.append({"stage": "register", "image": i, "name": self.names[i], "registered": True, **numbers,
                             "seconds": round(seconds, 3)})
-        self.say(f"registered {self.names[i]}: {numbers['pnp_inliers']}/{numbers['correspondences']} PnP inliers, "
-                 f"{numbers['new_points']} new points, {numbers['points_after']} points")
+        how = (f"{numbers['pnp_inliers']}/{numbers['correspondences']} PnP inliers" if "structure_less" not in numbers else
+               f"from its matches with {', '.join(numbers['structure_less'])} ({numbers['pnp_inliers']}/"
+               f"{numbers['correspondences']} fit; too few points for PnP)")
+        self.say(f"registered {self.names[i]}: {how}, {numbers['new_points']} new points, {numbers['points_after']} points")
 
     def not_registered(self, i: int, correspondences: int, why: str) -> None:
         """Image ``i`` did not register (yet), for the reason ``why``."""

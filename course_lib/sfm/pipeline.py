@@ -28,9 +28,10 @@ return numbers; this module calls them in order, times them and records them in 
 3. **Registration** (notebook 04; ``register_next_image``): the image whose 2D-3D
    correspondences are the most and the most spread out next: PnP RANSAC then non-linear PnP; the
    pose needs ``min_pnp_inliers`` inliers and ``min_pnp_inlier_ratio`` of the matches (a pose that
-   explains a fifth of them was found among look-alike texture). Images that fail are tried again
-   after every registration. This is how UPenn images 5 and 6, which share no matches with images
-   1 and 2, come in.
+   explains a fifth of them was found among look-alike texture). An image that sees too few points
+   for PnP registers from its matches with two or more registered images (``register_from_pairs``,
+   COLMAP's structure-less fallback). Images that fail are tried again after every registration.
+   This is how UPenn images 5 and 6, which share no matches with images 1 and 2, come in.
 4. **Triangulation** (notebook 03; ``triangulate_image``): the tracks the new image shares with
    every registered image, linear from its farthest partner, kept if in front, within
    ``max_reproj_px`` and seen under ``min_angle_deg`` or more.

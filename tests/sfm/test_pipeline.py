@@ -264,12 +264,28 @@ def test_image_with_too_few_matches_is_left_out_by_name(base_scene, tmp_path, n_
     seen = np.flatnonzero(np.isfinite(sc.uv[:, 4, 0]))
     sc.uv[seen[n_seen:], 4] = np.nan  # image 5 sees only n_seen points
     data, _ = write_scene_p3(sc, tmp_path)
-    rec = run_sfm(data, np.random.default_rng(0))
+    rec = run_sfm(data, np.random.default_rng(0), structure_less_fallback=False)  # PnP alone
     _check_consistent(rec)
     assert rec.n_registered == 4
     assert [d["name"] for d in rec.report["left_out"]] == ["5.png"]
     assert rec.report["left_out"][0]["reason"].startswith(reason)
     assert rec.report["final"]["left_out"] == {"5.png": rec.report["left_out"][0]["reason"]}
+
+
+def test_an_image_that_sees_too_few_points_for_pnp_registers_from_its_matches(base_scene, tmp_path):
+    """18 points seen by image 5 (PnP needs 20), each also seen by several registered images: its matches with them
+    give its pose without 3-D points (COLMAP's structure-less fallback), as right as the others'."""
+    sc = _observe(base_scene.K, base_scene.R_cw, base_scene.t_cw, base_scene.X, 4)
+    seen = np.flatnonzero(np.isfinite(sc.uv[:, 4, 0]))
+    sc.uv[seen[18:], 4] = np.nan
+    data, _ = write_scene_p3(sc, tmp_path)
+    rec = run_sfm(data, np.random.default_rng(0))
+    _check_consistent(rec)
+    assert rec.n_registered == 5 and rec.report["left_out"] == []
+    (stage,) = [st for st in rec.report["stages"] if st.get("image") == 4 and st.get("registered")]
+    assert len(stage["structure_less"]) >= 2 and stage["pnp_inliers"] >= 20
+    err = pose_errors(rec.R_cw, rec.t_cw, base_scene.R_cw, base_scene.t_cw).rotation_deg
+    assert err[:4].max() < 0.2 and err[4] < 0.5  # 18 points at 0.5 px of noise: 0.24 deg
 
 
 def test_identical_photos_are_a_named_error(base_scene, tmp_path):
