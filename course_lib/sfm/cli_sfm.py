@@ -6,7 +6,8 @@ Without ``DATA_DIR`` the embedded scene (``data/synthetic-building``) is used. W
 * ``colmap/cameras.txt``, ``colmap/images.txt``, ``colmap/points3D.txt``: the largest model as COLMAP
   text files (open it with ``pycolmap.Reconstruction(OUT_DIR / "colmap")`` or COLMAP's GUI); where
   registration stalled and the images left made models of their own, those go beside it, largest
-  first: ``colmap-1/``, ``colmap-2/``, ...;
+  first: ``colmap-1/``, ``colmap-2/``, ... (the ``colmap-K/`` an earlier run left beyond these are
+  removed);
 * ``report.json``: the pipeline's per-stage report (pairs and their inliers, verified tracks, the
   camera (refined focal length and ``k1`` where the P3 folder came from ``match`` without ``--K``),
   degenerate pairs, initial pair, every registration, images left out and why, reprojection
@@ -117,6 +118,7 @@ def run(args) -> int:
 
     models = [rec] + rec.others
     folders = [m.write_colmap(out / m.report["models"][k]["folder"]) for k, m in enumerate(models)]
+    _remove_stale_models(out, len(models))
     html = None
     if not args.no_html:
         counts = " + ".join(str(m.n_registered) for m in models)
@@ -142,6 +144,21 @@ def run(args) -> int:
         json.dump(_jsonable(report), f, indent=2)
     _print_summary(report, data_dir, models, folders, out, html)
     return 0
+
+
+def _remove_stale_models(out: Path, n_models: int) -> None:
+    """Remove the ``colmap-K/`` models an earlier run wrote to ``out`` beyond this run's ``n_models``, so that no
+    folder there describes another run. Only the files the kit writes go (a folder with anything else stays)."""
+    written = {"cameras.txt", "images.txt", "points3D.txt"}
+    for folder in out.glob("colmap-*"):
+        k = folder.name.removeprefix("colmap-")
+        if not (k.isdigit() and int(k) >= n_models and folder.is_dir()):
+            continue
+        files = list(folder.iterdir())
+        if files and all(f.is_file() and f.name in written for f in files):
+            for f in files:
+                f.unlink()
+            folder.rmdir()
 
 
 def _print_summary(report: dict, data_dir: Path, models: list, folders: list, out: Path, html) -> None:

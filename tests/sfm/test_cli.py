@@ -165,3 +165,17 @@ def test_any_mapper_option_from_the_command_line(tmp_path, capsys):
         assert main(["sfm", "--out", str(tmp_path / "x"), "--quiet", "--option", bad]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and msg in err[0], (bad, err)
+
+
+def test_a_rerun_leaves_no_model_of_the_earlier_run(tmp_path, capsys):
+    """An earlier run into the same --out wrote colmap-1/ (two models): a run with one model removes it, and keeps a
+    colmap-N folder that holds anything the kit did not write."""
+    out = tmp_path / "o"
+    for k in (1, 2):
+        (out / f"colmap-{k}").mkdir(parents=True)
+        for name in ("cameras.txt", "images.txt", "points3D.txt"):
+            (out / f"colmap-{k}" / name).write_text("# an earlier run\n")
+    (out / "colmap-2" / "notes.md").write_text("mine\n")
+    assert main(["sfm", "--out", str(out), "--quiet", "--no-html"]) == 0
+    assert (out / "colmap" / "images.txt").is_file() and not (out / "colmap-1").exists()
+    assert (out / "colmap-2" / "notes.md").read_text() == "mine\n"
