@@ -58,7 +58,6 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from course_lib.alignment import align_similarity
 from course_lib.conventions import camera_center, projection_matrix
 from course_lib.data.camera import undistort_pixels
 from course_lib.exercises import call, caller
@@ -66,6 +65,7 @@ from course_lib.sfm import lm
 from course_lib.sfm.bundle_adjustment import adjust
 from course_lib.sfm.initial_pair import H_INLIER_RATIO, InitialPair, calibrated_pose, pair_degeneracy
 from course_lib.sfm.mapper_options import MapperOptions
+from course_lib.sfm.merging import carry, similarity_ransac
 from course_lib.sfm.structureless import pose_from_partners, refine_on_partners, sampson_signed
 from course_lib.sfm.reconstruction import Reconstruction, error_summary, reprojection_error_matrix, triangulation_angles_deg
 from course_lib.validate import KitInputError
@@ -805,16 +805,17 @@ class IncrementalMapper:
         points give a candidate (:func:`course_lib.alignment.align_similarity`); a point carried
         over is an inlier when it reprojects within ``max_reproj_px`` in every image of the earlier
         model that observes it. The best candidate is refitted on its inliers. Where at least
-        ``merge_min_inlier_ratio`` of the common points (and ``init_min_points``) are inliers, the images only the current
-        model has are carried into the earlier frame with their points -- or, where the current
-        model is the larger, the earlier model's into the current frame -- the larger model keeping
-        its own poses and points where both have one; a bundle adjustment of the whole model and
-        filtering follow. The merged model is the current one, in the larger model's frame and gauge.
+        ``merge_min_inlier_ratio`` of the common points (and ``init_min_points``) are inliers, the
+        images only the current model has are carried into the earlier frame with their points --
+        or, where the current model is the larger, the earlier model's into the current frame -- the
+        larger model keeping its own poses and points where both have one
+        (:mod:`course_lib.sfm.merging`); a bundle adjustment of the whole model and filtering follow.
+        The merged model is the current one, in the larger model's frame and gauge.
 
         Returns:
             ``(numbers, None)``: ``shared_images``, ``common_points``, ``inliers``, ``scale``,
-            ``images_added`` and ``points_added`` (what the smaller model brought), and the BA's numbers; or ``(None, why not)``, the
-            current model unchanged.
+            ``images_added`` and ``points_added`` (what the smaller model brought), and the BA's
+            numbers; or ``(None, why not)``, the current model unchanged.
         """
         o = self.opts
         shared = earlier["registered"] & self.registered
@@ -828,51 +829,26 @@ class IncrementalMapper:
         seen_e = earlier["candidate"][np.ix_(common, regs_e)]
         uv_e = np.where(seen_e[..., None], self.uv[np.ix_(common, regs_e)], np.nan)
 
-        def inliers(s, Rs, Ts, rows=slice(None)):
+        def agrees(s, Rs, Ts, rows):
             E = reprojection_error_matrix(self.K, earlier["R"][regs_e], earlier["t"][regs_e],
                                           s * self.X[common[rows]] @ Rs.T + Ts, uv_e[rows])
             bad = np.where(np.isfinite(uv_e[rows][..., 0]), ~(E <= o.max_reproj_px), False)
             return ~bad.any(axis=1) & seen_e[rows].any(axis=1)
 
-        # hypotheses are scored on at most 500 of the common points; RANSAC stops once 99.9 % sure
-        score_on = np.sort(self.rng.choice(len(common), min(len(common), 500), replace=False))
-        best, best_sim, n_iter, trial = 0, None, 200, 0
-        while trial < n_iter:
-            trial += 1
-            pick = self.rng.choice(len(common), 3, replace=False)
-            sim = align_similarity(self.X[common[pick]], X_e[common[pick]])
-            if not np.isfinite(sim[0]) or sim[0] <= 0 or not np.isfinite(sim[2]).all():
-                continue
-            n = int(inliers(*sim, rows=score_on).sum())
-            if n > best:
-                best, best_sim = n, sim
-                w = n / len(score_on)
-                n_iter = min(n_iter, int(np.ceil(np.log(1e-3) / np.log1p(-(w ** 3)))) if w < 1 else 1)
-        if best_sim is None or best < 3:
+        found = similarity_ransac(self.X[common], X_e[common], agrees, self.rng)
+        if found is None:
             return None, f"no similarity carries {len(common)} common points onto the earlier model"
-        best = inliers(*best_sim)
-        s, Rs, Ts = align_similarity(self.X[common[best]], X_e[common[best]])
-        best = inliers(s, Rs, Ts)
+        (s, Rs, Ts), best = found
         if best.sum() < max(o.merge_min_inlier_ratio * len(common), o.init_min_points) or s <= 0:
             return None, (f"one similarity carries only {int(best.sum())} of the {len(common)} common points onto the "
                           f"earlier model (need {o.merge_min_inlier_ratio:.0%} and {o.init_min_points})")
         mine = self.state()
-        if mine["registered"].sum() >= earlier["registered"].sum():
-            # the current model is the larger: the earlier one's images and points come into its frame
-            base, other, s_, R_, T_ = mine, earlier, 1.0 / s, Rs.T, -Rs.T @ Ts / s
+        if mine["registered"].sum() >= earlier["registered"].sum():  # the larger model is the base
+            merged, new_images, new_points = carry(mine, earlier, 1.0 / s, Rs.T, -Rs.T @ Ts / s)
         else:
-            base, other, s_, R_, T_ = earlier, mine, s, Rs, Ts
-        new_images = np.flatnonzero(other["registered"] & ~base["registered"])
-        new_points = np.flatnonzero(np.isfinite(other["X"]).all(axis=1) & ~np.isfinite(base["X"]).all(axis=1))
-        R, t, X, candidate = base["R"].copy(), base["t"].copy(), base["X"].copy(), base["candidate"].copy()
-        for i in new_images:  # x = R_i X + t_i with X = R_^T (X' - T_) / s_; scaled by s_: R_i R_^T X' + s_ t_i - R_i R_^T T_
-            R[i] = other["R"][i] @ R_.T
-            t[i] = s_ * other["t"][i] - R[i] @ T_
-            candidate[:, i] = other["candidate"][:, i]
-        X[new_points] = s_ * other["X"][new_points] @ R_.T + T_
-        self.R, self.t, self.X, self.candidate = R, t, X, candidate
-        self.registered = base["registered"] | other["registered"]
-        self.ref = base["ref"]
+            merged, new_images, new_points = carry(earlier, mine, s, Rs, Ts)
+        self.R, self.t, self.X, self.candidate = merged["R"], merged["t"], merged["X"], merged["candidate"]
+        self.registered, self.ref = merged["registered"], merged["ref"]
         stage = {"shared_images": int(shared.sum()), "common_points": int(len(common)), "inliers": int(best.sum()),
                  "scale": round(float(s), 6), "images_added": [int(i) for i in new_images], "points_added": int(len(new_points)),
                  "reprojection_before_ba": self.observation_stats()}
