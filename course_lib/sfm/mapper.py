@@ -66,7 +66,7 @@ from course_lib.sfm.bundle_adjustment import adjust
 from course_lib.sfm.initial_pair import H_INLIER_RATIO, InitialPair, calibrated_pose, pair_degeneracy
 from course_lib.sfm.mapper_options import MapperOptions
 from course_lib.sfm.merging import carry, similarity_ransac
-from course_lib.sfm.structureless import pose_from_partners, refine_on_partners, sampson_signed
+from course_lib.sfm.structureless import pair_sampson, pose_from_partners, refine_on_partners
 from course_lib.sfm.reconstruction import Reconstruction, error_summary, reprojection_error_matrix, triangulation_angles_deg
 from course_lib.validate import KitInputError
 
@@ -443,7 +443,7 @@ class IncrementalMapper:
         partners = [(self.R[r[0]], self.t[r[0]], r[3], r[4]) for r, u in zip(rows, used) if u]
         R, t = refine_on_partners(self.K, R, t, partners)
         n_all = sum(len(p[2]) for p in partners)
-        n_in = sum(int((np.abs(sampson_signed(self.K, *p[:2], R, t, *p[2:])) <= o.f_threshold_px).sum()) for p in partners)
+        n_in = sum(int((pair_sampson(self.K, *p[:2], R, t, *p[2:]) <= o.f_threshold_px).sum()) for p in partners)
         if n_in < o.min_pnp_inliers or n_in < o.min_pnp_inlier_ratio * n_all:
             return None, (f"the pose from {len(partners)} partners explains {n_in} of their {n_all} matches within "
                           f"{o.f_threshold_px} px, need {o.min_pnp_inliers} and {o.min_pnp_inlier_ratio:.0%}")

@@ -25,8 +25,9 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from course_lib.conventions import camera_center, rotation_angle_deg
+from course_lib.sfm.initial_pair import fundamental_from_pose, sampson_pixels
 
-__all__ = ["pose_from_partners", "refine_on_partners", "sampson_signed"]
+__all__ = ["pose_from_partners", "refine_on_partners", "pair_sampson"]
 
 
 def pose_from_partners(R_k: np.ndarray, t_k: np.ndarray, R_ki: np.ndarray, t_ki: np.ndarray, weights: np.ndarray,
@@ -75,18 +76,15 @@ def pose_from_partners(R_k: np.ndarray, t_k: np.ndarray, R_ki: np.ndarray, t_ki:
     return (R, -R @ C, used), None
 
 
-def sampson_signed(K: np.ndarray, R_k, t_k, R_i, t_i, x_k: np.ndarray, x_i: np.ndarray) -> np.ndarray:
-    """``(N,)`` signed Sampson distances (pixels) of matches ``x_k``-``x_i`` to the epipolar geometry of two posed cameras."""
+def pair_sampson(K: np.ndarray, R_k, t_k, R_i, t_i, x_k: np.ndarray, x_i: np.ndarray) -> np.ndarray:
+    """``(N,)`` Sampson distances (pixels) of matches ``x_k``-``x_i`` to the epipolar geometry of two posed cameras.
+
+    The relative pose of camera ``i`` to camera ``k`` gives ``F``
+    (:func:`course_lib.sfm.initial_pair.fundamental_from_pose`); the distances are notebook 01's
+    (:func:`course_lib.sfm.initial_pair.sampson_pixels`).
+    """
     R = R_i @ R_k.T
-    t = t_i - R @ t_k
-    Ki = np.linalg.inv(K)
-    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-    F = Ki.T @ tx @ R @ Ki
-    h1 = np.c_[x_k, np.ones(len(x_k))]
-    h2 = np.c_[x_i, np.ones(len(x_i))]
-    Fx1, Ftx2 = h1 @ F.T, h2 @ F
-    e = np.sum(h2 * Fx1, axis=1)
-    return e / np.sqrt(Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2 + 1e-300)
+    return sampson_pixels(fundamental_from_pose(K, R, t_i - R @ t_k), x_k, x_i)
 
 
 def refine_on_partners(K: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, partners: list, f_scale: float = 1.0):
@@ -103,7 +101,7 @@ def refine_on_partners(K: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, partne
     def residuals(p):
         R = Rotation.from_rotvec(p[:3]).as_matrix()
         t = -R @ p[3:]
-        return np.concatenate([sampson_signed(K, R_k, t_k, R, t, x_k, x_i) for R_k, t_k, x_k, x_i in partners])
+        return np.concatenate([pair_sampson(K, R_k, t_k, R, t, x_k, x_i) for R_k, t_k, x_k, x_i in partners])
 
     p0 = np.concatenate([Rotation.from_matrix(R_cw).as_rotvec(), camera_center(R_cw, t_cw)])
     res = least_squares(residuals, p0, loss="huber", f_scale=f_scale, max_nfev=50)

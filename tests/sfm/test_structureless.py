@@ -4,7 +4,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from course_lib.conventions import camera_center, rotation_angle_deg
-from course_lib.sfm.structureless import pose_from_partners, refine_on_partners, sampson_signed
+from course_lib.sfm.structureless import pair_sampson, pose_from_partners, refine_on_partners
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 
@@ -88,5 +88,5 @@ def test_refinement_brings_a_perturbed_pose_back_on_noisy_matches():
     R, t = refine_on_partners(K, R0, t0, rows)
     assert rotation_angle_deg(R, R_true) < 0.05
     assert np.linalg.norm(camera_center(R, t) - camera_center(R_true, t_true)) < 0.01
-    d = np.concatenate([sampson_signed(K, Rk, tk, R, t, xk, xi) for Rk, tk, xk, xi in rows])
+    d = np.concatenate([pair_sampson(K, Rk, tk, R, t, xk, xi) for Rk, tk, xk, xi in rows])
     assert np.sqrt(np.mean(d**2)) < 0.5
