@@ -58,7 +58,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from course_lib.conventions import camera_center, projection_matrix
+from course_lib.conventions import camera_center, invert_pose, projection_matrix
 from course_lib.data.camera import undistort_pixels
 from course_lib.exercises import call, caller
 from course_lib.sfm import lm
@@ -187,7 +187,7 @@ class IncrementalMapper:
     def set_intrinsics(self, K: np.ndarray, k1: float) -> None:
         """Use ``K`` and the radial term ``k1``: :attr:`uv` becomes the undistorted pixels of the tracks."""
         self.K, self.k1 = np.asarray(K, float), float(k1)
-        self._relative: dict = {}  # five-point poses of pairs (register_from_pairs), on these pixels
+        self._two_view: dict = {}  # the pairs' matches and calibrated poses on these pixels (two_view)
         self.uv = undistort_pixels(self.uv_raw, self.K, self.k1)
 
     def undistort(self, x: np.ndarray) -> np.ndarray:
@@ -267,21 +267,36 @@ class IncrementalMapper:
         """Whether pair ``(a, b)`` sees mostly a plane, with enough off it to start a model when no other pair can."""
         return self.degenerate.get((a, b), {}).get("kind") == "mostly planar"
 
-    def score_pair(self, a: int, b: int) -> InitialPair | None:
-        """The two-view start of pair ``(a, b)`` (camera ``a`` at the origin), or None where it is degenerate.
+    def two_view(self, a: int, b: int):
+        """The verified pair ``(a, b)``: its undistorted matches and their calibrated pose, computed once.
 
-        The calibrated pose of the pair's verified matches (:func:`calibrated_pose`); the score
-        counts its inliers triangulated in front of both cameras under ``init_min_angle_deg`` or more.
+        Returns:
+            ``(x1, x2, choice, inliers)``: the matches (:meth:`_pair_inliers`) and
+            :func:`calibrated_pose`'s result (pose of ``b`` with ``a`` at the origin; ``choice`` None
+            where no essential matrix fits). The initial pair's score (:meth:`score_pair`) and the
+            structure-less registration (:meth:`register_from_pairs`) share it; it is recomputed
+            after the intrinsics change (:meth:`set_intrinsics`).
         """
-        if (a, b) in self._scored:
-            return self._scored[(a, b)]
-        x1, x2 = self._pair_inliers(a, b)
-        result = None
-        if not self.is_degenerate(a, b):
+        if (a, b) not in self._two_view:
+            x1, x2 = self._pair_inliers(a, b)
             try:
                 choice, inl = calibrated_pose(x1, x2, self.K, self.opts.init_max_error_px, int(self.rng.integers(2**31 - 1)))
             except KitInputError:
-                choice = None
+                choice, inl = None, None
+            self._two_view[(a, b)] = (x1, x2, choice, inl)
+        return self._two_view[(a, b)]
+
+    def score_pair(self, a: int, b: int) -> InitialPair | None:
+        """The two-view start of pair ``(a, b)`` (camera ``a`` at the origin), or None where it is degenerate.
+
+        The calibrated pose of the pair's verified matches (:meth:`two_view`); the score counts its
+        inliers triangulated in front of both cameras under ``init_min_angle_deg`` or more.
+        """
+        if (a, b) in self._scored:
+            return self._scored[(a, b)]
+        result = None
+        if not self.is_degenerate(a, b):
+            x1, _, choice, inl = self.two_view(a, b)
             if choice is not None:
                 C2 = camera_center(choice.R_cw, choice.t_cw)
                 ang = triangulation_angles_deg(choice.X, np.stack([np.zeros(3), C2]), np.ones((len(x1), 2), bool))
@@ -394,17 +409,6 @@ class IncrementalMapper:
         info, why_pairs = self.register_from_pairs(i)
         return (info, None) if info is not None else (None, f"{why}; from its matches alone: {why_pairs}")
 
-    def _relative_pose(self, a: int, b: int):
-        """The five-point pose of image ``b`` relative to ``a`` for the verified pair ``(a, b)``: ``(R, t, inliers)`` or None (cached)."""
-        if (a, b) not in self._relative:
-            x1, x2 = self._pair_inliers(a, b)
-            try:
-                choice, inl = calibrated_pose(x1, x2, self.K, self.opts.init_max_error_px, int(self.rng.integers(2**31 - 1)))
-            except KitInputError:
-                choice = None
-            self._relative[(a, b)] = None if choice is None else (choice.R_cw, choice.t_cw, inl)
-        return self._relative[(a, b)]
-
     def register_from_pairs(self, i: int) -> tuple[dict | None, str | None]:
         """Register image ``i`` from its verified matches with registered images, without 3-D points (COLMAP's structure-less fallback).
 
@@ -425,11 +429,12 @@ class IncrementalMapper:
         rows = []
         for k in np.flatnonzero(self.registered):
             key = (min(i, k), max(i, k))
-            if key not in self.pairs or (rel := self._relative_pose(*key)) is None:
+            if key not in self.pairs:
                 continue
-            R_ab, t_ab, inl = rel
-            R_ki, t_ki = (R_ab, t_ab) if k == key[0] else (R_ab.T, -R_ab.T @ t_ab)
-            x_a, x_b = self._pair_inliers(*key)
+            x_a, x_b, choice, inl = self.two_view(*key)
+            if choice is None:
+                continue
+            R_ki, t_ki = (choice.R_cw, choice.t_cw) if k == key[0] else invert_pose(choice.R_cw, choice.t_cw)
             x_k, x_i = (x_a, x_b) if k == key[0] else (x_b, x_a)
             rows.append((int(k), R_ki, t_ki, x_k, x_i, int(inl.sum())))
         if len(rows) < 2:
