@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from course_lib.conventions import camera_center, rotation_angle_deg
+from course_lib.conventions import camera_center, nearest_rotation, rotation_angle_deg
 
 __all__ = ["align_similarity", "align_cameras", "PoseErrors", "pose_errors"]
 
@@ -61,8 +61,7 @@ def align_cameras(R_est, t_est, R_true, t_true) -> tuple[float, np.ndarray, np.n
     C_est = np.stack([camera_center(R, t) for R, t in zip(R_est, t_est)])
     C_true = np.stack([camera_center(R, t) for R, t in zip(R_true, t_true)])
     # R_cw,true ≈ R_cw,est Rᵀ  <=>  R ≈ R_trueᵀ R_est: project their mean onto SO(3)
-    U, _, Vt = np.linalg.svd(np.einsum("mji,mjk->ik", R_true, R_est))
-    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    R = nearest_rotation(np.einsum("mji,mjk->ik", R_true, R_est))
     a = (C_est - C_est.mean(0)) @ R.T
     b = C_true - C_true.mean(0)
     s = float((a * b).sum() / max((a**2).sum(), 1e-300))

@@ -65,6 +65,7 @@ __all__ = [
     "invert_pose",
     "compose_poses",
     "rotation_angle_deg",
+    "nearest_rotation",
     "observed_entries",
 ]
 
@@ -188,6 +189,15 @@ def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     c = (np.trace(R) - 1.0) / 2.0
     return float(np.degrees(np.arctan2(s, c)))
+
+
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation closest to the ``(3, 3)`` matrix ``M`` in the Frobenius norm (by SVD, det = +1).
+
+    Applied to a (weighted) sum of rotations it gives their chordal mean.
+    """
+    U, _, Vt = np.linalg.svd(np.asarray(M, float))
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
 
 
 def observed_entries(uv: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

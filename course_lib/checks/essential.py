@@ -38,7 +38,7 @@ import numpy as np
 
 from course_lib.checks.core import (FAILED, RTOL, Check, declare_defining, load_fixture, same_up_to_scale,
                                     unique_key)
-from course_lib.conventions import rotation_angle_deg
+from course_lib.conventions import rotation_angle_deg, skew
 
 __all__ = ["check_essential_from_fundamental", "check_pose_candidates", "match_candidates"]
 
@@ -66,11 +66,6 @@ _CASE_TEXT = {
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def _skew(v):
-    x, y, z = v
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
 def _unit(M):
@@ -231,7 +226,7 @@ def check_pose_candidates(pose_candidates: Callable) -> None:
         for case, E, R, C, R_ref, C_ref in results:
             norms = np.linalg.norm(C, axis=1)
             Cn = C / np.where(norms > 0, norms, 1.0)[:, None]
-            factors = all(same_up_to_scale(_skew(-R[k] @ Cn[k]) @ R[k], E, 10 * RTOL) for k in range(4)) and \
+            factors = all(same_up_to_scale(skew(-R[k] @ Cn[k]) @ R[k], E, 10 * RTOL) for k in range(4)) and \
                 bool(np.abs(E @ Cn.T).max() <= 10 * RTOL * np.linalg.norm(E))
             hits = match_candidates(R, Cn, R_ref, C_ref)
             verdicts.append((case, E, R, C, Cn, norms, factors, hits, R_ref, C_ref))
@@ -266,7 +261,7 @@ def _pose_candidate_verdicts(c: Check, case: str, E, R, Cn, norms, factors: bool
     elif len({tuple(np.round(Rk, 6).ravel()) for Rk in np.abs(R)}) < 2:
         c.fail(f"{case}: the four R are one rotation: the candidates use both U W Vᵀ and U Wᵀ Vᵀ, each with C and -C")
     elif not factors:
-        bad = [k for k in range(4) if not same_up_to_scale(_skew(-R[k] @ Cn[k]) @ R[k], E, 10 * RTOL)]
+        bad = [k for k in range(4) if not same_up_to_scale(skew(-R[k] @ Cn[k]) @ R[k], E, 10 * RTOL)]
         c.fail(f"{case}: candidates {bad} do not factor E (E ∝ [t]ₓ R with t = -R C): R = U W Vᵀ or U Wᵀ Vᵀ, "
                "t = ±U[:, 2], C = -Rᵀ t")
     else:

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from course_lib.conventions import project, rotation_angle_deg, world_to_camera
+from course_lib.conventions import nearest_rotation, project, rotation_angle_deg, world_to_camera
 from course_lib.checks.core import FAILED, RTOL, Check, declare_defining, load_fixture, unique_key
 
 __all__ = [
@@ -242,11 +242,6 @@ def _ransac_fields(out, c: Check, case: str, n: int):
     return pose[0], pose[1], inl, it
 
 
-def _nearest_rotation(R: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(R)
-    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-
-
 def _iterations_needed(w: float, confidence: float, max_iters: int) -> float:
     """Adaptive RANSAC's count for inlier ratio ``w`` and 6-point samples."""
     if w >= 1.0:
@@ -338,7 +333,7 @@ def _ransac_verdicts(c: Check, f, run: dict, named: str | None, pose_named: str 
         c.fail(f"{case}: your inlier mask is inverted: inliers are the points with reprojection error BELOW the "
                "threshold", named="inverted")
         return
-    rot = rotation_angle_deg(_nearest_rotation(R), R_r)
+    rot = rotation_angle_deg(nearest_rotation(R), R_r)
     c.expect(rot <= 1.0, f"{case}: finds the pose despite the outliers",
              f"{case}: rotation {rot:.3g}° from the reference ({int(inl.sum())} inliers, reference {int(inl_r.sum())}): "
              + (_POSE_MISTAKES[pose_named] if pose_named else "score each sample by the reprojection error in pixels "
@@ -482,8 +477,8 @@ def check_pnp_ransac(fn, exercise: str = "pnp_ransac") -> None:
                     runs.append(run)
         named = unique_key([run["facts"]["keys"] for run in runs if run["facts"]["wrong"] > 0
                             or (run["key"] == "ransac_syn" and "no_cheirality" in run["facts"]["keys"])])
-        pose_off = [run for run in runs if rotation_angle_deg(_nearest_rotation(run["R"]), f[f"{run['key']}_R"]) > 1.0]
-        pose_named = unique_key([_pose_keys(_nearest_rotation(run["R"]), run["t"], f[f"{run['key']}_R"],
+        pose_off = [run for run in runs if rotation_angle_deg(nearest_rotation(run["R"]), f[f"{run['key']}_R"]) > 1.0]
+        pose_named = unique_key([_pose_keys(nearest_rotation(run["R"]), run["t"], f[f"{run['key']}_R"],
                                             f[f"{run['key']}_t"], 1.0, 0.05, dlt=False) for run in pose_off])
         # a function that finds no pose in any case (a constant, a stub) is not judged on how it samples: its
         # iteration count and its use of rng say nothing about a RANSAC that does not estimate

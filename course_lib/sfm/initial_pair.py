@@ -34,6 +34,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from course_lib.conventions import skew
 from course_lib.data.two_view import identical_photos
 from course_lib.exercises import Fields, call
 from course_lib.validate import KitInputError
@@ -112,13 +113,9 @@ def pair_degeneracy(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px:
     return ("mostly planar" if (~mask.ravel().astype(bool)).sum() >= min_off_plane else "planar"), ratio
 
 
-def _skew(t: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-
-
 def fundamental_from_pose(K: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray) -> np.ndarray:
     """``F = K⁻ᵀ [t]ₓ R K⁻¹`` of camera 2 at ``(R_cw, t_cw)`` against camera 1 at the origin (unit norm)."""
-    return fundamental_from_essential(K, _skew(t_cw) @ R_cw)
+    return fundamental_from_essential(K, skew(t_cw) @ R_cw)
 
 
 def fundamental_from_essential(K: np.ndarray, E: np.ndarray) -> np.ndarray:
@@ -204,7 +201,7 @@ def calibrated_pose(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px:
     R, t = refine_pose(x1[inl], x2[inl], K, choice.R_cw, choice.t_cw.reshape(3))
     inl = sampson_pixels(fundamental_from_pose(K, R, t), x1, x2) < threshold_px
     # the refinement cannot tell t from -t (the epipolar geometry is the same): the cheirality test decides again
-    choice = call("choose_pose", *call("pose_candidates", _skew(t) @ R), K, x1[inl], x2[inl])
+    choice = call("choose_pose", *call("pose_candidates", skew(t) @ R), K, x1[inl], x2[inl])
     R, t = choice.R_cw.reshape(3, 3), choice.t_cw.reshape(3)
     P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
     X = call("triangulate_linear", P1, K @ np.hstack([R, t[:, None]]), x1, x2)

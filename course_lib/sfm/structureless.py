@@ -24,7 +24,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from course_lib.conventions import camera_center, rotation_angle_deg
+from course_lib.conventions import camera_center, nearest_rotation, rotation_angle_deg
 from course_lib.sfm.initial_pair import fundamental_from_pose, sampson_pixels
 
 __all__ = ["pose_from_partners", "refine_on_partners", "pair_sampson"]
@@ -52,9 +52,7 @@ def pose_from_partners(R_k: np.ndarray, t_k: np.ndarray, R_ki: np.ndarray, t_ki:
     used = np.array([rotation_angle_deg(R_i[p], R_i[best]) <= max_rotation_deg for p in range(P)])
     if used.sum() < 2:
         return None, f"{P} registered partner(s), {int(used.sum())} with a rotation that agrees: two are needed to fix the scale"
-    # the chordal mean of the agreeing rotations, weighted
-    U, _, Vt = np.linalg.svd(np.einsum("p,pij->ij", weights[used], R_i[used]))
-    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    R = nearest_rotation(np.einsum("p,pij->ij", weights[used], R_i[used]))  # the agreeing rotations' weighted chordal mean
     C_k = np.stack([camera_center(R_k[p], t_k[p]) for p in range(P)])
     d = -np.einsum("ji,pj->pi", R, t_ki)  # C_i - C_k along d_k = -R_i^T t_ki
     d /= np.linalg.norm(d, axis=1, keepdims=True)
