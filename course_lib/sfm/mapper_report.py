@@ -22,8 +22,9 @@ class MapperReport:
 
     Attributes:
         stages: one dict per stage, in order (``"initial pair"``, ``"register"`` (also the failed
-            attempts), ``"retriangulate (stalled)"``, ``"final"``), each with its ``seconds``.
-        seconds: seconds by kind (``initial_pair``, ``registration``, ``final_ba``).
+            attempts), ``"retriangulate (stalled)"``, ``"final"``, ``"merge"``; the stages of a model
+            merged into this one are marked ``"model": "merged"``), each with its ``seconds``.
+        seconds: seconds by kind (``initial_pair``, ``registration``, ``final_ba``, ``merge``).
         initial: the initial pair (images, names, RANSAC and pose inliers, score, points).
         candidates: the rows of the initial pairs tried. relaxations: the relaxed settings tried, if any.
         reasons: why an image did not register in this model (its latest attempt), by image index.

@@ -23,8 +23,9 @@ return numbers; this module calls them in order, times them and records them in 
    triangulated at ``init_min_angle_deg`` or more; pure-rotation and planar pairs are named and
    skipped (a plane with enough structure off it, ``"mostly planar"``, is tried after the others,
    as COLMAP starts from planar pairs); a pair that keeps fewer than ``init_min_points`` points
-   after triangulation and BA is dropped for the next. The calibrated five-point E, its four candidates and the cheirality test
-   give the second camera; the first is the world frame (``R = I, t = 0``), the baseline has length 1.
+   after triangulation and BA is dropped for the next. The calibrated five-point E, its four
+   candidates and the cheirality test give the second camera; the first is the world frame
+   (``R = I, t = 0``), the baseline has length 1.
 3. **Registration** (notebook 04; ``register_next_image``): the image whose 2D-3D
    correspondences are the most and the most spread out next: PnP RANSAC then non-linear PnP; the
    pose needs ``min_pnp_inliers`` inliers and ``min_pnp_inlier_ratio`` of the matches (a pose that
@@ -192,8 +193,8 @@ def _grow_and_finish(mapper: IncrementalMapper, report: MapperReport) -> None:
 def _merge(mapper: IncrementalMapper, report: MapperReport, built: list) -> tuple[MapperReport, list]:
     """Merge the mapper's model into every earlier model it shares images with; ``(its report, the models left)``.
 
-    Each merge (:meth:`~course_lib.sfm.mapper.IncrementalMapper.merge`) carries the model into the
-    earlier one's frame; the earlier model's report takes the later one's stages
+    Each merge (:meth:`~course_lib.sfm.mapper.IncrementalMapper.merge`) carries the smaller of the
+    two models into the larger one's frame; the earlier model's report takes the later one's stages
     (:meth:`~course_lib.sfm.mapper_report.MapperReport.absorb`). After a merge the merged model grows
     on and is finished again: the images neither model could reach may register now.
     """
