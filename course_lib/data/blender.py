@@ -54,17 +54,8 @@ import numpy as np
 
 from course_lib.validate import KitInputError, existing_path
 
-__all__ = [
-    "BlenderData",
-    "GL_FROM_CV",
-    "opengl_to_opencv",
-    "opencv_to_opengl",
-    "intrinsics_from_fov",
-    "load_blender",
-    "read_rgb",
-    "write_blender",
-    "load_tiny_nerf_npz",
-]
+__all__ = ["BlenderData", "GL_FROM_CV", "opengl_to_opencv", "opencv_to_opengl", "intrinsics_from_fov", "load_blender",
+           "read_rgb", "write_blender", "load_tiny_nerf_npz"]
 
 #: ``diag(1, -1, -1, 1)``: flips the camera's y and z axes (OpenGL <-> OpenCV). Its own inverse.
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])

@@ -53,7 +53,7 @@ import numpy as np
 
 from course_lib.data.camera import read_camera
 from course_lib.data.two_view import read_two_view_geometries
-from course_lib.validate import KitInputError, intrinsics
+from course_lib.validate import KitInputError, file_in, intrinsics
 
 __all__ = ["PairMatches", "P3Data", "read_calibration", "read_p3", "write_p3", "tracks_from_pairs", "UnionFind", "IMAGE_EXTENSIONS"]
 
@@ -211,11 +211,7 @@ def read_calibration(path) -> np.ndarray:
 
     Introduced in ``notebooks/01_fundamental_matrix.ipynb``.
     """
-    p = Path(path)
-    if p.is_dir():
-        p = p / "calibration.txt"
-    if not p.is_file():
-        raise KitInputError(f"calibration file not found: {p} (a P3 folder needs calibration.txt with the 3x3 K)")
+    p = file_in(path, "calibration.txt", "calibration file not found: {path} (a P3 folder needs calibration.txt with the 3x3 K)")
     return _parse_calibration_text(p.read_text(encoding="utf-8", errors="replace"), p.name)
 
 

@@ -79,17 +79,8 @@ from course_lib.threads import single_threaded_blas
 from course_lib import validate
 from course_lib.validate import KitInputError, intrinsics, rotation
 
-__all__ = [
-    "pack_params",
-    "unpack_params",
-    "reprojection_residuals",
-    "jacobian_sparsity",
-    "reprojection_jacobian",
-    "BAResult",
-    "bundle_adjust",
-    "adjust",
-    "reprojection_error_stats",
-]
+__all__ = ["pack_params", "unpack_params", "reprojection_residuals", "jacobian_sparsity", "reprojection_jacobian",
+           "BAResult", "bundle_adjust", "adjust", "reprojection_error_stats"]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -181,15 +181,8 @@ def _local_optimization(X, x, xn, K, best: tuple, threshold_px: float, score) ->
     return best
 
 
-def pnp_ransac(
-    X: np.ndarray,
-    x: np.ndarray,
-    K: np.ndarray,
-    rng: np.random.Generator,
-    threshold_px: float = 2.0,
-    confidence: float = 0.999,
-    max_iters: int = 1000,
-) -> PnPResult:
+def pnp_ransac(X: np.ndarray, x: np.ndarray, K: np.ndarray, rng: np.random.Generator, threshold_px: float = 2.0,
+               confidence: float = 0.999, max_iters: int = 1000) -> PnPResult:
     """Robust PnP: linear PnP on random 6-point samples, scored by reprojection error.
 
     Each iteration draws 6 distinct correspondences, solves :func:`pnp_linear` and counts the
