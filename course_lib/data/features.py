@@ -13,7 +13,7 @@ embedded scene is made with it (:mod:`course_lib.data.building`) and so are stud
    :func:`detect_and_match` over all pairs. (The geometric verification of the matches is
    :mod:`course_lib.data.two_view`.)
 3. :func:`track_colours`: each track's colour; :func:`course_lib.data.tracks.tracks_from_images`
-   joins the matches of all pairs into tracks (:func:`course_lib.data.p3.tracks_from_pairs`).
+   joins the matches of all pairs into tracks (:func:`course_lib.data.match_graph.tracks_from_pairs`).
 
 Points are rows ``(u, v)`` in pixels, origin at the centre of the top-left pixel
 (:mod:`course_lib.conventions`).

@@ -3,9 +3,9 @@
 A track is one 3-D point seen in several images: at most one feature per image. Joining matches
 naively (connected components) lets one wrong match chain two points together, and a component
 with two features of one image must then be dropped whole (the P3 reader's rule,
-:func:`course_lib.data.p3.tracks_from_pairs`). :func:`join_tracks` instead adds the matches one by
+:func:`course_lib.data.match_graph.tracks_from_pairs`). :func:`join_tracks` instead adds the matches one by
 one, the most trustworthy first (the caller's order: pairs with more inliers, then the matches
-nearest their epipolar line), with union-find (:class:`course_lib.data.p3.UnionFind`), and
+nearest their epipolar line), with union-find (:class:`course_lib.data.match_graph.UnionFind`), and
 *refuses* a link that would put two different features of one image into one track: the track is
 split at the conflicting link instead of being dropped.
 
@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from course_lib.data.features import RATIO, detect_and_match, track_colours
-from course_lib.data.p3 import UnionFind, tracks_from_pairs
+from course_lib.data.match_graph import UnionFind, tracks_from_pairs
 from course_lib.validate import KitInputError
 
 __all__ = ["Tracks", "join_tracks", "tracks_from_images"]
@@ -123,7 +123,7 @@ def tracks_from_images(images: list[np.ndarray], ratio: float = RATIO):
     Returns:
         ``track_uv (T, M, 2)``, ``track_rgb (T, 3)`` uint8 (colour at the first observation),
         ``pairs`` (the raw matches of :func:`detect_and_match`) and the stats of
-        :func:`course_lib.data.p3.tracks_from_pairs`.
+        :func:`course_lib.data.match_graph.tracks_from_pairs`.
     """
     pairs = detect_and_match(images, ratio)
     track_uv, _, tstats = tracks_from_pairs(len(images), pairs)

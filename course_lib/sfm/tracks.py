@@ -29,7 +29,7 @@ features in one image is useless. So the pipeline builds its tracks in two steps
    matches right); their tracks joined the two sides of the building into one model 70 degrees wrong.
 2. **Join the inliers** (:func:`course_lib.data.tracks.join_tracks`): features are nodes ``(image, u, v)`` (equal
    pixels are the same feature) and verified matches are edges. Edges are added by union-find
-   (:class:`course_lib.data.p3.UnionFind`), the most trustworthy first (pairs with more inliers
+   (:class:`course_lib.data.match_graph.UnionFind`), the most trustworthy first (pairs with more inliers
    first, then by Sampson distance), and an edge that would put two different features of one image into one track is
    *refused*: the track is split at the conflicting link instead of being dropped whole.
 

@@ -293,7 +293,7 @@ def test_writer_rejects_bad_input(tmp_path):
 
 
 def test_tracks_from_pairs_matches_reader_rule():
-    from course_lib.data.p3 import tracks_from_pairs
+    from course_lib.data.match_graph import tracks_from_pairs
 
     pairs = {(0, 1): ([[10, 10], [10, 10]], [[11, 11], [90, 90]]), (1, 2): ([[11, 11]], [[12, 12]])}
     track_uv, ids, stats = tracks_from_pairs(3, pairs)
@@ -305,7 +305,7 @@ def test_tracks_from_pairs_matches_reader_rule():
 
 
 def test_union_find_roots_and_groups():
-    from course_lib.data.p3 import UnionFind
+    from course_lib.data.match_graph import UnionFind
 
     uf = UnionFind(5)
     assert uf.union(3, 1) and uf.union(1, 4)
