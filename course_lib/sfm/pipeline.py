@@ -60,6 +60,7 @@ Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -106,6 +107,8 @@ def run_sfm(data, rng: np.random.Generator, options: MapperOptions | None = None
     t_start = time.perf_counter()
     opts = MapperOptions.from_keywords(options, **overrides)
     K = _check_inputs(data, rng)
+    size = image_size_of(data)
+    data = _by_photo_names(data)
     report: dict = {"n_images": len(data.image_names), "options": opts.summary()}
     with single_threaded_blas():
         pairs, tracks = verified_pairs_and_tracks(data, rng, opts.f_threshold_px, opts.min_pair_matches, report,
@@ -117,7 +120,7 @@ def run_sfm(data, rng: np.random.Generator, options: MapperOptions | None = None
             print(f"{report['verification']}: {len(pairs)} pairs verified; {tr['verified_tracks']} tracks from {tr['verified_matches']} inlier "
                   f"matches ({tr['refused_links']} links refused: they joined two features of one image)")
         refine = opts.refine_intrinsics if opts.refine_intrinsics is not None else bool(getattr(data.camera, "refine", False))
-        mapper = IncrementalMapper(data, pairs, tracks.uv, K, image_size_of(data), opts, rng, refine_intrinsics=refine)
+        mapper = IncrementalMapper(data, pairs, tracks.uv, K, size, opts, rng, refine_intrinsics=refine)
         models, reasons = _build_models(mapper, tracks.rgb, pairs)
     report["degenerate_pairs"] = list(mapper.degenerate.values())
     rec = _assemble(models, reasons, report)
@@ -142,6 +145,16 @@ def _check_inputs(data, rng) -> np.ndarray:
     if M < 2:
         raise KitInputError(f"data has {M} image(s): SfM needs at least two")
     return K
+
+
+def _by_photo_names(data):
+    """``data`` with its images named as the user's photos (:attr:`course_lib.data.p3.P3Data.photo_names`: the names
+    ``match`` read them under), so that the report, the COLMAP model and ``scene.html`` keep them; ``data`` itself
+    where the names are the same (a course P3 folder)."""
+    names = getattr(data, "photo_names", None)
+    if names is None or list(names) == list(data.image_names) or not dataclasses.is_dataclass(data):
+        return data
+    return dataclasses.replace(data, image_names=list(names), source_names=None)
 
 
 def _build_models(mapper: IncrementalMapper, rgb: np.ndarray, pairs: dict) -> tuple[list, list]:
