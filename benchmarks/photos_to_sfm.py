@@ -219,8 +219,8 @@ def run_kit(photos: Path, calibration: Path | None, work: Path) -> dict:
                 "note": str(exc).splitlines()[-1][:120]}
     model = read_colmap_text(work / "sfm" / "colmap")
     report = json.loads((work / "p3" / "match_report.json").read_text())
-    sources = [im["source"] for im in report["images"]]
-    poses = {sources[int(Path(n).stem) - 1]: (R, t) for n, R, t in zip(model.image_names, model.R_cw, model.t_cw)}
+    source = {im["p3_name"]: im["source"] for im in report["images"]}  # sfm names the images as the photos are named
+    poses = {source.get(n, n): (R, t) for n, R, t in zip(model.image_names, model.R_cw, model.t_cw)}
     return {"poses": poses, "points": int(len(model.X)), "models": _models(work / "sfm"), "seconds": t_match + t_sfm,
             "match_s": t_match, "sfm_s": t_sfm, "focal": float(model.K[0, 0]), "k1": float(getattr(model, "k1", 0.0))}
 
