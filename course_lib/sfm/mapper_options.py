@@ -105,7 +105,13 @@ class MapperOptions:
             ``ba_refine_focal_length`` and ``ba_refine_extra_params`` true.)
         max_focal_change: a refined focal length further than this factor from the prior is
             rejected (the BA is redone with the intrinsics held). (COLMAP ``max_focal_length_ratio`` 10.)
-        max_k1: a refined ``|k1|`` above this is rejected likewise. (COLMAP ``max_extra_param`` 1.)
+        max_k1: a refined ``|k1|`` above this is rejected likewise (the BA is then redone with ``k1``
+            held). (COLMAP ``max_extra_param`` 1.)
+        refine_k1_from_images: ``k1`` is held (the focal length alone refined) until the model holds
+            this many images. (COLMAP: from the start.)
+        min_k1_effect_px: ``k1`` is held where ``k1 = 0.1`` would move the image's corners by less than
+            this (a narrow field of view: 640 px wide at f = 1536 px, 2.7 px), where it trades off against
+            the focal length. (COLMAP: none.)
         self_calibration: estimate the focal length from the verified pairs before the mapper starts
             (:mod:`course_lib.sfm.self_calibration`), where the intrinsics are refined: ``"auto"`` where
             the focal length is a guess (no calibration file, no EXIF), ``"always"``, or ``"never"``.
@@ -154,6 +160,8 @@ class MapperOptions:
     refine_intrinsics: bool | None = None
     max_focal_change: float = 3.0
     max_k1: float = 1.0
+    refine_k1_from_images: int = 8
+    min_k1_effect_px: float = 5.0
     self_calibration: str = "auto"
     focal_restarts: int = 4
     focal_restart_change: float = 0.05

@@ -145,6 +145,10 @@ def run_sfm(data, rng: np.random.Generator, options: MapperOptions | None = None
                     t_ransac += time.perf_counter() - t0
     report["degenerate_pairs"] = list(mapper.degenerate.values())
     rec = _assemble(models, reasons, report)
+    for m in [rec] + rec.others:  # the camera's prior is the one the data gave, the start the one the mapping began from
+        if "prior_focal_px" in m.report.get("camera", {}):
+            m.report["camera"]["start_focal_px"] = m.report["camera"]["prior_focal_px"]
+            m.report["camera"]["prior_focal_px"] = round(float(intrinsics(data.K)[0, 0]), 3)
     rec.report["seconds"] = {"ransac_F": round(t_ransac, 3), **{k: round(v, 3) for k, v in rec.report["seconds"].items()},
                              "total": round(time.perf_counter() - t_start, 3)}
     _say_final(rec, opts.verbose)
