@@ -571,7 +571,9 @@ def run(args) -> int:
           f"{rep['seconds']:.1f} s")
     cam = rep["camera"]
     if cam["refine"]:
-        print(f"camera: f = {cam['K'][0][0]:.1f} px from {cam['source']}; sfm refines f and k1 ({cam['model']})")
+        guessed = str(cam["source"]).startswith("guess")
+        print(f"camera: f = {cam['K'][0][0]:.1f} px from {cam['source']}; sfm "
+              + ("estimates f from the images (self-calibration), then " if guessed else "") + f"refines f and k1 ({cam['model']})")
     for a, b in rep["identical_photos"]:
         print(f"identical or near-identical photos (no baseline): {a}, {b} -- the same view twice adds nothing to a "
               "reconstruction; keep one, and take the others from different positions")

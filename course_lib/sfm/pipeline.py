@@ -50,6 +50,14 @@ return numbers; this module calls them in order, times them and records them in 
    that splits where one image has too few inliers from one side is closed from the other: on a
    24-view ring without a calibration file, 17 + 7 images became one model of 24. The largest
    model is returned, the others in ``others``.
+7. **A camera without calibration** (``match`` without ``--K``: ``SIMPLE_RADIAL``, refined in the
+   BAs of the whole model): where its focal length is a guess (no EXIF), stage 1 first estimates it
+   from the verified pairs' fundamental matrices (:mod:`course_lib.sfm.self_calibration`, option
+   ``self_calibration``) and checks the pairs with that K. While the first model grows, where its
+   refined focal length moves more than ``focal_restart_change`` from the one it started from, the
+   mapping starts again from the refined value (:class:`_FocalWatch`, ``focal_restarts``), so a
+   wrong start cannot lock in a wrong model. ``report["self_calibration"]`` and
+   ``report["focal_restarts"]`` say what happened.
 
 P3 data quirks handled upstream by the reader (:mod:`course_lib.data.p3`): duplicate rows are
 merged, features are identified by equal coordinates. Matches contain outliers on purpose
