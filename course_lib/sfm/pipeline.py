@@ -237,8 +237,8 @@ class _FocalWatch:
     model they move is already bent (a ring around the building, started 80 % too long, ended
     1.5 degrees off with the right focal length). So where the refined focal length moves more than
     ``focal_restart_change`` from the one the model started from, once the model holds
-    ``focal_restart_min_images`` images (fewer hardly fix it) or at its end, the mapping starts
-    again from the refined value (at most ``focal_restarts`` times).
+    ``focal_restart_min_images`` images (fewer hardly fix it; all of them in a smaller set), while it
+    grows or at its end, the mapping starts again from the refined value (at most ``focal_restarts`` times).
     """
 
     start_px: float
@@ -246,7 +246,7 @@ class _FocalWatch:
 
     def check(self, mapper: IncrementalMapper, at_end: bool = False) -> None:
         n, f = int(mapper.registered.sum()), float(mapper.K[0, 0])
-        if n < min(self.opts.focal_restart_min_images, mapper.M) and not at_end:
+        if n < min(self.opts.focal_restart_min_images, mapper.M):  # a few views hardly fix it, also at the end
             return
         if abs(np.log(f / self.start_px)) > np.log1p(self.opts.focal_restart_change):
             raise _FocalMoved({"from_px": round(self.start_px, 3), "to_px": round(f, 3), "images": n, "at_end": bool(at_end)})
