@@ -128,6 +128,7 @@ def run_sfm(data, rng: np.random.Generator, options: MapperOptions | None = None
         K = report["self_calibration"].pop("K") if "self_calibration" in report else K
         t_ransac = time.perf_counter() - t_start
         restarts = report["focal_restarts"] = []
+        f_checked = float(K[0, 0])  # the focal length of stage 1's calibrated check
         while True:
             report["n_tracks"] = len(tracks.uv)
             tr = report["tracks"]
@@ -146,10 +147,12 @@ def run_sfm(data, rng: np.random.Generator, options: MapperOptions | None = None
                           f"model grew ({moved.row['images']} images): starting again from {moved.row['to_px']:.1f} px")
                 K = K.copy()
                 K[0, 0] = K[1, 1] = moved.row["to_px"]
-                if getattr(data, "two_view", None) is not None and opts.min_e_f_inlier_ratio > 0:  # its calibrated check uses K
+                if (getattr(data, "two_view", None) is not None and opts.min_e_f_inlier_ratio > 0
+                        and abs(np.log(K[0, 0] / f_checked)) > np.log(1.0 + RECHECK_FOCAL_CHANGE)):  # its calibrated check used K
                     t0 = time.perf_counter()
                     pairs, tracks = verified_pairs_and_tracks(data, rng, opts.f_threshold_px, opts.min_pair_matches, report,
                                                               opts.min_e_f_inlier_ratio, lambda _, K=K: K)
+                    f_checked = float(K[0, 0])
                     t_ransac += time.perf_counter() - t0
     report["degenerate_pairs"] = list(mapper.degenerate.values())
     rec = _assemble(models, reasons, report)
@@ -178,6 +181,11 @@ def _check_inputs(data, rng) -> np.ndarray:
     if M < 2:
         raise KitInputError(f"data has {M} image(s): SfM needs at least two")
     return K
+
+
+#: Stage 1's calibrated check is redone after a focal restart where the focal length moved more than this
+#: (relative) from the one it checked with (its 4 px Sampson threshold tolerates less).
+RECHECK_FOCAL_CHANGE = 0.1
 
 
 def _self_calibration(data, opts: MapperOptions, size, report: dict):
