@@ -37,7 +37,7 @@ import types
 from pathlib import Path
 from typing import Any, Callable
 
-from course_lib.exercises import EXERCISES
+from course_lib.exercise_table import EXERCISES
 from course_lib.paths import REPO_ROOT
 
 __all__ = ["stand_in", "find_student_solution", "solutions_dir", "save_solution", "solution_source",

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from course_lib import validate
+from course_lib.sfm.refit import refit_on_inliers
 from course_lib.validate import KitInputError
 
 __all__ = [
@@ -341,31 +342,6 @@ def _bailout_bar(ratio: float, sub_count: int, m: int) -> float:
     return m * w - 4.0 * np.sqrt(m * w * (1.0 - w))
 
 
-def _refit(solver, error, x1, x2, model, threshold: float, min_size: int, rounds: int = 5):
-    """Refit the model on all its inliers and recount them, while the inlier set grows.
-
-    The first refit is always taken (a fit to all inliers beats the fit to a minimal sample);
-    later ones only if they keep at least as many inliers. Returns ``(model, distances (N,))``.
-    """
-    d = error(model[None], x1, x2)[0]
-    inliers = d < threshold
-    for round_ in range(rounds):
-        if inliers.sum() < min_size:
-            break
-        new, ok = solver(x1[inliers][None], x2[inliers][None])
-        if not ok[0]:
-            break
-        d_new = error(new, x1, x2)[0]
-        inl_new = d_new < threshold
-        if round_ > 0 and inl_new.sum() < inliers.sum():
-            break
-        done = np.array_equal(inl_new, inliers)
-        model, d, inliers = new[0], d_new, inl_new
-        if done:
-            break
-    return model, d
-
-
 def ransac(
     x1: np.ndarray,
     x2: np.ndarray,
@@ -440,7 +416,7 @@ def ransac(
                 bar = _bailout_bar(best_key[0] / n, int((d[k, sub] < threshold).sum()), len(sub))
     if best is None:
         return None
-    model, d = _refit(solver, error, x1, x2, best, threshold, sample_size)
+    model, d = refit_on_inliers(solver, error, x1, x2, best, threshold, sample_size)
     return RansacResult(F=model, inliers=d < threshold, n_iters=it, distances=d)
 
 

@@ -45,12 +45,13 @@ import numpy as np
 from course_lib.data.tracks import Tracks, join_tracks
 from course_lib.exercises import call
 from course_lib.sfm.initial_pair import five_point_essential, fundamental_from_essential, sampson_pixels
+from course_lib.sfm.refit import refit_on_inliers
 from course_lib.validate import KitInputError
 
 try:  # the instructor's kit: notebook 01's RANSAC with batched samples and a preemptive test (faster)
-    from course_lib.sfm.fundamental import _refit, eight_point_batch, ransac, sampson_distance_batch
+    from course_lib.sfm.fundamental import eight_point_batch, ransac, sampson_distance_batch
 except ImportError:  # the student kit: your ransac_fundamental, eight_point and sampson_distance of notebook 01
-    _refit = eight_point_batch = ransac = sampson_distance_batch = None
+    eight_point_batch = ransac = sampson_distance_batch = None
 
 __all__ = ["PairVerification", "Tracks", "verify_pair", "ransac_every_pair", "from_carried_geometry", "verify_pairs",
            "verified_pairs_and_tracks", "calibrated_check", "check_calibrated", "join_tracks", "verified_tracks"]
@@ -180,37 +181,24 @@ def from_carried_geometry(x1: np.ndarray, x2: np.ndarray, F: np.ndarray, thresho
         return PairVerification(None, np.zeros(len(x1), bool), np.full(len(x1), np.inf), 0,
                                 f"{len(x1)} matches: the 8-point algorithm needs at least 8")
     F = np.asarray(F, float) / np.linalg.norm(F)
-    if _refit is not None:
-        model, d = _refit(eight_point_batch, sampson_distance_batch, x1, x2, F, threshold_px, 8)
+    if eight_point_batch is not None:
+        model, d = refit_on_inliers(eight_point_batch, sampson_distance_batch, x1, x2, F, threshold_px, 8)
     else:
-        model, d = _refit_with_exercises(x1, x2, F, threshold_px)
+        model, d = refit_on_inliers(_eight_point_exercise, _sampson_exercise, x1, x2, F, threshold_px, 8)
     return PairVerification(model, d < threshold_px, d, 0)
 
 
-def _refit_with_exercises(x1, x2, F, threshold_px: float, rounds: int = 5) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`from_carried_geometry`'s refit by the exercises ``eight_point`` and ``sampson_distance`` (the student kit).
+def _eight_point_exercise(x1: np.ndarray, x2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The exercise ``eight_point`` as :func:`course_lib.sfm.refit.refit_on_inliers`' solver: one batch of one problem."""
+    try:
+        return np.asarray(call("eight_point", x1[0], x2[0]), float).reshape(1, 3, 3), np.ones(1, bool)
+    except KitInputError:
+        return np.zeros((1, 3, 3)), np.zeros(1, bool)
 
-    The same rule as the reference's refit: the first refit on the inliers is taken, later ones only
-    while they keep at least as many inliers. Returns ``(F (3, 3), distances (N,))``.
-    """
-    d = np.asarray(call("sampson_distance", F, x1, x2), float).reshape(-1)
-    inl = d < threshold_px
-    for round_ in range(rounds):
-        if inl.sum() < 8:
-            break
-        try:
-            new = np.asarray(call("eight_point", x1[inl], x2[inl]), float).reshape(3, 3)
-        except KitInputError:
-            break
-        d_new = np.asarray(call("sampson_distance", new, x1, x2), float).reshape(-1)
-        inl_new = d_new < threshold_px
-        if round_ > 0 and inl_new.sum() < inl.sum():
-            break
-        done = np.array_equal(inl_new, inl)
-        F, d, inl = new, d_new, inl_new
-        if done:
-            break
-    return F, d
+
+def _sampson_exercise(models: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """The exercise ``sampson_distance`` as :func:`course_lib.sfm.refit.refit_on_inliers`' error: ``(B, N)``."""
+    return np.stack([np.asarray(call("sampson_distance", F, x1, x2), float).reshape(-1) for F in models])
 
 
 def verify_pairs(data, rng: np.random.Generator, threshold_px: float = 1.0) -> tuple[dict, str]:
