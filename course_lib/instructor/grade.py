@@ -78,7 +78,7 @@ from pathlib import Path
 
 import nbformat
 
-from course_lib.checks.core import score_against
+from course_lib.checks.core import score_against, score_reasons
 from course_lib.instructor.cgroups import Cgroup
 from course_lib.instructor.extract import extract_exercise
 from course_lib.instructor.hidden import HiddenJob, build_hidden_fixtures, run_hidden, run_reference
@@ -663,8 +663,10 @@ def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, run: _Run, steps: dict[
     elif frac >= 1:
         g.feedback.append(f"all {len(ref)} hidden checks pass")
     else:
+        why = score_reasons(out.result, reference) if reference is not None else []
         g.feedback.append(f"{matched} of {len(ref)} hidden checks pass (new synthetic cases), "
-                          f"{frac * 100:.0f} % of the hidden-check points. What failed:")
+                          f"{frac * 100:.0f} % of the hidden-check points"
+                          + (f" ({'; '.join(why)}: the scoring rule, README)" if why else "") + ". What failed:")
         fails = out.failing or [f"{ln}: not passed" for ln in sorted((Counter(ref) - Counter(out.passing)))]
         g.feedback += [f"✘ {ln}" for ln in fails[:MAX_FEEDBACK_LINES]]
         missing = _not_run(out.result, reference)

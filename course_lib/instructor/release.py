@@ -40,6 +40,7 @@ from pathlib import Path
 import nbformat
 
 from course_lib import __version__
+from course_lib.checks.core import SCORING_RULE
 from course_lib.instructor.notebooks import (
     CHECK_MARK,
     NOTEBOOKS_DIR,
@@ -323,14 +324,15 @@ print the reference verdict) and, independently, runs each exercise function on 
 cases (new synthetic scenes) with a time limit, in a separate process that holds your code and this
 kit's `course_lib` only, works in a copy of your folder, has no network and may write only there.
 A function that loops is stopped at the limit and one that ends its process is named in the
-feedback; either costs that exercise only. Per exercise, 90 % of the points come from the
-hidden checks (the share of them that pass); the last 10 % come when all hidden checks pass and
-the check cell in your notebook prints the reference verdict (run it top to bottom before you
-hand in). There is no credit for an exercise that calls the kit's reference solution,
-whose check cell was edited or printed by hand, whose checks were patched, or whose cell was
-deleted or moved. Write your own code in the exercise cells; helper functions and imports in the
-notebook are fine.
-{carry}
+feedback; either costs that exercise only. There is no credit for an exercise that calls the kit's
+reference solution, whose check cell was edited or printed by hand, whose checks were patched, or
+whose cell was deleted or moved. Write your own code in the exercise cells; helper functions and
+imports in the notebook are fine.
+
+**The scoring rule** (the grader's feedback, and the `scoring:` line of a check cell that fails, say
+which part of it cost points):
+
+{SCORING_RULE}{carry}
 ## Data
 
 `data/synthetic-building` (SfM) and `data/synthetic-building-nerf` (NeRF) are small scenes with
