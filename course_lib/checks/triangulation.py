@@ -219,7 +219,10 @@ def check_triangulate_linear(fn, exercise: str = "triangulate_linear") -> None:
             else:
                 c.expect(np.allclose(A, want, rtol=1e-6, atol=1e-6 * _scale(f["lin_noiseless_Xtrue"])), f"{case} works",
                          f"{case}: the right shape (1, 3) but not the true point ({np.round(A[0], 3).tolist()} instead "
-                         f"of {np.round(want[0], 3).tolist()}): build A from this one point as for N points")
+                         f"of {np.round(want[0], 3).tolist()})" + (
+                             ": the same points as the cases above, one at a time" if failing else
+                             ": the N-point cases pass, so look for what depends on N (a loop over range(N - 1), a "
+                             "reshape or mean over the points axis, an index [1] that is a second point)"))
 
 
 # --------------------------------------------------------------------------- choose_pose
