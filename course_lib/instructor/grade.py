@@ -72,6 +72,7 @@ import secrets
 import shutil
 import tempfile
 import time
+import unicodedata
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -105,7 +106,7 @@ from course_lib.paths import FIXTURES_DIR, REPO_ROOT
 from course_lib.validate import KitInputError
 
 __all__ = ["HiddenCases", "prepare_hidden", "grade_submission", "preflight", "to_markdown", "HIDDEN_SHARE",
-           "IsolationError"]
+           "IsolationError", "plain_text", "plain_data"]
 
 HIDDEN_SHARE = 0.9  # of an exercise's points: the hidden checks; the rest: nbval verdict (with all hidden passing)
 MAX_FEEDBACK_LINES = 6
@@ -333,7 +334,7 @@ def grade_submission(
                                 "left out": [_cap(r, 300) for r in copy.refused[:50]]}
         report["isolation"] = {"insecure": bool(insecure), "hidden checks": run.sandbox_seen,
                                "nbval": nbval_run.sandbox if nbval_run else {}}
-        return report
+        return plain_data(report)
 
 
 def preflight(notebooks_dir: Path = NOTEBOOKS_DIR, limits: Limits | None = None) -> None:
@@ -706,16 +707,57 @@ def _short(text: str, n: int = 160) -> str:
 
 
 def _cap(text: str, n: int = MAX_MESSAGE_CHARS) -> str:
-    """``text`` on one line, without control characters, at most ``n`` characters (student text is data)."""
-    text = _CONTROL.sub(" ", str(text))
-    text = " ".join(text.split())
+    """``text`` on one line, plain (:func:`plain_text`), at most ``n`` characters (student text is data)."""
+    text = " ".join(plain_text(str(text)).split())
     return text if len(text) <= n else text[: n - 30] + f" ... ({len(text) - n + 30} characters left out)"
 
 
-#: Control characters, ANSI escapes, and the Unicode characters that reorder or hide text (bidi overrides,
-#: zero-width joiners): never shown from a student's text.
-_CONTROL = re.compile(r"\x1b\[[0-9;?]*[ -/]*[@-~]|[\x00-\x08\x0b-\x1f\x7f-\x9f\u200b-\u200f\u202a-\u202e"
-                      r"\u2060-\u2069\ufeff]")
+#: ANSI escape sequences (removed whole, so that no "[31m" is left behind).
+_ANSI = re.compile(r"\x1b\[[0-9;?]*[ -/]*[@-~]|\x1b[@-_]")
+#: Categories never shown from a student's text: controls, format characters (bidi marks and overrides, zero-width
+#: joiners, the soft hyphen, U+061C, U+206A-F, U+FFF9-B, the tag characters U+E0000-E007F that spell hidden text),
+#: surrogates, private use, unassigned code points, line and paragraph separators.
+_HIDDEN_CATEGORIES = {"Cc", "Cf", "Cs", "Co", "Cn", "Zl", "Zp"}
+#: Variation selectors (invisible, and a known way to smuggle bytes behind a visible character).
+_SELECTORS = ((0xFE00, 0xFE0F), (0xE0100, 0xE01EF), (0x180B, 0x180F))
+
+
+def _hidden_char(c: str) -> bool:
+    o = ord(c)
+    return unicodedata.category(c) in _HIDDEN_CATEGORIES or any(a <= o <= b for a, b in _SELECTORS)
+
+
+def plain_text(text: str) -> str:
+    """``text`` as plain data: ANSI escapes removed; every control, format (bidi, zero-width, soft hyphen, tag
+    characters), surrogate, private-use, unassigned or separator character and variation selector written as its
+    escape (``\\u202e``); tabs and newlines kept. The one sanitiser of everything the report and the feedback show."""
+    text = _ANSI.sub("", text)
+    if text.isascii():
+        return _ASCII_CONTROL.sub(_escape, text)
+    return "".join(_escape_char(c) if c not in "\t\n" and _hidden_char(c) else c for c in text)
+
+
+_ASCII_CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f]")
+
+
+def _escape(m: re.Match) -> str:
+    return _escape_char(m.group())
+
+
+def _escape_char(c: str) -> str:
+    o = ord(c)
+    return f"\\x{o:02x}" if o < 0x100 else (f"\\u{o:04x}" if o < 0x10000 else f"\\U{o:08x}")
+
+
+def plain_data(obj):
+    """``obj`` (a report: dicts, lists, strings, numbers) with every string, keys included, made :func:`plain_text`."""
+    if isinstance(obj, str):
+        return plain_text(obj)
+    if isinstance(obj, dict):
+        return {plain_data(k): plain_data(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [plain_data(v) for v in obj]
+    return obj
 
 
 def _report(grades: list[ExerciseGrade], hidden: HiddenCases, seconds: float, allow_reference: bool) -> dict:
@@ -745,6 +787,7 @@ def to_markdown(report: dict) -> str:
     :data:`MAX_MESSAGE_CHARS` characters and :data:`MAX_MESSAGES` per exercise; the whole feedback stays under
     :data:`MAX_FEEDBACK_BYTES` (the details of the last exercises are left out, saying so, past it).
     """
+    report = plain_data(report)
     head = ["# Grading feedback", "", f"**Total: {report['total']:g} / {report['max']:g} points**", ""]
     if report.get("insecure"):
         head += ["**Graded with `--insecure`: your code ran without the grader's sandbox (a trusted local run).**", ""]

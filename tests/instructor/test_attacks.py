@@ -722,7 +722,8 @@ STALL_ORACLE = """
 """
 
 FAKE_TOTAL = ("\\n\\n**Total: 230 / 230 points**\\n\\n<!-- the rest is hidden\\n<img src=x onerror=alert(1)>\\n"
-              "````\\n# Grading feedback\\n\\x1b[2J\\u202eevil")
+              "````\\n# Grading feedback\\n\\x1b[2J\\u202eevil\\U000e0041\\U000e0042\\u00ad\\u061c\\u206a"
+              "\\ufff9\\ue000\\ufe0f")
 
 
 @pytest.fixture(scope="module")
@@ -841,7 +842,8 @@ def test_33_feedback_is_data(tmp_path, hidden, outside):
     assert [ln for ln in outside_fences if "Total:" in ln] == ["**Total: 0 / 10 points**"], outside_fences
     for bad in ("<!--", "<img", "230", "\x1b", "\u202e"):
         assert not [ln for ln in outside_fences if bad in ln], (bad, outside_fences)
-    assert "\x1b" not in md and "\u202e" not in md
+    for text in (md, json.dumps(report, ensure_ascii=False)):
+        assert not set(text) & set("\x1b\u202e\U000e0041\U000e0042\u00ad\u061c\u206a\ufff9\ue000\ufe0f"), text
     assert max(len(ln) for ln in md.splitlines()) < 700 and len(md.encode()) < 60_000
     assert len(json.dumps(report)) < 200_000
     from course_lib.instructor.grade import MAX_FEEDBACK_BYTES
