@@ -299,7 +299,7 @@ def grade_submission(
     if not insecure:
         preflight(notebooks_dir, limits)  # one line, and no grading, where the sandbox cannot be made or verified
     with _scratch(workdir) as work, _shared_folder() as shared:
-        copy = copy_submission(submission, shared / "submission")
+        copy = copy_submission(submission, shared / "submission", max_total_bytes=(limits or Limits()).submission_bytes)
         hidden = _ready_hidden(hidden, specs, salt, work, notebooks_dir, timeout)
         iso = Isolation.for_grading(hidden.library if not allow_reference else REPO_ROOT,
                                     [work, Path(hidden.fixtures_dir)], notebooks_dir, self_test=allow_reference,

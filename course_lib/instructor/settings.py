@@ -120,7 +120,8 @@ class Limits:
     (``RLIMIT_NPROC``). For the whole tree: ``memory_total_bytes`` and ``processes_total`` in a cgroup of
     its own where the grader can make one (:class:`course_lib.instructor.cgroups.Cgroup`; the grader's own
     work on the exercise, decoding and checking its replies, runs in the same cgroup), ``disk_bytes`` for
-    what it may write (the size of its ``/tmp``, where its working folder lies), and
+    what it may write (its ``/tmp`` holds that on top of its working copy of the submission, which
+    ``submission_bytes`` bounds: a submission the copy takes always fits), and
     ``submission_memory_bytes`` for everything one submission runs at the same time (the exercise and the
     notebooks under nbval).
     """
@@ -131,7 +132,8 @@ class Limits:
     processes: int = 512  # RLIMIT_NPROC (threads count)
     memory_total_bytes: int = 6 << 30  # the whole process tree (cgroup), tmpfs pages and the grader's worker included
     processes_total: int = 512  # the whole process tree (cgroup pids), threads included
-    disk_bytes: int = 1 << 30  # its /tmp (a tmpfs), where its working copy of the submission lies
+    disk_bytes: int = 1 << 30  # what it may write in its /tmp (a tmpfs: this plus its working copy of the submission)
+    submission_bytes: int = 1 << 30  # the grader's copy of a submission (copy_submission's limit; the rest is left out)
     submission_memory_bytes: int = 12 << 30  # everything of one submission at the same time (cgroup)
 
     def apply(self, cpu_seconds: float | None = None) -> None:

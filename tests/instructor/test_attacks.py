@@ -594,14 +594,14 @@ def rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def graded_row(what: str, report: dict, name: str, rss_before: float, klass: str) -> dict:
-    """The row of one attack (and its checks: points 0, the grader's memory)."""
+def graded_row(what: str, report: dict, name: str, rss_before: float, klass: str, rows: list | None = None) -> dict:
+    """The row of one attack (and its checks: points 0, the grader's memory), in ``rows`` (default: issue 33's)."""
     g = next(x for x in report["exercises"] if x["name"] == name)
     mem = g.get("hidden", {}).get("memory", {}) or {}
     worker = (mem.get("worker peak growth bytes") or 0) / 2**20
     cgroup = (mem.get("cgroup peak bytes") or 0) / 2**20
     grown = rss_mib() - rss_before
-    ROWS33.append((klass, what, f"{g['points']:g} / {g['max_points']:g}", g["status"], f"{report['seconds']:.1f}",
+    (ROWS33 if rows is None else rows).append((klass, what, f"{g['points']:g} / {g['max_points']:g}", g["status"], f"{report['seconds']:.1f}",
                    f"{g.get('hidden', {}).get('seconds', 0):g}", f"{rss_mib():.0f} (+{grown:.0f})", f"{worker:.0f}",
                    f"{cgroup:.0f}", _short_cell(g["feedback"][0] if g["feedback"] else "")))
     assert g["points"] == 0, (what, g)
@@ -935,3 +935,60 @@ def test_33_attack_table(request, capsys):
         show_table(request, "Issue 33: fail closed, one clock, feedback as data",
                    ["class", "attack", "points", "status", "grading s", "exercise s", "grader peak RSS MiB (+growth)",
                     "worker growth MiB", "exercise cgroup peak MiB", "feedback"], ROWS33)
+
+
+# =============================================================================================
+# Issue 40: the grader's own work bounded, the nbval kernel sealed, nothing of the instructor in view
+# =============================================================================================
+
+ROWS40: list[tuple] = []
+
+
+def test_40_every_bad_submission_gets_a_report(tmp_path, hidden, outside, monkeypatch):
+    """Class 5: a submission just under the copy limit fits the sandbox's /tmp (its tmpfs is the copy plus what the
+    student may write); were it not to fit, the exercise says so (never "--insecure"); sixteen nested folders of
+    253-character names and names with control characters are left out and named, and the rest is graded."""
+    from course_lib.instructor.sandbox import jail
+
+    before = rss_mib()
+    limits = Limits(submission_bytes=40 << 20, disk_bytes=8 << 20)
+    sub = submission(tmp_path / "full", EYE)
+    (sub / "data").mkdir()
+    for k in range(5):
+        (sub / "data" / f"b{k}.bin").write_bytes(os.urandom(7 << 20))  # 35 MiB: under the copy limit, over disk_bytes
+    g = graded_row("a submission just under the copy limit (5x the disk limit)", grade01(sub, hidden, limits=limits),
+                   "eight_point", before, "5 no report", ROWS40)
+    assert g["status"] == "zero" and "hidden checks pass" in " ".join(g["feedback"]), g  # its checks ran
+
+    monkeypatch.setattr(jail, "seed_bytes", lambda seed: 0)  # a /tmp of disk_bytes only: the copy does not fit
+    report = grade01(sub, hidden, limits=limits)
+    g = graded_row("the same where the sandbox's /tmp is too small for it", report, "eight_point", before,
+                   "5 no report", ROWS40)
+    assert g["status"] == "exit" and "could not be copied into the sandbox" in g["feedback"][0], g
+    assert "insecure" not in json.dumps(report["exercises"]) + to_markdown(report)
+    monkeypatch.undo()
+
+    sub = submission(tmp_path / "deep", EYE)
+    fd = os.open(sub, os.O_RDONLY)
+    for k in range(16):
+        os.mkdir(chr(97 + k) * 253, dir_fd=fd)
+        fd, old = os.open(chr(97 + k) * 253, os.O_RDONLY, dir_fd=fd), fd
+        os.close(old)
+    os.close(fd)
+    (sub / "notebooks" / "odd\x1b[2Jname.ipynb").write_text("{}")
+    report = grade01(sub, hidden)
+    g = graded_row("16 nested folders of 253-character names, a name with an escape", report, "eight_point", before,
+                   "5 no report", ROWS40)
+    left_out = " ".join(report["submission"]["left out"])
+    assert "a path longer than" in left_out and "control characters" in left_out and "\x1b[" not in left_out, left_out
+
+
+def test_40_attack_table(request, capsys):
+    """Issue 40's table (printed with ``pytest -s`` or ``ATTACK_TABLE=1``): points, the grader's peak memory and the
+    time of each attack."""
+    if not ROWS40:
+        pytest.skip("run with the tests above")
+    with capsys.disabled():
+        show_table(request, "Issue 40: the grader's own work bounded, the nbval kernel sealed",
+                   ["class", "attack", "points", "status", "grading s", "exercise s", "grader peak RSS MiB (+growth)",
+                    "worker growth MiB", "exercise cgroup peak MiB", "feedback"], ROWS40)

@@ -37,6 +37,7 @@ local run) skips the sandbox, and the report says so.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import platform
@@ -168,7 +169,7 @@ def command(iso, mode: str, server_dir: Path, seed: Path | None, info_fd: int, s
         seccomp_fd: a descriptor holding :func:`seccomp_filter`'s program, or None.
         staged: :func:`staging`'s folders (a grader that runs as root).
     """
-    disk = int(iso.limits.disk_bytes)
+    disk = int(iso.limits.disk_bytes) + (seed_bytes(seed) if seed is not None else 0)
     args = [bwrap_path() or "bwrap", "--unshare-all", "--unshare-user", "--disable-userns", "--die-with-parent",
             "--new-session", "--cap-drop", "ALL", "--hostname", "sandbox",
             "--size", str(disk), "--tmpfs", "/tmp"]
@@ -183,6 +184,21 @@ def command(iso, mode: str, server_dir: Path, seed: Path | None, info_fd: int, s
     if seccomp_fd is not None:
         args += ["--seccomp", str(seccomp_fd)]
     return args + ["--", sys.executable, "-S", "-E", "-B", f"{SERVER}/server.py", mode, f"{SERVER}/config.json"]
+
+
+@functools.lru_cache(maxsize=64)
+def seed_bytes(seed: Path) -> int:
+    """What the copy of ``seed`` (the grader's copy of a submission) takes in a tmpfs: every file in whole pages,
+    plus 1 MiB. The sandbox's ``/tmp`` is this plus ``Limits.disk_bytes``, so that every submission the grader copied
+    fits in its working folder and the student's code still has ``disk_bytes`` to write."""
+    total = 1 << 20
+    for folder, _, files in os.walk(seed):
+        for f in files:
+            try:
+                total += -(-os.lstat(os.path.join(folder, f)).st_size // 4096) * 4096
+            except OSError:
+                pass
+    return total
 
 
 def sandboxed(iso, mode: str, server_dir: Path, seed: Path | None, stage_dir: Path):
@@ -376,7 +392,8 @@ def describe(facts: dict, info: dict, iso, seccomp: bool) -> dict:
             "namespaces list": "user, mount, PID, IPC, network (loopback only), UTS, cgroup",
             "file system": "a fresh root: the Python installation, the student release and system libraries "
                            "read-only; its /tmp (the working copy) and /dev/shm writable",
-            "disk": f"{int(iso.limits.disk_bytes)} bytes (its /tmp) + {SHM_BYTES} bytes (/dev/shm)",
+            "disk": f"{int(iso.limits.disk_bytes)} bytes (its /tmp, past its working copy) + {SHM_BYTES} bytes "
+                    "(/dev/shm)",
             "capabilities": "none (no_new_privs)", "seccomp": "filter" if seccomp else "none on this architecture",
             "uid": (f"{STUDENT_UID} (the grader runs as root)" if os.getuid() == 0 else
                     f"{uids[0] if uids else os.getuid()}, the grading user's, in a user namespace of its own with "

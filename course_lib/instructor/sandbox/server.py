@@ -140,13 +140,25 @@ def _undumpable() -> None:
         pass
 
 
+#: How the server ends when the submission cannot be copied into its working folder (the grader reports it as the
+#: submission's problem, never as a sandbox that cannot be made).
+SEED_EXIT, SEED_FAILED = 4, "course-grader: the submission could not be copied into the working folder: "
+
+
 def _seed(cfg: dict) -> None:
     """The working folder: a copy of the grader's copy of the submission (regular files only)."""
     import shutil
 
     os.makedirs(cfg["cwd"], exist_ok=True)
     if cfg.get("seed") and os.path.isdir(cfg["seed"]):
-        shutil.copytree(cfg["seed"], cfg["cwd"], dirs_exist_ok=True, symlinks=False)
+        try:
+            shutil.copytree(cfg["seed"], cfg["cwd"], dirs_exist_ok=True, symlinks=False)
+        except (OSError, shutil.Error) as exc:  # the submission's problem, not the sandbox's: the grader reports it
+            errors = exc.args[0] if isinstance(exc, shutil.Error) and exc.args and isinstance(exc.args[0], list) else []
+            why = {str(e[-1]).split("] ")[-1].split(":")[0] for e in errors if isinstance(e, tuple)} or {str(exc)}
+            sys.stderr.write(f"{SEED_FAILED}{'; '.join(sorted(why))[:300]}\n")
+            sys.stderr.flush()
+            os._exit(SEED_EXIT)
 
 
 def _await_go(fd: int) -> None:
