@@ -80,7 +80,7 @@ from pathlib import Path
 import nbformat
 
 from course_lib.checks.core import score_against
-from course_lib.instructor.cgroups import Cgroup
+from course_lib.instructor.cgroups import HOW_TO_ENABLE, Cgroup, container_mode
 from course_lib.instructor.extract import extract_exercise
 from course_lib.instructor.hidden import HiddenJob, build_hidden_fixtures, run_hidden, run_reference
 from course_lib.instructor.nbval_run import NbvalRun
@@ -88,6 +88,7 @@ from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ExerciseSpec, Noteboo
 from course_lib.instructor.oracle import earlier_steps
 from course_lib.instructor.placement import Placement, place_exercises, restored
 from course_lib.instructor.plan import release_plan
+from course_lib.instructor.sandbox import jail
 from course_lib.instructor.sandbox.jail import IsolationError
 from course_lib.instructor.scan import scan_exercise, scan_notebook
 from course_lib.instructor.settings import (
@@ -304,6 +305,7 @@ def grade_submission(
         iso = Isolation.for_grading(hidden.library if not allow_reference else REPO_ROOT,
                                     [work, Path(hidden.fixtures_dir)], notebooks_dir, self_test=allow_reference,
                                     insecure=insecure, limits=limits)
+        iso.scratch = shared
         run = _Run(specs, omitted, hidden, iso, copy, timeout, allow_reference, kit=kit, clock=clock,
                    cgroup=None if insecure else Cgroup.create(iso.limits.submission_memory_bytes,
                                                                4 * iso.limits.processes_total))
@@ -338,23 +340,35 @@ def grade_submission(
 
 
 def preflight(notebooks_dir: Path = NOTEBOOKS_DIR, limits: Limits | None = None) -> None:
-    """Make one sandbox and check it, before anything of a submission is read or run.
+    """Make one sandbox and check it, before anything of a submission is read or run; and make sure that a cgroup can
+    be made for the totals of a submission (unless the container mode applies, :func:`~.cgroups.container_mode`).
 
     Raises:
         IsolationError: it cannot be made or does not check out (one line: what is missing, how to enable it).
     """
+    probe = Cgroup.create(64 << 20, 8)
+    if probe is None and not container_mode():
+        raise IsolationError(jail.refusal("no cgroup can be made here, so a submission's processes would have no "
+                                          "memory total", HOW_TO_ENABLE))
+    if probe is not None:
+        probe.close()
     with _shared_folder() as lib:  # an empty library: the sandbox itself is what is checked here
         iso = Isolation.for_grading(lib, [], notebooks_dir, limits=limits)
+        iso.scratch = lib
         with StudentProcess(iso, "", "preflight", None, 30.0):
             pass
 
 
 @contextlib.contextmanager
 def _shared_folder():
-    """A folder the students' sandboxes may read (their copy of the submission), outside the grader's scratch."""
-    with tempfile.TemporaryDirectory(prefix="course-grade-submission-") as tmp:
-        os.chmod(tmp, 0o755)
-        yield Path(tmp)
+    """The run's folder, outside the grader's scratch: the grader's copy of the submission (which the students'
+    sandboxes show read-only) and each student's process's own folder; only the grader and the student's uid may
+    enter it (:func:`~.sandbox.jail.private_folder`), and it is removed at the end, whatever ended inside it."""
+    tmp = jail.private_folder("course-grade-submission-")
+    try:
+        yield tmp
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _ready_hidden(hidden: HiddenCases | None, specs: list[NotebookSpec], salt: int | None, work: Path,

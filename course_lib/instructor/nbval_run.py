@@ -21,7 +21,6 @@ import select
 import shutil
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 import xml.etree.ElementTree as ET
@@ -110,9 +109,8 @@ class NbvalRun:
     def _one(self, name: str, nb, end: float) -> tuple[dict[tuple[str, int], str], str]:
         """Run one notebook; after a cell that timed out (nbval skips the rest), run the rest again, while time is
         left (``end``)."""
-        tmp = Path(tempfile.mkdtemp(prefix="course-nbval-"))
+        tmp = jail.private_folder("course-nbval-", self.iso.scratch)
         try:
-            os.chmod(tmp, 0o755)
             seed = tmp / "seed"  # the submission's copy with only the notebook under test, restored by the grader
             shutil.copytree(self.submission, seed, ignore=_other_notebooks(self.submission), symlinks=False)
             (seed / "notebooks").mkdir(exist_ok=True)

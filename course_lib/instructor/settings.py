@@ -178,6 +178,8 @@ class Isolation:
         keep: folders inside ``hide`` that stay visible read-only (the Python environment).
         insecure: no sandbox at all (``--insecure``: a trusted local run; the report says so).
         limits: resource limits.
+        scratch: the run's folder, where each student's process gets its own private folder (removed with the run's
+            folder however that process ended); None: the system's temporary folder.
     """
 
     library: Path
@@ -185,6 +187,7 @@ class Isolation:
     keep: list[Path] = field(default_factory=list)
     insecure: bool = False
     limits: Limits = field(default_factory=Limits)
+    scratch: Path | None = None
 
     @classmethod
     def for_grading(cls, library: Path, secret: list[Path], notebooks_dir: Path, self_test: bool = False,

@@ -50,7 +50,6 @@ import signal
 import struct
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -125,8 +124,7 @@ class StudentProcess:
         self.proc = None
         self.info: dict = {}
         self.sandbox: dict = {}
-        self.tmp = Path(tempfile.mkdtemp(prefix="course-student-"))
-        os.chmod(self.tmp, 0o755)
+        self.tmp = jail.private_folder("course-student-", iso.scratch)
         try:
             self._start(code, submission, torch)
         except BaseException:

@@ -983,6 +983,63 @@ def test_40_every_bad_submission_gets_a_report(tmp_path, hidden, outside, monkey
     assert "a path longer than" in left_out and "control characters" in left_out and "\x1b[" not in left_out, left_out
 
 
+MEMFD_HOG = f"""
+    os = {SYS}["os"]
+    held = []
+    try:
+        for k in range(64):  # 64 x 128 MiB in memfd files: no process's address space, only a cgroup counts them
+            fd = os.memfd_create(f"m{{k}}")
+            os.write(fd, b"x" * (128 << 20))
+            held.append(fd)
+    except OSError as exc:
+        raise RuntimeError(f"held {{len(held) * 128}} MiB, then {{exc}}")
+    raise RuntimeError(f"held {{len(held) * 128}} MiB")
+"""
+
+
+def test_40_no_cgroup_no_grading_and_nothing_readable_left(tmp_path, hidden, outside, monkeypatch):
+    """Class 4: where no cgroup can be made, the grader refuses (one line on how to enable one) and none of the
+    student's code runs, unless the container mode applies; with a cgroup, memory held in memfd files is counted
+    and the exercise is stopped; the run's folders can be entered by no one else and are gone afterwards, also
+    after a kill."""
+    import shutil
+    import stat
+    import tempfile
+
+    from course_lib.instructor.cgroups import Cgroup
+    from course_lib.instructor.grade import IsolationError
+    from course_lib.instructor.sandbox.jail import private_folder
+
+    before = rss_mib()
+    own_tmp = Path(tempfile.mkdtemp(prefix="course-test-tmp-"))  # the runs' folders, apart from other graders' (in
+    os.chmod(own_tmp, 0o755)  # /tmp, which the student's uid can reach, unlike pytest's own folders)
+    monkeypatch.setattr(tempfile, "tempdir", str(own_tmp))
+    canary = tmp_path / "canary.txt"
+    body = f"""
+    with {SYS}["builtins"].open({str(canary)!r}, "w") as f:
+        f.write("ran")
+""" + HONEST
+    with monkeypatch.context() as m:
+        m.setattr(Cgroup, "create", classmethod(lambda cls, *a, **k: None))
+        m.delenv("COURSE_GRADER_CONTAINER", raising=False)
+        with pytest.raises(IsolationError, match="no cgroup can be made here.*COURSE_GRADER_CGROUP") as refused:
+            grade01(submission(tmp_path / "nocg", body), hidden)
+        assert "\n" not in str(refused.value) and not canary.exists()
+        m.setenv("COURSE_GRADER_CONTAINER", "1")
+        report = grade01(submission(tmp_path / "container", EYE), hidden)
+        assert report["exercises"][0]["status"] == "zero", report["exercises"]
+    if Cgroup.create(64 << 20, 8) is not None:
+        report = grade01(submission(tmp_path / "memfd", MEMFD_HOG), hidden, limits=SMALL)
+        g = graded_row("6.5 GiB held in memfd files (768 MiB cgroup)", report, "eight_point", before,
+                       "4 no cgroup", ROWS40)
+        assert "held 8192 MiB" not in " ".join(g["feedback"]), g
+    assert not list(own_tmp.iterdir()), list(own_tmp.iterdir())  # nothing of any run left, killed or not
+    folder = private_folder("course-test-", own_tmp)
+    mode, gid = stat.S_IMODE(folder.stat().st_mode), folder.stat().st_gid
+    shutil.rmtree(own_tmp)
+    assert mode == (0o750 if os.getuid() == 0 else 0o700) and (os.getuid() != 0 or gid != 0), oct(mode)
+
+
 def test_40_attack_table(request, capsys):
     """Issue 40's table (printed with ``pytest -s`` or ``ATTACK_TABLE=1``): points, the grader's peak memory and the
     time of each attack."""

@@ -37,7 +37,6 @@ local run) skips the sandbox, and the report says so.
 
 from __future__ import annotations
 
-import functools
 import json
 import os
 import platform
@@ -47,6 +46,7 @@ import signal
 import stat
 import struct
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -83,6 +83,18 @@ def bwrap_path() -> str | None:
 def refusal(what: str, how: str = HOW_TO_ENABLE) -> str:
     """The one line of a refusal: what is missing, how to enable it, and the way out for a trusted run."""
     return f"refusing to run the students' code: {what}; {how}, or pass --insecure for a trusted local run"
+
+
+def private_folder(prefix: str, parent: Path | None = None) -> Path:
+    """A new folder that only the grader and the student's uid can enter (``rwxr-x---`` root and the student's group
+    when the grader is root, else ``rwx------``): a student's code, its configuration and its copy of the submission
+    are never readable by anyone else on the machine. Made inside ``parent`` (the run's folder, removed by the grader
+    at the end however the process that made this one ended) when given."""
+    folder = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+    if os.getuid() == 0:
+        os.chown(folder, 0, STUDENT_UID)
+        os.chmod(folder, 0o750)
+    return folder
 
 
 def install_server(folder: Path, config: dict) -> Path:
@@ -186,7 +198,6 @@ def command(iso, mode: str, server_dir: Path, seed: Path | None, info_fd: int, s
     return args + ["--", sys.executable, "-S", "-E", "-B", f"{SERVER}/server.py", mode, f"{SERVER}/config.json"]
 
 
-@functools.lru_cache(maxsize=64)
 def seed_bytes(seed: Path) -> int:
     """What the copy of ``seed`` (the grader's copy of a submission) takes in a tmpfs: every file in whole pages,
     plus 1 MiB. The sandbox's ``/tmp`` is this plus ``Limits.disk_bytes``, so that every submission the grader copied
