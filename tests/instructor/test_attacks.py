@@ -1040,6 +1040,40 @@ def test_40_no_cgroup_no_grading_and_nothing_readable_left(tmp_path, hidden, out
     assert mode == (0o750 if os.getuid() == 0 else 0o700) and (os.getuid() != 0 or gid != 0), oct(mode)
 
 
+def test_40_the_nbval_kernel_runs_nothing_the_scans_did_not_read(tmp_path, hidden, outside):
+    """Class 2: an ``ipykernel_launcher.py`` beside the notebook (the kernel is ``python -m ipykernel_launcher`` in
+    that folder), an IPython start-up file and configuration where IPYTHONDIR and HOME used to be (inside the
+    submission), a module beside the notebook: none of them runs (each would end the kernel, and the check cell
+    passes); ``%run -i``, ``%%capture``, ``!cmd``, ``get_ipython()`` and ``import sys as s; s.stdout = ...`` are
+    named by the scan, which now reads the code IPython runs."""
+    before = rss_mib()
+    sub = submission(tmp_path / "shadow", HONEST)
+    end = "import os\nos._exit(3)\n"
+    (sub / "notebooks" / "ipykernel_launcher.py").write_text(end)
+    (sub / "notebooks" / "ipython_kernel_config.py").write_text(end)
+    for home in (sub / ".home", sub / "notebooks" / ".home"):
+        (home / "ipython" / "profile_default" / "startup").mkdir(parents=True)
+        (home / "ipython" / "profile_default" / "startup" / "00-filter.py").write_text(end)
+        (home / ".ipython" / "profile_default" / "startup").mkdir(parents=True)
+        (home / ".ipython" / "profile_default" / "startup" / "00-filter.py").write_text(end)
+        (home / ".jupyter").mkdir()
+        (home / ".jupyter" / "jupyter_config.py").write_text(end)
+    report = grade01(sub, hidden, run_nbval=True)
+    (g,) = report["exercises"]
+    ROWS40.append(("2 nbval kernel", "ipykernel_launcher.py, start-up files, kernel configuration in the submission",
+                   f"{g['points']:g} / {g['max_points']:g} (none ran)", g["status"], f"{report['seconds']:.1f}", "",
+                   f"{rss_mib():.0f} (+{rss_mib() - before:.0f})", "", "", f"nbval {g['nbval']}"))
+    assert g["nbval"] == "pass" and g["points"] == 10, g
+    for what, cell in (("%run -i of a file of the submission", "%run -i helper.py"),
+                       ("%%capture of the check cells' output", "%%capture out\nx = 1"),
+                       ("a shell command", "!cp /dev/null x"),
+                       ("get_ipython() hooks", "get_ipython().events.register('post_run_cell', print)"),
+                       ("import sys as s; s.stdout = ...", "import sys as s\ns.stdout = s.stderr")):
+        report = grade01(submission(tmp_path / what.split()[0].strip("%!"), HONEST, extra_cell=cell), hidden)
+        g = graded_row(what, report, "eight_point", before, "2 nbval kernel", ROWS40)
+        assert g["status"] == "tampered", (what, g)
+
+
 def test_40_attack_table(request, capsys):
     """Issue 40's table (printed with ``pytest -s`` or ``ATTACK_TABLE=1``): points, the grader's peak memory and the
     time of each attack."""

@@ -389,9 +389,18 @@ def _get_rng(arrays: list) -> dict:
 # The nbval launcher
 # ---------------------------------------------------------------------------------------------
 
-#: pytest, started undumpable: the student's kernel (same user, no capabilities) cannot open its descriptors.
-PYTEST_BOOT = ("import ctypes, sys\nctypes.CDLL(None).prctl(4, 0, 0, 0, 0)\nimport pytest\n"
-               "sys.exit(pytest.main(sys.argv[1:]))\n")
+#: pytest, started undumpable: the student's kernel (same user, no capabilities) cannot open its descriptors. The
+#: kernel nbval starts (``--nbval-current-env``: ipykernel's ``python -m ipykernel_launcher``, in the notebooks'
+#: folder) gets ``-P``: no module of the submission (an ``ipykernel_launcher.py`` beside the notebook) stands in for
+#: the kernel's own, and the notebook's folder is not on the kernel's ``sys.path`` at all (IPython leaves it out under
+#: ``-P``): the kernel runs the notebook's cells and nothing of the submission that the grader's scans did not read.
+PYTEST_BOOT = ("import ctypes, sys\nctypes.CDLL(None).prctl(4, 0, 0, 0, 0)\nimport ipykernel.kernelspec as ks\n"
+               "_dict = ks.get_kernel_dict\n"
+               "def sealed(*a, **k):\n"
+               "    d = _dict(*a, **k)\n"
+               "    d['argv'] = [sys.executable, '-P', '-B', '-m', 'ipykernel_launcher', '-f', '{connection_file}']\n"
+               "    return d\n"
+               "ks.get_kernel_dict = sealed\nimport pytest\nsys.exit(pytest.main(sys.argv[1:]))\n")
 REPORT_LIMIT = 16 << 20
 
 
