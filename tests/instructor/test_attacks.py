@@ -1074,6 +1074,80 @@ def test_40_the_nbval_kernel_runs_nothing_the_scans_did_not_read(tmp_path, hidde
         assert g["status"] == "tampered", (what, g)
 
 
+def find_the_reference(*folders: str) -> str:
+    """Exercise code that looks for the instructor's ``sfm/fundamental.py`` in every folder it is given and on every
+    ``sys.path`` folder (``site-packages`` included), and earns full marks with it if it finds one."""
+    return f"""
+    os = {SYS}["os"]
+    sys = {SYS}["sys"]
+    seen = []
+    for folder in {list(folders)!r} + list(sys.path):
+        for sub in ("course_lib/sfm/fundamental.py", "sfm/fundamental.py"):
+            path = os.path.join(folder, sub)
+            try:
+                src = {SYS}["builtins"].open(path).read()
+            except OSError:
+                continue
+            ns = {{"__name__": "stolen"}}
+            {SYS}["builtins"].exec(src, ns)
+            return ns["eight_point"](x1, x2)
+        try:
+            seen += [f for f in os.listdir(folder) if "course_lib" in f]
+        except OSError:
+            pass
+    raise RuntimeError(f"no reference; kit entries in view: {{sorted(set(seen))}}")
+"""
+
+
+def test_40_nothing_of_the_instructor_in_view_however_installed(tmp_path, hidden, outside, monkeypatch):
+    """Class 3: the kit installed editable (this checkout; its editable finder and dist-info in site-packages) and
+    non-editable (``pip install /kit``, as a Dockerfile leaves it: the instructor's course_lib in a site-packages
+    folder of the Python installation, which the sandbox shows): the student's code finds the reference nowhere, and
+    reads nothing of the kit's distribution (its entries in site-packages are covered: empty)."""
+    import subprocess
+    import sys
+    import tempfile
+
+    from course_lib.instructor import settings
+
+    before = rss_mib()
+    site = next(p for p in sys.path if p.endswith("site-packages"))
+    report = grade01(submission(tmp_path / "editable", find_the_reference(str(REPO_ROOT), site)), hidden)
+    g = graded_row("editable install: the checkout, its finder and dist-info", report, "eight_point", before,
+                   "3 installs", ROWS40)
+    assert any("no reference;" in f for f in g["feedback"]), g["feedback"]  # (names of covered entries: empty)
+
+    home = Path(tempfile.mkdtemp(prefix="course-test-python-"))  # a Python installation the student's uid can reach
+    try:
+        os.chmod(home, 0o755)
+        src = tmp_path / "kit"
+        src.mkdir()
+        (src / "pyproject.toml").write_text((REPO_ROOT / "pyproject.toml").read_text())
+        import shutil
+
+        shutil.copytree(REPO_ROOT / "course_lib", src / "course_lib", ignore=shutil.ignore_patterns("__pycache__"))
+        installed = home / "lib" / "python3.11" / "site-packages"
+        subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "--no-index",
+                        "--target", str(installed), str(src)], check=True, capture_output=True, timeout=300)
+        assert (installed / "course_lib" / "sfm" / "fundamental.py").is_file()
+        for p in installed.rglob("*"):
+            os.chmod(p, 0o755 if p.is_dir() else 0o644)
+        for p in (home / "lib", home / "lib" / "python3.11", installed):
+            os.chmod(p, 0o755)
+        homes = settings.python_homes()
+        monkeypatch.setattr(settings, "python_homes", lambda: homes + [str(home)])
+        monkeypatch.syspath_prepend(str(installed))
+        settings.site_allow_list.cache_clear()
+        report = grade01(submission(tmp_path / "installed", find_the_reference(str(installed))), hidden)
+        g = graded_row("pip install /kit (non-editable) into the Python installation", report, "eight_point", before,
+                       "3 installs", ROWS40)
+        assert any("no reference;" in f for f in g["feedback"]), g["feedback"]  # (names of covered entries: empty)
+    finally:
+        monkeypatch.undo()
+        settings.site_allow_list.cache_clear()
+        shutil.rmtree(home, ignore_errors=True)
+
+
 def test_40_attack_table(request, capsys):
     """Issue 40's table (printed with ``pytest -s`` or ``ATTACK_TABLE=1``): points, the grader's peak memory and the
     time of each attack."""

@@ -50,7 +50,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from course_lib.instructor.settings import STUDENT_UID
+from course_lib.instructor.settings import STUDENT_UID, site_allow_list
 from course_lib.validate import KitInputError
 
 __all__ = ["IsolationError", "bwrap_path", "command", "install_server", "verify", "read_info", "seccomp_filter",
@@ -186,6 +186,9 @@ def command(iso, mode: str, server_dir: Path, seed: Path | None, info_fd: int, s
             "--new-session", "--cap-drop", "ALL", "--hostname", "sandbox",
             "--size", str(disk), "--tmpfs", "/tmp"]
     args += _binds(iso.read_only(), staged or {})
+    for p in site_hidden(iso.read_only()):  # each site-packages folder: only the student's dependencies
+        args += ["--ro-bind", "/dev/null", p] if os.path.isfile(p) and not os.path.islink(p) else \
+            ["--size", "4096", "--tmpfs", p, "--remount-ro", p]
     for h in iso.covered():  # a hidden folder inside a shown one: an empty read-only folder in its place
         args += ["--size", "4096", "--tmpfs", h, "--remount-ro", h]
     args += ["--ro-bind", str(server_dir), SERVER]
@@ -196,6 +199,26 @@ def command(iso, mode: str, server_dir: Path, seed: Path | None, info_fd: int, s
     if seccomp_fd is not None:
         args += ["--seccomp", str(seccomp_fd)]
     return args + ["--", sys.executable, "-S", "-E", "-B", f"{SERVER}/server.py", mode, f"{SERVER}/config.json"]
+
+
+def site_hidden(shown: list[str]) -> list[str]:
+    """What of the site-packages folders inside ``shown`` a student's process must not see: every entry that is not on
+    :func:`~course_lib.instructor.settings.site_allow_list` (the kit's own distribution, its editable finder, a copy
+    of ``course_lib`` put there by hand), or the whole folder where nothing of it is allowed. Covering the few entries
+    left out costs a mount each, where binding the few hundred allowed ones would cost a second per sandbox."""
+    out = []
+    for site, allowed in site_allow_list().items():
+        if not any(site == r or site.startswith(r.rstrip("/") + "/") for r in shown):
+            continue
+        if not allowed:
+            out.append(site)
+            continue
+        keep = set(allowed)
+        try:
+            out += [os.path.join(site, e) for e in sorted(os.listdir(site)) if e not in keep]
+        except OSError:
+            out.append(site)
+    return out
 
 
 def seed_bytes(seed: Path) -> int:
