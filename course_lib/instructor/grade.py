@@ -73,6 +73,7 @@ import secrets
 import shutil
 import tempfile
 import time
+import unicodedata
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -80,7 +81,7 @@ from pathlib import Path
 import nbformat
 
 from course_lib.checks.core import score_against, score_reasons
-from course_lib.instructor.cgroups import Cgroup
+from course_lib.instructor.cgroups import HOW_TO_ENABLE, Cgroup, container_mode
 from course_lib.instructor.extract import extract_exercise
 from course_lib.instructor.hidden import HiddenJob, build_hidden_fixtures, run_hidden, run_reference
 from course_lib.instructor.nbval_run import NbvalRun
@@ -88,6 +89,7 @@ from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ExerciseSpec, Noteboo
 from course_lib.instructor.oracle import earlier_steps
 from course_lib.instructor.placement import Placement, place_exercises, restored
 from course_lib.instructor.plan import release_plan
+from course_lib.instructor.sandbox import jail
 from course_lib.instructor.sandbox.jail import IsolationError
 from course_lib.instructor.scan import scan_exercise, scan_notebook
 from course_lib.instructor.settings import (
@@ -106,7 +108,7 @@ from course_lib.paths import FIXTURES_DIR, REPO_ROOT
 from course_lib.validate import KitInputError
 
 __all__ = ["HiddenCases", "prepare_hidden", "grade_submission", "preflight", "to_markdown", "HIDDEN_SHARE",
-           "IsolationError"]
+           "IsolationError", "plain_text", "plain_data"]
 
 HIDDEN_SHARE = 0.9  # of an exercise's points: the hidden checks; the rest: nbval verdict (with all hidden passing)
 MAX_FEEDBACK_LINES = 6
@@ -302,11 +304,12 @@ def grade_submission(
     if not insecure:
         preflight(notebooks_dir, limits)  # one line, and no grading, where the sandbox cannot be made or verified
     with _scratch(workdir) as work, _shared_folder() as shared:
-        copy = copy_submission(submission, shared / "submission")
+        copy = copy_submission(submission, shared / "submission", max_total_bytes=(limits or Limits()).submission_bytes)
         hidden = _ready_hidden(hidden, specs, salt, work, notebooks_dir, timeout)
         iso = Isolation.for_grading(hidden.library if not allow_reference else REPO_ROOT,
                                     [work, Path(hidden.fixtures_dir)], notebooks_dir, self_test=allow_reference,
                                     insecure=insecure, limits=limits)
+        iso.scratch = shared
         run = _Run(specs, omitted, hidden, iso, copy, timeout, allow_reference, kit=kit, clock=clock,
                    cgroup=None if insecure else Cgroup.create(iso.limits.submission_memory_bytes,
                                                                4 * iso.limits.processes_total))
@@ -337,27 +340,39 @@ def grade_submission(
                                 "left out": [_cap(r, 300) for r in copy.refused[:50]]}
         report["isolation"] = {"insecure": bool(insecure), "hidden checks": run.sandbox_seen,
                                "nbval": nbval_run.sandbox if nbval_run else {}}
-        return report
+        return plain_data(report)
 
 
 def preflight(notebooks_dir: Path = NOTEBOOKS_DIR, limits: Limits | None = None) -> None:
-    """Make one sandbox and check it, before anything of a submission is read or run.
+    """Make one sandbox and check it, before anything of a submission is read or run; and make sure that a cgroup can
+    be made for the totals of a submission (unless the container mode applies, :func:`~.cgroups.container_mode`).
 
     Raises:
         IsolationError: it cannot be made or does not check out (one line: what is missing, how to enable it).
     """
+    probe = Cgroup.create(64 << 20, 8)
+    if probe is None and not container_mode():
+        raise IsolationError(jail.refusal("no cgroup can be made here, so a submission's processes would have no "
+                                          "memory total", HOW_TO_ENABLE))
+    if probe is not None:
+        probe.close()
     with _shared_folder() as lib:  # an empty library: the sandbox itself is what is checked here
         iso = Isolation.for_grading(lib, [], notebooks_dir, limits=limits)
+        iso.scratch = lib
         with StudentProcess(iso, "", "preflight", None, 30.0):
             pass
 
 
 @contextlib.contextmanager
 def _shared_folder():
-    """A folder the students' sandboxes may read (their copy of the submission), outside the grader's scratch."""
-    with tempfile.TemporaryDirectory(prefix="course-grade-submission-") as tmp:
-        os.chmod(tmp, 0o755)
-        yield Path(tmp)
+    """The run's folder, outside the grader's scratch: the grader's copy of the submission (which the students'
+    sandboxes show read-only) and each student's process's own folder; only the grader and the student's uid may
+    enter it (:func:`~.sandbox.jail.private_folder`), and it is removed at the end, whatever ended inside it."""
+    tmp = jail.private_folder("course-grade-submission-")
+    try:
+        yield tmp
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _ready_hidden(hidden: HiddenCases | None, specs: list[NotebookSpec], salt: int | None, work: Path,
@@ -738,16 +753,57 @@ def _short(text: str, n: int = 160) -> str:
 
 
 def _cap(text: str, n: int = MAX_MESSAGE_CHARS) -> str:
-    """``text`` on one line, without control characters, at most ``n`` characters (student text is data)."""
-    text = _CONTROL.sub(" ", str(text))
-    text = " ".join(text.split())
+    """``text`` on one line, plain (:func:`plain_text`), at most ``n`` characters (student text is data)."""
+    text = " ".join(plain_text(str(text)).split())
     return text if len(text) <= n else text[: n - 30] + f" ... ({len(text) - n + 30} characters left out)"
 
 
-#: Control characters, ANSI escapes, and the Unicode characters that reorder or hide text (bidi overrides,
-#: zero-width joiners): never shown from a student's text.
-_CONTROL = re.compile(r"\x1b\[[0-9;?]*[ -/]*[@-~]|[\x00-\x08\x0b-\x1f\x7f-\x9f\u200b-\u200f\u202a-\u202e"
-                      r"\u2060-\u2069\ufeff]")
+#: ANSI escape sequences (removed whole, so that no "[31m" is left behind).
+_ANSI = re.compile(r"\x1b\[[0-9;?]*[ -/]*[@-~]|\x1b[@-_]")
+#: Categories never shown from a student's text: controls, format characters (bidi marks and overrides, zero-width
+#: joiners, the soft hyphen, U+061C, U+206A-F, U+FFF9-B, the tag characters U+E0000-E007F that spell hidden text),
+#: surrogates, private use, unassigned code points, line and paragraph separators.
+_HIDDEN_CATEGORIES = {"Cc", "Cf", "Cs", "Co", "Cn", "Zl", "Zp"}
+#: Variation selectors (invisible, and a known way to smuggle bytes behind a visible character).
+_SELECTORS = ((0xFE00, 0xFE0F), (0xE0100, 0xE01EF), (0x180B, 0x180F))
+
+
+def _hidden_char(c: str) -> bool:
+    o = ord(c)
+    return unicodedata.category(c) in _HIDDEN_CATEGORIES or any(a <= o <= b for a, b in _SELECTORS)
+
+
+def plain_text(text: str) -> str:
+    """``text`` as plain data: ANSI escapes removed; every control, format (bidi, zero-width, soft hyphen, tag
+    characters), surrogate, private-use, unassigned or separator character and variation selector written as its
+    escape (``\\u202e``); tabs and newlines kept. The one sanitiser of everything the report and the feedback show."""
+    text = _ANSI.sub("", text)
+    if text.isascii():
+        return _ASCII_CONTROL.sub(_escape, text)
+    return "".join(_escape_char(c) if c not in "\t\n" and _hidden_char(c) else c for c in text)
+
+
+_ASCII_CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f]")
+
+
+def _escape(m: re.Match) -> str:
+    return _escape_char(m.group())
+
+
+def _escape_char(c: str) -> str:
+    o = ord(c)
+    return f"\\x{o:02x}" if o < 0x100 else (f"\\u{o:04x}" if o < 0x10000 else f"\\U{o:08x}")
+
+
+def plain_data(obj):
+    """``obj`` (a report: dicts, lists, strings, numbers) with every string, keys included, made :func:`plain_text`."""
+    if isinstance(obj, str):
+        return plain_text(obj)
+    if isinstance(obj, dict):
+        return {plain_data(k): plain_data(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [plain_data(v) for v in obj]
+    return obj
 
 
 def _report(grades: list[ExerciseGrade], hidden: HiddenCases, seconds: float, allow_reference: bool) -> dict:
@@ -777,6 +833,7 @@ def to_markdown(report: dict) -> str:
     :data:`MAX_MESSAGE_CHARS` characters and :data:`MAX_MESSAGES` per exercise; the whole feedback stays under
     :data:`MAX_FEEDBACK_BYTES` (the details of the last exercises are left out, saying so, past it).
     """
+    report = plain_data(report)
     head = ["# Grading feedback", "", f"**Total: {report['total']:g} / {report['max']:g} points**", ""]
     if report.get("insecure"):
         head += ["**Graded with `--insecure`: your code ran without the grader's sandbox (a trusted local run).**", ""]
