@@ -22,6 +22,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("submission", type=Path, help="the student's kit (or a folder with their notebooks)")
     parser.add_argument("--json", type=Path, default=None, metavar="REPORT.json", help="write the report as JSON")
     parser.add_argument("--markdown", type=Path, default=None, metavar="FEEDBACK.md", help="write the feedback as Markdown")
+    add_grading_options(parser)
+
+
+def add_grading_options(parser: argparse.ArgumentParser) -> None:
+    """The options of one submission's grading (``grade-class`` passes them on to ``grade``)."""
     parser.add_argument("--notebooks", nargs="+", default=None, metavar="PREFIX",
                         help="grade only these notebooks (name prefixes, e.g. 01 02)")
     parser.add_argument("--exercises", nargs="+", default=None, metavar="NAME", help="grade only these exercises")
