@@ -32,7 +32,7 @@ from pathlib import Path
 from course_lib.instructor.gradebook import Gradebook
 from course_lib.paths import REPO_ROOT
 
-__all__ = ["Submission", "find_submissions", "default_jobs", "grade_class", "grader_version"]
+__all__ = ["Submission", "find_submissions", "default_jobs", "grade_class", "grade_one", "grader_version"]
 
 #: Memory one grading takes at its peak (the grader, an exercise's student process and two notebooks under nbval,
 #: each with torch loaded; measured: benchmarks/grade_class.py), for :func:`default_jobs`.
@@ -102,7 +102,7 @@ def grader_version() -> str:
 
 
 @dataclass
-class _Outcome:
+class Outcome:
     sub: Submission
     status: str
     report: dict
@@ -111,7 +111,7 @@ class _Outcome:
 
 def grade_class(submissions: list[Submission], gradebook: Gradebook, reports: Path, grade_options: list[str],
                 *, jobs: int, submission_timeout: float, regrade: bool = False,
-                progress: bool = True) -> list[_Outcome]:
+                progress: bool = True) -> list[Outcome]:
     """Grade ``submissions`` (those not graded yet, or all with ``regrade``), ``jobs`` at once, into ``gradebook``.
 
     Args:
@@ -125,7 +125,7 @@ def grade_class(submissions: list[Submission], gradebook: Gradebook, reports: Pa
     version, out = grader_version(), []
     with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool, \
             tqdm(total=len(todo), desc="grading", unit="submission", disable=not progress) as bar:
-        running = [pool.submit(_grade_one, s, reports / s.student, grade_options, submission_timeout + START_SECONDS)
+        running = [pool.submit(grade_one, s, reports / s.student, grade_options, submission_timeout + START_SECONDS)
                    for s in todo]
         for fut in as_completed(running):
             o = fut.result()
@@ -136,7 +136,7 @@ def grade_class(submissions: list[Submission], gradebook: Gradebook, reports: Pa
     return out
 
 
-def _grade_one(sub: Submission, out: Path, options: list[str], limit: float) -> _Outcome:
+def grade_one(sub: Submission, out: Path, options: list[str], limit: float) -> Outcome:
     """Run the single-submission grader on ``sub`` in a process group of its own; its outcome, whatever happens."""
     out.mkdir(parents=True, exist_ok=True)
     report_path, feedback_path = out / "report.json", out / "feedback.md"
@@ -156,7 +156,7 @@ def _grade_one(sub: Submission, out: Path, options: list[str], limit: float) -> 
     seconds = round(time.monotonic() - t0, 1)
     if what is None and rc == 0:
         try:
-            return _Outcome(sub, "graded", json.loads(report_path.read_text()), feedback_path.read_text())
+            return Outcome(sub, "graded", json.loads(report_path.read_text()), feedback_path.read_text())
         except (OSError, ValueError) as exc:
             what = f"its report could not be read ({exc.__class__.__name__})"
     if what is None:
@@ -170,7 +170,7 @@ def _grade_one(sub: Submission, out: Path, options: list[str], limit: float) -> 
                 f"The grading of this submission did not finish: {status}. Your instructor has the details.\n")
     report_path.write_text(json.dumps(report, indent=1) + "\n")
     feedback_path.write_text(feedback)
-    return _Outcome(sub, status, report, feedback)
+    return Outcome(sub, status, report, feedback)
 
 
 def _stop(proc: subprocess.Popen) -> None:

@@ -51,6 +51,25 @@ def add_grading_options(parser: argparse.ArgumentParser) -> None:
                              "report and the feedback)")
 
 
+def grading_argv(args: argparse.Namespace) -> list[str]:
+    """The options of :func:`add_grading_options` given on a command line, as arguments for ``grade``."""
+    probe = argparse.ArgumentParser(add_help=False)
+    add_grading_options(probe)
+    argv = []
+    for action in probe._actions:
+        value = getattr(args, action.dest)
+        if value == action.default:
+            continue
+        flag = action.option_strings[0]
+        if action.nargs == 0:  # a flag (store_true)
+            argv.append(flag)
+        elif isinstance(value, list):
+            argv += [flag, *map(str, value)]
+        else:
+            argv += [flag, str(value)]
+    return argv
+
+
 def run(args: argparse.Namespace) -> int:
     for opt, path, example in (("--json", args.json, "report.json"), ("--markdown", args.markdown, "feedback.md")):
         if path is not None:  # checked before the grading, which takes minutes

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from course_lib.instructor.classroom import default_jobs, find_submissions, grade_class
-from course_lib.instructor.cli_grade import add_grading_options
+from course_lib.instructor.cli_grade import add_grading_options, grading_argv
 from course_lib.instructor.gradebook import Gradebook
 from course_lib.validate import KitInputError, output_dir
 
@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
         preflight()  # one line, and nothing graded, where no sandbox can be made here
     book = Gradebook(args.gradebook)
     try:
-        done = grade_class(subs, book, reports, _grade_options(args), jobs=args.jobs or default_jobs(),
+        done = grade_class(subs, book, reports, grading_argv(args), jobs=args.jobs or default_jobs(),
                            regrade=args.regrade, submission_timeout=args.submission_timeout)
         for o in sorted(done, key=lambda o: o.sub.student):
             print(f"{o.sub.student:40s} {o.report.get('total', 0):7g} / {o.report.get('max') or 0:g}  {o.status}")
@@ -65,21 +65,3 @@ def run(args: argparse.Namespace) -> int:
     sys.stdout.flush()
     return 0
 
-
-def _grade_options(args: argparse.Namespace) -> list[str]:
-    """The options of ``grade`` given on this command line, as arguments for ``grade``."""
-    probe = argparse.ArgumentParser(add_help=False)
-    add_grading_options(probe)
-    argv = []
-    for action in probe._actions:
-        value = getattr(args, action.dest)
-        if value == action.default:
-            continue
-        flag = action.option_strings[0]
-        if action.nargs == 0:  # a flag (store_true)
-            argv.append(flag)
-        elif isinstance(value, list):
-            argv += [flag, *map(str, value)]
-        else:
-            argv += [flag, str(value)]
-    return argv
