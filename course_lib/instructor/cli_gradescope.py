@@ -3,16 +3,19 @@
     python -m course_lib gradescope --package autograder.zip [grade options, e.g. --notebooks 01 02]
 
 writes the package to upload as a programming assignment's autograder: ``setup.sh`` (run once when Gradescope
-builds the image: Python, bubblewrap, the kit installed from its ``environment.txt``), ``run_autograder`` (run for
-each submission) and the instructor's kit under ``kit/``. ``run_autograder`` calls
+builds the image: Python, the kit installed from its ``environment.txt``, the kit's folder closed to all but
+root), ``run_autograder`` (run for each submission) and the instructor's kit under ``kit/``. ``run_autograder``
+calls, in container mode (:mod:`course_lib.instructor.sandbox.container`: Gradescope runs each submission in a
+container of its own, where bubblewrap's user namespaces are not allowed; ``COURSE_GRADER_CONTAINER=0`` before it
+chooses bubblewrap)
 
     python -m course_lib gradescope --grade [--root /autograder]
 
 which grades ``ROOT/submission`` with the single-submission grader in a process of its own
 (:func:`course_lib.instructor.classroom.grade_one`: a crash or a timeout still gives a result) and writes
 ``ROOT/results/results.json`` in Gradescope's format: the score, the feedback (Markdown) and one test per exercise
-with its points, the grader's messages and its visibility. The grader's sandbox is the same as everywhere
-(docs/sandbox.md): where Gradescope's container cannot make it, the result says the submission could not be graded.
+with its points, the grader's messages and its visibility. Where the grader refuses to run a student's code (the
+mode's checks fail), the result says the submission could not be graded.
 """
 
 from __future__ import annotations
@@ -38,11 +41,13 @@ apt-get update -qq
 DEBIAN_FRONTEND=noninteractive apt-get install -y -qq python3 python3-venv bubblewrap
 python3 -m venv /autograder/venv
 cd /autograder/source/kit && /autograder/venv/bin/pip install -q -r environment.txt
+chmod -R go-rwx /autograder/source  # the kit (the reference, the notebooks) closed to the students' uid
 """
 
 RUN_AUTOGRADER = """#!/usr/bin/env bash
 # Gradescope runs this for each submission: ROOT/submission in, ROOT/results/results.json out.
 ROOT="${{AUTOGRADER_ROOT:-/autograder}}"
+export COURSE_GRADER_CONTAINER="${{COURSE_GRADER_CONTAINER-1}}"  # the container is the isolation (0: bubblewrap)
 cd "$ROOT/source/kit"
 exec "${{AUTOGRADER_PYTHON:-/autograder/venv/bin/python}}" -m course_lib gradescope --grade --root "$ROOT" {options}
 """

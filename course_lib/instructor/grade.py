@@ -87,6 +87,7 @@ from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ExerciseSpec, Noteboo
 from course_lib.instructor.oracle import earlier_steps
 from course_lib.instructor.placement import Placement, place_exercises, restored
 from course_lib.instructor.plan import release_plan
+from course_lib.instructor.sandbox import container
 from course_lib.instructor.sandbox.jail import IsolationError
 from course_lib.instructor.scan import scan_exercise, scan_notebook
 from course_lib.instructor.settings import (
@@ -307,6 +308,7 @@ def grade_submission(
                    cgroup=None if insecure else Cgroup.create(iso.limits.submission_memory_bytes,
                                                                4 * iso.limits.processes_total))
         nbval_run = None
+        run_nbval = run_nbval and not (container.enabled() and not insecure)  # container mode: no TCP for kernels
         try:
             for s in specs:
                 _plan_notebook(run, s, _find_notebooks(copy.root) / s.name)
@@ -332,7 +334,8 @@ def grade_submission(
         report["submission"] = {"files": copy.files, "bytes": copy.bytes,
                                 "left out": [_cap(r, 300) for r in copy.refused[:50]]}
         report["isolation"] = {"insecure": bool(insecure), "hidden checks": run.sandbox_seen,
-                               "nbval": nbval_run.sandbox if nbval_run else {}}
+                               "nbval": nbval_run.sandbox if nbval_run else
+                               {"note": container.NBVAL_NOTE} if container.enabled() and not insecure else {}}
         return report
 
 
@@ -796,6 +799,8 @@ def _sandbox_line(report: dict) -> str:
         return "; no sandbox (--insecure)"
     if not isinstance(box, dict) or not box:
         return ""
+    if box.get("tool") == "container mode":
+        return "; container mode: an unprivileged uid, no network, the hidden cases closed to it, totals"
     if box.get("namespaces") is True and box.get("read_only") is True:
         totals = "cgroup totals" if "whole process tree" in str(box.get("memory", "")) else "per-process limits"
         return f"; sandbox: bubblewrap, namespaces, no network, an allow-listed read-only file system, {totals}"

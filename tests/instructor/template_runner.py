@@ -110,12 +110,12 @@ def _as_text(v) -> str:
     return json.dumps(v) if isinstance(v, (list, dict)) else ("true" if v is True else "false" if v is False else str(v))
 
 
-def fresh_venv(path: Path, deps_from: Path) -> Path:
+def fresh_venv(path: Path, deps_from: Path, python: str = sys.executable) -> Path:
     """A new virtual environment at ``path`` holding the distributions installed in ``deps_from`` (a site-packages
     folder) except the kit itself, as hard links (a copy where ``deps_from`` lies on another file system): so the
     template's own install line runs in full (pip finds the pinned dependencies satisfied and installs the kit,
     ``-e .``, from the folder it runs in) without unpacking 2 GB of wheels for each test run."""
-    made = subprocess.run([sys.executable, "-m", "venv", str(path)], capture_output=True, text=True)
+    made = subprocess.run([python, "-m", "venv", str(path)], capture_output=True, text=True)
     assert made.returncode == 0, made.stdout + made.stderr
     site = next((path / "lib").glob("python3*/site-packages"))
     entries = [e.path for e in os.scandir(deps_from) if not os.path.lexists(site / e.name)
