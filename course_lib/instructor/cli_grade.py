@@ -22,6 +22,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("submission", type=Path, help="the student's kit (or a folder with their notebooks)")
     parser.add_argument("--json", type=Path, default=None, metavar="REPORT.json", help="write the report as JSON")
     parser.add_argument("--markdown", type=Path, default=None, metavar="FEEDBACK.md", help="write the feedback as Markdown")
+    add_grading_options(parser)
+
+
+def add_grading_options(parser: argparse.ArgumentParser) -> None:
+    """The options of one submission's grading (``grade-class`` passes them on to ``grade``)."""
     parser.add_argument("--notebooks", nargs="+", default=None, metavar="PREFIX",
                         help="grade only these notebooks (name prefixes, e.g. 01 02)")
     parser.add_argument("--exercises", nargs="+", default=None, metavar="NAME", help="grade only these exercises")
@@ -44,6 +49,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--insecure", action="store_true",
                         help="run the students' code without a sandbox (a trusted local run only; written into the "
                              "report and the feedback)")
+
+
+def grading_argv(args: argparse.Namespace) -> list[str]:
+    """The options of :func:`add_grading_options` given on a command line, as arguments for ``grade``."""
+    probe = argparse.ArgumentParser(add_help=False)
+    add_grading_options(probe)
+    argv = []
+    for action in probe._actions:
+        value = getattr(args, action.dest)
+        if value == action.default:
+            continue
+        flag = action.option_strings[0]
+        if action.nargs == 0:  # a flag (store_true)
+            argv.append(flag)
+        elif isinstance(value, list):
+            argv += [flag, *map(str, value)]
+        else:
+            argv += [flag, str(value)]
+    return argv
 
 
 def run(args: argparse.Namespace) -> int:

@@ -81,7 +81,7 @@ from pathlib import Path
 import nbformat
 
 from course_lib.checks.core import score_against, score_reasons
-from course_lib.instructor.cgroups import HOW_TO_ENABLE, Cgroup, container_mode
+from course_lib.instructor.cgroups import HOW_TO_ENABLE, Cgroup
 from course_lib.instructor.extract import extract_exercise
 from course_lib.instructor.hidden import HiddenJob, build_hidden_fixtures, run_hidden, run_reference
 from course_lib.instructor.nbval_run import NbvalRun
@@ -89,7 +89,7 @@ from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ExerciseSpec, Noteboo
 from course_lib.instructor.oracle import earlier_steps
 from course_lib.instructor.placement import Placement, place_exercises, restored
 from course_lib.instructor.plan import release_plan
-from course_lib.instructor.sandbox import jail
+from course_lib.instructor.sandbox import container, jail
 from course_lib.instructor.sandbox.jail import IsolationError
 from course_lib.instructor.scan import scan_exercise, scan_notebook
 from course_lib.instructor.settings import (
@@ -314,6 +314,7 @@ def grade_submission(
                    cgroup=None if insecure else Cgroup.create(iso.limits.submission_memory_bytes,
                                                                4 * iso.limits.processes_total))
         nbval_run = None
+        run_nbval = run_nbval and not (container.enabled() and not insecure)  # container mode: no TCP for kernels
         try:
             for s in specs:
                 _plan_notebook(run, s, _find_notebooks(copy.root) / s.name)
@@ -339,19 +340,20 @@ def grade_submission(
         report["submission"] = {"files": copy.files, "bytes": copy.bytes,
                                 "left out": [_cap(r, 300) for r in copy.refused[:50]]}
         report["isolation"] = {"insecure": bool(insecure), "hidden checks": run.sandbox_seen,
-                               "nbval": nbval_run.sandbox if nbval_run else {}}
+                               "nbval": nbval_run.sandbox if nbval_run else
+                               {"note": container.NBVAL_NOTE} if container.enabled() and not insecure else {}}
         return plain_data(report)
 
 
 def preflight(notebooks_dir: Path = NOTEBOOKS_DIR, limits: Limits | None = None) -> None:
     """Make one sandbox and check it, before anything of a submission is read or run; and make sure that a cgroup can
-    be made for the totals of a submission (unless the container mode applies, :func:`~.cgroups.container_mode`).
+    be made for the totals of a submission (unless container mode applies, :func:`~.sandbox.container.enabled`).
 
     Raises:
         IsolationError: it cannot be made or does not check out (one line: what is missing, how to enable it).
     """
     probe = Cgroup.create(64 << 20, 8)
-    if probe is None and not container_mode():
+    if probe is None and not container.enabled():
         raise IsolationError(jail.refusal("no cgroup can be made here, so a submission's processes would have no "
                                           "memory total", HOW_TO_ENABLE))
     if probe is not None:
@@ -885,6 +887,8 @@ def _sandbox_line(report: dict) -> str:
         return "; no sandbox (--insecure)"
     if not isinstance(box, dict) or not box:
         return ""
+    if box.get("tool") == "container mode":
+        return "; container mode: an unprivileged uid, no network, the hidden cases closed to it, totals"
     if box.get("namespaces") is True and box.get("read_only") is True:
         totals = "cgroup totals" if "whole process tree" in str(box.get("memory", "")) else "per-process limits"
         return f"; sandbox: bubblewrap, namespaces, no network, an allow-listed read-only file system, {totals}"
