@@ -27,8 +27,9 @@ __all__ = ["Cgroup", "HOW_TO_ENABLE"]
 
 _V2_ROOT = "/sys/fs/cgroup"
 #: How to give the grader a cgroup (one line, in the refusal where it has none).
-HOW_TO_ENABLE = (f"run the grader as root, or delegate a cgroup v2 to the grading user and set COURSE_GRADER_CGROUP "
-                 f"to it (as the CI template does), or in a container that bounds memory itself set COURSE_GRADER_CONTAINER=1 (docs/grading.md)")
+HOW_TO_ENABLE = ("run the grader as root, or delegate a cgroup v2 to the grading user and set COURSE_GRADER_CGROUP "
+                 "to it (as the CI template does), or in a container made for one grading set COURSE_GRADER_CONTAINER=1 "
+                 "(docs/grading.md)")
 
 
 _COUNTER = itertools.count()
