@@ -171,7 +171,7 @@ def test_false_claims_are_found(tmp_path):
     assert any("pins pycolmap" in f for f in found) and any("pins playwright" in f for f in found)
     assert any("issue #6's" in f for f in found)
     dangling = dangling_references(kit)
-    assert any("names tests/test_browser.py" in f for f in dangling), dangling
+    assert any("names tests/browser/test_browser.py" in f for f in dangling), dangling
 
 
 def test_a_dangling_reference_is_found_and_instructor_only_ones_are_not(tmp_path):
