@@ -117,7 +117,8 @@ class MapperBundleAdjustment(ObservationManager):
         It works on the photos' own pixels. ``k1`` is held until the model holds
         ``refine_k1_from_images`` images (a few views hardly fix it, and a wild ``k1`` bends the model), and
         where the field of view is so narrow that ``k1 = 0.1`` would move the image's corners by less than
-        ``min_k1_effect_px`` (there ``k1`` trades off against the focal length instead of being measured). A
+        ``min_k1_effect_px`` (there ``k1`` trades off against the focal length instead of being measured; it is
+        set to 0). A
         result outside the sane range (focal length more than ``max_focal_change`` from the prior,
         ``|k1| > max_k1``) is rejected: the cameras and points go back and the BA is redone with ``k1``
         held, and where that is rejected too, with the intrinsics held.
@@ -130,10 +131,12 @@ class MapperBundleAdjustment(ObservationManager):
         f0 = self.K0[0, 0]
         W, H = self.image_size
         r = np.hypot(max(self.K[0, 2], W - 1 - self.K[0, 2]), max(self.K[1, 2], H - 1 - self.K[1, 2])) / self.K[0, 0]
-        hold_k1 = self.registered.sum() < o.refine_k1_from_images or 0.1 * r**3 * self.K[0, 0] < o.min_k1_effect_px
+        narrow = 0.1 * r**3 * self.K[0, 0] < o.min_k1_effect_px
+        hold_k1 = self.registered.sum() < o.refine_k1_from_images or narrow
+        k1_start = 0.0 if narrow else self.k1  # a k1 that cannot be measured is none
         while True:
             res = self._solve(model, cams, pts, self.uv_raw, fixed, loss, f_scale, max_iterations, ftol,
-                              shared=np.array([self.K[0, 0], self.k1]), fixed_shared=np.array([False, hold_k1]))
+                              shared=np.array([self.K[0, 0], k1_start]), fixed_shared=np.array([False, hold_k1]))
             f, k1 = (float(v) for v in res.pop("shared"))
             ok = np.isfinite([f, k1]).all() and f0 / o.max_focal_change <= f <= f0 * o.max_focal_change and abs(k1) <= o.max_k1
             entry = {"images": int(self.registered.sum()), "f": round(f, 3), "k1": round(k1, 6), "accepted": bool(ok),

@@ -183,6 +183,8 @@ def _check_inputs(data, rng) -> np.ndarray:
     return K
 
 
+#: A focal length has settled where two successive refinements differ by less than this (relative).
+FOCAL_SETTLED = 0.02
 #: Stage 1's calibrated check is redone after a focal restart where the focal length moved more than this
 #: (relative) from the one it checked with (its 4 px Sampson threshold tolerates less).
 RECHECK_FOCAL_CHANGE = 0.1
@@ -245,8 +247,11 @@ class _FocalWatch:
     model they move is already bent (a ring around the building, started 80 % too long, ended
     1.5 degrees off with the right focal length). So where the refined focal length moves more than
     ``focal_restart_change`` from the one the model started from, once the model holds
-    ``focal_restart_min_images`` images (fewer hardly fix it; all of them in a smaller set), while it
-    grows or at its end, the mapping starts again from the refined value (at most ``focal_restarts`` times).
+    ``focal_restart_min_images`` images (fewer hardly fix it; all of them in a smaller set) and the
+    focal length has settled (the last two refinements within :data:`FOCAL_SETTLED`: a model grown
+    from a wrong start moves it over many registrations, and a restart from half-way would start
+    from a value as wrong), or at the model's end, the mapping starts again from the refined value
+    (at most ``focal_restarts`` times).
     """
 
     start_px: float
@@ -256,7 +261,9 @@ class _FocalWatch:
         n, f = int(mapper.registered.sum()), float(mapper.K[0, 0])
         if n < min(self.opts.focal_restart_min_images, mapper.M):  # a few views hardly fix it, also at the end
             return
-        if abs(np.log(f / self.start_px)) > np.log1p(self.opts.focal_restart_change):
+        fs = [e["f"] for e in mapper.intrinsics_log if e["accepted"]]
+        settled = len(fs) >= 2 and abs(np.log(fs[-1] / fs[-2])) < np.log1p(FOCAL_SETTLED)
+        if (settled or at_end) and abs(np.log(f / self.start_px)) > np.log1p(self.opts.focal_restart_change):
             raise _FocalMoved({"from_px": round(self.start_px, 3), "to_px": round(f, 3), "images": n, "at_end": bool(at_end)})
 
 
