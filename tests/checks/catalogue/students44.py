@@ -523,7 +523,7 @@ MISTAKES = [
     _m("pose_candidates", "only U W Vᵀ (no Wᵀ)", ges.check_pose_candidates, pose_candidates_only_W, ("wᵀ",)),
     _m("triangulate_linear", "first row of Vt", gtr.check_triangulate_linear, triangulate_linear_normalized_rows,
        ("largest singular value",)),
-    _m("choose_pose", "t = -Rᵀ C", gtr.check_choose_pose, choose_pose_t_minus_Rt_C, ("-r c",)),
+    _m("choose_pose", "t = -Rᵀ C", gtr.check_choose_pose, choose_pose_t_minus_Rt_C, ("-r_cwᵀ @ c",)),
     _m("choose_pose", "cheirality r3 · X > 0 in camera 2", gtr.check_choose_pose, choose_pose_depth_cam2_by_C,
        ("centre",)),
     _m("triangulate_nonlinear", "optimiser stopped after one evaluation", gtr.check_triangulate_nonlinear,
