@@ -95,6 +95,10 @@ from course_lib.instructor.scan import scan_exercise, scan_notebook
 from course_lib.instructor.settings import (
     DEFAULT_EXERCISE_SECONDS,
     DEFAULT_SUBMISSION_SECONDS,
+    MAX_CELL_NODES,
+    MAX_CODE_BYTES,
+    MAX_CODE_NODES,
+    MAX_NOTEBOOK_BYTES,
     Clock,
     Isolation,
     Limits,
@@ -425,9 +429,25 @@ def _plan_notebook(run: _Run, s: NotebookSpec, path: Path) -> None:
         why = [(None, f"{s.name} is missing from the submission ({left_out[0]})")] if left_out else []
         run.plans.append((s, None, {}, why))
         return
+    size = path.stat().st_size
+    if size > MAX_NOTEBOOK_BYTES:
+        run.plans.append((s, None, {}, [(None, f"{s.name} is {size / 2**20:.0f} MiB, more than the grader reads "
+                                               f"({MAX_NOTEBOOK_BYTES >> 20} MiB): clear its outputs and submit it "
+                                               "again")]))
+        return
     try:
         nb = nbformat.read(path, as_version=4)
-        notes = _unparseable_cells(nb)
+        code = sum(len(c.source.encode("utf-8", "replace")) for c in nb.cells if c.cell_type == "code")
+        if code > MAX_CODE_BYTES:
+            run.plans.append((s, None, {}, [(None, f"the code cells of {s.name} hold {code / 1024:.0f} KiB of source, "
+                                                   f"more than the grader reads ({MAX_CODE_BYTES >> 10} KiB); none of "
+                                                   "it was graded")]))
+            return
+        notes, nodes = _unparseable_cells(nb)
+        if nodes > MAX_CODE_NODES:
+            run.plans.append((s, None, {}, [(None, f"the code cells of {s.name} hold {nodes} syntax-tree nodes, more "
+                                                   f"than the grader reads ({MAX_CODE_NODES}); none of it was graded")]))
+            return
         places = place_exercises(nb, s)
         intact = {p.check_cell for p in places.values() if p.check_state == "intact"}
         tamper = scan_notebook(nb, intact, {e.check_function for e in s.exercises}, [e.verdict for e in s.exercises])
@@ -439,25 +459,32 @@ def _plan_notebook(run: _Run, s: NotebookSpec, path: Path) -> None:
     run.to_nbval[s.name] = nbv
 
 
-def _unparseable_cells(nb) -> list:
-    """Turn cells that ``ast`` cannot take apart (nested too deeply: RecursionError) into syntax errors, with a note.
+def _unparseable_cells(nb) -> tuple[list, int]:
+    """Turn cells that ``ast`` cannot take apart (nested too deeply: RecursionError) into syntax errors, with a note;
+    and count the syntax-tree nodes of the others (the grader's work on the notebook is linear in them).
 
     Such a cell is then graded like a cell with a syntax error (its exercise: "not valid Python").
     """
-    notes = []
+    notes, nodes = [], 0
     for i, cell in enumerate(nb.cells):
         if cell.cell_type != "code":
             continue
         try:
-            compile(python_source(cell.source), f"<cell {i}>", "exec", ast.PyCF_ONLY_AST)
+            tree = compile(python_source(cell.source), f"<cell {i}>", "exec", ast.PyCF_ONLY_AST)
+            count = sum(1 for _ in ast.walk(tree))
+            if count > MAX_CELL_NODES:
+                raise OverflowError(f"{count} syntax-tree nodes, more than the grader reads in one cell "
+                                    f"({MAX_CELL_NODES})")
+            nodes += count
         except SyntaxError:
             continue
-        except Exception as exc:  # noqa: BLE001 - RecursionError, MemoryError, ValueError (null bytes)
+        except Exception as exc:  # noqa: BLE001 - RecursionError, MemoryError, ValueError (null bytes), OverflowError
             heads = [ln for ln in cell.source.splitlines() if re.match(r"\s*(def|class) \w+", ln)]
             cell.source = "\n".join(heads[:20] + [f"<not parsed by the grader: {type(exc).__name__}>"])
-            notes.append((i, f"the grader cannot parse this cell ({type(exc).__name__}: statements nested too "
-                             "deeply or too large); it counts as a syntax error"))
-    return notes
+            why = str(exc) if isinstance(exc, OverflowError) else "statements nested too deeply or too large"
+            notes.append((i, f"the grader cannot parse this cell ({type(exc).__name__}: {why}); it counts as a "
+                             "syntax error"))
+    return notes, nodes
 
 
 def _exc_text(exc: BaseException) -> str:

@@ -29,7 +29,7 @@ from course_lib.paths import REPO_ROOT
 
 __all__ = ["Limits", "Isolation", "Clock", "student_library", "exercise_seconds", "nbval_seconds", "SYSTEM_PATHS",
            "CALL_BACK_FACTOR", "site_allow_list", "site_folders", "START_SECONDS", "GRACE_SECONDS", "DEFAULT_EXERCISE_SECONDS", "DEFAULT_SUBMISSION_SECONDS",
-           "STUDENT_UID"]
+           "STUDENT_UID", "MAX_NOTEBOOK_BYTES", "MAX_CODE_BYTES", "MAX_CODE_NODES", "MAX_CELL_NODES"]
 
 # ---------------------------------------------------------------------------------------------
 # Budgets: the one place where the grader's clocks are set
@@ -104,6 +104,18 @@ class Clock:
 
     def expired(self) -> bool:
         return self.left() <= 0
+
+
+#: Bytes of a submitted notebook the grader reads (an honest one, outputs included, is under 2 MB), and bytes of
+#: source in its code cells (the kit's largest solved notebook holds 16 kB): everything the grader does with a notebook
+#: (parse, place, scan, extract, slice) is linear in its code, so these bound the grader's time and memory on it.
+MAX_NOTEBOOK_BYTES = 32 << 20
+MAX_CODE_BYTES = 256 << 10
+#: Syntax-tree nodes in a notebook's code cells (the kit's largest solved notebook: 3 100; the grader's work on a
+#: notebook is about 0.1 ms per node: this keeps it near 10 s and 200 MiB).
+MAX_CODE_NODES = 80_000
+#: Syntax-tree nodes in one code cell: a larger cell counts as a syntax error (its exercise alone gets no credit).
+MAX_CELL_NODES = 40_000
 
 
 # ---------------------------------------------------------------------------------------------

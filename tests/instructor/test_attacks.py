@@ -1148,6 +1148,43 @@ def test_40_nothing_of_the_instructor_in_view_however_installed(tmp_path, hidden
         shutil.rmtree(home, ignore_errors=True)
 
 
+def test_40_the_graders_own_work_on_a_notebook_is_bounded(tmp_path, hidden, outside):
+    """Class 1: an extra cell of 3.5 MB (320 000 short calls: the grader used to reach 1.9 GiB parsing it once per
+    exercise) is refused from its size, with a report that names the limit; a cell just under the node limit and an
+    honest eight_point that forwards through 4 000 helpers (the slice used to be quadratic: 222 s) are graded in
+    seconds, the grader's memory bounded."""
+    from course_lib.instructor.settings import MAX_CELL_NODES, MAX_CODE_BYTES
+
+    before = rss_mib()
+    calls = "".join(f"f{k % 7}(x{k % 5})\n" for k in range(320_000))
+    report = grade01(submission(tmp_path / "huge", HONEST, extra_cell=calls), hidden)
+    g = graded_row("an extra cell of 3.5 MB (320 000 calls)", report, "eight_point", before, "1 grader's work", ROWS40)
+    assert f"more than the grader reads ({MAX_CODE_BYTES >> 10} KiB)" in g["feedback"][0], g
+    assert report["seconds"] < 10, report["seconds"]
+
+    near = "".join(f"f{k % 7}(x)\n" for k in range(MAX_CELL_NODES // 4 - 100))  # 4 nodes a call
+    report = grade01(submission(tmp_path / "near", EYE, extra_cell=near), hidden)
+    g = graded_row(f"a cell just under {MAX_CELL_NODES} syntax-tree nodes", report, "eight_point", before,
+                   "1 grader's work", ROWS40)
+    assert g["status"] == "zero" and report["seconds"] < 30, (report["seconds"], g)
+
+    helpers = ["".join(f"def h{k}():\n    return h{k + 1}\n\n\n" for k in range(a, a + 2000))
+               for a in (0, 2000)]  # two cells of 2 000 (one cell of 4 000 is over the node limit of a cell)
+    body = "\n    step = h0\n    while step is not h4000:\n        step = step()\n    return step(x1, x2)\n"
+    sub = submission(tmp_path / "helpers", body, extra_cell=helpers[1] + "def h4000(x1, x2):\n" +
+                     textwrap.indent(textwrap.dedent(HONEST), "    "))
+    nb = nbformat.read(sub / "notebooks" / NB01, as_version=4)
+    nb.cells.insert(3, nbformat.v4.new_code_cell(helpers[0]))
+    nbformat.write(nb, sub / "notebooks" / NB01)
+    report = grade01(sub, hidden, exercises=["normalize_points", "eight_point"])
+    g = next(x for x in report["exercises"] if x["name"] == "eight_point")
+    ROWS40.append(("1 grader's work", "honest eight_point forwarding through 4 000 helpers",
+                   f"{g['points']:g} / {g['max_points']:g} (honest)", g["status"], f"{report['seconds']:.1f}",
+                   f"{g['hidden'].get('seconds', 0):g}", f"{rss_mib():.0f} (+{rss_mib() - before:.0f})", "", "", ""))
+    assert g["points"] == 9 and report["seconds"] < 60, (report["seconds"], g["feedback"])
+    assert rss_mib() - before < 150
+
+
 def test_40_attack_table(request, capsys):
     """Issue 40's table (printed with ``pytest -s`` or ``ATTACK_TABLE=1``): points, the grader's peak memory and the
     time of each attack."""
