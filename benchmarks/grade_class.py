@@ -2,6 +2,8 @@
 
     python benchmarks/grade_class.py                # 30 submissions, --jobs from the machine
     python benchmarks/grade_class.py --size 8 --jobs 2
+    python benchmarks/grade_class.py --class-dir /tmp/class --build-only   # build once (outside a timing run) ...
+    /work/bin/quiet python benchmarks/grade_class.py --class-dir /tmp/class --jobs 2   # ... then grade it alone
 
 The class (built here from the student release and the test catalogues): complete submissions (the literal
 student's, every exercise; the honest catalogue's main and variant solutions), partial ones (the first notebooks
@@ -77,7 +79,7 @@ def build_class(root: Path, outside: Path) -> list[str]:
 
     def link(d):
         attacks.submission(d, attacks.HONEST)
-        os.symlink("../complete-literal/notebooks", d / "notebooks" / "other-student")
+        os.symlink("../../complete-literal/notebooks", d / "notebooks" / "other-student")
 
     attack.append(("attack-link-to-another-student", link))
     kinds = [complete, partial, mistakes, attack]
@@ -108,20 +110,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", type=int, default=30, help="submissions (the first N of the class; default 30)")
     ap.add_argument("--jobs", type=int, default=None, help="grade-class --jobs (default: its own)")
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--class-dir", type=Path, default=None,
+                    help="build the class here (kept), or grade the class already built here")
+    ap.add_argument("--build-only", action="store_true", help="build the class into --class-dir and stop")
     args = ap.parse_args(argv)
-    if args.out.exists():
-        shutil.rmtree(args.out)
-    args.out.mkdir(parents=True)
     with tempfile.TemporaryDirectory(prefix="grade-class-") as tmp:
-        tmp = Path(tmp)
-        (tmp / "outside").mkdir()
-        t_build = time.perf_counter()
-        names = build_class(tmp / "class", tmp / "outside")
-        for extra in names[args.size:]:
-            shutil.rmtree(tmp / "class" / extra)
-        names = names[:args.size]
-        print(f"built {len(names)} submissions in {time.perf_counter() - t_build:.0f} s: {', '.join(names)}")
-        cmd = [sys.executable, "-m", "course_lib", "grade-class", str(tmp / "class"), "--gradebook",
+        home = args.class_dir or Path(tmp)
+        cls, outside = home / "class", home / "outside"
+        if not cls.is_dir():
+            outside.mkdir(parents=True)
+            t_build = time.perf_counter()
+            names = build_class(cls, outside)
+            for extra in names[args.size:]:
+                shutil.rmtree(cls / extra)
+            (home / "names.json").write_text(json.dumps(names[:args.size]))
+            print(f"built {args.size} submissions in {time.perf_counter() - t_build:.0f} s")
+        names = json.loads((home / "names.json").read_text())[:args.size]
+        print(f"the class: {', '.join(names)}")
+        if args.build_only:
+            return 0
+        if args.out.exists():
+            shutil.rmtree(args.out)
+        args.out.mkdir(parents=True)
+        cmd = [sys.executable, "-m", "course_lib", "grade-class", str(cls), "--gradebook",
                str(args.out / "grades.sqlite"), "--csv", str(args.out / "grades.csv"), "--reports",
                str(args.out / "reports")] + (["--jobs", str(args.jobs)] if args.jobs else [])
         t0 = time.perf_counter()
@@ -135,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
                 pass
             time.sleep(0.5)
         wall = time.perf_counter() - t0
-        untouched = (tmp / "outside" / "do-not-touch.txt").read_text() == "the instructor's file\n"
+        untouched = (outside / "do-not-touch.txt").read_text() == "the instructor's file\n"
     largest = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss  # KiB: the largest single process under it
     reports = {n: json.loads((args.out / "reports" / n / "report.json").read_text()) for n in names
                if (args.out / "reports" / n / "report.json").is_file()}

@@ -116,8 +116,9 @@ def grade_class(submissions: list[Submission], gradebook: Gradebook, reports: Pa
 
     Args:
         grade_options: options of ``python -m course_lib grade`` for every submission (``--timeout 60`` ...).
-        submission_timeout: the graders' ``--submission-timeout``: a grader still running :data:`START_SECONDS`
-            after it is stopped, and that submission gets a report that says so.
+        submission_timeout: the graders' ``--submission-timeout``; a grader still running :data:`START_SECONDS`
+            past it is stopped (SIGTERM: it cleans up; SIGKILL 10 s later), and its submission gets a report that
+            says so.
     """
     from tqdm.auto import tqdm
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 from pathlib import Path
 
@@ -77,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
                 raise KitInputError(f"{opt} {path} is a folder: give the path of a file to write (e.g. {path / example})")
             output_dir(path.parent, opt)
 
+    # grade-class stops a grader past its time with SIGTERM: unwind, so that its temporary folders and cgroups go
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     report = grade_submission(
         args.submission, notebooks=args.notebooks, exercises=args.exercises, salt=args.hidden_seed,
         timeout=args.timeout, cell_timeout=args.cell_timeout, run_nbval=not args.no_nbval,
