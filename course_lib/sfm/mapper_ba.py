@@ -94,13 +94,13 @@ class MapperBundleAdjustment(ObservationManager):
         return f"camera {int(cams[ref])} fixed, t_cw[{int(cams[s])}][{k}] fixed (scale)"
 
     def _solve(self, model, cams: np.ndarray, pts: np.ndarray, uv_all: np.ndarray, fixed: np.ndarray, loss: str,
-               f_scale: float, max_iterations: int, ftol: float, shared=None) -> dict:
+               f_scale: float, max_iterations: int, ftol: float, shared=None, fixed_shared=None) -> dict:
         """:func:`course_lib.sfm.lm.solve` over cameras ``cams`` and points ``pts`` (observations: :attr:`inlier`); the results written back."""
         obs = self.inlier[np.ix_(pts, cams)]
         pi, ci = np.nonzero(obs)
         uv = uv_all[pts[pi], cams[ci]]
         params = np.hstack([Rotation.from_matrix(self.R[cams]).as_rotvec(), self.t[cams]])
-        kw = {} if shared is None else {"shared": shared}
+        kw = {} if shared is None else {"shared": shared, "fixed_shared": fixed_shared}
         res = lm.solve(model, params, self.X[pts], ci, pi, uv, fixed_cameras=fixed, loss=loss, f_scale=f_scale,
                        max_iterations=max_iterations, ftol=ftol, xtol=1e-10, **kw)
         self.R[cams] = Rotation.from_rotvec(res.cameras[:, :3]).as_matrix()
@@ -114,22 +114,38 @@ class MapperBundleAdjustment(ObservationManager):
     def _adjust_with_intrinsics(self, cams, pts, loss, f_scale, max_iterations, ftol) -> dict:
         """A BA of the whole model that also refines the focal length and ``k1`` (:class:`~course_lib.sfm.lm.SimpleRadialCamera`).
 
-        It works on the photos' own pixels. A result outside the sane range (focal length more than
-        ``max_focal_change`` from the prior, ``|k1| > max_k1``) is rejected: the cameras and points
-        go back and the BA is redone with the intrinsics held.
+        It works on the photos' own pixels. ``k1`` is held until the model holds
+        ``refine_k1_from_images`` images (a few views hardly fix it, and a wild ``k1`` bends the model), and
+        where the field of view is so narrow that ``k1 = 0.1`` would move the image's corners by less than
+        ``min_k1_effect_px`` (there ``k1`` trades off against the focal length instead of being measured; it is
+        set to 0). A
+        result outside the sane range (focal length more than ``max_focal_change`` from the prior,
+        ``|k1| > max_k1``) is rejected: the cameras and points go back and the BA is redone with ``k1``
+        held, and where that is rejected too, with the intrinsics held.
         """
         o = self.opts
         saved = self.R.copy(), self.t.copy(), self.X.copy()
         fixed = np.zeros((len(cams), 6), bool)
         gauge = self._fix_gauge(cams, fixed)
         model = lm.SimpleRadialCamera(self.K[:2, 2])
-        res = self._solve(model, cams, pts, self.uv_raw, fixed, loss, f_scale, max_iterations, ftol,
-                          shared=np.array([self.K[0, 0], self.k1]))
-        f, k1 = (float(v) for v in res.pop("shared"))
         f0 = self.K0[0, 0]
-        ok = np.isfinite([f, k1]).all() and f0 / o.max_focal_change <= f <= f0 * o.max_focal_change and abs(k1) <= o.max_k1
-        entry = {"images": int(self.registered.sum()), "f": round(f, 3), "k1": round(k1, 6), "accepted": bool(ok)}
-        self.intrinsics_log.append(entry)
+        W, H = self.image_size
+        r = np.hypot(max(self.K[0, 2], W - 1 - self.K[0, 2]), max(self.K[1, 2], H - 1 - self.K[1, 2])) / self.K[0, 0]
+        narrow = 0.1 * r**3 * self.K[0, 0] < o.min_k1_effect_px
+        hold_k1 = self.registered.sum() < o.refine_k1_from_images or narrow
+        k1_start = 0.0 if narrow else self.k1  # a k1 that cannot be measured is none
+        while True:
+            res = self._solve(model, cams, pts, self.uv_raw, fixed, loss, f_scale, max_iterations, ftol,
+                              shared=np.array([self.K[0, 0], k1_start]), fixed_shared=np.array([False, hold_k1]))
+            f, k1 = (float(v) for v in res.pop("shared"))
+            ok = np.isfinite([f, k1]).all() and f0 / o.max_focal_change <= f <= f0 * o.max_focal_change and abs(k1) <= o.max_k1
+            entry = {"images": int(self.registered.sum()), "f": round(f, 3), "k1": round(k1, 6), "accepted": bool(ok),
+                     **({"k1_held": True} if hold_k1 else {})}
+            self.intrinsics_log.append(entry)
+            if ok or hold_k1:
+                break
+            self.R[:], self.t[:], self.X[:] = saved
+            hold_k1 = True
         if not ok:
             self.R[:], self.t[:], self.X[:] = saved
             self.refine = False

@@ -241,8 +241,9 @@ def calibrated_check(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px
     return inl, float(inl.mean())
 
 
-def check_calibrated(data, verifications: dict, rng: np.random.Generator, threshold_px: float, min_ratio: float) -> dict:
-    """Every verified pair checked by :func:`calibrated_check` with the camera's ``data.K``: a new ``{(i, j): PairVerification}``.
+def check_calibrated(data, verifications: dict, rng: np.random.Generator, threshold_px: float, min_ratio: float,
+                     K: np.ndarray | None = None) -> dict:
+    """Every verified pair checked by :func:`calibrated_check` with the camera's K: a new ``{(i, j): PairVerification}``.
 
     A pair whose E explains less than ``min_ratio`` of its inliers loses its F (its ``note`` says
     why: it gives no tracks); the others keep only the inliers E explains.
@@ -251,8 +252,9 @@ def check_calibrated(data, verifications: dict, rng: np.random.Generator, thresh
         data: :class:`course_lib.data.p3.P3Data` (``K``, ``matches``). verifications: ``{(i, j): PairVerification}``.
         rng: seeded generator (one RANSAC seed per verified pair, in sorted order).
         threshold_px: Sampson distance (pixels). min_ratio: the share E must explain.
+        K: ``(3, 3)`` the camera's K (default ``data.K``; the self-calibrated one where the focal length was a guess).
     """
-    K = np.asarray(data.K, float)
+    K = np.asarray(data.K if K is None else K, float)
     keys = [k for k in sorted(verifications) if verifications[k].F is not None]
     seeds = dict(zip(keys, rng.integers(2**31 - 1, size=len(keys)).tolist()))
     out = dict(verifications)
@@ -300,22 +302,25 @@ def verified_tracks(data, verifications: dict, min_inliers: int = 8) -> Tracks:
 
 
 def verified_pairs_and_tracks(data, rng, threshold_px: float, min_matches: int, report: dict,
-                              min_e_f_inlier_ratio: float = 0.0):
+                              min_e_f_inlier_ratio: float = 0.0, calibrate=None):
     """Stage 1: every pair verified (``match``'s verification where the folder carries it, else RANSAC on F), then
     tracks from the inlier matches only (:func:`course_lib.sfm.tracks.verify_pairs`).
 
     Where the folder carries ``match``'s verification (photos) and ``min_e_f_inlier_ratio > 0``,
     each verified pair is checked with the calibrated geometry (:func:`course_lib.sfm.tracks.check_calibrated`):
     a pair whose five-point E explains less than that share of F's inliers is dropped (its row says
-    why), the others keep the matches E explains.
+    why), the others keep the matches E explains. ``calibrate`` (a function of the verified pairs
+    ``{(i, j): PairVerification}`` that returns the camera's ``(3, 3)`` K, e.g. the self-calibrated one of
+    :mod:`course_lib.sfm.self_calibration`) gives the K of that check; default ``data.K``.
 
     Returns:
         ``pairs {(i, j): (F (3, 3), inliers (N,) bool)}`` of the pairs with at least ``min_matches``
         inliers, and the :class:`~course_lib.sfm.tracks.Tracks`; ``report`` gets ``pairs`` and ``tracks``.
     """
     ver, how = verify_pairs(data, rng, threshold_px)
+    K = calibrate(ver) if calibrate is not None else None
     if min_e_f_inlier_ratio > 0 and getattr(data, "two_view", None) is not None:
-        ver = check_calibrated(data, ver, rng, threshold_px, min_e_f_inlier_ratio)
+        ver = check_calibrated(data, ver, rng, threshold_px, min_e_f_inlier_ratio, K)
         how += f", checked by the five-point E (at least {min_e_f_inlier_ratio:g} of F's inliers)"
     report["verification"] = how
     pairs, rows = {}, []
