@@ -436,6 +436,13 @@ def _write_photos(out: Path, paths: list[Path], images: list[np.ndarray], downsc
     return thread_map(one, range(len(paths)))
 
 
+def _pair_report(res) -> dict:
+    """``{"i-j": {"sift", "verified"[, "guided"]}}`` of every matched pair of :func:`match_images`' result (1-based ids)."""
+    return {f"{i + 1}-{j + 1}": {"sift": res.raw_matches[(i, j)], "verified": res.verified_matches.get((i, j), 0),
+                                 **({"guided": res.guided[(i, j)]} if (i, j) in res.guided else {})}
+            for (i, j) in sorted(res.raw_matches)}
+
+
 def match_folder(images_dir, K, out, downscale: float = 1.0, ratio: float = 0.8, verify: bool = True,
                  verify_px: float = VERIFY_PX, min_pair_matches: int = MIN_INLIERS, seed: int = 0, rootsift: bool = ROOTSIFT,
                  max_features: int = MAX_FEATURES, contrast_threshold: float = CONTRAST_THRESHOLD, pairs: str = "auto",
@@ -504,9 +511,7 @@ def match_folder(images_dir, K, out, downscale: float = 1.0, ratio: float = 0.8,
         "contrast_threshold": float(contrast_threshold), "pair_selection": res.pair_mode, "pairs_matched": res.pairs_matched,
         "verify": bool(verify), "verify_px": float(verify_px), "min_pair_matches": int(min_pair_matches), "seed": int(seed),
         "guided": bool(guided),
-        "pairs": {f"{i + 1}-{j + 1}": {"sift": res.raw_matches[(i, j)], "verified": res.verified_matches.get((i, j), 0),
-                                       **({"guided": res.guided[(i, j)]} if (i, j) in res.guided else {})}
-                  for (i, j) in sorted(res.raw_matches)},
+        "pairs": _pair_report(res),
         "identical_photos": [[names[i], names[j]] for i, j in res.identical],
         "tracks": int(len(res.track_uv)),
         "observations": int(n_obs.sum()),
