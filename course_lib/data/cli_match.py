@@ -561,6 +561,10 @@ def run(args) -> int:
     n = len(rep["images"])
     first, last = rep["images"][0]["source"], rep["images"][-1]["source"]
     print(f"read {n} photos: {rep['image_order']} ({first} ... {last})")
+    spaced = [im["source"] for im in rep["images"] if any(c.isspace() for c in im["source"])]
+    if spaced:
+        print(f"{len(spaced)} photo name(s) hold a space ({spaced[0]}, ...): sfm keeps them, and the kit reads its COLMAP model "
+              "back, but COLMAP's own tools cut a name at its first space (rename the photos to use those)")
     if rep["ignored_images"]:
         shown = ", ".join(rep["ignored_images"][:5]) + (", ..." if len(rep["ignored_images"]) > 5 else "")
         print(f"ignored {len(rep['ignored_images'])} image(s) without a number beside the numbered photos: {shown} "
