@@ -47,9 +47,11 @@ Turns any set of photos taken with one camera into the P3 folder that the SfM le
    together with ``calibration.txt`` (the possibly scaled K). Photos that need no change are
    copied (PNG or JPEG without an EXIF rotation), the others written as PNG (fast compression).
 
-Bad input (a missing folder, fewer than 2 images, an unreadable image, images of different
-sizes, a malformed K, EXIF focal lengths that differ) raises
-:class:`~course_lib.validate.KitInputError`, which the command line turns into a one-line message.
+Bad input (a missing folder; fewer than 2 images, with the photos the kit cannot read (HEIC, raw) or
+the subfolders that hold images named; two photos of one number; an unreadable image; images of
+different sizes; a malformed K; EXIF focal lengths that differ) raises
+:class:`~course_lib.validate.KitInputError`, which the command line turns into a one-line message
+that says what is wrong and what to do.
 
 Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
 """
