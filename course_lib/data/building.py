@@ -48,7 +48,7 @@ from course_lib.data.p3 import write_p3
 from course_lib.data.tracks import tracks_from_images
 from course_lib.data.synthetic import WPI_LIKE_K, look_at
 from course_lib.data.textures import ground_texture, plain_texture, roof_texture, wall_texture
-from course_lib.validate import KitInputError, intrinsics, rotation, vector3
+from course_lib.validate import KitInputError, file_in, intrinsics, rotation, vector3
 
 __all__ = [
     "DEFAULT_SEED",
@@ -549,11 +549,7 @@ def load_ground_truth(folder) -> tuple[np.ndarray, list[str], np.ndarray, np.nda
 
     Introduced in ``notebooks/01_fundamental_matrix.ipynb``.
     """
-    p = Path(folder)
-    if p.is_dir():
-        p = p / "ground_truth.json"
-    if not p.is_file():
-        raise KitInputError(f"ground truth not found: {p} (only the kit's generated scenes have ground_truth.json)")
+    p = file_in(folder, "ground_truth.json", "ground truth not found: {path} (only the kit's generated scenes have ground_truth.json)")
     try:
         gt = json.loads(p.read_text())
         K = intrinsics(np.array(gt["K"], float))

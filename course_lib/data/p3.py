@@ -54,7 +54,7 @@ import numpy as np
 
 from course_lib.data.camera import read_camera
 from course_lib.data.two_view import read_two_view_geometries
-from course_lib.validate import KitInputError, intrinsics
+from course_lib.validate import KitInputError, file_in, intrinsics
 
 __all__ = ["PairMatches", "P3Data", "read_calibration", "read_p3", "write_p3", "tracks_from_pairs", "UnionFind", "IMAGE_EXTENSIONS",
            "SOURCE_NAMES_FILE", "write_source_names", "read_source_names"]
@@ -225,11 +225,7 @@ def read_calibration(path) -> np.ndarray:
 
     Introduced in ``notebooks/01_fundamental_matrix.ipynb``.
     """
-    p = Path(path)
-    if p.is_dir():
-        p = p / "calibration.txt"
-    if not p.is_file():
-        raise KitInputError(f"calibration file not found: {p} (a P3 folder needs calibration.txt with the 3x3 K)")
+    p = file_in(path, "calibration.txt", "calibration file not found: {path} (a P3 folder needs calibration.txt with the 3x3 K)")
     return _parse_calibration_text(p.read_text(encoding="utf-8", errors="replace"), p.name)
 
 
@@ -657,6 +653,34 @@ def _fmt(x: float) -> str:
     return f"{x:.6f}"
 
 
+def _matching_rows(track_uv: np.ndarray, rgb: np.ndarray) -> list[list[str]]:
+    """The rows of each ``matching{i}.txt``: every track seen twice or more, from each of its images to the later ones."""
+    seen = ~np.isnan(track_uv[..., 0])
+    rows: list[list[str]] = [[] for _ in range(track_uv.shape[1])]
+    for t in np.flatnonzero(seen.sum(1) >= 2):
+        imgs = np.flatnonzero(seen[t])
+        for a, i in enumerate(imgs[:-1]):
+            later = imgs[a + 1:]
+            parts = [str(len(later) + 1), *map(str, rgb[t]), _fmt(track_uv[t, i, 0]), _fmt(track_uv[t, i, 1])]
+            for j in later:
+                parts += [str(j + 1), _fmt(track_uv[t, j, 0]), _fmt(track_uv[t, j, 1])]
+            rows[i].append(" ".join(parts) + " ")
+    return rows
+
+
+def _write_images(folder: Path, image_names: list[str], images) -> None:
+    """Write the ``(H, W, 3)`` uint8 RGB ``images`` as ``folder/<name>`` (JPEG quality 90 or PNG)."""
+    import cv2
+
+    for name, img in zip(image_names, images):
+        img = np.asarray(img)
+        if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+            raise KitInputError(f"image {name} has dtype {img.dtype} and shape {img.shape}: expected (H, W, 3) uint8 RGB")
+        params = [cv2.IMWRITE_JPEG_QUALITY, 90] if name.lower().endswith((".jpg", ".jpeg")) else [cv2.IMWRITE_PNG_COMPRESSION, 1]
+        if not cv2.imwrite(str(folder / name), np.ascontiguousarray(img[:, :, ::-1]), params):
+            raise KitInputError(f"could not write image {folder / name}")
+
+
 def write_p3(folder, image_names, K, track_uv, track_rgb, images=None) -> Path:
     """Write tracks as a P3 folder that :func:`read_p3` reads back.
 
@@ -709,16 +733,7 @@ def write_p3(folder, image_names, K, track_uv, track_rgb, images=None) -> Path:
     rgb = np.clip(np.round(track_rgb.astype(float)), 0, 255).astype(int)
 
     folder.mkdir(parents=True, exist_ok=True)
-    seen = ~np.isnan(track_uv[..., 0])
-    rows: list[list[str]] = [[] for _ in range(M)]
-    for t in np.flatnonzero(seen.sum(1) >= 2):
-        imgs = np.flatnonzero(seen[t])
-        for a, i in enumerate(imgs[:-1]):
-            later = imgs[a + 1:]
-            parts = [str(len(later) + 1), *map(str, rgb[t]), _fmt(track_uv[t, i, 0]), _fmt(track_uv[t, i, 1])]
-            for j in later:
-                parts += [str(j + 1), _fmt(track_uv[t, j, 0]), _fmt(track_uv[t, j, 1])]
-            rows[i].append(" ".join(parts) + " ")
+    rows = _matching_rows(track_uv, rgb)
     for old in folder.glob("matching*.txt"):
         if _MATCHING_RE.match(old.name):
             old.unlink()
@@ -731,13 +746,5 @@ def write_p3(folder, image_names, K, track_uv, track_rgb, images=None) -> Path:
         for r in K:
             f.write(" ".join(repr(float(x)) for x in r) + "\n")
     if images is not None:
-        import cv2
-
-        for name, img in zip(image_names, images):
-            img = np.asarray(img)
-            if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
-                raise KitInputError(f"image {name} has dtype {img.dtype} and shape {img.shape}: expected (H, W, 3) uint8 RGB")
-            params = [cv2.IMWRITE_JPEG_QUALITY, 90] if name.lower().endswith((".jpg", ".jpeg")) else [cv2.IMWRITE_PNG_COMPRESSION, 1]
-            if not cv2.imwrite(str(folder / name), np.ascontiguousarray(img[:, :, ::-1]), params):
-                raise KitInputError(f"could not write image {folder / name}")
+        _write_images(folder, image_names, images)
     return folder

@@ -342,19 +342,9 @@ def _bailout_bar(ratio: float, sub_count: int, m: int) -> float:
     return m * w - 4.0 * np.sqrt(m * w * (1.0 - w))
 
 
-def ransac(
-    x1: np.ndarray,
-    x2: np.ndarray,
-    rng: np.random.Generator,
-    solver=eight_point_batch,
-    error=sampson_distance_batch,
-    sample_size: int = 8,
-    threshold: float = 1.0,
-    confidence: float = 0.999,
-    max_iters: int = 2000,
-    batch: int = 1,
-    bailout: int = 0,
-) -> RansacResult | None:
+def ransac(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, solver=eight_point_batch,
+           error=sampson_distance_batch, sample_size: int = 8, threshold: float = 1.0, confidence: float = 0.999,
+           max_iters: int = 2000, batch: int = 1, bailout: int = 0) -> RansacResult | None:
     """RANSAC with its minimal solver and its error function as arguments (as kornia's ``RANSAC``).
 
     Draws ``batch`` samples of ``sample_size`` correspondences at a time with ``rng``, fits one
@@ -420,14 +410,8 @@ def ransac(
     return RansacResult(F=model, inliers=d < threshold, n_iters=it, distances=d)
 
 
-def ransac_fundamental(
-    x1: np.ndarray,
-    x2: np.ndarray,
-    rng: np.random.Generator,
-    threshold_px: float = 1.0,
-    confidence: float = 0.999,
-    max_iters: int = 2000,
-) -> RansacResult:
+def ransac_fundamental(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, threshold_px: float = 1.0,
+                       confidence: float = 0.999, max_iters: int = 2000) -> RansacResult:
     """Robust F: RANSAC over minimal 8-point samples, inliers by Sampson distance, adaptive stop.
 
     Each iteration draws 8 distinct correspondences with ``rng``, fits F with the 8-point

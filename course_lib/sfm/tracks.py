@@ -80,16 +80,8 @@ class PairVerification:
         return int(self.inliers.sum())
 
 
-def verify_pair(
-    x1: np.ndarray,
-    x2: np.ndarray,
-    rng: np.random.Generator,
-    threshold_px: float = 1.0,
-    confidence: float = 0.999,
-    max_iters: int = 2000,
-    batch: int = 256,
-    bailout: int = 64,
-) -> PairVerification:
+def verify_pair(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, threshold_px: float = 1.0,
+                confidence: float = 0.999, max_iters: int = 2000, batch: int = 256, bailout: int = 64) -> PairVerification:
     """RANSAC on F (8-point samples, Sampson distance, adaptive stop), samples solved in batches.
 
     The RANSAC of notebook 01 (in the instructor's kit), :func:`course_lib.sfm.fundamental.ransac` with the batched

@@ -212,8 +212,9 @@ def folder_lines(mods: dict[str, Module]) -> dict[str, int]:
     return dict(sorted(out.items(), key=lambda kv: -kv[1]))
 
 
-def report(root: Path = REPO, long_over: int = 80, large_over: int = 500) -> str:
-    mods = load(root)
+def report(root: Path = REPO, long_over: int = 80, large_over: int = 500, mods: dict[str, Module] | None = None) -> str:
+    """The figures as text (of ``mods`` where given, else of the checkout at ``root``)."""
+    mods = load(root) if mods is None else mods
     lines = [f"course_lib at {root}: {len(mods)} modules, {sum(m.lines for m in mods.values())} lines"]
     edges = sum(len(m.imports) for m in mods.values())
     deferred = sorted(f"{m.name} -> {t}" for m in mods.values() for t, k in m.imports.items() if k == "deferred")

@@ -190,36 +190,9 @@ def schur_solve(structure: BlockStructure, ne: NormalEquations, lam: float, free
         rhs = np.concatenate([rhs, -(ne.g_s - np.einsum("jab,jb->a", ZV, ne.g_p))])
         fixed = np.concatenate([fixed, ~np.asarray(free_shared, bool) if free_shared is not None else np.zeros(p_sh, bool)])
     rhs[fixed] = 0.0
-    bi, bl = np.divmod(st.block_ids, M)
+    S_border = (S_cs.reshape(n * M, p_sh), S_ss) if shared else None
+    delta = _solve_reduced(st, ne.U + lam * Udiag[:, :, None] * np.eye(n) - diag, blocks, S_border, fixed, rhs, dense_limit)
     nS = n * M + (p_sh if shared else 0)
-    if n * M <= dense_limit:
-        S = np.zeros((M, M, n, n))
-        S[bi, bl] = -blocks
-        S[bl, bi] = -np.transpose(blocks, (0, 2, 1))
-        S[np.arange(M), np.arange(M)] = ne.U + lam * Udiag[:, :, None] * np.eye(n) - diag
-        S = S.transpose(0, 2, 1, 3).reshape(n * M, n * M)
-        if shared:
-            S = np.block([[S, S_cs.reshape(n * M, p_sh)], [S_cs.reshape(n * M, p_sh).T, S_ss]])
-        S[fixed, :] = 0.0
-        S[:, fixed] = 0.0
-        S[fixed, fixed] = 1.0
-        try:
-            delta = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S, check_finite=False), rhs, check_finite=False)
-        except np.linalg.LinAlgError:
-            delta = np.linalg.lstsq(S, rhs, rcond=None)[0]
-    else:
-        data = np.concatenate([-blocks, -np.transpose(blocks, (0, 2, 1)), ne.U + lam * Udiag[:, :, None] * np.eye(n) - diag])
-        rows = np.concatenate([bi, bl, np.arange(M)])
-        cols = np.concatenate([bl, bi, np.arange(M)])
-        order = np.lexsort((cols, rows))
-        indptr = np.searchsorted(rows[order], np.arange(M + 1))
-        S = sp.bsr_matrix((data[order], cols[order], indptr), shape=(n * M, n * M)).tocsr()
-        if shared:
-            Scs = sp.csr_matrix(S_cs.reshape(n * M, p_sh))
-            S = sp.bmat([[S, Scs], [Scs.T, sp.csr_matrix(S_ss)]]).tocsr()
-        keep = sp.diags((~fixed).astype(float))
-        S = (keep @ S @ keep + sp.diags(fixed.astype(float))).tocsc()
-        delta = scipy.sparse.linalg.spsolve(S, rhs)
     dc = delta[: n * M].reshape(M, n)
     ds = delta[n * M: nS] if shared else None
     tmp = ne.g_p + st.to_pt @ np.einsum("kab,kb->ka", ne.Wt, dc[st.cam_idx])
@@ -233,3 +206,43 @@ def schur_solve(structure: BlockStructure, ne: NormalEquations, lam: float, free
     if shared:
         pred += 0.5 * float(np.sum(ds * (lam * Sdiag * ds - ne.g_s)))
     return dc, dp, ds, pred
+
+
+def _solve_reduced(st: BlockStructure, diag_blocks: np.ndarray, off_blocks: np.ndarray, border, fixed: np.ndarray,
+                   rhs: np.ndarray, dense_limit: int) -> np.ndarray:
+    """Solve the reduced camera system ``S delta = rhs``, the ``fixed`` unknowns held at 0.
+
+    ``S`` has the ``(M, n, n)`` blocks ``diag_blocks`` on its diagonal and ``-off_blocks[q]`` at the
+    camera pairs ``divmod(block_ids[q], M)`` (and their transposes), bordered by the shared
+    parameters' ``border = (S_cs (nM, p), S_ss (p, p))`` or None. Up to ``dense_limit`` camera
+    unknowns by dense Cholesky (least squares where it fails), above by sparse LU.
+    """
+    M, n = st.M, st.n
+    bi, bl = np.divmod(st.block_ids, M)
+    if n * M <= dense_limit:
+        S = np.zeros((M, M, n, n))
+        S[bi, bl] = -off_blocks
+        S[bl, bi] = -np.transpose(off_blocks, (0, 2, 1))
+        S[np.arange(M), np.arange(M)] = diag_blocks
+        S = S.transpose(0, 2, 1, 3).reshape(n * M, n * M)
+        if border is not None:
+            S = np.block([[S, border[0]], [border[0].T, border[1]]])
+        S[fixed, :] = 0.0
+        S[:, fixed] = 0.0
+        S[fixed, fixed] = 1.0
+        try:
+            return scipy.linalg.cho_solve(scipy.linalg.cho_factor(S, check_finite=False), rhs, check_finite=False)
+        except np.linalg.LinAlgError:
+            return np.linalg.lstsq(S, rhs, rcond=None)[0]
+    data = np.concatenate([-off_blocks, -np.transpose(off_blocks, (0, 2, 1)), diag_blocks])
+    rows = np.concatenate([bi, bl, np.arange(M)])
+    cols = np.concatenate([bl, bi, np.arange(M)])
+    order = np.lexsort((cols, rows))
+    indptr = np.searchsorted(rows[order], np.arange(M + 1))
+    S = sp.bsr_matrix((data[order], cols[order], indptr), shape=(n * M, n * M)).tocsr()
+    if border is not None:
+        Scs = sp.csr_matrix(border[0])
+        S = sp.bmat([[S, Scs], [Scs.T, sp.csr_matrix(border[1])]]).tocsr()
+    keep = sp.diags((~fixed).astype(float))
+    S = (keep @ S @ keep + sp.diags(fixed.astype(float))).tocsc()
+    return scipy.sparse.linalg.spsolve(S, rhs)

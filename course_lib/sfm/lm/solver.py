@@ -122,116 +122,142 @@ def solve(
         )
 
 
-def _lm(model, cameras, points, cam_idx, pt_idx, obs, fixed_cameras, loss, f_scale,
-        max_iterations, ftol, xtol, gtol, lam0, dense_limit, callback, shared=None, fixed_shared=None):
-    """The body of :func:`solve`."""
-    t_start = time.perf_counter()
-    cameras, points, cam_idx, pt_idx, obs = check_problem(model, cameras, points, cam_idx, pt_idx, obs)
-    if loss not in ("linear", "huber", "soft_l1", "cauchy"):
-        raise KitInputError(f"loss={loss!r}: expected 'linear', 'huber', 'soft_l1' or 'cauchy'")
-    M, n = cameras.shape
-    N = len(points)
-    free_cam = np.ones((M, n), bool) if fixed_cameras is None else ~np.asarray(fixed_cameras, bool)
-    if free_cam.shape != (M, n):
-        raise KitInputError(f"fixed_cameras has shape {free_cam.shape}: expected ({M}, {n})")
-    seen = np.zeros(N, bool)
-    seen[pt_idx] = True
-    order = np.argsort(cam_idx, kind="stable")  # observations camera by camera (see BlockStructure)
-    cam_idx, pt_idx, obs = cam_idx[order], pt_idx[order], obs[order]
-    st = BlockStructure(M, N, n, cam_idx, pt_idx)
-    cams = cameras.copy()
-    pts = np.where(seen[:, None], points, 0.0)
-    free_obs = free_cam[cam_idx].astype(float)  # (K, n): zero the columns of fixed camera parameters
-    n_sh = int(getattr(model, "n_shared", 0))
-    if n_sh:
-        if shared is None or np.shape(shared) != (n_sh,) or not np.isfinite(shared).all():
-            raise KitInputError(f"shared has shape {np.shape(shared)}: {type(model).__name__} needs its {n_sh} shared "
-                                f"parameters {model.shared_names} as finite numbers")
-        sh = np.asarray(shared, float).copy()
-        free_sh = np.ones(n_sh, bool) if fixed_shared is None else ~np.asarray(fixed_shared, bool).reshape(n_sh)
-    else:
-        sh, free_sh = None, None
+class _Iterate:
+    """The parameters of one LM iterate and their residuals: cameras ``(M, n)``, points ``(N, 3)``, shared ``(p,)``
+    or None, residuals ``r (K, 2)``, IRLS weights ``w (K,)``, the robust ``cost`` and the ``plain`` one."""
 
-    def project(c, X, shp):
-        return model.project(c, X[pt_idx], cam_idx) if shp is None else model.project(c, X[pt_idx], cam_idx, shp)
+    def __init__(self, cams, pts, sh, evaluated):
+        self.cams, self.pts, self.sh = cams, pts, sh
+        self.r, self.w, self.cost, self.plain = evaluated
 
-    def evaluate(c, X, shp=None):
-        r = project(c, X, shp) - obs
+
+class _Problem:
+    """What stays fixed while :func:`solve` iterates: the checked, camera-sorted observations and the masks.
+
+    Raises:
+        KitInputError: as :func:`solve` says.
+    """
+
+    def __init__(self, model, cameras, points, cam_idx, pt_idx, obs, fixed_cameras, loss, f_scale, dense_limit,
+                 fixed_shared):
+        cameras, points, cam_idx, pt_idx, obs = check_problem(model, cameras, points, cam_idx, pt_idx, obs)
+        if loss not in ("linear", "huber", "soft_l1", "cauchy"):
+            raise KitInputError(f"loss={loss!r}: expected 'linear', 'huber', 'soft_l1' or 'cauchy'")
+        M, n = cameras.shape
+        N = len(points)
+        free_cam = np.ones((M, n), bool) if fixed_cameras is None else ~np.asarray(fixed_cameras, bool)
+        if free_cam.shape != (M, n):
+            raise KitInputError(f"fixed_cameras has shape {free_cam.shape}: expected ({M}, {n})")
+        self.seen = np.zeros(N, bool)
+        self.seen[pt_idx] = True
+        order = np.argsort(cam_idx, kind="stable")  # observations camera by camera (see BlockStructure)
+        self.cam_idx, self.pt_idx, self.obs = cam_idx[order], pt_idx[order], obs[order]
+        self.st = BlockStructure(M, N, n, self.cam_idx, self.pt_idx)
+        self.model, self.loss, self.f_scale, self.dense_limit = model, loss, f_scale, dense_limit
+        self.cameras, self.points, self.free_cam = cameras, points, free_cam
+        self.free_obs = free_cam[self.cam_idx].astype(float)  # (K, n): zero the columns of fixed camera parameters
+        n_sh = int(getattr(model, "n_shared", 0))
+        self.free_sh = None
+        if n_sh:
+            self.free_sh = np.ones(n_sh, bool) if fixed_shared is None else ~np.asarray(fixed_shared, bool).reshape(n_sh)
+
+    def start(self, shared) -> _Iterate:
+        """The first iterate: the given cameras, the points (0 where unobserved), the shared parameters."""
+        n_sh = int(getattr(self.model, "n_shared", 0))
+        sh = None
+        if n_sh:
+            if shared is None or np.shape(shared) != (n_sh,) or not np.isfinite(shared).all():
+                raise KitInputError(f"shared has shape {np.shape(shared)}: {type(self.model).__name__} needs its {n_sh} "
+                                    f"shared parameters {self.model.shared_names} as finite numbers")
+            sh = np.asarray(shared, float).copy()
+        cams, pts = self.cameras.copy(), np.where(self.seen[:, None], self.points, 0.0)
+        it = _Iterate(cams, pts, sh, self.evaluate(cams, pts, sh))
+        if not np.isfinite(it.cost):
+            raise KitInputError("some observed points project to infinity at the start (depth 0): check the initial "
+                                "cameras and points")
+        return it
+
+    def evaluate(self, c, X, shp=None):
+        """``(r (K, 2), w (K,), robust cost, plain cost)`` at cameras ``c``, points ``X``, shared ``shp``."""
+        m, X_k = self.model, X[self.pt_idx]
+        proj = m.project(c, X_k, self.cam_idx) if shp is None else m.project(c, X_k, self.cam_idx, shp)
+        r = proj - self.obs
         s = (r**2).sum(axis=1)
-        rho, w = robust_loss(loss, s, f_scale)
+        rho, w = robust_loss(self.loss, s, self.f_scale)
         return r, w, 0.5 * float(rho.sum()), 0.5 * float(s.sum())
 
-    r, w, cost, plain = evaluate(cams, pts, sh)
-    if not np.isfinite(cost):
-        raise KitInputError("some observed points project to infinity at the start (depth 0): check the initial cameras and points")
-    history = [plain]
-    initial_cost = plain
+    def points_out(self, pts: np.ndarray) -> np.ndarray:
+        """The points of an iterate, the unobserved ones as given."""
+        return np.where(self.seen[:, None], pts, self.points)
+
+    def linearize(self, it: _Iterate):
+        """The normal equations at ``it`` and the largest gradient entry."""
+        if it.sh is None:
+            _, A, B = self.model.project_jacobian(it.cams, it.pts[self.pt_idx], self.cam_idx)
+            C = None
+        else:
+            _, A, B, C = self.model.project_jacobian(it.cams, it.pts[self.pt_idx], self.cam_idx, it.sh)
+            C = C * self.free_sh[None, None, :]
+        A = A * self.free_obs[:, None, :]
+        ne = normal_equations(self.st, it.r, A, B, it.w, C)
+        gmax = max(np.abs(ne.g_c).max(initial=0.0), np.abs(ne.g_p[self.seen]).max(initial=0.0),
+                   0.0 if C is None else np.abs(ne.g_s).max(initial=0.0))
+        return ne, gmax
+
+    def step(self, it: _Iterate, ne, lam: float):
+        """The damped step from ``it``: ``(the new iterate, gain ratio, |step|)``."""
+        dc, dp, ds, pred = schur_solve(self.st, ne, lam, self.free_cam, self.dense_limit, self.free_sh)
+        dp[~self.seen] = 0.0
+        c_new, p_new = it.cams + dc, it.pts + dp
+        sh_new = None if it.sh is None else it.sh + ds
+        new = _Iterate(c_new, p_new, sh_new, self.evaluate(c_new, p_new, sh_new))
+        rho = (it.cost - new.cost) / pred if pred > 0 else -1.0
+        return new, rho, np.sqrt(np.sum(dc**2) + np.sum(dp**2))
+
+
+def _lm(model, cameras, points, cam_idx, pt_idx, obs, fixed_cameras, loss, f_scale,
+        max_iterations, ftol, xtol, gtol, lam0, dense_limit, callback, shared=None, fixed_shared=None):
+    """The body of :func:`solve`: Nielsen's damping around :class:`_Problem`'s steps."""
+    t_start = time.perf_counter()
+    prob = _Problem(model, cameras, points, cam_idx, pt_idx, obs, fixed_cameras, loss, f_scale, dense_limit, fixed_shared)
+    it = prob.start(shared)
+    history = [it.plain]
     if callback is not None:
-        callback(0, cams.copy(), np.where(seen[:, None], pts, points), plain)
+        callback(0, it.cams.copy(), prob.points_out(it.pts), it.plain)
     lam, nu = lam0, 2.0
     n_iter = n_solves = 0
     success, message = False, "the maximum number of iterations is reached"
-    while n_iter < max_iterations:
-        if sh is None:
-            _, A, B = model.project_jacobian(cams, pts[pt_idx], cam_idx)
-            C = None
-        else:
-            _, A, B, C = model.project_jacobian(cams, pts[pt_idx], cam_idx, sh)
-            C = C * free_sh[None, None, :]
-        A = A * free_obs[:, None, :]
-        ne = normal_equations(st, r, A, B, w, C)
-        gmax = max(np.abs(ne.g_c).max(initial=0.0), np.abs(ne.g_p[seen]).max(initial=0.0),
-                   0.0 if C is None else np.abs(ne.g_s).max(initial=0.0))
+    while n_iter < max_iterations and not success:
+        ne, gmax = prob.linearize(it)
         if gmax < gtol:
             success, message = True, "the gradient is below gtol"
             break
-        accepted = False
-        while not accepted:
+        while True:
             n_solves += 1
-            dc, dp, ds, pred = schur_solve(st, ne, lam, free_cam, dense_limit, free_sh)
-            dp[~seen] = 0.0
-            c_new, p_new = cams + dc, pts + dp
-            sh_new = None if sh is None else sh + ds
-            r_new, w_new, cost_new, plain_new = evaluate(c_new, p_new, sh_new)
-            rho = (cost - cost_new) / pred if pred > 0 else -1.0
-            if np.isfinite(cost_new) and rho > 1e-3:
-                accepted = True
-                step_norm = np.sqrt(np.sum(dc**2) + np.sum(dp**2))
-                x_norm = np.sqrt(np.sum(cams**2) + np.sum(pts**2))
-                rel = (cost - cost_new) / max(cost, 1e-300)
-                cams, pts, r, w, cost, plain, sh = c_new, p_new, r_new, w_new, cost_new, plain_new, sh_new
-                lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), LAM_MIN)
-                nu = 2.0
-                n_iter += 1
-                history.append(plain)
-                if callback is not None:
-                    callback(n_iter, cams.copy(), np.where(seen[:, None], pts, points), plain)
-                if rel < ftol:
-                    success, message = True, f"the relative decrease of the cost is below ftol={ftol:g}"
-                elif step_norm < xtol * (xtol + x_norm):
-                    success, message = True, f"the step is below xtol={xtol:g}"
-            else:
-                lam *= nu
-                nu *= 2.0
-                if lam > LAM_MAX:
-                    break
-        if not accepted:
+            new, rho, step_norm = prob.step(it, ne, lam)
+            if np.isfinite(new.cost) and rho > 1e-3:
+                break
+            lam *= nu
+            nu *= 2.0
+            if lam > LAM_MAX:
+                new = None
+                break
+        if new is None:
             success, message = True, "no step decreases the cost (converged to the precision available)"
             break
-        if success:
-            break
-    points_out = np.where(seen[:, None], pts, points)
-    return LMResult(
-        cameras=cams,
-        points=points_out,
-        initial_cost=initial_cost,
-        final_cost=plain,
-        cost_history=history,
-        iterations=n_iter,
-        n_solves=n_solves,
-        seconds=time.perf_counter() - t_start,
-        success=success,
-        message=message,
-        shared=sh,
-    )
-
+        x_norm = np.sqrt(np.sum(it.cams**2) + np.sum(it.pts**2))
+        rel = (it.cost - new.cost) / max(it.cost, 1e-300)
+        it = new
+        lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), LAM_MIN)
+        nu = 2.0
+        n_iter += 1
+        history.append(it.plain)
+        if callback is not None:
+            callback(n_iter, it.cams.copy(), prob.points_out(it.pts), it.plain)
+        if rel < ftol:
+            success, message = True, f"the relative decrease of the cost is below ftol={ftol:g}"
+        elif step_norm < xtol * (xtol + x_norm):
+            success, message = True, f"the step is below xtol={xtol:g}"
+    return LMResult(cameras=it.cams, points=prob.points_out(it.pts), initial_cost=history[0], final_cost=it.plain,
+                    cost_history=history, iterations=n_iter, n_solves=n_solves, seconds=time.perf_counter() - t_start,
+                    success=success, message=message, shared=it.sh)
