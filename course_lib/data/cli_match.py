@@ -47,9 +47,11 @@ Turns any set of photos taken with one camera into the P3 folder that the SfM le
    together with ``calibration.txt`` (the possibly scaled K). Photos that need no change are
    copied (PNG or JPEG without an EXIF rotation), the others written as PNG (fast compression).
 
-Bad input (a missing folder, fewer than 2 images, an unreadable image, images of different
-sizes, a malformed K, EXIF focal lengths that differ) raises
-:class:`~course_lib.validate.KitInputError`, which the command line turns into a one-line message.
+Bad input (a missing folder; fewer than 2 images, with the photos the kit cannot read (HEIC, raw) or
+the subfolders that hold images named; two photos of one number; an unreadable image; images of
+different sizes; a malformed K; EXIF focal lengths that differ) raises
+:class:`~course_lib.validate.KitInputError`, which the command line turns into a one-line message
+that says what is wrong and what to do.
 
 Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
 """
@@ -566,6 +568,10 @@ def run(args) -> int:
     n = len(rep["images"])
     first, last = rep["images"][0]["source"], rep["images"][-1]["source"]
     print(f"read {n} photos: {rep['image_order']} ({first} ... {last})")
+    spaced = [im["source"] for im in rep["images"] if any(c.isspace() for c in im["source"])]
+    if spaced:
+        print(f"{len(spaced)} photo name(s) hold a space ({spaced[0]}, ...): sfm keeps them, and the kit reads its COLMAP model "
+              "back, but COLMAP's own tools cut a name at its first space (rename the photos to use those)")
     if rep["ignored_images"]:
         shown = ", ".join(rep["ignored_images"][:5]) + (", ..." if len(rep["ignored_images"]) > 5 else "")
         print(f"ignored {len(rep['ignored_images'])} image(s) without a number beside the numbered photos: {shown} "

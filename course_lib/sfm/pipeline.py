@@ -127,33 +127,8 @@ def run_sfm(data, rng: np.random.Generator, options: MapperOptions | None = None
                                                   opts.min_e_f_inlier_ratio, calibrate)
         K = report["self_calibration"].pop("K") if "self_calibration" in report else K
         t_ransac = time.perf_counter() - t_start
-        restarts = report["focal_restarts"] = []
-        f_checked = float(K[0, 0])  # the focal length of stage 1's calibrated check
-        while True:
-            report["n_tracks"] = len(tracks.uv)
-            tr = report["tracks"]
-            if opts.verbose:
-                print(f"{report['verification']}: {len(pairs)} pairs verified; {tr['verified_tracks']} tracks from {tr['verified_matches']} "
-                      f"inlier matches ({tr['refused_links']} links refused: they joined two features of one image)")
-            mapper = IncrementalMapper(data, pairs, tracks.uv, K, size, opts, rng, refine_intrinsics=refine)
-            watch = _FocalWatch(float(K[0, 0]), opts) if refine and len(restarts) < opts.focal_restarts else None
-            try:
-                models, reasons = _build_models(mapper, tracks.rgb, pairs, watch)
-                break
-            except _FocalMoved as moved:
-                restarts.append(moved.row)
-                if opts.verbose:
-                    print(f"the focal length moved from {moved.row['from_px']:.1f} to {moved.row['to_px']:.1f} px while the first "
-                          f"model grew ({moved.row['images']} images): starting again from {moved.row['to_px']:.1f} px")
-                K = K.copy()
-                K[0, 0] = K[1, 1] = moved.row["to_px"]
-                if (getattr(data, "two_view", None) is not None and opts.min_e_f_inlier_ratio > 0
-                        and abs(np.log(K[0, 0] / f_checked)) > np.log(1.0 + RECHECK_FOCAL_CHANGE)):  # its calibrated check used K
-                    t0 = time.perf_counter()
-                    pairs, tracks = verified_pairs_and_tracks(data, rng, opts.f_threshold_px, opts.min_pair_matches, report,
-                                                              opts.min_e_f_inlier_ratio, lambda _, K=K: K)
-                    f_checked = float(K[0, 0])
-                    t_ransac += time.perf_counter() - t0
+        mapper, models, reasons, t_again = _map_with_focal_restarts(data, pairs, tracks, K, size, opts, rng, refine, report)
+        t_ransac += t_again
     report["degenerate_pairs"] = list(mapper.degenerate.values())
     rec = _assemble(models, reasons, report)
     for m in [rec] + rec.others:  # the camera's prior is the one the data gave, the start the one the mapping began from
@@ -228,6 +203,47 @@ def _by_photo_names(data):
     if names is None or list(names) == list(data.image_names) or not dataclasses.is_dataclass(data):
         return data
     return dataclasses.replace(data, image_names=list(names), source_names=None)
+
+
+def _map_with_focal_restarts(data, pairs: dict, tracks, K: np.ndarray, size, opts: MapperOptions, rng, refine: bool,
+                             report: dict) -> tuple:
+    """The models of the verified pairs and tracks, the mapping started again where the first model's focal length moved.
+
+    Where the intrinsics are refined, a :class:`_FocalWatch` watches the first model; where it raises
+    :class:`_FocalMoved`, the mapping starts again from the refined focal length (the row goes to
+    ``report["focal_restarts"]``), with stage 1 redone where its calibrated check used a focal length more
+    than :data:`RECHECK_FOCAL_CHANGE` away.
+
+    Returns:
+        ``(mapper, models, reasons, seconds of stage 1 redone)``.
+    """
+    restarts = report["focal_restarts"] = []
+    f_checked, t_again = float(K[0, 0]), 0.0  # the focal length of stage 1's calibrated check
+    while True:
+        report["n_tracks"] = len(tracks.uv)
+        tr = report["tracks"]
+        if opts.verbose:
+            print(f"{report['verification']}: {len(pairs)} pairs verified; {tr['verified_tracks']} tracks from {tr['verified_matches']} "
+                  f"inlier matches ({tr['refused_links']} links refused: they joined two features of one image)")
+        mapper = IncrementalMapper(data, pairs, tracks.uv, K, size, opts, rng, refine_intrinsics=refine)
+        watch = _FocalWatch(float(K[0, 0]), opts) if refine and len(restarts) < opts.focal_restarts else None
+        try:
+            models, reasons = _build_models(mapper, tracks.rgb, pairs, watch)
+            return mapper, models, reasons, t_again
+        except _FocalMoved as moved:
+            restarts.append(moved.row)
+            if opts.verbose:
+                print(f"the focal length moved from {moved.row['from_px']:.1f} to {moved.row['to_px']:.1f} px while the first "
+                      f"model grew ({moved.row['images']} images): starting again from {moved.row['to_px']:.1f} px")
+            K = K.copy()
+            K[0, 0] = K[1, 1] = moved.row["to_px"]
+            if (getattr(data, "two_view", None) is not None and opts.min_e_f_inlier_ratio > 0
+                    and abs(np.log(K[0, 0] / f_checked)) > np.log(1.0 + RECHECK_FOCAL_CHANGE)):  # its calibrated check used K
+                t0 = time.perf_counter()
+                pairs, tracks = verified_pairs_and_tracks(data, rng, opts.f_threshold_px, opts.min_pair_matches, report,
+                                                          opts.min_e_f_inlier_ratio, lambda _, K=K: K)
+                f_checked = float(K[0, 0])
+                t_again += time.perf_counter() - t0
 
 
 class _FocalMoved(Exception):

@@ -113,6 +113,18 @@ def test_names_are_kept_through_sfm_and_sfm_to_nerf(named_photos, tmp_path, caps
     assert sorted(f["file_path"] for f in frames) == sorted(f"./images/r_{n.rsplit('.', 1)[0].replace('/', '_')}" for n in order)
 
 
+def test_a_name_with_a_space_is_kept_and_named(named_photos, tmp_path, capsys):
+    folder, names = named_photos
+    own = tmp_path / "own"
+    own.mkdir()
+    for k, n in enumerate(names[:2]):
+        (own / f"IMG {k + 1}.jpg").write_bytes((folder / n).read_bytes())
+    assert main(["match", str(own), "--K", str(folder / "calibration.txt"), "--out", str(tmp_path / "p3"), "--quiet", "--no-verify"]) == 0
+    out = capsys.readouterr().out
+    assert "2 photo name(s) hold a space (IMG 1.jpg, ...)" in out and "COLMAP's own tools cut a name" in out
+    assert read_p3(tmp_path / "p3").photo_names == ["IMG 1.jpg", "IMG 2.jpg"]
+
+
 def test_source_names_file_must_list_the_images(named_photos, tmp_path):
     folder, _ = named_photos
     p3 = tmp_path / "p3"
