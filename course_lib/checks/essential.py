@@ -259,7 +259,9 @@ def _pose_candidate_verdicts(c: Check, case: str, E, R, Cn, norms, factors: bool
     if named is not None:
         c.fail(f"{case}: {_C_MISTAKES[named]}", named=named)
     elif len({tuple(np.round(Rk, 6).ravel()) for Rk in np.abs(R)}) < 2:
-        c.fail(f"{case}: the four R are one rotation: the candidates use both U W Vᵀ and U Wᵀ Vᵀ, each with C and -C")
+        c.fail(f"{case}: the four R are one rotation, where two are expected: U W Vᵀ and U Wᵀ Vᵀ with "
+               "W = [[0, -1, 0], [1, 0, 0], [0, 0, 1]] (W ≠ Wᵀ, so the two differ), each with C and -C; if you use "
+               "both, check W itself and that the second rotation takes its transpose")
     elif not factors:
         bad = [k for k in range(4) if not same_up_to_scale(skew(-R[k] @ Cn[k]) @ R[k], E, 10 * RTOL)]
         c.fail(f"{case}: candidates {bad} do not factor E (E ∝ [t]ₓ R with t = -R C): R = U W Vᵀ or U Wᵀ Vᵀ, "

@@ -572,8 +572,40 @@ def _ransac_randomness(c: Check, fn: Callable, f: dict, out: tuple, case: str) -
                          c, case)
     if low is not None and low[2] is not None and out[2] is not None:
         c.gate(low[2] < out[2] or out[2] <= 1, f"{case}: a lower confidence stops earlier",
-               f"{case}: confidence=0.01 drew {low[2]} samples, confidence=0.999 drew {out[2]}: use the confidence "
-               "argument in N = log(1 - confidence) / log(1 - w⁸)")
+               f"{case}: confidence=0.01 drew {low[2]} samples, confidence=0.999 drew {out[2]}: the number of samples "
+               "must follow the confidence argument: N = log(1 - confidence) / log(1 - w⁸), recomputed whenever a "
+               "better sample is found, and the loop stops once it has drawn N samples")
+
+
+def _ransac_count_case(c: Check, fn: Callable, f: dict) -> None:
+    """An exact case (noiseless inliers, 40 % gross outliers): the best inlier set is found exactly and cannot improve,
+    so an adaptive loop draws at least N = log(1 - p) / log(1 - w⁸) samples for the returned ratio w."""
+    true_inl = f["rs_true_inliers"].astype(bool)
+    xi1, xi2 = f["rs_x1_true"][true_inl], f["rs_x2_true"][true_inl]
+    n_in = len(xi1)
+    n_out = int(round(n_in * 0.4 / 0.6))
+    g = np.random.default_rng(int(abs(float(xi1.sum()))) % (2**31))  # the case's own outliers, fixed by the case
+    lo, hi = np.minimum(xi1.min(0), xi2.min(0)), np.maximum(xi1.max(0), xi2.max(0))
+    x1 = np.vstack([xi1, g.uniform(lo, hi, (n_out, 2))])
+    x2 = np.vstack([xi2, g.uniform(lo, hi, (n_out, 2))])
+    order = g.permutation(len(x1))
+    x1, x2 = x1[order], x2[order]
+    case = f"noiseless inliers with {n_out} gross outliers among {len(x1)} matches (threshold 1 px)"
+    out = _unpack_ransac(c.call(fn, x1, x2, np.random.default_rng(11), threshold_px=1.0, case=case), c, case)
+    if out is None or out[2] is None or not c.shape(out[1], (len(x1),), f"{case}: inliers"):
+        return
+    inl, truth = np.asarray(out[1], bool), order < n_in
+    if int((inl != truth).sum()) > max(2, 0.05 * len(inl)):  # the inlier test itself is off (other verdicts say how): no count to compare
+        return
+    w = float(inl.mean())
+    need = _needed(w, 0.999, 2000)
+    n = out[2]
+    c.gate(n >= 0.8 * need - 1, f"{case}: draws as many samples as N = log(1 - confidence) / log(1 - w⁸) asks",
+           f"{case}: n_iters = {n}, while the returned inlier ratio {w:.0%} at confidence 0.999 needs N = {need:.0f} "
+           f"samples ({n / max(need, 1):.2f} N): N = log(1 - confidence) / log(1 - w⁸) with the same logarithm on "
+           "both sides (np.log10 on one side gives N / 2.3), recomputed at each better sample, and the loop runs "
+           "until it has drawn N samples (not until a first good sample); each sample is 8 distinct matches "
+           "(rng.choice(N, 8, replace=False))")
 
 
 def _ransac_refit_case(c: Check, fn: Callable, f: dict) -> None:
@@ -637,6 +669,7 @@ def check_ransac_fundamental(ransac_fundamental: Callable) -> None:
             _iterations_verdict(c, case, out[1], out[2])
             _ransac_randomness(c, ransac_fundamental, f, out, case)
         _ransac_refit_case(c, ransac_fundamental, f)
+        _ransac_count_case(c, ransac_fundamental, f)
         if "rb_x1" in f:
             _ransac_embedded(c, ransac_fundamental, f)
         c.blame_earlier("eight_point", "sampson_distance", fn=ransac_fundamental)

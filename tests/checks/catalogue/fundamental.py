@@ -376,7 +376,7 @@ MISTAKES = [
     M("ransac_fundamental", "np.random instead of rng", gfu.check_ransac_fundamental, ransac_global_np_random,
       ("from the rng argument",)),
     M("ransac_fundamental", "confidence ignored", gfu.check_ransac_fundamental, ransac_ignores_confidence,
-      ("use the confidence argument",)),
+      ("must follow the confidence argument",)),
     M("ransac_fundamental", "max_iters ignored", gfu.check_ransac_fundamental, ransac_ignores_max_iters,
       ("at most max_iters",)),
 ]
