@@ -25,6 +25,8 @@ COMMANDS = {
     "make-data": ("course_lib.data.cli_make_data", "regenerate the embedded synthetic data sets under data/"),
     "release": ("course_lib.instructor.cli_release", "write the student kit: notebooks with solution stubs, no reference solutions"),
     "grade": ("course_lib.instructor.cli_grade", "grade a student's kit: nbval against the reference verdicts + hidden checks"),
+    "grade-class": ("course_lib.instructor.cli_grade_class", "grade a folder of submissions, several at once, into a SQLite gradebook (and a CSV)"),
+    "gradescope": ("course_lib.instructor.cli_gradescope", "write Gradescope's autograder package, or grade there into results.json (--grade)"),
     "ba": ("course_lib.sfm.cli_ba", "bundle-adjust a 'Bundle Adjustment in the Large' problem with the kit's sparse LM"),
     "match": ("course_lib.data.cli_match", "SIFT-match a folder of your own photos into a P3 folder (K from --K, else from EXIF or a guess that sfm refines)"),
     "sfm-to-nerf": ("course_lib.data.cli_sfm_to_nerf", "turn an SfM reconstruction (COLMAP text) + its images into a NeRF Blender data set"),

@@ -12,7 +12,7 @@ The grader's ``preexec_fn`` moves the new process into it (:meth:`Cgroup.enter`)
 everything it starts is counted: ``memory.max`` (v1: ``memory.limit_in_bytes``) and ``pids.max``.
 :meth:`Cgroup.close` kills what is left in it and removes it. Where no base is writable, :func:`Cgroup.create`
 returns None, and the grader refuses to grade (:func:`course_lib.instructor.grade.preflight`: no cgroup, no memory
-total, no grading) unless :func:`container_mode` says that the container bounds the memory of everything in it.
+total, no grading) unless container mode applies (:mod:`course_lib.instructor.sandbox.container`), where the container bounds it.
 """
 
 from __future__ import annotations
@@ -23,21 +23,15 @@ import signal
 import time
 from dataclasses import dataclass, field
 
-__all__ = ["Cgroup", "container_mode", "CONTAINER_ENV", "HOW_TO_ENABLE"]
+__all__ = ["Cgroup", "HOW_TO_ENABLE"]
 
 _V2_ROOT = "/sys/fs/cgroup"
-#: Set (to anything but "" or "0") where the grader runs in a container that is itself the memory and process total
-#: of the grading (the documented container mode: docs/sandbox.md); then no cgroup of the grader's own is needed.
-CONTAINER_ENV = "COURSE_GRADER_CONTAINER"
 #: How to give the grader a cgroup (one line, in the refusal where it has none).
-HOW_TO_ENABLE = (f"run the grader as root, or delegate a cgroup v2 to the grading user and set COURSE_GRADER_CGROUP "
-                 f"to it (as the CI template does), or in a container that bounds memory itself set {CONTAINER_ENV}=1")
+HOW_TO_ENABLE = ("run the grader as root, or delegate a cgroup v2 to the grading user and set COURSE_GRADER_CGROUP "
+                 "to it (as the CI template does), or in a container made for one grading set COURSE_GRADER_CONTAINER=1 "
+                 "(docs/grading.md)")
 
 
-def container_mode() -> str | None:
-    """The container mode's name (``$COURSE_GRADER_CONTAINER``), or None where the grader must make its own cgroups."""
-    value = os.environ.get(CONTAINER_ENV, "").strip()
-    return value if value not in ("", "0") else None
 _COUNTER = itertools.count()
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 from pathlib import Path
 
@@ -22,6 +23,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("submission", type=Path, help="the student's kit (or a folder with their notebooks)")
     parser.add_argument("--json", type=Path, default=None, metavar="REPORT.json", help="write the report as JSON")
     parser.add_argument("--markdown", type=Path, default=None, metavar="FEEDBACK.md", help="write the feedback as Markdown")
+    add_grading_options(parser)
+
+
+def add_grading_options(parser: argparse.ArgumentParser) -> None:
+    """The options of one submission's grading (``grade-class`` passes them on to ``grade``)."""
     parser.add_argument("--notebooks", nargs="+", default=None, metavar="PREFIX",
                         help="grade only these notebooks (name prefixes, e.g. 01 02)")
     parser.add_argument("--exercises", nargs="+", default=None, metavar="NAME", help="grade only these exercises")
@@ -46,6 +52,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "report and the feedback)")
 
 
+def grading_argv(args: argparse.Namespace) -> list[str]:
+    """The options of :func:`add_grading_options` given on a command line, as arguments for ``grade``."""
+    probe = argparse.ArgumentParser(add_help=False)
+    add_grading_options(probe)
+    argv = []
+    for action in probe._actions:
+        value = getattr(args, action.dest)
+        if value == action.default:
+            continue
+        flag = action.option_strings[0]
+        if action.nargs == 0:  # a flag (store_true)
+            argv.append(flag)
+        elif isinstance(value, list):
+            argv += [flag, *map(str, value)]
+        else:
+            argv += [flag, str(value)]
+    return argv
+
+
 def run(args: argparse.Namespace) -> int:
     for opt, path, example in (("--json", args.json, "report.json"), ("--markdown", args.markdown, "feedback.md")):
         if path is not None:  # checked before the grading, which takes minutes
@@ -53,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
                 raise KitInputError(f"{opt} {path} is a folder: give the path of a file to write (e.g. {path / example})")
             output_dir(path.parent, opt)
 
+    # grade-class stops a grader past its time with SIGTERM: unwind, so that its temporary folders and cgroups go
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     report = grade_submission(
         args.submission, notebooks=args.notebooks, exercises=args.exercises, salt=args.hidden_seed,
         timeout=args.timeout, cell_timeout=args.cell_timeout, run_nbval=not args.no_nbval,

@@ -67,6 +67,7 @@ import atexit
 import contextlib
 import copy
 import importlib
+import math
 import os
 import re
 import secrets
@@ -80,8 +81,8 @@ from pathlib import Path
 
 import nbformat
 
-from course_lib.checks.core import score_against
-from course_lib.instructor.cgroups import HOW_TO_ENABLE, Cgroup, container_mode
+from course_lib.checks.core import score_against, score_reasons
+from course_lib.instructor.cgroups import HOW_TO_ENABLE, Cgroup
 from course_lib.instructor.extract import extract_exercise
 from course_lib.instructor.hidden import HiddenJob, build_hidden_fixtures, run_hidden, run_reference
 from course_lib.instructor.nbval_run import NbvalRun
@@ -89,7 +90,7 @@ from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ExerciseSpec, Noteboo
 from course_lib.instructor.oracle import earlier_steps
 from course_lib.instructor.placement import Placement, place_exercises, restored
 from course_lib.instructor.plan import release_plan
-from course_lib.instructor.sandbox import jail
+from course_lib.instructor.sandbox import container, jail
 from course_lib.instructor.sandbox.jail import IsolationError
 from course_lib.instructor.scan import scan_exercise, scan_notebook
 from course_lib.instructor.settings import (
@@ -135,6 +136,7 @@ class HiddenCases:
     reference_notes: dict[str, str] = field(default_factory=dict)
     reference_results: dict[str, object] = field(default_factory=dict)  # "notebook::exercise" -> the reference's CheckResult
     reference_seconds: dict[str, float] = field(default_factory=dict)  # "notebook::exercise" -> the reference's time
+    reference_jobs: dict[str, HiddenJob] = field(default_factory=dict)  # to time the reference again, next to a slow run
     library: Path | None = None  # the student release's course_lib + data, imported by the student's processes
 
 
@@ -193,8 +195,10 @@ def prepare_hidden(specs: list[NotebookSpec], salt: int, workdir: Path, notebook
         nb = nbformat.read(Path(notebooks_dir) / s.name, as_version=4)
         for e in s.exercises:
             ex = extract_exercise(nb, e.name, e.check_cell)
-            out = run_reference(HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(fdir), e.reference,
-                                          allow_reference=True))
+            job = HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(fdir), e.reference,
+                            allow_reference=True)
+            cases.reference_jobs[_key(e)] = job
+            out = run_reference(job)
             cases.reference_passing[_key(e)] = out.passing
             if out.result is not None:
                 cases.reference_results[_key(e)] = out.result
@@ -315,6 +319,7 @@ def grade_submission(
                    cgroup=None if insecure else Cgroup.create(iso.limits.submission_memory_bytes,
                                                                4 * iso.limits.processes_total))
         nbval_run = None
+        run_nbval = run_nbval and not (container.enabled() and not insecure)  # container mode: no TCP for kernels
         try:
             for s in specs:
                 _plan_notebook(run, s, _find_notebooks(copy.root) / s.name)
@@ -340,19 +345,20 @@ def grade_submission(
         report["submission"] = {"files": copy.files, "bytes": copy.bytes,
                                 "left out": [_cap(r, 300) for r in copy.refused[:50]]}
         report["isolation"] = {"insecure": bool(insecure), "hidden checks": run.sandbox_seen,
-                               "nbval": nbval_run.sandbox if nbval_run else {}}
+                               "nbval": nbval_run.sandbox if nbval_run else
+                               {"note": container.NBVAL_NOTE} if container.enabled() and not insecure else {}}
         return plain_data(report)
 
 
 def preflight(notebooks_dir: Path = NOTEBOOKS_DIR, limits: Limits | None = None) -> None:
     """Make one sandbox and check it, before anything of a submission is read or run; and make sure that a cgroup can
-    be made for the totals of a submission (unless the container mode applies, :func:`~.cgroups.container_mode`).
+    be made for the totals of a submission (unless container mode applies, :func:`~.sandbox.container.enabled`).
 
     Raises:
         IsolationError: it cannot be made or does not check out (one line: what is missing, how to enable it).
     """
     probe = Cgroup.create(64 << 20, 8)
-    if probe is None and not container_mode():
+    if probe is None and not container.enabled():
         raise IsolationError(jail.refusal("no cgroup can be made here, so a submission's processes would have no "
                                           "memory total", HOW_TO_ENABLE))
     if probe is not None:
@@ -706,8 +712,10 @@ def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, run: _Run, steps: dict[
     elif frac >= 1:
         g.feedback.append(f"all {len(ref)} hidden checks pass")
     else:
+        why = score_reasons(out.result, reference) if reference is not None else []
         g.feedback.append(f"{matched} of {len(ref)} hidden checks pass (new synthetic cases), "
-                          f"{frac * 100:.0f} % of the hidden-check points. What failed:")
+                          f"{frac * 100:.0f} % of the hidden-check points"
+                          + (f" ({'; '.join(why)}: the scoring rule, README)" if why else "") + ". What failed:")
         fails = out.failing or [f"{ln}: not passed" for ln in sorted((Counter(ref) - Counter(out.passing)))]
         g.feedback += [f"✘ {ln}" for ln in fails[:MAX_FEEDBACK_LINES]]
         missing = _not_run(out.result, reference)
@@ -716,14 +724,40 @@ def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, run: _Run, steps: dict[
                               "they count as failed")
         if len(fails) > MAX_FEEDBACK_LINES:
             g.feedback.append(f"... and {len(fails) - MAX_FEEDBACK_LINES} more")
-    slow = max(SLOW_NOTE_SECONDS, 10 * hidden.reference_seconds.get(_key(e), 0.0) + 5)
-    if out.seconds > slow:
-        g.feedback.append(f"note: correct answers are graded however long they take within {budget:g} s, but your "
-                          f"{e.name} is slow: its hidden checks took {out.seconds:.0f} s, the reference's "
-                          f"{hidden.reference_seconds.get(_key(e), 0.0):.1g} s ({_SLOW_HINTS.get(e.name, _SLOW_HINT)})")
+    slow = _slowness(hidden, e, out.seconds)
+    if slow:
+        g.feedback.append(f"note: correct answers earn their points however long they take within the time limit, "
+                          f"but your {e.name} is slow: {slow} ({_SLOW_HINTS.get(e.name, _SLOW_HINT)})")
     if _key(e) in hidden.reference_notes:
         g.feedback.append("note: " + hidden.reference_notes[_key(e)])
     return out.sandbox
+
+
+#: A note on speed only when the student's hidden checks take this many times as long as the reference's, both
+#: timed one after the other on the same machine (so the note does not depend on the machine or its load).
+SLOW_RATIO = 10.0
+
+
+def _slowness(hidden: HiddenCases, e: ExerciseSpec, seconds: float) -> str | None:
+    """A machine-independent note on a slow exercise, or None.
+
+    A wall time beyond ``SLOW_NOTE_SECONDS`` and 10x the reference's calibration run only selects the candidates;
+    the note itself compares with the reference timed again *right after* the student's run, on the same hidden
+    cases and machine, and says the ratio (rounded to a coarse step) without seconds: a busy machine slows both.
+    """
+    ref0 = hidden.reference_seconds.get(_key(e), 0.0)
+    job = hidden.reference_jobs.get(_key(e))
+    if seconds <= max(SLOW_NOTE_SECONDS, 10 * ref0 + 5) or job is None:
+        return None
+    now = run_reference(job)
+    if now.status != "ok" or now.seconds <= 0:
+        return None
+    ratio = seconds / max(now.seconds, 0.05)
+    if ratio < SLOW_RATIO:
+        return None
+    step = 10.0 ** math.floor(math.log10(ratio))
+    return (f"its hidden checks took about {math.floor(ratio / step) * step:g} times as long as the reference's on the "
+            "same cases, timed one after the other on the same machine")
 
 
 #: What usually makes an exercise slow: Python loops where numpy works on all rows at once.
@@ -881,6 +915,8 @@ def _sandbox_line(report: dict) -> str:
         return "; no sandbox (--insecure)"
     if not isinstance(box, dict) or not box:
         return ""
+    if box.get("tool") == "container mode":
+        return "; container mode: an unprivileged uid, no network, the hidden cases closed to it, totals"
     if box.get("namespaces") is True and box.get("read_only") is True:
         totals = "cgroup totals" if "whole process tree" in str(box.get("memory", "")) else "per-process limits"
         return f"; sandbox: bubblewrap, namespaces, no network, an allow-listed read-only file system, {totals}"

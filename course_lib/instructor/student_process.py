@@ -15,7 +15,8 @@ The student's process:
   filter; as :data:`~course_lib.instructor.settings.STUDENT_UID` when the grader is root. Before any of the
   student's code runs, the server reports what confines it and the grader checks it
   (:func:`~course_lib.instructor.sandbox.jail.verify`): a sandbox the grader cannot verify ends the grading
-  (:class:`~course_lib.instructor.sandbox.jail.IsolationError`), unless the run is ``insecure``;
+  (:class:`~course_lib.instructor.sandbox.jail.IsolationError`), unless the run is ``insecure``; in container
+  mode (:mod:`course_lib.instructor.sandbox.container`) it confines itself as it starts, checked the same way;
 * starts as ``python -S -E -B`` (no ``site``: the instructor's editable install is not on its path; no
   bytecode written) with ``sys.path`` = the student release, then the standard library and site-packages;
 * works in a fresh copy of the grader's copy of the submission (regular files only,
@@ -57,7 +58,7 @@ import numpy as np
 
 from course_lib.instructor import oracle as oracle_module
 from course_lib.instructor.remote import RemoteModule
-from course_lib.instructor.sandbox import jail, server, wire
+from course_lib.instructor.sandbox import container, jail, server, wire
 from course_lib.instructor.settings import START_SECONDS, Isolation
 
 __all__ = ["StudentProcess", "StudentProcessEnded"]
@@ -134,11 +135,11 @@ class StudentProcess:
     def _start(self, code: str, submission: Path | None, torch: bool) -> None:
         iso = self.iso
         seed = Path(submission).resolve() if submission is not None and Path(submission).is_dir() else None
-        insecure = iso.insecure
-        cwd = str(self.tmp / "work") if insecure else jail.WORK
+        insecure, boxed = iso.insecure, container.enabled() and not iso.insecure  # boxed: container mode
+        cwd = str(self.tmp / "work") if insecure or boxed else jail.WORK
         req_r, self.req_w = os.pipe()
         self.rep_r, rep_w = os.pipe()
-        cfg = {"cwd": cwd, "seed": (str(seed) if insecure else jail.SEED) if seed else None,
+        cfg = {"cwd": cwd, "seed": (str(seed) if insecure or boxed else jail.SEED) if seed else None,
                "path": str(iso.library), "sys_path": iso.python_path(), "code": code, "name": self.name,
                "torch": bool(torch), "req_fd": req_r, "rep_fd": rep_w, "hide": [str(h) for h in iso.hide],
                "keep": [str(k) for k in iso.keep], "library": str(iso.library),
@@ -152,6 +153,9 @@ class StudentProcess:
         if insecure:
             argv = [sys.executable, "-S", "-E", "-B", str(server_dir / "server.py"), "serve",
                     str(server_dir / "config.json")]
+        elif boxed:
+            container.check(self.cgroup)
+            argv = container.command("serve", server_dir)
         else:
             argv, more, info_r, staged, filtered = jail.sandboxed(iso, "serve", server_dir, seed, self.tmp / "stage")
             fds += more
@@ -160,8 +164,9 @@ class StudentProcess:
             self.proc = subprocess.Popen(
                 argv, cwd=self.tmp, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=stderr,
                 pass_fds=fds, start_new_session=True,
-                preexec_fn=jail.preexec(iso.limits, self.budget + 30, self.cgroup,
-                                        as_student=not insecure and os.getuid() == 0, staged=staged))
+                preexec_fn=container.preexec(iso.limits, self.budget + 30, self.cgroup, Path(cwd)) if boxed else
+                jail.preexec(iso.limits, self.budget + 30, self.cgroup, as_student=not insecure and os.getuid() == 0,
+                             staged=staged))
         except (OSError, subprocess.SubprocessError) as exc:  # the launcher could not even start (preexec_fn)
             if insecure:
                 raise
@@ -177,7 +182,7 @@ class StudentProcess:
         first = self._receive()
         if first is None and self._seed_failed():
             return
-        if not insecure and (not info or (first is None and self.event != "timeout")):
+        if not insecure and ((not info and not boxed) or (first is None and self.event != "timeout")):
             self._refuse_start()
         facts = first[0].get("facts") if first is not None and first[0].get("event") == "sandbox" else None
         if not isinstance(facts, dict):
@@ -191,12 +196,12 @@ class StudentProcess:
             self.sandbox = {"tool": "none (--insecure)", "namespaces": False, "read_only": False,
                             "note": "--insecure: the student's code ran without a sandbox, as the grading user"}
         else:
-            missing = jail.verify(facts, info, iso, filtered)
+            missing = container.verify(facts) if boxed else jail.verify(facts, info, iso, filtered)
             if missing:
                 self.kill()
                 raise jail.IsolationError(jail.refusal("the sandbox is not isolated: " + "; ".join(missing),
                                                      jail.REPORT))
-            self.sandbox = jail.describe(facts, info, iso, filtered)
+            self.sandbox = container.describe(self.cgroup) if boxed else jail.describe(facts, info, iso, filtered)
         self.sandbox.update(iso.limits.totals(self.cgroup))
         self._send({"op": "go"}, [])
         self.t0 = time.monotonic()  # the exercise's budget counts from here: its definitions and every call

@@ -342,7 +342,7 @@ def test_ci_template_grades_from_the_instructors_repository_and_no_token_reaches
     jobs = wf["jobs"]
     grade = jobs["grade"]
     run = "\n".join(s.get("run", "") for s in grade["steps"])
-    assert "python -m course_lib grade" in run and "--json" in run and "--markdown" in run
+    assert "python -m course_lib grade-class" in run and "--reports" in run  # run: tests/instructor/test_template.py
     assert "secrets." not in yaml.safe_dump(grade), "the job that runs the students' code must reference no secret"
     assert grade["permissions"] == {"contents": "read"}
     assert all(s["with"].get("persist-credentials") is False for s in grade["steps"]

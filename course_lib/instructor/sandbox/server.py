@@ -104,13 +104,20 @@ def facts(hide: list[str], keep: list[str] = (), readable: list[str] = ()) -> di
             out["net"] = sorted(ln.split(":")[0].strip() for ln in f.readlines()[2:] if ":" in ln)
     except OSError:
         out["net"] = ["(no /proc/net/dev)"]
+    import socket
+
+    try:  # container mode: its filter refuses every socket but AF_UNIX
+        socket.socket(socket.AF_INET, socket.SOCK_STREAM).close()
+        out["inet"] = True
+    except OSError:
+        out["inet"] = False
     return out
 
 
 def _sees(hidden: str, keep) -> bool:
     """Whether anything of the folder ``hidden`` is in view, besides the way to the ``keep`` paths inside it."""
-    if not os.path.lexists(hidden):
-        return False
+    if not os.path.lexists(hidden) or (os.path.isdir(hidden) and not os.access(hidden, os.X_OK)):
+        return False  # absent, or closed to this uid (container mode): nothing inside can be reached
     if not os.path.isdir(hidden) or os.path.islink(hidden):
         return True
     inside = [k for k in keep if k.startswith(hidden.rstrip("/") + "/")]
