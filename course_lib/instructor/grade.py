@@ -54,9 +54,10 @@ one line (:class:`~course_lib.instructor.sandbox.jail.IsolationError`). ``insecu
 feedback.
 
 **Feedback is data** (:func:`to_markdown`): every text that can hold the student's words (messages
-of their exceptions, names of their files) is shown in fenced blocks, stripped of control
-characters, each message and the whole feedback capped; the totals are written by the grader above
-any of it.
+of their exceptions, names of their files) is shown in fenced blocks, each message and the whole
+feedback capped; the totals are written by the grader above any of it. The report and the feedback
+both go through one sanitiser (:func:`plain_text`): no control, format, bidi, private-use or tag
+character of the student's reaches either.
 """
 
 from __future__ import annotations
