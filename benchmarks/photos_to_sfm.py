@@ -32,7 +32,16 @@ Photo sets (rendered once into ``--cache``, default ``outputs/photos-to-sfm``; g
   ``FocalLengthIn35mmFilm`` rounded to whole mm and 5 % / 17 % off the true focal length;
 * ``phone-ring-N``: phone-like JPEGs (1280x960, barrel distortion ``k1 = -0.05``, EXIF focal
   length and 35 mm equivalent of a phone, make and model), no calibration file;
+* ``fX-ring-N`` / ``fXk-ring-N``: the ring seen by a camera whose focal length is X times COLMAP's guess
+  (1.2 x 640 px; X from 0.5, a wide field of view, to 3, a narrow one), principal point at the centre, PNG
+  without EXIF or calibration file; ``k``: barrel distortion ``k1 = -0.05``. The ring's radius grows with
+  the focal length, so the building fills the views alike;
 * ``wpi``, ``upenn``: the course's photos (``../shared/data``, read in place; their P3 matches are not used).
+
+Every set that has a calibration file or EXIF is also run **without** them (``kit, no K``, ``COLMAP, no K``:
+no ``--K`` / the camera not given, and the photos' EXIF stripped in a copy), so the focal length is found
+from the images alone; ``--no-uncalibrated`` leaves those runs out. Note that the ``ring-N`` renders have
+the principal point of the course's camera, a few pixels off the centre that a run without K assumes.
 
 Usage::
 
@@ -72,7 +81,7 @@ PHONE_K1 = -0.05
 # ------------------------------------------------------------------------------------------ photo sets
 
 
-def ring_cameras(n: int, radius: float = 14.0, seed: int = 0):
+def ring_cameras(n: int, radius: float = 14.0, seed: int = 0, aim_sd: float = 0.3):
     """``n`` cameras on a ring around the building, eye height, aimed at its middle (``R_cw (n, 3, 3), t_cw (n, 3)``)."""
     from course_lib.data.synthetic import look_at
 
@@ -80,19 +89,19 @@ def ring_cameras(n: int, radius: float = 14.0, seed: int = 0):
     Rs, ts = [], []
     for a in np.linspace(0.0, 2 * np.pi, n, endpoint=False) + rng.normal(0, 0.03, n):
         C = np.array([radius * np.sin(a), -1.5 - radius * np.cos(a), rng.uniform(1.3, 2.3)])
-        R, _ = look_at(C, np.array([0.0, -1.5, 2.6]) + rng.normal(0, 0.3, 3), up=(0.0, 0.0, 1.0))
+        R, _ = look_at(C, np.array([0.0, -1.5, 2.6]) + rng.normal(0, aim_sd, 3), up=(0.0, 0.0, 1.0))
         Rs.append(R)
         ts.append(-R @ C)
     return np.stack(Rs), np.stack(ts)
 
 
-def _render_ring(n: int, size: tuple[int, int], K: np.ndarray, k1: float = 0.0) -> list[np.ndarray]:
+def _render_ring(n: int, size: tuple[int, int], K: np.ndarray, k1: float = 0.0, radius: float = 14.0) -> list[np.ndarray]:
     """The ring's views as uint8 RGB, with the radial term ``k1`` applied (barrel for k1 < 0)."""
     import cv2
 
     from course_lib.data import building
 
-    R, t = ring_cameras(n)
+    R, t = ring_cameras(n, radius)
     surfaces = building.build_scene(np.random.default_rng(11), ground="large")
     out = []
     W, H = size
@@ -139,6 +148,9 @@ def build_set(name: str, cache: Path) -> dict:
         if folder is None:
             return {}
         return {"photos": folder, "calibration": folder / "calibration.txt", "R": None, "t": None, "K": None, "k1": 0.0}
+    f = re.fullmatch(r"f(\d+(?:\.\d+)?)(k?)-ring-(\d+)", name)
+    if f is not None:
+        return _focal_ring(name, float(f.group(1)), bool(f.group(2)), int(f.group(3)), cache)
     m = re.fullmatch(r"(ring|poor-ring|walk|exif5-ring|exif17-ring|phone-ring)-(\d+)", name)
     if m is None:
         raise SystemExit(f"unknown photo set {name!r}")
@@ -185,6 +197,29 @@ def build_set(name: str, cache: Path) -> dict:
     return build_set(name, cache)
 
 
+def _focal_ring(name: str, factor: float, distorted: bool, n: int, cache: Path) -> dict:
+    """``fX-ring-N`` (``fXk-ring-N``): N PNG views (640x480, no EXIF, no calibration file) of a camera whose focal
+    length is X times COLMAP's guess (1.2 x 640 px), principal point at the centre, ``k1 = -0.05`` with ``k``; the ring's
+    radius grows with the focal length so that the building fills the views alike."""
+    import cv2
+
+    folder = cache / name
+    truth = folder / "truth.npz"
+    if not truth.is_file():
+        folder.mkdir(parents=True, exist_ok=True)
+        size = (640, 480)
+        f = factor * 1.2 * max(size)
+        K = np.array([[f, 0.0, (size[0] - 1) / 2.0], [0.0, f, (size[1] - 1) / 2.0], [0.0, 0.0, 1.0]])
+        radius = 14.0 * f / 425.0  # ring-N: f = 425 px at radius 14
+        k1 = PHONE_K1 if distorted else 0.0
+        for i, img in enumerate(_render_ring(n, size, K, k1, radius)):
+            cv2.imwrite(str(folder / f"{i + 1}.png"), img[:, :, ::-1])
+        R, t = ring_cameras(n, radius)
+        np.savez(truth, R=R, t=t, K=K, k1=k1)
+    z = np.load(truth)
+    return {"photos": folder, "calibration": None, "R": z["R"], "t": z["t"], "K": z["K"], "k1": float(z["k1"])}
+
+
 # ------------------------------------------------------------------------------------------ runs
 
 
@@ -219,8 +254,8 @@ def run_kit(photos: Path, calibration: Path | None, work: Path) -> dict:
                 "note": str(exc).splitlines()[-1][:120]}
     model = read_colmap_text(work / "sfm" / "colmap")
     report = json.loads((work / "p3" / "match_report.json").read_text())
-    sources = [im["source"] for im in report["images"]]
-    poses = {sources[int(Path(n).stem) - 1]: (R, t) for n, R, t in zip(model.image_names, model.R_cw, model.t_cw)}
+    source = {im["p3_name"]: im["source"] for im in report["images"]}  # sfm names the images as the photos are named
+    poses = {source.get(n, n): (R, t) for n, R, t in zip(model.image_names, model.R_cw, model.t_cw)}
     return {"poses": poses, "points": int(len(model.X)), "models": _models(work / "sfm"), "seconds": t_match + t_sfm,
             "match_s": t_match, "sfm_s": t_sfm, "focal": float(model.K[0, 0]), "k1": float(getattr(model, "k1", 0.0))}
 
@@ -288,7 +323,36 @@ def score(run: dict, names: list[str], R_ref, t_ref) -> dict:
     return row
 
 
-def compare(name: str, cache: Path, seed: int = 0) -> list[dict]:
+def _has_exif(photos: Path) -> bool:
+    from PIL import Image
+
+    from course_lib.data.cli_match import list_images
+
+    with Image.open(list_images(photos)[0]) as im:
+        return bool(im.getexif())
+
+
+def _without_exif(photos: Path, out: Path) -> Path:
+    """The photos copied without EXIF (JPEG: the APP1 segments dropped, pixels untouched); other files left out."""
+    from course_lib.data.cli_match import find_images
+
+    out.mkdir(parents=True, exist_ok=True)
+    found = find_images(photos)
+    for p, name in zip(found.paths, found.names):
+        data = p.read_bytes()
+        if data[:2] == b"\xff\xd8":
+            keep, k = [data[:2]], 2
+            while k + 4 <= len(data) and data[k] == 0xFF and data[k + 1] != 0xDA:  # up to the start of scan
+                n = int.from_bytes(data[k + 2:k + 4], "big")
+                if data[k + 1] != 0xE1:  # APP1: EXIF (and XMP)
+                    keep.append(data[k:k + 2 + n])
+                k += 2 + n
+            data = b"".join(keep) + data[k:]
+        (out / name).write_bytes(data)
+    return out
+
+
+def compare(name: str, cache: Path, seed: int = 0, uncalibrated: bool = True) -> list[dict]:
     """Every run on one photo set; rows for the table."""
     from course_lib.data.cli_match import list_images
 
@@ -302,10 +366,14 @@ def compare(name: str, cache: Path, seed: int = 0) -> list[dict]:
         tmp = Path(tmp)
         runs["COLMAP"] = run_colmap(ps["photos"], ps["calibration"], tmp / "c", seed)
         runs["kit"] = run_kit(ps["photos"], ps["calibration"], tmp / "k")
-        if ps["calibration"] is None:  # the reference for a run without K: the same photos with the true K
+        if ps["calibration"] is None and ps["K"] is not None:  # the reference for a run without K: the photos with the true K
             true_k = tmp / "true_K.txt"
             np.savetxt(true_k, ps["K"])
             runs["kit, true K"] = run_kit(ps["photos"], true_k, tmp / "kt")
+        if uncalibrated and (ps["calibration"] is not None or _has_exif(ps["photos"])):
+            bare = _without_exif(ps["photos"], tmp / "bare")
+            runs["COLMAP, no K"] = run_colmap(bare, None, tmp / "cb", seed)
+            runs["kit, no K"] = run_kit(bare, None, tmp / "kb")
     truth = ps["R"] is not None
     if truth:
         R_ref, t_ref = ps["R"], ps["t"]
@@ -318,29 +386,32 @@ def compare(name: str, cache: Path, seed: int = 0) -> list[dict]:
         row = {"set": name, "run": label, "images": len(names), **score(run, names, R_ref, t_ref),
                "vs": "truth" if truth else "COLMAP", "focal_px": run.get("focal"), "k1": run.get("k1"),
                "true_focal_px": None if ps["K"] is None else float(ps["K"][0, 0])}
-        if not truth and label == "COLMAP":
+        if not truth and label.startswith("COLMAP"):
             row.pop("rot_mean_deg", None), row.pop("rot_max_deg", None)
         for k in ("match_s", "sfm_s", "note"):
             if k in run:
                 row[k] = run[k]
         rows.append(row)
-    col = rows[0]["seconds"]
-    for r in rows:
-        r["time_vs_colmap"] = r["seconds"] / col
+    col = {r["run"]: r["seconds"] for r in rows if r["run"].startswith("COLMAP")}
+    for r in rows:  # a run without K against COLMAP's without K
+        r["time_vs_colmap"] = r["seconds"] / col.get("COLMAP, no K" if r["run"].endswith("no K") else "COLMAP", col["COLMAP"])
+        if r.get("focal_px") and r.get("true_focal_px"):
+            r["focal_error_pct"] = 100.0 * (r["focal_px"] / r["true_focal_px"] - 1.0)
     return rows
 
 
 def print_rows(rows: list[dict]) -> None:
-    print(f"{'set':<15}{'run':<13}{'registered':>11}{'models':>12}{'points':>8}{'rot mean':>10}{'rot max':>9}{'vs':>7}"
-          f"{'focal':>9}{'seconds':>9}{'x COLMAP':>9}  match + sfm", flush=True)
+    print(f"{'set':<15}{'run':<15}{'registered':>11}{'models':>12}{'points':>8}{'rot mean':>10}{'rot max':>9}{'vs':>7}"
+          f"{'focal':>9}{'f err':>8}{'seconds':>9}{'x COLMAP':>9}  match + sfm", flush=True)
     for r in rows:
         rot = f"{r['rot_mean_deg']:.3f}" if "rot_mean_deg" in r else "-"
         rmax = f"{r['rot_max_deg']:.3f}" if "rot_max_deg" in r else "-"
         models = "+".join(map(str, r["models"])) or "-"
         focal = f"{r['focal_px']:.1f}" if r.get("focal_px") else "-"
+        ferr = f"{r['focal_error_pct']:+.1f}%" if "focal_error_pct" in r else "-"
         split = f"{r['match_s']:.1f} + {r['sfm_s']:.1f}" if "match_s" in r else ""
-        print(f"{r['set']:<15}{r['run']:<13}{r['registered']:>5}/{r['images']:<5}{models:>12}{r['points']:>8}{rot:>10}{rmax:>9}"
-              f"{r['vs']:>7}{focal:>9}{r['seconds']:>9.1f}{r['time_vs_colmap']:>9.2f}  {split}"
+        print(f"{r['set']:<15}{r['run']:<15}{r['registered']:>5}/{r['images']:<5}{models:>12}{r['points']:>8}{rot:>10}{rmax:>9}"
+              f"{r['vs']:>7}{focal:>9}{ferr:>8}{r['seconds']:>9.1f}{r['time_vs_colmap']:>9.2f}  {split}"
               + (f"  ({r['note']})" if r.get("note") else ""), flush=True)
 
 
@@ -351,6 +422,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help=f"where rendered sets are kept (default {DEFAULT_CACHE})")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    ap.add_argument("--no-uncalibrated", action="store_true", help="leave out the runs without calibration file and EXIF")
     ap.add_argument("--colmap-worker", nargs=3, metavar=("PHOTOS", "WORKDIR", "OUT_JSON"), help=argparse.SUPPRESS)
     ap.add_argument("--K", type=Path, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -360,7 +432,7 @@ def main(argv=None) -> int:
         return 0
     rows = []
     for name in args.sets:
-        new = compare(name, args.cache, args.seed)
+        new = compare(name, args.cache, args.seed, not args.no_uncalibrated)
         print_rows(new)
         rows += new
     if args.json:

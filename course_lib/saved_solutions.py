@@ -9,7 +9,8 @@ chains notebooks 01-05; :mod:`course_lib.exercises`), it calls a **stand-in**
 2. else the **saved solution**: running an exercise's cell in the student kit saves the function,
    with what it needs from the notebook (its imports, helper functions and classes, constants), to
    ``solutions/<name>.py`` beside the notebooks (d2l's ``#@save`` idea, done when the cell runs:
-   :func:`install` registers an IPython ``post_run_cell`` hook). Later notebooks, in a fresh kernel,
+   :func:`install` registers an IPython ``post_run_cell`` hook). Only a cell that itself defines the
+   exercise at top level saves it: the kit's own code (a fallback inside ``try``/``except``) never is. Later notebooks, in a fresh kernel,
    under ``pytest`` (nbval) or in the grader, load it from there; nothing is copied by hand;
 3. else a ``NotImplementedError`` that names the notebook and the exercise to finish.
 
@@ -37,7 +38,7 @@ import types
 from pathlib import Path
 from typing import Any, Callable
 
-from course_lib.exercises import EXERCISES
+from course_lib.exercise_table import EXERCISES
 from course_lib.paths import REPO_ROOT
 
 __all__ = ["stand_in", "find_student_solution", "solutions_dir", "save_solution", "solution_source",
@@ -360,16 +361,36 @@ def load_saved_solution(name: str) -> Any:
 # ---------------------------------------------------------------------------------------------
 
 
+def _cell_exercises(shell, raw_cell: str) -> set[str]:
+    """The exercises a cell defines itself: its top-level ``def``/``class`` statements with an exercise's name.
+
+    A definition inside an ``if``/``try`` (the kit's own fallbacks, e.g. notebook 02's OpenCV
+    ``triangulate_linear`` where the reference is left out), one made by a call, or one imported is not
+    the student's exercise cell and is never saved.
+    """
+    try:
+        source = shell.transform_cell(raw_cell) if hasattr(shell, "transform_cell") else raw_cell
+        tree = ast.parse(source)
+    except (SyntaxError, ValueError, TypeError):
+        return set()
+    return {node.name for node in tree.body
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and node.name in EXERCISES}
+
+
 class _Saver:
-    """After every cell: save each exercise whose definition in the notebook changed (not the stubs)."""
+    """After every cell: save each exercise the cell itself defines at top level (not the stubs, not the kit's code)."""
 
     def __init__(self, shell):
         self.shell = shell
         self.seen: dict[str, int] = {}
 
     def __call__(self, result=None) -> None:
+        info = getattr(result, "info", None)
+        raw = getattr(info, "raw_cell", None)
+        if not isinstance(raw, str):
+            return
         ns = self.shell.user_ns
-        for name in EXERCISES:
+        for name in sorted(_cell_exercises(self.shell, raw)):
             obj = ns.get(name)
             if obj is None or self.seen.get(name) == id(obj):
                 continue
@@ -379,7 +400,8 @@ class _Saver:
             try:
                 save_solution(name, obj, ns)
             except Exception as exc:  # noqa: BLE001 - saving never breaks the student's cell
-                print(f"note: the kit could not save your {name} for later notebooks ({type(exc).__name__}: {exc})")
+                print(f"note: the kit could not save your {name} for later notebooks ({type(exc).__name__}: {exc}); "
+                      "later notebooks will say it is missing -- run this cell again after fixing what it names")
 
 
 def install(shell=None) -> bool:

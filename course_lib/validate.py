@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["KitInputError", "points", "matching_points", "intrinsics", "rotation", "vector3", "matrix3x3", "as_array", "camera_poses", "generator", "positive", "probability",
-           "count", "choice", "existing_path", "output_dir"]
+           "count", "choice", "existing_path", "file_in", "output_dir"]
 
 
 class KitInputError(ValueError):
@@ -218,6 +218,20 @@ def existing_path(path, what: str) -> Path:
     p = Path(path)
     if not p.exists():
         raise KitInputError(f"{what} not found: {p} (check the path; it is resolved from {Path.cwd()})")
+    return p
+
+
+def file_in(path, name: str, missing: str) -> Path:
+    """``Path(path)``, or ``path / name`` where ``path`` is a folder; the file must exist.
+
+    Raises:
+        KitInputError: there is no such file; the message is ``missing`` with ``{path}`` filled in.
+    """
+    p = Path(path)
+    if p.is_dir():
+        p = p / name
+    if not p.is_file():
+        raise KitInputError(missing.format(path=p))
     return p
 
 

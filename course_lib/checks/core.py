@@ -55,6 +55,8 @@ __all__ = [
     "Verdict",
     "score",
     "score_against",
+    "score_reasons",
+    "SCORING_RULE",
     "declare_defining",
     "DEFINING",
     "DEFINING_CAP",
@@ -185,6 +187,58 @@ class CheckResult:
 
     def __repr__(self) -> str:  # deterministic, in case a cell displays it
         return f"CheckResult({self.exercise!r}, {self.passed}/{self.total})"
+
+
+#: The scoring rule, as :func:`score` and :func:`score_against` apply it and the grader adds its last share. The
+#: README (the kit's and the student release's) and docs/mistakes.md quote it verbatim (a test keeps them equal).
+SCORING_RULE = """\
+Each exercise is worth its points (10 for most). **90 %** come from the *hidden checks*: the exercise's
+check runs again on new synthetic cases, and so does the reference solution; what the reference passes
+is what there is to earn. Of those checks:
+
+* every check of a value or a property (a *point check*) earns an equal share;
+* a shape or dtype check (a *gate*) earns nothing when it passes; when it fails it counts as one failed
+  check (the checks behind it could not run), and so does a check that never ran because a call
+  returned nothing usable;
+* a failed **defining property** (rank 2 for F, det R = +1 for a rotation, the interval length in the
+  opacity, ...: the verdict names it on its first line) caps the exercise at **half** of these points,
+  however many other checks pass.
+
+The last **10 %** come when every hidden check passes in the documented form and the exercise's check
+cell, with the notebook run top to bottom, prints the reference verdict. An exercise that calls the
+kit's reference solution, whose check cell was edited, or that does not finish within its time limit
+earns nothing; the other exercises are graded as usual. Speed earns and costs nothing within the limit.
+"""
+
+
+def score_reasons(result: CheckResult, reference: CheckResult | None = None) -> list[str]:
+    """Which parts of :data:`SCORING_RULE` cost ``result`` points, one line each (empty for a full score).
+
+    With ``reference`` (the grader), point checks are counted as :func:`score_against` counts them: the
+    reference's passing checks; without it (a check cell), as :func:`score` does.
+    """
+    from collections import Counter
+
+    failed_gates = sum(1 for v in result.verdicts if v.kind == "gate" and not v.ok)
+    if reference is not None:
+        want = Counter(v.text for v in reference.verdicts if v.ok and v.kind == "points")
+        got = Counter(v.text for v in result.verdicts if v.ok and v.kind == "points")
+        passed, n_points = sum((got & want).values()), sum(want.values())
+    else:
+        pts = [v for v in result.verdicts if v.kind == "points"]
+        passed, n_points = sum(v.ok for v in pts), len(pts)
+    counted = n_points + failed_gates
+    out = []
+    if n_points - passed:
+        out.append(f"{n_points - passed} of {n_points} point checks fail (each costs an equal share)")
+    if failed_gates:
+        out.append(f"{failed_gates} shape/dtype gate(s) fail, each counted as a failed check (passing gates earn "
+                   "nothing)")
+    raw = passed / counted if counted else 0.0
+    for name in result.defining_failed[:1]:
+        out.append(f"the defining property '{name}' fails: capped at {DEFINING_CAP:.0%}"
+                   + (f" (the other checks alone would give {raw:.0%})" if raw > DEFINING_CAP else ""))
+    return out
 
 
 def score(result: CheckResult) -> float:
@@ -491,6 +545,9 @@ class Check:
             print(f"  all {self.total} checks passed")
         else:
             print(f"  {self.passed} of {self.total} checks passed")
+            reasons = score_reasons(result)
+            if reasons:
+                print(f"  scoring: {score(result):.0%} of the hidden-check points on these cases: " + "; ".join(reasons))
         return result
 
 

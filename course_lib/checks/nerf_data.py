@@ -138,6 +138,8 @@ RAY_HINTS = {
     "opengl": "OpenGL camera axes (y up, z backwards): the kit's c2w is in OpenCV axes (x right, y down, z forward), "
               "so the camera-frame direction is ((u - cx) / fx, (v - cy) / fy, +1) with no sign flips",
     "backwards": "rays point backwards: the camera looks along +z in the kit's OpenCV axes (not -z as in OpenGL)",
+    "as_point": "the direction went through c2w as a point (rotation and translation): a direction only rotates, "
+                "rays_d = d_cam @ c2w[:3, :3].T, without c2w[:3, 3] (which is rays_o)",
     "y_flip": "y is flipped: image rows grow downwards and so does the camera's y axis (OpenCV axes), use +(v - cy) / fy",
     "x_flip": "x is flipped: use +(u - cx) / fx",
     "transposed": "you rotated with the transpose: rotate camera directions into the world with c2w[:3, :3] @ d "
@@ -183,9 +185,13 @@ def _one_camera(c: Check, get_rays: Callable, f, name: str) -> dict | None:
     if not c.shape(d, (H, W, 3), f"{case}: rays_d"):
         return None
     labels = {label for label, arr in _stored(f, f"rays_{name}_d") if label in RAY_HINTS and close(d, arr)}
+    R_, t_ = np.asarray(c2w, float)[:3, :3], np.asarray(c2w, float)[:3, 3]
+    if not labels and np.allclose(((d - t_) @ R_)[..., 2], 1.0, atol=1e-4) and not np.allclose((d @ R_)[..., 2], 1.0,
+                                                                                             atol=1e-4):
+        labels.add("as_point")  # minus the translation, every direction has z_cam = 1: the translation was added
     d_cam = d @ c2w[:3, :3]
-    if not labels and np.all(d_cam[..., 2] < 0):
-        labels.add("backwards")
+    if not labels and np.all(d_cam[..., 2] < 0) and close(-d, d_ref * (d_cam[..., 2:] / -1.0)):
+        labels.add("backwards")  # exactly the reference's rays reversed (up to length): nothing else explains it
     return {"case": case, "name": name, "o": o, "d": d, "H": H, "W": W, "labels": labels, "c2w": c2w}
 
 
@@ -203,7 +209,7 @@ def _camera_verdicts(c: Check, f, r: dict, named: str | None) -> None:
         hint = (RAY_HINTS.get(named) or "rays point backwards (z_cam < 0): the camera looks along +z in the kit's "
                 "OpenCV axes") if named else (
             f"rays_d differs from the reference (max error {err:.3g}): the camera-frame direction of pixel (u, v) is "
-            "((u - cx) / fx, (v - cy) / fy, 1), rotated by c2w[:3, :3]")
+            "((u - cx) / fx, (v - cy) / fy, 1), rotated by c2w[:3, :3]" + _direction_property(d, r["c2w"]))
         c.fail(f"{case}: {hint}", named=named)
     if o.shape == (3,) or o.shape == (1, 1, 3):
         c.fail(f"{case}: rays_o has shape {o.shape}: repeat the camera centre for every pixel "
@@ -212,6 +218,21 @@ def _camera_verdicts(c: Check, f, r: dict, named: str | None) -> None:
         c.expect(close(o, o_ref), f"{case}: every ray starts at the camera centre c2w[:3, 3]",
                  f"{case}: rays_o is not the camera centre: it is the translation column c2w[:3, 3] "
                  "(the camera-to-world matrix maps the camera origin to its centre)")
+
+
+def _direction_property(d, c2w) -> str:
+    """What the camera-frame directions show (z_cam of every ray, the pixel centre's offset), as a property."""
+    R_ = np.asarray(c2w, float)[:3, :3]
+    d_cam = np.asarray(d, float) @ R_
+    z = d_cam[..., 2]
+    if np.allclose(z, z.flat[0], atol=1e-4) and abs(z.flat[0] - 1) > 1e-3:
+        return (f"; yours have z_cam = {z.flat[0]:.3g} for every ray (" +
+                ("negative: the camera looks along +z in the kit's OpenCV axes" if z.flat[0] < 0 else
+                 "the kit's directions have z_cam = 1, unnormalized") + ")")
+    if not np.allclose(z, z.flat[0], atol=1e-4):
+        return "; yours do not have one z_cam for all rays (rotate the camera-frame directions by c2w[:3, :3] only)"
+    u0 = d_cam[0, 0, :2]
+    return f"; yours give the top-left pixel the camera-frame direction ({u0[0]:.3g}, {u0[1]:.3g}, 1)"
 
 
 def check_get_rays(get_rays: Callable) -> None:

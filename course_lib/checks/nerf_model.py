@@ -413,7 +413,8 @@ def _check_config(c: Check, NeRF, f, name: str, pts, dirs, lead, seed: int) -> N
     with_w = f"{case}: with the reference's weights"
     if res is None:
         why = ("its layers do not have the documented sizes (see above), so the reference's weights cannot be copied in"
-               if own is not None else "the network could not be built or run (see above)")
+               if own is not None else "the network could not be built (see above)" if model is FAILED else
+               "its forward pass did not return rgb (..., 3) and sigma (...) as documented (see above)")
         for what, prop in (("the density's input (trunk and skip)", None), ("sigma", None), ("rgb", None)):
             c.fail(f"{with_w}, {what} cannot be compared: {why}", defining=prop)
         return

@@ -219,7 +219,10 @@ def check_triangulate_linear(fn, exercise: str = "triangulate_linear") -> None:
             else:
                 c.expect(np.allclose(A, want, rtol=1e-6, atol=1e-6 * _scale(f["lin_noiseless_Xtrue"])), f"{case} works",
                          f"{case}: the right shape (1, 3) but not the true point ({np.round(A[0], 3).tolist()} instead "
-                         f"of {np.round(want[0], 3).tolist()}): build A from this one point as for N points")
+                         f"of {np.round(want[0], 3).tolist()})" + (
+                             ": the same points as the cases above, one at a time" if failing else
+                             ": the N-point cases pass, so look for what depends on N (a loop over range(N - 1), a "
+                             "reshape or mean over the points axis, an index [1] that is a second point)"))
 
 
 # --------------------------------------------------------------------------- choose_pose
@@ -253,6 +256,7 @@ _CONFUSIONS = {
     "t_is_C": "t_cw is the camera centre C: the translation is t_cw = -R_cw @ C",
     "c_vs_t": "t_cw is not -R_cw @ C (C vs t confusion): t_cw = -R_cw @ C",
     "other_t": "t_cw does not belong to the chosen rotation's candidate: t_cw = -R[k] @ C[k]",
+    "rt_c": "t_cw = -R_cwᵀ @ C (the transposed rotation): t_cw = -R_cw @ C",
 }
 
 
@@ -262,7 +266,8 @@ def _match_candidate(R_s, t_s, R, C, right: int) -> tuple[int | None, str | None
     Two candidates share each rotation (``+C`` and ``-C``), so one answer can read as several
     (``(R, -C)`` is candidate k with t = -C, or its partner with t = C): of the readings, in the
     order below, the one of the right candidate ``right`` wins (unless another candidate is returned
-    exactly), else the first.
+    exactly), else the first. (``t = -Rᵀ C`` of the right candidate is also ``Rᵀ C`` of its partner: it reads as
+    the right candidate with the transposed rotation in t, since the counts that chose it are the same.)
     """
     tol = 1e-5 * max(1.0, float(np.abs(t_s).max()))
     same = lambda a, b: np.allclose(a, b, atol=tol)  # noqa: E731
@@ -273,6 +278,7 @@ def _match_candidate(R_s, t_s, R, C, right: int) -> tuple[int | None, str | None
             readings += [(0, k, None)] if same(t_s, t_k) else []
             readings += [(1, k, "t_is_C")] if same(t_s, C[k]) else []
             readings += [(2, k, "c_vs_t")] if same(t_s, -C[k]) or same(t_s, R[k].T @ C[k]) else []
+            readings += [(2, k, "rt_c")] if same(t_s, -R[k].T @ C[k]) and not same(t_s, t_k) else []
             readings += [(4, k, "other_t")]
         if same(R_s, R[k].T):
             readings += [(3 if any(same(t_s, t) for t in (t_k, C[k], -C[k], R[k].T @ C[k])) else 5, k, "transposed")]
@@ -327,13 +333,14 @@ def _pose_verdicts(c: Check, f, e: dict, cheirality: int | None, argmin: bool, c
                f"candidate {ref_k} ({int(ref_counts[ref_k])}): {why}", defining="in front of both cameras",
                named=f"cheirality_{cheirality}" if cheirality is not None else ("argmin" if argmin else None))
         return
+    # the choice earns its share on its own (the cases put the right candidate at index 1, 2 or 3, so a constant
+    # answer, always R[0], earns nothing here); a wrong t_cw with the right choice costs the rest of the case
+    c.expect(True, f"{case}: picks the candidate with the points in front of both cameras", "",
+             defining="in front of both cameras")
     if e["confusion"]:
         c.fail(f"{case}: the right candidate, but {_CONFUSIONS[e['confusion']]}",
                named=confusion if confusion == e["confusion"] else None)
         return
-    # a gate: a constant answer (always R[0]) would otherwise earn the cases whose right candidate is 0
-    c.gate(True, f"{case}: picks the candidate with the points in front of both cameras", "",
-           defining="in front of both cameras")
     X_ref, X_all = f[f"{key}_X"], f.get(f"{key}_X_all")
     X_s = e["X"]
     if X_s is None or X_s.shape != X_ref.shape:

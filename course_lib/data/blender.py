@@ -54,17 +54,8 @@ import numpy as np
 
 from course_lib.validate import KitInputError, existing_path
 
-__all__ = [
-    "BlenderData",
-    "GL_FROM_CV",
-    "opengl_to_opencv",
-    "opencv_to_opengl",
-    "intrinsics_from_fov",
-    "load_blender",
-    "read_rgb",
-    "write_blender",
-    "load_tiny_nerf_npz",
-]
+__all__ = ["BlenderData", "GL_FROM_CV", "opengl_to_opencv", "opencv_to_opengl", "intrinsics_from_fov", "load_blender",
+           "read_rgb", "write_blender", "load_tiny_nerf_npz"]
 
 #: ``diag(1, -1, -1, 1)``: flips the camera's y and z axes (OpenGL <-> OpenCV). Its own inverse.
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -217,6 +208,28 @@ def _composite(img: np.ndarray, white_background: bool) -> np.ndarray:
     return rgb * a + bg * (1.0 - a)
 
 
+def _read_transforms(folder: Path, split: str):
+    """``transforms_{split}.json`` of ``folder``, checked: ``(its path, frames, camera_angle_x, the whole object)``."""
+    jpath = folder / f"transforms_{split}.json"
+    if not jpath.exists():
+        have = sorted(p.name for p in folder.glob("transforms_*.json"))
+        raise KitInputError(f"{jpath} not found (this folder has {have or 'no transforms_*.json'}): is it a NeRF Blender scene?")
+    try:
+        meta = json.loads(jpath.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise KitInputError(f"{jpath} is not valid JSON ({exc})") from None
+    if not isinstance(meta, dict) or "camera_angle_x" not in meta or "frames" not in meta:
+        raise KitInputError(f"{jpath}: expected an object with 'camera_angle_x' and 'frames' (the Blender NeRF format)")
+    frames = meta["frames"]
+    if not isinstance(frames, list) or not frames:
+        raise KitInputError(f"{jpath}: 'frames' must be a non-empty list")
+    try:
+        camera_angle_x = float(meta["camera_angle_x"])
+    except (TypeError, ValueError):
+        raise KitInputError(f"{jpath}: camera_angle_x = {meta['camera_angle_x']!r} is not a number") from None
+    return jpath, frames, camera_angle_x, meta
+
+
 def load_blender(folder, split: str = "train", downscale: int = 1, white_background: bool = True,
                  dtype: str = "float32") -> BlenderData:
     """Load one split of a NeRF Blender scene, in the kit's OpenCV camera axes.
@@ -249,23 +262,7 @@ def load_blender(folder, split: str = "train", downscale: int = 1, white_backgro
     downscale = int(downscale)
     if dtype not in ("float32", "uint8"):
         raise KitInputError(f"dtype = {dtype!r}: expected 'float32' or 'uint8'")
-    jpath = folder / f"transforms_{split}.json"
-    if not jpath.exists():
-        have = sorted(p.name for p in folder.glob("transforms_*.json"))
-        raise KitInputError(f"{jpath} not found (this folder has {have or 'no transforms_*.json'}): is it a NeRF Blender scene?")
-    try:
-        meta = json.loads(jpath.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise KitInputError(f"{jpath} is not valid JSON ({exc})") from None
-    if not isinstance(meta, dict) or "camera_angle_x" not in meta or "frames" not in meta:
-        raise KitInputError(f"{jpath}: expected an object with 'camera_angle_x' and 'frames' (the Blender NeRF format)")
-    frames = meta["frames"]
-    if not isinstance(frames, list) or not frames:
-        raise KitInputError(f"{jpath}: 'frames' must be a non-empty list")
-    try:
-        camera_angle_x = float(meta["camera_angle_x"])
-    except (TypeError, ValueError):
-        raise KitInputError(f"{jpath}: camera_angle_x = {meta['camera_angle_x']!r} is not a number") from None
+    jpath, frames, camera_angle_x, meta = _read_transforms(folder, split)
 
     images, c2ws, names = [], [], []
     size = None

@@ -37,7 +37,6 @@ Introduced in ``notebooks/01_fundamental_matrix.ipynb`` (SfM) and
 from __future__ import annotations
 
 import json
-import string
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,10 +44,11 @@ import numpy as np
 
 from course_lib.conventions import camera_center, invert_pose
 from course_lib.data.blender import intrinsics_from_fov, write_blender
-from course_lib.data.features import tracks_from_images
 from course_lib.data.p3 import write_p3
+from course_lib.data.tracks import tracks_from_images
 from course_lib.data.synthetic import WPI_LIKE_K, look_at
-from course_lib.validate import KitInputError, intrinsics, rotation, vector3
+from course_lib.data.textures import ground_texture, plain_texture, roof_texture, wall_texture
+from course_lib.validate import KitInputError, file_in, intrinsics, rotation, vector3
 
 __all__ = [
     "DEFAULT_SEED",
@@ -82,136 +82,6 @@ NERF_CAMERA_ANGLE_X = 0.8
 NERF_SIZE = 100
 
 _SUN = np.array([-0.45, -0.65, 0.62]) / np.linalg.norm([-0.45, -0.65, 0.62])
-
-
-# ============================================================================ textures
-
-
-def _noise(rng, h: int, w: int, cell_px: float, octaves: int = 3) -> np.ndarray:
-    """Smooth multi-octave value noise in about [-1, 1], shape ``(h, w)`` float32."""
-    import cv2
-
-    out = np.zeros((h, w), np.float32)
-    amp, total = 1.0, 0.0
-    for o in range(octaves):
-        c = max(cell_px / 2**o, 1.0)
-        gh, gw = int(np.ceil(h / c)) + 2, int(np.ceil(w / c)) + 2
-        grid = rng.uniform(-1, 1, (gh, gw)).astype(np.float32)
-        up = cv2.resize(grid, (int(gw * c), int(gh * c)), interpolation=cv2.INTER_CUBIC)
-        out += amp * up[:h, :w]
-        total += amp
-        amp *= 0.5
-    return out / total
-
-
-def _blocks(rng, h, w, rho, size_m, mortar_m, base, shade=0.18, mortar=(0.78, 0.76, 0.72), offset=0.5):
-    """Running-bond blocks (stone, bricks, tiles, paving): ``(h, w, 3)`` float32 in [0, 1]."""
-    bw, bh = size_m[0] * rho, size_m[1] * rho
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    row = np.floor(yy / bh).astype(int)
-    xs = xx + (row % 2) * offset * bw
-    col = np.floor(xs / bw).astype(int)
-    nr, nc = row.max() + 2, col.max() + 2
-    table = rng.normal(0.0, shade, (nr, nc, 1)).astype(np.float32)
-    tint = rng.normal(0.0, shade * 0.3, (nr, nc, 3)).astype(np.float32)
-    img = np.asarray(base, np.float32)[None, None, :] * (1.0 + table[row, col]) + tint[row, col] * 0.5
-    fy, fx = yy / bh - np.floor(yy / bh), xs / bw - np.floor(xs / bw)
-    m = mortar_m * rho
-    joint = (fy * bh < m) | (fx * bw < m)
-    img[joint] = np.asarray(mortar, np.float32)
-    return img
-
-
-def _draw_window(img, x0, y0, w, h, rng, rho):
-    """A framed window with a cross bar; glass with a sky reflection. Pixel box on ``img``."""
-    import cv2
-
-    f = max(int(0.07 * rho), 2)
-    x0, y0, w, h = int(x0), int(y0), int(w), int(h)
-    img[y0:y0 + h, x0:x0 + w] = (0.93, 0.92, 0.88)
-    gy = np.linspace(0, 1, h - 2 * f, dtype=np.float32)[:, None, None]
-    glass = (1 - gy) * np.array([0.35, 0.45, 0.58], np.float32) + gy * np.array([0.10, 0.13, 0.2], np.float32)
-    glass = glass + 0.08 * _noise(rng, h - 2 * f, w - 2 * f, 0.3 * rho, 2)[..., None]
-    img[y0 + f:y0 + h - f, x0 + f:x0 + w - f] = glass
-    cv2.rectangle(img, (x0 + w // 2 - f // 2, y0), (x0 + w // 2 + f // 2, y0 + h - 1), (0.93, 0.92, 0.88), -1)
-    cv2.rectangle(img, (x0, y0 + int(h * 0.4) - f // 2), (x0 + w - 1, y0 + int(h * 0.4) + f // 2), (0.93, 0.92, 0.88), -1)
-    cv2.rectangle(img, (x0 - f, y0 + h), (x0 + w + f, y0 + h + f), (0.6, 0.58, 0.55), -1)  # sill
-
-
-def _draw_sign(img, x0, y0, w, h, rng, rho, text=None):
-    """A coloured sign (or poster) with random letters and shapes: strong, unique features."""
-    import cv2
-
-    x0, y0, w, h = int(x0), int(y0), int(w), int(h)
-    bg = rng.uniform(0.15, 0.95, 3)
-    img[y0:y0 + h, x0:x0 + w] = bg
-    for _ in range(int(rng.integers(3, 7))):
-        c = tuple(float(v) for v in rng.uniform(0, 1, 3))
-        cx, cy = int(x0 + rng.uniform(0.1, 0.9) * w), int(y0 + rng.uniform(0.1, 0.9) * h)
-        r = int(rng.uniform(0.08, 0.3) * min(w, h))
-        if rng.random() < 0.5:
-            cv2.circle(img, (cx, cy), r, c, -1)
-        else:
-            cv2.rectangle(img, (cx - r, cy - r // 2), (cx + r, cy + r // 2), c, -1)
-    if text is None:
-        text = "".join(rng.choice(list(string.ascii_uppercase + string.digits), int(rng.integers(3, 7))))
-    scale = 0.5 * h / 30.0
-    (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_DUPLEX, scale, 1)
-    scale *= min(1.0, 0.9 * w / max(tw, 1))
-    thick = max(1, int(scale * 2))
-    (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_DUPLEX, scale, thick)
-    ink = (0.05, 0.05, 0.05) if bg.mean() > 0.5 else (0.97, 0.97, 0.95)
-    cv2.putText(img, text, (x0 + (w - tw) // 2, y0 + (h + th) // 2), cv2.FONT_HERSHEY_DUPLEX, scale, ink, thick, cv2.LINE_AA)
-
-
-def _wall_texture(rng, w_m, h_m, rho, windows=(), doors=(), signs=(), base=(0.62, 0.45, 0.36)):
-    """Stone-block wall with windows/doors/signs given as (x, z, w, h) in metres (z from the bottom)."""
-    h, w = int(np.ceil(h_m * rho)), int(np.ceil(w_m * rho))
-    img = _blocks(rng, h, w, rho, (0.42, 0.21), 0.025, base)
-    img *= 1.0 + 0.22 * _noise(rng, h, w, 1.2 * rho)[..., None]  # weathering
-    img = np.ascontiguousarray(img)
-
-    def box(x, z, bw, bh):  # metres (z up from the bottom edge) -> pixel box (x0, y0, w, h)
-        return x * rho, (h_m - z - bh) * rho, bw * rho, bh * rho
-
-    for win in windows:
-        _draw_window(img, *box(*win), rng, rho)
-    for d in doors:
-        x0, y0, dw, dh = (int(v) for v in box(*d))
-        img[y0:y0 + dh, x0:x0 + dw] = (0.32, 0.2, 0.12)
-        img[y0:y0 + dh, x0:x0 + dw] *= 1 + 0.15 * _noise(rng, dh, dw, 0.2 * rho, 2)[..., None]
-        k = max(int(0.06 * rho), 2)
-        img[y0 + k:y0 + dh // 2 - k, x0 + k:x0 + dw - k] = (0.2, 0.25, 0.3)
-    for s in signs:
-        _draw_sign(img, *box(*s[:4]), rng, rho, text=s[4] if len(s) > 4 else None)
-    return np.clip(img, 0, 1)
-
-
-def _roof_texture(rng, w_m, h_m, rho):
-    h, w = int(np.ceil(h_m * rho)), int(np.ceil(w_m * rho))
-    img = _blocks(rng, h, w, rho, (0.32, 0.22), 0.03, (0.55, 0.22, 0.15), shade=0.22, mortar=(0.25, 0.1, 0.08))
-    img *= 1.0 + 0.25 * _noise(rng, h, w, 1.5 * rho)[..., None]
-    return np.clip(img, 0, 1)
-
-
-def _ground_texture(rng, w_m, h_m, rho, grass=True):
-    h, w = int(np.ceil(h_m * rho)), int(np.ceil(w_m * rho))
-    img = _blocks(rng, h, w, rho, (0.6, 0.6), 0.03, (0.55, 0.55, 0.52), shade=0.15, mortar=(0.3, 0.3, 0.28), offset=0.0)
-    img *= 1.0 + 0.2 * _noise(rng, h, w, 0.8 * rho)[..., None]
-    if grass:
-        n = _noise(rng, h, w, 3.0 * rho, 2)
-        g = np.stack([0.25 + 0.1 * n, 0.45 + 0.12 * n, 0.18 + 0.05 * n], -1)
-        g = g * (1 + 0.3 * _noise(rng, h, w, 0.1 * rho, 2)[..., None])
-        mask = np.clip((n - 0.15) * 6, 0, 1)[..., None]
-        img = img * (1 - mask) + g * mask
-    return np.clip(img, 0, 1).astype(np.float32)
-
-
-def _plain_texture(rng, w_m, h_m, rho, base, noise=0.25, cell_m=0.3):
-    h, w = int(np.ceil(h_m * rho)), int(np.ceil(w_m * rho))
-    img = np.ones((h, w, 3), np.float32) * np.asarray(base, np.float32)
-    img *= 1.0 + noise * _noise(rng, h, w, cell_m * rho, 3)[..., None]
-    return np.clip(img, 0, 1)
 
 
 # ============================================================================ scene
@@ -263,41 +133,41 @@ def build_scene(rng: np.random.Generator, ground: str = "large", rho: float = 80
 
     win = lambda x, z: (x, z, 1.0, 1.4)  # noqa: E731
     # main block: x in [-4, 4], y in [-2, 2], z in [0, 5]; the street is at y < 0
-    add("main front", (-4, -2, 0), (8, 0, 0), (0, 0, 5), _wall_texture(
+    add("main front", (-4, -2, 0), (8, 0, 0), (0, 0, 5), wall_texture(
         rng, 8, 5, rho, windows=[win(0.5, 1.0), win(2.3, 1.0), win(0.5, 3.2), win(2.3, 3.2), win(4.3, 3.2), win(6.2, 3.2)],
         doors=[(4.3, 0.0, 1.2, 2.3)], signs=[(0.4, 2.55, 3.0, 0.5, "COURSE KIT"), (3.9, 2.45, 0.7, 0.55), (6.0, 0.6, 0.9, 1.2)]))
-    add("main left", (-4, 2, 0), (0, -4, 0), (0, 0, 5), _wall_texture(
+    add("main left", (-4, 2, 0), (0, -4, 0), (0, 0, 5), wall_texture(
         rng, 4, 5, rho, windows=[win(0.6, 1.0), win(2.4, 3.2)], signs=[(2.2, 0.8, 1.2, 1.6), (0.3, 3.0, 1.4, 0.6, "SFM")],
         base=(0.66, 0.52, 0.40)))
-    add("main right", (4, -2, 0), (0, 4, 0), (0, 0, 5), _wall_texture(
+    add("main right", (4, -2, 0), (0, 4, 0), (0, 0, 5), wall_texture(
         rng, 4, 5, rho, windows=[win(2.2, 1.0), win(1.0, 3.2)], signs=[(0.4, 3.3, 0.5, 1.0)], base=(0.66, 0.52, 0.40)))
-    add("main back", (4, 2, 0), (-8, 0, 0), (0, 0, 5), _wall_texture(
+    add("main back", (4, 2, 0), (-8, 0, 0), (0, 0, 5), wall_texture(
         rng, 8, 5, rho, windows=[win(1.0, 1.0), win(5.5, 1.0), win(1.0, 3.2), win(3.5, 3.2), win(5.5, 3.2)],
         signs=[(3.0, 0.8, 1.6, 1.0, "NERF")]))
-    add("roof front", (-4, -2, 5), (8, 0, 0), (0, 2, 1.5), _roof_texture(rng, 8, 2.5, rho))
-    add("roof back", (4, 2, 5), (-8, 0, 0), (0, -2, 1.5), _roof_texture(rng, 8, 2.5, rho))
-    add("gable left", (-4, 2, 5), (0, -4, 0), (0, -2, 1.5), _plain_texture(rng, 4, 2.5, rho, (0.85, 0.8, 0.68)), tri=True)
-    add("gable right", (4, -2, 5), (0, 4, 0), (0, 2, 1.5), _plain_texture(rng, 4, 2.5, rho, (0.85, 0.8, 0.68)), tri=True)
+    add("roof front", (-4, -2, 5), (8, 0, 0), (0, 2, 1.5), roof_texture(rng, 8, 2.5, rho))
+    add("roof back", (4, 2, 5), (-8, 0, 0), (0, -2, 1.5), roof_texture(rng, 8, 2.5, rho))
+    add("gable left", (-4, 2, 5), (0, -4, 0), (0, -2, 1.5), plain_texture(rng, 4, 2.5, rho, (0.85, 0.8, 0.68)), tri=True)
+    add("gable right", (4, -2, 5), (0, 4, 0), (0, 2, 1.5), plain_texture(rng, 4, 2.5, rho, (0.85, 0.8, 0.68)), tri=True)
     # wing: x in [1, 4], y in [-4, -2], z in [0, 3] with a flat roof
-    add("wing front", (1, -4, 0), (3, 0, 0), (0, 0, 3), _wall_texture(
+    add("wing front", (1, -4, 0), (3, 0, 0), (0, 0, 3), wall_texture(
         rng, 3, 3, rho, windows=[(0.3, 0.9, 2.4, 1.5)], signs=[(0.5, 2.55, 2.0, 0.35, "CAFE 549")], base=(0.78, 0.74, 0.66)))
-    add("wing left", (1, -2, 0), (0, -2, 0), (0, 0, 3), _wall_texture(
+    add("wing left", (1, -2, 0), (0, -2, 0), (0, 0, 3), wall_texture(
         rng, 2, 3, rho, windows=[(0.5, 1.0, 1.0, 1.2)], signs=[(0.3, 2.3, 1.4, 0.45)], base=(0.78, 0.74, 0.66)))
-    add("wing right", (4, -4, 0), (0, 2, 0), (0, 0, 3), _wall_texture(rng, 2, 3, rho, signs=[(0.4, 0.8, 1.2, 1.4)], base=(0.78, 0.74, 0.66)))
-    add("wing roof", (1, -4, 3), (3, 0, 0), (0, 2, 0), _plain_texture(rng, 3, 2, rho, (0.35, 0.35, 0.38), 0.35, 0.15))
+    add("wing right", (4, -4, 0), (0, 2, 0), (0, 0, 3), wall_texture(rng, 2, 3, rho, signs=[(0.4, 0.8, 1.2, 1.4)], base=(0.78, 0.74, 0.66)))
+    add("wing roof", (1, -4, 3), (3, 0, 0), (0, 2, 0), plain_texture(rng, 3, 2, rho, (0.35, 0.35, 0.38), 0.35, 0.15))
     # kiosk: x in [-3, -1.8], y in [-5.2, -4.2], z in [0, 1.3]
-    kiosk = lambda w, h: _wall_texture(rng, w, h, rho, signs=[(0.1, 0.2, w - 0.2, h - 0.4)], base=(0.3, 0.45, 0.6))  # noqa: E731
+    kiosk = lambda w, h: wall_texture(rng, w, h, rho, signs=[(0.1, 0.2, w - 0.2, h - 0.4)], base=(0.3, 0.45, 0.6))  # noqa: E731
     add("kiosk front", (-3, -5.2, 0), (1.2, 0, 0), (0, 0, 1.3), kiosk(1.2, 1.3))
     add("kiosk left", (-3, -4.2, 0), (0, -1, 0), (0, 0, 1.3), kiosk(1.0, 1.3))
     add("kiosk right", (-1.8, -5.2, 0), (0, 1, 0), (0, 0, 1.3), kiosk(1.0, 1.3))
     add("kiosk back", (-1.8, -4.2, 0), (-1.2, 0, 0), (0, 0, 1.3), kiosk(1.2, 1.3))
-    add("kiosk top", (-3, -5.2, 1.3), (1.2, 0, 0), (0, 1, 0), _plain_texture(rng, 1.2, 1.0, rho, (0.8, 0.8, 0.8), 0.3, 0.1))
+    add("kiosk top", (-3, -5.2, 1.3), (1.2, 0, 0), (0, 1, 0), plain_texture(rng, 1.2, 1.0, rho, (0.8, 0.8, 0.8), 0.3, 0.1))
     if ground == "large":
-        add("ground", (-15, -22, 0), (30, 0, 0), (0, 30, 0), _ground_texture(rng, 30, 30, 40.0))
+        add("ground", (-15, -22, 0), (30, 0, 0), (0, 30, 0), ground_texture(rng, 30, 30, 40.0))
     elif ground == "slab":
         x0, x1, y0, y1, d = -5.5, 5.5, -6.0, 3.0, 0.3
-        add("slab top", (x0, y0, 0), (x1 - x0, 0, 0), (0, y1 - y0, 0), _ground_texture(rng, x1 - x0, y1 - y0, rho))
-        side = lambda w: _plain_texture(rng, w, d, rho, (0.45, 0.42, 0.4), 0.3, 0.1)  # noqa: E731
+        add("slab top", (x0, y0, 0), (x1 - x0, 0, 0), (0, y1 - y0, 0), ground_texture(rng, x1 - x0, y1 - y0, rho))
+        side = lambda w: plain_texture(rng, w, d, rho, (0.45, 0.42, 0.4), 0.3, 0.1)  # noqa: E731
         add("slab front", (x0, y0, -d), (x1 - x0, 0, 0), (0, 0, d), side(x1 - x0))
         add("slab back", (x1, y1, -d), (x0 - x1, 0, 0), (0, 0, d), side(x1 - x0))
         add("slab left", (x0, y1, -d), (0, y0 - y1, 0), (0, 0, d), side(y1 - y0))
@@ -679,11 +549,7 @@ def load_ground_truth(folder) -> tuple[np.ndarray, list[str], np.ndarray, np.nda
 
     Introduced in ``notebooks/01_fundamental_matrix.ipynb``.
     """
-    p = Path(folder)
-    if p.is_dir():
-        p = p / "ground_truth.json"
-    if not p.is_file():
-        raise KitInputError(f"ground truth not found: {p} (only the kit's generated scenes have ground_truth.json)")
+    p = file_in(folder, "ground_truth.json", "ground truth not found: {path} (only the kit's generated scenes have ground_truth.json)")
     try:
         gt = json.loads(p.read_text())
         K = intrinsics(np.array(gt["K"], float))

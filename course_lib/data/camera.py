@@ -12,8 +12,9 @@ Without one, :func:`camera_prior` starts from what the photos say, in COLMAP's o
    of about 45 degrees across the longer side).
 
 The principal point is the image centre. Such a prior is only a start (the 35 mm equivalent is
-rounded, phones crop; the guess can be 30 % off), so ``sfm`` refines it: the focal length and one
-radial distortion term ``k1`` are parameters of the bundle adjustment, shared by all photos
+rounded, phones crop; the guess can be off by a factor of two or three), so ``sfm`` refines it: where the
+focal length is a guess it first estimates it from the images alone (:mod:`course_lib.sfm.self_calibration`),
+then the focal length and one radial distortion term ``k1`` are parameters of the bundle adjustment, shared by all photos
 (COLMAP's ``SIMPLE_RADIAL`` camera, :func:`distort`). The P3 folder carries the prior in
 :data:`CAMERA_FILE` (:func:`write_camera`, read by :func:`course_lib.data.p3.read_p3`), beside
 ``calibration.txt`` (its K).

@@ -3,12 +3,15 @@
 Turns any set of photos taken with one camera into the P3 folder that the SfM lessons read
 (:mod:`course_lib.data.p3`), so a student's own photos become course data:
 
-1. **Which images.** If ``IMAGES_DIR`` holds images named like the P3 convention (``1.png``,
-   ``2.jpg``, ... numbered from 1 without gaps) *only those* are read, in numeric order, and
-   every other file beside them is ignored (the course folders hold ``matching*.txt`` and other
-   files too). Otherwise *all* image files (``.png .jpg .jpeg .bmp .tif .tiff``, any case) are
-   read in natural name order (``IMG_2.jpg`` before ``IMG_10.jpg``). Either way the output names
-   them ``1.png ... M.png`` (or ``.jpg``) and ``match_report.json`` maps them back to the source files.
+1. **Which images** (:func:`find_images`): photos of any names. Where ``IMAGES_DIR`` holds numbered
+   photos (names that are only a number: ``1.png``, ``0000.jpg``; from 0 or 1, gaps allowed) *only
+   those* are read, in numeric order, and other images beside them are ignored and named (a course
+   P3 folder, ``1.png ... N.png`` beside ``matching*.txt``, is read as it is). Otherwise *all* image
+   files (``.png .jpg .jpeg .bmp .tif .tiff``, any case) are read in natural name order
+   (``frame_2.png`` before ``frame_10.png``); ``--recursive`` reads the subfolders too. The P3 folder
+   names them ``1.png ... M.png`` (or ``.jpg``), and :data:`course_lib.data.p3.SOURCE_NAMES_FILE`
+   keeps the photos' own names, which ``sfm`` writes into its outputs (the COLMAP model,
+   ``report.json``, ``scene.html``).
 2. **Same size.** All images must have the same size (one camera, one K).
 3. **The camera.** ``--K`` gives K (held fixed by ``sfm``). Without it, K comes from the photos'
    EXIF (focal length and sensor size, or the 35 mm equivalent) or COLMAP's guess (1.2 x the
@@ -65,14 +68,14 @@ import numpy as np
 
 from course_lib.data.camera import CameraPrior, camera_prior, write_camera
 from course_lib.data.features import check_ratio, detect_features, match_pairs, track_colours
-from course_lib.data.p3 import IMAGE_EXTENSIONS, read_calibration, write_p3
+from course_lib.data.p3 import IMAGE_EXTENSIONS, read_calibration, write_p3, write_source_names
 from course_lib.data.pairing import PAIR_MODES, select_pairs
 from course_lib.data.tracks import join_tracks
 from course_lib.data.two_view import MIN_INLIERS, VERIFY_PX, epipolar_distances, verify_pairs, write_two_view_geometries
 from course_lib.threads import thread_map
 from course_lib.validate import KitInputError, intrinsics, output_dir
 
-__all__ = ["IMAGE_SUFFIXES", "VERIFY_PX", "MatchResult", "list_images", "load_images", "scale_intrinsics",
+__all__ = ["IMAGE_SUFFIXES", "VERIFY_PX", "MatchResult", "ImageList", "find_images", "list_images", "load_images", "scale_intrinsics",
            "downscale_images", "match_images", "match_folder", "add_arguments", "run"]
 
 #: SIFT settings of ``match``: COLMAP's defaults (``SiftExtractionOptions``). Its ``peak_threshold``
@@ -90,50 +93,142 @@ MAX_FEATURES = 8192
 
 #: File suffixes read as images (case-insensitive).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-_P3_NAME = re.compile(r"^(\d+)$")
+#: Suffixes of photos the kit cannot read, with what to do (named when a folder holds too few images).
+_UNREADABLE = {".heic": "HEIC/HEIF (iPhone): export or convert them to JPEG", ".heif": "HEIC/HEIF: convert them to JPEG",
+               ".dng": "raw: develop them to JPEG or PNG", ".cr2": "raw: develop them to JPEG or PNG",
+               ".cr3": "raw: develop them to JPEG or PNG", ".nef": "raw: develop them to JPEG or PNG",
+               ".arw": "raw: develop them to JPEG or PNG", ".raw": "raw: develop them to JPEG or PNG",
+               ".webp": "WebP: convert them to PNG or JPEG", ".gif": "GIF: convert them to PNG"}
+_NUMBER = re.compile(r"^(\d+)$")
 
 
-def _natural_key(p: Path):
-    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", p.name)]
+def _natural_key(name: str):
+    """Natural order of a relative path: numbers as numbers (``IMG_2`` before ``IMG_10``), letters without case."""
+    key = []
+    for part in name.split("/"):
+        key.append([(0, int(t), "") if t.isdigit() else (1, 0, t.lower()) for t in re.split(r"(\d+)", part) if t])
+    return key, name
 
 
-def list_images(folder) -> list[Path]:
-    """The image files of a folder, by the rule of the module docstring (P3 names first, else all).
+@dataclass
+class ImageList:
+    """The photos ``match`` reads from a folder (:func:`find_images`).
+
+    Attributes:
+        paths: M paths in the order they are read (image ``i`` becomes P3 image ``i + 1``).
+        names: M names kept in the outputs: the path relative to the folder, ``/``-separated.
+        ignored: names of images beside them that are not read (rule of :func:`find_images`).
+        rule: how they were chosen, in words.
+    """
+
+    paths: list
+    names: list
+    ignored: list = field(default_factory=list)
+    rule: str = ""
+
+
+def find_images(folder, recursive: bool = False, exclude=None) -> ImageList:
+    """The photos of a folder, in the order ``match`` reads them, with the names the outputs keep.
+
+    * **Numbered photos** (names that are only a number: ``1.png``, ``0000.jpg``, ``17.JPG``): where the
+      folder holds such images, only those are read, in numeric order -- from 0 or 1, with gaps or
+      without -- and the other images beside them are ignored (and named). A P3 folder of the course
+      (``1.png ... N.png`` beside ``matching*.txt``) is read as it is.
+    * **Any other names** (``frame_0001.png``, ``IMG_1234.JPG``, ``DSC 7.jpeg``): all images, in natural
+      name order (``IMG_2.jpg`` before ``IMG_10.jpg``; upper and lower case alike).
+    * ``recursive``: all images in the folder and its subfolders (hidden ones left out), in natural
+      order of their paths (``a/IMG_2.jpg`` before ``a/IMG_10.jpg`` before ``b/IMG_1.jpg``), named by
+      their path inside the folder.
 
     Args:
         folder: a folder of photos.
+        recursive: also read the images in subfolders.
+        exclude: a folder inside ``folder`` to leave out (``match``'s output folder).
 
     Returns:
-        M paths in order (P3-numbered ``1.*, 2.*, ...`` if present, else natural name order).
+        :class:`ImageList`.
 
     Raises:
-        KitInputError: not a folder, fewer than 2 images, or P3 numbers with a gap / a duplicate.
+        KitInputError: not a folder; fewer than 2 images (the message says what the folder holds
+            instead: photos in formats the kit cannot read, images in subfolders); two images with
+            the same number.
+
+    Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise KitInputError(f"image folder not found: {folder} (pass a folder that holds your photos)")
-    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
-    numbered: dict[int, list[Path]] = {}
-    for p in files:
-        m = _P3_NAME.match(p.stem)
-        if m:
-            numbered.setdefault(int(m.group(1)), []).append(p)
-    if numbered:
-        ids = sorted(numbered)
-        dup = [i for i in ids if len(numbered[i]) > 1]
-        if dup:
-            names = ", ".join(p.name for p in sorted(numbered[dup[0]]))
-            raise KitInputError(f"{folder}: image number {dup[0]} exists twice ({names}); keep one file per number")
-        if ids != list(range(1, len(ids) + 1)):
-            missing = sorted(set(range(1, ids[-1] + 1)) - set(ids))
-            raise KitInputError(f"{folder}: P3-numbered images must run 1, 2, ... without gaps; missing {missing[:5]} "
-                                "(rename the files, or give them non-numeric names to use all images in name order)")
-        out = [numbered[i][0] for i in ids]
+    skip = Path(exclude).resolve() if exclude is not None else None
+    found = _walk(folder, recursive, skip)
+    images = [p for p in found if p.suffix.lower() in IMAGE_SUFFIXES]
+    name = {p: p.relative_to(folder).as_posix() for p in images}
+    ignored: list = []
+    if recursive:
+        paths = sorted(images, key=lambda p: _natural_key(name[p]))
+        rule = "all images in the folder and its subfolders, in natural name order"
     else:
-        out = sorted(files, key=_natural_key)
-    if len(out) < 2:
-        raise KitInputError(f"{folder} holds {len(out)} image(s) ({', '.join(IMAGE_SUFFIXES)}): matching needs at least 2")
+        numbered: dict[int, list[Path]] = {}
+        for p in images:
+            if _NUMBER.match(p.stem):
+                numbered.setdefault(int(p.stem), []).append(p)
+        dup = sorted(k for k, v in numbered.items() if len(v) > 1)
+        if dup:
+            shown = "; ".join(", ".join(sorted(name[p] for p in numbered[k])) for k in dup[:3])
+            raise KitInputError(f"{folder}: {len(dup)} image number(s) occur in two files ({shown}): numbered photos are read "
+                                "in numeric order, so keep one file per number (move or rename the others)")
+        if numbered:
+            paths = [numbered[k][0] for k in sorted(numbered)]
+            ignored = sorted((name[p] for p in images if not _NUMBER.match(p.stem)), key=_natural_key)
+            ids = sorted(numbered)
+            rule = (f"numbered images {ids[0]}..{ids[-1]}" + (f" ({ids[-1] - ids[0] + 1 - len(ids)} numbers missing)"
+                                                               if ids[-1] - ids[0] + 1 != len(ids) else "") + ", in numeric order")
+        else:
+            paths = sorted(images, key=lambda p: _natural_key(name[p]))
+            rule = "all images, in natural name order"
+    if len(paths) < 2:
+        raise KitInputError(_too_few_message(folder, paths, found, recursive, skip))
+    return ImageList(paths, [name[p] for p in paths], ignored, rule)
+
+
+def _walk(folder: Path, recursive: bool, skip: Path | None) -> list[Path]:
+    """The files of ``folder`` (and of its subfolders, hidden ones and ``skip`` left out, where ``recursive``)."""
+    out = []
+    for p in sorted(folder.iterdir()):
+        if p.name.startswith("."):
+            continue
+        if p.is_file():
+            out.append(p)
+        elif recursive and p.is_dir() and (skip is None or p.resolve() != skip):
+            out += _walk(p, True, skip)
     return out
+
+
+def _too_few_message(folder: Path, paths: list, found: list, recursive: bool, skip: Path | None) -> str:
+    """Why a folder gives fewer than 2 photos, and what to do."""
+    msg = (f"{folder} holds {len(paths)} image(s) that match can read ({', '.join(IMAGE_SUFFIXES)}, any case)"
+           + (f": {paths[0].name}" if paths else "") + "; matching needs at least 2")
+    other: dict[str, int] = {}
+    for p in found:
+        if p.suffix.lower() in _UNREADABLE:
+            other[p.suffix.lower()] = other.get(p.suffix.lower(), 0) + 1
+    if other:
+        msg += ". It also holds " + "; ".join(f"{n} {suf} file(s) ({_UNREADABLE[suf]})" for suf, n in sorted(other.items()))
+    if not recursive:
+        below = [p for p in _walk(folder, True, skip) if p.suffix.lower() in IMAGE_SUFFIXES and p.parent != folder]
+        if below:
+            subs = sorted({p.parent.relative_to(folder).as_posix() for p in below})
+            msg += (f". Its subfolders hold {len(below)} image(s) ({', '.join(subs[:3])}{', ...' if len(subs) > 3 else ''}): "
+                    "pass --recursive to read them, or point match at one subfolder")
+    return msg
+
+
+def list_images(folder, recursive: bool = False) -> list[Path]:
+    """The photo files of a folder in the order ``match`` reads them (:func:`find_images`).
+
+    Returns:
+        M paths.
+    """
+    return find_images(folder, recursive).paths
 
 
 def load_images(paths) -> list[np.ndarray]:
@@ -344,17 +439,19 @@ def _write_photos(out: Path, paths: list[Path], images: list[np.ndarray], downsc
 def match_folder(images_dir, K, out, downscale: float = 1.0, ratio: float = 0.8, verify: bool = True,
                  verify_px: float = VERIFY_PX, min_pair_matches: int = MIN_INLIERS, seed: int = 0, rootsift: bool = ROOTSIFT,
                  max_features: int = MAX_FEATURES, contrast_threshold: float = CONTRAST_THRESHOLD, pairs: str = "auto",
-                 guided: bool = True, workers: int = 0, progress: bool = False) -> dict:
+                 guided: bool = True, workers: int = 0, progress: bool = False, recursive: bool = False) -> dict:
     """Match a folder of photos and write a P3 folder (the ``match`` command).
 
     Args:
-        images_dir: folder of photos (:func:`list_images` says which files are read).
+        images_dir: folder of photos (:func:`find_images` says which files are read; their names, kept in
+            :data:`course_lib.data.p3.SOURCE_NAMES_FILE`, are the names ``sfm`` writes).
         K: ``(3, 3)`` intrinsics of the full-size photos, the path of a ``calibration.txt``, or
             None: from EXIF or a guess, refined by ``sfm`` (:func:`course_lib.data.camera.camera_prior`).
         out: output P3 folder (created; must not be ``images_dir``).
         downscale: factor >= 1 (K is scaled, see :func:`scale_intrinsics`).
         ratio, verify, verify_px, min_pair_matches, rootsift, max_features, contrast_threshold, pairs,
             guided, workers, progress: see :func:`match_images`. seed: its generator's seed.
+        recursive: also read the photos in the subfolders of ``images_dir``.
 
     Returns:
         The report written to ``out/match_report.json``.
@@ -362,13 +459,14 @@ def match_folder(images_dir, K, out, downscale: float = 1.0, ratio: float = 0.8,
     Introduced in ``notebooks/10_photos_to_nerf.ipynb``.
     """
     t0 = time.perf_counter()
-    paths = list_images(images_dir)
+    out = Path(out)
+    found = find_images(images_dir, recursive, exclude=out)
+    paths = found.paths
     if isinstance(K, (str, Path)):
         if not Path(K).exists():
             raise KitInputError(f"calibration file not found: {K} (pass --K with a file of 3 rows of 3 numbers: the camera's K, "
                                 "or leave --K out to take K from the photos' EXIF)")
         K = read_calibration(K)
-    out = Path(out)
     if out.resolve() == Path(images_dir).resolve():
         raise KitInputError(f"--out {out} is the image folder itself: write the P3 folder somewhere else")
     images = load_images(paths)
@@ -384,6 +482,7 @@ def match_folder(images_dir, K, out, downscale: float = 1.0, ratio: float = 0.8,
     t1 = time.perf_counter()
     names = _write_photos(out, paths, images, downscale != 1.0)
     write_p3(out, names, K2, res.track_uv, res.track_rgb)
+    write_source_names(out, names, found.names)
     for stale in ("camera.json", "two_view_geometries.json"):
         (out / stale).unlink(missing_ok=True)
     if prior.refine:
@@ -393,7 +492,9 @@ def match_folder(images_dir, K, out, downscale: float = 1.0, ratio: float = 0.8,
     n_obs = (~np.isnan(res.track_uv[..., 0])).sum(1) if len(res.track_uv) else np.zeros(0, int)
     report = {
         "images_dir": str(images_dir),
-        "images": [{"p3_name": n, "source": p.name} for n, p in zip(names, paths)],
+        "images": [{"p3_name": n, "source": src} for n, src in zip(names, found.names)],
+        "image_order": found.rule,
+        "ignored_images": found.ignored,
         "image_size_source": [W0, H0],
         "image_size": [int(images[0].shape[1]), int(images[0].shape[0])],
         "downscale": float(downscale),
@@ -422,7 +523,11 @@ def match_folder(images_dir, K, out, downscale: float = 1.0, ratio: float = 0.8,
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("images_dir", help="folder of photos: only 1.png, 2.png, ... (P3 numbering) if there are such files, else all images in name order")
+    p.add_argument("images_dir", help="folder of photos, any names: numbered photos (0.png, 0001.jpg, ...; gaps allowed) in numeric "
+                                      "order where there are such files (other images beside them ignored), else all images in "
+                                      "natural name order; sfm keeps their names")
+    p.add_argument("--recursive", action="store_true",
+                   help="also read the photos in the subfolders (named by their path inside IMAGES_DIR), in natural path order")
     p.add_argument("--K", default=None,
                    help="calibration file of the full-size photos: 3 rows of 3 numbers, or 'K = [a b c; d e f; g h i]' "
                         "(default: K from the photos' EXIF, else 1.2 x the longer side; sfm then refines it)")
@@ -452,15 +557,23 @@ def run(args) -> int:
     rep = match_folder(args.images_dir, args.K, args.out, args.downscale, args.ratio, not args.no_verify,
                        args.verify_px, args.min_pair_matches, args.seed, rootsift=not args.no_rootsift,
                        max_features=args.max_features, contrast_threshold=args.contrast_threshold, pairs=args.pairs,
-                       guided=not args.no_guided, workers=args.workers, progress=not args.quiet)
+                       guided=not args.no_guided, workers=args.workers, progress=not args.quiet, recursive=args.recursive)
     n = len(rep["images"])
+    first, last = rep["images"][0]["source"], rep["images"][-1]["source"]
+    print(f"read {n} photos: {rep['image_order']} ({first} ... {last})")
+    if rep["ignored_images"]:
+        shown = ", ".join(rep["ignored_images"][:5]) + (", ..." if len(rep["ignored_images"]) > 5 else "")
+        print(f"ignored {len(rep['ignored_images'])} image(s) without a number beside the numbered photos: {shown} "
+              "(move them out, or number them too, to use them)")
     kept = sum(1 for v in rep["pairs"].values() if v["verified"] >= args.min_pair_matches or (args.no_verify and v["sift"]))
     print(f"matched {n} images ({rep['image_size'][0]}x{rep['image_size'][1]}): {rep['pairs_matched']} of {n * (n - 1) // 2} "
           f"pairs matched ({rep['pair_selection']}), {kept} kept, {rep['tracks']} tracks, {rep['observations']} observations, "
           f"{rep['seconds']:.1f} s")
     cam = rep["camera"]
     if cam["refine"]:
-        print(f"camera: f = {cam['K'][0][0]:.1f} px from {cam['source']}; sfm refines f and k1 ({cam['model']})")
+        guessed = str(cam["source"]).startswith("guess")
+        print(f"camera: f = {cam['K'][0][0]:.1f} px from {cam['source']}; sfm "
+              + ("estimates f from the images (self-calibration), then " if guessed else "") + f"refines f and k1 ({cam['model']})")
     for a, b in rep["identical_photos"]:
         print(f"identical or near-identical photos (no baseline): {a}, {b} -- the same view twice adds nothing to a "
               "reconstruction; keep one, and take the others from different positions")

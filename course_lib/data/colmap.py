@@ -252,6 +252,94 @@ def _data_lines(path: Path) -> list[str]:
         return [ln.rstrip("\r\n") for ln in f if not ln.startswith("#")]
 
 
+def _read_camera(path: Path):
+    """The one camera of ``cameras.txt``: ``(K (3, 3) in the kit's pixels, (W, H), model name, k1)``."""
+    cams = [ln.split() for ln in _data_lines(path) if ln.strip()]
+    if len(cams) != 1:
+        raise KitInputError(f"{path} has {len(cams)} cameras: the kit reads models with one shared camera")
+    c = cams[0]
+    try:
+        model, W, H, params = c[1], int(c[2]), int(c[3]), [float(v) for v in c[4:]]
+    except (IndexError, ValueError):
+        raise KitInputError(f"{path}: malformed camera line {' '.join(c)!r}") from None
+    k1 = 0.0
+    if model == "PINHOLE" and len(params) == 4:
+        fx, fy, cx, cy = params
+    elif model == "SIMPLE_PINHOLE" and len(params) == 3:
+        fx, cx, cy = params
+        fy = fx
+    elif model == "SIMPLE_RADIAL" and len(params) == 4:
+        fx, cx, cy, k1 = params
+        fy = fx
+    else:
+        raise KitInputError(f"camera model {model} with {len(params)} parameters: the kit reads PINHOLE, SIMPLE_PINHOLE and "
+                            "SIMPLE_RADIAL only (re-run COLMAP's mapper with one of them, or undistort the images first)")
+    K = np.array([[fx, 0.0, cx - PIXEL_OFFSET], [0.0, fy, cy - PIXEL_OFFSET], [0.0, 0.0, 1.0]])
+    return K, (W, H), model, k1
+
+
+def _read_images(path: Path):
+    """``images.txt``, sorted by image id: ``(image_ids (M,), names, R_cw (M, 3, 3), t_cw (M, 3), points2d [(n_m, 3)])``."""
+    lines = _data_lines(path)
+    # Drop trailing blank lines only; a blank POINTS2D line is legal.
+    while lines and not lines[-1].strip():
+        lines.pop()
+    if len(lines) % 2 == 1:
+        lines.append("")
+    image_ids, names, R, t, points2d = [], [], [], [], []
+    for k in range(0, len(lines), 2):
+        head = lines[k].split()
+        try:
+            iid = int(head[0])
+            qw, qx, qy, qz, tx, ty, tz = (float(v) for v in head[1:8])
+            name = " ".join(head[9:])
+        except (IndexError, ValueError):
+            raise KitInputError(f"{path}: malformed image line {lines[k]!r}") from None
+        vals = lines[k + 1].split()
+        if len(vals) % 3:
+            raise KitInputError(f"{path}: the POINTS2D line of image {iid} is not a list of (X, Y, POINT3D_ID) triples")
+        p2 = np.array(vals, dtype=float).reshape(-1, 3)
+        image_ids.append(iid)
+        names.append(name)
+        R.append(Rotation.from_quat([qx, qy, qz, qw]).as_matrix())
+        t.append([tx, ty, tz])
+        points2d.append(p2)
+    order = np.argsort(image_ids)
+    image_ids = np.array(image_ids, dtype=np.int64)[order]
+    names = [names[k] for k in order]
+    R_cw = np.array([R[k] for k in order]).reshape(-1, 3, 3)
+    t_cw = np.array([t[k] for k in order], dtype=float).reshape(-1, 3)
+    points2d = [points2d[k] for k in order]
+    return image_ids, names, R_cw, t_cw, points2d
+
+
+def _read_points(path: Path, image_ids: np.ndarray, points2d: list):
+    """``points3D.txt``: ``(point_ids (P,), X (P, 3), rgb (P, 3), error (P,), uv (P, M, 2))``, uv in the kit's pixels."""
+    col = {int(iid): m for m, iid in enumerate(image_ids)}
+    rows = [ln.split() for ln in _data_lines(path) if ln.strip()]
+    P, M = len(rows), len(image_ids)
+    point_ids = np.zeros(P, dtype=np.int64)
+    X = np.zeros((P, 3))
+    rgb = np.zeros((P, 3), dtype=np.uint8)
+    error = np.zeros(P)
+    uv = np.full((P, M, 2), np.nan)
+    for p, r in enumerate(rows):
+        try:
+            point_ids[p] = int(r[0])
+            X[p] = [float(v) for v in r[1:4]]
+            rgb[p] = [int(v) for v in r[4:7]]
+            error[p] = float(r[7])
+            track = np.array(r[8:], dtype=np.int64).reshape(-1, 2)
+        except (IndexError, ValueError):
+            raise KitInputError(f"{path}: malformed point line {' '.join(r)[:80]!r}") from None
+        for iid, idx in track:
+            m = col.get(int(iid))
+            if m is None or idx >= len(points2d[m]):
+                raise KitInputError(f"{path}: point {point_ids[p]} refers to a missing image {iid} or 2-D point {idx}")
+            uv[p, m] = points2d[m][idx, :2] - PIXEL_OFFSET
+    return point_ids, X, rgb, error, uv
+
+
 def read_colmap_text(folder) -> ColmapModel:
     """Read a COLMAP text model with one ``PINHOLE``, ``SIMPLE_PINHOLE`` or ``SIMPLE_RADIAL`` camera.
 
@@ -270,79 +358,7 @@ def read_colmap_text(folder) -> ColmapModel:
     for name in ("cameras.txt", "images.txt", "points3D.txt"):
         existing_path(folder / name, f"COLMAP file {name}")
 
-    cams = [ln.split() for ln in _data_lines(folder / "cameras.txt") if ln.strip()]
-    if len(cams) != 1:
-        raise KitInputError(f"{folder / 'cameras.txt'} has {len(cams)} cameras: the kit reads models with one shared camera")
-    c = cams[0]
-    try:
-        model, W, H, params = c[1], int(c[2]), int(c[3]), [float(v) for v in c[4:]]
-    except (IndexError, ValueError):
-        raise KitInputError(f"{folder / 'cameras.txt'}: malformed camera line {' '.join(c)!r}") from None
-    k1 = 0.0
-    if model == "PINHOLE" and len(params) == 4:
-        fx, fy, cx, cy = params
-    elif model == "SIMPLE_PINHOLE" and len(params) == 3:
-        fx, cx, cy = params
-        fy = fx
-    elif model == "SIMPLE_RADIAL" and len(params) == 4:
-        fx, cx, cy, k1 = params
-        fy = fx
-    else:
-        raise KitInputError(f"camera model {model} with {len(params)} parameters: the kit reads PINHOLE, SIMPLE_PINHOLE and "
-                            "SIMPLE_RADIAL only (re-run COLMAP's mapper with one of them, or undistort the images first)")
-    K = np.array([[fx, 0.0, cx - PIXEL_OFFSET], [0.0, fy, cy - PIXEL_OFFSET], [0.0, 0.0, 1.0]])
-
-    lines = _data_lines(folder / "images.txt")
-    # Drop trailing blank lines only; a blank POINTS2D line is legal.
-    while lines and not lines[-1].strip():
-        lines.pop()
-    if len(lines) % 2 == 1:
-        lines.append("")
-    image_ids, names, R, t, points2d = [], [], [], [], []
-    for k in range(0, len(lines), 2):
-        head = lines[k].split()
-        try:
-            iid = int(head[0])
-            qw, qx, qy, qz, tx, ty, tz = (float(v) for v in head[1:8])
-            name = " ".join(head[9:])
-        except (IndexError, ValueError):
-            raise KitInputError(f"{folder / 'images.txt'}: malformed image line {lines[k]!r}") from None
-        vals = lines[k + 1].split()
-        if len(vals) % 3:
-            raise KitInputError(f"{folder / 'images.txt'}: the POINTS2D line of image {iid} is not a list of (X, Y, POINT3D_ID) triples")
-        p2 = np.array(vals, dtype=float).reshape(-1, 3)
-        image_ids.append(iid)
-        names.append(name)
-        R.append(Rotation.from_quat([qx, qy, qz, qw]).as_matrix())
-        t.append([tx, ty, tz])
-        points2d.append(p2)
-    order = np.argsort(image_ids)
-    image_ids = np.array(image_ids, dtype=np.int64)[order]
-    names = [names[k] for k in order]
-    R_cw = np.array([R[k] for k in order]).reshape(-1, 3, 3)
-    t_cw = np.array([t[k] for k in order], dtype=float).reshape(-1, 3)
-    points2d = [points2d[k] for k in order]
-    col = {int(iid): m for m, iid in enumerate(image_ids)}
-
-    rows = [ln.split() for ln in _data_lines(folder / "points3D.txt") if ln.strip()]
-    P, M = len(rows), len(image_ids)
-    point_ids = np.zeros(P, dtype=np.int64)
-    X = np.zeros((P, 3))
-    rgb = np.zeros((P, 3), dtype=np.uint8)
-    error = np.zeros(P)
-    uv = np.full((P, M, 2), np.nan)
-    for p, r in enumerate(rows):
-        try:
-            point_ids[p] = int(r[0])
-            X[p] = [float(v) for v in r[1:4]]
-            rgb[p] = [int(v) for v in r[4:7]]
-            error[p] = float(r[7])
-            track = np.array(r[8:], dtype=np.int64).reshape(-1, 2)
-        except (IndexError, ValueError):
-            raise KitInputError(f"{folder / 'points3D.txt'}: malformed point line {' '.join(r)[:80]!r}") from None
-        for iid, idx in track:
-            m = col.get(int(iid))
-            if m is None or idx >= len(points2d[m]):
-                raise KitInputError(f"{folder / 'points3D.txt'}: point {point_ids[p]} refers to a missing image {iid} or 2-D point {idx}")
-            uv[p, m] = points2d[m][idx, :2] - PIXEL_OFFSET
+    K, (W, H), model, k1 = _read_camera(folder / "cameras.txt")
+    image_ids, names, R_cw, t_cw, points2d = _read_images(folder / "images.txt")
+    point_ids, X, rgb, error, uv = _read_points(folder / "points3D.txt", image_ids, points2d)
     return ColmapModel(K, (W, H), names, image_ids, R_cw, t_cw, point_ids, X, rgb, error, uv, model, k1)

@@ -38,7 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from course_lib.data.blender import intrinsics_from_fov, write_blender
-from course_lib.data.building import Surface, _draw_sign, _draw_window, _noise, nerf_cameras, render
+from course_lib.data.building import Surface, nerf_cameras, render
+from course_lib.data.textures import draw_sign, draw_window, value_noise
 from course_lib.validate import KitInputError
 
 __all__ = ["DEFAULT_SEED", "CAMERA_ANGLE_X", "build_excavator", "make_excavator_datasets"]
@@ -58,7 +59,7 @@ GENERATOR = "course_lib.data.excavator v2"
 def _paint(rng, w, h, base, noise=0.12, cell=0.15):
     """Painted plastic: a base colour, soft blotches and fine speckle; ``(h, w, 3)`` float32 (texels)."""
     img = np.ones((h, w, 3), np.float32) * np.asarray(base, np.float32)
-    img *= 1.0 + noise * _noise(rng, h, w, cell * RHO, 3)[..., None]
+    img *= 1.0 + noise * value_noise(rng, h, w, cell * RHO, 3)[..., None]
     img *= 1.0 + 0.04 * rng.standard_normal((h, w, 1)).astype(np.float32)
     return img
 
@@ -71,7 +72,7 @@ def _texture(kind: str, rng, w_u: float, h_u: float, colors: dict) -> np.ndarray
     elif kind == "sign":  # a body side with a printed sign (letters and shapes)
         img = np.ascontiguousarray(_paint(rng, w, h, colors["body"]))
         if w > 40 and h > 30:
-            _draw_sign(img, 0.12 * w, 0.2 * h, 0.6 * w, 0.6 * h, rng, RHO)
+            draw_sign(img, 0.12 * w, 0.2 * h, 0.6 * w, 0.6 * h, rng, RHO)
     elif kind == "tread":  # dark rubber with bars across the track every 0.06 units
         img = _paint(rng, w, h, (0.16, 0.16, 0.17), noise=0.3, cell=0.05)
         bar = (np.arange(w) % int(0.06 * RHO)) < int(0.022 * RHO)
@@ -80,14 +81,14 @@ def _texture(kind: str, rng, w_u: float, h_u: float, colors: dict) -> np.ndarray
         yy, xx = np.mgrid[0:h, 0:w]
         stripe = ((xx + yy) // int(0.05 * RHO)) % 2 == 0
         img = np.where(stripe[..., None], np.float32([0.95, 0.78, 0.1]), np.float32([0.08, 0.08, 0.08]))
-        img = img.astype(np.float32) * (1.0 + 0.08 * _noise(rng, h, w, 0.1 * RHO, 2)[..., None])
+        img = img.astype(np.float32) * (1.0 + 0.08 * value_noise(rng, h, w, 0.1 * RHO, 2)[..., None])
     elif kind == "cabin":  # a window with a frame on the cabin's paint
         img = np.ascontiguousarray(_paint(rng, w, h, colors["cabin"]))
         if w > 30 and h > 30:
-            _draw_window(img, 0.12 * w, 0.12 * h, 0.76 * w, 0.6 * h, rng, RHO)
+            draw_window(img, 0.12 * w, 0.12 * h, 0.76 * w, 0.6 * h, rng, RHO)
     elif kind == "metal":  # brushed steel: streaks along the part
         img = _paint(rng, w, h, (0.72, 0.73, 0.75), noise=0.05)
-        img *= 1.0 + 0.12 * _noise(rng, 1, w, 0.02 * RHO, 2)[0][None, :, None]
+        img *= 1.0 + 0.12 * value_noise(rng, 1, w, 0.02 * RHO, 2)[0][None, :, None]
     elif kind == "wheel":
         img = _paint(rng, w, h, (0.3, 0.3, 0.32), noise=0.2, cell=0.04)
     elif kind == "hub":

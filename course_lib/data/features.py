@@ -1,4 +1,4 @@
-"""Features of photos: SIFT detection, descriptor matching, tracks.
+"""Features of photos: SIFT detection and descriptor matching.
 
 What turns photos into correspondences (the P3 matches the SfM lessons read), in one place: the
 embedded scene is made with it (:mod:`course_lib.data.building`) and so are students' own photos
@@ -12,8 +12,8 @@ embedded scene is made with it (:mod:`course_lib.data.building`) and so are stud
    list of pairs on several threads (:mod:`course_lib.data.pairing` says which pairs), and
    :func:`detect_and_match` over all pairs. (The geometric verification of the matches is
    :mod:`course_lib.data.two_view`.)
-3. :func:`tracks_from_images`: the matches joined into tracks
-   (:func:`course_lib.data.p3.tracks_from_pairs`) with each track's colour.
+3. :func:`track_colours`: each track's colour; :func:`course_lib.data.tracks.tracks_from_images`
+   joins the matches of all pairs into tracks (:func:`course_lib.data.p3.tracks_from_pairs`).
 
 Points are rows ``(u, v)`` in pixels, origin at the centre of the top-left pixel
 (:mod:`course_lib.conventions`).
@@ -31,7 +31,7 @@ from course_lib.threads import thread_map
 from course_lib.validate import KitInputError
 
 __all__ = ["SIFT_OFFSET", "RATIO", "Features", "detect_features", "root_sift", "augmented_descriptors",
-           "match_descriptors", "match_pairs", "check_ratio", "detect_and_match", "track_colours", "tracks_from_images"]
+           "match_descriptors", "match_pairs", "check_ratio", "detect_and_match", "track_colours"]
 
 #: OpenCV SIFT's keypoint offset from the kit's pixel convention (subtracted; see :func:`detect_features`).
 SIFT_OFFSET = 0.25
@@ -260,22 +260,3 @@ def track_colours(track_uv: np.ndarray, images: list[np.ndarray]) -> np.ndarray:
     cols = np.clip(np.round(uv0[:, 0]).astype(int), 0, W - 1)
     rows = np.clip(np.round(uv0[:, 1]).astype(int), 0, H - 1)
     return np.stack([images[f][r, c] for f, r, c in zip(first, rows, cols)]).astype(np.uint8)
-
-
-def tracks_from_images(images: list[np.ndarray], ratio: float = RATIO):
-    """SIFT matches of all pairs joined into tracks, with each track's colour.
-
-    Args:
-        images: M ``(H, W, 3)`` uint8 RGB images.
-        ratio: Lowe's ratio.
-
-    Returns:
-        ``track_uv (T, M, 2)``, ``track_rgb (T, 3)`` uint8 (colour at the first observation),
-        ``pairs`` (the raw matches of :func:`detect_and_match`) and the stats of
-        :func:`course_lib.data.p3.tracks_from_pairs`.
-    """
-    from course_lib.data.p3 import tracks_from_pairs
-
-    pairs = detect_and_match(images, ratio)
-    track_uv, _, tstats = tracks_from_pairs(len(images), pairs)
-    return track_uv, track_colours(track_uv, images), pairs, tstats

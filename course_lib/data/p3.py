@@ -44,6 +44,7 @@ Introduced in ``notebooks/01_fundamental_matrix.ipynb``.
 
 from __future__ import annotations
 
+import json
 import math
 import re
 from dataclasses import dataclass, field
@@ -53,12 +54,16 @@ import numpy as np
 
 from course_lib.data.camera import read_camera
 from course_lib.data.two_view import read_two_view_geometries
-from course_lib.validate import KitInputError, intrinsics
+from course_lib.validate import KitInputError, file_in, intrinsics
 
-__all__ = ["PairMatches", "P3Data", "read_calibration", "read_p3", "write_p3", "tracks_from_pairs", "UnionFind", "IMAGE_EXTENSIONS"]
+__all__ = ["PairMatches", "P3Data", "read_calibration", "read_p3", "write_p3", "tracks_from_pairs", "UnionFind", "IMAGE_EXTENSIONS",
+           "SOURCE_NAMES_FILE", "write_source_names", "read_source_names"]
 
 #: Image file extensions the reader looks for, in order of preference (``1.png`` before ``1.jpg``).
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp")
+
+#: The file in which ``match`` keeps the photos' own names beside their P3 names (:func:`write_source_names`).
+SOURCE_NAMES_FILE = "source_names.json"
 
 _MATCHING_RE = re.compile(r"^matching(\d+)\.txt$", re.IGNORECASE)
 _HEADER_RE = re.compile(r"^\s*nFeatures\s*:?\s*(\S*)\s*$", re.IGNORECASE)
@@ -106,6 +111,9 @@ class P3Data:
             carries them (:func:`course_lib.data.two_view.read_two_view_geometries`), else None.
         camera: the :class:`course_lib.data.camera.CameraPrior` of :data:`course_lib.data.camera.CAMERA_FILE`
             where the folder has one (K estimated, to be refined), else None (K from calibration.txt, fixed).
+        source_names: ``M`` names of the photos ``match`` made the folder from (``IMG_1234.JPG``,
+            ``sub/frame_0001.png``), where the folder carries :data:`SOURCE_NAMES_FILE`, else None;
+            :attr:`photo_names` is what the outputs of ``sfm`` call the images.
     """
 
     folder: Path
@@ -117,7 +125,13 @@ class P3Data:
     stats: dict = field(default_factory=dict)
     two_view: dict | None = None
     camera: object = None
+    source_names: list | None = None
     _images: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def photo_names(self) -> list[str]:
+        """``M`` names of the images as the user knows them: :attr:`source_names` where known, else :attr:`image_names`."""
+        return list(self.source_names) if self.source_names is not None else list(self.image_names)
 
     @property
     def n_images(self) -> int:
@@ -211,11 +225,7 @@ def read_calibration(path) -> np.ndarray:
 
     Introduced in ``notebooks/01_fundamental_matrix.ipynb``.
     """
-    p = Path(path)
-    if p.is_dir():
-        p = p / "calibration.txt"
-    if not p.is_file():
-        raise KitInputError(f"calibration file not found: {p} (a P3 folder needs calibration.txt with the 3x3 K)")
+    p = file_in(path, "calibration.txt", "calibration file not found: {path} (a P3 folder needs calibration.txt with the 3x3 K)")
     return _parse_calibration_text(p.read_text(encoding="utf-8", errors="replace"), p.name)
 
 
@@ -591,7 +601,48 @@ def read_p3(folder, require_images: bool = True) -> P3Data:
         "missing_images": missing,
     }
     return P3Data(folder, names, K, track_uv, graph.track_colours(track_uv, node_track),
-                  graph.pair_matches(node_track), stats, read_two_view_geometries(folder, len(names)), read_camera(folder))
+                  graph.pair_matches(node_track), stats, read_two_view_geometries(folder, len(names)), read_camera(folder),
+                  read_source_names(folder, names))
+
+
+def write_source_names(folder, image_names, source_names) -> Path:
+    """Write :data:`SOURCE_NAMES_FILE`: the photos' own names beside their P3 names (``match`` does).
+
+    Args:
+        folder: the P3 folder. image_names: ``M`` P3 names (``1.png`` ...). source_names: ``M`` names of the photos.
+
+    Returns:
+        The file's path.
+    """
+    if len(image_names) != len(source_names):
+        raise KitInputError(f"{len(image_names)} P3 names but {len(source_names)} source names: one per image")
+    path = Path(folder) / SOURCE_NAMES_FILE
+    path.write_text(json.dumps([{"p3_name": str(a), "source": str(b)} for a, b in zip(image_names, source_names)], indent=1))
+    return path
+
+
+def read_source_names(folder, image_names) -> list[str] | None:
+    """The photos' own names of a P3 folder (:data:`SOURCE_NAMES_FILE`), in the order of ``image_names``; None without the file.
+
+    Raises:
+        KitInputError: a malformed file, or one that does not list exactly these images (the message says to delete it).
+    """
+    path = Path(folder) / SOURCE_NAMES_FILE
+    if not path.is_file():
+        return None
+    fix = f"delete {path.name} to name the images by their P3 names, or run match again"
+    try:
+        rows = {str(r["p3_name"]): str(r["source"]) for r in json.loads(path.read_text())}
+    except (ValueError, KeyError, TypeError) as exc:
+        raise KitInputError(f"{path}: not a valid list of {{'p3_name', 'source'}} entries ({exc}); {fix}") from None
+    missing = [n for n in image_names if n not in rows]
+    if missing or len(rows) != len(image_names):
+        raise KitInputError(f"{path} names {len(rows)} images but the folder has {len(image_names)}"
+                            + (f" ({', '.join(missing[:3])} not among them)" if missing else "") + f": {fix}")
+    names = [rows[n] for n in image_names]
+    if len(set(names)) != len(names):
+        raise KitInputError(f"{path}: two images have the same source name; {fix}")
+    return names
 
 
 # --------------------------------------------------------------------------------------------
@@ -600,6 +651,34 @@ def read_p3(folder, require_images: bool = True) -> P3Data:
 
 def _fmt(x: float) -> str:
     return f"{x:.6f}"
+
+
+def _matching_rows(track_uv: np.ndarray, rgb: np.ndarray) -> list[list[str]]:
+    """The rows of each ``matching{i}.txt``: every track seen twice or more, from each of its images to the later ones."""
+    seen = ~np.isnan(track_uv[..., 0])
+    rows: list[list[str]] = [[] for _ in range(track_uv.shape[1])]
+    for t in np.flatnonzero(seen.sum(1) >= 2):
+        imgs = np.flatnonzero(seen[t])
+        for a, i in enumerate(imgs[:-1]):
+            later = imgs[a + 1:]
+            parts = [str(len(later) + 1), *map(str, rgb[t]), _fmt(track_uv[t, i, 0]), _fmt(track_uv[t, i, 1])]
+            for j in later:
+                parts += [str(j + 1), _fmt(track_uv[t, j, 0]), _fmt(track_uv[t, j, 1])]
+            rows[i].append(" ".join(parts) + " ")
+    return rows
+
+
+def _write_images(folder: Path, image_names: list[str], images) -> None:
+    """Write the ``(H, W, 3)`` uint8 RGB ``images`` as ``folder/<name>`` (JPEG quality 90 or PNG)."""
+    import cv2
+
+    for name, img in zip(image_names, images):
+        img = np.asarray(img)
+        if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+            raise KitInputError(f"image {name} has dtype {img.dtype} and shape {img.shape}: expected (H, W, 3) uint8 RGB")
+        params = [cv2.IMWRITE_JPEG_QUALITY, 90] if name.lower().endswith((".jpg", ".jpeg")) else [cv2.IMWRITE_PNG_COMPRESSION, 1]
+        if not cv2.imwrite(str(folder / name), np.ascontiguousarray(img[:, :, ::-1]), params):
+            raise KitInputError(f"could not write image {folder / name}")
 
 
 def write_p3(folder, image_names, K, track_uv, track_rgb, images=None) -> Path:
@@ -654,16 +733,7 @@ def write_p3(folder, image_names, K, track_uv, track_rgb, images=None) -> Path:
     rgb = np.clip(np.round(track_rgb.astype(float)), 0, 255).astype(int)
 
     folder.mkdir(parents=True, exist_ok=True)
-    seen = ~np.isnan(track_uv[..., 0])
-    rows: list[list[str]] = [[] for _ in range(M)]
-    for t in np.flatnonzero(seen.sum(1) >= 2):
-        imgs = np.flatnonzero(seen[t])
-        for a, i in enumerate(imgs[:-1]):
-            later = imgs[a + 1:]
-            parts = [str(len(later) + 1), *map(str, rgb[t]), _fmt(track_uv[t, i, 0]), _fmt(track_uv[t, i, 1])]
-            for j in later:
-                parts += [str(j + 1), _fmt(track_uv[t, j, 0]), _fmt(track_uv[t, j, 1])]
-            rows[i].append(" ".join(parts) + " ")
+    rows = _matching_rows(track_uv, rgb)
     for old in folder.glob("matching*.txt"):
         if _MATCHING_RE.match(old.name):
             old.unlink()
@@ -676,13 +746,5 @@ def write_p3(folder, image_names, K, track_uv, track_rgb, images=None) -> Path:
         for r in K:
             f.write(" ".join(repr(float(x)) for x in r) + "\n")
     if images is not None:
-        import cv2
-
-        for name, img in zip(image_names, images):
-            img = np.asarray(img)
-            if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
-                raise KitInputError(f"image {name} has dtype {img.dtype} and shape {img.shape}: expected (H, W, 3) uint8 RGB")
-            params = [cv2.IMWRITE_JPEG_QUALITY, 90] if name.lower().endswith((".jpg", ".jpeg")) else [cv2.IMWRITE_PNG_COMPRESSION, 1]
-            if not cv2.imwrite(str(folder / name), np.ascontiguousarray(img[:, :, ::-1]), params):
-                raise KitInputError(f"could not write image {folder / name}")
+        _write_images(folder, image_names, images)
     return folder

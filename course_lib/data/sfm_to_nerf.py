@@ -77,6 +77,7 @@ from course_lib.data.building import NERF_RADIUS, orbit_camera
 from course_lib.data.camera import undistort_image
 from course_lib.data.cli_match import scale_intrinsics
 from course_lib.data.colmap import read_colmap_text
+from course_lib.data.p3 import SOURCE_NAMES_FILE
 from course_lib.validate import KitInputError, intrinsics, output_dir
 
 __all__ = ["NerfFrame", "normalization", "to_nerf_frame", "resample_images", "sfm_to_nerf", "orbit_c2w", "render_building_views"]
@@ -219,8 +220,11 @@ def sfm_to_nerf(sfm_out, images_dir, out, size: int = 100, test_every: int = 8, 
     if M < 2:
         raise KitInputError(f"the model has {M} registered image(s): a NeRF needs several posed views")
     images = []
+    p3_names = _p3_names(images_dir)
     for name in model.image_names:
         src = Path(alpha_dir) / name if alpha_dir is not None else images_dir / name
+        if alpha_dir is None and not src.is_file() and name in p3_names:  # the photo's own name, its P3 copy here
+            src = images_dir / p3_names[name]
         img = read_rgb(src, hint="it is named in the model: pass --images with the folder the SfM ran on")
         if img.dtype != np.uint8:
             img = (img / 257).astype(np.uint8)
@@ -236,7 +240,7 @@ def sfm_to_nerf(sfm_out, images_dir, out, size: int = 100, test_every: int = 8, 
     test = (idx % test_every == test_every // 2) if test_every else np.zeros(M, bool)
     if test.all() or not (~test).any():
         raise KitInputError("no training views left: use a larger test_every")
-    stems = [Path(n).stem for n in model.image_names]
+    stems = [Path(n).with_suffix("").as_posix().replace("/", "_") for n in model.image_names]
     write_blender(out, "train", imgs[~test], c2w[~test], angle, names=[f"r_{s}" for s, t in zip(stems, test) if not t])
     if test.any():
         write_blender(out, "test", imgs[test], c2w[test], angle, names=[f"r_{s}" for s, t in zip(stems, test) if t])
@@ -255,6 +259,18 @@ def sfm_to_nerf(sfm_out, images_dir, out, size: int = 100, test_every: int = 8, 
     }
     (out / "sfm_to_nerf.json").write_text(json.dumps(summary, indent=1))
     return summary
+
+
+def _p3_names(images_dir: Path) -> dict:
+    """``{photo name: P3 name}`` of a P3 folder made by ``match`` (:data:`course_lib.data.p3.SOURCE_NAMES_FILE`), else empty:
+    ``sfm`` names the images as the photos were named, the P3 folder holds them as ``1.png ...``."""
+    path = images_dir / SOURCE_NAMES_FILE
+    if not path.is_file():
+        return {}
+    try:
+        return {str(r["source"]): str(r["p3_name"]) for r in json.loads(path.read_text())}
+    except (ValueError, KeyError, TypeError):
+        return {}
 
 
 # ------------------------------------------------------------------- a capture with known poses

@@ -21,10 +21,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from course_lib.data.p3 import UnionFind
+from course_lib.data.features import RATIO, detect_and_match, track_colours
+from course_lib.data.p3 import UnionFind, tracks_from_pairs
 from course_lib.validate import KitInputError
 
-__all__ = ["Tracks", "join_tracks"]
+__all__ = ["Tracks", "join_tracks", "tracks_from_images"]
 
 
 @dataclass
@@ -110,3 +111,20 @@ def join_tracks(n_images: int, edges: list) -> Tracks:
         if has_rgb[n]:
             rgb[new_id[track_of[n]]] = node_rgb[n]
     return Tracks(uv, rgb, {"edges": int(len(A)), "refused_edges": refused, "tracks": T})
+
+
+def tracks_from_images(images: list[np.ndarray], ratio: float = RATIO):
+    """SIFT matches of all pairs joined into tracks, with each track's colour.
+
+    Args:
+        images: M ``(H, W, 3)`` uint8 RGB images.
+        ratio: Lowe's ratio.
+
+    Returns:
+        ``track_uv (T, M, 2)``, ``track_rgb (T, 3)`` uint8 (colour at the first observation),
+        ``pairs`` (the raw matches of :func:`detect_and_match`) and the stats of
+        :func:`course_lib.data.p3.tracks_from_pairs`.
+    """
+    pairs = detect_and_match(images, ratio)
+    track_uv, _, tstats = tracks_from_pairs(len(images), pairs)
+    return track_uv, track_colours(track_uv, images), pairs, tstats

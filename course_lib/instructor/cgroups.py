@@ -11,8 +11,8 @@ under nbval, under the first base where this user may create cgroups:
 The grader's ``preexec_fn`` moves the new process into it (:meth:`Cgroup.enter`) before it starts, so
 everything it starts is counted: ``memory.max`` (v1: ``memory.limit_in_bytes``) and ``pids.max``.
 :meth:`Cgroup.close` kills what is left in it and removes it. Where no base is writable, :func:`Cgroup.create`
-returns None and the sandbox falls back on per-process limits (``RLIMIT_AS``, ``RLIMIT_NPROC`` counted per user
-namespace); the report says which applied (:meth:`Cgroup.describe`).
+returns None, and the grader refuses to grade (:func:`course_lib.instructor.grade.preflight`: no cgroup, no memory
+total, no grading) unless container mode applies (:mod:`course_lib.instructor.sandbox.container`), where the container bounds it.
 """
 
 from __future__ import annotations
@@ -23,9 +23,15 @@ import signal
 import time
 from dataclasses import dataclass, field
 
-__all__ = ["Cgroup"]
+__all__ = ["Cgroup", "HOW_TO_ENABLE"]
 
 _V2_ROOT = "/sys/fs/cgroup"
+#: How to give the grader a cgroup (one line, in the refusal where it has none).
+HOW_TO_ENABLE = ("run the grader as root, or delegate a cgroup v2 to the grading user and set COURSE_GRADER_CGROUP "
+                 "to it (as the CI template does), or in a container made for one grading set COURSE_GRADER_CONTAINER=1 "
+                 "(docs/grading.md)")
+
+
 _COUNTER = itertools.count()
 
 

@@ -101,14 +101,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _warn(report: dict) -> None:
-    """Warnings for the instructor: a run without a sandbox, no cgroup, files of the submission left out."""
-    box = report.get("isolation", {}).get("hidden checks", {})
+    """Warnings for the instructor: a run without a sandbox, files of the submission left out."""
     if report.get("insecure"):
         print("warning: --insecure: the students' code ran without a sandbox, as this user (the report says so)",
               file=sys.stderr)
-    elif box and "whole process tree" not in str(box.get("memory", "")):
-        print(f"note: no cgroup could be made, so memory and processes are limited per process ({box.get('processes')})"
-              "; see the CI template for a delegated cgroup ($COURSE_GRADER_CGROUP).", file=sys.stderr)
     left_out = report.get("submission", {}).get("left out", [])
     if left_out:
         print(f"note: {len(left_out)} entries of the submission were not copied: " + "; ".join(left_out[:5]),

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ReleaseError
 from course_lib.instructor.release import verify_release, write_release
-from course_lib.instructor.release_names import dangling_references
+from course_lib.instructor.release_names import dangling_references, false_claims
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -16,8 +16,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--notebooks-dir", type=Path, default=None, help="instructor notebooks (default: notebooks/)")
     parser.add_argument("--verify", action="store_true",
                         help="then execute the released notebooks inside the kit and report any error other than "
-                             "NotImplementedError, and any module, name or file the kit's text names but the kit "
-                             "lacks (a few minutes)")
+                             "NotImplementedError, any module, name or file the kit's text (README, environment.txt, "
+                             "notebooks, docstrings) names but the kit lacks, a notebook count or a pin that is not "
+                             "so, and development text (issue numbers, dates) (a few minutes)")
     parser.add_argument("--force", action="store_true", help="replace a non-empty folder that is not an earlier release")
 
 
@@ -43,11 +44,11 @@ def run(args: argparse.Namespace) -> int:
             print(f"{name}: " + ("runs in the kit (only NotImplementedError where exercises are missing)"
                                  if not found else "; ".join(found)))
 
-        dangling = dangling_references(args.out_dir)
+        dangling = dangling_references(args.out_dir) + false_claims(args.out_dir)
         for line in dangling:
             print(f"text: {line}")
-        print(f"the kit's text names only what the kit has ({'no' if not dangling else len(dangling)} dangling "
-              "references)")
+        print(f"the kit's text names only what the kit has and says only what is so ({'no' if not dangling else len(dangling)} "
+              "dangling references or false claims: README's notebook count, environment.txt's pins, development text)")
         if any(problems.values()) or dangling:
             print("error: some released notebooks fail in the student kit, or its text names what it lacks",
                   file=sys.stderr)

@@ -28,7 +28,11 @@ first. Two statements on one line (``a = 1; b = 2``) are cut apart.
 from __future__ import annotations
 
 import ast
+import bisect
 import builtins
+import functools
+import hashlib
+import re
 import symtable
 from dataclasses import dataclass, field
 
@@ -106,13 +110,31 @@ def code_cells(nb) -> list[tuple[int, str, ast.Module | None]]:
 
 
 def _segment(src: str, node: ast.stmt) -> str:
-    """The source of one top-level statement (with its decorators; cut apart from others on its line)."""
+    """The source of one top-level statement (with its decorators; cut apart from others on its line).
+
+    As :func:`ast.get_source_segment`, but with the cell's lines split once (:func:`_lines`), not once per statement
+    (which made a cell of thousands of statements quadratic)."""
     decorators = getattr(node, "decorator_list", [])
+    lines = _lines(src)
     if decorators:
-        lines = src.splitlines()
         start = min(d.lineno for d in decorators) - 1
-        return "\n".join(lines[start:node.end_lineno])
-    return ast.get_source_segment(src, node) or ast.unparse(node)
+        return "\n".join(ln.rstrip("\r\n") for ln in lines[start:node.end_lineno])
+    try:
+        a, b = node.lineno - 1, node.end_lineno - 1
+        if a == b:
+            text = lines[a].encode()[node.col_offset:node.end_col_offset].decode()
+        else:
+            text = "".join([lines[a].encode()[node.col_offset:].decode(), *lines[a + 1:b],
+                            lines[b].encode()[:node.end_col_offset].decode()])
+    except (AttributeError, IndexError, TypeError, UnicodeDecodeError):
+        text = ""
+    return text or ast.unparse(node)
+
+
+@functools.lru_cache(maxsize=8)
+def _lines(src: str) -> list[str]:
+    """``src``'s lines with their ends, split as the parser counts them (``\\r\\n``, ``\\n``, ``\\r``; not a form feed)."""
+    return re.findall(r"[^\r\n]*(?:\r\n|\r|\n)|[^\r\n]+$", src)
 
 
 def _root_name(expr: ast.AST) -> str | None:
@@ -209,41 +231,92 @@ def analyse(cell: int, src: str, node: ast.stmt, lazy_annotations: bool = False)
 
 
 def top_level_statements(nb, before_cell: int) -> tuple[list[Statement], list[int]]:
-    """The analysed top-level statements of the code cells before ``before_cell``, and the cells that do not parse."""
-    stmts: list[Statement] = []
-    bad = []
-    lazy = False
-    for i, src, tree in code_cells(nb):
-        if i >= before_cell:
-            break
-        if tree is None:
-            bad.append(i)
-            continue
-        for node in tree.body:
-            lazy = lazy or (isinstance(node, ast.ImportFrom) and node.module == "__future__"
-                            and any(a.name == "annotations" for a in node.names))
-            stmts.append(analyse(i, src, node, lazy))
-    return stmts, bad
+    """The analysed top-level statements of the code cells before ``before_cell``, and the cells that do not parse.
+
+    The whole notebook is parsed and analysed once (the last few notebooks are kept): every exercise of a notebook
+    takes its prefix, so the grader's work on a notebook is linear in its size, not in its size times its exercises.
+    """
+    stmts, bad = _analysed(nb)
+    return [s for s in stmts if s.cell < before_cell], [i for i in bad if i < before_cell]
+
+
+_ANALYSED: dict[str, tuple[list[Statement], list[int]]] = {}
+
+
+def _analysed(nb) -> tuple[list[Statement], list[int]]:
+    key = hashlib.sha256("\0".join(f"{c.cell_type}\1{c.source}" for c in nb.cells).encode("utf-8", "replace")
+                         ).hexdigest()
+    if key not in _ANALYSED:
+        stmts: list[Statement] = []
+        bad = []
+        lazy = False
+        for i, src, tree in code_cells(nb):
+            if tree is None:
+                bad.append(i)
+                continue
+            for node in tree.body:
+                lazy = lazy or (isinstance(node, ast.ImportFrom) and node.module == "__future__"
+                                and any(a.name == "annotations" for a in node.names))
+                stmts.append(analyse(i, src, node, lazy))
+        while len(_ANALYSED) >= 4:
+            _ANALYSED.pop(next(iter(_ANALYSED)))
+        _ANALYSED[key] = (stmts, bad)
+    return _ANALYSED[key]
 
 
 def _slice(stmts: list[Statement], name: str) -> tuple[set[int], set[str]]:
-    """Indices of the statements ``name`` needs (a backward slice), and the names still unbound before them all."""
+    """Indices of the statements ``name`` needs (a backward slice), and the names still unbound before them all.
+
+    A name is needed at the end (the check calls ``name``, and every function kept may read its free names then) and
+    just before each kept statement that reads it; where it is needed, the statements before that point which bind or
+    change it are kept, back to one that surely rebinds it. Linear: for each name, each statement that touches it is
+    walked over once (a walk stops where an earlier walk of the same name passed), so a chain of thousands of
+    helpers costs thousands of steps, not their square.
+    """
     writers = {s.node.name: s.global_writes for s in stmts if s.is_def and s.global_writes}
-    changes = [s.changes | {n for f in _called_names(s.node) & set(writers) for n in writers[f]} for s in stmts]
-    at_end = {name}
-    while True:
-        live, keep = set(at_end), set()
-        for k in range(len(stmts) - 1, -1, -1):
-            s = stmts[k]
-            if not (s.star or (s.binds | changes[k]) & live):
-                continue
+    touching: dict[str, list[int]] = {}
+    for k, s in enumerate(stmts):
+        changes = s.changes | {n for f in _called_names(s.node) & set(writers) for n in writers[f]}
+        for n in s.binds | changes:
+            touching.setdefault(n, []).append(k)
+    keep: set[int] = set()
+    todo: list[int] = []
+    walked: dict[str, set[int]] = {}
+    at_end: set[str] = set()
+    unbound: set[str] = set()
+
+    def walk(n: str, before: int) -> None:
+        ks, seen = touching.get(n, []), walked.setdefault(n, set())
+        i = bisect.bisect_left(ks, before) - 1
+        while i >= 0:
+            k = ks[i]
+            if k in seen:
+                return
+            seen.add(k)
+            if k not in keep:
+                keep.add(k)
+                todo.append(k)
+            if n in stmts[k].kills:
+                return
+            i -= 1
+        unbound.add(n)
+
+    def need(n: str, before: int) -> None:
+        if n not in at_end:  # a name any kept statement reads is read again when the check calls the function
+            at_end.add(n)
+            walk(n, len(stmts))
+        walk(n, before)
+
+    for k, s in enumerate(stmts):
+        if s.star:  # what it binds is unknown: always kept
             keep.add(k)
-            live -= s.kills
-            live |= s.reads
-        later = set().union(*(stmts[k].reads for k in keep)) if keep else set()
-        if later <= at_end:  # a function's free names are read again when the check calls it
-            return keep, live
-        at_end |= later
+            todo.append(k)
+    need(name, len(stmts))
+    while todo:
+        k = todo.pop()
+        for n in stmts[k].reads:
+            need(n, k)
+    return keep, unbound
 
 
 def extract_exercise(nb, name: str, before_cell: int) -> Extracted | None:

@@ -66,20 +66,22 @@ import atexit
 import contextlib
 import copy
 import importlib
+import math
 import os
 import re
 import secrets
 import shutil
 import tempfile
 import time
+import unicodedata
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import nbformat
 
-from course_lib.checks.core import score_against
-from course_lib.instructor.cgroups import Cgroup
+from course_lib.checks.core import score_against, score_reasons
+from course_lib.instructor.cgroups import HOW_TO_ENABLE, Cgroup
 from course_lib.instructor.extract import extract_exercise
 from course_lib.instructor.hidden import HiddenJob, build_hidden_fixtures, run_hidden, run_reference
 from course_lib.instructor.nbval_run import NbvalRun
@@ -87,12 +89,16 @@ from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ExerciseSpec, Noteboo
 from course_lib.instructor.oracle import earlier_steps
 from course_lib.instructor.placement import Placement, place_exercises, restored
 from course_lib.instructor.plan import release_plan
-from course_lib.instructor.sandbox import container
+from course_lib.instructor.sandbox import container, jail
 from course_lib.instructor.sandbox.jail import IsolationError
 from course_lib.instructor.scan import scan_exercise, scan_notebook
 from course_lib.instructor.settings import (
     DEFAULT_EXERCISE_SECONDS,
     DEFAULT_SUBMISSION_SECONDS,
+    MAX_CELL_NODES,
+    MAX_CODE_BYTES,
+    MAX_CODE_NODES,
+    MAX_NOTEBOOK_BYTES,
     Clock,
     Isolation,
     Limits,
@@ -106,7 +112,7 @@ from course_lib.paths import FIXTURES_DIR, REPO_ROOT
 from course_lib.validate import KitInputError
 
 __all__ = ["HiddenCases", "prepare_hidden", "grade_submission", "preflight", "to_markdown", "HIDDEN_SHARE",
-           "IsolationError"]
+           "IsolationError", "plain_text", "plain_data"]
 
 HIDDEN_SHARE = 0.9  # of an exercise's points: the hidden checks; the rest: nbval verdict (with all hidden passing)
 MAX_FEEDBACK_LINES = 6
@@ -129,6 +135,7 @@ class HiddenCases:
     reference_notes: dict[str, str] = field(default_factory=dict)
     reference_results: dict[str, object] = field(default_factory=dict)  # "notebook::exercise" -> the reference's CheckResult
     reference_seconds: dict[str, float] = field(default_factory=dict)  # "notebook::exercise" -> the reference's time
+    reference_jobs: dict[str, HiddenJob] = field(default_factory=dict)  # to time the reference again, next to a slow run
     library: Path | None = None  # the student release's course_lib + data, imported by the student's processes
 
 
@@ -187,8 +194,10 @@ def prepare_hidden(specs: list[NotebookSpec], salt: int, workdir: Path, notebook
         nb = nbformat.read(Path(notebooks_dir) / s.name, as_version=4)
         for e in s.exercises:
             ex = extract_exercise(nb, e.name, e.check_cell)
-            out = run_reference(HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(fdir), e.reference,
-                                          allow_reference=True))
+            job = HiddenJob(e.name, ex.code, e.check_module, e.check_function, str(fdir), e.reference,
+                            allow_reference=True)
+            cases.reference_jobs[_key(e)] = job
+            out = run_reference(job)
             cases.reference_passing[_key(e)] = out.passing
             if out.result is not None:
                 cases.reference_results[_key(e)] = out.result
@@ -299,11 +308,12 @@ def grade_submission(
     if not insecure:
         preflight(notebooks_dir, limits)  # one line, and no grading, where the sandbox cannot be made or verified
     with _scratch(workdir) as work, _shared_folder() as shared:
-        copy = copy_submission(submission, shared / "submission")
+        copy = copy_submission(submission, shared / "submission", max_total_bytes=(limits or Limits()).submission_bytes)
         hidden = _ready_hidden(hidden, specs, salt, work, notebooks_dir, timeout)
         iso = Isolation.for_grading(hidden.library if not allow_reference else REPO_ROOT,
                                     [work, Path(hidden.fixtures_dir)], notebooks_dir, self_test=allow_reference,
                                     insecure=insecure, limits=limits)
+        iso.scratch = shared
         run = _Run(specs, omitted, hidden, iso, copy, timeout, allow_reference, kit=kit, clock=clock,
                    cgroup=None if insecure else Cgroup.create(iso.limits.submission_memory_bytes,
                                                                4 * iso.limits.processes_total))
@@ -336,27 +346,39 @@ def grade_submission(
         report["isolation"] = {"insecure": bool(insecure), "hidden checks": run.sandbox_seen,
                                "nbval": nbval_run.sandbox if nbval_run else
                                {"note": container.NBVAL_NOTE} if container.enabled() and not insecure else {}}
-        return report
+        return plain_data(report)
 
 
 def preflight(notebooks_dir: Path = NOTEBOOKS_DIR, limits: Limits | None = None) -> None:
-    """Make one sandbox and check it, before anything of a submission is read or run.
+    """Make one sandbox and check it, before anything of a submission is read or run; and make sure that a cgroup can
+    be made for the totals of a submission (unless container mode applies, :func:`~.sandbox.container.enabled`).
 
     Raises:
         IsolationError: it cannot be made or does not check out (one line: what is missing, how to enable it).
     """
+    probe = Cgroup.create(64 << 20, 8)
+    if probe is None and not container.enabled():
+        raise IsolationError(jail.refusal("no cgroup can be made here, so a submission's processes would have no "
+                                          "memory total", HOW_TO_ENABLE))
+    if probe is not None:
+        probe.close()
     with _shared_folder() as lib:  # an empty library: the sandbox itself is what is checked here
         iso = Isolation.for_grading(lib, [], notebooks_dir, limits=limits)
+        iso.scratch = lib
         with StudentProcess(iso, "", "preflight", None, 30.0):
             pass
 
 
 @contextlib.contextmanager
 def _shared_folder():
-    """A folder the students' sandboxes may read (their copy of the submission), outside the grader's scratch."""
-    with tempfile.TemporaryDirectory(prefix="course-grade-submission-") as tmp:
-        os.chmod(tmp, 0o755)
-        yield Path(tmp)
+    """The run's folder, outside the grader's scratch: the grader's copy of the submission (which the students'
+    sandboxes show read-only) and each student's process's own folder; only the grader and the student's uid may
+    enter it (:func:`~.sandbox.jail.private_folder`), and it is removed at the end, whatever ended inside it."""
+    tmp = jail.private_folder("course-grade-submission-")
+    try:
+        yield tmp
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _ready_hidden(hidden: HiddenCases | None, specs: list[NotebookSpec], salt: int | None, work: Path,
@@ -407,9 +429,25 @@ def _plan_notebook(run: _Run, s: NotebookSpec, path: Path) -> None:
         why = [(None, f"{s.name} is missing from the submission ({left_out[0]})")] if left_out else []
         run.plans.append((s, None, {}, why))
         return
+    size = path.stat().st_size
+    if size > MAX_NOTEBOOK_BYTES:
+        run.plans.append((s, None, {}, [(None, f"{s.name} is {size / 2**20:.0f} MiB, more than the grader reads "
+                                               f"({MAX_NOTEBOOK_BYTES >> 20} MiB): clear its outputs and submit it "
+                                               "again")]))
+        return
     try:
         nb = nbformat.read(path, as_version=4)
-        notes = _unparseable_cells(nb)
+        code = sum(len(c.source.encode("utf-8", "replace")) for c in nb.cells if c.cell_type == "code")
+        if code > MAX_CODE_BYTES:
+            run.plans.append((s, None, {}, [(None, f"the code cells of {s.name} hold {code / 1024:.0f} KiB of source, "
+                                                   f"more than the grader reads ({MAX_CODE_BYTES >> 10} KiB); none of "
+                                                   "it was graded")]))
+            return
+        notes, nodes = _unparseable_cells(nb)
+        if nodes > MAX_CODE_NODES:
+            run.plans.append((s, None, {}, [(None, f"the code cells of {s.name} hold {nodes} syntax-tree nodes, more "
+                                                   f"than the grader reads ({MAX_CODE_NODES}); none of it was graded")]))
+            return
         places = place_exercises(nb, s)
         intact = {p.check_cell for p in places.values() if p.check_state == "intact"}
         tamper = scan_notebook(nb, intact, {e.check_function for e in s.exercises}, [e.verdict for e in s.exercises])
@@ -421,25 +459,32 @@ def _plan_notebook(run: _Run, s: NotebookSpec, path: Path) -> None:
     run.to_nbval[s.name] = nbv
 
 
-def _unparseable_cells(nb) -> list:
-    """Turn cells that ``ast`` cannot take apart (nested too deeply: RecursionError) into syntax errors, with a note.
+def _unparseable_cells(nb) -> tuple[list, int]:
+    """Turn cells that ``ast`` cannot take apart (nested too deeply: RecursionError) into syntax errors, with a note;
+    and count the syntax-tree nodes of the others (the grader's work on the notebook is linear in them).
 
     Such a cell is then graded like a cell with a syntax error (its exercise: "not valid Python").
     """
-    notes = []
+    notes, nodes = [], 0
     for i, cell in enumerate(nb.cells):
         if cell.cell_type != "code":
             continue
         try:
-            compile(python_source(cell.source), f"<cell {i}>", "exec", ast.PyCF_ONLY_AST)
+            tree = compile(python_source(cell.source), f"<cell {i}>", "exec", ast.PyCF_ONLY_AST)
+            count = sum(1 for _ in ast.walk(tree))
+            if count > MAX_CELL_NODES:
+                raise OverflowError(f"{count} syntax-tree nodes, more than the grader reads in one cell "
+                                    f"({MAX_CELL_NODES})")
+            nodes += count
         except SyntaxError:
             continue
-        except Exception as exc:  # noqa: BLE001 - RecursionError, MemoryError, ValueError (null bytes)
+        except Exception as exc:  # noqa: BLE001 - RecursionError, MemoryError, ValueError (null bytes), OverflowError
             heads = [ln for ln in cell.source.splitlines() if re.match(r"\s*(def|class) \w+", ln)]
             cell.source = "\n".join(heads[:20] + [f"<not parsed by the grader: {type(exc).__name__}>"])
-            notes.append((i, f"the grader cannot parse this cell ({type(exc).__name__}: statements nested too "
-                             "deeply or too large); it counts as a syntax error"))
-    return notes
+            why = str(exc) if isinstance(exc, OverflowError) else "statements nested too deeply or too large"
+            notes.append((i, f"the grader cannot parse this cell ({type(exc).__name__}: {why}); it counts as a "
+                             "syntax error"))
+    return notes, nodes
 
 
 def _exc_text(exc: BaseException) -> str:
@@ -666,8 +711,10 @@ def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, run: _Run, steps: dict[
     elif frac >= 1:
         g.feedback.append(f"all {len(ref)} hidden checks pass")
     else:
+        why = score_reasons(out.result, reference) if reference is not None else []
         g.feedback.append(f"{matched} of {len(ref)} hidden checks pass (new synthetic cases), "
-                          f"{frac * 100:.0f} % of the hidden-check points. What failed:")
+                          f"{frac * 100:.0f} % of the hidden-check points"
+                          + (f" ({'; '.join(why)}: the scoring rule, README)" if why else "") + ". What failed:")
         fails = out.failing or [f"{ln}: not passed" for ln in sorted((Counter(ref) - Counter(out.passing)))]
         g.feedback += [f"✘ {ln}" for ln in fails[:MAX_FEEDBACK_LINES]]
         missing = _not_run(out.result, reference)
@@ -676,14 +723,40 @@ def _grade_hidden(g: ExerciseGrade, e: ExerciseSpec, ex, run: _Run, steps: dict[
                               "they count as failed")
         if len(fails) > MAX_FEEDBACK_LINES:
             g.feedback.append(f"... and {len(fails) - MAX_FEEDBACK_LINES} more")
-    slow = max(SLOW_NOTE_SECONDS, 10 * hidden.reference_seconds.get(_key(e), 0.0) + 5)
-    if out.seconds > slow:
-        g.feedback.append(f"note: correct answers are graded however long they take within {budget:g} s, but your "
-                          f"{e.name} is slow: its hidden checks took {out.seconds:.0f} s, the reference's "
-                          f"{hidden.reference_seconds.get(_key(e), 0.0):.1g} s ({_SLOW_HINTS.get(e.name, _SLOW_HINT)})")
+    slow = _slowness(hidden, e, out.seconds)
+    if slow:
+        g.feedback.append(f"note: correct answers earn their points however long they take within the time limit, "
+                          f"but your {e.name} is slow: {slow} ({_SLOW_HINTS.get(e.name, _SLOW_HINT)})")
     if _key(e) in hidden.reference_notes:
         g.feedback.append("note: " + hidden.reference_notes[_key(e)])
     return out.sandbox
+
+
+#: A note on speed only when the student's hidden checks take this many times as long as the reference's, both
+#: timed one after the other on the same machine (so the note does not depend on the machine or its load).
+SLOW_RATIO = 10.0
+
+
+def _slowness(hidden: HiddenCases, e: ExerciseSpec, seconds: float) -> str | None:
+    """A machine-independent note on a slow exercise, or None.
+
+    A wall time beyond ``SLOW_NOTE_SECONDS`` and 10x the reference's calibration run only selects the candidates;
+    the note itself compares with the reference timed again *right after* the student's run, on the same hidden
+    cases and machine, and says the ratio (rounded to a coarse step) without seconds: a busy machine slows both.
+    """
+    ref0 = hidden.reference_seconds.get(_key(e), 0.0)
+    job = hidden.reference_jobs.get(_key(e))
+    if seconds <= max(SLOW_NOTE_SECONDS, 10 * ref0 + 5) or job is None:
+        return None
+    now = run_reference(job)
+    if now.status != "ok" or now.seconds <= 0:
+        return None
+    ratio = seconds / max(now.seconds, 0.05)
+    if ratio < SLOW_RATIO:
+        return None
+    step = 10.0 ** math.floor(math.log10(ratio))
+    return (f"its hidden checks took about {math.floor(ratio / step) * step:g} times as long as the reference's on the "
+            "same cases, timed one after the other on the same machine")
 
 
 #: What usually makes an exercise slow: Python loops where numpy works on all rows at once.
@@ -709,16 +782,57 @@ def _short(text: str, n: int = 160) -> str:
 
 
 def _cap(text: str, n: int = MAX_MESSAGE_CHARS) -> str:
-    """``text`` on one line, without control characters, at most ``n`` characters (student text is data)."""
-    text = _CONTROL.sub(" ", str(text))
-    text = " ".join(text.split())
+    """``text`` on one line, plain (:func:`plain_text`), at most ``n`` characters (student text is data)."""
+    text = " ".join(plain_text(str(text)).split())
     return text if len(text) <= n else text[: n - 30] + f" ... ({len(text) - n + 30} characters left out)"
 
 
-#: Control characters, ANSI escapes, and the Unicode characters that reorder or hide text (bidi overrides,
-#: zero-width joiners): never shown from a student's text.
-_CONTROL = re.compile(r"\x1b\[[0-9;?]*[ -/]*[@-~]|[\x00-\x08\x0b-\x1f\x7f-\x9f\u200b-\u200f\u202a-\u202e"
-                      r"\u2060-\u2069\ufeff]")
+#: ANSI escape sequences (removed whole, so that no "[31m" is left behind).
+_ANSI = re.compile(r"\x1b\[[0-9;?]*[ -/]*[@-~]|\x1b[@-_]")
+#: Categories never shown from a student's text: controls, format characters (bidi marks and overrides, zero-width
+#: joiners, the soft hyphen, U+061C, U+206A-F, U+FFF9-B, the tag characters U+E0000-E007F that spell hidden text),
+#: surrogates, private use, unassigned code points, line and paragraph separators.
+_HIDDEN_CATEGORIES = {"Cc", "Cf", "Cs", "Co", "Cn", "Zl", "Zp"}
+#: Variation selectors (invisible, and a known way to smuggle bytes behind a visible character).
+_SELECTORS = ((0xFE00, 0xFE0F), (0xE0100, 0xE01EF), (0x180B, 0x180F))
+
+
+def _hidden_char(c: str) -> bool:
+    o = ord(c)
+    return unicodedata.category(c) in _HIDDEN_CATEGORIES or any(a <= o <= b for a, b in _SELECTORS)
+
+
+def plain_text(text: str) -> str:
+    """``text`` as plain data: ANSI escapes removed; every control, format (bidi, zero-width, soft hyphen, tag
+    characters), surrogate, private-use, unassigned or separator character and variation selector written as its
+    escape (``\\u202e``); tabs and newlines kept. The one sanitiser of everything the report and the feedback show."""
+    text = _ANSI.sub("", text)
+    if text.isascii():
+        return _ASCII_CONTROL.sub(_escape, text)
+    return "".join(_escape_char(c) if c not in "\t\n" and _hidden_char(c) else c for c in text)
+
+
+_ASCII_CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f]")
+
+
+def _escape(m: re.Match) -> str:
+    return _escape_char(m.group())
+
+
+def _escape_char(c: str) -> str:
+    o = ord(c)
+    return f"\\x{o:02x}" if o < 0x100 else (f"\\u{o:04x}" if o < 0x10000 else f"\\U{o:08x}")
+
+
+def plain_data(obj):
+    """``obj`` (a report: dicts, lists, strings, numbers) with every string, keys included, made :func:`plain_text`."""
+    if isinstance(obj, str):
+        return plain_text(obj)
+    if isinstance(obj, dict):
+        return {plain_data(k): plain_data(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [plain_data(v) for v in obj]
+    return obj
 
 
 def _report(grades: list[ExerciseGrade], hidden: HiddenCases, seconds: float, allow_reference: bool) -> dict:
@@ -748,6 +862,7 @@ def to_markdown(report: dict) -> str:
     :data:`MAX_MESSAGE_CHARS` characters and :data:`MAX_MESSAGES` per exercise; the whole feedback stays under
     :data:`MAX_FEEDBACK_BYTES` (the details of the last exercises are left out, saying so, past it).
     """
+    report = plain_data(report)
     head = ["# Grading feedback", "", f"**Total: {report['total']:g} / {report['max']:g} points**", ""]
     if report.get("insecure"):
         head += ["**Graded with `--insecure`: your code ran without the grader's sandbox (a trusted local run).**", ""]

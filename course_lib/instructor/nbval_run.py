@@ -5,7 +5,9 @@ with the student release's ``course_lib`` first on ``PYTHONPATH``, in the sandbo
 :mod:`course_lib.instructor.sandbox.jail` (checked before the notebook runs, like every student's
 process), in a cgroup of its own inside the submission's. pytest reads no configuration and no
 ``conftest.py`` of the submission (``-c /dev/null --noconftest``), no module of the notebooks' folder
-can stand in for pytest's own (``python -P``), and its junit report goes through a pipe that only the
+can stand in for pytest's own or the kernel's (both ``python -P``: the kernel imports nothing from the
+submission), HOME, IPYTHONDIR and Jupyter's folders lie outside the submission's copy (no start-up file or
+configuration of the student's is read), and its junit report goes through a pipe that only the
 (undumpable) pytest and the launcher hold (:func:`course_lib.instructor.sandbox.server.launch`).
 
 **One clock.** A notebook gets :func:`course_lib.instructor.settings.nbval_seconds` for all its runs
@@ -21,7 +23,6 @@ import select
 import shutil
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 import xml.etree.ElementTree as ET
@@ -110,9 +111,8 @@ class NbvalRun:
     def _one(self, name: str, nb, end: float) -> tuple[dict[tuple[str, int], str], str]:
         """Run one notebook; after a cell that timed out (nbval skips the rest), run the rest again, while time is
         left (``end``)."""
-        tmp = Path(tempfile.mkdtemp(prefix="course-nbval-"))
+        tmp = jail.private_folder("course-nbval-", self.iso.scratch)
         try:
-            os.chmod(tmp, 0o755)
             seed = tmp / "seed"  # the submission's copy with only the notebook under test, restored by the grader
             shutil.copytree(self.submission, seed, ignore=_other_notebooks(self.submission), symlinks=False)
             (seed / "notebooks").mkdir(exist_ok=True)
@@ -238,11 +238,15 @@ class NbvalRun:
                 "--nbval-current-env", f"--nbval-cell-timeout={int(self.cell_timeout)}", f"--junitxml={junit}", name]
 
     def _env(self, work: str) -> dict:
-        home = Path(work) / ".home"
+        """The notebook's environment: HOME, IPYTHONDIR and Jupyter's folders outside the working copy of the
+        submission (in the sandbox: fresh folders of its tmpfs), so that no start-up file or configuration of the
+        submission is read by the kernel."""
+        home = Path(work).parent / "home"
         env = {k: v for k, v in os.environ.items() if k in ("PATH", "LANG", "LC_ALL", "TZ")}
         env.update(COURSE_LIB_QUICK="1", PYTHONDONTWRITEBYTECODE="1", PYTHONPATH=str(self.iso.library),
                    HOME=str(home), JUPYTER_RUNTIME_DIR=str(home / "runtime"), JUPYTER_DATA_DIR=str(home / "data"),
                    IPYTHONDIR=str(home / "ipython"), MPLCONFIGDIR=str(home / "mpl"), MPLBACKEND="Agg", TMPDIR="/tmp",
+                   JUPYTER_CONFIG_DIR=str(home / "jupyter"), JUPYTER_CONFIG_PATH="", JUPYTER_PATH="",
                    OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONNOUSERSITE="1")
         if os.environ.get("COURSE_DATA"):
             env["COURSE_DATA"] = os.environ["COURSE_DATA"]

@@ -81,12 +81,25 @@ def sha256(text: str | bytes) -> str:
     return hashlib.sha256(text.encode() if isinstance(text, str) else text).hexdigest()
 
 
+#: Magics that run the Python code that follows them (``%time x = f()``, ``%%timeit`` over the cell): their code is
+#: parsed and scanned like any other line.
+TIMING_MAGICS = ("%time ", "%timeit ", "%%time", "%%timeit")
+
+
 def python_source(source: str) -> str:
-    """Cell source with IPython magics and shell lines turned into ``pass`` (so ``ast`` can parse it)."""
+    """Cell source as ``ast`` can parse it: the code after a timing magic kept (and scanned), every other IPython magic
+    and shell line turned into ``pass`` (:func:`course_lib.instructor.scan.scan_notebook` names each of those)."""
     out = []
     for line in source.splitlines():
         s = line.lstrip()
-        out.append(line[: len(line) - len(s)] + "pass  # " + s if s.startswith(("%", "!")) else line)
+        indent = line[: len(line) - len(s)]
+        timing = next((m for m in TIMING_MAGICS if s.startswith(m) and not s.startswith("%%") or s.split()[:1] == [m]),
+                      None)
+        if timing and not timing.startswith("%%"):
+            line = indent + s[len(timing):].lstrip()
+        elif s.startswith(("%", "!")):
+            line = indent + "pass  # " + s
+        out.append(line)
     return "\n".join(out)
 
 

@@ -14,8 +14,8 @@
   modules that the kit itself builds on (the NeRF trainer imports :mod:`course_lib.nerf.render`)
   are shipped *redacted*: their exercise functions are replaced by a stand-in that calls the
   student's own function of the same name (:mod:`course_lib.saved_solutions`).
-* ``data/`` (the embedded scenes and the fixtures behind the check cells), ``environment.txt``,
-  ``conftest.py``, a ``pyproject.toml`` whose pytest runs the notebooks, a ``README.md`` for
+* ``data/`` (the embedded scenes and the fixtures behind the check cells), an ``environment.txt`` with
+  the pins the student kit uses (:func:`student_environment`), ``conftest.py``, a ``pyproject.toml`` whose pytest runs the notebooks, a ``README.md`` for
   students, and ``RELEASE_MANIFEST.json`` (exercises, their check cells, reference verdicts,
   points, and the SHA-256 of every released file).
 
@@ -40,6 +40,7 @@ from pathlib import Path
 import nbformat
 
 from course_lib import __version__
+from course_lib.checks.core import SCORING_RULE
 from course_lib.instructor.notebooks import (
     CHECK_MARK,
     NOTEBOOKS_DIR,
@@ -62,10 +63,90 @@ from course_lib.instructor.plan import (
 )
 from course_lib.paths import REPO_ROOT
 
-__all__ = ["stub_source", "stub_notebook", "student_readme", "write_release", "release_files", "verify_release"]
+__all__ = ["stub_source", "stub_notebook", "student_readme", "student_environment", "write_release", "release_files",
+           "verify_release"]
 
-#: Top-level files copied as they are, when present.
-COPIED_FILES = ("environment.txt", "conftest.py")
+#: Top-level files copied as they are, when present (``environment.txt`` is rewritten: :func:`student_environment`).
+COPIED_FILES = ("conftest.py",)
+
+#: Pinned tools the student kit uses without importing them, and the text of the kit that uses them
+#: (:func:`student_environment` keeps them; ``release --verify`` checks that the text is there).
+STUDENT_TOOLS = {
+    "jupyterlab": ("README.md", "jupyter lab"),
+    "ipykernel": ("README.md", "jupyter lab"),
+    "nbval": ("pyproject.toml", "--nbval-lax"),
+    "pytest": ("README.md", "pytest"),
+    "nbformat": ("pyproject.toml", "--nbval-lax"),
+    "nbclient": ("pyproject.toml", "--nbval-lax"),
+}
+#: Import names of the pinned distributions whose import name differs from the distribution's.
+IMPORT_NAMES = {"opencv-python-headless": "cv2", "opencv-python": "cv2", "scikit-image": "skimage", "pillow": "PIL"}
+
+STUDENT_ENV_HEADER = """\
+# Requirements of the student kit: pip install -r environment.txt (README.md, "Set up").
+# torch is pinned; from PyPI on Linux even the pinned torch is the CUDA build (gigabytes of NVIDIA packages):
+# README.md, "Set up", gives the CPU-only route (PyTorch's CPU wheel index) for a machine without an NVIDIA GPU.
+"""
+
+
+def requirement_name(line: str) -> str | None:
+    """The distribution a requirement line pins (``"torch"`` for ``torch==2.13.0``), None for ``-e .`` and comments."""
+    line = line.split("#", 1)[0].strip()
+    if not line or line.startswith("-"):
+        return None
+    for sep in ("==", ">=", "<=", "~=", "[", ";", "<", ">", " "):
+        line = line.split(sep, 1)[0]
+    return line.strip().lower() or None
+
+
+def student_environment(text: str, imported: set[str]) -> str:
+    """The student kit's ``environment.txt``: the kit's pins that the student kit uses, with their comments.
+
+    A pin is kept when the release imports its package (``imported``: top-level import names of its
+    code and notebooks) or it is one of :data:`STUDENT_TOOLS`; a pin for the instructor's tests or
+    benchmarks (pycolmap, playwright) is dropped with the comment lines just above it. The header is
+    :data:`STUDENT_ENV_HEADER`, written for the student kit.
+    """
+    out, comments, started = [], [], False
+    for line in text.splitlines():
+        stripped = line.strip()
+        if stripped.startswith("#") or not stripped:
+            if started:
+                comments.append(line)
+            continue
+        started = True
+        name = requirement_name(line)
+        keep = name is None or name in STUDENT_TOOLS or IMPORT_NAMES.get(name, name.replace("-", "_")) in imported
+        if keep:
+            out += comments + [line]
+        comments = []
+    return STUDENT_ENV_HEADER + "\n".join(out) + "\n"
+
+
+def imported_packages(files: dict[str, bytes]) -> set[str]:
+    """Top-level names imported by the ``.py`` files and notebook code cells among ``files``."""
+    import ast
+
+    sources = []
+    for rel, data in files.items():
+        if rel.endswith(".py"):
+            sources.append(data.decode())
+        elif rel.endswith(".ipynb"):
+            nb = nbformat.reads(data.decode(), as_version=4)
+            sources += ["\n".join(ln for ln in c.source.splitlines() if not ln.lstrip().startswith(("%", "!")))
+                        for c in nb.cells if c.cell_type == "code"]
+    names: set[str] = set()
+    for src in sources:
+        try:
+            tree = ast.parse(src)
+        except SyntaxError:
+            continue
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                names |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                names.add(node.module.split(".")[0])
+    return names
 
 
 # ---------------------------------------------------------------------------------------------
@@ -142,6 +223,15 @@ solutions/
 """
 
 
+def _torch_pin() -> str:
+    """The torch version that the kit's ``environment.txt`` pins (for the README's CPU-only route)."""
+    env = REPO_ROOT / "environment.txt"
+    for line in env.read_text().splitlines() if env.exists() else []:
+        if requirement_name(line) == "torch" and "==" in line:
+            return line.split("==", 1)[1].split("#", 1)[0].strip()
+    return "2.13.0"
+
+
 def student_readme(specs: list[NotebookSpec], plan: ReleasePlan) -> str:
     rows = []
     for s in specs:
@@ -167,21 +257,38 @@ If a cell stops with `NotImplementedError: get_rays is an exercise of notebooks/
 that exercise in the notebook it names and run its cell, then run the cell that stopped again.
 `solutions/` is made from your notebooks (git ignores it); the grader grades the notebooks.
 """
-    n_nb = sum(1 for s in specs if s.exercises)
+    shipped = [s for s in specs if s.name not in plan.left_out_notebooks]
+    n_ex = sum(1 for s in shipped if s.exercises)
+    optional = [s.name.split("_")[0] for s in shipped if not s.exercises]
+    extra = (f" ({n_ex} with exercises; {', '.join(optional)}: optional lessons without exercises)" if optional else "")
     return f"""# SfM + NeRF course kit: student release
 
-{n_nb} notebooks take you from two photos to a 3-D reconstruction (Structure from Motion) and then
-to a neural radiance field (NeRF). In each notebook you write a few functions; a **check cell**
-after each exercise runs your function on test cases and prints what is right and, when something
-is wrong, the likely mistake.
+{len(shipped)} notebooks{extra} take you from two photos to a 3-D reconstruction (Structure from Motion)
+and then to a neural radiance field (NeRF). In each notebook with exercises you write a few
+functions; a **check cell** after each exercise runs your function on test cases and prints what is
+right and, when something is wrong, the likely mistake or the property that fails.
 
 ## Set up (once)
 
+Python 3.10 or newer:
+
 ```bash
 python -m venv .venv && . .venv/bin/activate
-pip install -r environment.txt && pip install -e .
+pip install -r environment.txt
 jupyter lab notebooks/
 ```
+
+`environment.txt` pins every package and installs this kit's `course_lib` (editable). The kit runs
+on a laptop CPU; no GPU is needed. **PyTorch on Linux:** PyPI's `torch` is the CUDA build, which
+pulls gigabytes of NVIDIA packages. On a machine without an NVIDIA GPU, install the CPU-only build
+from PyTorch's CPU wheel index first (a few hundred MB), then the rest:
+
+```bash
+pip install torch=={_torch_pin()} --index-url https://download.pytorch.org/whl/cpu
+pip install -r environment.txt
+```
+
+(macOS and Windows wheels on PyPI are CPU builds already.)
 
 ## Work on an exercise
 
@@ -191,8 +298,10 @@ jupyter lab notebooks/
 3. Run the check cell below it (`# NBVAL_CHECK_OUTPUT`). It prints ✔ for each passing check and
    ✘ with a hint otherwise. Do not edit check cells: the grader restores them and compares
    their output with the reference.
-4. Every notebook starts from the reference result of the step before, so you can do them in any
-   order.
+4. Every exercise's check cell starts from the reference result of the step before, so a step you
+   are stuck on does not block the check of the next. The kit's own engines are another matter:
+   the SfM pipeline (notebooks 05 and 10) and the NeRF trainer and renderer (08-10) run *your*
+   earlier functions (see "Your solutions travel with you"), so do the notebooks in order.
 
 ## Check your whole kit
 
@@ -215,14 +324,15 @@ print the reference verdict) and, independently, runs each exercise function on 
 cases (new synthetic scenes) with a time limit, in a separate process that holds your code and this
 kit's `course_lib` only, works in a copy of your folder, has no network and may write only there.
 A function that loops is stopped at the limit and one that ends its process is named in the
-feedback; either costs that exercise only. Per exercise, 90 % of the points come from the
-hidden checks (the share of them that pass); the last 10 % come when all hidden checks pass and
-the check cell in your notebook prints the reference verdict (run it top to bottom before you
-hand in). There is no credit for an exercise that calls the kit's reference solution,
-whose check cell was edited or printed by hand, whose checks were patched, or whose cell was
-deleted or moved. Write your own code in the exercise cells; helper functions and imports in the
-notebook are fine.
-{carry}
+feedback; either costs that exercise only. There is no credit for an exercise that calls the kit's
+reference solution, whose check cell was edited or printed by hand, whose checks were patched, or
+whose cell was deleted or moved. Write your own code in the exercise cells; helper functions and
+imports in the notebook are fine.
+
+**The scoring rule** (the grader's feedback, and the `scoring:` line of a check cell that fails, say
+which part of it cost points):
+
+{SCORING_RULE}{carry}
 ## Data
 
 `data/synthetic-building` (SfM) and `data/synthetic-building-nerf` (NeRF) are small scenes with
@@ -304,6 +414,9 @@ def release_files(notebooks_dir: Path = NOTEBOOKS_DIR) -> dict[str, bytes]:
     for name in COPIED_FILES:
         if (REPO_ROOT / name).exists():
             files[name] = (REPO_ROOT / name).read_bytes()
+    if (REPO_ROOT / "environment.txt").exists():
+        files["environment.txt"] = student_environment((REPO_ROOT / "environment.txt").read_text(),
+                                                       imported_packages(files)).encode()
 
     files["pyproject.toml"] = STUDENT_PYPROJECT.format(version=__version__).encode()
     files[".gitignore"] = STUDENT_GITIGNORE.encode()

@@ -30,7 +30,13 @@ from pathlib import Path
 
 import nbformat
 
-__all__ = ["text_references", "dangling_references"]
+__all__ = ["text_references", "dangling_references", "student_texts", "internal_references", "false_claims",
+           "INTERNAL"]
+
+#: Text that belongs to the kit's development, not to a student: issue numbers, dates, who measured what.
+INTERNAL = re.compile(
+    r"\bissues?\s*#?\d+|#\d+'s\b|\((?:H|helper )\d{1,3}(?:\)|, (?![WH]\d?\b))|\bH\d{1,3}, (?:20\d\d|several|one|two)\b"
+    r"|\b20\d\d-[01]\d-[0-3]\d\b|\b(?:this|last|previous|earlier|next) session\b", re.IGNORECASE)
 
 _DOTTED = re.compile(r"(?<![\w/.])course_lib(?:\.\w+)+")
 _PATH = re.compile(r"(?<![\w/.])(?:course_lib|notebooks|data|docs|benchmarks|tests|templates)/[\w./-]*\w")
@@ -66,7 +72,8 @@ def text_references(out_dir: Path) -> list[dict]:
     """What the kit's texts point at: ``[{"where", "kind", "ref", "module"}]``.
 
     Texts: the notebooks' markdown cells and their code cells' docstrings and comments, the
-    ``README.md``, and the docstrings of every module of the kit's ``course_lib``. ``kind`` is
+    ``README.md``, the comments of ``environment.txt``, the ``.md``/``.txt`` files of ``course_lib``,
+    and the docstrings of every module of the kit's ``course_lib``. ``kind`` is
     ``"dotted"``, ``"path"``, ``"short"`` or ``"name"``; ``module`` is the module whose docstring
     holds a ``"name"`` reference.
     """
@@ -82,6 +89,11 @@ def text_references(out_dir: Path) -> list[dict]:
                     texts.append((f"notebooks/{p.name}, cell {i}, line {line}", None, text))
     if (out_dir / "README.md").exists():
         texts.append(("README.md", None, (out_dir / "README.md").read_text()))
+    if (out_dir / "environment.txt").exists():  # its comments, one paragraph per block
+        lines = (out_dir / "environment.txt").read_text().splitlines()
+        texts.append(("environment.txt", None, "\n".join(ln.lstrip("# ") if ln.startswith("#") else "" for ln in lines)))
+    for p in sorted(q for q in (out_dir / "course_lib").rglob("*") if q.suffix in (".md", ".txt")):
+        texts.append((str(p.relative_to(out_dir)), None, p.read_text()))
     for p in sorted((out_dir / "course_lib").rglob("*.py")):
         rel = p.relative_to(out_dir)
         mod = ".".join(rel.with_suffix("").parts).removesuffix(".__init__")
@@ -215,3 +227,85 @@ def dangling_references(out_dir: Path) -> list[str]:
     for r in json.loads(res.stdout.strip().splitlines()[-1]):
         problems.append(f"{r['where']}: names {r['ref']}, which the kit does not have")
     return sorted(set(problems))
+
+
+def student_texts(root: Path, readme: str = "README.md") -> list[tuple[str, str]]:
+    """``(where, text)`` of everything a student reads in a kit at ``root`` (a release or the instructor's repo).
+
+    The notebooks' markdown, code and text outputs (the verdicts and prints they show), ``README.md``,
+    ``environment.txt``, ``docs/mistakes.md`` where present, the ``.md``/``.txt`` files of ``course_lib``
+    and the docstrings and comments of its modules (not :mod:`course_lib.instructor`, which never ships).
+    """
+    root = Path(root)
+    out: list[tuple[str, str]] = []
+    for p in sorted((root / "notebooks").glob("*.ipynb")):
+        nb = nbformat.read(p, as_version=4)
+        for i, cell in enumerate(nb.cells):
+            out.append((f"notebooks/{p.name}, cell {i}", cell.source))
+            for o in cell.get("outputs", []):
+                text = o.get("text") or (o.get("data") or {}).get("text/plain") or o.get("evalue") or ""
+                out.append((f"notebooks/{p.name}, cell {i} (output)", text if isinstance(text, str) else "".join(text)))
+    for name in (readme, "environment.txt", "docs/mistakes.md"):
+        if (root / name).exists():
+            out.append((name, (root / name).read_text()))
+    for p in sorted((root / "course_lib").rglob("*")):
+        rel = p.relative_to(root)
+        if "instructor" in rel.parts or p.suffix not in (".py", ".md", ".txt"):
+            continue
+        if p.suffix == ".py":
+            src = p.read_text()
+            out += [(f"{rel}, line {ln}", t) for ln, t in _docstrings(src) + _comments(src)]
+        else:
+            out.append((str(rel), p.read_text()))
+    return out
+
+
+def internal_references(root: Path, readme: str = "README.md") -> list[str]:
+    """Where a student-read text of the kit at ``root`` cites the kit's development (:data:`INTERNAL`), one line each."""
+    found = []
+    for where, text in student_texts(root, readme):
+        for m in INTERNAL.finditer(text):
+            a, b = max(0, m.start() - 40), min(len(text), m.end() + 40)
+            found.append(f"{where}: '{m.group(0)}' in ...{' '.join(text[a:b].split())}...")
+    return found
+
+
+_NUMBER_WORDS = {w: i for i, w in enumerate("zero one two three four five six seven eight nine ten eleven twelve".split())}
+
+
+def false_claims(out_dir: Path) -> list[str]:
+    """What the release's README and environment.txt say about the release that is not so, one line each.
+
+    * "N notebooks" in ``README.md``: N is the number of notebooks the kit ships;
+    * every pin of ``environment.txt`` is used: its package is imported by the kit's code or notebooks, or it
+      is a tool the kit's README or pyproject uses (:data:`course_lib.instructor.release.STUDENT_TOOLS`);
+    * no development text (:func:`internal_references`) in anything a student reads.
+    """
+    from course_lib.instructor.release import IMPORT_NAMES, STUDENT_TOOLS, imported_packages, requirement_name
+
+    out_dir = Path(out_dir)
+    problems = []
+    n_nb = len(list((out_dir / "notebooks").glob("*.ipynb")))
+    readme = (out_dir / "README.md").read_text() if (out_dir / "README.md").exists() else ""
+    for m in re.finditer(r"\b(\d+|" + "|".join(_NUMBER_WORDS) + r")\s+(?:\w+\s+)?notebooks\b", readme, re.IGNORECASE):
+        said = m.group(1).lower()
+        n = int(said) if said.isdigit() else _NUMBER_WORDS[said]
+        if n != n_nb:
+            problems.append(f"README.md: says '{m.group(0)}', the kit ships {n_nb} notebooks")
+    files = {str(p.relative_to(out_dir)): p.read_bytes() for p in out_dir.rglob("*")
+             if p.is_file() and p.suffix in (".py", ".ipynb") and ".venv" not in p.parts}
+    imported = imported_packages(files)
+    env = out_dir / "environment.txt"
+    for line in env.read_text().splitlines() if env.exists() else []:
+        name = requirement_name(line)
+        if name is None:
+            continue
+        if name in STUDENT_TOOLS:
+            where, needle = STUDENT_TOOLS[name]
+            ok = (out_dir / where).exists() and needle in (out_dir / where).read_text()
+        else:
+            ok = IMPORT_NAMES.get(name, name.replace("-", "_")) in imported
+        if not ok:
+            problems.append(f"environment.txt: pins {name}, which nothing in the kit uses")
+    problems += internal_references(out_dir)
+    return problems

@@ -8,8 +8,10 @@ credit however it runs:
   kit leaves out, or the graded exercise's own reference), the check machinery or the instructor
   package, or uses dynamic tricks that could reach them (``exec``, ``__import__``, ``importlib``,
   ``sys``, ``gc``, ``inspect``, dunder attributes such as ``__globals__``...);
-* :func:`scan_notebook`: a notebook that patches or rebinds the checks, prints verdicts by hand
-  or swaps ``print``.
+* :func:`scan_notebook`: a notebook that patches or rebinds the checks, prints verdicts by hand,
+  swaps ``print`` or the interpreter's output (under any name: ``import sys as s``), or runs code the
+  grader cannot read (``%run``, ``%load``, ``%%capture``, ``!cmd``, ``get_ipython()``): it reads the code
+  IPython runs for each cell (:func:`as_ipython_runs`), not the cell with its magics left out.
 """
 
 from __future__ import annotations
@@ -19,9 +21,8 @@ import re
 
 from course_lib.exercises import EXERCISES
 from course_lib.instructor.notebooks import resolve_import
-from course_lib.instructor.extract import code_cells
 
-__all__ = ["scan_exercise", "scan_notebook", "FORBIDDEN_MODULES", "FORBIDDEN_CALLS"]
+__all__ = ["scan_exercise", "scan_notebook", "as_ipython_runs", "FORBIDDEN_MODULES", "FORBIDDEN_CALLS"]
 
 #: Modules exercise code may not import (they reach the interpreter, the files or the checks).
 FORBIDDEN_MODULES = {
@@ -158,6 +159,67 @@ def _reached_by_name(tree: ast.Module, aliases: dict[str, str], reference: str |
     return found
 
 
+#: Modules whose attributes a notebook may not assign to (the interpreter's output, the kernel), under any name.
+INTERPRETER_MODULES = {"sys", "builtins", "IPython", "ipykernel"}
+#: IPython commands a notebook may use (``%matplotlib inline``, ``%time``...): the code of a timing magic is scanned
+#: like the cell's own; every other magic, shell command or call of the shell (``%run``, ``%load``, ``%%capture``,
+#: ``!cmd``, ``get_ipython()...``) runs code the grader cannot read before nbval, and is named.
+ALLOWED_MAGICS = {"matplotlib", "time", "timeit", "pinfo", "pinfo2", "autoreload"}
+_TIMING = {"time", "timeit"}
+
+
+def as_ipython_runs(source: str) -> tuple[list[ast.Module], list[str]]:
+    """The code IPython runs for a cell (its own transformation of magics, shell lines and escapes), as trees to scan
+    (the cell's, and the code inside its timing magics), and the reasons against its other IPython commands.
+
+    A cell that does not parse after IPython's transformation does not run under nbval either (a syntax error)."""
+    from IPython.core.inputtransformer2 import TransformerManager
+
+    try:
+        tree = ast.parse(TransformerManager().transform_cell(source))
+    except (SyntaxError, ValueError, RecursionError, MemoryError, IndexError):
+        return [], []
+    trees, reasons = [tree], []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Name) and node.id == "get_ipython":
+            call = _shell_call(tree, node)
+            if call is None:
+                reasons.append("uses get_ipython(), the shell that runs code the grader cannot scan")
+                continue
+            method, args = call
+            name = args[0] if args else None
+            body = args[-1] if method == "run_cell_magic" else (args[1] if len(args) > 1 else "")
+            if name in _TIMING:
+                body = re.sub(r"^(\s*-[nrp]\s*\d+|\s*-[tcqo](?=\s))*\s*", "", body)  # %timeit -n 3 -r 2 code
+            allowed = name in ALLOWED_MAGICS or f"{name} {body}".strip() in ("load_ext autoreload",) or \
+                (name == "config" and re.fullmatch(r"InlineBackend\.\w+\s*=\s*[\w'\".{}:, ]*", body or ""))
+            if method in ("run_line_magic", "run_cell_magic") and allowed and \
+                    not (name in _TIMING and body.lstrip().startswith("-")) and \
+                    not (method == "run_cell_magic" and name not in _TIMING):
+                if name in _TIMING:
+                    more, why = as_ipython_runs(body)
+                    trees += more
+                    reasons += why
+                continue
+            what = {"system": "!", "getoutput": "!"}.get(method, "%%" if method == "run_cell_magic" else "%")
+            reasons.append(f"runs the IPython command {what}{name if what != '!' else ''}"
+                           f"{'' if what != '!' else ' (a shell command)'}, which runs code the grader cannot scan; "
+                           "write the code in the notebook's cells")
+    return trees, sorted(set(reasons))
+
+
+def _shell_call(tree: ast.Module, name: ast.Name) -> tuple[str, list[str]] | None:
+    """``(method, constant args)`` when ``name`` is the ``get_ipython`` of ``get_ipython().method("...", ...)``."""
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and \
+                isinstance(node.func.value, ast.Call) and node.func.value.func is name and not node.func.value.args:
+            args = [a.value for a in node.args if isinstance(a, ast.Constant) and isinstance(a.value, str)]
+            if len(args) == len(node.args) and not node.keywords:
+                return node.func.attr, args
+            return None
+    return None
+
+
 def scan_notebook(nb, intact_check_cells: set[int], check_names: set[str],
                   verdicts: list[str] = ()) -> list[tuple[int, str]]:
     """``[(cell, reason)]``: code that tampers with the checks, anywhere in the notebook.
@@ -171,11 +233,18 @@ def scan_notebook(nb, intact_check_cells: set[int], check_names: set[str],
     """
     verdict_lines = {ln.strip() for v in verdicts for ln in v.splitlines() if "✔" in ln or "✘" in ln}
     found: list[tuple[int, str]] = []
-    for i, src, tree in code_cells(nb):
-        if i in intact_check_cells:
+    cells = []  # (cell, the code IPython runs for it), the code of its timing magics included
+    for i, cell in enumerate(nb.cells):
+        if cell.cell_type != "code" or i in intact_check_cells:
             continue
-        if tree is None:
-            continue
+        trees, reasons = as_ipython_runs(cell.source)
+        found += [(i, r) for r in reasons]
+        cells += [(i, t) for t in trees]
+    interpreter = {(a.asname or a.name).split(".")[0] for _, t in cells for node in ast.walk(t)
+                   if isinstance(node, (ast.Import, ast.ImportFrom)) for a in node.names
+                   if ((node.module or a.name) if isinstance(node, ast.ImportFrom) else a.name).split(".")[0]
+                   in INTERPRETER_MODULES}  # names bound to sys, builtins, IPython... (import sys as s)
+    for i, tree in cells:
         grading_aliases = set()
         for node in ast.walk(tree):
             if isinstance(node, (ast.Import, ast.ImportFrom)):
@@ -213,12 +282,13 @@ def scan_notebook(nb, intact_check_cells: set[int], check_names: set[str],
                         while isinstance(root, ast.Attribute):
                             root = root.value
                         if isinstance(root, ast.Name) and (root.id in check_names | grading_aliases | CHECK_INTERNALS
-                                                           | {"builtins", "sys"}):
+                                                           | INTERPRETER_MODULES | interpreter):
                             found.append((i, f"assigns to {ast.unparse(n)}"))
             if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in {"setattr", "delattr"}:
                 found.append((i, f"calls {node.func.id}()"))
             if isinstance(node, ast.Attribute) and node.attr in {"__code__", "__globals__", "modules"} and \
-                    not (node.attr == "modules" and not (isinstance(node.value, ast.Name) and node.value.id == "sys")):
+                    not (node.attr == "modules" and not (isinstance(node.value, ast.Name)
+                                                         and node.value.id in interpreter | {"sys"})):
                 found.append((i, f"uses {ast.unparse(node)}"))
             if isinstance(node, ast.Constant) and isinstance(node.value, str) and (
                     "checks passed" in node.value or any(ln.strip() in verdict_lines for ln in node.value.splitlines())):

@@ -12,7 +12,9 @@
 
 from __future__ import annotations
 
+import functools
 import os
+import re
 import resource
 import sys
 import time
@@ -26,8 +28,8 @@ from course_lib.instructor.release import release_files
 from course_lib.paths import REPO_ROOT
 
 __all__ = ["Limits", "Isolation", "Clock", "student_library", "exercise_seconds", "nbval_seconds", "SYSTEM_PATHS",
-           "CALL_BACK_FACTOR", "START_SECONDS", "GRACE_SECONDS", "DEFAULT_EXERCISE_SECONDS", "DEFAULT_SUBMISSION_SECONDS",
-           "STUDENT_UID"]
+           "CALL_BACK_FACTOR", "site_allow_list", "site_folders", "START_SECONDS", "GRACE_SECONDS", "DEFAULT_EXERCISE_SECONDS", "DEFAULT_SUBMISSION_SECONDS",
+           "STUDENT_UID", "MAX_NOTEBOOK_BYTES", "MAX_CODE_BYTES", "MAX_CODE_NODES", "MAX_CELL_NODES"]
 
 # ---------------------------------------------------------------------------------------------
 # Budgets: the one place where the grader's clocks are set
@@ -104,6 +106,18 @@ class Clock:
         return self.left() <= 0
 
 
+#: Bytes of a submitted notebook the grader reads (an honest one, outputs included, is under 2 MB), and bytes of
+#: source in its code cells (the kit's largest solved notebook holds 16 kB): everything the grader does with a notebook
+#: (parse, place, scan, extract, slice) is linear in its code, so these bound the grader's time and memory on it.
+MAX_NOTEBOOK_BYTES = 32 << 20
+MAX_CODE_BYTES = 256 << 10
+#: Syntax-tree nodes in a notebook's code cells (the kit's largest solved notebook: 3 100; the grader's work on a
+#: notebook is about 0.1 ms per node: this keeps it near 10 s and 200 MiB).
+MAX_CODE_NODES = 80_000
+#: Syntax-tree nodes in one code cell: a larger cell counts as a syntax error (its exercise alone gets no credit).
+MAX_CELL_NODES = 40_000
+
+
 # ---------------------------------------------------------------------------------------------
 # Limits and the view of a student's process
 # ---------------------------------------------------------------------------------------------
@@ -120,7 +134,8 @@ class Limits:
     (``RLIMIT_NPROC``). For the whole tree: ``memory_total_bytes`` and ``processes_total`` in a cgroup of
     its own where the grader can make one (:class:`course_lib.instructor.cgroups.Cgroup`; the grader's own
     work on the exercise, decoding and checking its replies, runs in the same cgroup), ``disk_bytes`` for
-    what it may write (the size of its ``/tmp``, where its working folder lies), and
+    what it may write (its ``/tmp`` holds that on top of its working copy of the submission, which
+    ``submission_bytes`` bounds: a submission the copy takes always fits), and
     ``submission_memory_bytes`` for everything one submission runs at the same time (the exercise and the
     notebooks under nbval).
     """
@@ -131,7 +146,8 @@ class Limits:
     processes: int = 512  # RLIMIT_NPROC (threads count)
     memory_total_bytes: int = 6 << 30  # the whole process tree (cgroup), tmpfs pages and the grader's worker included
     processes_total: int = 512  # the whole process tree (cgroup pids), threads included
-    disk_bytes: int = 1 << 30  # its /tmp (a tmpfs), where its working copy of the submission lies
+    disk_bytes: int = 1 << 30  # what it may write in its /tmp (a tmpfs: this plus its working copy of the submission)
+    submission_bytes: int = 1 << 30  # the grader's copy of a submission (copy_submission's limit; the rest is left out)
     submission_memory_bytes: int = 12 << 30  # everything of one submission at the same time (cgroup)
 
     def apply(self, cpu_seconds: float | None = None) -> None:
@@ -176,6 +192,8 @@ class Isolation:
         keep: folders inside ``hide`` that stay visible read-only (the Python environment).
         insecure: no sandbox at all (``--insecure``: a trusted local run; the report says so).
         limits: resource limits.
+        scratch: the run's folder, where each student's process gets its own private folder (removed with the run's
+            folder however that process ended); None: the system's temporary folder.
     """
 
     library: Path
@@ -183,6 +201,7 @@ class Isolation:
     keep: list[Path] = field(default_factory=list)
     insecure: bool = False
     limits: Limits = field(default_factory=Limits)
+    scratch: Path | None = None
 
     @classmethod
     def for_grading(cls, library: Path, secret: list[Path], notebooks_dir: Path, self_test: bool = False,
@@ -198,7 +217,8 @@ class Isolation:
         return cls(Path(library), hide, keep, insecure, limits or Limits())
 
     def read_only(self) -> list[str]:
-        """The allow-list: the host paths a student's process sees, read-only."""
+        """The allow-list: the host paths a student's process sees, read-only (each site-packages folder inside them
+        shows only :func:`site_allow_list`'s entries)."""
         paths = [str(Path(self.library).resolve())] + [str(Path(p).resolve()) for p in python_homes()]
         return sorted({p for p in paths + SYSTEM_PATHS if os.path.lexists(p)}, key=len)
 
@@ -231,6 +251,50 @@ class Isolation:
             return None
         return Cgroup.create(self.limits.memory_total_bytes if memory_bytes is None else memory_bytes,
                              self.limits.processes_total, parent=parent)
+
+
+#: Distributions never shown to a student's process, wherever installed: the kit itself (the instructor's library,
+#: installed editable, from a checkout, or from a wheel).
+KIT_DISTRIBUTIONS = {"course-lib"}
+
+
+def site_folders() -> list[str]:
+    """Every site-packages (or dist-packages) folder of the Python installation and of the system, on the grader's
+    ``sys.path`` or not: each is shown to a student's process with only :func:`site_allow_list`'s entries."""
+    import glob
+
+    found = {p for p in sys.path if p.rstrip("/").endswith(("site-packages", "dist-packages"))}
+    for home in python_homes() + ["/usr", "/usr/local"]:
+        for pattern in ("lib/python3*/site-packages", "lib/python3*/dist-packages", "lib/python3/dist-packages",
+                        "local/lib/python3*/dist-packages", "lib64/python3*/site-packages"):
+            found.update(glob.glob(os.path.join(home, pattern)))
+    return sorted({os.path.realpath(p) for p in found if os.path.isdir(p)})
+
+
+@functools.lru_cache(maxsize=1)
+def site_allow_list() -> dict[str, list[str]]:
+    """``{site folder: its entries a student's process sees}``: the top-level files and folders (and metadata) of the
+    distributions installed there, the kit's own (:data:`KIT_DISTRIBUTIONS`) excepted; a folder that is not on the
+    grader's ``sys.path`` shows nothing. An entry no distribution installed (a copy of ``course_lib`` put there by
+    hand) is not shown either."""
+    import importlib.metadata as md
+
+    on_path = {os.path.realpath(p) for p in sys.path if p}
+    out: dict[str, set[str]] = {d: set() for d in site_folders()}
+    for dist in md.distributions():
+        name = re.sub(r"[-_.]+", "-", (dist.metadata.get("Name") or "").lower())
+        base = os.path.realpath(str(dist.locate_file("")))
+        if name in KIT_DISTRIBUTIONS or base not in out or base not in on_path:
+            continue
+        meta = getattr(dist, "_path", None)
+        tops = {Path(str(meta)).name} if meta is not None else set()
+        for f in dist.files or []:
+            parts = Path(str(f)).parts
+            if parts and parts[0] not in ("..", "/") and not parts[0].startswith("__editable__"):
+                tops.add(parts[0])
+        out[base] |= tops
+    return {d: sorted(e for e in es if e and "course_lib" not in e and os.path.lexists(os.path.join(d, e)))
+            for d, es in out.items()}
 
 
 def python_homes() -> list[str]:

@@ -51,7 +51,6 @@ import signal
 import struct
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -59,7 +58,7 @@ import numpy as np
 
 from course_lib.instructor import oracle as oracle_module
 from course_lib.instructor.remote import RemoteModule
-from course_lib.instructor.sandbox import container, jail, wire
+from course_lib.instructor.sandbox import container, jail, server, wire
 from course_lib.instructor.settings import START_SECONDS, Isolation
 
 __all__ = ["StudentProcess", "StudentProcessEnded"]
@@ -126,8 +125,7 @@ class StudentProcess:
         self.proc = None
         self.info: dict = {}
         self.sandbox: dict = {}
-        self.tmp = Path(tempfile.mkdtemp(prefix="course-student-"))
-        os.chmod(self.tmp, 0o755)
+        self.tmp = jail.private_folder("course-student-", iso.scratch)
         try:
             self._start(code, submission, torch)
         except BaseException:
@@ -182,6 +180,8 @@ class StudentProcess:
         if info_r is not None:
             os.close(info_r)
         first = self._receive()
+        if first is None and self._seed_failed():
+            return
         if not insecure and ((not info and not boxed) or (first is None and self.event != "timeout")):
             self._refuse_start()
         facts = first[0].get("facts") if first is not None and first[0].get("event") == "sandbox" else None
@@ -210,6 +210,23 @@ class StudentProcess:
         if reply is not None:
             self.hello = reply[0]
         self.hello["sandbox"] = self.sandbox  # the grader's record, never the student's
+
+    def _seed_failed(self) -> bool:
+        """Whether the process ended because the submission could not be copied into its working folder (the
+        submission's problem, reported as this exercise's, never as a sandbox that cannot be made)."""
+        try:
+            self.proc.wait(timeout=2)
+            text = (self.tmp / "stderr.txt").read_text(errors="replace")[:4000]
+        except (subprocess.TimeoutExpired, OSError):
+            return False
+        said = [ln for ln in text.splitlines() if ln.startswith(server.SEED_FAILED)]
+        if self.proc.returncode != server.SEED_EXIT or not said:
+            return False
+        self.kill()
+        self.event, self.ended = "exit", (f"your submission could not be copied into the sandbox's working folder "
+                                          f"({said[0][len(server.SEED_FAILED):][:200]}); none of your code ran")
+        self.sandbox = {"note": "the submission could not be copied into the sandbox"}
+        return True
 
     def _refuse_start(self) -> None:
         """bwrap did not make the sandbox (or the server in it did not report): one line, and no grading."""

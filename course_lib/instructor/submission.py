@@ -11,7 +11,10 @@ works on that copy. What the copy refuses is reported to the student:
   out, and so is a link cycle;
 * devices, FIFOs and sockets are left out (reading a FIFO would block the grader);
 * files larger than ``max_file_bytes``, more than ``max_files`` entries, folders deeper than
-  ``max_depth`` and more than ``max_total_bytes`` in all are left out.
+  ``max_depth``, paths longer than :data:`MAX_PATH_BYTES` and more than ``max_total_bytes`` in all are
+  left out, and so are names that are not text (undecodable bytes, control characters);
+* whatever else cannot be copied (a name the grader's file system refuses) is left out, never an error:
+  every submission gets a report.
 """
 
 from __future__ import annotations
@@ -22,10 +25,13 @@ import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["SubmissionCopy", "copy_submission", "SKIP_NAMES"]
+__all__ = ["SubmissionCopy", "copy_submission", "SKIP_NAMES", "MAX_PATH_BYTES"]
 
 #: Folders and files of a working copy that are not part of a submission.
 SKIP_NAMES = {".git", "__pycache__", ".ipynb_checkpoints", ".venv", "outputs", ".pytest_cache"}
+#: Bytes of a path inside the submission (the kit's longest is under 100; the system's limit is 4096 for the whole
+#: path, the grader's scratch folder and the sandbox's working folder included).
+MAX_PATH_BYTES = 1024
 
 
 @dataclass
@@ -94,7 +100,18 @@ def _copy_dir(walk: _Walk, src: str, dst: Path, rel: str, depth: int) -> None:
     for entry in entries:
         if entry.name in SKIP_NAMES or entry.name.endswith(".egg-info"):
             continue
-        _copy_entry(walk, entry.path, dst / entry.name, f"{rel}{entry.name}", depth)
+        name, path = entry.name, f"{rel}{entry.name}"
+        if not name.isprintable() or any(0xDC80 <= ord(c) <= 0xDCFF for c in name):
+            walk.out.refused.append(f"{rel}{name.encode('utf-8', 'backslashreplace').decode('ascii', 'replace')[:80]}"
+                                    ": a name with bytes that are not text or with control characters (left out)")
+            continue
+        if len(path.encode("utf-8")) > MAX_PATH_BYTES:
+            walk.out.refused.append(f"{path[:120]}...: a path longer than {MAX_PATH_BYTES} bytes (left out)")
+            continue
+        try:
+            _copy_entry(walk, entry.path, dst / name, path, depth)
+        except OSError as exc:  # a name or path the grader's file system refuses: left out, reported
+            walk.out.refused.append(f"{path[:200]}: cannot be copied ({exc.strerror or exc}; left out)")
 
 
 def _copy_entry(walk: _Walk, path: str, dst: Path, rel: str, depth: int) -> None:

@@ -19,7 +19,7 @@ from course_lib.nerf.model import NeRF
 from course_lib.nerf.presets import TrainConfig
 from course_lib.nerf.scene import SceneBounds
 from course_lib.nerf.schedule import target_resolution
-from course_lib.validate import KitInputError
+from course_lib.validate import KitInputError, file_in
 
 __all__ = ["CHECKPOINT", "save_checkpoint", "load_checkpoint", "build_model", "nerf_arguments"]
 
@@ -95,11 +95,7 @@ def load_checkpoint(path, device="cpu") -> dict:
 
     Introduced in ``notebooks/08_nerf_rendering_and_training.ipynb``.
     """
-    path = Path(path)
-    if path.is_dir():
-        path = path / CHECKPOINT
-    if not path.exists():
-        raise KitInputError(f"checkpoint {path} not found: pass a checkpoint.pt (or the training output folder)")
+    path = file_in(path, CHECKPOINT, "checkpoint {path} not found: pass a checkpoint.pt (or the training output folder)")
     device = pick_device(device)
     try:
         # everything to the CPU first: RNG states must stay CPU tensors, the models move afterwards

@@ -255,6 +255,42 @@ def _sync(device: torch.device) -> None:
         torch.mps.synchronize()
 
 
+def _train_loop(state: TrainState, clock: RunClock, outputs: RunOutputs, bar: ProgressBar, callback, device: torch.device,
+                pending: list) -> tuple[str, int]:
+    """The steps of :func:`train` until the iterations or the time run out or ``callback`` stops it.
+
+    ``pending`` collects the ``(step, loss, mse)`` not yet recorded (they come to the host every
+    25 steps on a GPU). Returns ``(what stopped it, steps taken)``.
+    """
+    cfg = state.config
+    steps = 0
+    sync_every = 1 if device.type == "cpu" else 25  # on a GPU the losses come to the host every 25 steps
+    while state.step < cfg.iters:
+        if steps:  # what the end of the run will need, from the speeds measured so far
+            clock.reserve = outputs.end_seconds(state)
+        if clock.time_up():
+            return "time", steps
+        with clock.training():
+            state.progress = clock.progress(state.step)
+            state.run_callbacks("before")
+            set_learning_rate(state.optimizer, cfg, state.progress)
+            loss, mse = train_step(state)
+            state.step += 1
+            steps += 1
+            state.run_callbacks("after")
+            pending.append((state.step, loss, mse))
+            synced = state.step % sync_every == 0 or steps == 1 or callback is not None
+            if synced:
+                _sync(device)
+        if synced:
+            _record(state, pending)
+        bar.update(state, synced and (state.step % 10 == 0 or steps == 1))
+        outputs.periodic(state)
+        if callback is not None and clock.timed("callback", callback, state.step, _info(state)):
+            return "callback", steps
+    return "iterations", steps
+
+
 def train(train_data: BlenderData, test_data: BlenderData | None = None, config: TrainConfig | str = "fast",
           out_dir=None, resume: bool = True, progress: bool = True, device="auto", callback=None,
           snapshot_view: int = 0, started_at: float | None = None) -> TrainResult:
@@ -313,34 +349,9 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
     bar = ProgressBar(state, progress)
     if cfg.snapshot_every and state.step == 0 and not cfg.minutes:  # (untrained: the slowest render of all)
         clock.timed("snapshots", outputs.snapshot, state)
-    pending, steps, stopped_by = [], 0, "iterations"
-    sync_every = 1 if device.type == "cpu" else 25  # on a GPU the losses come to the host every 25 steps
+    pending: list = []
     try:
-        while state.step < cfg.iters:
-            if steps:  # what the end of the run will need, from the speeds measured so far
-                clock.reserve = outputs.end_seconds(state)
-            if clock.time_up():
-                stopped_by = "time"
-                break
-            with clock.training():
-                state.progress = clock.progress(state.step)
-                state.run_callbacks("before")
-                set_learning_rate(state.optimizer, cfg, state.progress)
-                loss, mse = train_step(state)
-                state.step += 1
-                steps += 1
-                state.run_callbacks("after")
-                pending.append((state.step, loss, mse))
-                synced = state.step % sync_every == 0 or steps == 1 or callback is not None
-                if synced:
-                    _sync(device)
-            if synced:
-                _record(state, pending)
-            bar.update(state, synced and (state.step % 10 == 0 or steps == 1))
-            outputs.periodic(state)
-            if callback is not None and clock.timed("callback", callback, state.step, _info(state)):
-                stopped_by = "callback"
-                break
+        stopped_by, steps = _train_loop(state, clock, outputs, bar, callback, device, pending)
     except KeyboardInterrupt:
         bar.close()
         _record(state, pending)

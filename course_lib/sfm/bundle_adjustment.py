@@ -79,17 +79,8 @@ from course_lib.threads import single_threaded_blas
 from course_lib import validate
 from course_lib.validate import KitInputError, intrinsics, rotation
 
-__all__ = [
-    "pack_params",
-    "unpack_params",
-    "reprojection_residuals",
-    "jacobian_sparsity",
-    "reprojection_jacobian",
-    "BAResult",
-    "bundle_adjust",
-    "adjust",
-    "reprojection_error_stats",
-]
+__all__ = ["pack_params", "unpack_params", "reprojection_residuals", "jacobian_sparsity", "reprojection_jacobian",
+           "BAResult", "bundle_adjust", "adjust", "reprojection_error_stats"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -548,26 +539,11 @@ METHODS = {"lm": "the kit's Schur-complement Levenberg-Marquardt", "trf": "scipy
 LOSSES = {"linear": "plain least squares", "huber": "robust", "soft_l1": "robust", "cauchy": "robust"}
 
 
-def adjust(
-    K: np.ndarray,
-    R_cw: np.ndarray,
-    t_cw: np.ndarray,
-    X: np.ndarray,
-    uv: np.ndarray,
-    *,
-    method: str = "lm",
-    loss: str = "linear",
-    f_scale: float = 1.0,
-    max_iterations: int = 100,
-    ftol: float = 1e-8,
-    xtol: float = 1e-10,
-    ref_camera: int = 0,
-    scale_camera: int | None = None,
-    fix_scale: bool = True,
-    callback: Callable[[int, np.ndarray, np.ndarray, np.ndarray, float], None] | None = None,
-    keep_iterates: bool = False,
-    verbose: int = 0,
-) -> BAResult:
+def adjust(K: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, X: np.ndarray, uv: np.ndarray, *, method: str = "lm",
+           loss: str = "linear", f_scale: float = 1.0, max_iterations: int = 100, ftol: float = 1e-8, xtol: float = 1e-10,
+           ref_camera: int = 0, scale_camera: int | None = None, fix_scale: bool = True,
+           callback: Callable[[int, np.ndarray, np.ndarray, np.ndarray, float], None] | None = None,
+           keep_iterates: bool = False, verbose: int = 0) -> BAResult:
     """Refine cameras and points by minimizing the reprojection error over all observations.
 
     Args:

@@ -184,6 +184,8 @@ def _print_summary(report: dict, data_dir: Path, models: list, folders: list, ou
             print(f"degenerate pair (not used to start): {d['names'][0]}, {d['names'][1]}: {d['kind']}")
     cam = report.get("camera", {})
     if cam.get("model") == "SIMPLE_RADIAL":
-        print(f"camera refined (SIMPLE_RADIAL): f = {cam['K'][0][0]:.1f} px (from {cam['prior_focal_px']:.1f}), k1 = {cam['k1']:.4f}")
+        start = cam.get("start_focal_px", cam["prior_focal_px"])
+        via = f"; the mapping started from {start:.1f}" if abs(start - cam["prior_focal_px"]) > 1e-6 else ""
+        print(f"camera refined (SIMPLE_RADIAL): f = {cam['K'][0][0]:.1f} px (from {cam['prior_focal_px']:.1f}{via}), k1 = {cam['k1']:.4f}")
     extra = f" (+ {', '.join(f.name + '/' for f in folders[1:])} for the other models)" if len(folders) > 1 else ""
     print(f"outputs: {folders[0]}/ (COLMAP text model){extra}, {out / 'report.json'}" + (f", {html}" if html else ""))

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from course_lib import validate
+from course_lib.sfm.refit import refit_on_inliers
 from course_lib.validate import KitInputError
 
 __all__ = [
@@ -341,44 +342,9 @@ def _bailout_bar(ratio: float, sub_count: int, m: int) -> float:
     return m * w - 4.0 * np.sqrt(m * w * (1.0 - w))
 
 
-def _refit(solver, error, x1, x2, model, threshold: float, min_size: int, rounds: int = 5):
-    """Refit the model on all its inliers and recount them, while the inlier set grows.
-
-    The first refit is always taken (a fit to all inliers beats the fit to a minimal sample);
-    later ones only if they keep at least as many inliers. Returns ``(model, distances (N,))``.
-    """
-    d = error(model[None], x1, x2)[0]
-    inliers = d < threshold
-    for round_ in range(rounds):
-        if inliers.sum() < min_size:
-            break
-        new, ok = solver(x1[inliers][None], x2[inliers][None])
-        if not ok[0]:
-            break
-        d_new = error(new, x1, x2)[0]
-        inl_new = d_new < threshold
-        if round_ > 0 and inl_new.sum() < inliers.sum():
-            break
-        done = np.array_equal(inl_new, inliers)
-        model, d, inliers = new[0], d_new, inl_new
-        if done:
-            break
-    return model, d
-
-
-def ransac(
-    x1: np.ndarray,
-    x2: np.ndarray,
-    rng: np.random.Generator,
-    solver=eight_point_batch,
-    error=sampson_distance_batch,
-    sample_size: int = 8,
-    threshold: float = 1.0,
-    confidence: float = 0.999,
-    max_iters: int = 2000,
-    batch: int = 1,
-    bailout: int = 0,
-) -> RansacResult | None:
+def ransac(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, solver=eight_point_batch,
+           error=sampson_distance_batch, sample_size: int = 8, threshold: float = 1.0, confidence: float = 0.999,
+           max_iters: int = 2000, batch: int = 1, bailout: int = 0) -> RansacResult | None:
     """RANSAC with its minimal solver and its error function as arguments (as kornia's ``RANSAC``).
 
     Draws ``batch`` samples of ``sample_size`` correspondences at a time with ``rng``, fits one
@@ -440,18 +406,12 @@ def ransac(
                 bar = _bailout_bar(best_key[0] / n, int((d[k, sub] < threshold).sum()), len(sub))
     if best is None:
         return None
-    model, d = _refit(solver, error, x1, x2, best, threshold, sample_size)
+    model, d = refit_on_inliers(solver, error, x1, x2, best, threshold, sample_size)
     return RansacResult(F=model, inliers=d < threshold, n_iters=it, distances=d)
 
 
-def ransac_fundamental(
-    x1: np.ndarray,
-    x2: np.ndarray,
-    rng: np.random.Generator,
-    threshold_px: float = 1.0,
-    confidence: float = 0.999,
-    max_iters: int = 2000,
-) -> RansacResult:
+def ransac_fundamental(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, threshold_px: float = 1.0,
+                       confidence: float = 0.999, max_iters: int = 2000) -> RansacResult:
     """Robust F: RANSAC over minimal 8-point samples, inliers by Sampson distance, adaptive stop.
 
     Each iteration draws 8 distinct correspondences with ``rng``, fits F with the 8-point

@@ -56,42 +56,20 @@ Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from course_lib.conventions import camera_center, invert_pose, projection_matrix
-from course_lib.data.camera import undistort_pixels
+from course_lib.conventions import camera_center
 from course_lib.exercises import call, caller
-from course_lib.sfm import lm
-from course_lib.sfm.bundle_adjustment import adjust
 from course_lib.sfm.initial_pair import H_INLIER_RATIO, InitialPair, calibrated_pose, pair_degeneracy
+from course_lib.sfm.mapper_ba import MapperBundleAdjustment
 from course_lib.sfm.mapper_options import MapperOptions
 from course_lib.sfm.merging import carry, similarity_ransac
-from course_lib.sfm.structureless import pair_sampson, pose_from_partners, refine_on_partners
-from course_lib.sfm.reconstruction import Reconstruction, error_summary, reprojection_error_matrix, triangulation_angles_deg
+from course_lib.sfm.reconstruction import Reconstruction, reprojection_error_matrix, triangulation_angles_deg
+from course_lib.sfm.registration import ImageRegistration, spread_score
+from course_lib.sfm.triangulator import IncrementalTriangulator
 from course_lib.validate import KitInputError
 
 __all__ = ["MapperOptions", "IncrementalMapper", "InitialPair", "pair_degeneracy", "spread_score", "final_thresholds",
            "H_INLIER_RATIO"]
-
-
-def spread_score(uv: np.ndarray, image_size: tuple[int, int], levels: int = 6) -> int:
-    """How many and how spread out the pixels ``uv (N, 2)`` are: COLMAP's visibility pyramid score.
-
-    At level ``l = 1..levels`` the image is cut into ``2^l x 2^l`` cells; every occupied cell adds
-    ``2^l``. Many points in one corner score less than fewer points over the whole image, which
-    makes a better-conditioned PnP.
-    """
-    uv = np.asarray(uv, float).reshape(-1, 2)
-    if len(uv) == 0:
-        return 0
-    W, H = image_size
-    score = 0
-    for lev in range(1, levels + 1):
-        n = 2 ** lev
-        cu = np.clip((uv[:, 0] / W * n).astype(int), 0, n - 1)
-        cv = np.clip((uv[:, 1] / H * n).astype(int), 0, n - 1)
-        score += n * len(np.unique(cu * n + cv))
-    return int(score)
 
 
 #: The final BA leaves out two-view points when every camera keeps this many observations of points seen three or more times.
@@ -102,9 +80,6 @@ RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
 #: Share of observations beyond 3 sigma above which the errors count as heavy-tailed (Gaussian
 #: noise puts about 1 % there, SIFT matches 10-16 % on the course data and the embedded scene).
 HEAVY_TAIL_SHARE = 0.08
-#: Registered images from which the BAs of the whole model refine the intrinsics (two views
-#: hardly constrain the focal length).
-REFINE_FROM_IMAGES = 3
 
 
 def final_thresholds(errors: np.ndarray, max_reproj_px, f_scale, loss: str) -> tuple[float, float, float, float, str]:
@@ -130,7 +105,7 @@ def final_thresholds(errors: np.ndarray, max_reproj_px, f_scale, loss: str) -> t
     return thr, fs, sigma, tail, loss
 
 
-class IncrementalMapper:
+class IncrementalMapper(ImageRegistration, IncrementalTriangulator, MapperBundleAdjustment):
     """The state of one growing model and the stages that change it (COLMAP's ``IncrementalMapper``).
 
     The tracks (``track_uv``) are shared by every model; each model has its own poses, points and
@@ -138,6 +113,13 @@ class IncrementalMapper:
     images no earlier model registered (``used``) but may register images of earlier models as it
     grows; one that shares enough of them with an earlier model is merged into it (:meth:`merge`).
     The intrinsics (``K``, ``k1``) belong to the camera and carry over from one model to the next.
+
+    Its stages live in four parts, as COLMAP's: the observations and their filtering
+    (:class:`~course_lib.sfm.observations.ObservationManager`), registration
+    (:class:`~course_lib.sfm.registration.ImageRegistration`), triangulation
+    (:class:`~course_lib.sfm.triangulator.IncrementalTriangulator`) and bundle adjustment
+    (:class:`~course_lib.sfm.mapper_ba.MapperBundleAdjustment`); this class holds the model and the
+    initial pair, grows, finishes and merges models.
 
     Args:
         data: the :class:`course_lib.data.p3.P3Data` (its ``image_names`` and ``matches``).
@@ -184,55 +166,6 @@ class IncrementalMapper:
         return {"registered": self.registered.copy(), "R": self.R.copy(), "t": self.t.copy(), "X": self.X.copy(),
                 "candidate": self.candidate.copy(), "ref": self.ref}
 
-    def set_intrinsics(self, K: np.ndarray, k1: float) -> None:
-        """Use ``K`` and the radial term ``k1``: :attr:`uv` becomes the undistorted pixels of the tracks."""
-        self.K, self.k1 = np.asarray(K, float), float(k1)
-        self._two_view: dict = {}  # the pairs' matches and calibrated poses on these pixels (two_view)
-        self.uv = undistort_pixels(self.uv_raw, self.K, self.k1)
-
-    def undistort(self, x: np.ndarray) -> np.ndarray:
-        """Pixels ``(N, 2)`` as the photos show them -> where the pinhole :attr:`K` sees them."""
-        return undistort_pixels(x, self.K, self.k1)
-
-    @property
-    def has_X(self) -> np.ndarray:
-        """``(T,)`` tracks with a point."""
-        return np.isfinite(self.X).all(axis=1)
-
-    @property
-    def inlier(self) -> np.ndarray:
-        """``(T, M)`` observations in use: candidate, registered image, triangulated point."""
-        return self.candidate & self.registered[None, :] & self.has_X[:, None]
-
-    def centers(self) -> np.ndarray:
-        """``(M, 3)`` camera centres, NaN where unregistered."""
-        C = np.full((self.M, 3), np.nan)
-        for i in np.flatnonzero(self.registered):
-            C[i] = camera_center(self.R[i], self.t[i])
-        return C
-
-    def errors(self, points: np.ndarray | None = None) -> np.ndarray:
-        """``(T, M)`` reprojection errors of the observations in use (of the ``(T,)`` bool ``points`` only), NaN elsewhere.
-
-        Computed for the observations only (one batched projection), not for the whole ``(T, M)`` grid.
-        """
-        use = self.inlier if points is None else self.inlier & points[:, None]
-        pi, ci = np.nonzero(use)
-        E = np.full((self.T, self.M), np.nan)
-        if len(pi):
-            xc = np.einsum("kij,kj->ki", self.R[ci], self.X[pi]) + self.t[ci]
-            xh = xc @ self.K.T
-            with np.errstate(divide="ignore", invalid="ignore"):
-                e = np.linalg.norm(xh[:, :2] / xh[:, 2:3] - self.uv[pi, ci], axis=1)
-            e[~(xc[:, 2] > 0)] = np.inf
-            E[pi, ci] = e
-        return E
-
-    def observation_stats(self, points: np.ndarray | None = None) -> dict[str, float]:
-        return error_summary(self.errors(points))
-
-    def _P(self, i: int) -> np.ndarray:
-        return projection_matrix(self.K, self.R[i], self.t[i])
 
     # --- initial pair ---------------------------------------------------------------------------------
 
@@ -379,344 +312,6 @@ class IncrementalMapper:
             return None
         return stage
 
-    # --- registration -----------------------------------------------------------------------------------
-
-    def next_images(self, skip=()) -> list[tuple[int, int]]:
-        """``[(image, correspondences), ...]`` of the unregistered images not in ``skip``, best first.
-
-        Ranked by :func:`spread_score` of the pixels of their 2D-3D correspondences (features whose
-        track has a point), ties by image number. Images of earlier models are among them: a model
-        that reaches them can be merged with that model (:meth:`merge`).
-        """
-        todo = [i for i in range(self.M) if not (self.registered[i] or i in skip)]
-        has_X = self.has_X
-        rows = []
-        for i in todo:
-            js = np.flatnonzero(has_X & self.candidate[:, i])
-            rows.append((spread_score(self.uv[js, i], self.image_size), len(js), i))
-        rows.sort(key=lambda r: (-r[0], -r[1], r[2]))
-        return [(i, n) for _, n, i in rows]
-
-    def register_next_image(self, i: int) -> tuple[dict | None, str | None]:
-        """PnP RANSAC + non-linear PnP for image ``i``: ``(info, None)``, or ``(None, why it failed)``.
-
-        Where PnP fails and ``structure_less_fallback`` is on, the image is registered from its
-        matches with the registered images alone (:meth:`register_from_pairs`), as COLMAP does.
-        """
-        info, why = self._register_pnp(i)
-        if info is not None or not self.opts.structure_less_fallback:
-            return info, why
-        info, why_pairs = self.register_from_pairs(i)
-        return (info, None) if info is not None else (None, f"{why}; from its matches alone: {why_pairs}")
-
-    def register_from_pairs(self, i: int) -> tuple[dict | None, str | None]:
-        """Register image ``i`` from its verified matches with registered images, without 3-D points (COLMAP's structure-less fallback).
-
-        The five-point pose of ``i`` relative to each registered partner gives its rotation and
-        the direction of its centre; two or more partners that agree on the rotation and see it
-        from different places fix the centre (:func:`course_lib.sfm.structureless.pose_from_partners`),
-        which is then refined on all their matches
-        (:func:`course_lib.sfm.structureless.refine_on_partners`). The pose must explain
-        ``min_pnp_inliers`` of the matches within ``f_threshold_px`` (Sampson distance) and
-        ``min_pnp_inlier_ratio`` of them. The two-view tracks it shares with the partners can then
-        be triangulated (:meth:`triangulate_image`).
-
-        Returns:
-            ``(info, None)`` as :meth:`register_next_image` (``correspondences``: the 2D-2D matches,
-            ``pnp_inliers``: those the pose explains, ``structure_less``: the partners), or ``(None, why)``.
-        """
-        o = self.opts
-        rows = []
-        for k in np.flatnonzero(self.registered):
-            key = (min(i, k), max(i, k))
-            if key not in self.pairs:
-                continue
-            x_a, x_b, choice, inl = self.two_view(*key)
-            if choice is None:
-                continue
-            R_ki, t_ki = (choice.R_cw, choice.t_cw) if k == key[0] else invert_pose(choice.R_cw, choice.t_cw)
-            x_k, x_i = (x_a, x_b) if k == key[0] else (x_b, x_a)
-            rows.append((int(k), R_ki, t_ki, x_k, x_i, int(inl.sum())))
-        if len(rows) < 2:
-            return None, f"{len(rows)} registered image(s) with verified matches, two are needed"
-        ks = [r[0] for r in rows]
-        found, why = pose_from_partners(self.R[ks], self.t[ks], np.stack([r[1] for r in rows]), np.stack([r[2] for r in rows]),
-                                        np.array([r[5] for r in rows], float))
-        if found is None:
-            return None, why
-        R, t, used = found
-        partners = [(self.R[r[0]], self.t[r[0]], r[3], r[4]) for r, u in zip(rows, used) if u]
-        R, t = refine_on_partners(self.K, R, t, partners)
-        n_all = sum(len(p[2]) for p in partners)
-        n_in = sum(int((pair_sampson(self.K, *p[:2], R, t, *p[2:]) <= o.f_threshold_px).sum()) for p in partners)
-        if n_in < o.min_pnp_inliers or n_in < o.min_pnp_inlier_ratio * n_all:
-            return None, (f"the pose from {len(partners)} partners explains {n_in} of their {n_all} matches within "
-                          f"{o.f_threshold_px} px, need {o.min_pnp_inliers} and {o.min_pnp_inlier_ratio:.0%}")
-        self.R[i], self.t[i] = R, t
-        self.registered[i] = True
-        return {"correspondences": n_all, "pnp_inliers": n_in, "ransac_iterations": 0,
-                "structure_less": [self.names[r[0]] for r, u in zip(rows, used) if u]}, None
-
-    def _register_pnp(self, i: int) -> tuple[dict | None, str | None]:
-        """PnP RANSAC + non-linear PnP on image ``i``'s 2D-3D correspondences: ``(info, None)`` or ``(None, why)``."""
-        o = self.opts
-        js = np.flatnonzero(self.has_X & self.candidate[:, i])
-        need = max(6, o.min_pnp_inliers)
-        if len(js) < need:
-            return None, f"too few 2D-3D matches: {len(js)} of its features see triangulated points, PnP needs {need}"
-        try:
-            res = call("pnp_ransac", self.X[js], self.uv[js, i], self.K, self.rng, threshold_px=o.pnp_threshold_px)
-        except KitInputError as exc:
-            return None, f"PnP RANSAC failed on {len(js)} 2D-3D matches ({exc})"
-        inl = np.asarray(res.inliers, bool)
-        if inl.sum() < o.min_pnp_inliers:
-            return None, (f"too few PnP inliers: {int(inl.sum())} of {len(js)} 2D-3D matches within {o.pnp_threshold_px} px, "
-                          f"need {o.min_pnp_inliers}")
-        if inl.sum() < o.min_pnp_inlier_ratio * len(js):
-            return None, (f"too small a share of PnP inliers: {int(inl.sum())} of {len(js)} 2D-3D matches within "
-                          f"{o.pnp_threshold_px} px, need {o.min_pnp_inlier_ratio:.0%} (look-alike texture?)")
-        self.R[i], self.t[i] = call("pnp_nonlinear", self.X[js[inl]], self.uv[js[inl], i], self.K, res.R_cw, res.t_cw)
-        self.registered[i] = True
-        self.candidate[js[~inl], i] = False
-        return {"correspondences": int(len(js)), "pnp_inliers": int(inl.sum()), "ransac_iterations": int(res.n_iters)}, None
-
-    def triangulate_image(self, new: int) -> int:
-        """Triangulate the tracks image ``new`` shares with every registered image (widest baseline first); new points."""
-        regs = [k for k in np.flatnonzero(self.registered) if k != new]
-        todo = ~self.has_X & self.candidate[:, new]
-        C = self.centers()
-        X0 = np.full((self.T, 3), np.nan)
-        # each track is triangulated from the new image and its farthest registered partner
-        regs.sort(key=lambda k: -np.linalg.norm(C[k] - C[new]))
-        for k in regs:
-            js = np.flatnonzero(todo & self.candidate[:, k] & ~np.isfinite(X0).all(axis=1))
-            if len(js):
-                X0[js] = call("triangulate_linear", self._P(new), self._P(k), self.uv[js, new], self.uv[js, k])
-        js = np.flatnonzero(np.isfinite(X0).all(axis=1))
-        if len(js) == 0:
-            return 0
-        # the non-linear refinement is left to the bundle adjustment that follows, where there is one
-        refine = caller("triangulate_nonlinear") if self.opts.bundle_adjustment != "incremental" else None
-        return self._accept(js, X0[js], refine)
-
-    def _accept(self, js: np.ndarray, X0: np.ndarray, refine=None) -> int:
-        """Check linearly triangulated tracks ``js`` (``X0 (len(js), 3)``) against all registered views, refine, keep the good ones.
-
-        Observations that reproject farther than ``max_reproj_px`` from the linear estimate are
-        dropped, the point is refined non-linearly over the remaining ones (where a refinement
-        ``refine``, the exercise ``triangulate_nonlinear`` of notebook 03, is given), checked
-        again, and kept if at least two observations in front of their cameras remain and its
-        triangulation angle is at least ``min_angle_deg``. Dropped observations are rejected for good.
-        """
-        o = self.opts
-        regs = np.flatnonzero(self.registered)
-        good = np.isfinite(X0).all(axis=1)
-        js, X0 = js[good], X0[good]
-        if len(js) == 0:
-            return 0
-        mask = self.candidate[js][:, regs]
-        uv = np.where(mask[..., None], self.uv[js][:, regs], np.nan)
-        E = reprojection_error_matrix(self.K, self.R[regs], self.t[regs], X0, uv)
-        uv[~(E <= o.max_reproj_px)] = np.nan
-        two = np.isfinite(uv).all(axis=2).sum(axis=1) >= 2
-        X = X0.copy()
-        if two.any() and refine is not None:
-            X[two] = refine(self.K, self.R[regs], self.t[regs], uv[two], X0[two])
-        E = reprojection_error_matrix(self.K, self.R[regs], self.t[regs], X, uv)
-        ok_obs = E <= o.max_reproj_px
-        ang = triangulation_angles_deg(X, self.centers()[regs], ok_obs)
-        ok = (ok_obs.sum(axis=1) >= 2) & (ang >= o.min_angle_deg) & np.isfinite(X).all(axis=1)
-        sub = self.candidate[js]
-        sub[:, regs] &= ~(mask & ~ok_obs)
-        self.candidate[js] = sub
-        self.X[js[ok]] = X[ok]
-        return int(ok.sum())
-
-    def retriangulate(self) -> dict:
-        """Triangulate tracks that failed earlier, and give back rejected observations that fit now.
-
-        * **Track completion**: an observation of a triangulated point that was rejected earlier
-          (it reprojected badly from a point or camera that has moved since) is used again if it
-          now reprojects within ``max_reproj_px``.
-        * **Re-triangulation**: a track without a point that is seen in two or more registered
-          images gets all its observations back and is triangulated again (linear, from its two
-          observing cameras farthest apart, checked as in :meth:`triangulate_image`; the next BA
-          refines it): early on, its cameras may have been poorly placed.
-        """
-        regs = np.flatnonzero(self.registered)
-        seen = self.visible & self.registered[None, :]
-        rejected = seen & ~self.candidate & self.has_X[:, None]
-        E = reprojection_error_matrix(self.K, self.R, self.t, self.X, np.where(rejected[..., None], self.uv, np.nan))
-        back = rejected & (E <= self.opts.max_reproj_px)
-        self.candidate |= back
-        todo = ~self.has_X & (seen.sum(axis=1) >= 2)
-        self.candidate[np.ix_(todo, regs)] |= self.visible[np.ix_(todo, regs)]
-        C = self.centers()
-        X0 = np.full((self.T, 3), np.nan)
-        pairs = sorted(((a, b) for ia, a in enumerate(regs) for b in regs[ia + 1:]), key=lambda ab: -np.linalg.norm(C[ab[0]] - C[ab[1]]))
-        for a, b in pairs:  # widest baseline first
-            js = np.flatnonzero(todo & seen[:, a] & seen[:, b] & ~np.isfinite(X0).all(axis=1))
-            if len(js):
-                X0[js] = call("triangulate_linear", self._P(a), self._P(b), self.uv[js, a], self.uv[js, b])
-        js = np.flatnonzero(np.isfinite(X0).all(axis=1))
-        n_new = self._accept(js, X0[js]) if len(js) else 0
-        return {"observations_back": int(back.sum()), "tracks_tried": int(todo.sum()), "points_new": int(n_new)}
-
-    # --- filtering and bundle adjustment ------------------------------------------------------------------
-
-    def filter_points(self, max_reproj_px: float | None = None, min_angle_deg: float | None = None,
-                      points: np.ndarray | None = None) -> dict:
-        """Drop observations that reproject badly, then points with < 2 observations or a small angle.
-
-        ``points``: the ``(T,)`` bool points to check (default all; after a local BA, its points).
-        """
-        thr = self.opts.max_reproj_px if max_reproj_px is None else max_reproj_px
-        angle = self.opts.min_angle_deg if min_angle_deg is None else min_angle_deg
-        sel = self.has_X if points is None else self.has_X & points
-        js = np.flatnonzero(sel)
-        bad = self.inlier[js] & ~(self.errors(sel)[js] <= thr)
-        self.candidate[js] &= ~bad
-        inl = self.inlier[js]
-        ang = triangulation_angles_deg(self.X[js], np.nan_to_num(self.centers()), inl)
-        drop = (inl.sum(axis=1) < 2) | (ang < angle)
-        self.X[js[drop]] = np.nan
-        return {"observations_removed": int(bad.sum()), "points_removed": int(drop.sum())}
-
-    def local_images(self, new: int) -> np.ndarray:
-        """``(M,)`` bool: image ``new`` and the ``ba_local_num_images - 1`` registered images that share the most points with it."""
-        inl = self.inlier
-        shared = inl[inl[:, new]].sum(axis=0).astype(float)
-        shared[~self.registered] = -1.0
-        shared[new] = np.inf
-        order = np.argsort(-shared, kind="stable")[: self.opts.ba_local_num_images]
-        out = np.zeros(self.M, bool)
-        out[order[shared[order] > 0]] = True
-        return out
-
-    def adjust_bundle(self, loss: str, f_scale: float, max_iterations: int, ftol: float = 1e-4,
-                      points: np.ndarray | None = None, cameras: np.ndarray | None = None) -> dict:
-        """Bundle adjustment of the registered cameras and the points (all, or the ``(T,)`` bool ``points``).
-
-        ``cameras`` (``(M,)`` bool): a **local** BA -- only these cameras and the points they see
-        move; the other registered cameras that see those points are held fixed (their observations
-        count). Without it, the whole model (gauge: the initial pair's first camera and the scale),
-        with the focal length and ``k1`` refined where the mapper refines the intrinsics
-        (:meth:`_adjust_with_intrinsics`). With no observation to adjust it does nothing and says
-        so (``{"skipped": ...}``).
-        """
-        local = cameras is not None
-        pts_mask = self.has_X if points is None else self.has_X & points
-        if local:
-            pts_mask = pts_mask & (self.inlier & cameras[None, :]).any(axis=1)
-        pts = np.flatnonzero(pts_mask)
-        cams = np.flatnonzero(self.registered & (self.inlier[pts].any(axis=0) | (cameras if local else self.registered)))
-        if len(pts) == 0 or len(cams) < 2:
-            return {"skipped": "no points to adjust"}
-        if not local and self.refine and self.registered.sum() >= REFINE_FROM_IMAGES:
-            return self._adjust_with_intrinsics(cams, pts, loss, f_scale, max_iterations, ftol)
-        if not local:
-            uv = np.where(self.inlier[np.ix_(pts, cams)][..., None], self.uv[np.ix_(pts, cams)], np.nan)
-            res = adjust(self.K, self.R[cams], self.t[cams], self.X[pts], uv, loss=loss, f_scale=f_scale,
-                         max_iterations=max_iterations, ref_camera=int(np.flatnonzero(cams == self.ref)[0]),
-                         ftol=ftol, xtol=1e-10)
-            self.R[cams], self.t[cams], self.X[pts] = res.R_cw, res.t_cw, res.X
-            return {"kind": "global", "iterations": res.n_iterations, "rms_before": round(res.initial_rms, 4),
-                    "rms_after": round(res.final_rms, 4), "seconds": round(res.seconds, 3), "gauge": res.gauge}
-        free = cameras[cams]
-        fixed = np.zeros((len(cams), 6), bool)
-        fixed[~free] = True
-        gauge = f"{int((~free).sum())} cameras around held fixed"
-        if (~free).sum() < 2:  # fewer than two fixed cameras leave the gauge (or the scale) free: fix it here
-            gauge = self._fix_gauge(cams, fixed)
-        res = self._solve(lm.PinholeCamera(self.K), cams, pts, self.uv, fixed, loss, f_scale, max_iterations, ftol)
-        return {"kind": "local", "images": [int(i) for i in cams[free]], "iterations": res["iterations"],
-                "rms_before": res["rms_before"], "rms_after": res["rms_after"], "seconds": res["seconds"], "gauge": gauge}
-
-    def _fix_gauge(self, cams: np.ndarray, fixed: np.ndarray) -> str:
-        """Hold the gauge of a BA over ``cams``: the reference camera (or the first) and one coordinate of the farthest one."""
-        ref = int(np.flatnonzero(cams == self.ref)[0]) if self.ref in cams else int(np.argmax(fixed.all(axis=1))) \
-            if fixed.all(axis=1).any() else 0
-        fixed[ref] = True
-        C = np.stack([camera_center(self.R[i], self.t[i]) for i in cams])
-        d = np.linalg.norm(C - C[ref], axis=1)
-        d[fixed.all(axis=1)] = -1.0
-        s = int(np.argmax(d))
-        if d[s] <= 0:
-            return f"camera {int(cams[ref])} fixed"
-        k = int(np.argmax(np.abs(self.R[cams[s]] @ (C[s] - C[ref]))))
-        fixed[s, 3 + k] = True
-        return f"camera {int(cams[ref])} fixed, t_cw[{int(cams[s])}][{k}] fixed (scale)"
-
-    def _solve(self, model, cams: np.ndarray, pts: np.ndarray, uv_all: np.ndarray, fixed: np.ndarray, loss: str,
-               f_scale: float, max_iterations: int, ftol: float, shared=None) -> dict:
-        """:func:`course_lib.sfm.lm.solve` over cameras ``cams`` and points ``pts`` (observations: :attr:`inlier`); the results written back."""
-        obs = self.inlier[np.ix_(pts, cams)]
-        pi, ci = np.nonzero(obs)
-        uv = uv_all[pts[pi], cams[ci]]
-        params = np.hstack([Rotation.from_matrix(self.R[cams]).as_rotvec(), self.t[cams]])
-        kw = {} if shared is None else {"shared": shared}
-        res = lm.solve(model, params, self.X[pts], ci, pi, uv, fixed_cameras=fixed, loss=loss, f_scale=f_scale,
-                       max_iterations=max_iterations, ftol=ftol, xtol=1e-10, **kw)
-        self.R[cams] = Rotation.from_rotvec(res.cameras[:, :3]).as_matrix()
-        self.t[cams] = res.cameras[:, 3:]
-        self.X[pts] = res.points
-        n = max(len(pi), 1)
-        return {"iterations": res.iterations, "rms_before": round(float(np.sqrt(2 * res.initial_cost / n)), 4),
-                "rms_after": round(float(np.sqrt(2 * res.final_cost / n)), 4), "seconds": round(res.seconds, 3),
-                "shared": res.shared}
-
-    def _adjust_with_intrinsics(self, cams, pts, loss, f_scale, max_iterations, ftol) -> dict:
-        """A BA of the whole model that also refines the focal length and ``k1`` (:class:`~course_lib.sfm.lm.SimpleRadialCamera`).
-
-        It works on the photos' own pixels. A result outside the sane range (focal length more than
-        ``max_focal_change`` from the prior, ``|k1| > max_k1``) is rejected: the cameras and points
-        go back and the BA is redone with the intrinsics held.
-        """
-        o = self.opts
-        saved = self.R.copy(), self.t.copy(), self.X.copy()
-        fixed = np.zeros((len(cams), 6), bool)
-        gauge = self._fix_gauge(cams, fixed)
-        model = lm.SimpleRadialCamera(self.K[:2, 2])
-        res = self._solve(model, cams, pts, self.uv_raw, fixed, loss, f_scale, max_iterations, ftol,
-                          shared=np.array([self.K[0, 0], self.k1]))
-        f, k1 = (float(v) for v in res.pop("shared"))
-        f0 = self.K0[0, 0]
-        ok = np.isfinite([f, k1]).all() and f0 / o.max_focal_change <= f <= f0 * o.max_focal_change and abs(k1) <= o.max_k1
-        entry = {"images": int(self.registered.sum()), "f": round(f, 3), "k1": round(k1, 6), "accepted": bool(ok)}
-        self.intrinsics_log.append(entry)
-        if not ok:
-            self.R[:], self.t[:], self.X[:] = saved
-            self.refine = False
-            out = self.adjust_bundle(loss, f_scale, max_iterations, ftol, points=np.isin(np.arange(self.T), pts))
-            self.refine = True
-            out["intrinsics"] = {**entry, "note": "rejected: outside the sane range; held"}
-            return out
-        K = self.K.copy()
-        K[0, 0] = K[1, 1] = f
-        self.set_intrinsics(K, k1)
-        return {"kind": "global", **res, "gauge": gauge, "intrinsics": entry}
-
-    def should_bundle(self) -> bool:
-        """Whether the whole model is due a bundle adjustment (OpenSfM's ``ShouldBundle``): up to 6 images
-        always, then when it has grown by ``ba_images_ratio`` since the last one."""
-        n = int(self.registered.sum())
-        return self.opts.bundle_adjustment == "incremental" and (n <= 6 or n >= self.opts.ba_images_ratio * self.n_at_last_ba)
-
-    def _adjust_and_filter(self, stage: dict, global_ba: bool, new: int | None = None) -> None:
-        """A BA of the whole model (``global_ba``) or a local one around image ``new``, then filtering; numbers into ``stage``."""
-        o = self.opts
-        if global_ba:
-            self.n_at_last_ba = int(self.registered.sum())
-            stage["ba"] = self.adjust_bundle(o.ba_loss, o.ba_f_scale, o.ba_max_iterations)
-            stage["filter"] = self.filter_points()
-            stage["reprojection_after_ba"] = self.observation_stats()
-            return
-        local = self.local_images(new)
-        points = (self.inlier & local[None, :]).any(axis=1)
-        stage["ba"] = self.adjust_bundle(o.ba_loss, o.ba_f_scale, o.ba_local_max_iterations, cameras=local)
-        stage["filter"] = self.filter_points(points=points)
-        stage["reprojection_after_ba"] = self.observation_stats(points)
-
     # --- growing and finishing a model ----------------------------------------------------------------
 
     def add_image(self, i: int) -> tuple[dict | None, str | None]:
@@ -761,16 +356,6 @@ class IncrementalMapper:
         if not (inl[multi][:, cams].sum(axis=0) >= MIN_MULTIVIEW_OBSERVATIONS).all() or multi[self.has_X].all():
             return None
         return multi
-
-    def _refine_points(self, points: np.ndarray) -> int:
-        """Non-linear triangulation of the ``(T,)`` bool ``points`` with the cameras fixed; returns how many."""
-        js = np.flatnonzero(points & self.has_X)
-        if len(js) == 0:
-            return 0
-        regs = np.flatnonzero(self.registered)
-        uv = np.where(self.inlier[js][:, regs][..., None], self.uv[js][:, regs], np.nan)
-        self.X[js] = call("triangulate_nonlinear", self.K, self.R[regs], self.t[regs], uv, self.X[js])
-        return int(len(js))
 
     def finish(self) -> dict:
         """The final stage: re-triangulation, noise estimate, filtering, and the final bundle adjustment.

@@ -105,7 +105,23 @@ class MapperOptions:
             ``ba_refine_focal_length`` and ``ba_refine_extra_params`` true.)
         max_focal_change: a refined focal length further than this factor from the prior is
             rejected (the BA is redone with the intrinsics held). (COLMAP ``max_focal_length_ratio`` 10.)
-        max_k1: a refined ``|k1|`` above this is rejected likewise. (COLMAP ``max_extra_param`` 1.)
+        max_k1: a refined ``|k1|`` above this is rejected likewise (the BA is then redone with ``k1``
+            held). (COLMAP ``max_extra_param`` 1.)
+        refine_k1_from_images: ``k1`` is held (the focal length alone refined) until the model holds
+            this many images. (COLMAP: from the start.)
+        min_k1_effect_px: ``k1`` is held where ``k1 = 0.1`` would move the image's corners by less than
+            this (a narrow field of view: 640 px wide at f = 1536 px, 2.7 px), where it trades off against
+            the focal length. (COLMAP: none.)
+        self_calibration: estimate the focal length from the verified pairs before the mapper starts
+            (:mod:`course_lib.sfm.self_calibration`), where the intrinsics are refined: ``"auto"`` where
+            the focal length is a guess (no calibration file, no EXIF), ``"always"``, or ``"never"``.
+            (COLMAP: none; it starts from the guess.)
+        focal_restarts, focal_restart_change, focal_restart_min_images: where the intrinsics are
+            refined and the focal length the first model has refined moves more than
+            ``focal_restart_change`` (relative) from the one it started from, once it holds
+            ``focal_restart_min_images`` images or at its end, the mapping starts again from the
+            refined focal length, at most ``focal_restarts`` times (0: never), so that a wrong prior
+            cannot lock in a wrong model (:class:`course_lib.sfm.pipeline._FocalWatch`). (COLMAP: none.)
         initial_pair: force the initial pair ``(i, j)`` (0-based) of the first model.
         verbose: print one line per stage.
     """
@@ -144,6 +160,12 @@ class MapperOptions:
     refine_intrinsics: bool | None = None
     max_focal_change: float = 3.0
     max_k1: float = 1.0
+    refine_k1_from_images: int = 8
+    min_k1_effect_px: float = 5.0
+    self_calibration: str = "auto"
+    focal_restarts: int = 4
+    focal_restart_change: float = 0.05
+    focal_restart_min_images: int = 8
     initial_pair: tuple[int, int] | None = None
     verbose: bool = False
 
@@ -158,6 +180,8 @@ class MapperOptions:
         opts = cls(**{**base, **overrides})
         if opts.bundle_adjustment not in ("incremental", "final", "none"):
             raise KitInputError(f"bundle_adjustment={opts.bundle_adjustment!r}: expected 'incremental', 'final' or 'none'")
+        if opts.self_calibration not in ("auto", "always", "never"):
+            raise KitInputError(f"self_calibration={opts.self_calibration!r}: expected 'auto', 'always' or 'never'")
         if opts.ba_images_ratio < 1.0 or opts.ba_local_num_images < 2:
             raise KitInputError(f"ba_images_ratio={opts.ba_images_ratio}, ba_local_num_images={opts.ba_local_num_images}: "
                                 "expected a ratio >= 1 and at least 2 images")
@@ -168,7 +192,7 @@ class MapperOptions:
         keep = ("f_threshold_px", "min_e_f_inlier_ratio", "pnp_threshold_px", "max_reproj_px", "final_max_reproj_px", "min_angle_deg",
                 "bundle_adjustment", "ba_loss", "ba_f_scale", "ba_images_ratio", "ba_local_num_images", "final_ba_loss",
                 "final_ba_f_scale", "init_min_points", "min_model_size", "multiple_models",
-                "merge_min_shared_images", "refine_intrinsics")
+                "merge_min_shared_images", "refine_intrinsics", "self_calibration")
         return {k: getattr(self, k) for k in keep}
 
 

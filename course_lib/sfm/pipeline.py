@@ -50,6 +50,14 @@ return numbers; this module calls them in order, times them and records them in 
    that splits where one image has too few inliers from one side is closed from the other: on a
    24-view ring without a calibration file, 17 + 7 images became one model of 24. The largest
    model is returned, the others in ``others``.
+7. **A camera without calibration** (``match`` without ``--K``: ``SIMPLE_RADIAL``, refined in the
+   BAs of the whole model): where its focal length is a guess (no EXIF), stage 1 first estimates it
+   from the verified pairs' fundamental matrices (:mod:`course_lib.sfm.self_calibration`, option
+   ``self_calibration``) and checks the pairs with that K. While the first model grows, where its
+   refined focal length moves more than ``focal_restart_change`` from the one it started from, the
+   mapping starts again from the refined value (:class:`_FocalWatch`, ``focal_restarts``), so a
+   wrong start cannot lock in a wrong model. ``report["self_calibration"]`` and
+   ``report["focal_restarts"]`` say what happened.
 
 P3 data quirks handled upstream by the reader (:mod:`course_lib.data.p3`): duplicate rows are
 merged, features are identified by equal coordinates. Matches contain outliers on purpose
@@ -60,13 +68,16 @@ Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
 
 from __future__ import annotations
 
+import dataclasses
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
 from course_lib.sfm.mapper import IncrementalMapper, MapperOptions
 from course_lib.sfm.mapper_options import relaxed
 from course_lib.sfm.mapper_report import MapperReport
+from course_lib.sfm.self_calibration import focal_from_fundamentals
 from course_lib.sfm.tracks import verified_pairs_and_tracks
 from course_lib.sfm.reconstruction import Reconstruction, image_size_of, reprojection_error_matrix, triangulation_angles_deg
 from course_lib.threads import single_threaded_blas
@@ -106,21 +117,49 @@ def run_sfm(data, rng: np.random.Generator, options: MapperOptions | None = None
     t_start = time.perf_counter()
     opts = MapperOptions.from_keywords(options, **overrides)
     K = _check_inputs(data, rng)
+    size = image_size_of(data)
+    data = _by_photo_names(data)
     report: dict = {"n_images": len(data.image_names), "options": opts.summary()}
     with single_threaded_blas():
-        pairs, tracks = verified_pairs_and_tracks(data, rng, opts.f_threshold_px, opts.min_pair_matches, report,
-                                                  opts.min_e_f_inlier_ratio)
-        report["n_tracks"] = len(tracks.uv)
-        t_ransac = time.perf_counter() - t_start
-        tr = report["tracks"]
-        if opts.verbose:
-            print(f"{report['verification']}: {len(pairs)} pairs verified; {tr['verified_tracks']} tracks from {tr['verified_matches']} inlier "
-                  f"matches ({tr['refused_links']} links refused: they joined two features of one image)")
         refine = opts.refine_intrinsics if opts.refine_intrinsics is not None else bool(getattr(data.camera, "refine", False))
-        mapper = IncrementalMapper(data, pairs, tracks.uv, K, image_size_of(data), opts, rng, refine_intrinsics=refine)
-        models, reasons = _build_models(mapper, tracks.rgb, pairs)
+        calibrate = _self_calibration(data, opts, size, report) if refine else None
+        pairs, tracks = verified_pairs_and_tracks(data, rng, opts.f_threshold_px, opts.min_pair_matches, report,
+                                                  opts.min_e_f_inlier_ratio, calibrate)
+        K = report["self_calibration"].pop("K") if "self_calibration" in report else K
+        t_ransac = time.perf_counter() - t_start
+        restarts = report["focal_restarts"] = []
+        f_checked = float(K[0, 0])  # the focal length of stage 1's calibrated check
+        while True:
+            report["n_tracks"] = len(tracks.uv)
+            tr = report["tracks"]
+            if opts.verbose:
+                print(f"{report['verification']}: {len(pairs)} pairs verified; {tr['verified_tracks']} tracks from {tr['verified_matches']} "
+                      f"inlier matches ({tr['refused_links']} links refused: they joined two features of one image)")
+            mapper = IncrementalMapper(data, pairs, tracks.uv, K, size, opts, rng, refine_intrinsics=refine)
+            watch = _FocalWatch(float(K[0, 0]), opts) if refine and len(restarts) < opts.focal_restarts else None
+            try:
+                models, reasons = _build_models(mapper, tracks.rgb, pairs, watch)
+                break
+            except _FocalMoved as moved:
+                restarts.append(moved.row)
+                if opts.verbose:
+                    print(f"the focal length moved from {moved.row['from_px']:.1f} to {moved.row['to_px']:.1f} px while the first "
+                          f"model grew ({moved.row['images']} images): starting again from {moved.row['to_px']:.1f} px")
+                K = K.copy()
+                K[0, 0] = K[1, 1] = moved.row["to_px"]
+                if (getattr(data, "two_view", None) is not None and opts.min_e_f_inlier_ratio > 0
+                        and abs(np.log(K[0, 0] / f_checked)) > np.log(1.0 + RECHECK_FOCAL_CHANGE)):  # its calibrated check used K
+                    t0 = time.perf_counter()
+                    pairs, tracks = verified_pairs_and_tracks(data, rng, opts.f_threshold_px, opts.min_pair_matches, report,
+                                                              opts.min_e_f_inlier_ratio, lambda _, K=K: K)
+                    f_checked = float(K[0, 0])
+                    t_ransac += time.perf_counter() - t0
     report["degenerate_pairs"] = list(mapper.degenerate.values())
     rec = _assemble(models, reasons, report)
+    for m in [rec] + rec.others:  # the camera's prior is the one the data gave, the start the one the mapping began from
+        if "prior_focal_px" in m.report.get("camera", {}):
+            m.report["camera"]["start_focal_px"] = m.report["camera"]["prior_focal_px"]
+            m.report["camera"]["prior_focal_px"] = round(float(intrinsics(data.K)[0, 0]), 3)
     rec.report["seconds"] = {"ransac_F": round(t_ransac, 3), **{k: round(v, 3) for k, v in rec.report["seconds"].items()},
                              "total": round(time.perf_counter() - t_start, 3)}
     _say_final(rec, opts.verbose)
@@ -144,13 +183,98 @@ def _check_inputs(data, rng) -> np.ndarray:
     return K
 
 
-def _build_models(mapper: IncrementalMapper, rgb: np.ndarray, pairs: dict) -> tuple[list, list]:
+#: A focal length has settled where two successive refinements differ by less than this (relative).
+FOCAL_SETTLED = 0.02
+#: Stage 1's calibrated check is redone after a focal restart where the focal length moved more than this
+#: (relative) from the one it checked with (its 4 px Sampson threshold tolerates less).
+RECHECK_FOCAL_CHANGE = 0.1
+
+
+def _self_calibration(data, opts: MapperOptions, size, report: dict):
+    """The function stage 1 calls on the verified pairs to self-calibrate the focal length, or None where it is not wanted.
+
+    ``opts.self_calibration``: ``"auto"`` where the camera's focal length is a guess (``camera.json`` of
+    ``match`` without ``--K`` and without EXIF), ``"always"`` wherever the intrinsics are refined. The
+    function records :func:`course_lib.sfm.self_calibration.focal_from_fundamentals`'s result in
+    ``report["self_calibration"]`` (with the K used, ``"K"``, which run_sfm takes out of the report) and
+    returns the K with the estimated focal length (the guess where the pairs do not determine it).
+    """
+    guessed = str(getattr(data.camera, "source", "")).startswith("guess")
+    if opts.self_calibration == "never" or (opts.self_calibration == "auto" and not guessed):
+        return None
+
+    def calibrate(verifications: dict) -> np.ndarray:
+        t0 = time.perf_counter()
+        K = intrinsics(data.K).copy()
+        good = [v for v in verifications.values() if v.F is not None and v.n_inliers >= opts.min_pair_matches]
+        est = focal_from_fundamentals(np.array([v.F for v in good]).reshape(-1, 3, 3), np.array([v.n_inliers for v in good]),
+                                      size, float(K[0, 0]), (K[0, 2], K[1, 2]))
+        if est.focal_px is not None:
+            K[0, 0] = K[1, 1] = est.focal_px
+        report["self_calibration"] = {**est.summary(), "seconds": round(time.perf_counter() - t0, 3), "K": K}
+        if opts.verbose:
+            print(f"self-calibration from {est.pairs} pairs: f = {est.focal_px:.1f} px (the guess was {est.guess_px:.1f})"
+                  if est.focal_px is not None else f"self-calibration: {est.note}")
+        return K
+
+    return calibrate
+
+
+def _by_photo_names(data):
+    """``data`` with its images named as the user's photos (:attr:`course_lib.data.p3.P3Data.photo_names`: the names
+    ``match`` read them under), so that the report, the COLMAP model and ``scene.html`` keep them; ``data`` itself
+    where the names are the same (a course P3 folder)."""
+    names = getattr(data, "photo_names", None)
+    if names is None or list(names) == list(data.image_names) or not dataclasses.is_dataclass(data):
+        return data
+    return dataclasses.replace(data, image_names=list(names), source_names=None)
+
+
+class _FocalMoved(Exception):
+    """Raised while the first model grows when the refined focal length left the one it started from (:class:`_FocalWatch`)."""
+
+    def __init__(self, row: dict):
+        super().__init__(f"focal length moved: {row}")
+        self.row = row
+
+
+@dataclass
+class _FocalWatch:
+    """Watches the refined focal length while the first model grows: a wrong start must not lock in a wrong model.
+
+    A model grown from a focal length far from the true one is distorted from its initial pair on;
+    the bundle adjustments move the focal length towards the truth as images come in, but the
+    model they move is already bent (a ring around the building, started 80 % too long, ended
+    1.5 degrees off with the right focal length). So where the refined focal length moves more than
+    ``focal_restart_change`` from the one the model started from, once the model holds
+    ``focal_restart_min_images`` images (fewer hardly fix it; all of them in a smaller set) and the
+    focal length has settled (the last two refinements within :data:`FOCAL_SETTLED`: a model grown
+    from a wrong start moves it over many registrations, and a restart from half-way would start
+    from a value as wrong), or at the model's end, the mapping starts again from the refined value
+    (at most ``focal_restarts`` times).
+    """
+
+    start_px: float
+    opts: MapperOptions
+
+    def check(self, mapper: IncrementalMapper, at_end: bool = False) -> None:
+        n, f = int(mapper.registered.sum()), float(mapper.K[0, 0])
+        if n < min(self.opts.focal_restart_min_images, mapper.M):  # a few views hardly fix it, also at the end
+            return
+        fs = [e["f"] for e in mapper.intrinsics_log if e["accepted"]]
+        settled = len(fs) >= 2 and abs(np.log(fs[-1] / fs[-2])) < np.log1p(FOCAL_SETTLED)
+        if (settled or at_end) and abs(np.log(f / self.start_px)) > np.log1p(self.opts.focal_restart_change):
+            raise _FocalMoved({"from_px": round(self.start_px, 3), "to_px": round(f, 3), "images": n, "at_end": bool(at_end)})
+
+
+def _build_models(mapper: IncrementalMapper, rgb: np.ndarray, pairs: dict, watch: _FocalWatch | None = None) -> tuple[list, list]:
     """Grow models until no pair of the images left can start one; ``(models, reasons)``, one reasons dict per model.
 
     Each model has its :class:`~course_lib.sfm.mapper_report.MapperReport`, which becomes its
     ``report``. A later model that registers images of an earlier one is merged into it
     (:func:`_merge`) and the merged model grows on. A model after the first with fewer than
-    ``min_model_size`` images is discarded; its images are left out with that reason.
+    ``min_model_size`` images is discarded; its images are left out with that reason. ``watch``: raise
+    :class:`_FocalMoved` where the first model's focal length moves away from its start (:class:`_FocalWatch`).
     """
     opts = mapper.opts
     built: list[tuple] = []  # (Reconstruction, MapperReport, the mapper's state) per model
@@ -162,7 +286,7 @@ def _build_models(mapper: IncrementalMapper, rgb: np.ndarray, pairs: dict) -> tu
             if not built:
                 raise KitInputError(_no_start_message(mapper, report.candidates, pairs))
             break
-        _grow_and_finish(mapper, report)
+        _grow_and_finish(mapper, report, None if built else watch)
         report, built = _merge(mapper, report, built)
         rec = mapper.end_model(rgb)
         rec.report = report.model_report(rec, mapper.camera())
@@ -180,10 +304,12 @@ def _build_models(mapper: IncrementalMapper, rgb: np.ndarray, pairs: dict) -> tu
     return [rec for rec, _, _ in built], reasons
 
 
-def _grow_and_finish(mapper: IncrementalMapper, report: MapperReport) -> None:
+def _grow_and_finish(mapper: IncrementalMapper, report: MapperReport, watch: _FocalWatch | None = None) -> None:
     """Register what can be, finish, and give the images still left a last try (the final BA and re-triangulation may let them in)."""
-    _grow(mapper, report)
+    _grow(mapper, report, watch)
     _finish(mapper, report)
+    if watch is not None:
+        watch.check(mapper, at_end=True)
     n = int(mapper.registered.sum())
     _grow(mapper, report)
     if mapper.registered.sum() > n:
@@ -243,7 +369,7 @@ def _start_model(mapper: IncrementalMapper, report: MapperReport, relax: bool) -
                 report.start_failed(pair.images, mapper.failed_starts[pair.images], mapper.opts.init_min_points)
 
 
-def _grow(mapper: IncrementalMapper, report: MapperReport) -> None:
+def _grow(mapper: IncrementalMapper, report: MapperReport, watch: _FocalWatch | None = None) -> None:
     """Register images until none is left or none can be (a stall).
 
     The image ranked first by :meth:`~course_lib.sfm.mapper.IncrementalMapper.next_images` is
@@ -275,6 +401,8 @@ def _grow(mapper: IncrementalMapper, report: MapperReport) -> None:
                 failed.add(i)
             else:
                 report.registered(i, numbers, time.perf_counter() - t0)
+                if watch is not None:
+                    watch.check(mapper)
                 failed.clear()  # new points may let a failed image in now
                 retried = False
 

@@ -163,15 +163,26 @@ class PnPResult:
     n_iters: int
 
 
-def pnp_ransac(
-    X: np.ndarray,
-    x: np.ndarray,
-    K: np.ndarray,
-    rng: np.random.Generator,
-    threshold_px: float = 2.0,
-    confidence: float = 0.999,
-    max_iters: int = 1000,
-) -> PnPResult:
+def _local_optimization(X, x, xn, K, best: tuple, threshold_px: float, score) -> tuple:
+    """Refit a new best ``(R, t, inliers, key)`` of :func:`pnp_ransac`; the better of it and the refits.
+
+    From 6 noisy points the DLT is poor (it fits 11 parameters), so refit on the points within a
+    loose, then tighter threshold of the new best model, and keep the refit whenever it gains inliers.
+    """
+    for mult in (4.0, 2.0, 1.0, 1.0):
+        err = _errors(X, x, K, best[0], best[1])
+        near = err < mult * threshold_px
+        if near.sum() < 2 * MIN_POINTS:
+            continue
+        R, t = _dlt(X[near], xn[near])
+        inl, key = score(R, t)
+        if key > best[3]:
+            best = (R, t, inl, key)
+    return best
+
+
+def pnp_ransac(X: np.ndarray, x: np.ndarray, K: np.ndarray, rng: np.random.Generator, threshold_px: float = 2.0,
+               confidence: float = 0.999, max_iters: int = 1000) -> PnPResult:
     """Robust PnP: linear PnP on random 6-point samples, scored by reprojection error.
 
     Each iteration draws 6 distinct correspondences, solves :func:`pnp_linear` and counts the
@@ -226,19 +237,7 @@ def pnp_ransac(
         inl, key = score(R, t)
         if key <= best[3]:
             continue
-        best = (R, t, inl, key)
-        # Local optimization: from 6 noisy points the DLT is poor (it fits 11 parameters), so refit
-        # on the points within a loose, then tighter threshold of the new best model, and keep
-        # the refit whenever it gains inliers.
-        for mult in (4.0, 2.0, 1.0, 1.0):
-            err = _errors(X, x, K, best[0], best[1])
-            near = err < mult * threshold_px
-            if near.sum() < 2 * MIN_POINTS:
-                continue
-            R, t = _dlt(X[near], xn[near])
-            inl, key = score(R, t)
-            if key > best[3]:
-                best = (R, t, inl, key)
+        best = _local_optimization(X, x, xn, K, (R, t, inl, key), threshold_px, score)
         w = best[3][0] / n
         if w >= 1.0:
             needed = it

@@ -45,12 +45,13 @@ import numpy as np
 from course_lib.data.tracks import Tracks, join_tracks
 from course_lib.exercises import call
 from course_lib.sfm.initial_pair import five_point_essential, fundamental_from_essential, sampson_pixels
+from course_lib.sfm.refit import refit_on_inliers
 from course_lib.validate import KitInputError
 
 try:  # the instructor's kit: notebook 01's RANSAC with batched samples and a preemptive test (faster)
-    from course_lib.sfm.fundamental import _refit, eight_point_batch, ransac, sampson_distance_batch
+    from course_lib.sfm.fundamental import eight_point_batch, ransac, sampson_distance_batch
 except ImportError:  # the student kit: your ransac_fundamental, eight_point and sampson_distance of notebook 01
-    _refit = eight_point_batch = ransac = sampson_distance_batch = None
+    eight_point_batch = ransac = sampson_distance_batch = None
 
 __all__ = ["PairVerification", "Tracks", "verify_pair", "ransac_every_pair", "from_carried_geometry", "verify_pairs",
            "verified_pairs_and_tracks", "calibrated_check", "check_calibrated", "join_tracks", "verified_tracks"]
@@ -79,16 +80,8 @@ class PairVerification:
         return int(self.inliers.sum())
 
 
-def verify_pair(
-    x1: np.ndarray,
-    x2: np.ndarray,
-    rng: np.random.Generator,
-    threshold_px: float = 1.0,
-    confidence: float = 0.999,
-    max_iters: int = 2000,
-    batch: int = 256,
-    bailout: int = 64,
-) -> PairVerification:
+def verify_pair(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, threshold_px: float = 1.0,
+                confidence: float = 0.999, max_iters: int = 2000, batch: int = 256, bailout: int = 64) -> PairVerification:
     """RANSAC on F (8-point samples, Sampson distance, adaptive stop), samples solved in batches.
 
     The RANSAC of notebook 01 (in the instructor's kit), :func:`course_lib.sfm.fundamental.ransac` with the batched
@@ -180,37 +173,24 @@ def from_carried_geometry(x1: np.ndarray, x2: np.ndarray, F: np.ndarray, thresho
         return PairVerification(None, np.zeros(len(x1), bool), np.full(len(x1), np.inf), 0,
                                 f"{len(x1)} matches: the 8-point algorithm needs at least 8")
     F = np.asarray(F, float) / np.linalg.norm(F)
-    if _refit is not None:
-        model, d = _refit(eight_point_batch, sampson_distance_batch, x1, x2, F, threshold_px, 8)
+    if eight_point_batch is not None:
+        model, d = refit_on_inliers(eight_point_batch, sampson_distance_batch, x1, x2, F, threshold_px, 8)
     else:
-        model, d = _refit_with_exercises(x1, x2, F, threshold_px)
+        model, d = refit_on_inliers(_eight_point_exercise, _sampson_exercise, x1, x2, F, threshold_px, 8)
     return PairVerification(model, d < threshold_px, d, 0)
 
 
-def _refit_with_exercises(x1, x2, F, threshold_px: float, rounds: int = 5) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`from_carried_geometry`'s refit by the exercises ``eight_point`` and ``sampson_distance`` (the student kit).
+def _eight_point_exercise(x1: np.ndarray, x2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The exercise ``eight_point`` as :func:`course_lib.sfm.refit.refit_on_inliers`' solver: one batch of one problem."""
+    try:
+        return np.asarray(call("eight_point", x1[0], x2[0]), float).reshape(1, 3, 3), np.ones(1, bool)
+    except KitInputError:
+        return np.zeros((1, 3, 3)), np.zeros(1, bool)
 
-    The same rule as the reference's refit: the first refit on the inliers is taken, later ones only
-    while they keep at least as many inliers. Returns ``(F (3, 3), distances (N,))``.
-    """
-    d = np.asarray(call("sampson_distance", F, x1, x2), float).reshape(-1)
-    inl = d < threshold_px
-    for round_ in range(rounds):
-        if inl.sum() < 8:
-            break
-        try:
-            new = np.asarray(call("eight_point", x1[inl], x2[inl]), float).reshape(3, 3)
-        except KitInputError:
-            break
-        d_new = np.asarray(call("sampson_distance", new, x1, x2), float).reshape(-1)
-        inl_new = d_new < threshold_px
-        if round_ > 0 and inl_new.sum() < inl.sum():
-            break
-        done = np.array_equal(inl_new, inl)
-        F, d, inl = new, d_new, inl_new
-        if done:
-            break
-    return F, d
+
+def _sampson_exercise(models: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """The exercise ``sampson_distance`` as :func:`course_lib.sfm.refit.refit_on_inliers`' error: ``(B, N)``."""
+    return np.stack([np.asarray(call("sampson_distance", F, x1, x2), float).reshape(-1) for F in models])
 
 
 def verify_pairs(data, rng: np.random.Generator, threshold_px: float = 1.0) -> tuple[dict, str]:
@@ -261,8 +241,9 @@ def calibrated_check(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold_px
     return inl, float(inl.mean())
 
 
-def check_calibrated(data, verifications: dict, rng: np.random.Generator, threshold_px: float, min_ratio: float) -> dict:
-    """Every verified pair checked by :func:`calibrated_check` with the camera's ``data.K``: a new ``{(i, j): PairVerification}``.
+def check_calibrated(data, verifications: dict, rng: np.random.Generator, threshold_px: float, min_ratio: float,
+                     K: np.ndarray | None = None) -> dict:
+    """Every verified pair checked by :func:`calibrated_check` with the camera's K: a new ``{(i, j): PairVerification}``.
 
     A pair whose E explains less than ``min_ratio`` of its inliers loses its F (its ``note`` says
     why: it gives no tracks); the others keep only the inliers E explains.
@@ -271,8 +252,9 @@ def check_calibrated(data, verifications: dict, rng: np.random.Generator, thresh
         data: :class:`course_lib.data.p3.P3Data` (``K``, ``matches``). verifications: ``{(i, j): PairVerification}``.
         rng: seeded generator (one RANSAC seed per verified pair, in sorted order).
         threshold_px: Sampson distance (pixels). min_ratio: the share E must explain.
+        K: ``(3, 3)`` the camera's K (default ``data.K``; the self-calibrated one where the focal length was a guess).
     """
-    K = np.asarray(data.K, float)
+    K = np.asarray(data.K if K is None else K, float)
     keys = [k for k in sorted(verifications) if verifications[k].F is not None]
     seeds = dict(zip(keys, rng.integers(2**31 - 1, size=len(keys)).tolist()))
     out = dict(verifications)
@@ -320,22 +302,25 @@ def verified_tracks(data, verifications: dict, min_inliers: int = 8) -> Tracks:
 
 
 def verified_pairs_and_tracks(data, rng, threshold_px: float, min_matches: int, report: dict,
-                              min_e_f_inlier_ratio: float = 0.0):
+                              min_e_f_inlier_ratio: float = 0.0, calibrate=None):
     """Stage 1: every pair verified (``match``'s verification where the folder carries it, else RANSAC on F), then
     tracks from the inlier matches only (:func:`course_lib.sfm.tracks.verify_pairs`).
 
     Where the folder carries ``match``'s verification (photos) and ``min_e_f_inlier_ratio > 0``,
     each verified pair is checked with the calibrated geometry (:func:`course_lib.sfm.tracks.check_calibrated`):
     a pair whose five-point E explains less than that share of F's inliers is dropped (its row says
-    why), the others keep the matches E explains.
+    why), the others keep the matches E explains. ``calibrate`` (a function of the verified pairs
+    ``{(i, j): PairVerification}`` that returns the camera's ``(3, 3)`` K, e.g. the self-calibrated one of
+    :mod:`course_lib.sfm.self_calibration`) gives the K of that check; default ``data.K``.
 
     Returns:
         ``pairs {(i, j): (F (3, 3), inliers (N,) bool)}`` of the pairs with at least ``min_matches``
         inliers, and the :class:`~course_lib.sfm.tracks.Tracks`; ``report`` gets ``pairs`` and ``tracks``.
     """
     ver, how = verify_pairs(data, rng, threshold_px)
+    K = calibrate(ver) if calibrate is not None else None
     if min_e_f_inlier_ratio > 0 and getattr(data, "two_view", None) is not None:
-        ver = check_calibrated(data, ver, rng, threshold_px, min_e_f_inlier_ratio)
+        ver = check_calibrated(data, ver, rng, threshold_px, min_e_f_inlier_ratio, K)
         how += f", checked by the five-point E (at least {min_e_f_inlier_ratio:g} of F's inliers)"
     report["verification"] = how
     pairs, rows = {}, []

@@ -371,6 +371,25 @@ def scene_figure(
     return fig
 
 
+def _palette_marker(col: np.ndarray) -> dict:
+    """The marker colours of ``col (N, 3)`` uint8 as a palette and one index a point (or one colour)."""
+    # palette + colour indices: ~1.3-2.7 bytes a point instead of a "#rrggbb" string each;
+    # 5 bits a channel, fewer if that gives more than 512 distinct colours
+    for bits in (5, 4, 3, 2):
+        q = (col >> (8 - bits)).astype(np.int32)
+        key = (q[:, 0] << (2 * bits)) + (q[:, 1] << bits) + q[:, 2]
+        uniq, inv = np.unique(key, return_inverse=True)
+        if len(uniq) <= 512:
+            break
+    m = (1 << bits) - 1
+    pal = (np.stack([uniq >> (2 * bits), (uniq >> bits) & m, uniq & m], 1) * 255 + m // 2) // m
+    if len(uniq) == 1:
+        return {"color": _colour(pal[0])}
+    n = len(uniq)
+    return dict(color=inv.astype(np.uint16 if n > 255 else np.uint8), cmin=0, cmax=n - 1,
+                colorscale=[[round(k / (n - 1), 6), _colour(p)] for k, p in enumerate(pal)], showscale=False)
+
+
 def add_points(
     fig: go.Figure,
     X,
@@ -419,27 +438,7 @@ def add_points(
     dec = _decimals(scene_size(X) if len(X) else 1.0)
     marker = dict(size=size)
     if col is not None:
-        # palette + colour indices: ~1.3-2.7 bytes a point instead of a "#rrggbb" string each;
-        # 5 bits a channel, fewer if that gives more than 512 distinct colours
-        for bits in (5, 4, 3, 2):
-            q = (col >> (8 - bits)).astype(np.int32)
-            key = (q[:, 0] << (2 * bits)) + (q[:, 1] << bits) + q[:, 2]
-            uniq, inv = np.unique(key, return_inverse=True)
-            if len(uniq) <= 512:
-                break
-        m = (1 << bits) - 1
-        pal = (np.stack([uniq >> (2 * bits), (uniq >> bits) & m, uniq & m], 1) * 255 + m // 2) // m
-        if len(uniq) == 1:
-            marker["color"] = _colour(pal[0])
-        else:
-            n = len(uniq)
-            marker.update(
-                color=inv.astype(np.uint16 if n > 255 else np.uint8),
-                cmin=0,
-                cmax=n - 1,
-                colorscale=[[round(k / (n - 1), 6), _colour(p)] for k, p in enumerate(pal)],
-                showscale=False,
-            )
+        marker.update(_palette_marker(col))
     else:
         marker["color"] = _group_colour(fig, group, color)
     fig.add_trace(
@@ -625,6 +624,53 @@ def _add_image_plane(fig, img: np.ndarray, corners: np.ndarray, dec: int, group:
     )
 
 
+def _ray_inputs(rays_o, rays_d, samples, sample_values):
+    """:func:`add_rays`' inputs checked: ``o, d (R, 3)``, ``S (R, S, 3)`` or None, ``V (R, S)`` or None."""
+    o = _np(rays_o)
+    d = _np(rays_d)
+    if o.ndim == 3:
+        o = o.reshape(-1, 3)
+    if d.ndim == 3:
+        d = d.reshape(-1, 3)
+    o = _rows(o, "rays_o")
+    d = _rows(d, "rays_d")
+    if o.shape != d.shape:
+        raise KitInputError(f"rays_o has shape {o.shape} but rays_d has {d.shape}: one origin per direction")
+    Rn = o.shape[0]
+    S = None
+    if samples is not None:
+        S = _np(samples)
+        if S.ndim != 3 or S.shape[0] != Rn or S.shape[2] != 3:
+            raise KitInputError(f"samples has shape {tuple(S.shape)}: expected ({Rn}, S, 3)")
+    V = None
+    if sample_values is not None:
+        if S is None:
+            raise KitInputError("sample_values needs samples")
+        V = _np(sample_values)
+        if V.shape != S.shape[:2]:
+            raise KitInputError(f"sample_values has shape {tuple(V.shape)}: expected {S.shape[:2]}")
+    return o, d, S, V
+
+
+def _add_samples(fig: go.Figure, S: np.ndarray, V, col: str, dec: int, name: str, group: str) -> None:
+    """The sample points ``S (R, S, 3)`` of :func:`add_rays`, coloured by ``V (R, S)`` where given."""
+    P = S.reshape(-1, 3)
+    keep = np.isfinite(P).all(1)
+    marker = dict(size=2, color=col)
+    if V is not None:
+        v = V.reshape(-1)[keep]
+        marker = dict(size=2.5, color=_compact(v, 4), colorscale="Viridis", showscale=True,
+                      colorbar=dict(thickness=10, len=0.5, title=dict(text="value")))
+    P = P[keep]
+    fig.add_trace(
+        go.Scatter3d(
+            x=_compact(P[:, 0], dec), y=_compact(P[:, 1], dec), z=_compact(P[:, 2], dec), mode="markers",
+            marker=marker, name=f"{name} samples", legendgroup=group, showlegend=False,
+            hoverinfo="skip", uid=_uid(fig, "samples", group),
+        )
+    )
+
+
 def add_rays(
     fig: go.Figure,
     rays_o,
@@ -653,29 +699,8 @@ def add_rays(
     Returns:
         ``fig`` (modified in place).
     """
-    o = _np(rays_o)
-    d = _np(rays_d)
-    if o.ndim == 3:
-        o = o.reshape(-1, 3)
-    if d.ndim == 3:
-        d = d.reshape(-1, 3)
-    o = _rows(o, "rays_o")
-    d = _rows(d, "rays_d")
-    if o.shape != d.shape:
-        raise KitInputError(f"rays_o has shape {o.shape} but rays_d has {d.shape}: one origin per direction")
+    o, d, S, V = _ray_inputs(rays_o, rays_d, samples, sample_values)
     Rn = o.shape[0]
-    S = None
-    if samples is not None:
-        S = _np(samples)
-        if S.ndim != 3 or S.shape[0] != Rn or S.shape[2] != 3:
-            raise KitInputError(f"samples has shape {tuple(S.shape)}: expected ({Rn}, S, 3)")
-    V = None
-    if sample_values is not None:
-        if S is None:
-            raise KitInputError("sample_values needs samples")
-        V = _np(sample_values)
-        if V.shape != S.shape[:2]:
-            raise KitInputError(f"sample_values has shape {tuple(V.shape)}: expected {S.shape[:2]}")
     idx = np.arange(Rn)
     if max_rays is not None and Rn > max_rays:
         idx = np.sort(np.random.default_rng(rng_seed).choice(Rn, size=int(max_rays), replace=False))
@@ -703,21 +728,7 @@ def add_rays(
         )
     )
     if S is not None:
-        P = S.reshape(-1, 3)
-        keep = np.isfinite(P).all(1)
-        marker = dict(size=2, color=col)
-        if V is not None:
-            v = V.reshape(-1)[keep]
-            marker = dict(size=2.5, color=_compact(v, 4), colorscale="Viridis", showscale=True,
-                          colorbar=dict(thickness=10, len=0.5, title=dict(text="value")))
-        P = P[keep]
-        fig.add_trace(
-            go.Scatter3d(
-                x=_compact(P[:, 0], dec), y=_compact(P[:, 1], dec), z=_compact(P[:, 2], dec), mode="markers",
-                marker=marker, name=f"{name} samples", legendgroup=group, showlegend=False,
-                hoverinfo="skip", uid=_uid(fig, "samples", group),
-            )
-        )
+        _add_samples(fig, S, V, col, dec, name, group)
     return fig
 
 

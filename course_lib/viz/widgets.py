@@ -181,6 +181,30 @@ def ransac_threshold_widget(
 
 
 # ----------------------------------------------------------------------------- BA
+def _ba_state(k: int, st) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``states[k]`` of :func:`ba_iterations_widget` checked: ``(R_cw (M, 3, 3), t_cw (M, 3), X (N, 3))``."""
+    if not isinstance(st, (tuple, list)) or len(st) != 3:
+        raise KitInputError(f"states[{k}] must be a tuple (R_cw (M,3,3), t_cw (M,3), X (N,3))")
+    R, t = camera_poses(st[0], st[1])
+    X = np.asarray(st[2], float)
+    if X.ndim != 2 or X.shape[1] != 3:
+        raise KitInputError(f"states[{k}][2] (X) has shape {X.shape}: expected (N, 3)")
+    return R, t, X
+
+
+def _ba_axis_box(checked: list) -> tuple[np.ndarray, np.ndarray]:
+    """Fixed axes over all states (a robust box of points and centres), so the scene does not jump: ``(lo, hi)``."""
+    pts = np.concatenate([X[np.isfinite(X).all(1)] for _, _, X in checked])
+    cen = np.concatenate([np.einsum("mji,mj->mi", R, -t) for R, t, _ in checked])
+    lo, hi = cen.min(0), cen.max(0)
+    if len(pts):
+        lo = np.minimum(lo, np.percentile(pts, 1, axis=0))
+        hi = np.maximum(hi, np.percentile(pts, 99, axis=0))
+    pad = 0.08 * (hi - lo).max() + 1e-9
+    lo, hi = lo - pad, hi + pad
+    return lo, hi
+
+
 def ba_iterations_widget(
     states,
     K,
@@ -208,28 +232,12 @@ def ba_iterations_widget(
     states = list(states)
     if not states:
         raise KitInputError("states is empty: pass one (R_cw, t_cw, X) per iteration")
-    checked = []
-    for k, st in enumerate(states):
-        if not isinstance(st, (tuple, list)) or len(st) != 3:
-            raise KitInputError(f"states[{k}] must be a tuple (R_cw (M,3,3), t_cw (M,3), X (N,3))")
-        R, t = camera_poses(st[0], st[1])
-        X = np.asarray(st[2], float)
-        if X.ndim != 2 or X.shape[1] != 3:
-            raise KitInputError(f"states[{k}][2] (X) has shape {X.shape}: expected (N, 3)")
-        checked.append((R, t, X))
+    checked = [_ba_state(k, st) for k, st in enumerate(states)]
     if costs is not None:
         costs = [float(c) for c in costs]
         if len(costs) != len(states):
             raise KitInputError(f"costs has {len(costs)} entries for {len(states)} states")
-    # fixed axes over all states (robust box of points and centres), so the scene does not jump
-    pts = np.concatenate([X[np.isfinite(X).all(1)] for _, _, X in checked])
-    cen = np.concatenate([np.einsum("mji,mj->mi", R, -t) for R, t, _ in checked])
-    lo, hi = cen.min(0), cen.max(0)
-    if len(pts):
-        lo = np.minimum(lo, np.percentile(pts, 1, axis=0))
-        hi = np.maximum(hi, np.percentile(pts, 99, axis=0))
-    pad = 0.08 * (hi - lo).max() + 1e-9
-    lo, hi = lo - pad, hi + pad
+    lo, hi = _ba_axis_box(checked)
     ext = hi - lo
     scale = 0.05 * float(np.linalg.norm(ext))
     slider = widgets.IntSlider(value=0, min=0, max=len(states) - 1, step=1, description="iteration",

@@ -12,8 +12,39 @@ def test_check_reports_pass_and_fail(capsys):
         c.expect(True, "first is fine", "never shown")
         c.expect(False, "never shown", "second failed: did you transpose?")
     out = capsys.readouterr().out
-    assert out.splitlines() == ["demo", "  ✔ first is fine", "  ✘ second failed: did you transpose?", "  1 of 2 checks passed"]
+    assert out.splitlines() == ["demo", "  ✔ first is fine", "  ✘ second failed: did you transpose?", "  1 of 2 checks passed",
+                                "  scoring: 50% of the hidden-check points on these cases: 1 of 2 point checks fail "
+                                "(each costs an equal share)"]
     assert core.RESULTS["demo"].passed == 1
+
+
+def test_the_scoring_line_names_the_rule_that_cost_points(capsys):
+    """Gates earn nothing and a failed one counts as a failed check; a failed defining property caps at half."""
+    core.declare_defining("demo2", {"rank 2": "F is singular"})
+    with Check("demo2") as c:
+        c.expect(True, "F has shape (3, 3)", "", kind="gate")
+        c.expect(False, "", "F has shape (4, 4)", kind="gate")
+        for k in range(6):
+            c.expect(True, f"value {k} right", "")
+        c.expect(False, "", "F has rank 3", defining="rank 2")
+    line = capsys.readouterr().out.splitlines()[-1]
+    assert line.startswith("  scoring: 50% of the hidden-check points")
+    assert "1 of 7 point checks fail" in line and "1 shape/dtype gate(s) fail" in line
+    assert "the defining property 'rank 2' fails: capped at 50% (the other checks alone would give 75%)" in line
+    assert core.score(core.RESULTS["demo2"]) == 0.5
+    core.DEFINING.pop("demo2")
+
+
+def test_the_scoring_rule_is_written_once_and_quoted_where_it_is_read():
+    from course_lib.instructor.release import student_readme
+    from course_lib.instructor.notebooks import kit_specs
+    from course_lib.instructor.plan import release_plan
+    from course_lib.paths import REPO_ROOT
+
+    for doc in ("README.md", "docs/mistakes.md"):
+        assert core.SCORING_RULE in (REPO_ROOT / doc).read_text(), f"{doc} does not quote core.SCORING_RULE"
+    specs = kit_specs()
+    assert core.SCORING_RULE in student_readme(specs, release_plan(specs))
 
 
 def test_check_turns_student_exceptions_into_verdicts(capsys):
@@ -90,8 +121,8 @@ def test_a_failed_defining_property_caps_the_score_and_leads_the_verdict(capsys)
     assert lines[0] == "defining demo"
     assert "defining property fails: rank 2" in lines[1] and "half of the points" in lines[1]
     assert lines[2] == "  ✘ case 9: F has rank 3: enforce rank 2"  # the failing check follows it
-    assert lines[-1] == "  10 of 11 checks passed"
-    assert r.lines == lines[1:-1]  # the result holds the lines as printed (the grader's feedback uses them)
+    assert lines[-2] == "  10 of 11 checks passed" and "capped at 50%" in lines[-1]
+    assert r.lines == lines[1:-2]  # the result holds the lines as printed (the grader's feedback uses them)
 
 
 def test_a_defining_property_must_be_declared():

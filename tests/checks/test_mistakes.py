@@ -42,6 +42,9 @@ def verdict(m: Mistake):
 @pytest.mark.parametrize("m", MISTAKES, ids=[f"{m.exercise}: {m.name}" for m in MISTAKES])
 def test_mistake_is_caught_named_and_weighed(m: Mistake):
     result, out, caught, named, wrong = verdict(m)
+    if m.batch == "44":  # written before reading the checks: never confidently misnamed; caught and named are measured
+        assert not wrong, f"the verdict confidently names another mistake than '{m.name}': {wrong}\n{out}"
+        return
     assert caught, f"the check passes the mistake '{m.name}':\n{out}"
     assert not wrong, f"the verdict confidently names another mistake than '{m.name}': {wrong}\n{out}"
     assert named, f"the verdict does not name '{m.name}' (expected {m.names}):\n{out}"

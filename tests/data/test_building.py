@@ -11,7 +11,7 @@ import pytest
 from course_lib.conventions import camera_center, project
 from course_lib.data import building
 from course_lib.data.building import Surface, load_ground_truth, render
-from course_lib.data.features import tracks_from_images
+from course_lib.data.tracks import tracks_from_images
 from course_lib.data.p3 import read_p3, write_p3
 from course_lib.data.synthetic import look_at
 from course_lib.paths import EMBEDDED_NERF, EMBEDDED_SFM

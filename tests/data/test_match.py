@@ -80,7 +80,7 @@ def test_cli_and_bad_inputs(photos, tmp_path, capsys):
         "one": (["1.png"], "at least 2"),
         "sizes": (["1.png", "2.png"], "one camera at one size"),
         "broken": (["1.png", "2.png"], "cannot read the image"),
-        "gap": (["1.png", "3.png"], "without gaps"),
+        "twice": (["1.png", "2.png"], "keep one file per number"),
     }
     for name, (files, msg) in cases.items():
         d = tmp_path / name
@@ -89,6 +89,8 @@ def test_cli_and_bad_inputs(photos, tmp_path, capsys):
             (d / f).write_bytes((folder / f).read_bytes())
         if name == "sizes":
             cv2.imwrite(str(d / "2.png"), np.zeros((20, 30, 3), np.uint8))
+        if name == "twice":
+            (d / "2.jpg").write_bytes((folder / "2.png").read_bytes())
         if name == "broken":
             (d / "2.png").write_bytes(b"not a png")
         with pytest.raises(KitInputError, match=msg):

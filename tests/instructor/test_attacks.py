@@ -594,14 +594,14 @@ def rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def graded_row(what: str, report: dict, name: str, rss_before: float, klass: str) -> dict:
-    """The row of one attack (and its checks: points 0, the grader's memory)."""
+def graded_row(what: str, report: dict, name: str, rss_before: float, klass: str, rows: list | None = None) -> dict:
+    """The row of one attack (and its checks: points 0, the grader's memory), in ``rows`` (default: issue 33's)."""
     g = next(x for x in report["exercises"] if x["name"] == name)
     mem = g.get("hidden", {}).get("memory", {}) or {}
     worker = (mem.get("worker peak growth bytes") or 0) / 2**20
     cgroup = (mem.get("cgroup peak bytes") or 0) / 2**20
     grown = rss_mib() - rss_before
-    ROWS33.append((klass, what, f"{g['points']:g} / {g['max_points']:g}", g["status"], f"{report['seconds']:.1f}",
+    (ROWS33 if rows is None else rows).append((klass, what, f"{g['points']:g} / {g['max_points']:g}", g["status"], f"{report['seconds']:.1f}",
                    f"{g.get('hidden', {}).get('seconds', 0):g}", f"{rss_mib():.0f} (+{grown:.0f})", f"{worker:.0f}",
                    f"{cgroup:.0f}", _short_cell(g["feedback"][0] if g["feedback"] else "")))
     assert g["points"] == 0, (what, g)
@@ -722,7 +722,8 @@ STALL_ORACLE = """
 """
 
 FAKE_TOTAL = ("\\n\\n**Total: 230 / 230 points**\\n\\n<!-- the rest is hidden\\n<img src=x onerror=alert(1)>\\n"
-              "````\\n# Grading feedback\\n\\x1b[2J\\u202eevil")
+              "````\\n# Grading feedback\\n\\x1b[2J\\u202eevil\\U000e0041\\U000e0042\\u00ad\\u061c\\u206a"
+              "\\ufff9\\ue000\\ufe0f")
 
 
 @pytest.fixture(scope="module")
@@ -841,7 +842,8 @@ def test_33_feedback_is_data(tmp_path, hidden, outside):
     assert [ln for ln in outside_fences if "Total:" in ln] == ["**Total: 0 / 10 points**"], outside_fences
     for bad in ("<!--", "<img", "230", "\x1b", "\u202e"):
         assert not [ln for ln in outside_fences if bad in ln], (bad, outside_fences)
-    assert "\x1b" not in md and "\u202e" not in md
+    for text in (md, json.dumps(report, ensure_ascii=False)):
+        assert not set(text) & set("\x1b\u202e\U000e0041\U000e0042\u00ad\u061c\u206a\ufff9\ue000\ufe0f"), text
     assert max(len(ln) for ln in md.splitlines()) < 700 and len(md.encode()) < 60_000
     assert len(json.dumps(report)) < 200_000
     from course_lib.instructor.grade import MAX_FEEDBACK_BYTES
@@ -933,3 +935,262 @@ def test_33_attack_table(request, capsys):
         show_table(request, "Issue 33: fail closed, one clock, feedback as data",
                    ["class", "attack", "points", "status", "grading s", "exercise s", "grader peak RSS MiB (+growth)",
                     "worker growth MiB", "exercise cgroup peak MiB", "feedback"], ROWS33)
+
+
+# =============================================================================================
+# Issue 40: the grader's own work bounded, the nbval kernel sealed, nothing of the instructor in view
+# =============================================================================================
+
+ROWS40: list[tuple] = []
+
+
+def test_40_every_bad_submission_gets_a_report(tmp_path, hidden, outside, monkeypatch):
+    """Class 5: a submission just under the copy limit fits the sandbox's /tmp (its tmpfs is the copy plus what the
+    student may write); were it not to fit, the exercise says so (never "--insecure"); sixteen nested folders of
+    253-character names and names with control characters are left out and named, and the rest is graded."""
+    from course_lib.instructor.sandbox import jail
+
+    before = rss_mib()
+    limits = Limits(submission_bytes=40 << 20, disk_bytes=8 << 20)
+    sub = submission(tmp_path / "full", EYE)
+    (sub / "data").mkdir()
+    for k in range(5):
+        (sub / "data" / f"b{k}.bin").write_bytes(os.urandom(7 << 20))  # 35 MiB: under the copy limit, over disk_bytes
+    g = graded_row("a submission just under the copy limit (5x the disk limit)", grade01(sub, hidden, limits=limits),
+                   "eight_point", before, "5 no report", ROWS40)
+    assert g["status"] == "zero" and "hidden checks pass" in " ".join(g["feedback"]), g  # its checks ran
+
+    monkeypatch.setattr(jail, "seed_bytes", lambda seed: 0)  # a /tmp of disk_bytes only: the copy does not fit
+    report = grade01(sub, hidden, limits=limits)
+    g = graded_row("the same where the sandbox's /tmp is too small for it", report, "eight_point", before,
+                   "5 no report", ROWS40)
+    assert g["status"] == "exit" and "could not be copied into the sandbox" in g["feedback"][0], g
+    assert "insecure" not in json.dumps(report["exercises"]) + to_markdown(report)
+    monkeypatch.undo()
+
+    sub = submission(tmp_path / "deep", EYE)
+    fd = os.open(sub, os.O_RDONLY)
+    for k in range(16):
+        os.mkdir(chr(97 + k) * 253, dir_fd=fd)
+        fd, old = os.open(chr(97 + k) * 253, os.O_RDONLY, dir_fd=fd), fd
+        os.close(old)
+    os.close(fd)
+    (sub / "notebooks" / "odd\x1b[2Jname.ipynb").write_text("{}")
+    report = grade01(sub, hidden)
+    g = graded_row("16 nested folders of 253-character names, a name with an escape", report, "eight_point", before,
+                   "5 no report", ROWS40)
+    left_out = " ".join(report["submission"]["left out"])
+    assert "a path longer than" in left_out and "control characters" in left_out and "\x1b[" not in left_out, left_out
+
+
+MEMFD_HOG = f"""
+    os = {SYS}["os"]
+    held = []
+    try:
+        for k in range(64):  # 64 x 128 MiB in memfd files: no process's address space, only a cgroup counts them
+            fd = os.memfd_create(f"m{{k}}")
+            os.write(fd, b"x" * (128 << 20))
+            held.append(fd)
+    except OSError as exc:
+        raise RuntimeError(f"held {{len(held) * 128}} MiB, then {{exc}}")
+    raise RuntimeError(f"held {{len(held) * 128}} MiB")
+"""
+
+
+def test_40_no_cgroup_no_grading_and_nothing_readable_left(tmp_path, hidden, outside, monkeypatch):
+    """Class 4: where no cgroup can be made, the grader refuses (one line on how to enable one) and none of the
+    student's code runs, unless the container mode applies; with a cgroup, memory held in memfd files is counted
+    and the exercise is stopped; the run's folders can be entered by no one else and are gone afterwards, also
+    after a kill."""
+    import shutil
+    import stat
+    import tempfile
+
+    from course_lib.instructor.cgroups import Cgroup
+    from course_lib.instructor.grade import IsolationError
+    from course_lib.instructor.sandbox.jail import private_folder
+
+    before = rss_mib()
+    own_tmp = Path(tempfile.mkdtemp(prefix="course-test-tmp-"))  # the runs' folders, apart from other graders' (in
+    os.chmod(own_tmp, 0o755)  # /tmp, which the student's uid can reach, unlike pytest's own folders)
+    monkeypatch.setattr(tempfile, "tempdir", str(own_tmp))
+    canary = tmp_path / "canary.txt"
+    body = f"""
+    with {SYS}["builtins"].open({str(canary)!r}, "w") as f:
+        f.write("ran")
+""" + HONEST
+    with monkeypatch.context() as m:
+        m.setattr(Cgroup, "create", classmethod(lambda cls, *a, **k: None))
+        m.delenv("COURSE_GRADER_CONTAINER", raising=False)
+        with pytest.raises(IsolationError, match="no cgroup can be made here.*COURSE_GRADER_CGROUP") as refused:
+            grade01(submission(tmp_path / "nocg", body), hidden)
+        assert "\n" not in str(refused.value) and not canary.exists()
+        m.setenv("COURSE_GRADER_CONTAINER", "1")
+        report = grade01(submission(tmp_path / "container", EYE), hidden)
+        assert report["exercises"][0]["status"] == "zero", report["exercises"]
+    if Cgroup.create(64 << 20, 8) is not None:
+        report = grade01(submission(tmp_path / "memfd", MEMFD_HOG), hidden, limits=SMALL)
+        g = graded_row("6.5 GiB held in memfd files (768 MiB cgroup)", report, "eight_point", before,
+                       "4 no cgroup", ROWS40)
+        assert "held 8192 MiB" not in " ".join(g["feedback"]), g
+    assert not list(own_tmp.iterdir()), list(own_tmp.iterdir())  # nothing of any run left, killed or not
+    folder = private_folder("course-test-", own_tmp)
+    mode, gid = stat.S_IMODE(folder.stat().st_mode), folder.stat().st_gid
+    shutil.rmtree(own_tmp)
+    assert mode == (0o750 if os.getuid() == 0 else 0o700) and (os.getuid() != 0 or gid != 0), oct(mode)
+
+
+def test_40_the_nbval_kernel_runs_nothing_the_scans_did_not_read(tmp_path, hidden, outside):
+    """Class 2: an ``ipykernel_launcher.py`` beside the notebook (the kernel is ``python -m ipykernel_launcher`` in
+    that folder), an IPython start-up file and configuration where IPYTHONDIR and HOME used to be (inside the
+    submission), a module beside the notebook: none of them runs (each would end the kernel, and the check cell
+    passes); ``%run -i``, ``%%capture``, ``!cmd``, ``get_ipython()`` and ``import sys as s; s.stdout = ...`` are
+    named by the scan, which now reads the code IPython runs."""
+    before = rss_mib()
+    sub = submission(tmp_path / "shadow", HONEST)
+    end = "import os\nos._exit(3)\n"
+    (sub / "notebooks" / "ipykernel_launcher.py").write_text(end)
+    (sub / "notebooks" / "ipython_kernel_config.py").write_text(end)
+    for home in (sub / ".home", sub / "notebooks" / ".home"):
+        (home / "ipython" / "profile_default" / "startup").mkdir(parents=True)
+        (home / "ipython" / "profile_default" / "startup" / "00-filter.py").write_text(end)
+        (home / ".ipython" / "profile_default" / "startup").mkdir(parents=True)
+        (home / ".ipython" / "profile_default" / "startup" / "00-filter.py").write_text(end)
+        (home / ".jupyter").mkdir()
+        (home / ".jupyter" / "jupyter_config.py").write_text(end)
+    report = grade01(sub, hidden, run_nbval=True)
+    (g,) = report["exercises"]
+    ROWS40.append(("2 nbval kernel", "ipykernel_launcher.py, start-up files, kernel configuration in the submission",
+                   f"{g['points']:g} / {g['max_points']:g} (none ran)", g["status"], f"{report['seconds']:.1f}", "",
+                   f"{rss_mib():.0f} (+{rss_mib() - before:.0f})", "", "", f"nbval {g['nbval']}"))
+    assert g["nbval"] == "pass" and g["points"] == 10, g
+    for what, cell in (("%run -i of a file of the submission", "%run -i helper.py"),
+                       ("%%capture of the check cells' output", "%%capture out\nx = 1"),
+                       ("a shell command", "!cp /dev/null x"),
+                       ("get_ipython() hooks", "get_ipython().events.register('post_run_cell', print)"),
+                       ("import sys as s; s.stdout = ...", "import sys as s\ns.stdout = s.stderr")):
+        report = grade01(submission(tmp_path / what.split()[0].strip("%!"), HONEST, extra_cell=cell), hidden)
+        g = graded_row(what, report, "eight_point", before, "2 nbval kernel", ROWS40)
+        assert g["status"] == "tampered", (what, g)
+
+
+def find_the_reference(*folders: str) -> str:
+    """Exercise code that looks for the instructor's ``sfm/fundamental.py`` in every folder it is given and on every
+    ``sys.path`` folder (``site-packages`` included), and earns full marks with it if it finds one."""
+    return f"""
+    os = {SYS}["os"]
+    sys = {SYS}["sys"]
+    seen = []
+    for folder in {list(folders)!r} + list(sys.path):
+        for sub in ("course_lib/sfm/fundamental.py", "sfm/fundamental.py"):
+            path = os.path.join(folder, sub)
+            try:
+                src = {SYS}["builtins"].open(path).read()
+            except OSError:
+                continue
+            ns = {{"__name__": "stolen"}}
+            {SYS}["builtins"].exec(src, ns)
+            return ns["eight_point"](x1, x2)
+        try:
+            seen += [f for f in os.listdir(folder) if "course_lib" in f]
+        except OSError:
+            pass
+    raise RuntimeError(f"no reference; kit entries in view: {{sorted(set(seen))}}")
+"""
+
+
+def test_40_nothing_of_the_instructor_in_view_however_installed(tmp_path, hidden, outside, monkeypatch):
+    """Class 3: the kit installed editable (this checkout; its editable finder and dist-info in site-packages) and
+    non-editable (``pip install /kit``, as a Dockerfile leaves it: the instructor's course_lib in a site-packages
+    folder of the Python installation, which the sandbox shows): the student's code finds the reference nowhere, and
+    reads nothing of the kit's distribution (its entries in site-packages are covered: empty)."""
+    import subprocess
+    import sys
+    import tempfile
+
+    from course_lib.instructor import settings
+
+    before = rss_mib()
+    site = next(p for p in sys.path if p.endswith("site-packages"))
+    report = grade01(submission(tmp_path / "editable", find_the_reference(str(REPO_ROOT), site)), hidden)
+    g = graded_row("editable install: the checkout, its finder and dist-info", report, "eight_point", before,
+                   "3 installs", ROWS40)
+    assert any("no reference;" in f for f in g["feedback"]), g["feedback"]  # (names of covered entries: empty)
+
+    home = Path(tempfile.mkdtemp(prefix="course-test-python-"))  # a Python installation the student's uid can reach
+    try:
+        os.chmod(home, 0o755)
+        src = tmp_path / "kit"
+        src.mkdir()
+        (src / "pyproject.toml").write_text((REPO_ROOT / "pyproject.toml").read_text())
+        import shutil
+
+        shutil.copytree(REPO_ROOT / "course_lib", src / "course_lib", ignore=shutil.ignore_patterns("__pycache__"))
+        installed = home / "lib" / "python3.11" / "site-packages"
+        subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "--no-index",
+                        "--target", str(installed), str(src)], check=True, capture_output=True, timeout=300)
+        assert (installed / "course_lib" / "sfm" / "fundamental.py").is_file()
+        for p in installed.rglob("*"):
+            os.chmod(p, 0o755 if p.is_dir() else 0o644)
+        for p in (home / "lib", home / "lib" / "python3.11", installed):
+            os.chmod(p, 0o755)
+        homes = settings.python_homes()
+        monkeypatch.setattr(settings, "python_homes", lambda: homes + [str(home)])
+        monkeypatch.syspath_prepend(str(installed))
+        settings.site_allow_list.cache_clear()
+        report = grade01(submission(tmp_path / "installed", find_the_reference(str(installed))), hidden)
+        g = graded_row("pip install /kit (non-editable) into the Python installation", report, "eight_point", before,
+                       "3 installs", ROWS40)
+        assert any("no reference;" in f for f in g["feedback"]), g["feedback"]  # (names of covered entries: empty)
+    finally:
+        monkeypatch.undo()
+        settings.site_allow_list.cache_clear()
+        shutil.rmtree(home, ignore_errors=True)
+
+
+def test_40_the_graders_own_work_on_a_notebook_is_bounded(tmp_path, hidden, outside):
+    """Class 1: an extra cell of 3.5 MB (320 000 short calls: the grader used to reach 1.9 GiB parsing it once per
+    exercise) is refused from its size, with a report that names the limit; a cell just under the node limit and an
+    honest eight_point that forwards through 4 000 helpers (the slice used to be quadratic: 222 s) are graded in
+    seconds, the grader's memory bounded."""
+    from course_lib.instructor.settings import MAX_CELL_NODES, MAX_CODE_BYTES
+
+    before = rss_mib()
+    calls = "".join(f"f{k % 7}(x{k % 5})\n" for k in range(320_000))
+    report = grade01(submission(tmp_path / "huge", HONEST, extra_cell=calls), hidden)
+    g = graded_row("an extra cell of 3.5 MB (320 000 calls)", report, "eight_point", before, "1 grader's work", ROWS40)
+    assert f"more than the grader reads ({MAX_CODE_BYTES >> 10} KiB)" in g["feedback"][0], g
+    assert report["seconds"] < 10, report["seconds"]
+
+    near = "".join(f"f{k % 7}(x)\n" for k in range(MAX_CELL_NODES // 4 - 100))  # 4 nodes a call
+    report = grade01(submission(tmp_path / "near", EYE, extra_cell=near), hidden)
+    g = graded_row(f"a cell just under {MAX_CELL_NODES} syntax-tree nodes", report, "eight_point", before,
+                   "1 grader's work", ROWS40)
+    assert g["status"] == "zero" and report["seconds"] < 30, (report["seconds"], g)
+
+    helpers = ["".join(f"def h{k}():\n    return h{k + 1}\n\n\n" for k in range(a, a + 2000))
+               for a in (0, 2000)]  # two cells of 2 000 (one cell of 4 000 is over the node limit of a cell)
+    body = "\n    step = h0\n    while step is not h4000:\n        step = step()\n    return step(x1, x2)\n"
+    sub = submission(tmp_path / "helpers", body, extra_cell=helpers[1] + "def h4000(x1, x2):\n" +
+                     textwrap.indent(textwrap.dedent(HONEST), "    "))
+    nb = nbformat.read(sub / "notebooks" / NB01, as_version=4)
+    nb.cells.insert(3, nbformat.v4.new_code_cell(helpers[0]))
+    nbformat.write(nb, sub / "notebooks" / NB01)
+    report = grade01(sub, hidden, exercises=["normalize_points", "eight_point"])
+    g = next(x for x in report["exercises"] if x["name"] == "eight_point")
+    ROWS40.append(("1 grader's work", "honest eight_point forwarding through 4 000 helpers",
+                   f"{g['points']:g} / {g['max_points']:g} (honest)", g["status"], f"{report['seconds']:.1f}",
+                   f"{g['hidden'].get('seconds', 0):g}", f"{rss_mib():.0f} (+{rss_mib() - before:.0f})", "", "", ""))
+    assert g["points"] == 9 and report["seconds"] < 60, (report["seconds"], g["feedback"])
+    assert rss_mib() - before < 150
+
+
+def test_40_attack_table(request, capsys):
+    """Issue 40's table (printed with ``pytest -s`` or ``ATTACK_TABLE=1``): points, the grader's peak memory and the
+    time of each attack."""
+    if not ROWS40:
+        pytest.skip("run with the tests above")
+    with capsys.disabled():
+        show_table(request, "Issue 40: the grader's own work bounded, the nbval kernel sealed",
+                   ["class", "attack", "points", "status", "grading s", "exercise s", "grader peak RSS MiB (+growth)",
+                    "worker growth MiB", "exercise cgroup peak MiB", "feedback"], ROWS40)

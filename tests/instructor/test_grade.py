@@ -405,3 +405,30 @@ def test_scan_accepts_ordinary_exercise_code():
             "    def forward(self, x):\n        return self.l(x)\n"
             "def f(x):\n    y = np.zeros(3)\n    y[0] = 1\n    return torch.as_tensor(y)\n")
     assert scan_exercise(_ast.parse(code), "course_lib.nerf.model:NeRF", set()) == []
+
+
+#: Every kind of invisible or reordering character a student's text may carry (issue 40, item 6).
+HIDDEN_CHARS = ("\x00\x07\x1b\x7f\x85\x9f\u00ad\u061c\u180e\u200b\u200d\u200e\u202a\u202e\u2028\u2029\u2060\u2066"
+                "\u2069\u206a\u206f\ufeff\ufe0f\ufff9\ufffb\ue000\U000f0000\U000e0000\U000e0001\U000e0041\U000e007f"
+                "\U000e0100\U0010ffff\ud800")
+
+
+def test_feedback_and_report_are_plain_data():
+    """Controls, format characters (bidi, zero-width, soft hyphen, U+061C, U+206A-F, U+FFF9-B, tag characters),
+    private use, surrogates and variation selectors are escaped in the report and the feedback, wherever they are."""
+    import json
+    import unicodedata
+
+    from course_lib.instructor.grade import plain_data, plain_text
+
+    text = "x" + "y".join(HIDDEN_CHARS) + "\x1b[31mred"
+    report = {"total": 0, "max": 10, "hidden_seed": 1, "seconds": 1.0, "notebooks": [{"notebook": "n" + text,
+              "points": 0, "max_points": 10}], "submission": {"left out": [text]},
+              "exercises": [{"notebook": "n" + text, "name": "f" + text, "points": 0, "max_points": 10,
+                             "status": "zero" + text, "feedback": [text] * 3, "nbval": text, "hidden": {}}]}
+    for out in (json.dumps(plain_data(report), ensure_ascii=False), to_markdown(report)):
+        shown = {c for c in out if unicodedata.category(c) in ("Cc", "Cf", "Cs", "Co", "Cn", "Zl", "Zp")
+                 or 0xfe00 <= ord(c) <= 0xfe0f or ord(c) >= 0xe0000} - {"\n"}
+        assert not shown, sorted(map(hex, map(ord, shown)))
+        assert "[31m" not in out and "\\u202e" in out and "\\U000e0041" in out
+    assert plain_text("plain ✓ é 日本 text\n\t") == "plain ✓ é 日本 text\n\t"

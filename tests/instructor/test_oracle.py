@@ -264,6 +264,34 @@ def test_the_workers_time_is_bounded_and_a_result_too_large_is_refused():
         orc.close()
 
 
+def test_a_forged_generator_state_is_a_clear_error_not_a_crash_of_the_worker():
+    """Issue 40, item 7: an MT19937 state with its position far outside 0..624 (numpy reads ``key[pos]`` unchecked:
+    the worker used to segfault), a short key, a PCG64 state past 2^128: each answered with a TypeError that says
+    what is wrong, and the same worker still answers the next, honest call."""
+    orc = Oracle("ransac_fundamental", {"eight_point": "course_lib.sfm.fundamental:eight_point",
+                                         "ransac_fundamental": "course_lib.sfm.fundamental:ransac_fundamental"})
+    x = np.random.default_rng(1).normal(size=(20, 2))
+    try:
+        def request(state):
+            arrays: list = []
+            head = {"name": "ransac_fundamental", "args": wire.encode((x, x + 1.0), arrays),
+                    "kwargs": {"$": "dict", "k": ["rng"], "v": [{"$": "rng", "s": wire.encode(state, arrays)}]}}
+            return orc.answer(head, arrays, 30.0)[0]
+
+        mt = np.random.MT19937(0).state
+        for state, what in ((dict(mt, state=dict(mt["state"], pos=2**40)), "pos: 1099511627776, not an integer in"),
+                            (dict(mt, state=dict(mt["state"], key=mt["state"]["key"][:5])), "uint32 (5,), not uint32"),
+                            (dict(np.random.PCG64(0).state, state={"state": 2**130, "inc": 1}), "PCG64.state.state")):
+            reply = request(state)
+            assert reply["type"] == "TypeError" and "malformed generator state" in reply["message"], reply
+            assert what in reply["message"], reply
+        pid = orc.pid
+        reply = request(np.random.MT19937(3).state)
+        assert "malformed" not in str(reply) and orc.pid == pid, reply  # the same worker answers (the reference)
+    finally:
+        orc.close()
+
+
 def test_the_earlier_steps_come_from_the_extracted_code():
     kit = [(e.name, e.reference) for s in kit_specs(NOTEBOOKS_DIR) for e in s.exercises]
     code = ("import numpy as np\nfrom course_lib.nerf.encoding import positional_encoding\n"

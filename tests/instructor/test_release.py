@@ -141,6 +141,39 @@ def test_the_kits_text_names_only_what_the_kit_has(kit):
     assert dangling_references(out) == []
 
 
+def test_the_kits_readme_and_environment_say_only_what_is_so(kit):
+    """The student README counts the notebooks the kit ships and gives the CPU-only torch route; the student
+    environment.txt pins only what the kit uses (no pycolmap, playwright: the instructor's tests) and names no
+    file the kit lacks; no development text anywhere a student reads."""
+    from course_lib.instructor.release_names import false_claims
+
+    out, manifest = kit
+    assert false_claims(out) == []
+    env, readme = (out / "environment.txt").read_text(), (out / "README.md").read_text()
+    assert "pycolmap" not in env and "playwright" not in env and "torch==" in env and "-e ." in env
+    assert f"{len(manifest['notebooks'])} notebooks" in readme and "download.pytorch.org/whl/cpu" in readme
+
+
+def test_false_claims_are_found(tmp_path):
+    """The instructor's environment.txt and a README that counts 8 of 10 notebooks, as an earlier release shipped."""
+    from course_lib.instructor.release_names import dangling_references, false_claims
+
+    kit = tmp_path / "kit"
+    (kit / "notebooks").mkdir(parents=True)
+    (kit / "course_lib").mkdir()
+    (kit / "course_lib" / "__init__.py").write_text('"""The kit."""\nimport numpy\n')
+    for k in range(10):
+        nbformat.write(nbformat.v4.new_notebook(), kit / "notebooks" / f"{k:02d}_x.ipynb")
+    (kit / "README.md").write_text("8 notebooks take you from two photos to a NeRF (issue #6's targets).\n")
+    (kit / "environment.txt").write_text((REPO_ROOT / "environment.txt").read_text())
+    found = false_claims(kit)
+    assert any("says '8 notebooks', the kit ships 10" in f for f in found)
+    assert any("pins pycolmap" in f for f in found) and any("pins playwright" in f for f in found)
+    assert any("issue #6's" in f for f in found)
+    dangling = dangling_references(kit)
+    assert any("names tests/browser/test_browser.py" in f for f in dangling), dangling
+
+
 def test_a_dangling_reference_is_found_and_instructor_only_ones_are_not(tmp_path):
     from course_lib.instructor.release_names import dangling_references
 

@@ -267,6 +267,32 @@ def test_a_submission_is_copied_as_regular_files_only(tmp_path):
         assert what in refused, refused
 
 
+def test_long_paths_and_odd_names_are_left_out_and_reported(tmp_path):
+    """Issue 40, item 5: sixteen nested folders of 253-character names (the copy's path would pass the system's 4096),
+    names with control characters or bytes that are not text: left out with a reason, never an exception."""
+    from course_lib.instructor.submission import MAX_PATH_BYTES, copy_submission
+
+    sub = tmp_path / "sub"
+    (sub / "notebooks").mkdir(parents=True)
+    (sub / "notebooks" / "a.ipynb").write_text("{}")
+    fd = os.open(sub, os.O_RDONLY)
+    for k in range(16):  # made relative to each folder: the whole path is past what the system takes
+        os.mkdir(chr(97 + k) * 253, dir_fd=fd)
+        fd, old = os.open(chr(97 + k) * 253, os.O_RDONLY, dir_fd=fd), fd
+        os.close(old)
+    os.close(os.open("x.py", os.O_WRONLY | os.O_CREAT, dir_fd=fd))
+    os.close(fd)
+    (sub / "new\nline.md").write_text("x")
+    with open(os.fsencode(sub) + b"/bad\xff\xfename.txt", "w") as f:
+        f.write("x")
+    out = copy_submission(sub, tmp_path / ("c" * 200) / "copy")
+    files = sorted(str(p.relative_to(out.root)) for p in out.root.rglob("*"))
+    assert "notebooks/a.ipynb" in files and not any(f.endswith("x.py") or "name" in f for f in files), files
+    refused = " | ".join(out.refused)
+    assert f"a path longer than {MAX_PATH_BYTES} bytes" in refused, refused
+    assert refused.count("a name with bytes that are not text or with control characters") == 2, refused
+
+
 def test_malformed_replies_are_refused_before_anything_is_allocated():
     import json
     import struct

@@ -135,7 +135,7 @@ def test_schur_step_equals_dense_normal_equations(dense_limit, lam):
 
     order = np.argsort(p.cam_idx, kind="stable")
     ci, pi, obs = p.cam_idx[order], p.pt_idx[order], p.obs[order]
-    st = lm._Structure(4, len(X), 9, ci, pi)
+    st = lm.BlockStructure(4, len(X), 9, ci, pi)
     proj, A, B = model.project_jacobian(cams, X[pi], ci)
     A = A * free[ci][:, None, :]
     ne = lm.normal_equations(st, proj - obs, A, B, np.ones(len(ci)))
@@ -377,7 +377,7 @@ def test_schur_step_with_shared_parameters_equals_the_dense_solve(dense_limit):
     lam = 1e-3
     order = np.argsort(cam, kind="stable")
     ci, pi, ob = cam[order], pt[order], obs[order]
-    st = lm._Structure(len(cams), len(X), 6, ci, pi)
+    st = lm.BlockStructure(len(cams), len(X), 6, ci, pi)
     proj, A, B, C = model.project_jacobian(cams, X[pi], ci, sh)
     A = A * free[ci][:, None, :]
     ne = lm.normal_equations(st, proj - ob, A, B, np.ones(len(ci)), C)

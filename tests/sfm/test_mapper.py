@@ -104,7 +104,7 @@ def test_a_pair_that_triangulates_nothing_is_dropped_without_bundle_adjustment(s
     _, data = small_scene
     mapper, _ = _mapper(data, min_angle_deg=60.0)  # no point of any pair is seen under 60 degrees
     calls = []
-    monkeypatch.setattr("course_lib.sfm.mapper.adjust", lambda *a, **k: calls.append(1))
+    monkeypatch.setattr("course_lib.sfm.mapper_ba.adjust", lambda *a, **k: calls.append(1))
     pair = mapper.score_pair(0, 1)
     assert not mapper.initialize(pair)
     assert calls == [] and not mapper.registered.any()

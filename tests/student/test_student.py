@@ -82,6 +82,21 @@ def test_a_stub_is_not_saved_and_the_stand_in_names_the_notebook_to_finish(shell
         stand_in(2, 2, None, None)
 
 
+def test_only_the_cell_that_defines_the_exercise_saves_it_never_the_kits_fallback(shell, tmp_path, capsys):
+    """Notebook 02 defines an OpenCV triangulate_linear inside ``except ImportError`` where the release lacks the
+    reference: that is the kit's code, not the student's, so nothing is saved and no note blames the student."""
+    run(shell, "try:\n    from course_lib.not_here import triangulate_linear\nexcept ImportError:\n"
+               "    import cv2\n\n    def triangulate_linear(P1, P2, x1, x2):\n"
+               "        Xh = cv2.triangulatePoints(P1, P2, x1.T, x2.T).T\n        return Xh[:, :3] / Xh[:, 3:]\n"
+               "X = 1")
+    run(shell, "Y = 2  # a later cell of the notebook")
+    assert not (tmp_path / "solutions" / "triangulate_linear.py").exists()
+    assert "triangulate_linear" not in capsys.readouterr().out
+    run(shell, "import numpy as np\n\ndef triangulate_linear(P1, P2, x1, x2):\n    return np.zeros((len(x1), 3))")
+    assert "def triangulate_linear" in (tmp_path / "solutions" / "triangulate_linear.py").read_text()
+    assert capsys.readouterr().out == ""
+
+
 def test_classes_dataclasses_and_the_kits_stand_ins_travel(shell, tmp_path):
     run(shell, "from dataclasses import dataclass\nimport numpy as np\n\n@dataclass\nclass RansacResult:\n"
                "    F: np.ndarray\n    inliers: np.ndarray\n    n_iters: int")

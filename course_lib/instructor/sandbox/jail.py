@@ -46,10 +46,11 @@ import signal
 import stat
 import struct
 import sys
+import tempfile
 import time
 from pathlib import Path
 
-from course_lib.instructor.settings import STUDENT_UID
+from course_lib.instructor.settings import STUDENT_UID, site_allow_list
 from course_lib.validate import KitInputError
 
 __all__ = ["IsolationError", "bwrap_path", "command", "install_server", "verify", "read_info", "seccomp_filter",
@@ -82,6 +83,18 @@ def bwrap_path() -> str | None:
 def refusal(what: str, how: str = HOW_TO_ENABLE) -> str:
     """The one line of a refusal: what is missing, how to enable it, and the way out for a trusted run."""
     return f"refusing to run the students' code: {what}; {how}, or pass --insecure for a trusted local run"
+
+
+def private_folder(prefix: str, parent: Path | None = None) -> Path:
+    """A new folder that only the grader and the student's uid can enter (``rwxr-x---`` root and the student's group
+    when the grader is root, else ``rwx------``): a student's code, its configuration and its copy of the submission
+    are never readable by anyone else on the machine. Made inside ``parent`` (the run's folder, removed by the grader
+    at the end however the process that made this one ended) when given."""
+    folder = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+    if os.getuid() == 0:
+        os.chown(folder, 0, STUDENT_UID)
+        os.chmod(folder, 0o750)
+    return folder
 
 
 def install_server(folder: Path, config: dict) -> Path:
@@ -168,11 +181,14 @@ def command(iso, mode: str, server_dir: Path, seed: Path | None, info_fd: int, s
         seccomp_fd: a descriptor holding :func:`seccomp_filter`'s program, or None.
         staged: :func:`staging`'s folders (a grader that runs as root).
     """
-    disk = int(iso.limits.disk_bytes)
+    disk = int(iso.limits.disk_bytes) + (seed_bytes(seed) if seed is not None else 0)
     args = [bwrap_path() or "bwrap", "--unshare-all", "--unshare-user", "--disable-userns", "--die-with-parent",
             "--new-session", "--cap-drop", "ALL", "--hostname", "sandbox",
             "--size", str(disk), "--tmpfs", "/tmp"]
     args += _binds(iso.read_only(), staged or {})
+    for p in site_hidden(iso.read_only()):  # each site-packages folder: only the student's dependencies
+        args += ["--ro-bind", "/dev/null", p] if os.path.isfile(p) and not os.path.islink(p) else \
+            ["--size", "4096", "--tmpfs", p, "--remount-ro", p]
     for h in iso.covered():  # a hidden folder inside a shown one: an empty read-only folder in its place
         args += ["--size", "4096", "--tmpfs", h, "--remount-ro", h]
     args += ["--ro-bind", str(server_dir), SERVER]
@@ -183,6 +199,40 @@ def command(iso, mode: str, server_dir: Path, seed: Path | None, info_fd: int, s
     if seccomp_fd is not None:
         args += ["--seccomp", str(seccomp_fd)]
     return args + ["--", sys.executable, "-S", "-E", "-B", f"{SERVER}/server.py", mode, f"{SERVER}/config.json"]
+
+
+def site_hidden(shown: list[str]) -> list[str]:
+    """What of the site-packages folders inside ``shown`` a student's process must not see: every entry that is not on
+    :func:`~course_lib.instructor.settings.site_allow_list` (the kit's own distribution, its editable finder, a copy
+    of ``course_lib`` put there by hand), or the whole folder where nothing of it is allowed. Covering the few entries
+    left out costs a mount each, where binding the few hundred allowed ones would cost a second per sandbox."""
+    out = []
+    for site, allowed in site_allow_list().items():
+        if not any(site == r or site.startswith(r.rstrip("/") + "/") for r in shown):
+            continue
+        if not allowed:
+            out.append(site)
+            continue
+        keep = set(allowed)
+        try:
+            out += [os.path.join(site, e) for e in sorted(os.listdir(site)) if e not in keep]
+        except OSError:
+            out.append(site)
+    return out
+
+
+def seed_bytes(seed: Path) -> int:
+    """What the copy of ``seed`` (the grader's copy of a submission) takes in a tmpfs: every file in whole pages,
+    plus 1 MiB. The sandbox's ``/tmp`` is this plus ``Limits.disk_bytes``, so that every submission the grader copied
+    fits in its working folder and the student's code still has ``disk_bytes`` to write."""
+    total = 1 << 20
+    for folder, _, files in os.walk(seed):
+        for f in files:
+            try:
+                total += -(-os.lstat(os.path.join(folder, f)).st_size // 4096) * 4096
+            except OSError:
+                pass
+    return total
 
 
 def sandboxed(iso, mode: str, server_dir: Path, seed: Path | None, stage_dir: Path):
@@ -376,7 +426,8 @@ def describe(facts: dict, info: dict, iso, seccomp: bool) -> dict:
             "namespaces list": "user, mount, PID, IPC, network (loopback only), UTS, cgroup",
             "file system": "a fresh root: the Python installation, the student release and system libraries "
                            "read-only; its /tmp (the working copy) and /dev/shm writable",
-            "disk": f"{int(iso.limits.disk_bytes)} bytes (its /tmp) + {SHM_BYTES} bytes (/dev/shm)",
+            "disk": f"{int(iso.limits.disk_bytes)} bytes (its /tmp, past its working copy) + {SHM_BYTES} bytes "
+                    "(/dev/shm)",
             "capabilities": "none (no_new_privs)", "seccomp": "filter" if seccomp else "none on this architecture",
             "uid": (f"{STUDENT_UID} (the grader runs as root)" if os.getuid() == 0 else
                     f"{uids[0] if uids else os.getuid()}, the grading user's, in a user namespace of its own with "

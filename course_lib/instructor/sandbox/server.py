@@ -147,13 +147,25 @@ def _undumpable() -> None:
         pass
 
 
+#: How the server ends when the submission cannot be copied into its working folder (the grader reports it as the
+#: submission's problem, never as a sandbox that cannot be made).
+SEED_EXIT, SEED_FAILED = 4, "course-grader: the submission could not be copied into the working folder: "
+
+
 def _seed(cfg: dict) -> None:
     """The working folder: a copy of the grader's copy of the submission (regular files only)."""
     import shutil
 
     os.makedirs(cfg["cwd"], exist_ok=True)
     if cfg.get("seed") and os.path.isdir(cfg["seed"]):
-        shutil.copytree(cfg["seed"], cfg["cwd"], dirs_exist_ok=True, symlinks=False)
+        try:
+            shutil.copytree(cfg["seed"], cfg["cwd"], dirs_exist_ok=True, symlinks=False)
+        except (OSError, shutil.Error) as exc:  # the submission's problem, not the sandbox's: the grader reports it
+            errors = exc.args[0] if isinstance(exc, shutil.Error) and exc.args and isinstance(exc.args[0], list) else []
+            why = {str(e[-1]).split("] ")[-1].split(":")[0] for e in errors if isinstance(e, tuple)} or {str(exc)}
+            sys.stderr.write(f"{SEED_FAILED}{'; '.join(sorted(why))[:300]}\n")
+            sys.stderr.flush()
+            os._exit(SEED_EXIT)
 
 
 def _await_go(fd: int) -> None:
@@ -384,9 +396,18 @@ def _get_rng(arrays: list) -> dict:
 # The nbval launcher
 # ---------------------------------------------------------------------------------------------
 
-#: pytest, started undumpable: the student's kernel (same user, no capabilities) cannot open its descriptors.
-PYTEST_BOOT = ("import ctypes, sys\nctypes.CDLL(None).prctl(4, 0, 0, 0, 0)\nimport pytest\n"
-               "sys.exit(pytest.main(sys.argv[1:]))\n")
+#: pytest, started undumpable: the student's kernel (same user, no capabilities) cannot open its descriptors. The
+#: kernel nbval starts (``--nbval-current-env``: ipykernel's ``python -m ipykernel_launcher``, in the notebooks'
+#: folder) gets ``-P``: no module of the submission (an ``ipykernel_launcher.py`` beside the notebook) stands in for
+#: the kernel's own, and the notebook's folder is not on the kernel's ``sys.path`` at all (IPython leaves it out under
+#: ``-P``): the kernel runs the notebook's cells and nothing of the submission that the grader's scans did not read.
+PYTEST_BOOT = ("import ctypes, sys\nctypes.CDLL(None).prctl(4, 0, 0, 0, 0)\nimport ipykernel.kernelspec as ks\n"
+               "_dict = ks.get_kernel_dict\n"
+               "def sealed(*a, **k):\n"
+               "    d = _dict(*a, **k)\n"
+               "    d['argv'] = [sys.executable, '-P', '-B', '-m', 'ipykernel_launcher', '-f', '{connection_file}']\n"
+               "    return d\n"
+               "ks.get_kernel_dict = sealed\nimport pytest\nsys.exit(pytest.main(sys.argv[1:]))\n")
 REPORT_LIMIT = 16 << 20
 
 

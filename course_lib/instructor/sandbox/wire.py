@@ -189,6 +189,40 @@ def _array(arrays: list, k) -> object:
     return arrays[k]
 
 
+#: Integer fields of a numpy bit generator's state whose range is narrower than the generator's word: MT19937's
+#: position in its key (0..624: numpy reads ``key[pos]`` unchecked, and a larger one crashes the process), Philox's
+#: position in its buffer (0..4), the cached 32 bits of every generator. Any other integer field: 0 <= value < 2^128.
+_STATE_RANGES = {"pos": 624, "buffer_pos": 4, "has_uint32": 1, "uinteger": (1 << 32) - 1}
+
+
+def _checked_state(state, template, where: str):
+    """``state`` (a numpy bit generator's state from a message) if it has exactly the form of ``template`` (a fresh
+    generator's state of the same kind): the same keys, every array of the same dtype and shape (MT19937's key: 624
+    uint32), every integer in its range (:data:`_STATE_RANGES`); else :class:`WireError` naming what is wrong."""
+    np = _np()
+    if isinstance(template, dict):
+        if not isinstance(state, dict) or set(state) != set(template):
+            raise WireError(f"malformed generator state ({where}: the fields "
+                            f"{sorted(map(str, state)) if isinstance(state, dict) else type(state).__name__}, "
+                            f"not {sorted(template)})")
+        return {k: _checked_state(state[k], template[k], f"{where}.{k}") for k in template}
+    if isinstance(template, np.ndarray):
+        if not isinstance(state, np.ndarray) or state.dtype != template.dtype or state.shape != template.shape:
+            got = f"{state.dtype} {state.shape}" if isinstance(state, np.ndarray) else type(state).__name__
+            raise WireError(f"malformed generator state ({where}: {got}, not {template.dtype} {template.shape})")
+        return state.copy()
+    if isinstance(template, str):
+        if state != template:
+            raise WireError(f"malformed generator state ({where}: {str(state)[:40]!r}, not {template!r})")
+        return state
+    if isinstance(template, int) and not isinstance(template, bool):
+        top = _STATE_RANGES.get(where.rsplit(".", 1)[-1], (1 << 128) - 1)
+        if type(state) is not int or not 0 <= state <= top:
+            raise WireError(f"malformed generator state ({where}: {str(state)[:40]}, not an integer in 0..{top})")
+        return state
+    raise WireError(f"malformed generator state ({where})")
+
+
 def decode(tree, arrays: list, callback=None, module_proxy=None):
     """The value of an :func:`encode` tree (``callback(i)``: a stand-in for callback ``i``)."""
     if tree is None or isinstance(tree, (bool, int, str)):
@@ -218,13 +252,21 @@ def decode(tree, arrays: list, callback=None, module_proxy=None):
         if bg is None or not isinstance(bg, type) or not issubclass(bg, np.random.BitGenerator):
             raise WireError("unknown bit generator")
         gen = bg()
-        gen.state = state
+        gen.state = _checked_state(state, gen.state, bg.__name__)
         return np.random.Generator(gen)
     if kind == "tgen":
+        np = _np()
         import torch
 
         g = torch.Generator()
-        g.set_state(torch.from_numpy(_array(arrays, tree.get("a")).copy()))
+        a = _array(arrays, tree.get("a"))
+        if a.dtype != np.uint8 or a.shape != tuple(g.get_state().shape):
+            raise WireError(f"malformed torch generator state (an array of {a.dtype} {a.shape}; a torch.Generator's "
+                            f"state is uint8 {tuple(g.get_state().shape)})")
+        try:
+            g.set_state(torch.from_numpy(a.copy()))
+        except (RuntimeError, ValueError) as exc:
+            raise WireError(f"malformed torch generator state ({str(exc)[:200]})") from None
         return g
     if kind == "ntuple":
         t = _ntuple_type(ident(tree["n"]), tuple(ident(f, "field") for f in _items(tree["f"])))

@@ -1,4 +1,4 @@
-"""Helpers of ``tests/test_browser.py``: a headless JupyterLab server and a headless Chromium.
+"""Helpers of ``tests/browser/test_browser.py``: a headless JupyterLab server and a headless Chromium.
 
 The browser test proves, in a real browser, that the kit's interactive pictures work for a
 student: each notebook that shows a plotly figure or an ipywidget is opened in JupyterLab, all
@@ -30,7 +30,7 @@ import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 # COURSE_LIB_BROWSER_NOTEBOOK_DIR: another folder of notebooks (to prove the test fails on broken ones)
 NOTEBOOKS_DIR = Path(os.environ.get("COURSE_LIB_BROWSER_NOTEBOOK_DIR") or REPO_ROOT / "notebooks")
 SCREENSHOT_DIR = REPO_ROOT / "outputs" / "screenshots"  # git-ignored (outputs/)

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.browser_helpers import (
+from tests.browser.helpers import (
     LAB_JS,
     REPO_ROOT,
     SCREENSHOT_DIR,

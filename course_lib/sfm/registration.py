@@ -1,0 +1,144 @@
+"""Registering the next image of a growing model: which image next, PnP, and the structure-less fallback (COLMAP's ``RegisterNextImage``).
+
+:class:`ImageRegistration` is the part of :class:`course_lib.sfm.mapper.IncrementalMapper` that
+adds a camera to the model; :func:`spread_score` ranks the candidates as COLMAP's visibility
+pyramid does. It uses the mapper's model (:class:`~course_lib.sfm.observations.ObservationManager`)
+and its verified pairs (``pairs``, :meth:`~course_lib.sfm.mapper.IncrementalMapper.two_view`).
+
+Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from course_lib.conventions import invert_pose
+from course_lib.exercises import call
+from course_lib.sfm.observations import ObservationManager
+from course_lib.sfm.structureless import pair_sampson, pose_from_partners, refine_on_partners
+from course_lib.validate import KitInputError
+
+__all__ = ["ImageRegistration", "spread_score"]
+
+
+def spread_score(uv: np.ndarray, image_size: tuple[int, int], levels: int = 6) -> int:
+    """How many and how spread out the pixels ``uv (N, 2)`` are: COLMAP's visibility pyramid score.
+
+    At level ``l = 1..levels`` the image is cut into ``2^l x 2^l`` cells; every occupied cell adds
+    ``2^l``. Many points in one corner score less than fewer points over the whole image, which
+    makes a better-conditioned PnP.
+    """
+    uv = np.asarray(uv, float).reshape(-1, 2)
+    if len(uv) == 0:
+        return 0
+    W, H = image_size
+    score = 0
+    for lev in range(1, levels + 1):
+        n = 2 ** lev
+        cu = np.clip((uv[:, 0] / W * n).astype(int), 0, n - 1)
+        cv = np.clip((uv[:, 1] / H * n).astype(int), 0, n - 1)
+        score += n * len(np.unique(cu * n + cv))
+    return int(score)
+
+
+class ImageRegistration(ObservationManager):
+    """The registration stages of :class:`~course_lib.sfm.mapper.IncrementalMapper`."""
+
+    def next_images(self, skip=()) -> list[tuple[int, int]]:
+        """``[(image, correspondences), ...]`` of the unregistered images not in ``skip``, best first.
+
+        Ranked by :func:`spread_score` of the pixels of their 2D-3D correspondences (features whose
+        track has a point), ties by image number. Images of earlier models are among them: a model
+        that reaches them can be merged with that model (:meth:`merge`).
+        """
+        todo = [i for i in range(self.M) if not (self.registered[i] or i in skip)]
+        has_X = self.has_X
+        rows = []
+        for i in todo:
+            js = np.flatnonzero(has_X & self.candidate[:, i])
+            rows.append((spread_score(self.uv[js, i], self.image_size), len(js), i))
+        rows.sort(key=lambda r: (-r[0], -r[1], r[2]))
+        return [(i, n) for _, n, i in rows]
+
+    def register_next_image(self, i: int) -> tuple[dict | None, str | None]:
+        """PnP RANSAC + non-linear PnP for image ``i``: ``(info, None)``, or ``(None, why it failed)``.
+
+        Where PnP fails and ``structure_less_fallback`` is on, the image is registered from its
+        matches with the registered images alone (:meth:`register_from_pairs`), as COLMAP does.
+        """
+        info, why = self._register_pnp(i)
+        if info is not None or not self.opts.structure_less_fallback:
+            return info, why
+        info, why_pairs = self.register_from_pairs(i)
+        return (info, None) if info is not None else (None, f"{why}; from its matches alone: {why_pairs}")
+
+    def register_from_pairs(self, i: int) -> tuple[dict | None, str | None]:
+        """Register image ``i`` from its verified matches with registered images, without 3-D points (COLMAP's structure-less fallback).
+
+        The five-point pose of ``i`` relative to each registered partner gives its rotation and
+        the direction of its centre; two or more partners that agree on the rotation and see it
+        from different places fix the centre (:func:`course_lib.sfm.structureless.pose_from_partners`),
+        which is then refined on all their matches
+        (:func:`course_lib.sfm.structureless.refine_on_partners`). The pose must explain
+        ``min_pnp_inliers`` of the matches within ``f_threshold_px`` (Sampson distance) and
+        ``min_pnp_inlier_ratio`` of them. The two-view tracks it shares with the partners can then
+        be triangulated (:meth:`triangulate_image`).
+
+        Returns:
+            ``(info, None)`` as :meth:`register_next_image` (``correspondences``: the 2D-2D matches,
+            ``pnp_inliers``: those the pose explains, ``structure_less``: the partners), or ``(None, why)``.
+        """
+        o = self.opts
+        rows = []
+        for k in np.flatnonzero(self.registered):
+            key = (min(i, k), max(i, k))
+            if key not in self.pairs:
+                continue
+            x_a, x_b, choice, inl = self.two_view(*key)
+            if choice is None:
+                continue
+            R_ki, t_ki = (choice.R_cw, choice.t_cw) if k == key[0] else invert_pose(choice.R_cw, choice.t_cw)
+            x_k, x_i = (x_a, x_b) if k == key[0] else (x_b, x_a)
+            rows.append((int(k), R_ki, t_ki, x_k, x_i, int(inl.sum())))
+        if len(rows) < 2:
+            return None, f"{len(rows)} registered image(s) with verified matches, two are needed"
+        ks = [r[0] for r in rows]
+        found, why = pose_from_partners(self.R[ks], self.t[ks], np.stack([r[1] for r in rows]), np.stack([r[2] for r in rows]),
+                                        np.array([r[5] for r in rows], float))
+        if found is None:
+            return None, why
+        R, t, used = found
+        partners = [(self.R[r[0]], self.t[r[0]], r[3], r[4]) for r, u in zip(rows, used) if u]
+        R, t = refine_on_partners(self.K, R, t, partners)
+        n_all = sum(len(p[2]) for p in partners)
+        n_in = sum(int((pair_sampson(self.K, *p[:2], R, t, *p[2:]) <= o.f_threshold_px).sum()) for p in partners)
+        if n_in < o.min_pnp_inliers or n_in < o.min_pnp_inlier_ratio * n_all:
+            return None, (f"the pose from {len(partners)} partners explains {n_in} of their {n_all} matches within "
+                          f"{o.f_threshold_px} px, need {o.min_pnp_inliers} and {o.min_pnp_inlier_ratio:.0%}")
+        self.R[i], self.t[i] = R, t
+        self.registered[i] = True
+        return {"correspondences": n_all, "pnp_inliers": n_in, "ransac_iterations": 0,
+                "structure_less": [self.names[r[0]] for r, u in zip(rows, used) if u]}, None
+
+    def _register_pnp(self, i: int) -> tuple[dict | None, str | None]:
+        """PnP RANSAC + non-linear PnP on image ``i``'s 2D-3D correspondences: ``(info, None)`` or ``(None, why)``."""
+        o = self.opts
+        js = np.flatnonzero(self.has_X & self.candidate[:, i])
+        need = max(6, o.min_pnp_inliers)
+        if len(js) < need:
+            return None, f"too few 2D-3D matches: {len(js)} of its features see triangulated points, PnP needs {need}"
+        try:
+            res = call("pnp_ransac", self.X[js], self.uv[js, i], self.K, self.rng, threshold_px=o.pnp_threshold_px)
+        except KitInputError as exc:
+            return None, f"PnP RANSAC failed on {len(js)} 2D-3D matches ({exc})"
+        inl = np.asarray(res.inliers, bool)
+        if inl.sum() < o.min_pnp_inliers:
+            return None, (f"too few PnP inliers: {int(inl.sum())} of {len(js)} 2D-3D matches within {o.pnp_threshold_px} px, "
+                          f"need {o.min_pnp_inliers}")
+        if inl.sum() < o.min_pnp_inlier_ratio * len(js):
+            return None, (f"too small a share of PnP inliers: {int(inl.sum())} of {len(js)} 2D-3D matches within "
+                          f"{o.pnp_threshold_px} px, need {o.min_pnp_inlier_ratio:.0%} (look-alike texture?)")
+        self.R[i], self.t[i] = call("pnp_nonlinear", self.X[js[inl]], self.uv[js[inl], i], self.K, res.R_cw, res.t_cw)
+        self.registered[i] = True
+        self.candidate[js[~inl], i] = False
+        return {"correspondences": int(len(js)), "pnp_inliers": int(inl.sum()), "ransac_iterations": int(res.n_iters)}, None

@@ -1,0 +1,122 @@
+"""The focal length from the images alone (course_lib.sfm.self_calibration) and the pipeline's focal restarts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from course_lib.conventions import skew
+from course_lib.data.synthetic import look_at
+from course_lib.sfm.self_calibration import essential_cost, focal_from_fundamentals
+
+W, H = 640, 480
+
+
+def _K(f):
+    return np.array([[f, 0.0, (W - 1) / 2], [0.0, f, (H - 1) / 2], [0.0, 0.0, 1.0]])
+
+
+def _F(K, R, t):
+    Ki = np.linalg.inv(K)
+    return Ki.T @ skew(t) @ R @ Ki
+
+
+def _general_pairs(f, n=20, seed=0):
+    rng = np.random.default_rng(seed)
+    K = _K(f)
+    return np.stack([_F(K, Rotation.from_rotvec(rng.normal(0, 0.3, 3)).as_matrix(), rng.normal(0, 1, 3)) for _ in range(n)])
+
+
+@pytest.mark.parametrize("factor", [0.5, 1.0, 2.0, 3.0])
+def test_exact_pairs_give_the_focal_length(factor):
+    guess = 1.2 * max(W, H)
+    F = _general_pairs(factor * guess)
+    est = focal_from_fundamentals(F, np.full(len(F), 100), (W, H), guess)
+    assert est.focal_px == pytest.approx(factor * guess, rel=0.005)
+    assert est.bougnoux_median_px == pytest.approx(factor * guess, rel=1e-6)
+    assert est.depth > 0.5 and est.note == ""
+    cost = essential_cost(F, np.array([factor * guess]), ((W - 1) / 2, (H - 1) / 2))
+    assert cost.max() < 1e-9  # K^T F K is essential at the true f
+
+
+def test_a_ring_aimed_at_its_middle_does_not_tell_it():
+    """Sturm's singular case: optical axes that meet at a point equally far from both centres."""
+    K = _K(500.0)
+    cams = []
+    for a in np.radians(np.arange(12) * 30.0):
+        R, t = look_at(np.array([4 * np.cos(a), 0.0, 4 * np.sin(a)]), np.zeros(3))
+        cams.append((R, t))
+    F = np.stack([_F(K, Rb @ Ra.T, tb - Rb @ Ra.T @ ta) for k, (Ra, ta) in enumerate(cams) for (Rb, tb) in cams[k + 1:]])
+    est = focal_from_fundamentals(F, np.full(len(F), 100), (W, H), 768.0)
+    assert est.focal_px is None and "hardly tell" in est.note
+    assert est.summary()["used"] is False
+
+
+def test_no_pairs():
+    est = focal_from_fundamentals(np.zeros((0, 3, 3)), np.zeros(0), (W, H), 768.0)
+    assert est.focal_px is None and est.note == "no verified pair"
+
+
+# --- the pipeline: no calibration file, no EXIF -------------------------------------------------------
+
+
+def _ring(tmp_path, factor: float, k1: float, size=(320, 240), n=10, seed=0):
+    """A ring of ``n`` views around points in a box, seen by a camera whose focal length is ``factor`` x the guess
+    (1.2 x the longer side), principal point at the centre; the P3 folder's camera.json says the focal length is a guess."""
+    from course_lib.data.camera import CameraPrior, distort_pixels, write_camera
+    from course_lib.data.p3 import read_p3
+    from course_lib.data.scenes import observe, ring_cameras
+    from course_lib.data.synthetic import write_scene_p3
+
+    rng = np.random.default_rng(seed)
+    w, h = size
+    guess = 1.2 * max(size)
+    K = np.array([[factor * guess, 0, (w - 1) / 2], [0, factor * guess, (h - 1) / 2], [0, 0, 1.0]])
+    radius = max(1.6 / np.tan(np.arctan(w / 2 / K[0, 0])), 2.5)  # the points fill the views at every field of view
+    R, t = ring_cameras(rng, n, radius=radius, height=-0.075 * radius, jitter=0.0125 * radius)
+    sc = observe(rng, K, R, t, rng.uniform(-1, 1, (500, 3)) * [0.9, 1.0, 0.9], None, noise_px=0.5, dropout=0.4,
+                 outlier_fraction=0.05, image_size=size)
+    sc.uv = distort_pixels(sc.uv, K, k1)
+    write_scene_p3(sc, tmp_path / "true")
+    data, _ = write_scene_p3(sc, tmp_path / "p3")
+    prior = K.copy()
+    prior[0, 0] = prior[1, 1] = guess
+    (tmp_path / "p3" / "calibration.txt").write_text("\n".join(" ".join(map(str, r)) for r in prior))
+    write_camera(tmp_path / "p3", CameraPrior(prior, "SIMPLE_RADIAL", 0.0, "guess: 1.2 x the longer side", True))
+    true_prior = CameraPrior(K, "SIMPLE_RADIAL", 0.0, "the true focal length", True)
+    if k1:
+        write_camera(tmp_path / "true", true_prior)
+    return sc, read_p3(tmp_path / "p3", require_images=False), read_p3(tmp_path / "true", require_images=False)
+
+
+@pytest.mark.parametrize("factor, k1", [(0.5, 0.0), (2.0, 0.0), (3.0, -0.05), (0.5, -0.05)],
+                         ids=["wide", "narrow", "narrowest-distorted", "wide-distorted"])
+def test_the_focal_length_is_found_from_the_images_alone(tmp_path, factor, k1):
+    """The issue's target: focal length within 3 %, rotation error within 1.5x the run with the true K."""
+    from course_lib.alignment import pose_errors
+    from course_lib.sfm.pipeline import run_sfm
+
+    sc, data, true = _ring(tmp_path, factor, k1)
+    rec = run_sfm(data, np.random.default_rng(0))
+    ref = run_sfm(true, np.random.default_rng(0))  # the true K (refining k1 where the camera has one)
+    err = lambda r: pose_errors(r.R_cw, r.t_cw, sc.R_cw, sc.t_cw).rotation_deg.mean()  # noqa: E731
+    assert rec.n_registered == ref.n_registered == 10
+    assert abs(rec.K[0, 0] / sc.K[0, 0] - 1) < 0.03, (rec.K[0, 0], sc.K[0, 0])
+    assert err(rec) <= 1.5 * err(ref), (err(rec), err(ref))
+    rep = rec.report
+    assert rep["self_calibration"]["guess_px"] == pytest.approx(1.2 * 320)
+    assert rep["camera"]["model"] == "SIMPLE_RADIAL"
+    # the first model restarted from the refined focal length where it moved far from its start
+    for r in rep["focal_restarts"]:
+        assert abs(np.log(r["to_px"] / r["from_px"])) > np.log(1.05)
+
+
+def test_the_options_turn_it_off(tmp_path):
+    from course_lib.sfm.pipeline import run_sfm
+
+    sc, data, _ = _ring(tmp_path, 2.0, 0.0)
+    rec = run_sfm(data, np.random.default_rng(0), self_calibration="never", focal_restarts=0)
+    assert "self_calibration" not in rec.report and rec.report["focal_restarts"] == []
+    with pytest.raises(Exception, match="self_calibration='maybe'"):
+        run_sfm(data, np.random.default_rng(0), self_calibration="maybe")
