@@ -7,7 +7,9 @@ graded by the single-submission grader, ``python -m course_lib grade`` (:mod:`co
 process of its own with its own sandboxes, clock and memory cap; ``jobs`` of them run at once
 (:func:`default_jobs`: as many as the cores and the memory allow). A grader that crashes or runs past its
 submission's time gives that one submission a report saying what happened (status ``crashed`` or ``timed out``,
-0 points), never stops the others. Reports and feedback go to ``REPORTS/<student>/`` (``report.json``,
+0 points), never stops the others; one refused by the grader while others ran (its sandbox could not be made,
+e.g. for lack of a resource another submission held) is graded again alone after them. As root, each job's
+students' processes run as a uid of their own. Reports and feedback go to ``REPORTS/<student>/`` (``report.json``,
 ``feedback.md``, and ``grader.log``, the grader's own output, for the instructor); every grading goes into the
 :class:`~course_lib.instructor.gradebook.Gradebook`.
 
@@ -21,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import queue
 import signal
 import subprocess
 import sys
@@ -39,6 +42,13 @@ __all__ = ["Submission", "find_submissions", "default_jobs", "grade_class", "gra
 GRADING_BYTES = 3 << 30
 #: The single-submission grader, run once per submission (the tests put a stand-in here).
 GRADER = [sys.executable, "-m", "course_lib", "grade"]
+#: The students' processes run as this uid when the grader is root (settings.STUDENT_UID); each job of a class run
+#: gets its own (this, this - 1, ...), so that one submission's processes (a fork bomb) never count against the
+#: process limit of another's (RLIMIT_NPROC counts all the processes of a uid).
+STUDENT_UID = int(os.environ.get("COURSE_GRADER_STUDENT_UID", "65534"))
+#: How the grader says that it would not run a student's code (its sandbox could not be made); a grading refused
+#: while others ran (a namespace not made for lack of a resource) is graded again alone, after them.
+REFUSAL = "refusing to run the students' code"
 #: Seconds a grading may take past ``--submission-timeout`` before it is stopped: the hidden cases are made (and the
 #: reference run on them) before the submission's clock starts.
 START_SECONDS = 600.0
@@ -123,22 +133,42 @@ def grade_class(submissions: list[Submission], gradebook: Gradebook, reports: Pa
     from tqdm.auto import tqdm
 
     todo = [s for s in submissions if regrade or not gradebook.graded(s.student, s.commit)]
-    version, out = grader_version(), []
+    version, out, limit = grader_version(), [], submission_timeout + START_SECONDS
+    uids: queue.Queue = queue.Queue()  # as root: a uid of its own for the students' processes of each job
+    for k in range(max(1, jobs)):
+        uids.put(STUDENT_UID - k)
+
+    def one(sub: Submission) -> Outcome:
+        uid = uids.get()
+        try:
+            env = {"COURSE_GRADER_STUDENT_UID": str(uid)} if os.getuid() == 0 else {}
+            return grade_one(sub, reports / sub.student, grade_options, limit, env)
+        finally:
+            uids.put(uid)
+
+    def done(o: Outcome) -> None:
+        gradebook.record(o.sub.student, o.sub.commit, version, o.status, o.report, o.feedback)
+        bar.set_postfix_str(f"{o.sub.student}: {o.report.get('total', 0):g} ({o.status})", refresh=False)
+        bar.update()
+        out.append(o)
+
+    again = []
     with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool, \
             tqdm(total=len(todo), desc="grading", unit="submission", disable=not progress) as bar:
-        running = [pool.submit(grade_one, s, reports / s.student, grade_options, submission_timeout + START_SECONDS)
-                   for s in todo]
-        for fut in as_completed(running):
+        for fut in as_completed([pool.submit(one, s) for s in todo]):
             o = fut.result()
-            gradebook.record(o.sub.student, o.sub.commit, version, o.status, o.report, o.feedback)
-            bar.set_postfix_str(f"{o.sub.student}: {o.report.get('total', 0):g} ({o.status})", refresh=False)
-            bar.update()
-            out.append(o)
+            if o.status == "crashed" and REFUSAL in o.report["error"] and jobs > 1:
+                again.append(o.sub)  # refused while others ran (a sandbox not made: e.g. EAGAIN); nothing of it ran
+            else:
+                done(o)
+        for sub in again:  # alone, after the others: a refusal now is the grader's last word
+            done(one(sub))
     return out
 
 
-def grade_one(sub: Submission, out: Path, options: list[str], limit: float) -> Outcome:
-    """Run the single-submission grader on ``sub`` in a process group of its own; its outcome, whatever happens."""
+def grade_one(sub: Submission, out: Path, options: list[str], limit: float, env: dict | None = None) -> Outcome:
+    """Run the single-submission grader on ``sub`` in a process group of its own (``env`` added to its
+    environment); its outcome, whatever happens."""
     out.mkdir(parents=True, exist_ok=True)
     report_path, feedback_path = out / "report.json", out / "feedback.md"
     for p in (report_path, feedback_path):
@@ -148,7 +178,7 @@ def grade_one(sub: Submission, out: Path, options: list[str], limit: float) -> O
     t0 = time.monotonic()
     with open(out / "grader.log", "wb") as log:
         proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                start_new_session=True)
+                                start_new_session=True, env={**os.environ, **(env or {})})
         try:
             rc, what = proc.wait(timeout=limit), None
         except subprocess.TimeoutExpired:

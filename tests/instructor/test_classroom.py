@@ -31,11 +31,17 @@ FAKE_GRADER = textwrap.dedent("""
         print("Traceback: something broke"); sys.stdout.flush(); os.abort()
     if what[0] == "hang":
         time.sleep(600)
+    if what[0] == "refuse-once" and not (sub / "refused").exists():
+        (sub / "refused").write_text("")
+        print("error: refusing to run the students' code: bubblewrap could not make the sandbox (bwrap: Creating "
+              "new namespace failed: Resource temporarily unavailable)")
+        sys.exit(2)
     pts = [float(p) for p in what[1:]]
     exercises = [{"notebook": "01_f.ipynb", "name": f"ex{i}", "points": p, "max_points": 10.0, "status": "graded"}
                  for i, p in enumerate(pts)]
     report.write_text(json.dumps({"total": sum(pts), "max": 10.0 * len(pts), "hidden_seed": 7, "seconds": 0.1,
-                                  "notebooks": [], "exercises": exercises, "options": sys.argv[6:]}))
+                                  "notebooks": [], "exercises": exercises, "options": sys.argv[6:],
+                                  "uid": os.environ.get("COURSE_GRADER_STUDENT_UID")}))
     feedback.write_text(f"# Grading feedback of {sub.name}\\n")
 """)
 
@@ -86,13 +92,26 @@ def test_a_crash_and_a_timeout_cost_only_their_own_submission(tmp_path, fake_gra
 
 
 @pytest.mark.fails_closed  # no sandbox needed: a stand-in grader
+def test_a_grading_refused_while_others_ran_is_graded_again_alone(tmp_path, fake_grader):
+    make_class(tmp_path / "class", {"ada": "refuse-once 5", "bob": "ok 6", "cy": "ok 7"})
+    assert grade_class(tmp_path, "--jobs", "2") == 0
+    assert sorted(rows(tmp_path / "grades.sqlite", "SELECT student, status, total FROM gradings")) == [
+        ("ada", "graded", 5.0), ("bob", "graded", 6.0), ("cy", "graded", 7.0)]  # ada's refusal is not recorded
+    uids = {json.loads((tmp_path / "reports" / s / "report.json").read_text())["uid"] for s in ("ada", "bob", "cy")}
+    if os.getuid() == 0:  # as root, each job's students' processes get a uid of their own
+        assert uids <= {str(classroom.STUDENT_UID), str(classroom.STUDENT_UID - 1)}
+    else:
+        assert uids == {None}
+
+
+@pytest.mark.fails_closed  # no sandbox needed: a stand-in grader
 def test_graded_commits_are_skipped_and_regrade_keeps_the_history(tmp_path, fake_grader):
     make_class(tmp_path / "class", {"ada": "ok 10", "bob": "crash"})
     (tmp_path / "class" / "ada.commit").write_text("ada/kit\nabc123\n")  # what the CI template's plan job writes
     assert grade_class(tmp_path, "--jobs", "2") == 0
     (tmp_path / "class" / "bob" / "behaviour").write_text("ok 4")  # bob's new commit
     assert grade_class(tmp_path) == 0  # ada's commit is graded already; bob's is new
-    assert rows(tmp_path / "grades.sqlite", "SELECT student, status, total FROM gradings ORDER BY id") == [
+    assert rows(tmp_path / "grades.sqlite", "SELECT student, status, total FROM gradings ORDER BY student, id") == [
         ("ada", "graded", 10.0), ("bob", "crashed", 0.0), ("bob", "graded", 4.0)]
     assert rows(tmp_path / "grades.sqlite", "SELECT commit_id FROM gradings WHERE student = 'ada'") == [("abc123",)]
     (tmp_path / "class" / "ada" / "behaviour").write_text("ok 9")
