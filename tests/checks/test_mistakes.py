@@ -99,7 +99,8 @@ def main() -> None:
             print(f"{'':<{w}}   misnamed by: {t}")
     print("\n(named: the verdict holds the mistake's words; by a diagnosis: a verdict that names the mistake, said as "
           "what the student did; by a property: the failing property, with numbers and the formula)")
-    for label, sel in (("whole catalogue", rows), ("issue 29's mistakes", [r for r in rows if r[7] == "29"])):
+    for label, sel in (("whole catalogue", rows), ("issue 29's mistakes", [r for r in rows if r[7] == "29"]),
+                       ("issue 44's mistakes", [r for r in rows if r[7] == "44"])):
         print(f"\n{label}: caught {sum(r[2] for r in sel)}/{len(sel)}, named {sum(r[3] for r in sel)}/{len(sel)} "
               f"({sum(r[9] for r in sel)} by a diagnosis, {sum(r[3] and not r[9] for r in sel)} by the failing property), "
               f"confidently misnamed {sum(r[6] for r in sel)}; {sum(1 for r in sel if r[4])} break a defining property, "
