@@ -1152,16 +1152,16 @@ def test_40_nothing_of_the_instructor_in_view_however_installed(tmp_path, hidden
 
 
 def test_40_the_graders_own_work_on_a_notebook_is_bounded(tmp_path, hidden, outside):
-    """Class 1: an extra cell of 3.5 MB (320 000 short calls: the grader used to reach 1.9 GiB parsing it once per
-    exercise) is refused from its size, with a report that names the limit; a cell just under the node limit and an
-    honest eight_point that forwards through 4 000 helpers (the slice used to be quadratic: 222 s) are graded in
-    seconds, the grader's memory bounded."""
+    """Class 1: an extra cell of 2.2 MB (320 000 short calls; the issue's 3.5 MB cell took the grader to 1.9 GiB,
+    parsed once per exercise) is refused from its size, with a report that names the limit; a cell just under the
+    node limit and an honest eight_point that forwards through 4 000 helpers (the slice used to be quadratic: 222 s)
+    are graded in seconds, the grader's memory bounded."""
     from course_lib.instructor.settings import MAX_CELL_NODES, MAX_CODE_BYTES
 
     before = rss_mib()
     calls = "".join(f"f{k % 7}(x{k % 5})\n" for k in range(320_000))
     report = grade01(submission(tmp_path / "huge", HONEST, extra_cell=calls), hidden)
-    g = graded_row("an extra cell of 3.5 MB (320 000 calls)", report, "eight_point", before, "1 grader's work", ROWS40)
+    g = graded_row("an extra cell of 2.2 MB (320 000 calls)", report, "eight_point", before, "1 grader's work", ROWS40)
     assert f"more than the grader reads ({MAX_CODE_BYTES >> 10} KiB)" in g["feedback"][0], g
     assert report["seconds"] < 10, report["seconds"]
 
