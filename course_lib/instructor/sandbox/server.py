@@ -298,7 +298,7 @@ def _generators(args, kwargs) -> list:
     """``[[where, generator]]``: the random generators among the call's arguments (``where``: ``["a", i]`` or
     ``["k", name]``); their states after the call go back with the reply, so that, as in a notebook, the caller's
     generator has advanced by what the student's function drew from it."""
-    np, torch = wire._np(), wire._torch()
+    np, torch = wire.lazy_numpy(), wire.loaded_torch()
     kinds = tuple(k for k in (getattr(np.random, "Generator", None), getattr(torch, "Generator", None)) if k)
     out = [[["a", i], a] for i, a in enumerate(args) if isinstance(a, kinds)]
     return out + [[["k", k], v] for k, v in kwargs.items() if isinstance(v, kinds)]

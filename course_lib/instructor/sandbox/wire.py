@@ -36,7 +36,7 @@ import sys
 
 __all__ = ["WireError", "Record", "encode", "decode", "declared", "pack", "unpack", "write_frame", "read_frame",
            "read_frame_before", "MAX_REQUEST", "MAX_REPLY", "MAX_HEADER", "MAX_NODES", "MAX_ARRAYS", "MAX_SPARSE_CELLS",
-           "ident"]
+           "ident", "lazy_numpy", "loaded_torch"]
 
 MAX_REQUEST = 1 << 31  # bytes of one message from the grader (the hidden inputs)
 #: Bytes of one reply from the student's process: what an exercise can honestly return (the largest honest reply
@@ -59,13 +59,15 @@ class WireError(Exception):
     """A message that cannot be encoded or decoded."""
 
 
-def _np():
+def lazy_numpy():
+    """numpy, imported on first use (a process that only relays messages never loads it)."""
     import numpy as np
 
     return np
 
 
-def _torch():
+def loaded_torch():
+    """torch where this process has imported it, else None (the wire never imports torch itself)."""
     return sys.modules.get("torch")
 
 
@@ -95,7 +97,7 @@ def encode(obj, arrays: list, callbacks: list | None = None, handles: dict | Non
     if isinstance(obj, complex):
         return {"$": "complex", "re": repr(obj.real), "im": repr(obj.imag)}
     np = sys.modules.get("numpy")
-    torch = _torch()
+    torch = loaded_torch()
     if np is not None:
         if isinstance(obj, np.ndarray) or isinstance(obj, np.generic):
             arr = np.asarray(obj)
@@ -199,7 +201,7 @@ def _checked_state(state, template, where: str):
     """``state`` (a numpy bit generator's state from a message) if it has exactly the form of ``template`` (a fresh
     generator's state of the same kind): the same keys, every array of the same dtype and shape (MT19937's key: 624
     uint32), every integer in its range (:data:`_STATE_RANGES`); else :class:`WireError` naming what is wrong."""
-    np = _np()
+    np = lazy_numpy()
     if isinstance(template, dict):
         if not isinstance(state, dict) or set(state) != set(template):
             raise WireError(f"malformed generator state ({where}: the fields "
@@ -244,7 +246,7 @@ def decode(tree, arrays: list, callback=None, module_proxy=None):
         t = torch.from_numpy(_array(arrays, tree.get("a")).copy())
         return t.requires_grad_(True) if tree.get("grad") and t.is_floating_point() else t
     if kind == "rng":
-        np = _np()
+        np = lazy_numpy()
         state = sub(tree["s"])
         if not isinstance(state, dict):
             raise WireError("malformed generator state")
@@ -255,7 +257,7 @@ def decode(tree, arrays: list, callback=None, module_proxy=None):
         gen.state = _checked_state(state, gen.state, bg.__name__)
         return np.random.Generator(gen)
     if kind == "tgen":
-        np = _np()
+        np = lazy_numpy()
         import torch
 
         g = torch.Generator()
@@ -419,7 +421,7 @@ def _load_npy(data) -> object:
     A ``.npz`` archive, a pickle, an object array or a header that claims more data than was sent is refused
     (:class:`WireError`) before anything is allocated.
     """
-    np = _np()
+    np = lazy_numpy()
     fmt = np.lib.format
     fp = io.BytesIO(data)
     if bytes(data[:6]) != b"\x93NUMPY":
