@@ -248,8 +248,8 @@ LAB_JS = {
         const app = window.jupyterapp;
         if (!app) return {error: 'window.jupyterapp is missing (JupyterLab did not start in the page)'};
         await app.started; await app.restored;
-        let panel = null;
-        for (let i = 0; i < 1200; i++) {
+        let panel = null;  // up to 240 s: ten tabs open at once, and a loaded 2-core runner needed more than 120
+        for (let i = 0; i < 2400; i++) {
             panel = app.shell.currentWidget;
             if (panel && panel.sessionContext && panel.context && panel.context.path.endsWith(name)) break;
             panel = null;
