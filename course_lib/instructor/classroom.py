@@ -180,10 +180,10 @@ def grade_one(sub: Submission, out: Path, options: list[str], limit: float, env:
         proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                 start_new_session=True, env={**os.environ, **(env or {})})
         try:
-            rc, what = proc.wait(timeout=limit), None
+            rc, what, status = proc.wait(timeout=limit), None, "crashed"
         except subprocess.TimeoutExpired:
             _stop(proc)
-            rc, what = proc.returncode, f"it ran past its time ({limit:g} s) and was stopped"
+            rc, what, status = proc.returncode, f"it ran past its time ({limit:g} s) and was stopped", "timed out"
     seconds = round(time.monotonic() - t0, 1)
     if what is None and rc == 0:
         try:
@@ -194,7 +194,6 @@ def grade_one(sub: Submission, out: Path, options: list[str], limit: float, env:
         what = (f"the grader was killed by signal {-rc}" if rc < 0 else f"the grader stopped with exit status {rc}")
         tail = (out / "grader.log").read_text(errors="replace").strip().splitlines()[-1:]
         what += f" ({tail[0][:300]})" if tail else ""
-    status = "timed out" if "ran past its time" in what else "crashed"
     report = {"total": 0.0, "max": None, "hidden_seed": None, "seconds": seconds, "status": status,
               "error": what, "notebooks": [], "exercises": []}
     feedback = (f"# Grading feedback\n\n**Total: 0 points: your submission could not be graded.**\n\n"
