@@ -36,7 +36,7 @@ import numpy as np
 
 __all__ = ["FocalEstimate", "essential_cost", "focal_from_fundamentals", "bougnoux_focal", "SCAN_RANGE", "MIN_DEPTH"]
 
-#: Candidate focal lengths from ``guess / SCAN_RANGE`` to ``guess * SCAN_RANGE`` (the issue's 0.5x-3x, with room).
+#: Candidate focal lengths from ``guess / SCAN_RANGE`` to ``guess * SCAN_RANGE`` (true focal lengths of 0.5x-3x the guess, with room).
 SCAN_RANGE = 4.0
 #: Candidates on the log scale.
 SCAN_STEPS = 161
