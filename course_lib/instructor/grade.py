@@ -2,65 +2,36 @@
 
 ``python -m course_lib grade SUBMISSION_DIR [--json REPORT.json] [--markdown FEEDBACK.md]``
 
-For every exercise of the instructor notebooks (:func:`course_lib.instructor.notebooks.kit_specs`; the
-reference verdicts and check cells come from the instructor's side, never from the submission):
+For every exercise of the instructor notebooks (the check cells and reference verdicts come from the instructor's
+side, never from the submission), :func:`grade_submission` runs five steps, each in the module named:
 
-1. **Structure.** The submitted notebook must still hold the exercise's ``def`` before its check
-   cell, in the original order, and the check cell unedited. A deleted or moved exercise, or an
-   edited or deleted check cell, gets no credit (and the report says which).
-2. **Scan** (a second line of defence). The exercise's code (cut out with its imports and
-   helpers, :func:`course_lib.instructor.extract.extract_exercise`) must not import the reference
-   solutions or the check machinery (:func:`course_lib.instructor.scan.scan_exercise`). The rest of
-   the notebook is not scanned: no verdict is read from what it prints (step 4).
-3. **Hidden checks, sealed by design.** The exercise's check function runs *here*, in the
-   grader's process, on hidden cases (the fixtures rebuilt with a grading-time seed), and the
-   reference's verdicts on the same cases are computed here too. The student's function is a
-   proxy (:mod:`course_lib.instructor.remote`): each call sends the inputs as data to a sandboxed
-   process (:mod:`course_lib.instructor.student_process`) that holds only the student's extracted code and the *student release* of
-   ``course_lib`` (no reference solution on its path or in its view of the disk), and the
-   outputs come back as data (JSON and ``np.save`` arrays, never pickle). The check itself runs
-   in a worker of the grader, in the exercise's cgroup. **One clock, one memory cap** per
-   exercise (:func:`course_lib.instructor.settings.exercise_seconds`) and per submission
-   (``submission_timeout``, a cgroup for all of it): the student's code, the decoding of its
-   replies, the check's work on them and the earlier steps it calls back all count; a looping
-   exercise is stopped at its limit, an exercise that ends the process is named (``os._exit``),
-   and either costs only itself. Its score is :func:`course_lib.checks.core.score` of its hidden
-   checks relative to the reference's; an exercise whose every call raised
-   ``NotImplementedError`` (the released stub) is "not attempted", in one line.
-   **Each exercise on its own:** the earlier exercises that its code calls (``ransac_fundamental``
-   → ``eight_point``, ``pnp_ransac`` → ``pnp_linear``, ``NeRF`` → ``positional_encoding``, ...) are
-   answered there by their reference, through a call-back to the grader
-   (:mod:`course_lib.instructor.oracle`), so a mistake costs points once, in its own exercise.
-4. **nbval, and a verdict no notebook can forge.** The notebooks run under nbval, with a per-cell
-   time limit, after their check cells are restored to the reference source, in the same sandbox
-   (the student release on ``PYTHONPATH``, a temporary copy of the submission as working directory,
-   resource limits, namespaces); package installs (``!pip install``) are left out, with a neutral
-   note. nbval says whether each check cell runs when the notebook runs top to bottom; what the cell
-   prints is not compared (code in the notebook could filter or forge it). The check cell's verdict
-   comes from the grader: when the hidden checks all pass, the same worker runs the check on the
-   notebook's own cases with the student's function, the earlier steps it calls answered by their
-   references (**each mistake charged once**, in its own exercise), and compares what it prints with
-   the reference verdict. A notebook whose exercise looped or exited in its hidden run is run again
-   with that exercise cut short, so the loop costs its time limit once.
-5. **Slow code is graded.** An exercise's budget (:data:`DEFAULT_TIMEOUT`, 120 s) lets correct but
-   slow code finish (a dense Jacobian, a residual per view); the feedback says when it was slow.
+1. **Structure** (:mod:`.grade_plan`): the submitted notebook must still hold the exercise's ``def`` before its
+   check cell, in the original order, and the check cell unedited; else no credit, and the report says which.
+2. **Scan** (:mod:`.grade_plan`, a second line of defence): the exercise's code, cut out with its imports and
+   helpers, must not import the reference solutions or the check machinery. The rest of the notebook is not
+   scanned: no verdict is read from what it prints (step 4).
+3. **Hidden checks, sealed by design** (:mod:`.grade_run`, :mod:`.hidden`): the exercise's check runs in a worker of
+   the grader on hidden cases (the fixtures rebuilt with a grading-time seed), the student's function a proxy for
+   the same function in a sandboxed process that holds only the student's code and the student release of
+   ``course_lib``, called with data (:mod:`.student_process`); the earlier exercises it calls are answered by their
+   references (:mod:`.oracle`), so each mistake costs points once, in its own exercise. **One clock, one memory
+   cap** per exercise and per submission count everything the submission causes.
+4. **nbval, and a verdict no notebook can forge** (:mod:`.grade_run`, :mod:`.nbval_run`): the notebooks run under
+   nbval in the same sandbox, check cells restored, package installs left out with a neutral note; nbval says
+   whether each check cell runs when the notebook runs top to bottom, and the check cell's verdict is computed by
+   the grader: the same check on the notebook's own cases, with the student's function in the sandbox.
+5. **Slow code is graded**: an exercise's budget (:data:`DEFAULT_TIMEOUT`, 120 s) lets correct but slow code
+   finish; the feedback says when it was slow.
 
-Points per exercise (default 10): 90 % times the hidden score, plus 10 % when all hidden checks
-pass, the notebook runs top to bottom through the check cell under nbval, and the check on the
-notebook's own cases, run by the grader, prints the reference verdict. What the sandbox
-enforced on this machine is written into the report (``isolation``).
+Points per exercise (default 10): 90 % times the hidden score (:func:`course_lib.checks.core.score_against` the
+reference's), plus 10 % when all hidden checks pass, the notebook runs top to bottom through the check cell, and
+the grader's check on the notebook's own cases prints the reference verdict. The report and the feedback
+(:mod:`.grade_report`) are data: student text fenced, capped and made plain by one sanitiser.
 
 **Fail closed.** Before anything of a submission runs, the grader starts one sandbox and checks it
-(:mod:`course_lib.instructor.sandbox.jail`); where it cannot be made or verified, grading stops with
-one line (:class:`~course_lib.instructor.sandbox.jail.IsolationError`). ``insecure=True``
-(``--insecure``, a trusted local run) grades without a sandbox and says so in the report and the
-feedback.
-
-This module runs a grading from start to report (:func:`grade_submission`); the steps live in three modules:
-:mod:`~course_lib.instructor.grade_plan` (what is graded: the notebooks, the hidden cases, steps 1 and 2),
-:mod:`~course_lib.instructor.grade_run` (running it: steps 3 to 5) and :mod:`~course_lib.instructor.grade_report`
-(the report and the feedback, which is data: every text that can hold the student's words is fenced, capped and
-made plain by one sanitiser, :func:`~course_lib.instructor.grade_report.plain_text`).
+(:mod:`course_lib.instructor.sandbox.jail`); where it cannot be made or verified, grading stops with one line
+(:class:`~course_lib.instructor.sandbox.jail.IsolationError`). ``insecure=True`` (``--insecure``, a trusted local
+run) grades without a sandbox and says so in the report and the feedback.
 """
 
 from __future__ import annotations

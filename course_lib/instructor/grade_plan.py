@@ -45,7 +45,7 @@ from course_lib.instructor.submission import SubmissionCopy
 from course_lib.paths import FIXTURES_DIR
 from course_lib.validate import KitInputError
 
-__all__ = ["HiddenCases", "prepare_hidden", "ready_hidden", "preload", "exercise_key", "ExerciseGrade", "GradingRun",
+__all__ = ["HiddenCases", "prepare_hidden", "ready_hidden", "exercise_key", "ExerciseGrade", "GradingRun",
            "specs_to_grade", "plan_submission"]
 
 
@@ -64,10 +64,11 @@ class HiddenCases:
 
 
 def exercise_key(e: ExerciseSpec) -> str:
+    """``"notebook::exercise"``: how the hidden cases key an exercise."""
     return f"{e.notebook}::{e.name}"
 
 
-def preload(specs: list[NotebookSpec]) -> None:
+def _preload(specs: list[NotebookSpec]) -> None:
     """Import torch, the check modules and the references, and load the notebooks' own cases, once, so that forked
     runs start fast."""
     try:
@@ -111,7 +112,7 @@ def prepare_hidden(specs: list[NotebookSpec], salt: int, workdir: Path, notebook
     The reference runs in this process (the expected results never leave it). The student release's
     library, which the student's processes import, is written next to the fixtures' folder.
     """
-    preload(specs)
+    _preload(specs)
     fdir = Path(workdir) / "hidden-fixtures"
     build_hidden_fixtures(fdir, [e.check_module for s in specs for e in s.exercises], salt)
     cases = HiddenCases(int(salt), fdir, {})
@@ -141,7 +142,7 @@ def ready_hidden(hidden: HiddenCases | None, specs: list[NotebookSpec], salt: in
         salt = secrets.randbits(62) if salt is None else int(salt)
         hidden = prepare_hidden(specs, salt, work, notebooks_dir, timeout=max(timeout, 120.0))
     else:
-        preload(specs)
+        _preload(specs)
     if hidden.library is None:
         hidden.library = _temporary_student_library(notebooks_dir)
     return hidden

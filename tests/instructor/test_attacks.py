@@ -19,6 +19,7 @@ import os
 import re
 import resource
 import textwrap
+import time
 from pathlib import Path
 
 import nbformat
@@ -116,6 +117,21 @@ def submission(root: Path, eight_point: str | None, extra_cell: str | None = Non
 @pytest.fixture(scope="module")
 def hidden(tmp_path_factory):
     return prepare_hidden(kit_specs(NOTEBOOKS_DIR, only=["01"]), SEED, tmp_path_factory.mktemp("hidden14"))
+
+
+#: Every test of this file: its wall time, the grader's peak RSS after it (this process: the grader runs here) and
+#: the largest peak of a process it waited for (workers, sandboxes); printed by the last test (``ATTACK_TABLE=1``).
+MEASURED: list[tuple] = []
+
+
+@pytest.fixture(autouse=True)
+def measured(request):
+    t0, before = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    yield
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    MEASURED.append((request.node.name, f"{time.perf_counter() - t0:.1f}", f"{peak:.0f} (+{peak - before:.0f})",
+                     f"{children:.0f}"))
 
 
 def grade_eight_point(path: Path, hidden, timeout: float = 20.0) -> dict:
@@ -224,8 +240,6 @@ def test_attack_table(tmp_path, hidden, capsys, request):
         ("write outside the temporary folder", write_outside(tmp_path / "outside.txt"), None),
         ("looping exercise (limit 6 s)", LOOP, None),
         ("return np.eye(3)", EYE, None),
-        ("import alias rebinding a check", HONEST, "from pprint import pprint as check_eight_point"),
-        ("assignment rebinding a check", HONEST, "check_eight_point = print"),
     ]
     rows = []
     for k, (what, body, cell) in enumerate(attacks):
@@ -1254,3 +1268,13 @@ def test_40_attack_table(request, capsys):
         show_table(request, "Issue 40: the grader's own work bounded, the nbval kernel sealed",
                    ["class", "attack", "points", "status", "grading s", "exercise s", "grader peak RSS MiB (+growth)",
                     "worker growth MiB", "exercise cgroup peak MiB", "feedback"], ROWS40)
+
+
+def test_every_attack_test_timed_and_its_memory(request, capsys):
+    """The last table (``ATTACK_TABLE=1``): each test of this file, its wall time and the grader's peak memory."""
+    if len(MEASURED) < 2:
+        pytest.skip("run with the tests above")
+    with capsys.disabled():
+        show_table(request, "Every attack test: wall time and the grader's peak memory",
+                   ["test", "wall s", "grader peak RSS MiB (+growth in the test)", "largest child peak RSS MiB"],
+                   MEASURED)
