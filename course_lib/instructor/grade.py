@@ -44,7 +44,6 @@ from pathlib import Path
 
 from course_lib.instructor.cgroups import HOW_TO_ENABLE, Cgroup
 from course_lib.instructor.grade_plan import (
-    ExerciseGrade,
     GradingRun,
     HiddenCases,
     plan_submission,
@@ -54,8 +53,6 @@ from course_lib.instructor.grade_plan import (
 )
 from course_lib.instructor.grade_report import (
     MAX_FEEDBACK_BYTES,
-    MAX_MESSAGE_CHARS,
-    MAX_MESSAGES,
     cap,
     grading_report,
     plain_data,
@@ -80,9 +77,8 @@ from course_lib.instructor.submission import copy_submission
 from course_lib.paths import REPO_ROOT
 from course_lib.validate import KitInputError
 
-__all__ = ["HiddenCases", "ExerciseGrade", "prepare_hidden", "grade_submission", "preflight", "to_markdown",
-           "HIDDEN_SHARE", "IsolationError", "plain_text", "plain_data", "DEFAULT_TIMEOUT", "MAX_FEEDBACK_BYTES",
-           "MAX_MESSAGE_CHARS", "MAX_MESSAGES"]
+__all__ = ["HiddenCases", "prepare_hidden", "grade_submission", "preflight", "to_markdown", "HIDDEN_SHARE",
+           "IsolationError", "plain_text", "plain_data", "DEFAULT_TIMEOUT", "MAX_FEEDBACK_BYTES"]
 
 DEFAULT_TIMEOUT = DEFAULT_EXERCISE_SECONDS  # s for the hidden checks of one exercise (settings.exercise_seconds)
 

@@ -237,12 +237,13 @@ def run_hidden(job: HiddenJob, timeout: float = 60.0, isolation=None, cgroup_par
             os._exit(0)
     os.close(w)
     frames: dict = {}
+    why = "ended"
     try:
         why = _await_frames(r, frames, t0, timeout, deadline)
     finally:
         os.close(r)
         try:
-            os.kill(pid, 9)
+            os.kill(pid, 9) if why else None  # a worker that sent all it had to cleans up its sandbox and ends
             os.waitpid(pid, 0)
         except (ChildProcessError, ProcessLookupError):
             pass
