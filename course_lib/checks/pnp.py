@@ -39,7 +39,8 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib.conventions import nearest_rotation, project, rotation_angle_deg, world_to_camera
-from course_lib.checks.core import FAILED, RTOL, Check, declare_defining, load_fixture, unique_key
+from course_lib.checks.core import (FAILED, RTOL, Check, RecordingRng, call_recording, counted_repeats,
+                                    declare_defining, load_fixture, repeated_sample, unique_key)
 
 __all__ = [
     "check_pnp_linear",
@@ -455,6 +456,48 @@ def _rng_verdicts(c: Check, fn, f) -> None:
            "it (rng.choice(N, 6, replace=False)), not from a generator of your own or np.random")
 
 
+def _minimal_verdict(c: Check, fn, f) -> None:
+    """Exactly 6 noiseless points: the only sample of 6 distinct points is all of them, so the pose is exact and every
+    point an inlier. A sample that holds a point twice has 5, which leave the DLT undetermined; the rng records the
+    samples (:class:`~course_lib.checks.core.RecordingRng`), so such a sample is named when it is seen."""
+    K, X, R, t, outl = (f[f"ransac_syn_{s}"] for s in ("K", "X", "R", "t", "outlier"))
+    X = X[~outl.astype(bool)]
+    X = X[world_to_camera(R, t, X)[:, 2] > 0][:6]
+    x = project(K, R, t, X)
+    case = "exactly 6 noiseless points"
+    rng = RecordingRng(RANSAC_SEED)
+    res, raised = call_recording(c, fn, X, x, K, rng=rng, k=6, case=case, stand_in=(np.eye(3), np.zeros(3),
+                                 np.zeros(6, bool), 1))
+    twice = repeated_sample(rng, 6)
+    advice = (f"a sample held a point twice (indices {None if twice is None else twice.tolist()}): rng.choice(N, 6) "
+              "draws with replacement unless you pass replace=False; draw 6 distinct points, rng.choice(N, 6, "
+              "replace=False)")
+    if raised is not None:
+        c.fail(f"{case}: your function raised {type(raised).__name__}: {str(raised)[:100]}, after {advice}",
+               named="with_replacement")
+        return
+    out = _ransac_fields(res, c, case, len(X))
+    if out is None:
+        return
+    Rs, ts, inl, it = out
+    e = _errors(K, Rs, ts, X, x)
+    ok = bool(inl.all()) and float(e.max()) < 0.05
+    skipped = counted_repeats(rng, 6, it)
+    if ok and skipped:
+        c.fail(f"{case}: n_iters = {it}, where the first sample of 6 distinct points has every point as inlier (N = 1): "
+               f"the {skipped} samples before it each held a point twice (a degenerate sample, counted in n_iters): rng.choice(N, 6) "
+               "draws with replacement unless you pass replace=False; draw 6 distinct points, rng.choice(N, 6, "
+               "replace=False)", named="with_replacement")
+        return
+    what = (f"{case}: {int(inl.sum())} of 6 inliers, largest reprojection error {float(e.max()):.3g} px; the only "
+            "sample of 6 distinct points is all of them, so the pose must reproject every point exactly")
+    if not ok and twice is not None:
+        c.fail(f"{what}: {advice}", named="with_replacement")
+        return
+    c.expect(ok, f"{case}: the pose reprojects all 6 points exactly", f"{what} (each sample is 6 distinct points, "
+             "rng.choice(N, 6, replace=False); the refit uses every inlier)")
+
+
 def check_pnp_ransac(fn, exercise: str = "pnp_ransac") -> None:
     """Check ``fn(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000) -> PnPResult``.
 
@@ -498,6 +541,7 @@ def check_pnp_ransac(fn, exercise: str = "pnp_ransac") -> None:
                 _confidence_verdict(c, fn, f, run["case"])
         if not no_pose:
             _rng_verdicts(c, fn, f)
+            _minimal_verdict(c, fn, f)
         c.blame_earlier("pnp_linear", fn=fn)
 
 
