@@ -559,7 +559,66 @@ _NONLINEAR_MISTAKES = {
     "transposed": _POSE_MISTAKES["transposed"],
     "C_for_t": _POSE_MISTAKES["C_for_t"],
     "t_sign": _POSE_MISTAKES["t_sign"],
+    "early_stop": "not at the least-squares optimum: your optimiser stops before it converges (started again from its "
+                  "own result, it moves on to the optimum): let it run to convergence (least_squares without "
+                  "max_nfev and with its default tolerances, or enough iterations of your own loop)",
+    "euler_mix": "your R is the optimum's rotation with its Euler angles read in one convention and turned back into "
+                 "a matrix in another (as_euler('XYZ') then from_euler('xyz'), say: upper and lower case are "
+                 "different conventions, intrinsic and extrinsic): use the same convention both ways, or a rotation "
+                 "vector (Rotation.from_rotvec / as_rotvec)",
 }
+
+#: The ways a parametrisation reads a rotation into 3 numbers and back: a rotation vector and the 12 Euler sequences,
+#: extrinsic (lower case) and intrinsic (upper case).
+_READINGS = ("rotvec",) + tuple(a for seq in ("xyz", "xzy", "yxz", "yzx", "zxy", "zyx") for a in (seq, seq.upper()))
+
+
+def _euler_mix(R, R_r) -> bool:
+    """Whether R is R_r read into 3 numbers in one way (:data:`_READINGS`) and turned back into a matrix in another."""
+    from scipy.spatial.transform import Rotation
+
+    off = rotation_angle_deg(R, R_r)
+    if off < 0.05:
+        return False
+    tol = min(0.01, off / 5)
+    rot = Rotation.from_matrix(R_r)
+    for a in _READINGS:
+        p = rot.as_rotvec() if a == "rotvec" else rot.as_euler(a)
+        for b in _READINGS:
+            if b != a and rotation_angle_deg((Rotation.from_rotvec(p) if b == "rotvec" else
+                                              Rotation.from_euler(b, p)).as_matrix(), R) < tol:
+                return True
+    return False
+
+
+def _wide_start(R, t, deg: float = 25.0, rel: float = 0.3):
+    """A start far from the optimum ``(R, t)`` (``deg`` degrees, ``rel`` of |t|; every point stays in front)."""
+    from scipy.spatial.transform import Rotation
+
+    axis, d = np.array([1.0, -2.0, 0.5]), np.array([0.3, 1.0, -0.6])
+    dR = Rotation.from_rotvec(np.radians(deg) * axis / np.linalg.norm(axis)).as_matrix()
+    return dR @ R, t + rel * np.linalg.norm(t) * d / np.linalg.norm(d)
+
+
+def _converges_when_restarted(fn, X, x, K, R, t, R_r, t_r, e_r: float, restarts: int = 5) -> bool:
+    """Whether the student's refinement, started again from its own result (``restarts`` times at most), lowers the
+    error at every call and reaches the optimum: the sign of an optimiser stopped before convergence."""
+    e_prev = _rms(_errors(K, R, t, X, x))
+    for _ in range(restarts):
+        try:
+            R, t = (np.asarray(v, float) for v in fn(X, x, K, R, t))
+        except Exception:  # noqa: BLE001 - a diagnosis only: a call that fails says nothing about convergence
+            return False
+        if R.shape != (3, 3) or t.size != 3 or not np.isfinite(R).all() or not np.isfinite(t).all():
+            return False
+        t = t.reshape(3)
+        e = _rms(_errors(K, R, t, X, x))
+        if not e < e_prev * (1 - 1e-9):
+            return False
+        if e <= e_r * (1 + 1e-3) + 1e-6 and rotation_angle_deg(R, R_r) < 0.05:
+            return True
+        e_prev = e
+    return False
 
 
 def _nonlinear_keys(f, key: str, R, t, R0, t0, R_r, t_r) -> set[str]:
@@ -612,10 +671,14 @@ def check_pnp_nonlinear(fn, exercise: str = "pnp_nonlinear") -> None:
     with Check(exercise) as c:
         results = []
         for key, case in (("nl_syn", "noisy synthetic view"), ("nl_far", "start 3° away from the optimum"),
-                          ("nl_embedded", "embedded scene")):
-            if f"{key}_X" not in f:
+                          ("nl_wide", "start 25° away from the optimum"), ("nl_embedded", "embedded scene")):
+            if key == "nl_wide" and "nl_far_X" in f:  # the problem of nl_far, its optimum, started farther away
+                K, X, x, R_r, t_r = (f[f"nl_far_{s}"] for s in ("K", "X", "x", "R", "t"))
+                R0, t0 = _wide_start(R_r, t_r)
+            elif f"{key}_X" not in f:
                 continue
-            K, X, x, R0, t0, R_r, t_r = (f[f"{key}_{s}"] for s in ("K", "X", "x", "R0", "t0", "R", "t"))
+            else:
+                K, X, x, R0, t0, R_r, t_r = (f[f"{key}_{s}"] for s in ("K", "X", "x", "R0", "t0", "R", "t"))
             out = _pose(_nonlinear_call(c, fn, (X, x, K, R0, t0), case), c, case)
             if out is None:
                 continue
@@ -631,16 +694,22 @@ def check_pnp_nonlinear(fn, exercise: str = "pnp_nonlinear") -> None:
                 continue
             e0, e_r, e_s = (_rms(_errors(K, Rq, tq, X, x)) for Rq, tq in ((R0, t0), (R_r, t_r), (R, t)))
             ok = e_s <= e_r * (1 + 1e-3) + 1e-6 and rotation_angle_deg(R, R_r) < 0.05
-            results.append((key, case, R, t, e0, e_r, e_s, ok, _nonlinear_keys(f, key, R, t, R0, t0, R_r, t_r)))
-        named = unique_key([keys for *_, ok, keys in results if not ok])
-        for key, case, R, t, e0, e_r, e_s, ok, keys in results:
+            keys = set() if key == "nl_wide" else _nonlinear_keys(f, key, R, t, R0, t0, R_r, t_r)
+            if not ok and np.linalg.norm(t - t_r) < 2e-3 * max(1.0, np.linalg.norm(t_r)) and _euler_mix(R, R_r):
+                keys.add("euler_mix")
+            if not ok and e_s < e0 and _converges_when_restarted(fn, X, x, K, R, t, R_r, t_r, e_r):
+                keys.add("early_stop")
+            results.append((key, case, R, t, e0, e_r, e_s, ok, R_r, keys))
+        named = unique_key([(keys, None if key != "nl_wide" else {"euler_mix", "early_stop"})
+                            for key, *_, ok, _, keys in results if not ok])
+        for key, case, R, t, e0, e_r, e_s, ok, R_r, keys in results:
             why = _NONLINEAR_MISTAKES[named] if named else None
             if not c.gate(e_s <= e0 * (1 + 1e-9) + 1e-9, f"{case}: lowers the reprojection error",
                           f"{case}: the refinement increased the RMS reprojection error ({e0:.3g} -> {e_s:.3g} px): "
                           + (why or "the residual must be the projection K (R X + t) / z minus the observed pixels, "
                                     "with R = Rotation.from_rotvec(p[:3]).as_matrix()"), named=named):
                 continue
-            rot = rotation_angle_deg(R, f[f"{key}_R"])
+            rot = rotation_angle_deg(R, R_r)
             c.expect(ok, f"{case}: reaches the least-squares optimum",
                      f"{case}: RMS reprojection error {e_s:.4g} px, {rot:.2g}° from the optimum ({e_r:.4g} px): "
                      + (why or "not at the least-squares optimum: minimize the sum of squared reprojection errors (pixels) "
