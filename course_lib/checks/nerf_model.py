@@ -449,6 +449,33 @@ def _rgb_hint(f, name: str, rgb: np.ndarray, trunk_ok: bool) -> str:
             "with γ(d) the encoded viewing direction")
 
 
+def _no_viewdirs_case(c: Check, NeRF, f, pts, dirs, lead) -> None:
+    """``use_viewdirs=False`` (the smallest configuration): the colour must not depend on the viewing direction.
+
+    A gate: a constant network satisfies it as well as a right one; ignoring the argument costs one check.
+    """
+    import torch
+
+    kw, _ = config_kwargs(f, CONFIG_NAMES[-1])
+    kw["use_viewdirs"] = False
+    case = "NeRF(" + ", ".join(f"{k}={v}" for k, v in kw.items()) + ")"
+    torch.manual_seed(0)
+    model = c.call(NeRF, case=case, **kw)
+    if model is FAILED:
+        return
+    if not isinstance(model, torch.nn.Module):
+        c.fail(f"{case}: expected an nn.Module, got {type(model).__name__}")
+        return
+    own = _outputs(c, model, pts, dirs, lead, case)
+    other = None if own is None else _quiet_forward(model, pts, torch.flip(dirs, dims=(0,)), lead)
+    if other is None:
+        return
+    c.gate(close(other[0], own[0]), f"{case}: rgb does not depend on the viewing direction",
+           f"{case}: rgb changes with the viewing direction although use_viewdirs=False: with use_viewdirs=False the "
+           "colour comes from the trunk's features alone (the docstring: only the trunk, the density head and "
+           "nn.Linear(., 3) on the trunk output, no view branch)")
+
+
 def check_nerf_model(NeRF: Callable) -> None:
     """Check the student's ``NeRF`` class (notebook 07) by what it computes; prints one verdict per property."""
     import torch
@@ -460,6 +487,7 @@ def check_nerf_model(NeRF: Callable) -> None:
     with Check("NeRF") as c, _reference_encoding(NeRF, f):
         for name in CONFIG_NAMES:
             _check_config(c, NeRF, f, name, pts, dirs, lead, seed)
+        _no_viewdirs_case(c, NeRF, f, pts, dirs, lead)
 
 
 # --------------------------------------------------------------------------- psnr
