@@ -62,6 +62,10 @@ __all__ = [
     "DEFINING_CAP",
     "RESULTS",
     "calls_name",
+    "code_reads",
+    "code_constants",
+    "code_text",
+    "source_has",
     "FAILED",
     "load_fixture",
     "using_cases",
@@ -327,6 +331,54 @@ def calls_name(fn: Any, name: str, depth: int = 3) -> bool | None:
     return False
 
 
+def code_constants(fn: Any) -> list:
+    """The numeric constants written in the code of ``fn`` (a function, or the methods of a class); [] when unreadable."""
+    import types
+
+    funcs = ([v for v in vars(fn).values() if isinstance(v, types.FunctionType)] if isinstance(fn, type) else
+             [fn] if isinstance(fn, types.FunctionType) else [])
+    out, todo = [], [f.__code__ for f in funcs]
+    while todo:
+        code = todo.pop()
+        for k in code.co_consts:
+            if isinstance(k, types.CodeType):
+                todo.append(k)
+            elif isinstance(k, (int, float)) and not isinstance(k, bool):
+                out.append(k)
+    return out
+
+
+def code_text(fn: Any) -> str:
+    """The source of ``fn`` (a function or class, in a module or a notebook cell); "" when it cannot be read."""
+    import inspect
+
+    try:
+        return inspect.getsource(fn)
+    except (OSError, TypeError):
+        return ""
+
+
+def source_has(pattern: str) -> Callable[[Any], bool]:
+    """A condition for :meth:`Check.causes`: the source of the student's code matches the regular expression."""
+    import re
+
+    return lambda fn: re.search(pattern, code_text(fn)) is not None
+
+
+def code_reads(fn: Any, cond: Any) -> bool:
+    """Whether the code of ``fn`` meets ``cond`` (see :meth:`Check.causes`); False when the code cannot be read."""
+    if isinstance(cond, tuple):
+        return all(code_reads(fn, c) for c in cond)
+    if callable(cond):
+        try:
+            return bool(cond(fn))
+        except Exception:  # noqa: BLE001 - a condition that cannot be decided does not hold
+            return False
+    negate = cond.startswith("!")
+    used = calls_name(fn, cond.lstrip("!"))
+    return used is not None and used != negate
+
+
 class Check:
     """Collects and prints the verdicts for one exercise.
 
@@ -418,6 +470,21 @@ class Check:
     def note(self, text: str) -> None:
         """Print a line of advice under the verdict; it is no check and counts for nothing."""
         self.notes.append(text)
+
+    def causes(self, fn: Any, candidates: list[tuple[Any, str]]) -> None:
+        """After a failure that no verdict names: the common causes of this exercise that fit the student's code.
+
+        Each candidate is ``(condition, advice)``; the condition reads the code of ``fn`` (:func:`code_reads`):
+        a name the code uses (``"eigh"``), ``"!name"`` for a name it does not use, a tuple of such conditions (all
+        must hold), or a function of ``fn`` returning a bool. Only the advice whose condition holds is printed,
+        under one note; nothing is printed when every check passed, when a failed verdict already names the
+        mistake, or when the code cannot be read (a built-in, a callable object).
+        """
+        if self.passed == self.total or any(v.named for v in self.verdicts if not v.ok):
+            return
+        fits = [text for cond, text in candidates if code_reads(fn, cond)]
+        if fits:
+            self.note("common causes that fit your code: " + "; ".join(fits))
 
     def blame_earlier(self, *exercises: str, fn: Any = None) -> None:
         """After a failure: point at the earlier exercises the student's code calls whose checks have not passed.

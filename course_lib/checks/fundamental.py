@@ -48,7 +48,7 @@ import numpy as np
 
 from course_lib.checks.core import (EPS32, FAILED, RTOL, Check, RecordingRng, call_recording, close_rel,
                                     counted_repeats, declare_defining, load_fixture, repeated_sample,
-                                    same_up_to_scale, unique_key)
+                                    same_up_to_scale, source_has, unique_key)
 
 __all__ = [
     "check_normalize_points",
@@ -319,6 +319,16 @@ def check_eight_point(eight_point: Callable) -> None:
                    f"{np.array2string(s / s[0], precision=2)}): a fundamental matrix has rank 2; zero the smallest "
                    "singular value, F = U diag(s1, s2, 0) Vᵀ", defining="rank 2")
         c.blame_earlier("normalize_points", fn=eight_point)
+        c.causes(eight_point, [
+            (source_has(r"\beigh\("), "np.linalg.eigh sorts the eigenvalues in ascending order: the solution is the "
+                                    "eigenvector of AᵀA with the smallest eigenvalue, V[:, 0], the first column"),
+            ((source_has(r"\bV[th]?\[:, *-1\]"), source_has(r"\bsvd\("), "!eigh"), "np.linalg.svd(A) returns Vᵀ: the null vector is its last row, "
+                                                "Vt[-1], not its last column"),
+            (("!normalize_points", source_has(r"\bdef ")), "your code does not call normalize_points: normalize both point sets, solve, "
+                                  "denormalize F = T2ᵀ F_n T1"),
+            (source_has(r"\binv\("), "no inverse in the denormalization: x_n = T x, so F = T2ᵀ F_n T1"),
+            (source_has(r"\[: *8\b"), "the 8-point algorithm solves least squares over all N matches, not the first 8"),
+        ])
 
 
 # --------------------------------------------------------------------------- sampson_distance

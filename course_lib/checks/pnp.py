@@ -40,7 +40,7 @@ import numpy as np
 
 from course_lib.conventions import nearest_rotation, project, rotation_angle_deg, world_to_camera
 from course_lib.checks.core import (FAILED, RTOL, Check, RecordingRng, call_recording, counted_repeats,
-                                    declare_defining, load_fixture, repeated_sample, unique_key)
+                                    declare_defining, load_fixture, repeated_sample, source_has, unique_key)
 
 __all__ = [
     "check_pnp_linear",
@@ -204,6 +204,11 @@ def check_pnp_linear(fn, exercise: str = "pnp_linear") -> None:
             c.fail(f"{case}: rotation {rotation_angle_deg(R, R_r):.3g}° from the {'truth' if key == 'lin_noiseless' else 'reference'}, "
                    f"translation off by {np.linalg.norm(t - t_r):.3g} (|t| = {np.linalg.norm(t_r):.3g}), RMS reprojection "
                    f"error {_rms(_errors(K, R, t, X, x)):.3g} px: {why}", named=named)
+        c.causes(fn, [
+            ((source_has(r"\bV[th]?\[:, *-1\]"), source_has(r"\bsvd\(")), "np.linalg.svd(A) returns Vᵀ: the DLT's P is its last row, Vt[-1]"
+                                                ".reshape(3, 4), not its last column"),
+            ((source_has(r"\bdef "), "!det"), "P is found up to sign: when det(R) < 0 after the orthogonalization, flip the sign of R and t"),
+        ])
 
 
 def _pixel_hint(R, K, R_true, tol_deg: float = 0.05) -> bool:
