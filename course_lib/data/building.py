@@ -253,7 +253,8 @@ def _gloss(rgb, specular, n, d):
     half = _SUN[None, :] - d
     half /= np.linalg.norm(half, axis=1, keepdims=True)
     highlight = np.clip(np.sum(half * n, axis=1), 0, 1) ** 60
-    return (1.0 - 0.5 * specular) * rgb + specular * (0.45 * _sky(mirror) + 1.2 * highlight[:, None])
+    fresnel = 0.06 + 0.6 * (1.0 - np.abs(np.sum(d * n, axis=1))) ** 4  # mirrors more at grazing angles
+    return (1.0 - 0.5 * specular) * rgb + specular * (fresnel[:, None] * _sky(mirror) + 1.2 * highlight[:, None])
 
 
 def _sky(d: np.ndarray) -> np.ndarray:

@@ -77,7 +77,8 @@ class Parts:
         finally:
             first, corners = self._open
             self._open = None
-            self._group(first, np.concatenate(corners))
+            if corners:  # an empty block adds no group
+                self._group(first, np.concatenate(corners))
 
     def face(self, name, origin, a, b, kind, triangle=False) -> None:
         """One textured face ``origin + s a + t b`` (a triangle: ``s + t <= 1``); not grouped (see :meth:`panel`)."""
