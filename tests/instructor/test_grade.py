@@ -431,3 +431,22 @@ def test_feedback_and_report_are_plain_data():
         assert not shown, sorted(map(hex, map(ord, shown)))
         assert "[31m" not in out and "\\u202e" in out and "\\U000e0041" in out
     assert plain_text("plain ✓ é 日本 text\n\t") == "plain ✓ é 日本 text\n\t"
+
+
+def test_package_installs_are_left_out_with_a_neutral_note():
+    """An honest ``!pip install numpy`` is no offence: the notebook nbval runs has ``pass`` in its place (still valid
+    Python where it was indented), and the note says it costs nothing; other shell lines stay."""
+    import ast
+
+    from IPython.core.inputtransformer2 import TransformerManager
+
+    from course_lib.instructor.placement import without_installs
+
+    cells = ["!pip install numpy\nx = 1", "if True:\n    %pip install -q scipy", "!python -m pip install torch", "!ls"]
+    nb, notes = without_installs(nbformat.v4.new_notebook(cells=[nbformat.v4.new_code_cell(c) for c in cells]))
+    assert nb.cells[0].source == "pass  # left out by the grader: !pip install numpy\nx = 1"
+    assert nb.cells[1].source.startswith("if True:\n    pass  # left out by the grader")
+    assert nb.cells[3].source == "!ls"
+    assert [c for c, _ in notes] == [0, 1, 2] and all("this costs nothing" in t for _, t in notes), notes
+    for cell in nb.cells:
+        ast.parse(TransformerManager().transform_cell(cell.source))
