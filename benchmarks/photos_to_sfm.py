@@ -20,7 +20,9 @@ Printed per set and run: images registered (largest model), the sizes of all mod
 mean and max rotation error (degrees) after a similarity alignment on the centres
 (:func:`course_lib.alignment.pose_errors`; against the rendering's truth, or against COLMAP for real
 photos), the focal length found (px) where it was estimated, seconds, and the kit's time over
-COLMAP's.
+COLMAP's; below each run, its seconds by stage as the process measured them (kit: ``match``'s load, features,
+pairs, verification, tracks; ``sfm``'s pair checks with self-calibration, initial pair, registration, final BA and
+the mappings a focal restart abandoned; COLMAP: features, matching with verification, mapping).
 
 Photo sets (rendered once into ``--cache``, default ``outputs/photos-to-sfm``; git-ignored):
 
@@ -257,7 +259,20 @@ def run_kit(photos: Path, calibration: Path | None, work: Path) -> dict:
     source = {im["p3_name"]: im["source"] for im in report["images"]}  # sfm names the images as the photos are named
     poses = {source.get(n, n): (R, t) for n, R, t in zip(model.image_names, model.R_cw, model.t_cw)}
     return {"poses": poses, "points": int(len(model.X)), "models": _models(work / "sfm"), "seconds": t_match + t_sfm,
-            "match_s": t_match, "sfm_s": t_sfm, "focal": float(model.K[0, 0]), "k1": float(getattr(model, "k1", 0.0))}
+            "match_s": t_match, "sfm_s": t_sfm, "focal": float(model.K[0, 0]), "k1": float(getattr(model, "k1", 0.0)),
+            "stages": _kit_stages(report, json.loads((work / "sfm" / "report.json").read_text()))}
+
+
+def _kit_stages(match_report: dict, sfm_report: dict) -> dict:
+    """The kit's seconds by stage, as the processes measured them: ``match`` (load, features, pairs, verification,
+    tracks, write) and ``sfm`` (pair checks and self-calibration, initial pair, registration, final BA, the mappings a
+    focal restart abandoned)."""
+    m, f = match_report.get("stage_seconds", {}), sfm_report.get("seconds", {})
+    out = {"load": m.get("load"), "features": m.get("features"), "pairs": m.get("matching"),
+           "verification": m.get("verification"), "tracks": (m.get("tracks") or 0) + (m.get("write") or 0),
+           "sfm pairs": f.get("ransac_F"), "init": f.get("initial_pair"), "register": f.get("registration"),
+           "final BA": f.get("final_ba"), "restarts": f.get("focal_restarts")}
+    return {k: v for k, v in out.items() if v is not None}
 
 
 def run_colmap(photos: Path, calibration: Path | None, work: Path, seed: int = 0) -> dict:
@@ -270,7 +285,8 @@ def run_colmap(photos: Path, calibration: Path | None, work: Path, seed: int = 0
     seconds = _timed(cmd)
     res = json.loads(out.read_text())
     return {"poses": {n: (np.array(R), np.array(t)) for n, (R, t) in res["poses"].items()}, "points": res["points"],
-            "models": res["models"], "seconds": seconds, "focal": res.get("focal"), "k1": res.get("k1")}
+            "models": res["models"], "seconds": seconds, "focal": res.get("focal"), "k1": res.get("k1"),
+            "stages": res.get("stages", {})}
 
 
 def colmap_worker(photos: Path, work: Path, out: Path, calibration: Path | None, seed: int) -> None:
@@ -293,12 +309,17 @@ def colmap_worker(photos: Path, work: Path, out: Path, calibration: Path | None,
         reader.camera_model = "PINHOLE"  # COLMAP's pixel centres are at +0.5
         reader.camera_params = ",".join(str(v) for v in (K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5))
         opts.ba_refine_focal_length = opts.ba_refine_principal_point = opts.ba_refine_extra_params = False
+    t0 = time.perf_counter()
     pycolmap.extract_features(db, photos, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader)
+    t1 = time.perf_counter()
     tvg = pycolmap.TwoViewGeometryOptions()
     tvg.ransac.random_seed = seed
-    pycolmap.match_exhaustive(db, verification_options=tvg)
+    pycolmap.match_exhaustive(db, verification_options=tvg)  # matching and verification in one call
+    t2 = time.perf_counter()
     recs = pycolmap.incremental_mapping(str(db), str(photos), str(work / "sparse"), opts)
-    res = {"poses": {}, "points": 0, "models": sorted((int(r.num_reg_images()) for r in recs.values()), reverse=True)}
+    t3 = time.perf_counter()
+    res = {"poses": {}, "points": 0, "models": sorted((int(r.num_reg_images()) for r in recs.values()), reverse=True),
+           "stages": {"features": round(t1 - t0, 3), "pairs + verification": round(t2 - t1, 3), "mapping": round(t3 - t2, 3)}}
     if recs:
         rec = max(recs.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
         for im in rec.images.values():
@@ -388,7 +409,7 @@ def compare(name: str, cache: Path, seed: int = 0, uncalibrated: bool = True) ->
                "true_focal_px": None if ps["K"] is None else float(ps["K"][0, 0])}
         if not truth and label.startswith("COLMAP"):
             row.pop("rot_mean_deg", None), row.pop("rot_max_deg", None)
-        for k in ("match_s", "sfm_s", "note"):
+        for k in ("match_s", "sfm_s", "note", "stages"):
             if k in run:
                 row[k] = run[k]
         rows.append(row)
@@ -413,6 +434,8 @@ def print_rows(rows: list[dict]) -> None:
         print(f"{r['set']:<15}{r['run']:<15}{r['registered']:>5}/{r['images']:<5}{models:>12}{r['points']:>8}{rot:>10}{rmax:>9}"
               f"{r['vs']:>7}{focal:>9}{ferr:>8}{r['seconds']:>9.1f}{r['time_vs_colmap']:>9.2f}  {split}"
               + (f"  ({r['note']})" if r.get("note") else ""), flush=True)
+        if r.get("stages"):  # seconds by stage, as the process measured them (the rest: start-up, imports)
+            print(f"{'':<30}stages: " + ", ".join(f"{k} {v:.2f}" for k, v in r["stages"].items()), flush=True)
 
 
 def main(argv=None) -> int:

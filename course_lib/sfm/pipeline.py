@@ -136,6 +136,7 @@ def run_sfm(data, rng: np.random.Generator, options: MapperOptions | None = None
             m.report["camera"]["start_focal_px"] = m.report["camera"]["prior_focal_px"]
             m.report["camera"]["prior_focal_px"] = round(float(intrinsics(data.K)[0, 0]), 3)
     rec.report["seconds"] = {"ransac_F": round(t_ransac, 3), **{k: round(v, 3) for k, v in rec.report["seconds"].items()},
+                             "focal_restarts": round(sum(r["seconds"] for r in report["focal_restarts"]), 3),
                              "total": round(time.perf_counter() - t_start, 3)}
     _say_final(rec, opts.verbose)
     return rec
@@ -227,11 +228,12 @@ def _map_with_focal_restarts(data, pairs: dict, tracks, K: np.ndarray, size, opt
                   f"inlier matches ({tr['refused_links']} links refused: they joined two features of one image)")
         mapper = IncrementalMapper(data, pairs, tracks.uv, K, size, opts, rng, refine_intrinsics=refine)
         watch = _FocalWatch(float(K[0, 0]), opts) if refine and len(restarts) < opts.focal_restarts else None
+        t_try = time.perf_counter()
         try:
             models, reasons = _build_models(mapper, tracks.rgb, pairs, watch)
             return mapper, models, reasons, t_again
         except _FocalMoved as moved:
-            restarts.append(moved.row)
+            restarts.append({**moved.row, "seconds": round(time.perf_counter() - t_try, 3)})
             if opts.verbose:
                 print(f"the focal length moved from {moved.row['from_px']:.1f} to {moved.row['to_px']:.1f} px while the first "
                       f"model grew ({moved.row['images']} images): starting again from {moved.row['to_px']:.1f} px")
