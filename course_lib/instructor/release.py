@@ -301,6 +301,9 @@ pytest            # runs every notebook with nbval; a check cell passes when it 
 pytest notebooks/01_fundamental_matrix.ipynb
 ```
 
+A check cell of an exercise you have not written yet fails there (its stub raises `NotImplementedError`);
+that is expected until you write it.
+
 ## Exercises and points
 
 | notebook | exercises | points |
