@@ -1,7 +1,7 @@
 """The NeRF scene family: five seeded object scenes that differ where real scenes differ.
 
 The fast preset's rules are chosen on the median and the worst of this family
-(``python benchmarks/nerf_speed.py --ladder``), not on one scene. Each scene is built from
+(``python benchmarks/nerf_speed.py --ladder``, in the instructor's kit), not on one scene. Each scene is built from
 :mod:`course_lib.data.parts` (as the excavator is), ray cast with the building's renderer, and
 written in NeRF's Blender format like lego: an object on a transparent background, 75 training
 and 25 test views drawn independently on the upper hemisphere (elevation 8-75 degrees), looking
@@ -20,8 +20,8 @@ gloss      specular and dark materials: a black lacquered body, chrome, glossy r
 figurine   an object small in the frame: a toy robot about a fifth of the image wide
 =========  =========================================================================================
 
-``python -m course_lib`` does not ship these renders; ``benchmarks/nerf_speed.py`` makes them on
-demand into the git-ignored ``outputs/`` (:func:`make_family_datasets`).
+The kit does not ship these renders: :func:`make_family_datasets` makes them on demand into the git-ignored
+``outputs/`` (the instructor's kit's ``benchmarks/nerf_speed.py`` calls it).
 """
 
 from __future__ import annotations

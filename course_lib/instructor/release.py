@@ -301,6 +301,9 @@ pytest            # runs every notebook with nbval; a check cell passes when it 
 pytest notebooks/01_fundamental_matrix.ipynb
 ```
 
+A check cell of an exercise you have not written yet fails there (its stub raises `NotImplementedError`);
+that is expected until you write it.
+
 ## Exercises and points
 
 | notebook | exercises | points |
@@ -328,8 +331,11 @@ which part of it cost points):
 ## Data
 
 `data/synthetic-building` (SfM) and `data/synthetic-building-nerf` (NeRF) are small scenes with
-known ground truth, made by the kit. The course's own data sets are used with a one-line change in
-the first code cell of each notebook (`DATA = course_data("wpi")`, see `course_lib/paths.py`).
+known ground truth, made by the kit. The course's own data sets (handed out by your course, not part
+of this kit) are used with a one-line change in the first code cell of each notebook
+(`DATA = course_data("wpi")`); set `COURSE_DATA=/path/to/data` to the folder that holds them (without
+it the kit looks for `../shared/data` beside this folder); `course_data` returns None when a data set is
+not there. The names and folders it expects are in `course_lib/paths.py`.
 """
 
 

@@ -57,7 +57,7 @@ def visibility_matrix(track_uv: np.ndarray) -> np.ndarray:
 
     Args:
         track_uv: ``(T, M, 2)`` pixel coordinates of point ``j`` in image ``i`` at ``[j, i]``, NaN
-            where the point is not seen.
+            in both u and v where the point is not seen.
 
     Returns:
         ``(T, M)`` bool, ``vis[j, i]`` is True when point ``j`` is seen in image ``i``; this is the
