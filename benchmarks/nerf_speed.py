@@ -1,20 +1,25 @@
-"""NeRF speed and quality by image resolution: the "fast" preset's ladder, on the tuning scene and a held-out one.
+"""NeRF speed and quality by image resolution: the "fast" preset's ladder, on the scene family and lego-100.
 
-    python benchmarks/nerf_speed.py --ladder                       # building + excavator 100..800 px, lego-100
-    python benchmarks/nerf_speed.py --scene excavator --sizes 400  # one rung of the held-out scene
+    python benchmarks/nerf_speed.py --ladder                       # the family at 200, 400, 800 px, and lego-100
+    python benchmarks/nerf_speed.py --scenes family --sizes 100 --budget-scale 0.3 --lego   # quick: 1.5 min rungs
+    python benchmarks/nerf_speed.py --scene excavator --sizes 400  # one rung of the held-out excavator
     python benchmarks/nerf_speed.py --ladder --baseline-tree /tmp/nerf-base    # + another checkout at 400 px
     python benchmarks/nerf_speed.py --sizes 400 --minutes 0.3 --at 0.1 0.2     # a smoke test
     python benchmarks/nerf_speed.py DATA_DIR --minutes 5 --presets fast paper  # any Blender scene
     python benchmarks/nerf_speed.py --ladder --device cuda                     # on a GPU
 
-Rungs: ``--scene building`` (the embedded building, which the presets are tuned on, rendered at
-SIZE x SIZE: 100 training views, 25 test views on a ring; made once under
-``outputs/bench-building-SIZE-t25``, git-ignored), ``--scene excavator`` (the held-out scene of
-:mod:`course_lib.data.excavator`, never tuned on: rendered once at 800 px, 100 training and 25
-test views, written at every size by area downscaling under ``outputs/bench-excavator/``) and,
-with ``--lego`` (part of ``--ladder``), lego-100 from the course data (``../shared/data/nerf-lego-100``,
-read in place). A rung of SIZE px runs ``--minutes`` (default 5), except where ``--minutes-at``
-says otherwise (default ``800=10``: the 800 px rung runs 10 minutes).
+Rungs: the family (``--scene family`` or some of ``bricks plant crates gloss figurine``, the five
+scenes of :mod:`course_lib.data.family` that the presets' rules are chosen on: 75 training and
+25 test views, rendered once at the run's largest size and written at every size that divides it,
+under ``outputs/bench-family-rTOP/``, git-ignored; bricks at 800 px takes the longest, ~45 minutes
+of one core), ``--scene building`` (the embedded building, rendered at SIZE x SIZE: 100 training
+views, 25 test views on a ring; under ``outputs/bench-building-SIZE-t25``), ``--scene excavator``
+(:mod:`course_lib.data.excavator`: rendered once at 800 px, 100 training and 25 test views, under
+``outputs/bench-excavator/``) and, with ``--lego`` (part of ``--ladder``), lego-100 from the course
+data (``../shared/data/nerf-lego-100``, read in place). A rung of SIZE px runs ``--minutes``
+(default 5), except where ``--minutes-at`` says otherwise (default ``800=10``: the 800 px rung
+runs 10 minutes), times ``--budget-scale``. The family's median and worst per rung close the
+report (and ``--table``'s).
 
 Each run is ``nerf train``'s: one process per run (so the peak memory is its own), the data
 loaded as the CLI loads it, ``--minutes`` as the CLI passes it, snapshots and checkpoints as the
@@ -122,6 +127,7 @@ def _one(data: str, preset_name: str, minutes: float, at: list[float], seed: int
                 threads=m["threads"], device=m["device_name"], wall_seconds=round(wall - cb, 1),
                 outside_training=round(outside, 4), breakdown=m["overhead_breakdown"], load_seconds=round(load_s, 2),
                 grid_resolution=m["config"].get("grid_resolution"), n_samples=m["config"].get("n_samples"),
+                batch_rays=m["config"].get("batch_rays"), batch_changes=m.get("history", {}).get("batch_changes"),
                 image_size=m["image_size"])
 
 
@@ -149,15 +155,67 @@ def _excavator(size: int) -> str:
     return str(folder)
 
 
-SCENES = {"building": _building, "excavator": _excavator}
+def _family(name: str):
+    """The rung maker of the family scene ``name``: rendered once at the ladder's largest size (``_family.top``)."""
+
+    def make(size: int) -> str:
+        from course_lib.data.family import make_family_datasets
+
+        top = max(_family.top, size)
+        if top % size:
+            raise SystemExit(f"the family is rendered at {top} px this run: its sizes divide {top}, {size} does not")
+        root = REPO / "outputs" / f"bench-family-r{top}"
+        folder = root / f"{name}-{size}"
+        if not (folder / "transforms_test.json").exists():
+            sizes = sorted({s for s in (100, 200, 400, 800, size) if s <= top and top % s == 0})
+            print(f"rendering {name} at {top} px into {root} (sizes {sizes}) ...", flush=True)
+            make_family_datasets(root, names=[name], sizes=sizes, verbose=False)
+        return str(folder)
+
+    return make
+
+
+_family.top = 800  # set by main() to the largest size of the run's rungs
+
+#: the family of :mod:`course_lib.data.family` (the presets' rules are chosen on its median and worst)
+FAMILY_NAMES = ("bricks", "plant", "crates", "gloss", "figurine")
+SCENES = {"building": _building, "excavator": _excavator, **{n: _family(n) for n in FAMILY_NAMES}}
 
 
 def _minutes_at(a, size: int) -> float:
+    """The budget of a rung of ``size`` px: ``--minutes`` or ``--minutes-at``, times ``--budget-scale``."""
+    minutes = a.minutes
     for spec in a.minutes_at:
-        at, _, minutes = spec.partition("=")
+        at, _, m = spec.partition("=")
         if int(at) == size:
-            return float(minutes)
-    return a.minutes
+            minutes = float(m)
+    return round(minutes * a.budget_scale, 4)
+
+
+def _summary(rows: list[dict]) -> None:
+    """The family's median and worst per rung (size, budget, tree): PSNR, render/train, outside training, memory."""
+    import statistics
+
+    rungs: dict[tuple, list[dict]] = {}
+    for r in rows:
+        name, _, size = r["scene"].rpartition("-")
+        if name in FAMILY_NAMES:
+            rungs.setdefault((int(size), r.get("minutes"), r["tree"], r["preset"]), []).append(r)
+    if not rungs:
+        return
+    print("\nfamily per rung | scenes | PSNR median | PSNR worst (scene) | steps median | render/train median / worst | "
+          "outside training median / worst | peak MB worst")
+    print(" | ".join("---" for _ in range(8)))
+    for (size, minutes, tree, preset), rs in sorted(rungs.items(), key=lambda kv: (kv[0][0], kv[0][1] or 0)):
+        psnr = [r["psnr_at"][f"{r['minutes']:g}"] for r in rs]
+        ratio = [r["render_rays_per_second"] / r["rays_per_second"] for r in rs
+                 if r["render_rays_per_second"] and r["rays_per_second"]]
+        worst = min(rs, key=lambda r: r["psnr_at"][f"{r['minutes']:g}"])
+        out = [100 * r["outside_training"] for r in rs]
+        print(f"{size} px, {minutes:g} min, {tree}, {preset} | {len(rs)} | {statistics.median(psnr):.2f} | "
+              f"{min(psnr):.2f} ({worst['scene']}) | {statistics.median([r['iterations'] for r in rs]):.0f} | "
+              + (f"{statistics.median(ratio):.1f}x / {min(ratio):.1f}x | " if ratio else "- | ")
+              + f"{statistics.median(out):.1f} % / {max(out):.1f} % | {max(r['peak_memory_mb'] for r in rs):.0f}", flush=True)
 
 
 def _run(tree: Path, data: str, name: str, a, minutes: float) -> dict | None:
@@ -166,6 +224,8 @@ def _run(tree: Path, data: str, name: str, a, minutes: float) -> dict | None:
            "--at", *map(str, a.at), "--device", a.device, "--mark-views", str(a.mark_views)]
     cmd += ["--threads", str(a.threads)] if a.threads is not None else []
     cmd += [x for kv in a.set for x in ("--set", kv)]
+    if a.budget_scale < 1 and not any(kv.startswith("final_eval_min_views=") for kv in a.set):
+        cmd += ["--set", "final_eval_min_views=1"]  # the benchmark renders every test view after the run anyway
     env = {**os.environ, "PYTHONPATH": str(tree)}
     load0 = os.getloadavg()[0]
     out = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=str(tree))
@@ -181,7 +241,7 @@ def _run(tree: Path, data: str, name: str, a, minutes: float) -> dict | None:
 def _head(marks: list[str]) -> None:
     head = (["scene", "tree", "preset", "min"] + [f"PSNR@{m}" for m in marks]
             + ["PSNR all views", "run PSNR (views)", "steps", "train rays/s", "render rays/s", "render/train",
-               "outside training", "wall s / budget", "peak MB", "grid/samples", "load 1-min"])
+               "outside training", "wall s / budget", "peak MB", "grid/samples/batch", "load 1-min"])
     print(" | ".join(head))
     print(" | ".join("---" for _ in head), flush=True)
 
@@ -202,21 +262,27 @@ def _table(rows: list[dict], marks: list[str], head: bool = True) -> None:
                   f"{r['render_rays_per_second']:.0f}" if r["render_rays_per_second"] else "-", f"{ratio:.1f}x",
                   f"{100 * r['outside_training']:.1f} %",
                   f"{r['wall_seconds']:.0f} / {60 * minutes:.0f}" if minutes is not None else f"{r['wall_seconds']:.0f}",
-                  f"{r['peak_memory_mb']:.0f}", f"{r['grid_resolution']}/{r['n_samples']}", r["load"]]
+                  f"{r['peak_memory_mb']:.0f}", f"{r['grid_resolution']}/{r['n_samples']}/{r.get('batch_rays', '?')}", r["load"]]
         print(" | ".join(cells), flush=True)
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("data", nargs="?", default=None, help="a Blender scene folder (instead of the ladder's rungs)")
-    p.add_argument("--ladder", action="store_true", help="every --scene at 100, 200, 400, 800 px, and lego-100")
-    p.add_argument("--scene", nargs="+", choices=sorted(SCENES), default=None,
-                   help="the rungs' scenes (default: building and excavator with --ladder, else building)")
+    p.add_argument("--ladder", action="store_true",
+                   help="every --scene (default: the family) at 200, 400 and 800 px, and lego-100")
+    p.add_argument("--scene", "--scenes", nargs="+", choices=sorted(SCENES) + ["family"], default=None,
+                   help="the rungs' scenes ('family': the five of course_lib.data.family; default: the family with "
+                        "--ladder, else building)")
     p.add_argument("--sizes", type=int, nargs="+", default=None, metavar="SIZE", help="rungs (pixels)")
     p.add_argument("--lego", action="store_true", help="also lego-100 from the course data")
     p.add_argument("--minutes", type=float, default=5.0, help="each run's --minutes (default 5)")
     p.add_argument("--minutes-at", nargs="*", default=["800=10"], metavar="SIZE=MINUTES",
                    help="other budgets for some sizes (default 800=10)")
+    p.add_argument("--budget-scale", type=float, default=1.0,
+                   help="multiply every rung's budget (e.g. 0.3: a quick comparison of rules on the whole family); "
+                        "below 1 the runs evaluate as few test views as their budget share allows, at least one "
+                        "(final_eval_min_views=1; at 1.5 minutes, 8 views at 200 px took a third of the run)")
     p.add_argument("--at", type=float, nargs="+", default=[1, 2], help="minutes at which to measure PSNR (default 1 2)")
     p.add_argument("--presets", nargs="+", default=["fast"])
     p.add_argument("--baseline-tree", default=None, type=Path,
@@ -245,19 +311,22 @@ def main(argv=None) -> int:
     if a.table:
         rows = json.loads(Path(a.table).read_text())["rows"]
         _table(rows, marks)
+        _summary(rows)
         return 0
     sys.path.insert(0, str(REPO))
     from course_lib.paths import course_data
 
-    sizes = a.sizes or ([100, 200, 400, 800] if a.ladder else [])
-    names = a.scene or (["building", "excavator"] if a.ladder else ["building"])
+    sizes = a.sizes or ([200, 400, 800] if a.ladder else [])
+    names = a.scene or (["family"] if a.ladder else ["building"])
+    names = [n for name in names for n in (FAMILY_NAMES if name == "family" else [name])]
+    _family.top = max(sizes, default=100)
     scenes = [(f"{name}-{s}", SCENES[name](s), s, s) for name in names for s in sizes]
     if a.lego or a.ladder:
         lego = course_data("lego")
         if lego is None:
             print("lego-100 is not in the course data (../shared/data): its rung is skipped", file=sys.stderr)
         else:
-            scenes.append(("lego-100", str(lego), "lego", 100))
+            scenes.append(("lego-100", str(lego), "lego", 100))  # runs --minutes (times --budget-scale)
     scenes = [sc[:4] for sc in sorted(scenes, key=lambda sc: sc[3])]  # smallest first: the longest rung runs last
     if a.data:
         scenes.append((Path(a.data).name, a.data, "data", 0))
@@ -287,6 +356,7 @@ def main(argv=None) -> int:
     print(f"PSNR@m = mean test PSNR at m minutes of the budget clock on {a.mark_views} evenly spread test views; "
           "'PSNR all views' = at the end, on every test view. 'run PSNR' = the run's own final figure (views it evaluated).")
     _table(earlier + rows, marks)
+    _summary(earlier + rows)
     return 0 if rows else 1
 
 

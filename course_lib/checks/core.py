@@ -62,6 +62,10 @@ __all__ = [
     "DEFINING_CAP",
     "RESULTS",
     "calls_name",
+    "code_reads",
+    "code_constants",
+    "code_text",
+    "source_has",
     "FAILED",
     "load_fixture",
     "using_cases",
@@ -72,6 +76,10 @@ __all__ = [
     "same_up_to_scale",
     "scale_of",
     "unique_key",
+    "RecordingRng",
+    "call_recording",
+    "counted_repeats",
+    "repeated_sample",
 ]
 
 PASS, FAIL = "✔", "✘"
@@ -323,6 +331,54 @@ def calls_name(fn: Any, name: str, depth: int = 3) -> bool | None:
     return False
 
 
+def code_constants(fn: Any) -> list:
+    """The numeric constants written in the code of ``fn`` (a function, or the methods of a class); [] when unreadable."""
+    import types
+
+    funcs = ([v for v in vars(fn).values() if isinstance(v, types.FunctionType)] if isinstance(fn, type) else
+             [fn] if isinstance(fn, types.FunctionType) else [])
+    out, todo = [], [f.__code__ for f in funcs]
+    while todo:
+        code = todo.pop()
+        for k in code.co_consts:
+            if isinstance(k, types.CodeType):
+                todo.append(k)
+            elif isinstance(k, (int, float)) and not isinstance(k, bool):
+                out.append(k)
+    return out
+
+
+def code_text(fn: Any) -> str:
+    """The source of ``fn`` (a function or class, in a module or a notebook cell); "" when it cannot be read."""
+    import inspect
+
+    try:
+        return inspect.getsource(fn)
+    except (OSError, TypeError):
+        return ""
+
+
+def source_has(pattern: str) -> Callable[[Any], bool]:
+    """A condition for :meth:`Check.causes`: the source of the student's code matches the regular expression."""
+    import re
+
+    return lambda fn: re.search(pattern, code_text(fn)) is not None
+
+
+def code_reads(fn: Any, cond: Any) -> bool:
+    """Whether the code of ``fn`` meets ``cond`` (see :meth:`Check.causes`); False when the code cannot be read."""
+    if isinstance(cond, tuple):
+        return all(code_reads(fn, c) for c in cond)
+    if callable(cond):
+        try:
+            return bool(cond(fn))
+        except Exception:  # noqa: BLE001 - a condition that cannot be decided does not hold
+            return False
+    negate = cond.startswith("!")
+    used = calls_name(fn, cond.lstrip("!"))
+    return used is not None and used != negate
+
+
 class Check:
     """Collects and prints the verdicts for one exercise.
 
@@ -414,6 +470,21 @@ class Check:
     def note(self, text: str) -> None:
         """Print a line of advice under the verdict; it is no check and counts for nothing."""
         self.notes.append(text)
+
+    def causes(self, fn: Any, candidates: list[tuple[Any, str]]) -> None:
+        """After a failure that no verdict names: the common causes of this exercise that fit the student's code.
+
+        Each candidate is ``(condition, advice)``; the condition reads the code of ``fn`` (:func:`code_reads`):
+        a name the code uses (``"eigh"``), ``"!name"`` for a name it does not use, a tuple of such conditions (all
+        must hold), or a function of ``fn`` returning a bool. Only the advice whose condition holds is printed,
+        under one note; nothing is printed when every check passed, when a failed verdict already names the
+        mistake, or when the code cannot be read (a built-in, a callable object).
+        """
+        if self.passed == self.total or any(v.named for v in self.verdicts if not v.ok):
+            return
+        fits = [text for cond, text in candidates if code_reads(fn, cond)]
+        if fits:
+            self.note("common causes that fit your code: " + "; ".join(fits))
 
     def blame_earlier(self, *exercises: str, fn: Any = None) -> None:
         """After a failure: point at the earlier exercises the student's code calls whose checks have not passed.
@@ -549,6 +620,87 @@ class Check:
             if reasons:
                 print(f"  scoring: {score(result):.0%} of the hidden-check points on these cases: " + "; ".join(reasons))
         return result
+
+
+# ---------------------------------------------------------------------------------------------
+# How a RANSAC draws its samples
+# ---------------------------------------------------------------------------------------------
+
+
+class RecordingRng(np.random.Generator):
+    """A numpy Generator (seeded like ``np.random.default_rng(seed)``) that records the index draws made with it.
+
+    A check hands it to a RANSAC as its ``rng`` argument; :func:`repeated_sample` then tells whether a sample of
+    ``k`` indices held one index twice (``rng.choice(N, k)`` draws with replacement unless ``replace=False``).
+    Draws of ``choice``, ``integers`` and ``permutation`` are recorded; the numbers are those of a plain Generator.
+    """
+
+    def __init__(self, seed: int):
+        super().__init__(np.random.PCG64(seed))
+        self.draws: list[np.ndarray] = []
+        self._depth = 0  # choice calls integers and permutation itself: only the outermost call is the student's draw
+
+    def _draw(self, method, *args, **kwargs):
+        self._depth += 1
+        try:
+            out = method(*args, **kwargs)
+        finally:
+            self._depth -= 1
+        arr = np.asarray(out)
+        if self._depth == 0 and arr.ndim >= 1 and arr.dtype.kind in "iu":
+            self.draws.append(arr.copy())
+        return out
+
+    def choice(self, *args, **kwargs):
+        return self._draw(super().choice, *args, **kwargs)
+
+    def integers(self, *args, **kwargs):
+        return self._draw(super().integers, *args, **kwargs)
+
+    def permutation(self, *args, **kwargs):
+        return self._draw(super().permutation, *args, **kwargs)
+
+
+def call_recording(c: "Check", fn: Callable, *args, rng: RecordingRng, k: int, case: str, stand_in: Any,
+                   **kwargs) -> tuple[Any, BaseException | None]:
+    """``c.call(fn, *args, rng, **kwargs)`` for a RANSAC handed a :class:`RecordingRng`: ``(result, None)``, or
+    ``(stand_in, exception)`` when the student's code raised after it drew a sample of ``k`` indices that held one
+    twice (the degenerate sample explains the exception: the check names it rather than only showing it)."""
+    raised: list[BaseException] = []
+
+    def guarded(*a, **kw):
+        try:
+            return fn(*a, **kw)
+        except Exception as exc:  # noqa: BLE001 - without a repeated sample, c.call reports it as usual
+            if isinstance(exc, NotImplementedError) or repeated_sample(rng, k) is None:
+                raise
+            raised.append(exc)
+            return stand_in
+
+    out = c.call(guarded, *args, rng, case=case, **kwargs)
+    return out, (raised[0] if raised else None)
+
+
+def counted_repeats(rng: RecordingRng, k: int, n_iters: Any) -> int:
+    """How many samples of ``k`` indices that held an index twice a RANSAC drew, skipped and counted in ``n_iters``,
+    on a case whose first sample of ``k`` distinct indices ends the loop (``k`` points, no noise): every draw of ``k``
+    but the last held a repeat, the last did not, and ``n_iters`` counts them all. 0 when that is not what it did."""
+    draws = [d for d in rng.draws if d.shape == (k,)]
+    distinct = [len(np.unique(d)) == k for d in draws]
+    if len(draws) < 2 or not distinct[-1] or any(distinct[:-1]) or n_iters != len(draws):
+        return 0
+    return len(draws) - 1
+
+
+def repeated_sample(rng: RecordingRng, k: int) -> np.ndarray | None:
+    """The first recorded draw of exactly ``k`` indices (a row of a batch counts) that holds an index twice, else None."""
+    for d in rng.draws:
+        if d.shape[-1] != k:
+            continue
+        for row in d.reshape(-1, k):
+            if len(np.unique(row)) < k:
+                return row
+    return None
 
 
 # ---------------------------------------------------------------------------------------------

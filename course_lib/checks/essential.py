@@ -32,12 +32,13 @@ to students.
 
 from __future__ import annotations
 
+import re
 from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import (FAILED, RTOL, Check, declare_defining, load_fixture, same_up_to_scale,
-                                    unique_key)
+from course_lib.checks.core import (FAILED, RTOL, Check, code_text, declare_defining, load_fixture,
+                                    same_up_to_scale, source_has, unique_key)
 from course_lib.conventions import rotation_angle_deg, skew
 
 __all__ = ["check_essential_from_fundamental", "check_pose_candidates", "match_candidates"]
@@ -164,6 +165,12 @@ def check_essential_from_fundamental(essential_from_fundamental: Callable) -> No
                     "either sign)")
             c.fail(text + (f": {_E_MISTAKES[named]}" if named and named != "uncorrected" else ""),
                    named=named if named != "uncorrected" else None)
+        c.causes(essential_from_fundamental, [
+            (source_has(r"\binv\("), "your code inverts a matrix: E = Kᵀ F K takes K itself (K⁻ᵀ E K⁻¹ = F is the other direction)"),
+            (source_has(r"\bV[th]?\.T\b|transpose\(\s*V[th]?\b"),
+             "np.linalg.svd returns Vᵀ already: E = U @ np.diag([1, 1, 0]) @ Vt, without transposing it"),
+            (lambda fn: 0 < len(re.findall(r"\bK\b", code_text(fn))) < 3, "K goes on both sides of F: E = Kᵀ F K"),
+        ])
 
 
 def _equal_singular_values(s) -> bool:

@@ -46,8 +46,9 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import (EPS32, FAILED, RTOL, Check, close_rel, declare_defining, load_fixture,
-                                    same_up_to_scale, unique_key)
+from course_lib.checks.core import (EPS32, FAILED, RTOL, Check, RecordingRng, call_recording, close_rel,
+                                    counted_repeats, declare_defining, load_fixture, repeated_sample,
+                                    same_up_to_scale, source_has, unique_key)
 
 __all__ = [
     "check_normalize_points",
@@ -62,6 +63,9 @@ FIXTURE = "fundamental"
 #: so that d < threshold², d² < threshold and d < threshold differ.
 CHECK_THRESHOLD_PX = 1.5
 TIGHT_THRESHOLD_PX = 0.8
+#: On 8 noiseless matches, F fits every match within this many pixels (float32 rounding stays far below; a fit of
+#: 7 distinct matches misses the 8th by pixels).
+MINIMAL_TOL_PX = 0.05
 #: A matrix has rank 2 when its smallest singular value is below this share of its largest (in pixels and in
 #: the case's normalized coordinates): far above float32 rounding, far below a 3-rank 8-point F (1e-4 and more).
 RANK_RTOL = 10 * EPS32
@@ -315,6 +319,16 @@ def check_eight_point(eight_point: Callable) -> None:
                    f"{np.array2string(s / s[0], precision=2)}): a fundamental matrix has rank 2; zero the smallest "
                    "singular value, F = U diag(s1, s2, 0) Vᵀ", defining="rank 2")
         c.blame_earlier("normalize_points", fn=eight_point)
+        c.causes(eight_point, [
+            (source_has(r"\beigh\("), "np.linalg.eigh sorts the eigenvalues in ascending order: the solution is the "
+                                    "eigenvector of AᵀA with the smallest eigenvalue, V[:, 0], the first column"),
+            ((source_has(r"\bV[th]?\[:, *-1\]"), source_has(r"\bsvd\("), "!eigh"), "np.linalg.svd(A) returns Vᵀ: the null vector is its last row, "
+                                                "Vt[-1], not its last column"),
+            (("!normalize_points", source_has(r"\bdef ")), "your code does not call normalize_points: normalize both point sets, solve, "
+                                  "denormalize F = T2ᵀ F_n T1"),
+            (source_has(r"\binv\("), "no inverse in the denormalization: x_n = T x, so F = T2ᵀ F_n T1"),
+            (source_has(r"\[: *8\b"), "the 8-point algorithm solves least squares over all N matches, not the first 8"),
+        ])
 
 
 # --------------------------------------------------------------------------- sampson_distance
@@ -625,6 +639,47 @@ def _ransac_refit_case(c: Check, fn: Callable, f: dict) -> None:
              "F with eight_point on all inliers of the best sample at the end")
 
 
+def _ransac_minimal_case(c: Check, fn: Callable, f: dict) -> None:
+    """Exactly 8 noiseless matches: the only sample of 8 distinct matches is all of them, so F fits every match exactly
+    and all 8 are inliers. A sample that holds a match twice has 7 matches, which leave F undetermined; the rng records
+    the samples (:class:`~course_lib.checks.core.RecordingRng`), so such a sample is named when it is seen."""
+    true_inl = f["rs_true_inliers"].astype(bool)
+    x1, x2 = f["rs_x1_true"][true_inl][:8], f["rs_x2_true"][true_inl][:8]
+    case = "exactly 8 noiseless matches (threshold 1 px)"
+    rng = RecordingRng(13)
+    res, raised = call_recording(c, fn, x1, x2, rng=rng, k=8, case=case, stand_in=(np.eye(3), np.zeros(8, bool), 1),
+                                 threshold_px=1.0)
+    if raised is not None:
+        c.fail(f"{case}: your function raised {type(raised).__name__}: {str(raised)[:100]}, after a sample that held "
+               f"a match twice (indices {repeated_sample(rng, 8).tolist()}): rng.choice(N, 8) draws with replacement "
+               "unless you pass replace=False; draw 8 distinct matches, rng.choice(N, 8, replace=False)",
+               named="with_replacement")
+        return
+    out = _unpack_ransac(res, c, case)
+    if out is None or not (c.shape(out[0], (3, 3), f"{case}: F") & c.shape(out[1], (8,), f"{case}: inliers")):
+        return
+    F, inl = out[0], out[1]
+    d = np.sqrt(_sampson_sq(F, x1, x2)) if np.isfinite(F).all() and np.linalg.norm(F) > 0 else np.full(8, np.inf)
+    ok = bool(inl.all()) and float(d.max()) < MINIMAL_TOL_PX
+    skipped = counted_repeats(rng, 8, out[2])
+    if ok and skipped:
+        c.fail(f"{case}: n_iters = {out[2]}, where the first sample of 8 distinct matches has every match as inlier "
+               f"(N = 1): the {skipped} samples before it each held a match twice (a degenerate sample, counted in n_iters): "
+               "rng.choice(N, 8) draws with replacement unless you pass replace=False; draw 8 distinct matches, "
+               "rng.choice(N, 8, replace=False)", named="with_replacement")
+        return
+    twice = None if ok else repeated_sample(rng, 8)
+    what = (f"{case}: {int(inl.sum())} of 8 inliers, largest Sampson distance {float(d.max()):.3g} px; the only sample "
+            "of 8 distinct matches is all of them, so F must fit every match exactly")
+    if twice is not None:
+        c.fail(f"{what}: a sample held a match twice (indices {twice.tolist()}): rng.choice(N, 8) draws with "
+               "replacement unless you pass replace=False; draw 8 distinct matches, rng.choice(N, 8, replace=False)",
+               named="with_replacement")
+        return
+    c.expect(ok, f"{case}: F fits all 8 matches exactly", f"{what} (each sample is 8 distinct matches, "
+             "rng.choice(N, 8, replace=False); the refit uses every inlier)")
+
+
 def check_ransac_fundamental(ransac_fundamental: Callable) -> None:
     """Check ``ransac_fundamental(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000)`` (notebook 01).
 
@@ -670,6 +725,7 @@ def check_ransac_fundamental(ransac_fundamental: Callable) -> None:
             _ransac_randomness(c, ransac_fundamental, f, out, case)
         _ransac_refit_case(c, ransac_fundamental, f)
         _ransac_count_case(c, ransac_fundamental, f)
+        _ransac_minimal_case(c, ransac_fundamental, f)
         if "rb_x1" in f:
             _ransac_embedded(c, ransac_fundamental, f)
         c.blame_earlier("eight_point", "sampson_distance", fn=ransac_fundamental)

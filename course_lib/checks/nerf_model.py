@@ -44,7 +44,8 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import FAILED, Check, declare_defining, load_fixture
+from course_lib.checks.core import (FAILED, Check, code_constants, code_text, declare_defining,
+                                    load_fixture, source_has)
 from course_lib.checks.nerf_data import close, to_numpy
 
 __all__ = ["check_nerf_model", "check_psnr", "layer_table", "expected_layers", "config_kwargs", "probe_weights",
@@ -449,6 +450,33 @@ def _rgb_hint(f, name: str, rgb: np.ndarray, trunk_ok: bool) -> str:
             "with γ(d) the encoded viewing direction")
 
 
+def _no_viewdirs_case(c: Check, NeRF, f, pts, dirs, lead) -> None:
+    """``use_viewdirs=False`` (the smallest configuration): the colour must not depend on the viewing direction.
+
+    A gate: a constant network satisfies it as well as a right one; ignoring the argument costs one check.
+    """
+    import torch
+
+    kw, _ = config_kwargs(f, CONFIG_NAMES[-1])
+    kw["use_viewdirs"] = False
+    case = "NeRF(" + ", ".join(f"{k}={v}" for k, v in kw.items()) + ")"
+    torch.manual_seed(0)
+    model = c.call(NeRF, case=case, **kw)
+    if model is FAILED:
+        return
+    if not isinstance(model, torch.nn.Module):
+        c.fail(f"{case}: expected an nn.Module, got {type(model).__name__}")
+        return
+    own = _outputs(c, model, pts, dirs, lead, case)
+    other = None if own is None else _quiet_forward(model, pts, torch.flip(dirs, dims=(0,)), lead)
+    if other is None:
+        return
+    c.gate(close(other[0], own[0]), f"{case}: rgb does not depend on the viewing direction",
+           f"{case}: rgb changes with the viewing direction although use_viewdirs=False: with use_viewdirs=False the "
+           "colour comes from the trunk's features alone (the docstring: only the trunk, the density head and "
+           "nn.Linear(., 3) on the trunk output, no view branch)")
+
+
 def check_nerf_model(NeRF: Callable) -> None:
     """Check the student's ``NeRF`` class (notebook 07) by what it computes; prints one verdict per property."""
     import torch
@@ -460,6 +488,16 @@ def check_nerf_model(NeRF: Callable) -> None:
     with Check("NeRF") as c, _reference_encoding(NeRF, f):
         for name in CONFIG_NAMES:
             _check_config(c, NeRF, f, name, pts, dirs, lead, seed)
+        _no_viewdirs_case(c, NeRF, f, pts, dirs, lead)
+        c.causes(NeRF, [
+            (lambda fn: code_text(fn).count("use_viewdirs") == 1, "your class never reads use_viewdirs: with use_viewdirs=False, build no view branch and "
+                              "put nn.Linear(., 3) on the trunk output"),
+            (source_has(r"\babs\("), "torch.abs on the density: σ = torch.relu(raw), zero where the raw output is negative"),
+            ((source_has(r"\b(?:clamp|clip)\("), "!sigmoid"), "clamping the colour gives no gradient outside [0, 1]: the RGB head ends in "
+                                    "torch.sigmoid"),
+            (source_has(r"cat\(\s*\[?\s*(?:pts|x|h)\s*,\s*(?:viewdirs|dirs|d)\b"),
+             "the viewing direction joins only the colour branch, after the feature layer, never the trunk"),
+        ])
 
 
 # --------------------------------------------------------------------------- psnr
@@ -503,3 +541,12 @@ def check_psnr(psnr: Callable) -> None:
             hint = next((why for why, g in PSNR_VARIANTS if abs(v - g(mse)) < 1e-3 * max(1.0, abs(g(mse)))), None)
             c.fail(f"{case}: got {v:.3f} dB, expected {want:.3f} for mse = {mse:.4g}: "
                    + (hint or "PSNR = -10 log10(mse) for images in [0, 1] (peak 1)"), named=hint and hint[:30])
+        c.causes(psnr, [
+            ((source_has(r"\blog\("), "!log10"), "log is the natural logarithm: PSNR = -10 log10(mse)"),
+            (source_has(r"\blog2\("), "log2 is the base-2 logarithm: PSNR = -10 log10(mse)"),
+            (lambda fn: any(0 < abs(k) < 0.1 for k in code_constants(fn)),
+             "a small constant in your code (an epsilon?) changes a good model's PSNR (its MSE is 1e-3 or less): add nothing to the "
+             "MSE, or 1e-10 at most"),
+            (lambda fn: 255 in code_constants(fn), "255 is the peak of 8-bit images: the kit's images are floats in "
+                                                   "[0, 1], peak 1"),
+        ])

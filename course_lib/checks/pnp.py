@@ -39,7 +39,8 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib.conventions import nearest_rotation, project, rotation_angle_deg, world_to_camera
-from course_lib.checks.core import FAILED, RTOL, Check, declare_defining, load_fixture, unique_key
+from course_lib.checks.core import (FAILED, RTOL, Check, RecordingRng, call_recording, counted_repeats,
+                                    declare_defining, load_fixture, repeated_sample, source_has, unique_key)
 
 __all__ = [
     "check_pnp_linear",
@@ -203,6 +204,11 @@ def check_pnp_linear(fn, exercise: str = "pnp_linear") -> None:
             c.fail(f"{case}: rotation {rotation_angle_deg(R, R_r):.3g}° from the {'truth' if key == 'lin_noiseless' else 'reference'}, "
                    f"translation off by {np.linalg.norm(t - t_r):.3g} (|t| = {np.linalg.norm(t_r):.3g}), RMS reprojection "
                    f"error {_rms(_errors(K, R, t, X, x)):.3g} px: {why}", named=named)
+        c.causes(fn, [
+            ((source_has(r"\bV[th]?\[:, *-1\]"), source_has(r"\bsvd\(")), "np.linalg.svd(A) returns Vᵀ: the DLT's P is its last row, Vt[-1]"
+                                                ".reshape(3, 4), not its last column"),
+            ((source_has(r"\bdef "), "!det"), "P is found up to sign: when det(R) < 0 after the orthogonalization, flip the sign of R and t"),
+        ])
 
 
 def _pixel_hint(R, K, R_true, tol_deg: float = 0.05) -> bool:
@@ -455,6 +461,48 @@ def _rng_verdicts(c: Check, fn, f) -> None:
            "it (rng.choice(N, 6, replace=False)), not from a generator of your own or np.random")
 
 
+def _minimal_verdict(c: Check, fn, f) -> None:
+    """Exactly 6 noiseless points: the only sample of 6 distinct points is all of them, so the pose is exact and every
+    point an inlier. A sample that holds a point twice has 5, which leave the DLT undetermined; the rng records the
+    samples (:class:`~course_lib.checks.core.RecordingRng`), so such a sample is named when it is seen."""
+    K, X, R, t, outl = (f[f"ransac_syn_{s}"] for s in ("K", "X", "R", "t", "outlier"))
+    X = X[~outl.astype(bool)]
+    X = X[world_to_camera(R, t, X)[:, 2] > 0][:6]
+    x = project(K, R, t, X)
+    case = "exactly 6 noiseless points"
+    rng = RecordingRng(RANSAC_SEED)
+    res, raised = call_recording(c, fn, X, x, K, rng=rng, k=6, case=case, stand_in=(np.eye(3), np.zeros(3),
+                                 np.zeros(6, bool), 1))
+    twice = repeated_sample(rng, 6)
+    advice = (f"a sample held a point twice (indices {None if twice is None else twice.tolist()}): rng.choice(N, 6) "
+              "draws with replacement unless you pass replace=False; draw 6 distinct points, rng.choice(N, 6, "
+              "replace=False)")
+    if raised is not None:
+        c.fail(f"{case}: your function raised {type(raised).__name__}: {str(raised)[:100]}, after {advice}",
+               named="with_replacement")
+        return
+    out = _ransac_fields(res, c, case, len(X))
+    if out is None:
+        return
+    Rs, ts, inl, it = out
+    e = _errors(K, Rs, ts, X, x)
+    ok = bool(inl.all()) and float(e.max()) < 0.05
+    skipped = counted_repeats(rng, 6, it)
+    if ok and skipped:
+        c.fail(f"{case}: n_iters = {it}, where the first sample of 6 distinct points has every point as inlier (N = 1): "
+               f"the {skipped} samples before it each held a point twice (a degenerate sample, counted in n_iters): rng.choice(N, 6) "
+               "draws with replacement unless you pass replace=False; draw 6 distinct points, rng.choice(N, 6, "
+               "replace=False)", named="with_replacement")
+        return
+    what = (f"{case}: {int(inl.sum())} of 6 inliers, largest reprojection error {float(e.max()):.3g} px; the only "
+            "sample of 6 distinct points is all of them, so the pose must reproject every point exactly")
+    if not ok and twice is not None:
+        c.fail(f"{what}: {advice}", named="with_replacement")
+        return
+    c.expect(ok, f"{case}: the pose reprojects all 6 points exactly", f"{what} (each sample is 6 distinct points, "
+             "rng.choice(N, 6, replace=False); the refit uses every inlier)")
+
+
 def check_pnp_ransac(fn, exercise: str = "pnp_ransac") -> None:
     """Check ``fn(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000) -> PnPResult``.
 
@@ -498,6 +546,7 @@ def check_pnp_ransac(fn, exercise: str = "pnp_ransac") -> None:
                 _confidence_verdict(c, fn, f, run["case"])
         if not no_pose:
             _rng_verdicts(c, fn, f)
+            _minimal_verdict(c, fn, f)
         c.blame_earlier("pnp_linear", fn=fn)
 
 
@@ -515,7 +564,66 @@ _NONLINEAR_MISTAKES = {
     "transposed": _POSE_MISTAKES["transposed"],
     "C_for_t": _POSE_MISTAKES["C_for_t"],
     "t_sign": _POSE_MISTAKES["t_sign"],
+    "early_stop": "not at the least-squares optimum: your optimiser stops before it converges (started again from its "
+                  "own result, it moves on to the optimum): let it run to convergence (least_squares without "
+                  "max_nfev and with its default tolerances, or enough iterations of your own loop)",
+    "euler_mix": "your R is the optimum's rotation with its Euler angles read in one convention and turned back into "
+                 "a matrix in another (as_euler('XYZ') then from_euler('xyz'), say: upper and lower case are "
+                 "different conventions, intrinsic and extrinsic): use the same convention both ways, or a rotation "
+                 "vector (Rotation.from_rotvec / as_rotvec)",
 }
+
+#: The ways a parametrisation reads a rotation into 3 numbers and back: a rotation vector and the 12 Euler sequences,
+#: extrinsic (lower case) and intrinsic (upper case).
+_READINGS = ("rotvec",) + tuple(a for seq in ("xyz", "xzy", "yxz", "yzx", "zxy", "zyx") for a in (seq, seq.upper()))
+
+
+def _euler_mix(R, R_r) -> bool:
+    """Whether R is R_r read into 3 numbers in one way (:data:`_READINGS`) and turned back into a matrix in another."""
+    from scipy.spatial.transform import Rotation
+
+    off = rotation_angle_deg(R, R_r)
+    if off < 0.05:
+        return False
+    tol = min(0.01, off / 5)
+    rot = Rotation.from_matrix(R_r)
+    for a in _READINGS:
+        p = rot.as_rotvec() if a == "rotvec" else rot.as_euler(a)
+        for b in _READINGS:
+            if b != a and rotation_angle_deg((Rotation.from_rotvec(p) if b == "rotvec" else
+                                              Rotation.from_euler(b, p)).as_matrix(), R) < tol:
+                return True
+    return False
+
+
+def _wide_start(R, t, deg: float = 25.0, rel: float = 0.3):
+    """A start far from the optimum ``(R, t)`` (``deg`` degrees, ``rel`` of |t|; every point stays in front)."""
+    from scipy.spatial.transform import Rotation
+
+    axis, d = np.array([1.0, -2.0, 0.5]), np.array([0.3, 1.0, -0.6])
+    dR = Rotation.from_rotvec(np.radians(deg) * axis / np.linalg.norm(axis)).as_matrix()
+    return dR @ R, t + rel * np.linalg.norm(t) * d / np.linalg.norm(d)
+
+
+def _converges_when_restarted(fn, X, x, K, R, t, R_r, t_r, e_r: float, restarts: int = 5) -> bool:
+    """Whether the student's refinement, started again from its own result (``restarts`` times at most), lowers the
+    error at every call and reaches the optimum: the sign of an optimiser stopped before convergence."""
+    e_prev = _rms(_errors(K, R, t, X, x))
+    for _ in range(restarts):
+        try:
+            R, t = (np.asarray(v, float) for v in fn(X, x, K, R, t))
+        except Exception:  # noqa: BLE001 - a diagnosis only: a call that fails says nothing about convergence
+            return False
+        if R.shape != (3, 3) or t.size != 3 or not np.isfinite(R).all() or not np.isfinite(t).all():
+            return False
+        t = t.reshape(3)
+        e = _rms(_errors(K, R, t, X, x))
+        if not e < e_prev * (1 - 1e-9):
+            return False
+        if e <= e_r * (1 + 1e-3) + 1e-6 and rotation_angle_deg(R, R_r) < 0.05:
+            return True
+        e_prev = e
+    return False
 
 
 def _nonlinear_keys(f, key: str, R, t, R0, t0, R_r, t_r) -> set[str]:
@@ -568,10 +676,14 @@ def check_pnp_nonlinear(fn, exercise: str = "pnp_nonlinear") -> None:
     with Check(exercise) as c:
         results = []
         for key, case in (("nl_syn", "noisy synthetic view"), ("nl_far", "start 3° away from the optimum"),
-                          ("nl_embedded", "embedded scene")):
-            if f"{key}_X" not in f:
+                          ("nl_wide", "start 25° away from the optimum"), ("nl_embedded", "embedded scene")):
+            if key == "nl_wide" and "nl_far_X" in f:  # the problem of nl_far, its optimum, started farther away
+                K, X, x, R_r, t_r = (f[f"nl_far_{s}"] for s in ("K", "X", "x", "R", "t"))
+                R0, t0 = _wide_start(R_r, t_r)
+            elif f"{key}_X" not in f:
                 continue
-            K, X, x, R0, t0, R_r, t_r = (f[f"{key}_{s}"] for s in ("K", "X", "x", "R0", "t0", "R", "t"))
+            else:
+                K, X, x, R0, t0, R_r, t_r = (f[f"{key}_{s}"] for s in ("K", "X", "x", "R0", "t0", "R", "t"))
             out = _pose(_nonlinear_call(c, fn, (X, x, K, R0, t0), case), c, case)
             if out is None:
                 continue
@@ -587,16 +699,22 @@ def check_pnp_nonlinear(fn, exercise: str = "pnp_nonlinear") -> None:
                 continue
             e0, e_r, e_s = (_rms(_errors(K, Rq, tq, X, x)) for Rq, tq in ((R0, t0), (R_r, t_r), (R, t)))
             ok = e_s <= e_r * (1 + 1e-3) + 1e-6 and rotation_angle_deg(R, R_r) < 0.05
-            results.append((key, case, R, t, e0, e_r, e_s, ok, _nonlinear_keys(f, key, R, t, R0, t0, R_r, t_r)))
-        named = unique_key([keys for *_, ok, keys in results if not ok])
-        for key, case, R, t, e0, e_r, e_s, ok, keys in results:
+            keys = set() if key == "nl_wide" else _nonlinear_keys(f, key, R, t, R0, t0, R_r, t_r)
+            if not ok and np.linalg.norm(t - t_r) < 2e-3 * max(1.0, np.linalg.norm(t_r)) and _euler_mix(R, R_r):
+                keys.add("euler_mix")
+            if not ok and e_s < e0 and _converges_when_restarted(fn, X, x, K, R, t, R_r, t_r, e_r):
+                keys.add("early_stop")
+            results.append((key, case, R, t, e0, e_r, e_s, ok, R_r, keys))
+        named = unique_key([(keys, None if key != "nl_wide" else {"euler_mix", "early_stop"})
+                            for key, *_, ok, _, keys in results if not ok])
+        for key, case, R, t, e0, e_r, e_s, ok, R_r, keys in results:
             why = _NONLINEAR_MISTAKES[named] if named else None
             if not c.gate(e_s <= e0 * (1 + 1e-9) + 1e-9, f"{case}: lowers the reprojection error",
                           f"{case}: the refinement increased the RMS reprojection error ({e0:.3g} -> {e_s:.3g} px): "
                           + (why or "the residual must be the projection K (R X + t) / z minus the observed pixels, "
                                     "with R = Rotation.from_rotvec(p[:3]).as_matrix()"), named=named):
                 continue
-            rot = rotation_angle_deg(R, f[f"{key}_R"])
+            rot = rotation_angle_deg(R, R_r)
             c.expect(ok, f"{case}: reaches the least-squares optimum",
                      f"{case}: RMS reprojection error {e_s:.4g} px, {rot:.2g}° from the optimum ({e_r:.4g} px): "
                      + (why or "not at the least-squares optimum: minimize the sum of squared reprojection errors (pixels) "

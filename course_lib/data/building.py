@@ -98,6 +98,9 @@ class Surface:
         texture: ``(Ht, Wt, 3)`` float32 RGB in [0, 1]; texel ``(row, col)`` covers
             ``s = (col + 0.5) / Wt``, ``t = 1 - (row + 0.5) / Ht``.
         triangle: if True only the half ``s + t <= 1`` exists (the gables).
+        specular: gloss in [0, 1]: 0 is matte (Lambertian, the building); above it the face
+            mirrors a sky of that strength and shows the sun's highlight (Blinn-Phong), which
+            change with the viewing direction (the family's glossy scene, :mod:`course_lib.data.family`).
     """
 
     name: str
@@ -106,6 +109,7 @@ class Surface:
     b: np.ndarray
     texture: np.ndarray
     triangle: bool = False
+    specular: float = 0.0
 
     @property
     def normal(self) -> np.ndarray:
@@ -235,6 +239,22 @@ def _shade(surfaces, sid, d, rgb_out, s, t):
         facing = np.where((d[m] @ n) < 0, 1.0, -1.0)[:, None] * n[None, :]  # normal towards the viewer
         shade = 0.5 + 0.6 * np.clip(facing @ _SUN, 0, 1)
         rgb_out[m] = _bilinear(S.texture, s[m], t[m]) * shade[:, None]
+        if S.specular > 0:
+            rgb_out[m] = _gloss(rgb_out[m], S.specular, facing, d[m])
+
+
+def _gloss(rgb, specular, n, d):
+    """A glossy face's colour: the diffuse ``rgb (M, 3)`` dimmed, plus the mirrored sky and the sun's highlight.
+
+    ``n (M, 3)`` unit normals towards the viewer, ``d (M, 3)`` the rays' directions.
+    """
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    mirror = d - 2.0 * np.sum(d * n, axis=1)[:, None] * n
+    half = _SUN[None, :] - d
+    half /= np.linalg.norm(half, axis=1, keepdims=True)
+    highlight = np.clip(np.sum(half * n, axis=1), 0, 1) ** 60
+    fresnel = 0.06 + 0.6 * (1.0 - np.abs(np.sum(d * n, axis=1))) ** 4  # mirrors more at grazing angles
+    return (1.0 - 0.5 * specular) * rgb + specular * (fresnel[:, None] * _sky(mirror) + 1.2 * highlight[:, None])
 
 
 def _sky(d: np.ndarray) -> np.ndarray:
@@ -377,14 +397,15 @@ def orbit_camera(radius: float, azimuth: float, elevation: float) -> np.ndarray:
     return M
 
 
-def nerf_cameras(rng: np.random.Generator, n: int, kind: str = "random") -> np.ndarray:
+def nerf_cameras(rng: np.random.Generator, n: int, kind: str = "random", radius: float | None = None) -> np.ndarray:
     """Camera-to-world matrices (OpenCV axes) in the NeRF frame, all looking at the origin.
 
     Args:
         rng: seeded generator.
         n: number of views.
         kind: ``"random"``: uniform on the upper hemisphere (elevation 8-75 degrees), distance
-            :data:`NERF_RADIUS`; ``"ring"``: n views on a circle at 30 degrees elevation.
+            ``radius``; ``"ring"``: n views on a circle at 30 degrees elevation.
+        radius: the cameras' distance from the origin (None: :data:`NERF_RADIUS`).
 
     Returns:
         ``c2w (n, 4, 4)``: camera-to-world, OpenCV axes (x right, y down, z forward), in the NeRF
@@ -401,7 +422,7 @@ def nerf_cameras(rng: np.random.Generator, n: int, kind: str = "random") -> np.n
         raise KitInputError(f"kind = {kind!r}: expected 'random' or 'ring'")
     out = []
     for a, e in zip(az, el):
-        out.append(orbit_camera(NERF_RADIUS, a, e))
+        out.append(orbit_camera(NERF_RADIUS if radius is None else float(radius), a, e))
     return np.stack(out)
 
 

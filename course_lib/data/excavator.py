@@ -30,15 +30,13 @@ git-ignored ``outputs/bench-excavator/``); the renders are never committed.
 
 from __future__ import annotations
 
-import json
 import math
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
-from course_lib.data.blender import intrinsics_from_fov, write_blender
-from course_lib.data.building import Surface, nerf_cameras, render
+from course_lib.data.building import Surface, nerf_cameras
+from course_lib.data.parts import Parts, paint, rot, write_object_datasets
 from course_lib.data.textures import draw_sign, draw_window, value_noise
 from course_lib.validate import KitInputError
 
@@ -57,11 +55,8 @@ GENERATOR = "course_lib.data.excavator v2"
 
 
 def _paint(rng, w, h, base, noise=0.12, cell=0.15):
-    """Painted plastic: a base colour, soft blotches and fine speckle; ``(h, w, 3)`` float32 (texels)."""
-    img = np.ones((h, w, 3), np.float32) * np.asarray(base, np.float32)
-    img *= 1.0 + noise * value_noise(rng, h, w, cell * RHO, 3)[..., None]
-    img *= 1.0 + 0.04 * rng.standard_normal((h, w, 1)).astype(np.float32)
-    return img
+    """:func:`~course_lib.data.parts.paint` at the excavator's texel density."""
+    return paint(rng, w, h, base, RHO, noise, cell)
 
 
 def _texture(kind: str, rng, w_u: float, h_u: float, colors: dict) -> np.ndarray:
@@ -101,82 +96,6 @@ def _texture(kind: str, rng, w_u: float, h_u: float, colors: dict) -> np.ndarray
 # ============================================================================ parts
 
 
-def _rot(axis: str, angle: float) -> np.ndarray:
-    c, s = math.cos(angle), math.sin(angle)
-    if axis == "x":
-        return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-    if axis == "z":
-        return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-    raise KitInputError(f"axis {axis!r}")
-
-
-class _Parts:
-    """Surfaces and their parts' bounding spheres (``groups`` of :func:`~course_lib.data.building.render`)."""
-
-    def __init__(self, rng, colors):
-        self.rng, self.colors = rng, colors
-        self.surfaces: list[Surface] = []
-        self.groups: list[tuple] = []
-        self._open: tuple | None = None  # (first surface, corners so far) of a group of several parts
-
-    @contextmanager
-    def group(self):
-        """Parts made inside the block share one bounding sphere (many small parts: fewer sphere tests)."""
-        self._open = (len(self.surfaces), [])
-        try:
-            yield
-        finally:
-            first, corners = self._open
-            self._open = None
-            self._group(first, np.concatenate(corners))
-
-    def _face(self, name, origin, a, b, kind, triangle=False):
-        tex = _texture(kind, self.rng, float(np.linalg.norm(a)), float(np.linalg.norm(b)), self.colors)
-        self.surfaces.append(Surface(name, np.asarray(origin, float), np.asarray(a, float), np.asarray(b, float), tex,
-                                     triangle))
-
-    def _group(self, first: int, corners: np.ndarray) -> None:
-        if self._open is not None:
-            self._open[1].append(corners)
-            return
-        center = 0.5 * (corners.min(axis=0) + corners.max(axis=0))
-        self.groups.append((first, len(self.surfaces), center, float(np.linalg.norm(corners - center, axis=1).max()) + 1e-6))
-
-    def box(self, name, center, size, R=np.eye(3), kinds="body", top=True, bottom=True):
-        """A box of ``size (3,)`` (local x, y, z) centred at ``center``, turned by ``R``; ``kinds``: one or six
-        (+x, -x, +y, -y, +z, -z)."""
-        first = len(self.surfaces)
-        c, (hx, hy, hz) = np.asarray(center, float), 0.5 * np.asarray(size, float)
-        P = lambda x, y, z: c + R @ np.array([x, y, z], float)  # noqa: E731
-        V = lambda x, y, z: R @ np.array([x, y, z], float)  # noqa: E731
-        k = [kinds] * 6 if isinstance(kinds, str) else list(kinds)
-        faces = [(P(hx, -hy, -hz), V(0, 2 * hy, 0), V(0, 0, 2 * hz)), (P(-hx, hy, -hz), V(0, -2 * hy, 0), V(0, 0, 2 * hz)),
-                 (P(hx, hy, -hz), V(-2 * hx, 0, 0), V(0, 0, 2 * hz)), (P(-hx, -hy, -hz), V(2 * hx, 0, 0), V(0, 0, 2 * hz)),
-                 (P(-hx, -hy, hz), V(2 * hx, 0, 0), V(0, 2 * hy, 0)), (P(-hx, hy, -hz), V(2 * hx, 0, 0), V(0, -2 * hy, 0))]
-        for i, (o, a, b) in enumerate(faces):
-            if (i == 4 and not top) or (i == 5 and not bottom):
-                continue
-            self._face(f"{name} {i}", o, a, b, k[i])
-        corners = np.array([P(sx * hx, sy * hy, sz * hz) for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
-        self._group(first, corners)
-
-    def wheel(self, name, center, radius, width, sides=8):
-        """An octagonal prism along x (a wheel): ``sides`` tread faces and two capped ends (triangle fans)."""
-        first = len(self.surfaces)
-        c = np.asarray(center, float)
-        ang = 2 * np.pi * (np.arange(sides) + 0.5) / sides
-        ring = np.stack([np.zeros(sides), radius * np.cos(ang), radius * np.sin(ang)], axis=1)
-        ax = np.array([width, 0.0, 0.0])
-        for i in range(sides):
-            p, q = ring[i], ring[(i + 1) % sides]
-            self._face(f"{name} tread {i}", c + p - 0.5 * ax, q - p, ax, "wheel")
-        for side in (-0.5, 0.5):
-            hub = c + side * ax
-            for i in range(sides):
-                self._face(f"{name} cap {i}", hub, ring[i], ring[(i + 1) % sides], "hub", triangle=True)
-        self._group(first, np.concatenate([c + ring - 0.5 * ax, c + ring + 0.5 * ax]))
-
-
 def build_excavator(rng: np.random.Generator) -> tuple[list[Surface], list[tuple]]:
     """The excavator's surfaces (NeRF frame, z up) and its parts' bounding spheres.
 
@@ -190,7 +109,7 @@ def build_excavator(rng: np.random.Generator) -> tuple[list[Surface], list[tuple
     hue = rng.uniform(-0.06, 0.06, 3)
     colors = {"body": np.clip(np.array([0.93, 0.68, 0.12]) + hue, 0, 1), "cabin": np.clip(np.array([0.85, 0.2, 0.14]) + hue, 0, 1),
               "hub": np.clip(np.array([0.8, 0.62, 0.12]) + hue, 0, 1)}
-    parts = _Parts(rng, colors)
+    parts = Parts(lambda kind, w_u, h_u: _texture(kind, rng, w_u, h_u, colors))
     # undercarriage: two tracks with a wheel at each end
     for sx in (-1, 1):
         x = sx * 0.5
@@ -200,7 +119,7 @@ def build_excavator(rng: np.random.Generator) -> tuple[list[Surface], list[tuple
     parts.box("frame", (0, 0, -0.22), (0.74, 0.9, 0.14), kinds="metal")
     # the upper body, turned about z
     yaw = rng.uniform(-0.5, 0.5)
-    Rz = _rot("z", yaw)
+    Rz = rot("z", yaw)
     T = lambda x, y, z: Rz @ np.array([x, y, z], float)  # noqa: E731
     parts.box("body", T(0, 0.02, 0.06), (1.0, 1.16, 0.34), Rz, kinds=["sign", "sign", "body", "body", "body", "body"])
     parts.box("cabin", T(0.24, -0.34, 0.45), (0.42, 0.42, 0.44), Rz, kinds="cabin", bottom=False)
@@ -216,17 +135,17 @@ def build_excavator(rng: np.random.Generator) -> tuple[list[Surface], list[tuple
     base = np.array([-0.12, -0.45, 0.24])
     boom_dir = np.array([0, -math.cos(boom_pitch), math.sin(boom_pitch)])
     boom_len, stick_len = 0.72, 0.55
-    Rb = _rot("x", -boom_pitch)  # local +y (the box's long axis) -> -boom_dir's horizontal part ... pointing forward-up
+    Rb = rot("x", -boom_pitch)  # local +y (the box's long axis) -> -boom_dir's horizontal part ... pointing forward-up
     parts.box("boom", T(*(base + 0.5 * boom_len * boom_dir)), (0.11, boom_len, 0.09), Rz @ Rb)
     tip = base + boom_len * boom_dir
     stick_dir = np.array([0, -math.cos(stick_pitch), math.sin(stick_pitch)])
-    Rs = _rot("x", -stick_pitch)
+    Rs = rot("x", -stick_pitch)
     parts.box("stick", T(*(tip + 0.5 * stick_len * stick_dir)), (0.08, stick_len, 0.07), Rz @ Rs)
     for dx in (-0.075, 0.075):  # hydraulic cylinders beside the boom
         mid = base + 0.45 * boom_len * boom_dir + np.array([dx, 0, -0.05])
         parts.box("cylinder", T(*mid), (0.03, 0.55 * boom_len, 0.03), Rz @ Rb, kinds="metal")
     end = tip + stick_len * stick_dir
-    Rk = _rot("x", -stick_pitch - 1.2)
+    Rk = rot("x", -stick_pitch - 1.2)
     parts.box("bucket", T(*(end + np.array([0, -0.06, -0.02]))), (0.24, 0.16, 0.12), Rz @ Rk, kinds="metal")
     with parts.group():
         for dx in (-0.09, -0.03, 0.03, 0.09):  # the bucket's teeth
@@ -235,7 +154,7 @@ def build_excavator(rng: np.random.Generator) -> tuple[list[Surface], list[tuple
     return parts.surfaces, parts.groups
 
 
-def _details(parts: _Parts, T, Rz) -> None:
+def _details(parts: Parts, T, Rz) -> None:
     """Small parts, lego-like: grousers on the tracks, studs on the body and the cabin, a hand rail, lamps."""
     for sx in (-1, 1):  # a grouser (a cleat across the track) every 0.072 units on its top and bottom
         for z in (-0.115, -0.355):
@@ -265,14 +184,6 @@ def _details(parts: _Parts, T, Rz) -> None:
 # ============================================================================ data sets
 
 
-def _resize_rgba(rgba: np.ndarray, size: int) -> np.ndarray:
-    import cv2
-
-    if rgba.shape[0] == size:
-        return rgba
-    return cv2.resize(rgba, (size, size), interpolation=cv2.INTER_AREA)
-
-
 def make_excavator_datasets(root, sizes=(200, 400, 800), seed: int = DEFAULT_SEED, n_train: int = 100,
                             n_test: int = 25, verbose: bool = False) -> dict[int, Path]:
     """Render the excavator once at ``max(sizes)`` and write a Blender scene per size.
@@ -288,38 +199,10 @@ def make_excavator_datasets(root, sizes=(200, 400, 800), seed: int = DEFAULT_SEE
     Returns:
         ``{size: folder}``.
     """
-    sizes = sorted({int(s) for s in sizes})
-    top = sizes[-1]
-    if any(s < 8 or top % s for s in sizes):
-        raise KitInputError(f"sizes {sizes}: expected sides of at least 8 px that divide the largest one ({top})")
     rng = np.random.default_rng(seed)
     surfaces, groups = build_excavator(rng)
     cams = {"train": nerf_cameras(rng, n_train), "test": nerf_cameras(rng, n_test)}
-    K = intrinsics_from_fov(top, top, CAMERA_ANGLE_X)
-    renders = {}
-    for split, c2w in cams.items():
-        imgs = []
-        for i, M in enumerate(c2w):
-            R_cw = M[:3, :3].T
-            rgb, alpha = render(surfaces, K, R_cw, -R_cw @ M[:3, 3], (top, top), supersample=2, background="transparent",
-                                groups=groups)
-            imgs.append(np.concatenate([rgb, alpha[..., None]], -1).astype(np.float32))
-            if verbose and (i + 1) % 10 == 0:
-                print(f"  {split}: {i + 1}/{len(c2w)} views rendered at {top} px", flush=True)
-        renders[split] = imgs
-    folders = {}
-    root = Path(root)
-    for size in sizes:
-        folder = root / f"excavator-{size}"
-        for split, c2w in cams.items():
-            imgs = np.stack([_resize_rgba(img, size) for img in renders[split]])
-            write_blender(folder, split, imgs, c2w, CAMERA_ANGLE_X)
-        info = {"seed": int(seed), "generator": GENERATOR, "image_size": [size, size], "rendered_at": top,
-                "camera_angle_x": CAMERA_ANGLE_X, "n_surfaces": len(surfaces),
-                "world": "NeRF frame, z up; a toy excavator within about [-0.8, 0.8] x [-1.2, 1.2] x [-0.4, 1.0]; "
-                         "cameras 4 units from the origin, train and test views drawn independently on the upper hemisphere"}
-        (folder / "scene.json").write_text(json.dumps(info, indent=1))
-        folders[size] = folder
-        if verbose:
-            print(f"wrote {folder}", flush=True)
-    return folders
+    info = {"seed": int(seed), "generator": GENERATOR,
+            "world": "NeRF frame, z up; a toy excavator within about [-0.8, 0.8] x [-1.2, 1.2] x [-0.4, 1.0]; "
+                     "cameras 4 units from the origin, train and test views drawn independently on the upper hemisphere"}
+    return write_object_datasets(root, "excavator", surfaces, groups, cams, sizes, CAMERA_ANGLE_X, info, verbose)

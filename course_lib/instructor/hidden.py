@@ -12,6 +12,10 @@
   that holds only the student's code and the student release of ``course_lib``. The grader itself
   only waits for the worker's verdict (data) and stops the worker when the exercise's time is up.
   :func:`run_reference` runs the instructor's solution here, for the expected verdicts.
+* **The check cell's verdict, computed here.** When the hidden checks all pass, the same worker runs the check
+  again on the notebook's own cases (the stored fixtures the check cell reads), with the same proxy, and sends
+  what that check prints: the verdict of the nbval share comes from the grader, never from what the notebook's
+  kernel prints (code in the notebook can filter or forge that, not this).
 """
 
 from __future__ import annotations
@@ -46,6 +50,8 @@ __all__ = [
     "run_hidden",
     "run_check",
     "run_reference",
+    "all_pass",
+    "hold_in_memory",
 ]
 
 
@@ -132,6 +138,8 @@ class HiddenJob:
     allow_reference: bool = False  # the instructor's self-test
     submission: str | None = None  # the student's folder (its copy is the working directory)
     steps: dict = field(default_factory=dict)  # earlier exercises it calls -> their references (oracle.earlier_steps)
+    public_dir: str | None = None  # the notebook's own cases: the check runs on them too when the hidden ones pass
+    reference_result: object = None  # the reference's CheckResult on the hidden cases (what "all pass" is)
 
 
 @dataclass
@@ -144,6 +152,8 @@ class HiddenOutcome:
     sandbox: dict = field(default_factory=dict)  # what the student's process was confined by
     attempted: bool = True  # False: every call of the student's function raised NotImplementedError (the stub)
     memory: dict = field(default_factory=dict)  # worker peak growth, exercise cgroup peak, largest reply (bytes)
+    public: str | None = None  # what the check printed on the notebook's own cases (None: not run)
+    public_note: str = ""  # why it was not run or did not finish
 
     @property
     def passing(self) -> list[str]:
@@ -201,7 +211,9 @@ def run_hidden(job: HiddenJob, timeout: float = 60.0, isolation=None, cgroup_par
     earlier steps it calls back) shares one memory total and one wall clock. The grader waits for the worker's
     verdict until ``timeout`` seconds after the student's process started (plus
     :data:`~course_lib.instructor.settings.GRACE_SECONDS`, and never past ``deadline``, the submission's), then
-    stops the worker and everything in its cgroup. The outcome's ``seconds`` is the real time spent.
+    stops the worker and everything in its cgroup. The outcome's ``seconds`` is the real time spent on the hidden
+    checks. With ``job.public_dir``, the verdict on the notebook's own cases follows on the same clock; a run out of
+    time there leaves the hidden checks' outcome as it was.
 
     Args:
         job: the exercise, its extracted code and its check.
@@ -214,7 +226,6 @@ def run_hidden(job: HiddenJob, timeout: float = 60.0, isolation=None, cgroup_par
         IsolationError: the student's sandbox could not be made or verified (nothing of the student's ran).
     """
     t0 = time.monotonic()
-    end = lambda until: min(until, deadline) if deadline is not None else until  # noqa: E731
     cgroup = isolation.cgroup(parent=cgroup_parent) if isolation is not None else None
     r, w = os.pipe()
     pid = os.fork()
@@ -225,53 +236,78 @@ def run_hidden(job: HiddenJob, timeout: float = 60.0, isolation=None, cgroup_par
         finally:
             os._exit(0)
     os.close(w)
-    outcome, budget_end = None, end(t0 + START_SECONDS + timeout + GRACE_SECONDS)
-    why = ""
+    frames: dict = {}
+    why = "ended"
     try:
-        while outcome is None:
-            try:
-                head, _ = wire.read_frame_before(r, budget_end, 64 << 20)
-            except TimeoutError:
-                why = "timeout"
-                break
-            except (EOFError, OSError, wire.WireError):
-                why = "ended"
-                break
-            if head.get("event") == "started":
-                budget_end = end(time.monotonic() + timeout + GRACE_SECONDS)
-            elif head.get("event") == "isolation":
-                raise jail.IsolationError(str(head.get("message", "the sandbox could not be verified")))
-            elif head.get("event") == "outcome":
-                outcome = head
+        why = _await_frames(r, frames, t0, timeout, deadline)
     finally:
         os.close(r)
         try:
-            os.kill(pid, 9) if outcome is None else None
+            os.kill(pid, 9) if why else None  # a worker that sent all it had to cleans up its sandbox and ends
             os.waitpid(pid, 0)
-        except ChildProcessError:
+        except (ChildProcessError, ProcessLookupError):
             pass
         peak = cgroup.peak_bytes() if cgroup is not None else None
         oom = cgroup.oom_killed() if cgroup is not None else False
         if cgroup is not None:
             cgroup.close()
-    dt = time.monotonic() - t0
-    if outcome is None:
-        if why == "timeout":
-            past = deadline is not None and time.monotonic() >= deadline - 0.5
-            msg = (f"stopped after {dt:.1f} s: " + ("the submission's time for grading ran out" if past else
-                   f"your code, the grader's checks of its results and the earlier steps it called took longer "
-                   f"than the exercise's time limit ({timeout:g} s)"))
-            return HiddenOutcome("timeout", message=msg, seconds=dt, memory={"cgroup peak bytes": peak})
-        if oom:
-            return HiddenOutcome("exit", message=f"stopped after {dt:.1f} s: your code and the grader's work on its "
-                                                 f"results used more memory than the exercise's limit "
-                                                 f"({isolation.limits.memory_total_bytes >> 20} MiB in all)",
-                                 seconds=dt, memory={"cgroup peak bytes": peak})
-        return HiddenOutcome("error", message=f"the grader's worker for this exercise ended unexpectedly after "
-                                              f"{dt:.1f} s", seconds=dt, memory={"cgroup peak bytes": peak})
-    out = _outcome_from(outcome, dt)
+    dt = frames.get("outcome seconds", time.monotonic() - t0)
+    if "outcome" not in frames:
+        return _no_outcome(why, dt, timeout, deadline, oom, isolation, peak)
+    out = _outcome_from(frames["outcome"], dt)
     out.memory["cgroup peak bytes"] = peak
+    if "public" in frames:
+        out.public = str(frames["public"].get("printed", ""))
+    elif frames["outcome"].get("public_follows"):
+        out.public_note = ("the check on the notebook's own cases did not finish within the exercise's time "
+                           f"({timeout:g} s)" if why == "timeout" else "the check on the notebook's own cases ended "
+                           "unexpectedly")
     return out
+
+
+def _await_frames(r: int, frames: dict, t0: float, timeout: float, deadline: float | None) -> str:
+    """Read the worker's frames into ``frames`` (``"outcome"``, then ``"public"`` when one follows) until the
+    exercise's time is up; ``""`` when all came, else why not (``"timeout"``, ``"ended"``)."""
+    end = lambda until: min(until, deadline) if deadline is not None else until  # noqa: E731
+    budget_end = end(t0 + START_SECONDS + timeout + GRACE_SECONDS)
+    while True:
+        try:
+            head, _ = wire.read_frame_before(r, budget_end, 64 << 20)
+        except TimeoutError:
+            return "timeout"
+        except (EOFError, OSError, wire.WireError):
+            return "ended"
+        event = head.get("event")
+        if event == "started":
+            budget_end = end(time.monotonic() + timeout + GRACE_SECONDS)
+        elif event == "isolation":
+            raise jail.IsolationError(str(head.get("message", "the sandbox could not be verified")))
+        elif event == "outcome" and "outcome" not in frames:
+            frames["outcome"], frames["outcome seconds"] = head, time.monotonic() - t0
+            if not head.get("public_follows"):
+                return ""
+        elif event == "public" and "outcome" in frames:
+            frames["public"] = head
+            return ""
+
+
+def _no_outcome(why: str, dt: float, timeout: float, deadline: float | None, oom: bool, isolation,
+                peak: int | None) -> HiddenOutcome:
+    """The outcome of an exercise whose worker sent no verdict: out of time, out of memory, or ended."""
+    memory = {"cgroup peak bytes": peak}
+    if why == "timeout":
+        past = deadline is not None and time.monotonic() >= deadline - 0.5
+        msg = (f"stopped after {dt:.1f} s: " + ("the submission's time for grading ran out" if past else
+               f"your code, the grader's checks of its results and the earlier steps it called took longer "
+               f"than the exercise's time limit ({timeout:g} s)"))
+        return HiddenOutcome("timeout", message=msg, seconds=dt, memory=memory)
+    if oom:
+        return HiddenOutcome("exit", message=f"stopped after {dt:.1f} s: your code and the grader's work on its "
+                                             f"results used more memory than the exercise's limit "
+                                             f"({isolation.limits.memory_total_bytes >> 20} MiB in all)",
+                             seconds=dt, memory=memory)
+    return HiddenOutcome("error", message=f"the grader's worker for this exercise ended unexpectedly after "
+                                          f"{dt:.1f} s", seconds=dt, memory=memory)
 
 
 def _worker(job: HiddenJob, timeout: float, isolation, cgroup, w: int) -> None:
@@ -302,46 +338,65 @@ def _worker(job: HiddenJob, timeout: float, isolation, cgroup, w: int) -> None:
         wire.write_frame(w, head)
 
     try:
-        reference = _reference(job.reference) if job.reference else None
         torch = job.check_module.startswith("course_lib.checks.nerf")
         oracle = Oracle(job.name, job.steps)  # earlier steps answered by the reference, on this exercise's clock
         with StudentProcess(isolation, job.code, job.name, job.submission, timeout, torch=torch, oracle=oracle,
                             cgroup=cgroup) as proc:
             wire.write_frame(w, {"event": "started"})
-            hello = proc.hello
-            box = hello.get("sandbox", getattr(proc, "sandbox", {}))
-            if proc.ended:
-                send(_outcome_dict("timeout" if proc.event == "timeout" else "exit", message=proc.ended,
-                                   seconds=time.perf_counter() - t0, sandbox=box))
-                return
-            if not hello.get("ok"):
-                send(_outcome_dict("error", message=f"defining {job.name} failed: {hello.get('type')}: "
-                                   f"{str(hello.get('message'))[:2000]}{hello.get('where', '')}",
-                                   seconds=time.perf_counter() - t0, sandbox=box))
-                return
-            if not hello.get("found"):
-                send(_outcome_dict("error", message=f"the exercise code does not define {job.name}",
-                                   seconds=time.perf_counter() - t0, sandbox=box))
-                return
-            fn = RemoteFunction(proc, job.name, reference)
-            try:
-                result, _ = run_check(job.check_module, job.check_function, job.fixtures_dir, fn)
-            except Exception as exc:  # noqa: BLE001 - a check that cannot finish is the grader's problem, reported
-                send(_outcome_dict("error", message=f"the grader failed: {type(exc).__name__}: {str(exc)[:500]}",
-                                   seconds=time.perf_counter() - t0, sandbox=box))
-                return
-            attempted = not (fn.calls and fn.not_implemented == fn.calls)
-            status = ("timeout" if proc.event == "timeout" else "exit") if proc.ended else "ok"
-            if status == "ok" and result is None:
-                status = "error"
-            send(_outcome_dict(status, result=result, message=proc.ended or ("" if result is not None else
-                               "the check recorded no verdict"), seconds=time.perf_counter() - t0, sandbox=box,
-                               attempted=attempted, largest_reply=proc.largest_reply))
+            _check_student(job, proc, send, t0)
     except jail.IsolationError as exc:
         wire.write_frame(w, {"event": "isolation", "message": str(exc)})
     except BaseException as exc:  # noqa: BLE001 - reported to the grader, never raised there
         send(_outcome_dict("error", message=f"the grader failed: {type(exc).__name__}: {str(exc)[:500]}",
                            seconds=time.perf_counter() - t0))
+
+
+def _check_student(job: HiddenJob, proc: StudentProcess, send, t0: float) -> None:
+    """The check on the hidden cases with the student's function ``proc`` serves; its outcome sent; then, when they
+    all pass and ``job.public_dir`` is set, the check on the notebook's own cases, and what it prints."""
+    hello = proc.hello
+    box = hello.get("sandbox", getattr(proc, "sandbox", {}))
+    seconds = lambda: time.perf_counter() - t0  # noqa: E731
+    if proc.ended:
+        send(_outcome_dict("timeout" if proc.event == "timeout" else "exit", message=proc.ended, seconds=seconds(),
+                           sandbox=box))
+        return
+    if not hello.get("ok"):
+        send(_outcome_dict("error", message=f"defining {job.name} failed: {hello.get('type')}: "
+                           f"{str(hello.get('message'))[:2000]}{hello.get('where', '')}", seconds=seconds(), sandbox=box))
+        return
+    if not hello.get("found"):
+        send(_outcome_dict("error", message=f"the exercise code does not define {job.name}", seconds=seconds(),
+                           sandbox=box))
+        return
+    fn = RemoteFunction(proc, job.name, _reference(job.reference) if job.reference else None)
+    try:
+        result, _ = run_check(job.check_module, job.check_function, job.fixtures_dir, fn)
+    except Exception as exc:  # noqa: BLE001 - a check that cannot finish is the grader's problem, reported
+        send(_outcome_dict("error", message=f"the grader failed: {type(exc).__name__}: {str(exc)[:500]}",
+                           seconds=seconds(), sandbox=box))
+        return
+    attempted = not (fn.calls and fn.not_implemented == fn.calls)
+    status = ("timeout" if proc.event == "timeout" else "exit") if proc.ended else "ok"
+    if status == "ok" and result is None:
+        status = "error"
+    public = status == "ok" and job.public_dir is not None and all_pass(result, job.reference_result)
+    send(_outcome_dict(status, result=result, message=proc.ended or ("" if result is not None else
+                       "the check recorded no verdict"), seconds=seconds(), sandbox=box, attempted=attempted,
+                       largest_reply=proc.largest_reply, public_follows=public))
+    if public:
+        try:
+            _, printed = run_check(job.check_module, job.check_function, job.public_dir, fn)
+        except Exception as exc:  # noqa: BLE001 - the verdict then differs from the reference's, and says why
+            printed = f"the grader's check on the notebook's cases failed: {type(exc).__name__}: {str(exc)[:500]}"
+        send({"event": "public", "printed": printed[:PRINTED_CHARS]})
+
+
+def all_pass(result, reference) -> bool:
+    """Whether ``result`` passes every hidden check the reference passes, in the documented form (full marks)."""
+    if result is None or reference is None:
+        return False
+    return core.score_against(result, reference) >= 1 and not result.details_failed
 
 
 def _reference(spec: str):
@@ -353,12 +408,13 @@ def _reference(spec: str):
         return None
 
 
-#: Characters of one verdict line and lines of one check sent from the worker (student text can be in them).
-LINE_CHARS, MAX_LINES = 2000, 400
+#: Characters of one verdict line and lines of one check sent from the worker (student text can be in them), and
+#: characters of a check's printed verdict on the notebook's cases.
+LINE_CHARS, MAX_LINES, PRINTED_CHARS = 2000, 400, 20_000
 
 
 def _outcome_dict(status: str, result=None, message: str = "", seconds: float = 0.0, sandbox: dict | None = None,
-                  attempted: bool = True, largest_reply: int = 0) -> dict:
+                  attempted: bool = True, largest_reply: int = 0, public_follows: bool = False) -> dict:
     res = None
     if result is not None:
         res = {"exercise": str(result.exercise), "passed": int(result.passed), "total": int(result.total),
@@ -368,7 +424,7 @@ def _outcome_dict(status: str, result=None, message: str = "", seconds: float = 
     return {"event": "outcome", "status": status, "message": str(message)[:LINE_CHARS], "seconds": float(seconds),
             "result": res, "sandbox": {str(k): str(v)[:300] if not isinstance(v, bool) else v
                                        for k, v in (sandbox or {}).items()}, "attempted": bool(attempted),
-            "largest_reply": int(largest_reply)}
+            "largest_reply": int(largest_reply), "public_follows": bool(public_follows)}
 
 
 def _outcome_from(head: dict, seconds: float) -> HiddenOutcome:

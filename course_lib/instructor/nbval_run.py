@@ -10,6 +10,10 @@ submission), HOME, IPYTHONDIR and Jupyter's folders lie outside the submission's
 configuration of the student's is read), and its junit report goes through a pipe that only the
 (undumpable) pytest and the launcher hold (:func:`course_lib.instructor.sandbox.server.launch`).
 
+The report says which cells ran without an error; no check cell's output is compared (the grader restores the
+check cells without nbval's output marker, :func:`~course_lib.instructor.placement.restored`, and computes their
+verdicts itself, :func:`~course_lib.instructor.hidden.run_hidden`): the kernel is the student's process.
+
 **One clock.** A notebook gets :func:`course_lib.instructor.settings.nbval_seconds` for all its runs
 together (the reruns after a cell that timed out included), and never more than what is left of the
 submission's time; a run that does not finish by then counts as not run.
@@ -186,26 +190,9 @@ class NbvalRun:
             for fd in fds:
                 os.close(fd)
             fds = []
-            started = time.monotonic() + START_SECONDS
-            info = jail.read_info(info_r, started) if info_r is not None else {}
-            try:
-                head, _ = wire.read_frame_before(report_r, started, 1 << 20)
-                facts = head.get("facts") if isinstance(head.get("facts"), dict) else {}
-            except (TimeoutError, EOFError, OSError, wire.WireError):
-                facts = None
-            if not insecure:
-                if not info or facts is None:
-                    if proc.poll() is not None and not info:
-                        raise jail.IsolationError(jail.refusal(f"bubblewrap could not make the sandbox of nbval "
-                                                               f"(exit code {proc.returncode})"))
-                    return {}, f"nbval of {name} did not start"
-                missing = jail.verify(facts, info, self.iso, filtered)
-                if missing:
-                    raise jail.IsolationError(jail.refusal("the sandbox of nbval is not isolated: "
-                                                           + "; ".join(missing), jail.REPORT))
-                box = jail.describe(facts, info, self.iso, filtered)
-            else:
-                box = {"tool": "none (--insecure)", "namespaces": False, "read_only": False}
+            box = self._checked(name, proc, info_r, report_r, filtered)
+            if isinstance(box, str):
+                return {}, box
             os.write(go_w, _go_frame())
             junit, complete = _read_until(collect_r, end, REPORT_LIMIT)
             if not complete:
@@ -229,6 +216,33 @@ class NbvalRun:
                 cgroup.close()
         self._record_sandbox(box, cgroup)
         return _read_junit(junit, name)
+
+    def _checked(self, name: str, proc: subprocess.Popen, info_r: int | None, report_r: int,
+                 filtered: bool) -> dict | str:
+        """What the sandbox of a run enforces, checked before the notebook runs; a note when it did not start.
+
+        Raises:
+            IsolationError: bubblewrap could not make the sandbox, or it is not isolated.
+        """
+        started = time.monotonic() + START_SECONDS
+        info = jail.read_info(info_r, started) if info_r is not None else {}
+        try:
+            head, _ = wire.read_frame_before(report_r, started, 1 << 20)
+            facts = head.get("facts") if isinstance(head.get("facts"), dict) else {}
+        except (TimeoutError, EOFError, OSError, wire.WireError):
+            facts = None
+        if self.iso.insecure:
+            return {"tool": "none (--insecure)", "namespaces": False, "read_only": False}
+        if not info or facts is None:
+            if proc.poll() is not None and not info:
+                raise jail.IsolationError(jail.refusal(f"bubblewrap could not make the sandbox of nbval "
+                                                       f"(exit code {proc.returncode})"))
+            return f"nbval of {name} did not start"
+        missing = jail.verify(facts, info, self.iso, filtered)
+        if missing:
+            raise jail.IsolationError(jail.refusal("the sandbox of nbval is not isolated: " + "; ".join(missing),
+                                                   jail.REPORT))
+        return jail.describe(facts, info, self.iso, filtered)
 
     def pytest_command(self, name: str, junit: str, rootdir: str) -> list[str]:
         """pytest's arguments for nbval of notebook ``name``: no conftest.py and no pytest configuration of the

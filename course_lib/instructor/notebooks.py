@@ -88,7 +88,7 @@ TIMING_MAGICS = ("%time ", "%timeit ", "%%time", "%%timeit")
 
 def python_source(source: str) -> str:
     """Cell source as ``ast`` can parse it: the code after a timing magic kept (and scanned), every other IPython magic
-    and shell line turned into ``pass`` (:func:`course_lib.instructor.scan.scan_notebook` names each of those)."""
+    and shell line turned into ``pass`` (what the extracted exercise code and the scan read)."""
     out = []
     for line in source.splitlines():
         s = line.lstrip()
@@ -211,36 +211,48 @@ def notebook_spec(path: Path) -> NotebookSpec:
                                    "or class definition (an exercise is a def with its signature and docstring)")
         first = cell.source.lstrip().splitlines()[0].strip() if cell.source.strip() else ""
         if first == CHECK_MARK:
-            call = next((n for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)
-                         and n.func.id.startswith("check_")), None)
-            if call is None:
-                continue  # nbval compares this cell's output, but it checks no exercise
-            if not call.args or not isinstance(call.args[0], ast.Name):
-                raise ReleaseError(f"{where}: a check cell must call check_<exercise>(<exercise>)")
-            fn, ex = call.func.id, call.args[0].id
-            if ex not in defined:
-                raise ReleaseError(f"{where}: the check cell calls {fn}({ex}) but no exercise cell before it defines "
-                                   f"{ex} with '{BEGIN}' / '{END}' markers (missing solution markers)")
-            verdict = stream_text(cell)
-            if not verdict.strip():
-                raise ReleaseError(f"{where}: the check cell has no stored verdict; execute the notebook before releasing")
-            if fn not in check_imports:
-                raise ReleaseError(f"{where}: {fn} is not imported from a course_lib.checks module in this notebook")
-            ex_cell, texts = defined[ex]
-            points = float(nb.cells[ex_cell].metadata.get("points", DEFAULT_POINTS))
-            spec.exercises.append(ExerciseSpec(
-                notebook=path.name, name=ex, cell=ex_cell, check_cell=i, check_module=check_imports[fn],
-                check_function=fn, check_source=cell.source, check_sha256=sha256(cell.source), verdict=verdict,
-                points=points, reference=_reference_of(ex, texts) or library_definition(ex)))
+            e = _checked_exercise(nb, path.name, i, tree, defined, check_imports)
+            if e is not None:
+                spec.exercises.append(e)
     spec.solution_modules = sorted(sol_mods)
     spec.imports = sorted(mods)
     if not any_region and not spec.exercises:
         return spec  # a notebook without exercises (a demo): released as it is, not graded
     if not spec.exercises:
         raise ReleaseError(f"{path.name}: solution regions but no check cell ('{CHECK_MARK}' on its first line)")
-    spec.solution_modules = sorted(sol_mods)
-    spec.imports = sorted(mods)
     return spec
+
+
+def _checked_exercise(nb, notebook: str, i: int, tree: ast.Module, defined: dict[str, tuple[int, list[str]]],
+                      check_imports: dict[str, str]) -> ExerciseSpec | None:
+    """The exercise that check cell ``i`` of ``notebook`` checks (None: a marked cell that checks no exercise).
+
+    Raises:
+        ReleaseError: the cell calls no exercise, or one without solution markers before it, or has no stored
+            verdict, or its check function is not imported from a check module.
+    """
+    cell, where = nb.cells[i], f"{notebook}, cell {i}"
+    call = next((n for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)
+                 and n.func.id.startswith("check_")), None)
+    if call is None:
+        return None  # nbval compares this cell's output, but it checks no exercise
+    if not call.args or not isinstance(call.args[0], ast.Name):
+        raise ReleaseError(f"{where}: a check cell must call check_<exercise>(<exercise>)")
+    fn, ex = call.func.id, call.args[0].id
+    if ex not in defined:
+        raise ReleaseError(f"{where}: the check cell calls {fn}({ex}) but no exercise cell before it defines "
+                           f"{ex} with '{BEGIN}' / '{END}' markers (missing solution markers)")
+    verdict = stream_text(cell)
+    if not verdict.strip():
+        raise ReleaseError(f"{where}: the check cell has no stored verdict; execute the notebook before releasing")
+    if fn not in check_imports:
+        raise ReleaseError(f"{where}: {fn} is not imported from a course_lib.checks module in this notebook")
+    ex_cell, texts = defined[ex]
+    points = float(nb.cells[ex_cell].metadata.get("points", DEFAULT_POINTS))
+    return ExerciseSpec(notebook=notebook, name=ex, cell=ex_cell, check_cell=i,
+                        check_module=check_imports[fn], check_function=fn, check_source=cell.source,
+                        check_sha256=sha256(cell.source), verdict=verdict, points=points,
+                        reference=_reference_of(ex, texts) or library_definition(ex))
 
 
 def _optional_ids(tree: ast.Module) -> set[int]:

@@ -1,8 +1,8 @@
 """Where each exercise and its check cell are in a submitted notebook, and what is wrong with that.
 
 The grader gives no credit to an exercise whose cell was deleted or moved, or whose check cell
-was edited or deleted; :func:`place_exercises` finds them, and :func:`restored` puts the reference
-check cells back (source and verdict) before the notebook runs under nbval.
+was edited or deleted; :func:`place_exercises` finds them. The notebook that nbval runs is the student's with
+the reference check cells put back (:func:`restored`) and its package installs left out (:func:`without_installs`).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import nbformat
 from course_lib.instructor.extract import code_cells
 from course_lib.instructor.notebooks import NotebookSpec
 
-__all__ = ["Placement", "place_exercises", "restored"]
+__all__ = ["Placement", "place_exercises", "restored", "without_installs"]
 
 
 @dataclass
@@ -116,15 +116,40 @@ def place_exercises(nb, spec: NotebookSpec) -> dict[str, Placement]:
 
 
 def restored(nb, spec: NotebookSpec, places: dict[str, Placement]):
-    """The notebook with its check cells restored to the reference source and verdict outputs."""
+    """The notebook with its check cells restored to the reference source, without nbval's output marker.
+
+    nbval runs each check cell and reports whether it ran without an error; what the cell prints is not compared
+    (the grader computes the check's verdict itself, :func:`~course_lib.instructor.hidden.run_hidden`): code in the
+    notebook could filter or forge printed output.
+    """
     nb = nbformat.from_dict(json.loads(json.dumps(nb)))
     for e in spec.exercises:
         p = places[e.name]
         if p.check_cell is None:
             continue
         cell = nb.cells[p.check_cell]
-        cell.source = e.check_source
-        cell.outputs = [nbformat.v4.new_output("stream", name="stdout", text=e.verdict)]
+        cell.source = "\n".join(ln for ln in e.check_source.splitlines() if ln.strip() != "# NBVAL_CHECK_OUTPUT")
+        cell.outputs, cell.metadata, cell.execution_count = [], nbformat.NotebookNode(), None
     return nb
 
 
+#: A package install in a cell (``!pip install numpy``, ``%pip install ...``, ``!python -m pip install``, conda):
+#: the grader leaves it out (grading has no network, and the kit's environment holds every package it needs).
+_INSTALL = re.compile(r"^\s*(?:!|%)\s*(?:(?:python3?|py)\s+-m\s+)?(?:pip3?|conda|mamba|micromamba|uv\s+pip)\s+install\b")
+
+
+def without_installs(nb) -> tuple[object, list[tuple[int, str]]]:
+    """``nb`` with each package-install line turned into ``pass``, and a neutral note ``(cell, text)`` for each."""
+    notes = []
+    for i, cell in enumerate(nb.cells):
+        if cell.cell_type != "code" or "install" not in cell.source:
+            continue
+        lines = cell.source.splitlines()
+        for k, line in enumerate(lines):
+            if _INSTALL.match(line):
+                notes.append((i, f"`{line.strip()[:120]}` was left out when the grader ran the notebook (grading has "
+                                 "no network, and the kit's environment already holds every package the notebooks "
+                                 "use); this costs nothing"))
+                lines[k] = line[: len(line) - len(line.lstrip())] + "pass  # left out by the grader: " + line.strip()
+        cell.source = "\n".join(lines)
+    return nb, notes

@@ -232,16 +232,8 @@ def _torch_pin() -> str:
     return "2.13.0"
 
 
-def student_readme(specs: list[NotebookSpec], plan: ReleasePlan) -> str:
-    rows = []
-    for s in specs:
-        if not s.exercises:
-            continue
-        names = ", ".join(f"`{e.name}`" for e in s.exercises)
-        pts = sum(e.points for e in s.exercises)
-        rows.append(f"| `notebooks/{s.name}` | {names} | {pts:g} |")
-    total = sum(e.points for s in specs for e in s.exercises)
-    carry = """
+#: The README's part on how solutions travel from notebook to notebook.
+_CARRY_TEXT = """
 ## Your solutions travel with you
 
 Parts of the kit build on exercises: the SfM pipeline of notebooks 05 and 10 runs your RANSAC,
@@ -257,13 +249,12 @@ If a cell stops with `NotImplementedError: get_rays is an exercise of notebooks/
 that exercise in the notebook it names and run its cell, then run the cell that stopped again.
 `solutions/` is made from your notebooks (git ignores it); the grader grades the notebooks.
 """
-    shipped = [s for s in specs if s.name not in plan.left_out_notebooks]
-    n_ex = sum(1 for s in shipped if s.exercises)
-    optional = [s.name.split("_")[0] for s in shipped if not s.exercises]
-    extra = (f" ({n_ex} with exercises; {', '.join(optional)}: optional lessons without exercises)" if optional else "")
-    return f"""# SfM + NeRF course kit: student release
 
-{len(shipped)} notebooks{extra} take you from two photos to a 3-D reconstruction (Structure from Motion)
+
+#: The student release's README (:func:`student_readme` fills in the notebooks, the exercises and their points).
+_STUDENT_README = """# SfM + NeRF course kit: student release
+
+{n_notebooks} notebooks{extra} take you from two photos to a 3-D reconstruction (Structure from Motion)
 and then to a neural radiance field (NeRF). In each notebook with exercises you write a few
 functions; a **check cell** after each exercise runs your function on test cases and prints what is
 right and, when something is wrong, the likely mistake or the property that fails.
@@ -284,7 +275,7 @@ pulls gigabytes of NVIDIA packages. On a machine without an NVIDIA GPU, install 
 from PyTorch's CPU wheel index first (a few hundred MB), then the rest:
 
 ```bash
-pip install torch=={_torch_pin()} --index-url https://download.pytorch.org/whl/cpu
+pip install torch=={torch} --index-url https://download.pytorch.org/whl/cpu
 pip install -r environment.txt
 ```
 
@@ -296,8 +287,8 @@ pip install -r environment.txt
 2. Find the cells with `# YOUR CODE HERE` / `raise NotImplementedError`: replace those two lines
    with your code. Keep the function's name, its arguments and its docstring.
 3. Run the check cell below it (`# NBVAL_CHECK_OUTPUT`). It prints ✔ for each passing check and
-   ✘ with a hint otherwise. Do not edit check cells: the grader restores them and compares
-   their output with the reference.
+   ✘ with a hint otherwise. Do not edit check cells: the grader restores them and runs the
+   same checks itself, on your notebook's cases and on hidden ones.
 4. Every exercise's check cell starts from the reference result of the step before, so a step you
    are stuck on does not block the check of the next. The kit's own engines are another matter:
    the SfM pipeline (notebooks 05 and 10) and the NeRF trainer and renderer (08-10) run *your*
@@ -314,31 +305,50 @@ pytest notebooks/01_fundamental_matrix.ipynb
 
 | notebook | exercises | points |
 |---|---|---|
-{chr(10).join(rows)}
+{rows}
 | **total** | | **{total:g}** |
 
 ## How your work is graded
 
-The grader runs your notebooks with nbval (check cells are restored to the original and must
-print the reference verdict) and, independently, runs each exercise function on *hidden* test
-cases (new synthetic scenes) with a time limit, in a separate process that holds your code and this
-kit's `course_lib` only, works in a copy of your folder, has no network and may write only there.
+The grader runs each exercise function on *hidden* test cases (new synthetic scenes) with a time
+limit, in a separate process that holds your code and this kit's `course_lib` only, works in a copy
+of your folder, has no network and may write only there; it runs the same checks on your notebook's
+own cases too, which gives the check cell's verdict. It also runs your notebooks top to bottom with
+nbval (check cells restored to the original), where each check cell must run. Package installs such
+as `!pip install numpy` are left out then (no network; this kit's environment has every package).
 A function that loops is stopped at the limit and one that ends its process is named in the
 feedback; either costs that exercise only. There is no credit for an exercise that calls the kit's
-reference solution, whose check cell was edited or printed by hand, whose checks were patched, or
-whose cell was deleted or moved. Write your own code in the exercise cells; helper functions and
-imports in the notebook are fine.
+reference solution, whose check cell was edited, or whose cell was deleted or moved. Write your own
+code in the exercise cells; helper functions and imports in the notebook are fine.
 
 **The scoring rule** (the grader's feedback, and the `scoring:` line of a check cell that fails, say
 which part of it cost points):
 
-{SCORING_RULE}{carry}
+{scoring}{carry}
 ## Data
 
 `data/synthetic-building` (SfM) and `data/synthetic-building-nerf` (NeRF) are small scenes with
 known ground truth, made by the kit. The course's own data sets are used with a one-line change in
 the first code cell of each notebook (`DATA = course_data("wpi")`, see `course_lib/paths.py`).
 """
+
+
+def student_readme(specs: list[NotebookSpec], plan: ReleasePlan) -> str:
+    """The student release's README.md: what the kit is, how to set it up and work, the exercises and points."""
+    rows = []
+    for s in specs:
+        if not s.exercises:
+            continue
+        names = ", ".join(f"`{e.name}`" for e in s.exercises)
+        pts = sum(e.points for e in s.exercises)
+        rows.append(f"| `notebooks/{s.name}` | {names} | {pts:g} |")
+    shipped = [s for s in specs if s.name not in plan.left_out_notebooks]
+    n_ex = sum(1 for s in shipped if s.exercises)
+    optional = [s.name.split("_")[0] for s in shipped if not s.exercises]
+    extra = (f" ({n_ex} with exercises; {', '.join(optional)}: optional lessons without exercises)" if optional else "")
+    return _STUDENT_README.format(n_notebooks=len(shipped), extra=extra, torch=_torch_pin(), rows="\n".join(rows),
+                                 total=sum(e.points for s in specs for e in s.exercises), scoring=SCORING_RULE,
+                                 carry=_CARRY_TEXT)
 
 
 def _walk(root: Path) -> list[Path]:

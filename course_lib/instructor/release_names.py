@@ -36,7 +36,10 @@ __all__ = ["text_references", "dangling_references", "student_texts", "internal_
 #: Text that belongs to the kit's development, not to a student: issue numbers, dates, who measured what.
 INTERNAL = re.compile(
     r"\bissues?\s*#?\d+|#\d+'s\b|\((?:H|helper )\d{1,3}(?:\)|, (?![WH]\d?\b))|\bH\d{1,3}, (?:20\d\d|several|one|two)\b"
-    r"|\b20\d\d-[01]\d-[0-3]\d\b|\b(?:this|last|previous|earlier|next) session\b", re.IGNORECASE)
+    r"|\b20\d\d-[01]\d-[0-3]\d\b|\b(?:this|last|previous|earlier|next) session\b"
+    # who worked on the kit: "the issue asks", "the team measured", "the lead", "helper sessions", branch names
+    r"|\bthe (?:issue|team)\b|\b(?:the|our) lead\b|\bhelper(?:'s)? (?:session|branch)s?\b|\bwt-[a-z]+\b"
+    r"|\bsession of 20\d\d\b", re.IGNORECASE)
 
 _DOTTED = re.compile(r"(?<![\w/.])course_lib(?:\.\w+)+")
 _PATH = re.compile(r"(?<![\w/.])(?:course_lib|notebooks|data|docs|benchmarks|tests|templates)/[\w./-]*\w")

@@ -153,6 +153,8 @@ class TrainConfig:
     """Adam's learning rate of the voxel grids, decayed exponentially to ``grid_lr_final``."""
     grid_lr_final: float = 0.01
     """The grids' learning rate at the end of the run."""
+    adapt_batch: float = 0.0
+    """Grid: once the grid is final (and again when its colour turns view-dependent), time steps at the batch and at half of it, and set the batch so that the rays' part of a step is this many times the grid's part (:class:`course_lib.nerf.schedule.BatchTuner`; 0: keep ``batch_rays``)."""
     tv_weight: float = 0.0
     """Weight of the density total-variation prior (grid)."""
     grid_sparse_adam: bool = False

@@ -8,7 +8,10 @@ runs each one before or after a step when it is due. A :class:`GridField` has fo
   the box around the surfaces that the training rays hit (:func:`surface_box`);
 * **coarse to fine** (``cfg.grid_schedule``): a finer grid at each stage;
 * **spherical harmonics** (``cfg.grid_sh_start``): the RGB colour grid turns view-dependent;
-* **occupancy** (``cfg.occupancy_every``): refresh the empty-space grid every N steps.
+* **occupancy** (``cfg.occupancy_every``): refresh the empty-space grid every N steps;
+* **adapt the batch** (``cfg.adapt_batch``, :class:`BatchTuner`): rays per step from the measured
+  cost of a step, so that a scene whose rays cost more (many occupied samples: fine detail) gets
+  smaller batches and more steps, and a sparse one larger batches.
 
 Every time in the schedule is a **fraction of the run** (``progress`` in [0, 1]: of the time
 budget, or of the steps when there is none), so a 1-minute and a 20-minute run go through the
@@ -18,14 +21,15 @@ SH degree, ``bounds.shrunk``), so a resumed run does not repeat a stage.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import statistics
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import torch
 
 from course_lib.nerf.render import render_rays
 
-__all__ = ["TrainingCallback", "grid_callbacks", "surface_box", "target_resolution"]
+__all__ = ["TrainingCallback", "BatchTuner", "grid_callbacks", "surface_box", "target_resolution"]
 
 
 @dataclass
@@ -90,6 +94,71 @@ def surface_box(model, cfg, rays, generator: torch.Generator, n_rays: int = 1638
     return torch.maximum(lo, model.box_min).tolist(), torch.minimum(hi, model.box_max).tolist()
 
 
+class BatchTuner:
+    """Rays per step from the measured cost of a step: ``t(B) = a B + g`` (``cfg.adapt_batch``).
+
+    A step of the grid costs a part that grows with its batch ``B`` (``a`` seconds a ray: the
+    samples of the ray that fall in occupied voxels, their colours, the backward pass) and a part
+    ``g`` that does not (the dense Adam update of every voxel, the TV prior). ``a`` depends on the
+    scene (fine detail everywhere: many occupied samples a ray) and ``g`` on the grid, so a batch
+    chosen from the image size alone is too large for a detailed scene (few, slow steps) and too
+    small for a sparse one. Once the grid is final -- and again when the colour turns
+    view-dependent, which changes ``a`` -- the tuner times ``window`` steps at the configured batch
+    ``B`` and ``window`` at ``B / 2`` (real training steps: nothing is thrown away), solves for ``a``
+    and ``g`` (medians of the step times, robust to the occupancy refreshes between them) and sets
+    ``B = adapt_batch * g / a`` -- the rays' part of a step ``adapt_batch`` times the grid's --
+    within ``[B / 4, 2 B]``, at least 1024 rays, a multiple of 256. Without a clear measurement
+    (``a`` or ``g`` not positive: a noisy machine) it keeps the batch.
+
+    ``changes`` records ``(step, a, g, new batch)`` (``metrics.json``'s ``history["batch_changes"]``).
+    """
+
+    def __init__(self, model, cfg, window: int = 16, skip: int = 3):
+        self.model, self.cfg, self.window, self.skip = model, cfg, window, skip
+        self.final_at = max((at for at, _ in cfg.grid_schedule), default=0.0)
+        self.key = None  # (resolution, SH degree) last measured
+        self.phase, self.start, self.t_full = None, 0, None
+
+    def due(self, st) -> bool:
+        return bool(self.cfg.adapt_batch) and st.progress >= max(self.final_at, self.cfg.shrink_box_at) and (
+            self.model.resolution >= target_resolution(self.cfg, st.progress))
+
+    @staticmethod
+    def _step_seconds(history: dict, after: int) -> float | None:
+        """Median seconds a step over the recorded steps after step ``after``."""
+        it, sec = history["iterations"], history["seconds"]
+        dts = [(sec[i] - sec[i - 1]) / (it[i] - it[i - 1]) for i in range(1, len(it)) if it[i - 1] >= after]
+        return statistics.median(dts) if dts else None
+
+    def run(self, st) -> bool:
+        key = (self.model.resolution, self.model.sh_degree)
+        if self.phase is None:
+            if key != self.key:  # the step's cost changed: measure at the configured batch, then at half of it
+                self.key, self.phase, self.start = key, "full", st.step
+                st.config = replace(st.config, batch_rays=self.cfg.batch_rays)
+            return False
+        if st.step - self.start < self.window + self.skip or key != self.key:
+            if key != self.key:
+                self.phase = None
+            return False
+        t = self._step_seconds(st.history, self.start + self.skip)
+        B = self.cfg.batch_rays
+        if self.phase == "full":
+            self.t_full, self.phase, self.start = t, "half", st.step
+            st.config = replace(st.config, batch_rays=B // 2)
+            return False
+        self.phase = None
+        a = (self.t_full - t) / (B - B // 2) if t is not None and self.t_full is not None else 0.0
+        g = self.t_full - a * B if self.t_full is not None else 0.0
+        new = B
+        if a > 0 and g > 0:
+            new = self.cfg.adapt_batch * g / a
+            new = int(round(min(2 * B, max(B / 4, 1024, new)) / 256)) * 256
+        st.config = replace(st.config, batch_rays=new)
+        st.history.setdefault("batch_changes", []).append([st.step, a, g, new])
+        return False
+
+
 def grid_callbacks(model, cfg) -> list[TrainingCallback]:
     """The callbacks of a :class:`~course_lib.nerf.grid.GridField` trained with ``cfg`` (see the module)."""
 
@@ -113,6 +182,8 @@ def grid_callbacks(model, cfg) -> list[TrainingCallback]:
         model.update_occupancy(cfg.occupancy_threshold)
         return False
 
+    tuner = BatchTuner(model, cfg)
+
     return [
         TrainingCallback("shrink the box", "before", lambda st: bool(cfg.shrink_box_at) and not st.bounds.shrunk
                          and st.progress >= cfg.shrink_box_at, shrink),
@@ -122,4 +193,5 @@ def grid_callbacks(model, cfg) -> list[TrainingCallback]:
                          and st.progress >= cfg.grid_sh_start, spherical_harmonics),
         TrainingCallback("occupancy", "after", lambda st: bool(cfg.occupancy_every) and st.progress >= cfg.occupancy_start
                          and st.step % cfg.occupancy_every == 0, occupancy),
+        TrainingCallback("adapt the batch", "after", tuner.due, tuner.run),
     ]

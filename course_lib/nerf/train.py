@@ -95,6 +95,7 @@ class TrainState:
             (``config`` is the run's config, resolved: every other part reads it from here).
         clock: the run's :class:`~course_lib.nerf.run.RunClock` (training seconds, the budget).
         step: steps done. progress: fraction of the run done, in [0, 1].
+        rays_trained: rays of the steps of this call (the batch may change during a run, ``cfg.adapt_batch``).
         history: per-step loss and PSNR, test PSNRs.
         callbacks: the model's training callbacks (:class:`~course_lib.nerf.schedule.TrainingCallback`).
     """
@@ -110,6 +111,7 @@ class TrainState:
     clock: RunClock
     step: int = 0
     progress: float = 0.0
+    rays_trained: int = 0
     history: dict = field(default_factory=lambda: {k: [] for k in ("iterations", "loss", "psnr", "seconds",
                                                                   "test_iterations", "test_psnr")})
     callbacks: list = field(default_factory=list)
@@ -266,7 +268,7 @@ def _train_loop(state: TrainState, clock: RunClock, outputs: RunOutputs, bar: Pr
     steps = 0
     sync_every = 1 if device.type == "cpu" else 25  # on a GPU the losses come to the host every 25 steps
     while state.step < cfg.iters:
-        if steps:  # what the end of the run will need, from the speeds measured so far
+        if steps >= 2:  # what the end of the run will need, from the speeds measured so far (not the first step's)
             clock.reserve = outputs.end_seconds(state)
         if clock.time_up():
             return "time", steps
@@ -275,6 +277,7 @@ def _train_loop(state: TrainState, clock: RunClock, outputs: RunOutputs, bar: Pr
             state.run_callbacks("before")
             set_learning_rate(state.optimizer, cfg, state.progress)
             loss, mse = train_step(state)
+            state.rays_trained += state.config.batch_rays
             state.step += 1
             steps += 1
             state.run_callbacks("after")

@@ -217,6 +217,9 @@ def make_nerf(skip=True, sigmoid=True, relu_sigma=True, sigma_from_view=False, u
                 n_in = width + (nx if i in self.skips else 0)
             self.trunk = nn.ModuleList(layers)
             self.sigma_head = nn.Linear(n_in if not sigma_from_view else view_width, 1)
+            self.use_viewdirs = use_viewdirs
+            if not use_viewdirs:
+                self.trunk_rgb = nn.Linear(n_in, 3)
             self.feature = nn.Linear(n_in, width)
             self.view_layer = nn.Linear(width + (nd if use_dirs else 0), view_width)
             self.rgb_head = nn.Linear(view_width, 3)
@@ -228,6 +231,8 @@ def make_nerf(skip=True, sigmoid=True, relu_sigma=True, sigma_from_view=False, u
                 h = layer(h) if no_relu else F.relu(layer(h))
                 if i in self.skips:
                     h = torch.cat([x, h] if cat_order == "xh" else [h, x], -1)
+            if not self.use_viewdirs:  # as documented: the colour off the trunk
+                return torch.sigmoid(self.trunk_rgb(h)), F.relu(self.sigma_head(h))[..., 0]
             sigma = None if sigma_from_view else self.sigma_head(h)
             f = self.feature(h)
             if use_dirs:

@@ -144,8 +144,7 @@ def main(argv: list[str]) -> None:
                 continue
             hurt = [(n, p) for n, p, _ in others if p < 10.0]
             docked_elsewhere += len(hurt)
-            later = ", ".join(f"{n} {p:g}" + (" (reference standing in)" if "standing in" in fb else "")
-                              for n, p, fb in others)
+            later = ", ".join(f"{n} {p:g}" for n, p, _ in others)
             print(f"  {m.exercise + ': ' + m.name:<62} own {own['points']:>5.2f}; others: {later}")
             sys.stdout.flush()
         print(f"  exercises docked for a mistake in another exercise: {docked_elsewhere}")

@@ -19,6 +19,7 @@ import os
 import re
 import resource
 import textwrap
+import time
 from pathlib import Path
 
 import nbformat
@@ -118,6 +119,21 @@ def hidden(tmp_path_factory):
     return prepare_hidden(kit_specs(NOTEBOOKS_DIR, only=["01"]), SEED, tmp_path_factory.mktemp("hidden14"))
 
 
+#: Every test of this file: its wall time, the grader's peak RSS after it (this process: the grader runs here) and
+#: the largest peak of a process it waited for (workers, sandboxes); printed by the last test (``ATTACK_TABLE=1``).
+MEASURED: list[tuple] = []
+
+
+@pytest.fixture(autouse=True)
+def measured(request):
+    t0, before = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    yield
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    MEASURED.append((request.node.name, f"{time.perf_counter() - t0:.1f}", f"{peak:.0f} (+{peak - before:.0f})",
+                     f"{children:.0f}"))
+
+
 def grade_eight_point(path: Path, hidden, timeout: float = 20.0) -> dict:
     report = grade_submission(path, notebooks=["01"], exercises=["eight_point"], hidden=hidden, timeout=timeout,
                               run_nbval=False)
@@ -188,17 +204,17 @@ def test_shape_alone_earns_nothing(tmp_path, hidden):
     assert g["points"] == 0, g
 
 
-def test_rebinding_a_check_by_import_alias_is_flagged_like_an_assignment(tmp_path, hidden):
-    for k, cell in enumerate(["from pprint import pprint as check_eight_point",
-                              "check_eight_point = print",
-                              "import pprint as check_eight_point",
-                              "for check_eight_point in [print]:\n    pass",
-                              "with open('x', 'w') as check_eight_point:\n    pass"]):
-        report = grade_submission(submission(tmp_path / f"s{k}", HONEST, extra_cell=cell), notebooks=["01"],
+def test_rebinding_a_check_in_the_notebook_is_no_offence_and_changes_nothing(tmp_path, hidden):
+    """The hidden checks run in the grader on the exercise's code alone: checks rebound in other cells (by assignment,
+    import alias, loop or ``with`` target) neither cost nor earn anything (the nbval share: test_40 below)."""
+    cells = ["from pprint import pprint as check_eight_point", "check_eight_point = print",
+             "import pprint as check_eight_point", "for check_eight_point in [print]:\n    pass",
+             "with open('x', 'w') as check_eight_point:\n    pass"]
+    for body, points in ((HONEST, 9), (EYE, 0)):
+        report = grade_submission(with_cells(tmp_path / f"s{points}", body, cells), notebooks=["01"],
                                   exercises=["eight_point"], hidden=hidden, run_nbval=False)
         (g,) = report["exercises"]
-        assert g["points"] == 0 and g["status"] == "tampered", (cell, g)
-        assert "rebinds check_eight_point" in g["feedback"][0], (cell, g["feedback"])
+        assert g["points"] == points and g["status"] in ("full", "zero"), g
 
 
 def test_honest_gets_full_hidden_marks_and_the_untouched_release_zero(tmp_path, hidden):
@@ -224,8 +240,6 @@ def test_attack_table(tmp_path, hidden, capsys, request):
         ("write outside the temporary folder", write_outside(tmp_path / "outside.txt"), None),
         ("looping exercise (limit 6 s)", LOOP, None),
         ("return np.eye(3)", EYE, None),
-        ("import alias rebinding a check", HONEST, "from pprint import pprint as check_eight_point"),
-        ("assignment rebinding a check", HONEST, "check_eight_point = print"),
     ]
     rows = []
     for k, (what, body, cell) in enumerate(attacks):
@@ -539,7 +553,8 @@ def pytest_runtest_makereport(item, call):
 
 def test_conftest_pytest_ini_and_shadowing_modules_are_not_loaded_by_nbval(tmp_path, hidden, outside):
     """Class 7: a conftest.py that makes every cell pass, a pytest.ini that loads the same as a plugin, and a
-    ``pytest.py`` next to the notebooks that would replace pytest: the untouched release still fails under nbval."""
+    ``pytest.py`` next to the notebooks that would replace pytest: none is loaded, and the untouched release earns
+    nothing."""
     sub = submission(tmp_path / "forge", None)
     nb_dir = sub / "notebooks"
     (nb_dir / "conftest.py").write_text(FORGE)
@@ -551,7 +566,7 @@ def test_conftest_pytest_ini_and_shadowing_modules_are_not_loaded_by_nbval(tmp_p
     unharmed(report)
     assert not (outside["home"] / "pwned.txt").exists()
     g = {x["name"]: x for x in report["exercises"]}
-    assert g["eight_point"]["points"] == 0 and g["eight_point"]["nbval"] == "fail", g["eight_point"]
+    assert g["eight_point"]["points"] == 0 and g["eight_point"]["nbval"] != "pass", g["eight_point"]
     assert g["normalize_points"]["points"] == 10 and g["normalize_points"]["nbval"] == "pass", g["normalize_points"]
 
 
@@ -813,9 +828,9 @@ def test_33_one_clock_for_call_backs_and_nbval(tmp_path, hidden, outside, monkey
     assert g["status"] == "timeout", (g["feedback"], g["hidden"])
     assert any("stopped after" in f and f"time limit of one exercise is {budget:g} s" in f for f in g["feedback"]), g
 
-    from course_lib.instructor import grade as grade_mod
+    from course_lib.instructor import grade_run
 
-    monkeypatch.setattr(grade_mod, "nbval_seconds", lambda cell_timeout: 20.0)
+    monkeypatch.setattr(grade_run, "nbval_seconds", lambda cell_timeout: 20.0)
     sleepy = ["import time\ntime.sleep(3)"] * 6
     sub = filled(tmp_path / "sleepy", NB01, {}, extra_cells=sleepy)
     report = grade01(sub, hidden, run_nbval=True, cell_timeout=2, exercises=["eight_point"])
@@ -1043,38 +1058,94 @@ def test_40_no_cgroup_no_grading_and_nothing_readable_left(tmp_path, hidden, out
     assert mode == (0o750 if os.getuid() == 0 else 0o700) and (os.getuid() != 0 or gid != 0), oct(mode)
 
 
-def test_40_the_nbval_kernel_runs_nothing_the_scans_did_not_read(tmp_path, hidden, outside):
-    """Class 2: an ``ipykernel_launcher.py`` beside the notebook (the kernel is ``python -m ipykernel_launcher`` in
-    that folder), an IPython start-up file and configuration where IPYTHONDIR and HOME used to be (inside the
-    submission), a module beside the notebook: none of them runs (each would end the kernel, and the check cell
-    passes); ``%run -i``, ``%%capture``, ``!cmd``, ``get_ipython()`` and ``import sys as s; s.stdout = ...`` are
-    named by the scan, which now reads the code IPython runs."""
-    before = rss_mib()
-    sub = submission(tmp_path / "shadow", HONEST)
+def with_cells(root: Path, body: str, cells: list[str]) -> Path:
+    """A submission of notebook 01 with ``body`` as eight_point and ``cells`` after its imports."""
+    sub = submission(root, body)
+    nb = nbformat.read(sub / "notebooks" / NB01, as_version=4)
+    nb.cells[3:3] = [nbformat.v4.new_code_cell(c) for c in cells]
+    nbformat.write(nb, sub / "notebooks" / NB01)
+    return sub
+
+
+def wrong_on_the_notebooks_case() -> str:
+    """An eight_point that is right on every case but the notebook's own first one, which it recognises: all hidden
+    checks pass, and the check cell's verdict in the notebook is not the reference's."""
+    from course_lib.paths import FIXTURES_DIR
+    import numpy as np
+
+    with np.load(FIXTURES_DIR / "fundamental.npz") as f:
+        u = float(f[f"ep_{f['cases'][0]}_x1"][0, 0])
+    return f"""
+    if abs(float(x1[0, 0]) - {u!r}) < 1e-9:
+        return np.eye(3)
+""" + HONEST
+
+
+#: What the kernel is made to print instead of the check cells' verdicts: four ways, none of them read by the grader.
+FORGERIES = [
+    "VERDICT = {verdict!r}\ncheck_eight_point = lambda fn: print(VERDICT, end='')",  # the check rebound
+    "import sys as s\n\nclass Forged:\n    def __init__(self, out):\n        self.out = out\n\n"
+    "    def write(self, text):\n        return self.out.write(text.replace('✘', '✔'))\n\n"
+    "    def __getattr__(self, name):\n        return getattr(self.out, name)\n\n\ns.stdout = Forged(s.stdout)",  # every ✘ printed as ✔
+    "%%capture hidden_output\nx = 1",
+    "get_ipython().events.register('post_run_cell', lambda result: None)",
+]
+
+
+def shadow_files(sub: Path) -> None:
+    """An ``ipykernel_launcher.py`` and kernel configuration beside the notebook (the kernel is ``python -m
+    ipykernel_launcher`` in that folder), IPython start-up files where IPYTHONDIR and HOME used to be (inside the
+    submission): each would end the kernel if it ran."""
     end = "import os\nos._exit(3)\n"
     (sub / "notebooks" / "ipykernel_launcher.py").write_text(end)
     (sub / "notebooks" / "ipython_kernel_config.py").write_text(end)
     for home in (sub / ".home", sub / "notebooks" / ".home"):
-        (home / "ipython" / "profile_default" / "startup").mkdir(parents=True)
-        (home / "ipython" / "profile_default" / "startup" / "00-filter.py").write_text(end)
-        (home / ".ipython" / "profile_default" / "startup").mkdir(parents=True)
-        (home / ".ipython" / "profile_default" / "startup" / "00-filter.py").write_text(end)
+        for ipython in (home / "ipython", home / ".ipython"):
+            (ipython / "profile_default" / "startup").mkdir(parents=True)
+            (ipython / "profile_default" / "startup" / "00-filter.py").write_text(end)
         (home / ".jupyter").mkdir()
         (home / ".jupyter" / "jupyter_config.py").write_text(end)
-    report = grade01(sub, hidden, run_nbval=True)
+
+
+def test_40_the_nbval_share_is_the_graders_verdict_not_what_the_kernel_prints(tmp_path, hidden, outside):
+    """Class 2: the check cell's verdict of the nbval share is computed by the grader (the check on the notebook's own
+    cases, the student's function in the sandbox), never read from what the kernel prints. An eight_point that is
+    wrong on the notebook's own case keeps its 9 points and does not get the 10th, however the notebook forges what
+    its check cell prints (the check rebound to print the reference verdict, ``sys.stdout`` replaced under another
+    name, ``%%capture``, IPython's events, start-up files and a kernel launcher in the submission); none of these is
+    an offence any more (they change nothing). An honest notebook with the same cells, start-up files and an honest
+    ``!pip install numpy`` gets full marks, the install left out with a neutral note."""
+    from course_lib.instructor.notebooks import kit_specs as specs_of
+
+    verdict = specs_of(NOTEBOOKS_DIR, only=["01"])[0].exercise("eight_point").verdict
+    before = rss_mib()
+    forged = with_cells(tmp_path / "forged", wrong_on_the_notebooks_case(),
+                        [FORGERIES[0].format(verdict=verdict)] + FORGERIES[1:])
+    shadow_files(forged)
+    report = grade01(forged, hidden, run_nbval=True)
     (g,) = report["exercises"]
-    ROWS40.append(("2 nbval kernel", "ipykernel_launcher.py, start-up files, kernel configuration in the submission",
-                   f"{g['points']:g} / {g['max_points']:g} (none ran)", g["status"], f"{report['seconds']:.1f}", "",
+    ROWS40.append(("2 nbval kernel", "eight_point wrong on the notebook's case; its check cell's output forged 4 ways "
+                   "(check rebound, sys.stdout as s.stdout, %%capture, events) + start-up files",
+                   f"{g['points']:g} / {g['max_points']:g} (hidden 9, share 0)", g["status"],
+                   f"{report['seconds']:.1f}", f"{g['hidden'].get('seconds', 0):g}",
                    f"{rss_mib():.0f} (+{rss_mib() - before:.0f})", "", "", f"nbval {g['nbval']}"))
-    assert g["nbval"] == "pass" and g["points"] == 10, g
-    for what, cell in (("%run -i of a file of the submission", "%run -i helper.py"),
-                       ("%%capture of the check cells' output", "%%capture out\nx = 1"),
-                       ("a shell command", "!cp /dev/null x"),
-                       ("get_ipython() hooks", "get_ipython().events.register('post_run_cell', print)"),
-                       ("import sys as s; s.stdout = ...", "import sys as s\ns.stdout = s.stderr")):
-        report = grade01(submission(tmp_path / what.split()[0].strip("%!"), HONEST, extra_cell=cell), hidden)
-        g = graded_row(what, report, "eight_point", before, "2 nbval kernel", ROWS40)
-        assert g["status"] == "tampered", (what, g)
+    assert g["status"] == "full" and g["points"] == 9 and g["nbval"] == "fail", g
+    assert any("does not print the reference verdict" in f for f in g["feedback"]), g["feedback"]
+
+    honest = with_cells(tmp_path / "honest", HONEST, ["!pip install numpy", "%pip install --quiet scipy"]
+                        + FORGERIES[1:])
+    shadow_files(honest)
+    report = grade01(honest, hidden, run_nbval=True)
+    (g,) = report["exercises"]
+    ROWS40.append(("2 nbval kernel", "honest, with the same cells, start-up files and !pip install numpy",
+                   f"{g['points']:g} / {g['max_points']:g} (honest)", g["status"], f"{report['seconds']:.1f}",
+                   f"{g['hidden'].get('seconds', 0):g}", f"{rss_mib():.0f} (+{rss_mib() - before:.0f})", "", "",
+                   f"nbval {g['nbval']}"))
+    assert g["points"] == 10 and g["nbval"] == "pass", g
+    (nb,) = report["notebooks"]
+    assert len(nb["notes"]) == 2 and all("left out when the grader ran the notebook" in n for n in nb["notes"]), nb
+    md = to_markdown(report)
+    assert "!pip install numpy" in md and "tamper" not in md and "Total: 10 / 10" in md, md
 
 
 def find_the_reference(*folders: str) -> str:
@@ -1197,3 +1268,13 @@ def test_40_attack_table(request, capsys):
         show_table(request, "Issue 40: the grader's own work bounded, the nbval kernel sealed",
                    ["class", "attack", "points", "status", "grading s", "exercise s", "grader peak RSS MiB (+growth)",
                     "worker growth MiB", "exercise cgroup peak MiB", "feedback"], ROWS40)
+
+
+def test_every_attack_test_timed_and_its_memory(request, capsys):
+    """The last table (``ATTACK_TABLE=1``): each test of this file, its wall time and the grader's peak memory."""
+    if len(MEASURED) < 2:
+        pytest.skip("run with the tests above")
+    with capsys.disabled():
+        show_table(request, "Every attack test: wall time and the grader's peak memory",
+                   ["test", "wall s", "grader peak RSS MiB (+growth in the test)", "largest child peak RSS MiB (so far)"],
+                   MEASURED)

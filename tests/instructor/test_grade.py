@@ -249,12 +249,14 @@ def test_verdict_printed_by_hand_gets_nothing(tmp_path, hidden):
     report = grade(write_submission(tmp_path, nbs), hidden)
     g = by_name(report)
     assert g["eight_point"]["points"] == 0 and g["eight_point"]["status"] == "check-edited"
-    assert any("prints a check verdict by hand" in f for f in g["eight_point"]["feedback"]), g["eight_point"]
+    assert "the check cell of eight_point was edited" in g["eight_point"]["feedback"][0], g["eight_point"]
     assert g["normalize_points"]["points"] == 9  # only the edited check loses its credit
 
 
-def test_monkeypatched_checks_get_nothing(tmp_path, hidden):
-    nbs = solved()
+def test_checks_patched_in_the_notebook_change_nothing(tmp_path, hidden):
+    """A cell that makes every check pass in the notebook's kernel: the hidden checks run in the grader, so a wrong
+    eight_point still fails them (the nbval share's verdict is the grader's too: tests/instructor/test_attacks.py)."""
+    nbs = solved(bodies={"eight_point": "return np.eye(3)"})
     patch = nbformat.v4.new_code_cell(
         "import course_lib.checks.core as core\n"
         "_expect = core.Check.expect\n"
@@ -262,10 +264,7 @@ def test_monkeypatched_checks_get_nothing(tmp_path, hidden):
     nbs[NB01].cells.insert(2, patch)
     report = grade(write_submission(tmp_path, nbs), hidden)
     for g in report["exercises"]:
-        if g["notebook"] == NB01:
-            assert g["points"] == 0 and g["status"] == "tampered" and "tampers with the checks" in g["feedback"][0], g
-        else:
-            assert g["points"] == 9
+        assert g["points"] == (0 if g["name"] == "eight_point" else 9), g
     # a patch hidden inside the exercise function itself is flagged too
     body = textwrap.dedent(SOLUTIONS["normalize_points"]) + "\nimport course_lib.checks.core as c\nc.RESULTS.clear()\n"
     report = grade(write_submission(tmp_path / "inner", solved(bodies={"normalize_points": body})), hidden)
@@ -311,10 +310,10 @@ def test_deleted_and_reordered_cells_are_reported(tmp_path, hidden):
 
 def test_missing_notebook_and_cli_reports(tmp_path, hidden, monkeypatch):
     from course_lib.__main__ import main
-    from course_lib.instructor import grade as grade_mod
+    from course_lib.instructor import grade_plan
 
     write_submission(tmp_path / "sub", {NB01: released(NB01)})
-    monkeypatch.setattr(grade_mod, "prepare_hidden", lambda *a, **k: hidden)
+    monkeypatch.setattr(grade_plan, "prepare_hidden", lambda *a, **k: hidden)
     rc = main(["grade", str(tmp_path / "sub"), "--notebooks", "01", "02", "--no-nbval", "--json",
                str(tmp_path / "r.json"), "--markdown", str(tmp_path / "f.md")])
     assert rc == 0

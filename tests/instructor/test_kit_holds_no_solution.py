@@ -73,7 +73,7 @@ def accepts(obj, n_args, is_class):
 LIMIT = 10.0  # seconds for one candidate, killed after (a long C call ignores SIGALRM)
 
 
-def score_of(check, obj, name):
+def start(check, obj, name):
     # the check of exercise ``name`` on ``obj`` in a forked child: a candidate that loops, blows up or hangs in C
     # code costs LIMIT seconds at most, and nothing it changes reaches the next candidate
     r, w = os.pipe()
@@ -95,14 +95,10 @@ def score_of(check, obj, name):
         os.write(w, repr(float(s)).encode())
         os._exit(0)
     os.close(w)
-    end = time.monotonic() + LIMIT
-    while time.monotonic() < end:
-        if os.waitpid(pid, os.WNOHANG)[0]:
-            break
-        time.sleep(0.005)
-    else:
-        os.kill(pid, signal.SIGKILL)
-        os.waitpid(pid, 0)
+    return pid, r, time.monotonic() + LIMIT
+
+
+def score(r):
     data = os.read(r, 64)
     os.close(r)
     try:
@@ -111,17 +107,29 @@ def score_of(check, obj, name):
         return 0.0
 
 
-best = {}
+jobs = []  # (exercise, candidate's name, check, candidate): one child each, as many at once as there are cores
 for ex in exercises:
     check = getattr(importlib.import_module(ex["check_module"]), ex["check_function"])
-    top = (0.0, None)
-    for qual, obj in objs.items():
-        if not accepts(obj, ex["n_args"], ex["is_class"]):
-            continue
-        s = score_of(check, obj, ex["name"])
-        if s > top[0]:
-            top = (s, qual)
-    best[ex["name"]] = top
+    jobs += [(ex["name"], qual, check, obj) for qual, obj in objs.items()
+             if accepts(obj, ex["n_args"], ex["is_class"])]
+best = {ex["name"]: (0.0, None) for ex in exercises}
+running = {}
+while jobs or running:
+    while jobs and len(running) < (os.cpu_count() or 1):
+        name, qual, check, obj = jobs.pop(0)
+        pid, r, end = start(check, obj, name)
+        running[pid] = (r, end, name, qual)
+    for pid, (r, end, name, qual) in list(running.items()):
+        if not os.waitpid(pid, os.WNOHANG)[0]:
+            if time.monotonic() < end:
+                continue
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+        del running[pid]
+        s = score(r)
+        if s > best[name][0]:
+            best[name] = (s, qual)
+    time.sleep(0.005)
 print(json.dumps(best))
 """
 

@@ -245,31 +245,8 @@ def decode(tree, arrays: list, callback=None, module_proxy=None):
 
         t = torch.from_numpy(_array(arrays, tree.get("a")).copy())
         return t.requires_grad_(True) if tree.get("grad") and t.is_floating_point() else t
-    if kind == "rng":
-        np = lazy_numpy()
-        state = sub(tree["s"])
-        if not isinstance(state, dict):
-            raise WireError("malformed generator state")
-        bg = getattr(np.random, ident(state.get("bit_generator", "PCG64"), "PCG64"), None)
-        if bg is None or not isinstance(bg, type) or not issubclass(bg, np.random.BitGenerator):
-            raise WireError("unknown bit generator")
-        gen = bg()
-        gen.state = _checked_state(state, gen.state, bg.__name__)
-        return np.random.Generator(gen)
-    if kind == "tgen":
-        np = lazy_numpy()
-        import torch
-
-        g = torch.Generator()
-        a = _array(arrays, tree.get("a"))
-        if a.dtype != np.uint8 or a.shape != tuple(g.get_state().shape):
-            raise WireError(f"malformed torch generator state (an array of {a.dtype} {a.shape}; a torch.Generator's "
-                            f"state is uint8 {tuple(g.get_state().shape)})")
-        try:
-            g.set_state(torch.from_numpy(a.copy()))
-        except (RuntimeError, ValueError) as exc:
-            raise WireError(f"malformed torch generator state ({str(exc)[:200]})") from None
-        return g
+    if kind in ("rng", "tgen"):
+        return _generator(kind, tree, arrays, sub)
     if kind == "ntuple":
         t = _ntuple_type(ident(tree["n"]), tuple(ident(f, "field") for f in _items(tree["f"])))
         vals = [sub(v) for v in _items(tree["v"])]
@@ -285,18 +262,7 @@ def decode(tree, arrays: list, callback=None, module_proxy=None):
             raise WireError("malformed record")
         return _record_type(ident(tree["n"]))(**{ident(k, "field"): sub(v) for k, v in tree["f"].items()})
     if kind == "sparse":
-        import scipy.sparse as sp
-
-        k = tree.get("a")
-        row, col, data = (_array(arrays, k + i if type(k) is int else None) for i in range(3))
-        shape = _sparse_shape(tree)
-        if not (len(row) == len(col) == len(data)):
-            raise WireError("malformed sparse matrix (its index and value arrays differ in length)")
-        if len(row) and (row.min() < 0 or col.min() < 0 or row.max() >= shape[0] or col.max() >= shape[1]):
-            raise WireError("malformed sparse matrix (an index outside its shape)")
-        m = (sp.coo_array if tree.get("array") else sp.coo_matrix)((data, (row, col)), shape=shape)
-        fmt = ident(tree.get("fmt", "coo"), "coo")
-        return m.asformat(fmt) if fmt in ("csr", "csc", "coo", "lil", "dok", "bsr") else m
+        return _sparse(tree, arrays)
     if kind == "cb":
         if callback is None:
             raise WireError("a callback where none is expected")
@@ -306,6 +272,49 @@ def decode(tree, arrays: list, callback=None, module_proxy=None):
             raise WireError("an object handle where none is expected")
         return module_proxy(tree, arrays)
     raise WireError(f"unknown value kind {str(kind)[:40]!r}")
+
+
+def _generator(kind: str, tree: dict, arrays: list, sub):
+    """A numpy (``"rng"``) or torch (``"tgen"``) generator from its checked state."""
+    np = lazy_numpy()
+    if kind == "rng":
+        state = sub(tree["s"])
+        if not isinstance(state, dict):
+            raise WireError("malformed generator state")
+        bg = getattr(np.random, ident(state.get("bit_generator", "PCG64"), "PCG64"), None)
+        if bg is None or not isinstance(bg, type) or not issubclass(bg, np.random.BitGenerator):
+            raise WireError("unknown bit generator")
+        gen = bg()
+        gen.state = _checked_state(state, gen.state, bg.__name__)
+        return np.random.Generator(gen)
+    import torch
+
+    g = torch.Generator()
+    a = _array(arrays, tree.get("a"))
+    if a.dtype != np.uint8 or a.shape != tuple(g.get_state().shape):
+        raise WireError(f"malformed torch generator state (an array of {a.dtype} {a.shape}; a torch.Generator's "
+                        f"state is uint8 {tuple(g.get_state().shape)})")
+    try:
+        g.set_state(torch.from_numpy(a.copy()))
+    except (RuntimeError, ValueError) as exc:
+        raise WireError(f"malformed torch generator state ({str(exc)[:200]})") from None
+    return g
+
+
+def _sparse(tree: dict, arrays: list):
+    """A scipy sparse matrix (or array) from its checked COO parts."""
+    import scipy.sparse as sp
+
+    k = tree.get("a")
+    row, col, data = (_array(arrays, k + i if type(k) is int else None) for i in range(3))
+    shape = _sparse_shape(tree)
+    if not (len(row) == len(col) == len(data)):
+        raise WireError("malformed sparse matrix (its index and value arrays differ in length)")
+    if len(row) and (row.min() < 0 or col.min() < 0 or row.max() >= shape[0] or col.max() >= shape[1]):
+        raise WireError("malformed sparse matrix (an index outside its shape)")
+    m = (sp.coo_array if tree.get("array") else sp.coo_matrix)((data, (row, col)), shape=shape)
+    fmt = ident(tree.get("fmt", "coo"), "coo")
+    return m.asformat(fmt) if fmt in ("csr", "csc", "coo", "lil", "dok", "bsr") else m
 
 
 def _items(v) -> list:

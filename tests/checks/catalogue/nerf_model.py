@@ -27,7 +27,7 @@ class NeRF(nn.Module):
 
     def __init__(self, depth=8, width=256, skips=(4,), pos_freqs=10, dir_freqs=4, use_viewdirs=True, view_width=128):
         super().__init__()
-        self.skips, self.pos_freqs, self.dir_freqs = skips, pos_freqs, dir_freqs
+        self.skips, self.pos_freqs, self.dir_freqs, self.use_viewdirs = skips, pos_freqs, dir_freqs, use_viewdirs
         n_pos, n_dir = 3 + 6 * pos_freqs, 3 + 6 * dir_freqs
         trunk, n_in = [], n_pos
         for i in range(depth):
@@ -35,6 +35,9 @@ class NeRF(nn.Module):
             n_in = width + n_pos if i in skips else width
         self.trunk = nn.ModuleList(trunk)
         self.sigma_head = nn.Linear(n_in, 1)
+        if not use_viewdirs:
+            self.rgb_head = nn.Linear(n_in, 3)
+            return
         self.feature = nn.Linear(n_in, width)
         self.view_layer = nn.Linear(width + n_dir, view_width)
         self.rgb_head = nn.Linear(view_width, 3)
@@ -47,6 +50,8 @@ class NeRF(nn.Module):
             if i in self.skips:
                 h = torch.cat([x, h], dim=-1)
         sigma = torch.relu(self.sigma_head(h)).squeeze(-1)
+        if not self.use_viewdirs:
+            return torch.sigmoid(self.rgb_head(h)), sigma
         d = positional_encoding(viewdirs, self.dir_freqs)
         v = torch.relu(self.view_layer(torch.cat([self.feature(h), d], dim=-1)))
         return torch.sigmoid(self.rgb_head(v)), sigma
@@ -57,13 +62,14 @@ class NeRF__heads_first_other_orders(nn.Module):
 
     def __init__(self, depth=8, width=256, skips=(4,), pos_freqs=10, dir_freqs=4, use_viewdirs=True, view_width=128):
         super().__init__()
-        self.cfg = dict(skips=set(skips), Lx=pos_freqs, Ld=dir_freqs)
+        self.cfg = dict(skips=set(skips), Lx=pos_freqs, Ld=dir_freqs, views=use_viewdirs)
         enc_x, enc_d = 3 * (1 + 2 * pos_freqs), 3 * (1 + 2 * dir_freqs)
         last_in = width + enc_x if depth - 1 in skips else width
         self.density = nn.Linear(last_in, 1)
-        self.feat = nn.Linear(last_in, width)
-        self.views = nn.Sequential(nn.Linear(enc_d + width, view_width), nn.ReLU())
-        self.color = nn.Linear(view_width, 3)
+        if use_viewdirs:
+            self.feat = nn.Linear(last_in, width)
+            self.views = nn.Sequential(nn.Linear(enc_d + width, view_width), nn.ReLU())
+        self.color = nn.Linear(view_width if use_viewdirs else last_in, 3)
         sizes = [enc_x] + [width + (enc_x if i in skips else 0) for i in range(depth - 1)]
         self.layers = nn.ModuleList(nn.Linear(n, width) for n in sizes)
 
@@ -74,6 +80,8 @@ class NeRF__heads_first_other_orders(nn.Module):
             h = F.relu(lin(h))
             h = torch.cat((h, gx), -1) if i in self.cfg["skips"] else h
         sigma = F.relu(self.density(h))[..., 0]
+        if not self.cfg["views"]:
+            return torch.sigmoid(self.color(h)), sigma
         rgb = torch.sigmoid(self.color(self.views(torch.cat((positional_encoding(viewdirs, self.cfg["Ld"]),
                                                                  self.feat(h)), -1))))
         return rgb, sigma
@@ -105,7 +113,7 @@ def _variant(density="relu", skip="encoded", trunk_relu=True, feature_relu=False
             elif skip == "raw":
                 self.trunk = nn.ModuleList(nn.Linear(3 + 6 * pos_freqs if i == 0 else width + (3 if i - 1 in skips
                                                      else 0), width) for i in range(depth))
-            if not use_dirs:
+            if not use_dirs and use_viewdirs:
                 self.view_layer = nn.Linear(width, view_width)
 
         def forward(self, pts, viewdirs):
@@ -118,6 +126,8 @@ def _variant(density="relu", skip="encoded", trunk_relu=True, feature_relu=False
             raw = self.sigma_head(h)[..., 0]
             sigma = {"relu": torch.relu, "sigmoid": torch.sigmoid, "none": lambda r: r, "softplus": F.softplus,
                      "exp": torch.exp}[density](raw)
+            if not self.use_viewdirs:  # the one documented branch without the view: as the plain NeRF
+                return torch.sigmoid(self.rgb_head(h)), torch.relu(raw)
             feat = torch.relu(self.feature(h)) if feature_relu else self.feature(h)
             d = positional_encoding(viewdirs, self.dir_freqs)
             v = torch.relu(self.view_layer(torch.cat([feat, d], dim=-1) if use_dirs else feat))
@@ -227,6 +237,8 @@ class NeRF_viewdirs_in_trunk(NeRF):
         self.sigma_head = nn.Linear(n_in, 1)
         self.feature = nn.Linear(n_in, width)
         self.view_layer = nn.Linear(width, view_width)
+        if not use_viewdirs:
+            self.rgb_head = nn.Linear(n_in, 3)
 
     def forward(self, pts, viewdirs):
         x = torch.cat([positional_encoding(pts, self.pos_freqs), positional_encoding(viewdirs, self.dir_freqs)], -1)
@@ -236,6 +248,8 @@ class NeRF_viewdirs_in_trunk(NeRF):
             if i in self.skips:
                 h = torch.cat([x, h], -1)
         sigma = torch.relu(self.sigma_head(h)).squeeze(-1)
+        if not self.use_viewdirs:
+            return torch.sigmoid(self.rgb_head(h)), sigma
         rgb = torch.sigmoid(self.rgb_head(torch.relu(self.view_layer(self.feature(h)))))
         return rgb, sigma
 
@@ -248,6 +262,8 @@ class NeRF_density_after_feature(NeRF):
         self.sigma_head = nn.Linear(width, 1)
 
     def forward(self, pts, viewdirs):
+        if not self.use_viewdirs:  # as documented; the mistake is in the view branch
+            return super().forward(pts, viewdirs)
         x = positional_encoding(pts, self.pos_freqs)
         h = x
         for i, layer in enumerate(self.trunk):
@@ -275,6 +291,8 @@ class NeRF_raw_viewdirs(NeRF):
         self.view_layer = nn.Linear(width + 3, view_width)
 
     def forward(self, pts, viewdirs):
+        if not self.use_viewdirs:  # as documented; the mistake is in the view branch
+            return super().forward(pts, viewdirs)
         x = positional_encoding(pts, self.pos_freqs)
         h = x
         for i, layer in enumerate(self.trunk):

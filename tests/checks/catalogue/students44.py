@@ -1,6 +1,7 @@
 """Mistakes written as students write them, from the released stubs and docstrings only, before reading the checks.
 
-Written for issue 44 (batch ``"44"``): 44 first attempts across every exercise, each a plausible slip of a
+Written for issue 44 (batch ``"44"``): 44 first attempts across every exercise (one of them, the visibility
+matrix tested with u or v, judged correct by hand and kept in ``HONEST``), each a plausible slip of a
 student who read the notebook's text, not a mistake chosen because a check names it. Earlier exercises
 are called through the reference (as the grader's hidden checks feed every exercise the reference's
 earlier steps). :mod:`tests.checks.test_mistakes` requires each to be caught and never confidently
@@ -32,7 +33,7 @@ from course_lib.sfm import essential as res
 from course_lib.sfm import fundamental as rfu
 from course_lib.sfm import pnp as rpn
 from course_lib.sfm import triangulation as rtr
-from tests.checks.catalogue import Mistake, _h, _torch
+from tests.checks.catalogue import Honest, Mistake, _h, _torch
 
 # ============================================================================ 01: the fundamental matrix
 
@@ -304,6 +305,9 @@ def pnp_nonlinear_max_nfev_3(X, x, K, R_cw, t_cw):  # stops the optimiser early 
 
 
 def visibility_isfinite_any(track_uv):  # seen where u OR v is a number
+    """Judged by hand: no mistake. The stub's track_uv holds NaN in both u and v where a point is not seen (the kit's
+    loaders refuse one NaN coordinate), so "u or v is a number" and "u and v are numbers" are the same test; it is
+    graded as a valid variant (HONEST below), not as a mistake."""
     return np.isfinite(track_uv).any(axis=-1)
 
 
@@ -538,8 +542,6 @@ MISTAKES = [
     _m("pnp_nonlinear", "mixed Euler convention", gpn.check_pnp_nonlinear, pnp_nonlinear_mixed_euler, ("euler",)),
     _m("pnp_nonlinear", "optimiser stopped after 3 evaluations", gpn.check_pnp_nonlinear, pnp_nonlinear_max_nfev_3,
        ("max_nfev",)),
-    _m("visibility_matrix", "seen where u or v is a number", gba.check_visibility_matrix, visibility_isfinite_any,
-       ("both",)),
     _m("reprojection_residuals", "rotation vector read as Euler angles", gba.check_reprojection_residuals,
        residuals_mixed_euler, ("rotation vector",)),
     _m("reprojection_residuals", "one distance per observation, repeated", gba.check_reprojection_residuals,
@@ -567,4 +569,10 @@ MISTAKES = [
        ("white_background",)),
     _m("volume_render", "depth as the mean of z_vals", gnr.check_volume_render, render_depth_unweighted_mean,
        ("weights",)),
+]
+
+#: Attempts of this batch that turned out correct when judged by hand: they must score full marks.
+HONEST = [
+    Honest("visibility_matrix", "seen where u or v is a number (NaN comes in both or neither)",
+           gba.check_visibility_matrix, visibility_isfinite_any),
 ]

@@ -1,0 +1,61 @@
+"""The grid's schedule (course_lib.nerf.schedule): the batch tuner solves a step's cost for its two parts."""
+
+from dataclasses import dataclass, field
+from types import SimpleNamespace
+
+from course_lib.nerf.presets import preset, resolve
+from course_lib.nerf.schedule import BatchTuner
+
+
+@dataclass
+class _State:
+    config: object
+    step: int = 0
+    progress: float = 0.5
+    history: dict = field(default_factory=lambda: {"iterations": [], "seconds": []})
+
+
+def _run(a: float, g: float, adapt: float = 1.4, steps: int = 80, sh_at: int | None = None):
+    """Steps whose time is ``a * batch + g`` (+ an occupancy refresh every 50 steps), through a tuner."""
+    cfg = resolve(preset("fast", adapt_batch=adapt, batch_rays=4096, grid_resolution=100), 200, 200)
+    model = SimpleNamespace(resolution=100, sh_degree=0)
+    st, tuner, clock = _State(cfg), BatchTuner(model, cfg), 0.0
+    batches = []
+    for step in range(1, steps + 1):
+        clock += a * st.config.batch_rays + g + (0.5 if step % 50 == 0 else 0.0)
+        st.step = step
+        st.history["iterations"].append(step)
+        st.history["seconds"].append(clock)
+        if sh_at is not None and step == sh_at:
+            model.sh_degree = 1
+        if tuner.due(st):
+            tuner.run(st)
+        batches.append(st.config.batch_rays)
+    return st, batches
+
+
+def test_the_batch_makes_the_rays_part_the_chosen_multiple_of_the_grids():
+    st, batches = _run(a=1e-5, g=0.02)  # building-like: B = 1.4 g / a = 2800 -> 2816 (a multiple of 256)
+    assert 2048 in batches  # it measured at half the batch
+    assert st.config.batch_rays == 2816
+    _, a, g, new = st.history["batch_changes"][0]
+    assert abs(a - 1e-5) < 1e-9 and abs(g - 0.02) < 1e-6 and new == 2816
+
+
+def test_a_costly_scene_gets_a_smaller_batch_a_sparse_one_a_larger():
+    costly, _ = _run(a=4e-5, g=0.02)  # 1.4 g / a = 700 -> the floor, 1024 rays
+    sparse, _ = _run(a=2e-6, g=0.02)  # 14000 -> at most twice the configured batch
+    assert costly.config.batch_rays == 1024 and sparse.config.batch_rays == 8192
+
+
+def test_no_clear_measurement_keeps_the_batch_and_a_new_colour_model_is_measured_again():
+    st, _ = _run(a=0.0, g=0.02)  # the batch costs nothing measurable: keep it
+    assert st.config.batch_rays == 4096
+    st, _ = _run(a=1e-5, g=0.02, steps=200, sh_at=100)
+    assert len(st.history["batch_changes"]) == 2
+
+
+def test_off_by_default_outside_the_fast_preset():
+    cfg = resolve(preset("fast", adapt_batch=0.0), 100, 100)
+    st = _State(cfg)
+    assert not BatchTuner(SimpleNamespace(resolution=10**6, sh_degree=0), cfg).due(st)
