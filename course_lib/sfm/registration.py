@@ -15,6 +15,7 @@ import numpy as np
 from course_lib.conventions import invert_pose
 from course_lib.exercises import call
 from course_lib.sfm.observations import ObservationManager
+from course_lib.sfm.pnp import pnp_reprojection_errors
 from course_lib.sfm.structureless import pair_sampson, pose_from_partners, refine_on_partners
 from course_lib.validate import KitInputError
 
@@ -138,7 +139,42 @@ class ImageRegistration(ObservationManager):
         if inl.sum() < o.min_pnp_inlier_ratio * len(js):
             return None, (f"too small a share of PnP inliers: {int(inl.sum())} of {len(js)} 2D-3D matches within "
                           f"{o.pnp_threshold_px} px, need {o.min_pnp_inlier_ratio:.0%} (look-alike texture?)")
-        self.R[i], self.t[i] = call("pnp_nonlinear", self.X[js[inl]], self.uv[js[inl], i], self.K, res.R_cw, res.t_cw)
+        X, uv = self.X[js], self.uv[js, i]
+        R, t = call("pnp_nonlinear", X[inl], uv[inl], self.K, res.R_cw, res.t_cw)
+        R, t, inl, second = self._second_opinion(X, uv, inl, R, t)
+        self.R[i], self.t[i] = R, t
         self.registered[i] = True
         self.candidate[js[~inl], i] = False
-        return {"correspondences": int(len(js)), "pnp_inliers": int(inl.sum()), "ransac_iterations": int(res.n_iters)}, None
+        return {"correspondences": int(len(js)), "pnp_inliers": int(inl.sum()), "ransac_iterations": int(res.n_iters),
+                "pnp_median_px": round(float(np.median(pnp_reprojection_errors(X[inl], uv[inl], self.K, R, t))), 3),
+                **second}, None
+
+    def _second_opinion(self, X: np.ndarray, uv: np.ndarray, inl: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple:
+        """The pose of PnP RANSAC against a second start, the one of lower robust error kept: ``(R, t, inliers, info)``.
+
+        A narrow field of view over a nearly flat part of the scene makes two poses explain the
+        points almost equally (the flip of a shallow scene: the rendered ring at twice the guessed
+        focal length registered one view 29 degrees off at a median error of 0.96 px, where the right
+        pose has a third of it), and RANSAC's linear start may land in the wrong one. OpenCV's
+        SQPnP (a global minimum over all rotations) on the inliers gives the second start; both are
+        refined (non-linear PnP), scored on all ``(N,)`` 2D-3D matches (inliers within
+        ``pnp_threshold_px``, then the truncated error), and the better kept (``info`` says where it was
+        the second one).
+        """
+        import cv2
+
+        thr = self.opts.pnp_threshold_px
+
+        def score(R_, t_):
+            e = np.minimum(pnp_reprojection_errors(X, uv, self.K, R_, t_), thr)
+            return int((e < thr).sum()), -float(np.sum(e**2))
+
+        ok, rvec, tvec = cv2.solvePnP(X[inl], uv[inl], self.K, None, flags=cv2.SOLVEPNP_SQPNP)
+        if not ok:
+            return R, t, inl, {}
+        R2, t2 = call("pnp_nonlinear", X[inl], uv[inl], self.K, cv2.Rodrigues(rvec)[0], tvec.ravel())
+        if score(R2, t2) <= score(R, t):
+            return R, t, inl, {}
+        turn = np.degrees(np.arccos(np.clip((np.trace(R2 @ R.T) - 1) / 2, -1, 1)))
+        info = {"second_start_deg": round(float(turn), 2)} if turn >= 0.5 else {}
+        return R2, t2, pnp_reprojection_errors(X, uv, self.K, R2, t2) < thr, info
