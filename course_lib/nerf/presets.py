@@ -19,7 +19,9 @@
     fog of voxels whose opacity stays below 1 %); colours only where the weight is > 1e-4; a
     small density total-variation prior (its gradient written out); fused Adam at a high
     learning rate (0.1 decaying to 0.01) on batches that grow with the grid (:func:`auto_batch_rays`:
-    2048 rays at 100 voxels, 6144 at 200). Colour is an RGB grid
+    2048 rays at 100 voxels, 6144 at 200), then, in a run with a time budget, follow the measured cost of a
+    step once the grid is final (``adapt_batch``, :class:`course_lib.nerf.schedule.BatchTuner`: smaller
+    batches and more steps where the rays are costly, e.g. an object that fills the frame). Colour is an RGB grid
     (view-independent, cheap steps) for the first 45 % of the run, then spherical harmonics of
     degree 1 (view-dependent, for shiny surfaces; 4x the colour channels; notebook 09's 7b).
     Every stage is a fraction of the run (of ``minutes``, else of ``iters``), so short and long
@@ -224,7 +226,8 @@ PRESETS: dict[str, TrainConfig] = {
         preset="fast", model="grid", grid_resolution=0, grid_schedule=((0.0, 0.4), (0.06, 0.8), (0.15, 1.0)),
         shrink_box_at=0.06, grid_mlp_width=0, alpha_init=1e-2, n_samples=0, color_threshold=1e-4,
         grid_sh_degree=1, grid_sh_start=0.45,
-        occupancy_every=50, occupancy_start=0.03, occupancy_threshold=1e-2, batch_rays=0, lr=1e-3, lr_final=1e-4,
+        occupancy_every=50, occupancy_start=0.03, occupancy_threshold=1e-2, batch_rays=0, adapt_batch=1.4,
+        lr=1e-3, lr_final=1e-4,
         grid_lr=0.1, grid_lr_final=0.01, tv_weight=1e-4, snapshot_every=100, checkpoint_every=200,
         checkpoint_seconds=60.0, eval_every=0,
     ),

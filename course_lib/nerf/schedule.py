@@ -108,7 +108,9 @@ class BatchTuner:
     and ``g`` (medians of the step times, robust to the occupancy refreshes between them) and sets
     ``B = adapt_batch * g / a`` -- the rays' part of a step ``adapt_batch`` times the grid's --
     within ``[B / 4, 2 B]``, at least 1024 rays, a multiple of 256. Without a clear measurement
-    (``a`` or ``g`` not positive: a noisy machine) it keeps the batch.
+    (``a`` or ``g`` not positive: a noisy machine) it keeps the batch. It runs only with a time
+    budget (``cfg.minutes``): there the number of steps depends on the clock anyway, while a run of
+    a fixed number of steps stays reproducible.
 
     ``changes`` records ``(step, a, g, new batch)`` (``metrics.json``'s ``history["batch_changes"]``).
     """
@@ -120,7 +122,8 @@ class BatchTuner:
         self.phase, self.start, self.t_full = None, 0, None
 
     def due(self, st) -> bool:
-        return bool(self.cfg.adapt_batch) and st.progress >= max(self.final_at, self.cfg.shrink_box_at) and (
+        # only with a time budget: a run of a fixed number of steps stays reproducible (no batch from a clock)
+        return bool(self.cfg.adapt_batch and self.cfg.minutes) and st.progress >= max(self.final_at, self.cfg.shrink_box_at) and (
             self.model.resolution >= target_resolution(self.cfg, st.progress))
 
     @staticmethod

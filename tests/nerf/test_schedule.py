@@ -17,7 +17,7 @@ class _State:
 
 def _run(a: float, g: float, adapt: float = 1.4, steps: int = 80, sh_at: int | None = None):
     """Steps whose time is ``a * batch + g`` (+ an occupancy refresh every 50 steps), through a tuner."""
-    cfg = resolve(preset("fast", adapt_batch=adapt, batch_rays=4096, grid_resolution=100), 200, 200)
+    cfg = resolve(preset("fast", adapt_batch=adapt, batch_rays=4096, grid_resolution=100, minutes=5), 200, 200)
     model = SimpleNamespace(resolution=100, sh_degree=0)
     st, tuner, clock = _State(cfg), BatchTuner(model, cfg), 0.0
     batches = []
@@ -55,7 +55,8 @@ def test_no_clear_measurement_keeps_the_batch_and_a_new_colour_model_is_measured
     assert len(st.history["batch_changes"]) == 2
 
 
-def test_off_by_default_outside_the_fast_preset():
-    cfg = resolve(preset("fast", adapt_batch=0.0), 100, 100)
-    st = _State(cfg)
-    assert not BatchTuner(SimpleNamespace(resolution=10**6, sh_degree=0), cfg).due(st)
+def test_off_without_a_time_budget_or_when_set_to_zero():
+    model = SimpleNamespace(resolution=10**6, sh_degree=0)
+    assert BatchTuner(model, resolve(preset("fast"), 100, 100)).due(_State(None))  # the preset's: on, 5 minutes
+    for cfg in (resolve(preset("fast", adapt_batch=0.0), 100, 100), resolve(preset("fast", minutes=0, iters=500), 100, 100)):
+        assert not BatchTuner(model, cfg).due(_State(cfg))  # a run of a fixed number of steps stays reproducible
