@@ -15,7 +15,7 @@ import numpy as np
 from course_lib.conventions import invert_pose
 from course_lib.exercises import call
 from course_lib.sfm.observations import ObservationManager
-from course_lib.sfm.pnp import pnp_reprojection_errors
+from course_lib.sfm.reconstruction import reprojection_error_matrix
 from course_lib.sfm.structureless import pair_sampson, pose_from_partners, refine_on_partners
 from course_lib.validate import KitInputError
 
@@ -146,7 +146,7 @@ class ImageRegistration(ObservationManager):
         self.registered[i] = True
         self.candidate[js[~inl], i] = False
         return {"correspondences": int(len(js)), "pnp_inliers": int(inl.sum()), "ransac_iterations": int(res.n_iters),
-                "pnp_median_px": round(float(np.median(pnp_reprojection_errors(X[inl], uv[inl], self.K, R, t))), 3),
+                "pnp_median_px": round(float(np.median(_errors(X[inl], uv[inl], self.K, R, t))), 3),
                 **second}, None
 
     def _second_opinion(self, X: np.ndarray, uv: np.ndarray, inl: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple:
@@ -166,7 +166,7 @@ class ImageRegistration(ObservationManager):
         thr = self.opts.pnp_threshold_px
 
         def score(R_, t_):
-            e = np.minimum(pnp_reprojection_errors(X, uv, self.K, R_, t_), thr)
+            e = np.minimum(_errors(X, uv, self.K, R_, t_), thr)
             return int((e < thr).sum()), -float(np.sum(e**2))
 
         ok, rvec, tvec = cv2.solvePnP(X[inl], uv[inl], self.K, None, flags=cv2.SOLVEPNP_SQPNP)
@@ -177,4 +177,13 @@ class ImageRegistration(ObservationManager):
             return R, t, inl, {}
         turn = np.degrees(np.arccos(np.clip((np.trace(R2 @ R.T) - 1) / 2, -1, 1)))
         info = {"second_start_deg": round(float(turn), 2)} if turn >= 0.5 else {}
-        return R2, t2, pnp_reprojection_errors(X, uv, self.K, R2, t2) < thr, info
+        return R2, t2, _errors(X, uv, self.K, R2, t2) < thr, info
+
+
+def _errors(X: np.ndarray, uv: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``(N,)`` reprojection errors (pixels) of ``(N, 3)`` points seen at ``(N, 2)`` pixels by one camera.
+
+    Points behind the camera get ``inf``. (Not the PnP module's own: that one holds exercises, and this module
+    ships with notebook 05.)
+    """
+    return reprojection_error_matrix(K, R[None], t[None], X, uv[:, None])[:, 0]
