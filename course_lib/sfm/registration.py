@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from course_lib.conventions import invert_pose
+from course_lib.conventions import invert_pose, rotation_angle_deg
 from course_lib.exercises import call
 from course_lib.sfm.observations import ObservationManager
 from course_lib.sfm.reconstruction import reprojection_error_matrix
@@ -175,7 +175,7 @@ class ImageRegistration(ObservationManager):
         R2, t2 = call("pnp_nonlinear", X[inl], uv[inl], self.K, cv2.Rodrigues(rvec)[0], tvec.ravel())
         if score(R2, t2) <= score(R, t):
             return R, t, inl, {}
-        turn = np.degrees(np.arccos(np.clip((np.trace(R2 @ R.T) - 1) / 2, -1, 1)))
+        turn = rotation_angle_deg(R2, R)
         info = {"second_start_deg": round(float(turn), 2)} if turn >= 0.5 else {}
         return R2, t2, _errors(X, uv, self.K, R2, t2) < thr, info
 
