@@ -301,26 +301,37 @@ def score_against(result: CheckResult, reference: CheckResult) -> float:
 RESULTS: dict[str, CheckResult] = {}
 
 
+def _functions_of(fn: Any) -> list | None:
+    """The Python functions whose code is ``fn``'s: ``[fn]``, a class's methods, or None (no code to read)."""
+    import types
+
+    if isinstance(fn, type):
+        return [v for v in vars(fn).values() if isinstance(v, types.FunctionType)]
+    return [fn] if isinstance(fn, types.FunctionType) else None
+
+
+def _code_objects(funcs: list):
+    """Every code object of ``funcs``, nested ones (inner functions, comprehensions) included."""
+    import types
+
+    todo = [f.__code__ for f in funcs]
+    while todo:
+        code = todo.pop()
+        yield code
+        todo += [k for k in code.co_consts if isinstance(k, types.CodeType)]
+
+
 def calls_name(fn: Any, name: str, depth: int = 3) -> bool | None:
     """Whether the code of ``fn`` (a function, or the methods of a class) names ``name``, directly or through the
     functions of its module that it names (``depth`` levels); None when ``fn`` has no code to read."""
     import types
 
-    if isinstance(fn, type):
-        funcs = [v for v in vars(fn).values() if isinstance(v, types.FunctionType)]
-    elif isinstance(fn, types.FunctionType):
-        funcs = [fn]
-    else:
+    funcs = _functions_of(fn)
+    if funcs is None:
         return None
     seen: set = set()
     for _ in range(depth + 1):
-        names = set()
-        for f in funcs:
-            todo = [f.__code__]
-            while todo:
-                code = todo.pop()
-                names |= set(code.co_names)
-                todo += [k for k in code.co_consts if isinstance(k, types.CodeType)]
+        names = {n for code in _code_objects(funcs) for n in code.co_names}
         if name in names:
             return True
         seen |= set(funcs)
@@ -333,19 +344,8 @@ def calls_name(fn: Any, name: str, depth: int = 3) -> bool | None:
 
 def code_constants(fn: Any) -> list:
     """The numeric constants written in the code of ``fn`` (a function, or the methods of a class); [] when unreadable."""
-    import types
-
-    funcs = ([v for v in vars(fn).values() if isinstance(v, types.FunctionType)] if isinstance(fn, type) else
-             [fn] if isinstance(fn, types.FunctionType) else [])
-    out, todo = [], [f.__code__ for f in funcs]
-    while todo:
-        code = todo.pop()
-        for k in code.co_consts:
-            if isinstance(k, types.CodeType):
-                todo.append(k)
-            elif isinstance(k, (int, float)) and not isinstance(k, bool):
-                out.append(k)
-    return out
+    return [k for code in _code_objects(_functions_of(fn) or []) for k in code.co_consts
+            if isinstance(k, (int, float)) and not isinstance(k, bool)]
 
 
 def code_text(fn: Any) -> str:
