@@ -10,12 +10,17 @@ What the workers would otherwise share is split here, before any test module imp
   time waiting for one another), and for the kernels and processes the tests start.
 
 The files go to the workers in the order of :data:`FIRST` (the longest first, so that no long file starts last),
-then every file with a slow test, then the rest in collection order.
+then every file with a slow test, then the rest in collection order. The notebooks that write into the repository's
+``outputs/`` folder (``REPO_ROOT / "outputs"``: the same folder from nbval's kernel and from the browser test's) run
+on one worker with the browser test, one after the other (:func:`pytest_xdist_make_scheduler`).
 """
 
 from __future__ import annotations
 
 import os
+from pathlib import Path
+
+import pytest
 
 UIDS_PER_WORKER = 16
 
@@ -27,6 +32,12 @@ FIRST = (
     "tests/instructor/test_kit_holds_no_solution.py",
     "tests/instructor/test_release_behaviour.py",
 )
+
+#: The files whose notebooks write into the repository's outputs/ folder: one work unit, on one worker.
+REPO = Path(__file__).resolve().parent.parent
+OUTPUTS_WRITERS = frozenset(["tests/browser/test_browser.py"] + [
+    f"notebooks/{p.name}" for p in sorted((REPO / "notebooks").glob("*.ipynb"))
+    if 'REPO_ROOT / \\"outputs\\"' in p.read_text(encoding="utf-8")])
 
 WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")  # "gw0", "gw1", ... in a worker; "" without xdist
 if WORKER.startswith("gw"):
@@ -46,3 +57,18 @@ def pytest_collection_modifyitems(config, items) -> None:
         return (0, FIRST.index(path)) if path in FIRST else ((1, 0) if path in slow else (2, 0))
 
     items.sort(key=rank)  # stable: a file's tests keep their order
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile``, but the files of :data:`OUTPUTS_WRITERS` are one unit (one worker, one at a time)."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class OutputsOnOneWorker(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            path = nodeid.split("::", 1)[0]
+            return "repository outputs/" if path in OUTPUTS_WRITERS else path
+
+    return OutputsOnOneWorker(config, log)
