@@ -816,10 +816,3 @@ def _student_frame(exc: BaseException) -> str:
                 return f" (line {fr.lineno} of your cell)"
             return f" ({Path(fr.filename).name}, line {fr.lineno})"
     return ""
-
-
-# ---------------------------------------------------------------------------------------------
-# Cases: the stored public fixtures, or the hidden cases of a grading run
-# ---------------------------------------------------------------------------------------------
-
-# load_fixture and using_cases live in course_lib.fixtures (the notebooks' starting points read fixtures too)
