@@ -202,11 +202,7 @@ class NbvalRun:
             except subprocess.TimeoutExpired:
                 return {}, f"nbval did not finish {name} within its time"
         finally:
-            for fd in fds + [report_r, go_w, collect_r] + ([info_r] if info_r is not None else []):
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
+            wire.close_fds(fds + [report_r, go_w, collect_r] + ([info_r] if info_r is not None else []))
             if proc is not None:
                 jail.kill_tree(proc.pid)
                 proc.wait()

@@ -472,11 +472,7 @@ class StudentProcess:
             except subprocess.TimeoutExpired:
                 pass
         self.kill()
-        for fd in (self.req_w, self.rep_r):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
+        wire.close_fds((self.req_w, self.rep_r))
         self.req_w = self.rep_r = -1
         shutil.rmtree(self.tmp, ignore_errors=True)
 
