@@ -128,6 +128,7 @@ def _one(data: str, preset_name: str, minutes: float, at: list[float], seed: int
                 outside_training=round(outside, 4), breakdown=m["overhead_breakdown"], load_seconds=round(load_s, 2),
                 grid_resolution=m["config"].get("grid_resolution"), n_samples=m["config"].get("n_samples"),
                 batch_rays=m["config"].get("batch_rays"), batch_changes=m.get("history", {}).get("batch_changes"),
+                box=[m["bounds"].get(k) for k in ("box_min", "box_max")] if "bounds" in m else None,
                 image_size=m["image_size"])
 
 
