@@ -30,6 +30,11 @@ Photo sets (rendered once into ``--cache``, default ``outputs/photos-to-sfm``; g
 * ``poor-ring-N``: the same ring blurred and darkened (texture-poor: few features, pairs that need
   the calibrated five-point start);
 * ``walk-N``: a walk past the building (800x600 JPEG, K known; :func:`course_lib.data.building.sfm_photos`);
+* ``street-N``: a walk along the street in front of the building, the camera turned 25 degrees towards the walking
+  direction (640x480 PNG, K known; :func:`street_cameras`): a chain of views, no loop;
+* ``facade-N``: the main facade from N places in front of it, the middle view from far to the side, a little blurred
+  and washed out (640x480 PNG, K known; :func:`facade_cameras`): one weak view (facade-12: one partner with 79
+  verified matches, the others 0-12);
 * ``exif5-ring-N`` / ``exif17-ring-N``: the ring with no calibration file, EXIF
   ``FocalLengthIn35mmFilm`` rounded to whole mm and 5 % / 17 % off the true focal length;
 * ``phone-ring-N``: phone-like JPEGs (1280x960, barrel distortion ``k1 = -0.05``, EXIF focal
@@ -48,6 +53,7 @@ the principal point of the course's camera, a few pixels off the centre that a r
 Usage::
 
     python benchmarks/photos_to_sfm.py --sets ring-16 ring-48 ring-100        # the time growth
+    python benchmarks/photos_to_sfm.py --sets street-24 facade-12 ring-200 --no-uncalibrated
     python benchmarks/photos_to_sfm.py --sets poor-ring-24 exif5-ring-24 phone-ring-16 wpi upenn
     python benchmarks/photos_to_sfm.py --sets ring-16 --json out.json
 """
@@ -97,13 +103,50 @@ def ring_cameras(n: int, radius: float = 14.0, seed: int = 0, aim_sd: float = 0.
     return np.stack(Rs), np.stack(ts)
 
 
-def _render_ring(n: int, size: tuple[int, int], K: np.ndarray, k1: float = 0.0, radius: float = 14.0) -> list[np.ndarray]:
-    """The ring's views as uint8 RGB, with the radial term ``k1`` applied (barrel for k1 < 0)."""
+def street_cameras(n: int, seed: int = 3):
+    """``n`` cameras of a walk along the street in front of the building (``y = -10``, ``x`` from -12 to 4 m, eye height),
+    each turned 25 degrees from the facades towards the walking direction, with jitter: a view overlaps its
+    neighbours, hardly the views a few steps away, and no loop closes (``R_cw (n, 3, 3), t_cw (n, 3)``)."""
+    from course_lib.data.synthetic import look_at
+
+    rng = np.random.default_rng(seed)
+    Rs, ts = [], []
+    for x in np.linspace(-12.0, 4.0, n) + rng.normal(0, 0.1, n):
+        C = np.array([x, -10.0 + rng.normal(0, 0.2), 1.6 + rng.normal(0, 0.05)])
+        yaw = np.radians(25.0 + rng.normal(0, 4.0))
+        R, _ = look_at(C, C + np.array([np.sin(yaw), np.cos(yaw), rng.normal(0, 0.03) + 0.1]), up=(0.0, 0.0, 1.0))
+        Rs.append(R)
+        ts.append(-R @ C)
+    return np.stack(Rs), np.stack(ts)
+
+
+def facade_cameras(n: int, seed: int = 5):
+    """``n`` cameras in front of the main facade (``y`` about -12, ``x`` from -4 to 4 m), aimed at it with jitter; the
+    middle one (``n // 2``) stands far to the side (``x = 11, y = -5``), seeing the facade at about 60 degrees: the
+    weak view (``R_cw (n, 3, 3), t_cw (n, 3)``)."""
+    from course_lib.data.synthetic import look_at
+
+    rng = np.random.default_rng(seed)
+    Rs, ts = [], []
+    for k, x in enumerate(np.linspace(-4.0, 4.0, n)):
+        C = np.array([x, -12.0 + rng.normal(0, 0.3), rng.uniform(1.3, 2.3)])
+        if k == n // 2:
+            C = np.array([11.0, -5.0, 1.7])
+        R, _ = look_at(C, np.array([0.0, -2.0, 2.5]) + rng.normal(0, 0.3, 3), up=(0.0, 0.0, 1.0))
+        Rs.append(R)
+        ts.append(-R @ C)
+    return np.stack(Rs), np.stack(ts)
+
+
+def _render_ring(n: int, size: tuple[int, int], K: np.ndarray, k1: float = 0.0, radius: float = 14.0,
+                 cameras=None) -> list[np.ndarray]:
+    """The ring's views (or those of ``cameras = (R_cw, t_cw)``) as uint8 RGB, with the radial term ``k1`` applied
+    (barrel for k1 < 0)."""
     import cv2
 
     from course_lib.data import building
 
-    R, t = ring_cameras(n, radius)
+    R, t = ring_cameras(n, radius) if cameras is None else cameras
     surfaces = building.build_scene(np.random.default_rng(11), ground="large")
     out = []
     W, H = size
@@ -153,7 +196,7 @@ def build_set(name: str, cache: Path) -> dict:
     f = re.fullmatch(r"f(\d+(?:\.\d+)?)(k?)-ring-(\d+)", name)
     if f is not None:
         return _focal_ring(name, float(f.group(1)), bool(f.group(2)), int(f.group(3)), cache)
-    m = re.fullmatch(r"(ring|poor-ring|walk|exif5-ring|exif17-ring|phone-ring)-(\d+)", name)
+    m = re.fullmatch(r"(ring|poor-ring|walk|street|facade|exif5-ring|exif17-ring|phone-ring)-(\d+)", name)
     if m is None:
         raise SystemExit(f"unknown photo set {name!r}")
     kind, n = m.group(1), int(m.group(2))
@@ -165,8 +208,17 @@ def build_set(name: str, cache: Path) -> dict:
         return {"photos": folder, "calibration": calib if calib.is_file() else None, "R": z["R"], "t": z["t"], "K": z["K"],
                 "k1": float(z["k1"])}
     folder.mkdir(parents=True, exist_ok=True)
-    k1, has_calib = 0.0, kind in ("ring", "poor-ring", "walk")
-    if kind == "walk":
+    k1, has_calib = 0.0, kind in ("ring", "poor-ring", "walk", "street", "facade")
+    if kind in ("street", "facade"):
+        size = (640, 480)
+        K = scale_intrinsics(building.WPI_LIKE_K, building.SFM_IMAGE_SIZE, size)
+        R, t = street_cameras(n) if kind == "street" else facade_cameras(n)
+        images = _render_ring(n, size, K, cameras=(R, t))
+        if kind == "facade":  # the weak view: seen at 60 degrees, a little blurred and washed out as well
+            images[n // 2] = np.clip(cv2.GaussianBlur(images[n // 2], (0, 0), 1.2).astype(float) * 0.7 + 30, 0, 255).astype(np.uint8)
+        for i, img in enumerate(images):
+            cv2.imwrite(str(folder / f"{i + 1}.png"), img[:, :, ::-1])
+    elif kind == "walk":
         photos = building.sfm_photos(seed=7, n_cameras=n)
         K, R, t = next(photos)
         for i, (jpeg, _) in enumerate(photos):

@@ -160,6 +160,7 @@ class IncrementalMapper(ImageRegistration, IncrementalTriangulator, MapperBundle
         self.X = np.full((T, 3), np.nan)
         self.ref = -1  # the camera that fixes the gauge (the initial pair's first)
         self.n_at_last_ba = 0  # registered images at the last bundle adjustment of the whole model
+        self.pnp_medians: list[float] = []  # median PnP error of each registration (px): what is usual here
 
     def state(self) -> dict:
         """A copy of the model (registration, poses, points, observation flags, gauge), to :meth:`merge` with later."""

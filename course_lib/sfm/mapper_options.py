@@ -45,6 +45,11 @@ class MapperOptions:
             its features) is registered from its matches with two or more registered images
             instead (:meth:`course_lib.sfm.mapper.IncrementalMapper.register_from_pairs`). (COLMAP
             ``structure_less_registration_fallback``.)
+        pnp_retries, pnp_retry_factor: where a new pose's inliers have a median error over
+            ``pnp_retry_factor`` times the median of the model's earlier registrations, PnP RANSAC
+            runs ``pnp_retries`` more times and the pose of lowest truncated error is kept (a narrow
+            field of view has two nearly equal poses; 0: never).
+            (:class:`course_lib.sfm.registration.ImageRegistration`). (COLMAP: none.)
         max_reproj_px: observations reprojecting farther are dropped during the run. (COLMAP
             ``filter_max_reproj_error`` 4 px.)
         final_max_reproj_px: the threshold before the final BA; None: 4 x the noise level estimated
@@ -133,6 +138,8 @@ class MapperOptions:
     min_pnp_inliers: int = 20
     min_pnp_inlier_ratio: float = 0.25
     structure_less_fallback: bool = True
+    pnp_retries: int = 3
+    pnp_retry_factor: float = 1.4
     max_reproj_px: float = 4.0
     final_max_reproj_px: float | None = None
     min_angle_deg: float = 1.0

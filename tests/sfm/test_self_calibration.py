@@ -120,3 +120,24 @@ def test_the_options_turn_it_off(tmp_path):
     assert "self_calibration" not in rec.report and rec.report["focal_restarts"] == []
     with pytest.raises(Exception, match="self_calibration='maybe'"):
         run_sfm(data, np.random.default_rng(0), self_calibration="maybe")
+
+
+@pytest.mark.parametrize("f_log, restarts", [([500, 700, 900], True), ([500, 600, 690], False), ([600, 680, 690], True)],
+                         ids=["far-moving", "near-moving", "near-settled"])
+def test_a_focal_length_far_from_its_start_restarts_before_it_settles(f_log, restarts):
+    """A start 1.5x or more off restarts the mapping at once (the model grown on from it holds f back); a nearer one
+    waits until it settles."""
+    from types import SimpleNamespace
+
+    from course_lib.sfm.mapper_options import MapperOptions
+    from course_lib.sfm.pipeline import FOCAL_JUMP, _FocalMoved, _FocalWatch
+
+    assert 900 / 500 > FOCAL_JUMP > 690 / 500
+    mapper = SimpleNamespace(registered=np.ones(8, bool), M=24, K=np.diag([f_log[-1], f_log[-1], 1.0]),
+                             intrinsics_log=[{"f": f, "accepted": True} for f in f_log])
+    watch = _FocalWatch(500.0, MapperOptions())
+    if restarts:
+        with pytest.raises(_FocalMoved):
+            watch.check(mapper)
+    else:
+        watch.check(mapper)
