@@ -8,5 +8,6 @@ properties, and prints verdicts that name the likely mistake.
 
 The checks hold no reference solution and import none (a test enforces that this package never
 imports :mod:`course_lib.sfm` or :mod:`course_lib.nerf`): what they compare with are arrays made on
-the instructor's side (:mod:`course_lib.instructor.cases`).
+the instructor's side (:mod:`course_lib.instructor.cases` has a module of the same name for each check
+module). Every module here ships to students.
 """

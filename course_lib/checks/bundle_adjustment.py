@@ -26,10 +26,6 @@ likely mistake:
 
 In a notebook ``bundle_adjust`` runs the student's own residuals and sparsity: when they failed
 their checks, the verdict says so (:meth:`~course_lib.checks.core.Check.blame_earlier`).
-
-The cases and the reference's results on them are stored arrays, made on the instructor's side
-by :mod:`course_lib.instructor.cases.bundle_adjustment`; this module imports no reference solution and ships
-to students.
 """
 
 from __future__ import annotations
@@ -84,12 +80,6 @@ def _as_array(out, c: Check, case: str):
     except (TypeError, ValueError):
         c.fail(f"{case}: return a numpy array, got {type(out).__name__}")
         return None
-
-
-# --------------------------------------------------------------------------- step input
-
-
-# --------------------------------------------------------------------------- fixtures
 
 
 # --------------------------------------------------------------------------- visibility_matrix

@@ -39,8 +39,8 @@ checks; the grader runs the same checks on hidden cases (:func:`using_cases`).
 
 from __future__ import annotations
 
-import contextlib
 import traceback
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -189,9 +189,8 @@ class CheckResult:
     @property
     def points(self) -> tuple[int, int]:
         """``(passed, counted)``: passed point checks, and point checks plus failed gates."""
-        pts = [v for v in self.verdicts if v.kind == "points"]
-        failed_gates = sum(1 for v in self.verdicts if v.kind == "gate" and not v.ok)
-        return sum(v.ok for v in pts), len(pts) + failed_gates
+        passed, n_points, failed_gates = _tally(self)
+        return passed, n_points + failed_gates
 
     def __repr__(self) -> str:  # deterministic, in case a cell displays it
         return f"CheckResult({self.exercise!r}, {self.passed}/{self.total})"
@@ -219,22 +218,37 @@ earns nothing; the other exercises are graded as usual. Speed earns and costs no
 """
 
 
+def _tally(result: CheckResult, reference: CheckResult | None = None) -> tuple[int, int, int]:
+    """``(passed point checks, point checks to earn, failed gates)`` of ``result``.
+
+    With ``reference`` (the grader), the point checks to earn are the reference's passing ones, and a check that the
+    student's run did not pass *or did not record at all* counts as failed; without it (a check cell), ``result``'s own.
+    """
+    failed_gates = sum(1 for v in result.verdicts if v.kind == "gate" and not v.ok)
+    if reference is None:
+        pts = [v for v in result.verdicts if v.kind == "points"]
+        return sum(v.ok for v in pts), len(pts), failed_gates
+    want = Counter(v.text for v in reference.verdicts if v.ok and v.kind == "points")
+    got = Counter(v.text for v in result.verdicts if v.ok and v.kind == "points")
+    return sum((got & want).values()), sum(want.values()), failed_gates
+
+
+def _fraction(result: CheckResult, reference: CheckResult | None = None) -> float:
+    """The rule of :data:`SCORING_RULE` on :func:`_tally`'s counts: passed / (point checks + failed gates), capped
+    at :data:`DEFINING_CAP` when a defining property fails."""
+    passed, n_points, failed_gates = _tally(result, reference)
+    counted = n_points + failed_gates
+    frac = passed / counted if counted else 0.0
+    return min(frac, DEFINING_CAP) if result.defining_failed else frac
+
+
 def score_reasons(result: CheckResult, reference: CheckResult | None = None) -> list[str]:
     """Which parts of :data:`SCORING_RULE` cost ``result`` points, one line each (empty for a full score).
 
     With ``reference`` (the grader), point checks are counted as :func:`score_against` counts them: the
     reference's passing checks; without it (a check cell), as :func:`score` does.
     """
-    from collections import Counter
-
-    failed_gates = sum(1 for v in result.verdicts if v.kind == "gate" and not v.ok)
-    if reference is not None:
-        want = Counter(v.text for v in reference.verdicts if v.ok and v.kind == "points")
-        got = Counter(v.text for v in result.verdicts if v.ok and v.kind == "points")
-        passed, n_points = sum((got & want).values()), sum(want.values())
-    else:
-        pts = [v for v in result.verdicts if v.kind == "points"]
-        passed, n_points = sum(v.ok for v in pts), len(pts)
+    passed, n_points, failed_gates = _tally(result, reference)
     counted = n_points + failed_gates
     out = []
     if n_points - passed:
@@ -266,11 +280,7 @@ def score(result: CheckResult) -> float:
     """
     if not result.verdicts:
         return result.passed / result.total if result.total else 0.0
-    passed, counted = result.points
-    frac = passed / counted if counted else 0.0
-    if result.defining_failed:
-        frac = min(frac, DEFINING_CAP)
-    return frac
+    return _fraction(result)
 
 
 def score_against(result: CheckResult, reference: CheckResult) -> float:
@@ -282,19 +292,10 @@ def score_against(result: CheckResult, reference: CheckResult) -> float:
     returned nothing usable, so that the checks after it never ran) counts as failed: a missing
     answer never makes a check disappear from the count. As in :func:`score`, a failed gate counts
     as one failed check (a RANSAC that never adapts its number of samples earns less than full
-    marks), and a failed defining property caps the fraction at :data:`DEFINING_CAP`.
+    marks), and a failed defining property caps the fraction at :data:`DEFINING_CAP`. Nothing to
+    earn (the reference passed no point check) scores 0.
     """
-    from collections import Counter
-
-    want = Counter(v.text for v in reference.verdicts if v.ok and v.kind == "points")
-    if not want:
-        return 0.0
-    got = Counter(v.text for v in result.verdicts if v.ok and v.kind == "points")
-    failed_gates = sum(1 for v in result.verdicts if v.kind == "gate" and not v.ok)
-    frac = sum((got & want).values()) / (sum(want.values()) + failed_gates)
-    if result.defining_failed:
-        frac = min(frac, DEFINING_CAP)
-    return frac
+    return _fraction(result, reference) if _tally(reference)[0] else 0.0
 
 
 #: Results of the check cells run in this process, by exercise name (the grader reads it).
@@ -816,10 +817,3 @@ def _student_frame(exc: BaseException) -> str:
                 return f" (line {fr.lineno} of your cell)"
             return f" ({Path(fr.filename).name}, line {fr.lineno})"
     return ""
-
-
-# ---------------------------------------------------------------------------------------------
-# Cases: the stored public fixtures, or the hidden cases of a grading run
-# ---------------------------------------------------------------------------------------------
-
-# load_fixture and using_cases live in course_lib.fixtures (the notebooks' starting points read fixtures too)

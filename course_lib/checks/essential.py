@@ -24,10 +24,6 @@ pair (for one of the two the SVD gives det U det V = -1, so a missing flip shows
 
 Cases: E from a noiseless and from a noisy synthetic pair (with the true relative pose) and from
 the embedded scene's pair (1, 2) (the reference F of notebook 01) when it is present.
-
-The cases and the reference's results on them are stored arrays, made on the instructor's side
-by :mod:`course_lib.instructor.cases.essential`; this module imports no reference solution and ships
-to students.
 """
 
 from __future__ import annotations
@@ -90,9 +86,6 @@ def match_candidates(R, C, R_ref, C_ref, tol: float = 10 * RTOL) -> list[int]:
                 break
         hits.append(found)
     return hits
-
-
-# --------------------------------------------------------------------------- fixtures
 
 
 # --------------------------------------------------------------------------- essential_from_fundamental

@@ -28,10 +28,6 @@ property fails, with numbers:
 Equivalences (one rule, :mod:`course_lib.checks.core`): a correct pose in float32, a quaternion or a
 rotation vector get full marks; rotation angles are measured with atan2 (float32 rounding reads as
 1e-5°, not 0.01°).
-
-The cases and the reference's results on them are stored arrays, made on the instructor's side
-by :mod:`course_lib.instructor.cases.pnp`; this module imports no reference solution and ships
-to students.
 """
 
 from __future__ import annotations
@@ -53,12 +49,6 @@ RANSAC_SEED = 0
 THRESHOLD_PX = 2.0
 #: The rng case: the student's rng seed and max_iters (a few samples, so that the result depends on them).
 RNG_SEED, RNG_MAX_ITERS = 1, 3
-
-
-# --------------------------------------------------------------------------- step input
-
-
-# --------------------------------------------------------------------------- fixtures
 
 
 # --------------------------------------------------------------------------- helpers

@@ -21,17 +21,13 @@ on every case:
 * ``triangulate_nonlinear``: lowers the reprojection error and reaches the optimum, on a 3-view scene
   with points unseen in one view (NaN) and on the embedded pair; a mistake is named when the points
   equal its stored result (or, for R transposed, optimize its cost) on every case.
-
-The cases and the reference's results on them are stored arrays, made on the instructor's side
-by :mod:`course_lib.instructor.cases.triangulation`; this module imports no reference solution and ships
-to students.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from course_lib.conventions import project
+from course_lib.conventions import project, rotation_angle_deg
 from course_lib.checks.core import FAILED, Check, declare_defining, load_fixture, unique_key
 
 __all__ = [
@@ -46,12 +42,6 @@ FIXTURE = "triangulation"
 declare_defining("choose_pose", {
     "in front of both cameras": "the right candidate is the one with the points in front of camera 1 AND camera 2",
 })
-
-
-# --------------------------------------------------------------------------- step input
-
-
-# --------------------------------------------------------------------------- fixtures
 
 
 # --------------------------------------------------------------------------- helpers
@@ -76,11 +66,6 @@ def _reproj_rms(K, R_cws, t_cws, uv, X) -> float:
         sq.append((d**2).sum(axis=1))
     sq = np.concatenate(sq)
     return float(np.sqrt(sq.mean())) if sq.size else 0.0
-
-
-def _angle_deg(R_a, R_b) -> float:
-    c = np.clip((np.trace(np.asarray(R_a) @ np.asarray(R_b).T) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.degrees(np.arccos(c)))
 
 
 def _scale(X) -> float:
@@ -374,7 +359,7 @@ def _pose_verdicts(c: Check, f, e: dict, cheirality: int | None, argmin: bool, c
         ok = np.allclose(R_s, f[f"{key}_true_R"], atol=1e-5) and np.allclose(t_s, f[f"{key}_true_t"], atol=1e-5)
         c.gate(ok, f"{case}: equals the true relative pose", f"{case}: differs from the true relative pose")
     if f"{key}_gt_R" in f:  # estimated from real matches: close to the ground truth, not equal
-        rot = _angle_deg(R_s, f[f"{key}_gt_R"])
+        rot = rotation_angle_deg(R_s, f[f"{key}_gt_R"])
         cos_t = float(t_s @ f[f"{key}_gt_t"] / max(np.linalg.norm(t_s), 1e-300))
         c.expect(rot < 1.0 and cos_t > np.cos(np.radians(3.0)), f"{case}: agrees with the ground truth of the scene",
                  f"{case}: {rot:.2g}° and {np.degrees(np.arccos(np.clip(cos_t, -1, 1))):.2g}° (direction of t) from the "

@@ -21,7 +21,7 @@ import itertools
 import os
 import signal
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 __all__ = ["Cgroup", "HOW_TO_ENABLE"]
 
@@ -87,7 +87,6 @@ class Cgroup:
     paths: list[str]
     memory_bytes: int
     processes: int
-    notes: list[str] = field(default_factory=list)
 
     @classmethod
     def create(cls, memory_bytes: int, processes: int, parent: "Cgroup | None" = None) -> "Cgroup | None":
@@ -95,63 +94,23 @@ class Cgroup:
         cannot make one."""
         name = f"course-grade-{os.getpid()}-{next(_COUNTER)}"
         if parent is not None:
-            return cls._create_in(parent, name, memory_bytes, processes)
-        base = _v2_base()
-        if base is not None:
-            path = os.path.join(base, name)
+            where = [(parent.version, parent.paths)]
+        else:
+            v1 = [_own_v1("memory"), _own_v1("pids")]
+            where = [(2, [b]) for b in [_v2_base()] if b is not None]
+            where += [(1, v1)] if all(b and os.access(b, os.W_OK) for b in v1) else []
+        for version, bases in where:
+            paths = [os.path.join(b, name) for b in bases]
             try:
-                os.mkdir(path)
-                _write(os.path.join(path, "memory.max"), str(int(memory_bytes)))
-                if os.path.exists(os.path.join(path, "memory.swap.max")):
-                    _write(os.path.join(path, "memory.swap.max"), "0")
-                _write(os.path.join(path, "pids.max"), str(int(processes)))
-                return cls(2, [path], memory_bytes, processes)
+                if version == 2 and parent is not None:
+                    _write(os.path.join(bases[0], "cgroup.subtree_control"), "+memory +pids")
+                for p in paths:
+                    os.mkdir(p)
+                _write_totals(version, paths, memory_bytes, processes)
+                return cls(version, paths, memory_bytes, processes)
             except OSError:
-                _remove([path])
-        return cls._create_v1(name, memory_bytes, processes)
-
-    @classmethod
-    def _create_in(cls, parent: "Cgroup", name: str, memory_bytes: int, processes: int) -> "Cgroup | None":
-        paths = [os.path.join(p, name) for p in parent.paths]
-        try:
-            if parent.version == 2:
-                _write(os.path.join(parent.paths[0], "cgroup.subtree_control"), "+memory +pids")
-            for p in paths:
-                os.mkdir(p)
-            if parent.version == 2:
-                _write(os.path.join(paths[0], "memory.max"), str(int(memory_bytes)))
-                if os.path.exists(os.path.join(paths[0], "memory.swap.max")):
-                    _write(os.path.join(paths[0], "memory.swap.max"), "0")
-                _write(os.path.join(paths[0], "pids.max"), str(int(processes)))
-            else:
-                _write(os.path.join(paths[0], "memory.limit_in_bytes"), str(int(memory_bytes)))
-                _write(os.path.join(paths[1], "pids.max"), str(int(processes)))
-        except OSError:
-            _remove(list(reversed(paths)))
-            return None
-        return cls(parent.version, paths, memory_bytes, processes)
-
-    @classmethod
-    def _create_v1(cls, name: str, memory_bytes: int, processes: int) -> "Cgroup | None":
-        mem, pids = _own_v1("memory"), _own_v1("pids")
-        if not (mem and pids and os.access(mem, os.W_OK) and os.access(pids, os.W_OK)):
-            return None
-        paths = [os.path.join(mem, name), os.path.join(pids, name)]
-        try:
-            for p in paths:
-                os.mkdir(p)
-            _write(os.path.join(paths[0], "memory.limit_in_bytes"), str(int(memory_bytes)))
-            _write(os.path.join(paths[1], "pids.max"), str(int(processes)))
-        except OSError:
-            _remove(paths)
-            return None
-        memsw = os.path.join(paths[0], "memory.memsw.limit_in_bytes")
-        try:
-            if os.path.exists(memsw):
-                _write(memsw, str(int(memory_bytes)))
-        except OSError:
-            pass
-        return cls(1, paths, memory_bytes, processes)
+                _remove(list(reversed(paths)))
+        return None
 
     def enter(self) -> None:
         """Move the calling process into the cgroup (the ``preexec_fn`` of the sandboxed process)."""
@@ -194,6 +153,23 @@ class Cgroup:
                 break
             time.sleep(0.02)
         _remove(self.paths)
+
+
+def _write_totals(version: int, paths: list[str], memory_bytes: int, processes: int) -> None:
+    """Write the memory (swap included: none) and process totals into a new cgroup's folder(s)."""
+    if version == 2:
+        _write(os.path.join(paths[0], "memory.max"), str(int(memory_bytes)))
+        if os.path.exists(os.path.join(paths[0], "memory.swap.max")):
+            _write(os.path.join(paths[0], "memory.swap.max"), "0")
+        _write(os.path.join(paths[0], "pids.max"), str(int(processes)))
+        return
+    _write(os.path.join(paths[0], "memory.limit_in_bytes"), str(int(memory_bytes)))
+    _write(os.path.join(paths[1], "pids.max"), str(int(processes)))
+    try:
+        if os.path.exists(memsw := os.path.join(paths[0], "memory.memsw.limit_in_bytes")):
+            _write(memsw, str(int(memory_bytes)))
+    except OSError:
+        pass
 
 
 def _kill_members(paths: list[str]) -> int:

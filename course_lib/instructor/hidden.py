@@ -314,12 +314,7 @@ def _worker(job: HiddenJob, timeout: float, isolation, cgroup, w: int) -> None:
     """The exercise's worker: the student's process, the check, the verdict sent to the grader as JSON."""
     import resource
 
-    for fd in _open_fds():  # nothing of the grader's other work (nbval's pipes) is held here
-        if fd > 2 and fd != w:
-            try:
-                os.close(fd)
-            except OSError:
-                pass
+    wire.close_inherited(w)
     rss0 = _status_kib("VmRSS")
     if cgroup is not None:
         cgroup.enter()
@@ -439,13 +434,6 @@ def _outcome_from(head: dict, seconds: float) -> HiddenOutcome:
                          sandbox=head.get("sandbox") or {}, attempted=bool(head.get("attempted", True)),
                          memory=dict(head.get("memory") or {},
                                      **{"largest reply bytes": int(head.get("largest_reply", 0))}))
-
-
-def _open_fds() -> list[int]:
-    try:
-        return [int(f) for f in os.listdir("/proc/self/fd")]
-    except OSError:
-        return []
 
 
 def _status_kib(key: str) -> int:

@@ -162,14 +162,8 @@ class NbvalRun:
                "keep": [str(k) for k in self.iso.keep], "library": str(self.iso.library), "report_fd": report_w,
                "go_fd": go_r, "collect_fd": collect_w, "own_pid_namespace": not insecure}
         server_dir = jail.install_server(stage / "grader", cfg)
-        fds = [report_w, go_r, collect_w]
-        info_r, staged, filtered = None, {}, False
-        if insecure:
-            cmd = [sys.executable, "-S", "-E", "-B", str(server_dir / "server.py"), "exec",
-                   str(server_dir / "config.json")]
-        else:
-            cmd, more, info_r, staged, filtered = jail.sandboxed(self.iso, "exec", server_dir, seed, stage / "stage")
-            fds += more
+        cmd, more, info_r, staged, filtered = jail.sandboxed(self.iso, "exec", server_dir, seed, stage / "stage")
+        fds = [report_w, go_r, collect_w] + more
         cgroup = self.iso.cgroup(parent=self.cgroup)
         proc = None
         try:
@@ -202,11 +196,7 @@ class NbvalRun:
             except subprocess.TimeoutExpired:
                 return {}, f"nbval did not finish {name} within its time"
         finally:
-            for fd in fds + [report_r, go_w, collect_r] + ([info_r] if info_r is not None else []):
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
+            wire.close_fds(fds + [report_r, go_w, collect_r] + ([info_r] if info_r is not None else []))
             if proc is not None:
                 jail.kill_tree(proc.pid)
                 proc.wait()

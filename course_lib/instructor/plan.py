@@ -17,6 +17,7 @@ replaced by a stand-in, or shipped, with the reason); the release manifest carri
 from __future__ import annotations
 
 import ast
+import functools
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,37 +41,37 @@ def module_name(path: Path) -> str:
     return ".".join(parts)
 
 
-_IMPORTS_CACHE: dict[tuple, dict[str, set[str]]] = {}
-
-
 def module_imports(path: Path) -> dict[str, set[str]]:
-    """Cached :func:`_module_imports` (keyed by the file's path, size and modification time)."""
-    st = Path(path).stat()
-    key = (str(path), st.st_size, st.st_mtime_ns)
-    if key not in _IMPORTS_CACHE:
-        _IMPORTS_CACHE[key] = _module_imports(Path(path))
-    return {k: set(v) for k, v in _IMPORTS_CACHE[key].items()}
-
-
-def _module_imports(path: Path) -> dict[str, set[str]]:
     """``{"top": modules imported when the module loads, "lazy": imported inside functions}`` (course_lib only).
 
     Imports inside ``try`` blocks that catch ImportError count as neither (they are optional).
     """
-    tree = ast.parse(path.read_text())
+    return {k: set(v) for k, v in _imports(*_file_key(path))[0].items()}
+
+
+def _file_key(path: Path) -> tuple[str, int, int]:
+    st = Path(path).stat()
+    return str(path), st.st_size, st.st_mtime_ns
+
+
+@functools.lru_cache(maxsize=None)
+def _imports(path: str, size: int, mtime_ns: int) -> tuple[dict[str, set[str]], dict[str, set[str]]]:
+    """The file's :func:`module_imports`, and ``{module: names}`` of its ``from module import names`` statements
+    (cached by the file's path, size and modification time)."""
+    tree = ast.parse(Path(path).read_text())
     out: dict[str, set[str]] = {"top": set(), "lazy": set()}
+    names: dict[str, set[str]] = {}
     func_nodes = {id(n) for f in ast.walk(tree) if isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef))
                   for n in ast.walk(f) if n is not f}
     for node in ast.walk(tree):
-        if isinstance(node, (ast.Import, ast.ImportFrom)):
-            if in_optional_import(tree, node):
-                continue
+        if isinstance(node, ast.ImportFrom) and node.module:
+            names.setdefault(node.module, set()).update(a.name for a in node.names)
+        if isinstance(node, (ast.Import, ast.ImportFrom)) and not in_optional_import(tree, node):
             for mod, _ in resolve_import(node):
                 if mod.startswith("course_lib"):
                     # importing a.b.c imports the packages a and a.b first
-                    kind = "lazy" if id(node) in func_nodes else "top"
-                    out[kind].add(mod)
-    return out
+                    out["lazy" if id(node) in func_nodes else "top"].add(mod)
+    return out, names
 
 
 def course_lib_modules() -> dict[str, Path]:
@@ -272,24 +273,8 @@ def imported_names(module: str) -> set[str]:
     for m, p in course_lib_modules().items():
         if m == module:
             continue
-        out.update(_from_imports(p).get(module, ()))
+        out.update(_imports(*_file_key(p))[1].get(module, ()))
     return out
-
-
-_FROM_CACHE: dict[tuple, dict[str, set[str]]] = {}
-
-
-def _from_imports(path: Path) -> dict[str, set[str]]:
-    """``{module: names}`` of the ``from module import names`` statements of a file (cached by size and mtime)."""
-    st = Path(path).stat()
-    key = (str(path), st.st_size, st.st_mtime_ns)
-    if key not in _FROM_CACHE:
-        found: dict[str, set[str]] = {}
-        for node in ast.walk(ast.parse(Path(path).read_text())):
-            if isinstance(node, ast.ImportFrom) and node.module:
-                found.setdefault(node.module, set()).update(a.name for a in node.names)
-        _FROM_CACHE[key] = found
-    return _FROM_CACHE[key]
 
 
 def _bound_name(node: ast.AST) -> str | None:

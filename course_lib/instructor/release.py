@@ -68,6 +68,9 @@ __all__ = ["stub_source", "stub_notebook", "student_readme", "student_environmen
 
 #: Top-level files copied as they are, when present (``environment.txt`` is rewritten: :func:`student_environment`).
 COPIED_FILES = ("conftest.py",)
+#: The student kit's README.md (``str.format`` fields: the notebooks, exercises, points and the scoring rule),
+#: pyproject.toml (its ``version``) and .gitignore.
+STUDENT_TEMPLATES = REPO_ROOT / "templates" / "student"
 
 #: Pinned tools the student kit uses without importing them, and the text of the kit that uses them
 #: (:func:`student_environment` keeps them; ``release --verify`` checks that the text is there).
@@ -189,39 +192,6 @@ def stub_notebook(nb: nbformat.NotebookNode, name: str = "notebook") -> nbformat
 # Writing the kit
 # ---------------------------------------------------------------------------------------------
 
-STUDENT_PYPROJECT = """\
-[build-system]
-requires = ["setuptools>=64"]
-build-backend = "setuptools.build_meta"
-
-[project]
-name = "course_lib"
-version = "{version}"
-description = "Student kit of the SfM + NeRF course"
-requires-python = ">=3.10"
-
-[tool.setuptools.packages.find]
-include = ["course_lib*"]
-
-[tool.pytest.ini_options]
-# `pytest` runs your notebooks with nbval: every check cell must print the reference verdict
-# stored in the notebook. conftest.py sets COURSE_LIB_QUICK=1 (short training runs).
-testpaths = ["notebooks"]
-addopts = "--nbval-lax --nbval-current-env -p no:cacheprovider"
-filterwarnings = ["ignore::DeprecationWarning:jupyter_client.*", "ignore::DeprecationWarning:zmq.*"]
-"""
-
-STUDENT_GITIGNORE = """\
-.venv/
-__pycache__/
-*.pyc
-.pytest_cache/
-.ipynb_checkpoints/
-outputs/
-*.egg-info/
-solutions/
-"""
-
 
 def _torch_pin() -> str:
     """The torch version that the kit's ``environment.txt`` pins (for the README's CPU-only route)."""
@@ -230,113 +200,6 @@ def _torch_pin() -> str:
         if requirement_name(line) == "torch" and "==" in line:
             return line.split("==", 1)[1].split("#", 1)[0].strip()
     return "2.13.0"
-
-
-#: The README's part on how solutions travel from notebook to notebook.
-_CARRY_TEXT = """
-## Your solutions travel with you
-
-Parts of the kit build on exercises: the SfM pipeline of notebooks 05 and 10 runs your RANSAC,
-pose, triangulation, PnP and residuals; the NeRF trainer and renderer of notebooks 08-10 use your
-`get_rays`, `stratified_samples`, `query_points`, `positional_encoding`, `NeRF` and
-`volume_render`. You never copy code for that: **running an exercise's cell saves your function**
-(with the imports, helper functions and constants it uses from the notebook) to
-`solutions/<name>.py`, and the kit uses it from there, in any later notebook, in a fresh kernel
-and under `pytest`. Run the cell again after a change to save the new version. (A function of that
-name defined in the notebook you are running comes first.)
-
-If a cell stops with `NotImplementedError: get_rays is an exercise of notebooks/06_nerf_data_and_rays.ipynb`, write
-that exercise in the notebook it names and run its cell, then run the cell that stopped again.
-`solutions/` is made from your notebooks (git ignores it); the grader grades the notebooks.
-"""
-
-
-#: The student release's README (:func:`student_readme` fills in the notebooks, the exercises and their points).
-_STUDENT_README = """# SfM + NeRF course kit: student release
-
-{n_notebooks} notebooks{extra} take you from two photos to a 3-D reconstruction (Structure from Motion)
-and then to a neural radiance field (NeRF). In each notebook with exercises you write a few
-functions; a **check cell** after each exercise runs your function on test cases and prints what is
-right and, when something is wrong, the likely mistake or the property that fails.
-
-## Set up (once)
-
-Python 3.10 or newer:
-
-```bash
-python -m venv .venv && . .venv/bin/activate
-pip install -r environment.txt
-jupyter lab notebooks/
-```
-
-`environment.txt` pins every package and installs this kit's `course_lib` (editable). The kit runs
-on a laptop CPU; no GPU is needed. **PyTorch on Linux:** PyPI's `torch` is the CUDA build, which
-pulls gigabytes of NVIDIA packages. On a machine without an NVIDIA GPU, install the CPU-only build
-from PyTorch's CPU wheel index first (a few hundred MB), then the rest:
-
-```bash
-pip install torch=={torch} --index-url https://download.pytorch.org/whl/cpu
-pip install -r environment.txt
-```
-
-(macOS and Windows wheels on PyPI are CPU builds already.)
-
-## Work on an exercise
-
-1. Open the notebook and run it from the top.
-2. Find the cells with `# YOUR CODE HERE` / `raise NotImplementedError`: replace those two lines
-   with your code. Keep the function's name, its arguments and its docstring.
-3. Run the check cell below it (`# NBVAL_CHECK_OUTPUT`). It prints ✔ for each passing check and
-   ✘ with a hint otherwise. Do not edit check cells: the grader restores them and runs the
-   same checks itself, on your notebook's cases and on hidden ones.
-4. Every exercise's check cell starts from the reference result of the step before, so a step you
-   are stuck on does not block the check of the next. The kit's own engines are another matter:
-   the SfM pipeline (notebooks 05 and 10) and the NeRF trainer and renderer (08-10) run *your*
-   earlier functions (see "Your solutions travel with you"), so do the notebooks in order.
-
-## Check your whole kit
-
-```bash
-pytest            # runs every notebook with nbval; a check cell passes when it prints the reference verdict
-pytest notebooks/01_fundamental_matrix.ipynb
-```
-
-A check cell of an exercise you have not written yet fails there (its stub raises `NotImplementedError`);
-that is expected until you write it.
-
-## Exercises and points
-
-| notebook | exercises | points |
-|---|---|---|
-{rows}
-| **total** | | **{total:g}** |
-
-## How your work is graded
-
-The grader runs each exercise function on *hidden* test cases (new synthetic scenes) with a time
-limit, in a separate process that holds your code and this kit's `course_lib` only, works in a copy
-of your folder, has no network and may write only there; it runs the same checks on your notebook's
-own cases too, which gives the check cell's verdict. It also runs your notebooks top to bottom with
-nbval (check cells restored to the original), where each check cell must run. Package installs such
-as `!pip install numpy` are left out then (no network; this kit's environment has every package).
-A function that loops is stopped at the limit and one that ends its process is named in the
-feedback; either costs that exercise only. There is no credit for an exercise that calls the kit's
-reference solution, whose check cell was edited, or whose cell was deleted or moved. Write your own
-code in the exercise cells; helper functions and imports in the notebook are fine.
-
-**The scoring rule** (the grader's feedback, and the `scoring:` line of a check cell that fails, say
-which part of it cost points):
-
-{scoring}{carry}
-## Data
-
-`data/synthetic-building` (SfM) and `data/synthetic-building-nerf` (NeRF) are small scenes with
-known ground truth, made by the kit. The course's own data sets (handed out by your course, not part
-of this kit) are used with a one-line change in the first code cell of each notebook
-(`DATA = course_data("wpi")`); set `COURSE_DATA=/path/to/data` to the folder that holds them (without
-it the kit looks for `../shared/data` beside this folder); `course_data` returns None when a data set is
-not there. The names and folders it expects are in `course_lib/paths.py`.
-"""
 
 
 def student_readme(specs: list[NotebookSpec], plan: ReleasePlan) -> str:
@@ -352,9 +215,9 @@ def student_readme(specs: list[NotebookSpec], plan: ReleasePlan) -> str:
     n_ex = sum(1 for s in shipped if s.exercises)
     optional = [s.name.split("_")[0] for s in shipped if not s.exercises]
     extra = (f" ({n_ex} with exercises; {', '.join(optional)}: optional lessons without exercises)" if optional else "")
-    return _STUDENT_README.format(n_notebooks=len(shipped), extra=extra, torch=_torch_pin(), rows="\n".join(rows),
-                                 total=sum(e.points for s in specs for e in s.exercises), scoring=SCORING_RULE,
-                                 carry=_CARRY_TEXT)
+    return (STUDENT_TEMPLATES / "README.md").read_text().format(
+        n_notebooks=len(shipped), extra=extra, torch=_torch_pin(), rows="\n".join(rows),
+        total=sum(e.points for s in specs for e in s.exercises), scoring=SCORING_RULE)
 
 
 def _walk(root: Path) -> list[Path]:
@@ -434,8 +297,8 @@ def release_files(notebooks_dir: Path = NOTEBOOKS_DIR) -> dict[str, bytes]:
         files["environment.txt"] = student_environment((REPO_ROOT / "environment.txt").read_text(),
                                                        imported_packages(files)).encode()
 
-    files["pyproject.toml"] = STUDENT_PYPROJECT.format(version=__version__).encode()
-    files[".gitignore"] = STUDENT_GITIGNORE.encode()
+    files["pyproject.toml"] = (STUDENT_TEMPLATES / "pyproject.toml").read_text().format(version=__version__).encode()
+    files[".gitignore"] = (STUDENT_TEMPLATES / "gitignore").read_bytes()
     files["README.md"] = student_readme(specs, plan).encode()
 
     manifest = {

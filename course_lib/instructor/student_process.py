@@ -150,10 +150,7 @@ class StudentProcess:
                    PYTHONDONTWRITEBYTECODE="1", MPLBACKEND="Agg", COURSE_LIB_QUICK="1")
         fds = [req_r, rep_w]
         info_r, staged, filtered = None, {}, False
-        if insecure:
-            argv = [sys.executable, "-S", "-E", "-B", str(server_dir / "server.py"), "serve",
-                    str(server_dir / "config.json")]
-        elif boxed:
+        if boxed:
             container.check(self.cgroup)
             argv = container.command("serve", server_dir)
         else:
@@ -368,9 +365,7 @@ class StudentProcess:
             sizes = wire.declared(reply.get("value"))
             wire.declared(reply.get("callbacks"))
         except Exception as exc:  # noqa: BLE001 - a forged reply ends this exercise, not the grading
-            self._end("protocol", f"the process running your function sent a malformed reply ({type(exc).__name__}: "
-                                  f"{str(exc)[:200]})")
-            raise StudentProcessEnded(self.ended) from None
+            raise self._malformed(exc) from None
         _check_sparse(self.name, [s for s in sizes if s[0] == "sparse"], expect)
         try:
             value = wire.decode(reply["value"], out,
@@ -378,14 +373,18 @@ class StudentProcess:
             replay = wire.decode(reply.get("callbacks"), out) or []
             replay = [(callbacks[int(i)], tuple(a), dict(k)) for i, a, k in replay]
         except Exception as exc:  # noqa: BLE001 - a forged reply ends this exercise, not the grading
-            self._end("protocol", f"the process running your function sent a malformed reply ({type(exc).__name__}: "
-                                  f"{str(exc)[:200]})")
-            raise StudentProcessEnded(self.ended) from None
+            raise self._malformed(exc) from None
         for cb, a, k in replay:
             cb(*a, **k)  # the grader's callbacks, replayed in order after the call
         self._rng_in(reply.get("rng"), out)
         self._generators_in(reply.get("gens"), out, args, kwargs)
         return value
+
+    def _malformed(self, exc: Exception) -> StudentProcessEnded:
+        """End the exercise on a reply that cannot be read (forged, or broken): the exception for the check."""
+        self._end("protocol", f"the process running your function sent a malformed reply ({type(exc).__name__}: "
+                              f"{str(exc)[:200]})")
+        return StudentProcessEnded(self.ended)
 
     def _answer_oracle(self, head: dict, arrays: list) -> tuple[dict, list] | None:
         """Answer a call-back of the student's code (an earlier exercise, by its reference); then the next frame.
@@ -472,11 +471,7 @@ class StudentProcess:
             except subprocess.TimeoutExpired:
                 pass
         self.kill()
-        for fd in (self.req_w, self.rep_r):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
+        wire.close_fds((self.req_w, self.rep_r))
         self.req_w = self.rep_r = -1
         shutil.rmtree(self.tmp, ignore_errors=True)
 

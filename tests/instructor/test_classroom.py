@@ -154,6 +154,7 @@ def test_no_sandbox_no_class_grading(tmp_path, monkeypatch, capsys):
     assert not (tmp_path / "g.sqlite").exists()
 
 
+@pytest.mark.slow  # the grader on a class: pytest -m "not slow" leaves it out
 def test_a_class_of_real_submissions(tmp_path, capsys):
     """A complete notebook 01, the untouched release, and a complete one with a link to another student's folder
     (left out, and named in its report), graded two at once with real sandboxes."""

@@ -186,6 +186,7 @@ def test_hidden_cases_are_new_and_the_reference_passes_them(hidden):
     assert all(hidden.reference_passing.values()) and not hidden.reference_notes, hidden.reference_notes
 
 
+@pytest.mark.slow  # the grader with nbval: pytest -m "not slow" leaves it out
 def test_self_written_solutions_get_full_marks_with_nbval(tmp_path, hidden):
     report = grade(write_submission(tmp_path, solved()), hidden, run_nbval=True, cell_timeout=120)
     assert report["total"] == report["max"] == 60, json.dumps(report, indent=1, ensure_ascii=False)
@@ -222,6 +223,7 @@ def test_partly_solved_gets_the_exact_partial_score(tmp_path, hidden):
     assert g["eight_point"]["hidden"]["passed"] == g["eight_point"]["hidden"]["total"] > 0
 
 
+@pytest.mark.slow  # the grader on many mistakes: pytest -m "not slow" leaves it out
 def test_typical_mistakes_are_marked_down_and_named(tmp_path, hidden):
     nbs = solved(bodies={k: v[0] for k, v in MISTAKES.items()})
     report = grade(write_submission(tmp_path, nbs), hidden)
@@ -231,6 +233,7 @@ def test_typical_mistakes_are_marked_down_and_named(tmp_path, hidden):
         assert any(phrase in f for f in g["feedback"]), (name, phrase, g["feedback"])
 
 
+@pytest.mark.slow  # the grader up to its limits: pytest -m "not slow" leaves it out
 def test_raising_and_looping_exercises_do_not_stop_the_others(tmp_path, hidden):
     nbs = solved(bodies={"eight_point": "raise ValueError('my bug')", "essential_from_fundamental": "while True:\n    pass"})
     report = grade(write_submission(tmp_path, nbs), hidden, timeout=8.0)

@@ -65,6 +65,7 @@ def test_the_package_holds_setup_run_autograder_and_the_kit(package):
             assert subprocess.run(["bash", "-n"], input=z.read(script)).returncode == 0
 
 
+@pytest.mark.slow  # the grader on a whole submission: pytest -m "not slow" leaves it out
 def test_results_of_a_complete_submission(package, tmp_path):
     results = run_autograder(package, tmp_path / "autograder", {NB01: solved()[NB01]}, COURSE_GRADER_CONTAINER="0")
     print(json.dumps(results, indent=1)[:3000])  # pytest -s: the results.json
@@ -86,6 +87,7 @@ def attacking(root: Path) -> tuple[dict, Path]:
     return nbs, kit_file
 
 
+@pytest.mark.slow  # the grader on a whole submission: pytest -m "not slow" leaves it out
 def test_results_of_an_attacking_submission(package, tmp_path):
     root = tmp_path / "autograder"
     nbs, kit_file = attacking(root)
@@ -104,6 +106,7 @@ def assert_attack_fails(results: dict, kit_file: Path, why: str) -> None:
     assert results["score"] < 0.9 * sum(t["max_score"] for t in results["tests"])
 
 
+@pytest.mark.slow  # the grader on a whole submission: pytest -m "not slow" leaves it out
 def test_results_of_an_attacking_submission_in_container_mode(package, tmp_path):
     """Container mode (COURSE_GRADER_CONTAINER=1), where bubblewrap is not used: the grader as root, the Python of a
     virtual environment of the system's Python (which all may run, as in a container), a cgroup with a memory

@@ -109,6 +109,7 @@ def hidden(tmp_path_factory):
     return prepare_hidden(kit_specs(NOTEBOOKS_DIR, only=NOTEBOOKS), SEED, tmp_path_factory.mktemp("hidden"))
 
 
+@pytest.mark.slow  # the grader on a chain of notebooks: pytest -m "not slow" leaves it out
 def test_a_wrong_earlier_exercise_costs_points_once(tmp_path, hidden):
     sub, _ = honest_submission(tmp_path / "sub", notebooks=NOTEBOOKS)
     nb_of = {e.name: s.name for s in kit_specs(NOTEBOOKS_DIR, only=NOTEBOOKS) for e in s.exercises}

@@ -27,6 +27,10 @@ from tests.instructor.template_runner import Runner, evaluate
 
 yaml = pytest.importorskip("yaml")  # installed with jupyterlab (jupyter_events)
 
+#: The CI template's jobs in a fresh workspace take most of a minute: left out of the quick subset
+#: (pytest -m "not slow").
+pytestmark = pytest.mark.slow
+
 TEMPLATE = REPO_ROOT / "templates" / "github-actions-grade.yml"
 STUDENTS = {"ada/kit": "a" * 40, "bob/kit": "b" * 40, "cy/kit": "c" * 40}
 

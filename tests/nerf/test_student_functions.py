@@ -110,6 +110,7 @@ def scene():
     return load_blender(EMBEDDED_NERF, "train", downscale=4), load_blender(EMBEDDED_NERF, "test", downscale=4).subset([0])
 
 
+@pytest.mark.slow  # a training run: pytest -m "not slow" leaves it out
 def test_the_fast_preset_trains_and_renders_with_the_literal_functions(literal, scene):
     train_data, test_data = scene
     cfg = preset("fast", minutes=None, iters=40, batch_rays=512, n_samples=32, grid_resolution=32,

@@ -293,6 +293,7 @@ def test_cli_out_is_a_file_and_missing_device(scene, tmp_path, capsys):
         assert main(["nerf", "render", str(out), "--out", str(tmp_path / "v"), "--device", "cuda"]) == 2
 
 
+@pytest.mark.slow  # trains twice in a process of its own: pytest -m "not slow" leaves it out
 def test_ctrl_c_saves_a_checkpoint_and_resumes(scene, tmp_path):
     import os
     import re

@@ -36,7 +36,7 @@ import sys
 
 __all__ = ["WireError", "Record", "encode", "decode", "declared", "pack", "unpack", "write_frame", "read_frame",
            "read_frame_before", "MAX_REQUEST", "MAX_REPLY", "MAX_HEADER", "MAX_NODES", "MAX_ARRAYS", "MAX_SPARSE_CELLS",
-           "ident", "lazy_numpy", "loaded_torch"]
+           "ident", "lazy_numpy", "loaded_torch", "close_fds", "close_inherited"]
 
 MAX_REQUEST = 1 << 31  # bytes of one message from the grader (the hidden inputs)
 #: Bytes of one reply from the student's process: what an exercise can honestly return (the largest honest reply
@@ -57,6 +57,24 @@ MAX_PARAMS = 4096
 
 class WireError(Exception):
     """A message that cannot be encoded or decoded."""
+
+
+def close_fds(fds) -> None:
+    """Close each of ``fds`` (a pipe's end); one that is closed already is no error."""
+    for fd in fds:
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+
+
+def close_inherited(*keep: int) -> None:
+    """Close every file descriptor above 2 but ``keep``: a worker forked from the grader holds no pipe of the grader's
+    other work (nbval's, another exercise's). Without ``/proc`` they stay open."""
+    try:
+        close_fds(fd for fd in [int(f) for f in os.listdir("/proc/self/fd")] if fd > 2 and fd not in keep)
+    except OSError:
+        pass
 
 
 def lazy_numpy():
