@@ -107,6 +107,8 @@ class TrainConfig:
     """Coarse to fine: ``(fraction of the run, share)`` pairs; from that moment on the grid has ``share`` x ``grid_resolution`` voxels."""
     shrink_box_at: FractionOfRun = 0.0
     """When the grid is resampled into the box around the surfaces seen so far (:func:`course_lib.nerf.schedule.surface_box`; 0: never)."""
+    shrink_min_acc: float = 0.0
+    """The box around the surfaces counts only the rays whose opacity reaches this (:func:`course_lib.nerf.schedule.surface_box`; 0: every ray)."""
     grid_mlp_width: int = 0
     """Width of an optional tiny colour MLP on a feature grid (0: none)."""
     grid_feature_dim: int = 12

@@ -64,16 +64,21 @@ def target_resolution(cfg, progress: float) -> int:
 
 @torch.no_grad()
 def surface_box(model, cfg, rays, generator: torch.Generator, n_rays: int = 16384, min_weight: float = 0.05,
-                margin_voxels: float = 3.0) -> tuple[list, list]:
+                margin_voxels: float = 3.0, min_acc: float = 0.0) -> tuple[list, list]:
     """The box around the points where (a sample of) the training rays stop, with a margin.
 
     After a short coarse stage the density in empty space is still noisy ("fog" of small
     opacity), but the points that carry most of each ray's weight already sit on the surfaces;
     their bounding box is a tight box for the fine grid (robust quantiles, then a margin).
+    With ``min_acc > 0`` only the rays whose opacity already reaches it count (rays that stop on
+    the object): where the object covers little of the images, the fog on the many background
+    rays would otherwise hold the box at its first size.
 
     Args:
         model: the :class:`~course_lib.nerf.grid.GridField`. cfg: the run's config.
         rays: :class:`~course_lib.nerf.scene.TrainingRays`. generator: picks the rays.
+        min_weight: a sample counts where its weight exceeds this. margin_voxels: added on every side.
+        min_acc: the opacity a ray needs for its samples to count (0: every ray).
 
     Returns:
         ``(box_min, box_max)`` lists, inside the current box.
@@ -85,7 +90,7 @@ def surface_box(model, cfg, rays, generator: torch.Generator, n_rays: int = 1638
         out = render_rays(model, o[i:i + 4096], d[i:i + 4096], near[i:i + 4096], far[i:i + 4096], cfg.n_samples,
                           white_background=cfg.white_background, last_delta=None)
         pts = o[i:i + 4096, None, :] + out["z_vals"][..., None] * d[i:i + 4096, None, :]
-        pts_all.append(pts[out["weights"] > min_weight])
+        pts_all.append(pts[(out["weights"] > min_weight) & (out["acc_map"] >= min_acc)[:, None]])
     pts = torch.cat(pts_all)
     if pts.shape[0] < 100:
         return model.box_min.tolist(), model.box_max.tolist()
@@ -166,7 +171,7 @@ def grid_callbacks(model, cfg) -> list[TrainingCallback]:
     """The callbacks of a :class:`~course_lib.nerf.grid.GridField` trained with ``cfg`` (see the module)."""
 
     def shrink(state) -> bool:
-        lo, hi = surface_box(model, cfg, state.rays, state.generator)
+        lo, hi = surface_box(model, cfg, state.rays, state.generator, min_acc=cfg.shrink_min_acc)
         model.rebox(lo, hi, target_resolution(cfg, state.progress))
         model.update_occupancy(cfg.occupancy_threshold)
         state.bounds = state.bounds.with_box(lo, hi)

@@ -1,10 +1,13 @@
-"""The grid's schedule (course_lib.nerf.schedule): the batch tuner solves a step's cost for its two parts."""
+"""The grid's schedule (course_lib.nerf.schedule): the batch tuner solves a step's cost for its two parts; the box around the surfaces."""
 
 from dataclasses import dataclass, field
 from types import SimpleNamespace
 
+import torch
+
+from course_lib.nerf.grid import GridField
 from course_lib.nerf.presets import preset, resolve
-from course_lib.nerf.schedule import BatchTuner
+from course_lib.nerf.schedule import BatchTuner, surface_box
 
 
 @dataclass
@@ -60,3 +63,35 @@ def test_off_without_a_time_budget_or_when_set_to_zero():
     assert BatchTuner(model, resolve(preset("fast"), 100, 100)).due(_State(None))  # the preset's: on, 5 minutes
     for cfg in (resolve(preset("fast", adapt_batch=0.0), 100, 100), resolve(preset("fast", minutes=0, iters=500), 100, 100)):
         assert not BatchTuner(model, cfg).due(_State(cfg))  # a run of a fixed number of steps stays reproducible
+
+
+class _Rays:
+    """Rays from cameras on a sphere of radius 4 towards random points near the origin (no colours)."""
+
+    def __init__(self, n: int = 4096):
+        g = torch.Generator().manual_seed(0)
+        o = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1) * 4.0
+        self.o, self.d = o, torch.nn.functional.normalize(torch.rand(n, 3, generator=g) * 1.6 - 0.8 - o, dim=1)
+
+    def __len__(self):
+        return len(self.o)
+
+    def sample(self, n, generator):
+        return self.o[:n], self.d[:n], torch.ones(n, 3)
+
+
+def test_the_box_around_the_surfaces_leaves_out_the_floaters_of_rays_that_do_not_stop():
+    """An opaque cube of half-side 0.25 and three faint floaters away from it (opacity ~0.3 across each)."""
+    model = GridField([-1, -1, -1], [1, 1, 1], resolution=32)
+    axis = torch.linspace(-1, 1, model.shape[0])
+    z, y, x = torch.meshgrid(axis, axis, axis, indexing="ij")
+    raw = torch.full(model.shape, -20.0)
+    raw[(x.abs() < 0.25) & (y.abs() < 0.25) & (z.abs() < 0.25)] = 5.0
+    for i, j, k in ((5, 5, 5), (26, 5, 26), (5, 26, 26)):  # voxels at about -0.7 and 0.7
+        raw[i:i + 2, j:j + 2, k:k + 2] = 2.9  # opacity 0.15 a voxel
+    model.density_grid.data[0, 0] = raw
+    cfg = resolve(preset("fast", n_samples=64, grid_resolution=32), 100, 100)
+    lo_all, hi_all = surface_box(model, cfg, _Rays(), torch.Generator(), margin_voxels=0.0)
+    lo, hi = surface_box(model, cfg, _Rays(), torch.Generator(), margin_voxels=0.0, min_acc=0.5)
+    assert max(hi_all) > 0.6 or min(lo_all) < -0.6  # the floaters pull the box out
+    assert all(-0.3 < v < -0.15 for v in lo) and all(0.15 < v < 0.3 for v in hi)  # only the cube
