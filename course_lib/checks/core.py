@@ -80,6 +80,12 @@ __all__ = [
     "call_recording",
     "counted_repeats",
     "repeated_sample",
+    "samples_needed",
+    "call_minimal",
+    "minimal_verdict",
+    "rng_verdicts",
+    "threshold_interval",
+    "within",
 ]
 
 PASS, FAIL = "✔", "✘"
@@ -703,6 +709,82 @@ def repeated_sample(rng: RecordingRng, k: int) -> np.ndarray | None:
                 return row
     return None
 
+
+
+def samples_needed(w: float, k: int, confidence: float, max_iters: int) -> float:
+    """Adaptive RANSAC's count N = log(1 - confidence) / log(1 - wᵏ) for inlier ratio ``w`` and samples of ``k``, at
+    most ``max_iters`` (1 when every item is an inlier)."""
+    if w >= 1.0:
+        return 1.0
+    if w <= 0.0:
+        return float(max_iters)
+    return float(min(max_iters, np.log(1.0 - confidence) / np.log(1.0 - w**k)))
+
+
+def _distinct_advice(k: int, items: str) -> str:
+    return (f"rng.choice(N, {k}) draws with replacement unless you pass replace=False; draw {k} distinct {items}, "
+            f"rng.choice(N, {k}, replace=False)")
+
+
+def call_minimal(c: "Check", fn: Callable, *args, k: int, item: tuple[str, str], seed: int, case: str, stand_in: Any,
+                 **kwargs) -> tuple[Any, RecordingRng] | None:
+    """Call a RANSAC on exactly ``k`` noiseless items (``item``: their name, singular and plural) with a
+    :class:`RecordingRng` seeded with ``seed``: ``(result, rng)``, or None after a failed check that names a sample
+    drawn with replacement, when the student's code raised after drawing one (:func:`call_recording`)."""
+    rng = RecordingRng(seed)
+    res, raised = call_recording(c, fn, *args, rng=rng, k=k, case=case, stand_in=stand_in, **kwargs)
+    if raised is None:
+        return res, rng
+    c.fail(f"{case}: your function raised {type(raised).__name__}: {str(raised)[:100]}, after a sample that held a "
+           f"{item[0]} twice (indices {repeated_sample(rng, k).tolist()}): {_distinct_advice(k, item[1])}",
+           named="with_replacement")
+    return None
+
+
+def minimal_verdict(c: "Check", rng: RecordingRng, k: int, item: tuple[str, str], case: str, ok: bool, n_iters: Any,
+                    pass_msg: str, what: str) -> None:
+    """The verdict of a RANSAC on exactly ``k`` noiseless items (:func:`call_minimal`): the only sample of ``k``
+    distinct items is all of them, so the result fits every item exactly (``ok``; ``what``: the case's numbers, for a
+    failure). A sample that held an item twice (``k - 1`` items leave the model undetermined) is named: drawn and
+    counted in ``n_iters`` before the one good sample, or seen in a run that failed."""
+    skipped = counted_repeats(rng, k, n_iters)
+    if ok and skipped:
+        c.fail(f"{case}: n_iters = {n_iters}, where the first sample of {k} distinct {item[1]} has every {item[0]} as "
+               f"inlier (N = 1): the {skipped} samples before it each held a {item[0]} twice (a degenerate sample, "
+               f"counted in n_iters): {_distinct_advice(k, item[1])}", named="with_replacement")
+        return
+    twice = None if ok else repeated_sample(rng, k)
+    if twice is not None:
+        c.fail(f"{what}: a sample held a {item[0]} twice (indices {twice.tolist()}): {_distinct_advice(k, item[1])}",
+               named="with_replacement")
+        return
+    c.expect(ok, pass_msg, f"{what} (each sample is {k} distinct {item[1]}, rng.choice(N, {k}, replace=False); the "
+             "refit uses every inlier)")
+
+
+def rng_verdicts(c: "Check", case: str, k: int, touched: bool, drawn: bool | None = None) -> None:
+    """Gates of a RANSAC's randomness (a constant answer satisfies them as well as a right one): numpy's global state
+    was not ``touched`` by the call, and (unless None) the ``rng`` argument was ``drawn`` from (its state advanced)."""
+    c.gate(not touched, f"{case}: numpy's global random state is left untouched",
+           f"{case}: the call changed numpy's global random state (np.random.seed or a draw from np.random): draw "
+           "from the rng argument only")
+    if drawn is not None:
+        c.gate(drawn, f"{case}: the samples are drawn from the rng argument",
+               f"{case}: the rng argument is untouched after the call (no number was drawn from it): draw every sample "
+               f"from it (rng.choice(N, {k}, replace=False)), not from a generator of your own or np.random")
+
+
+def threshold_interval(values: np.ndarray, inl: np.ndarray) -> tuple[float, float] | None:
+    """``(lo, hi)``: the inlier mask ``inl`` is ``values < τ`` for every τ in (lo, hi]; None when no threshold gives it
+    (how a check reads which threshold, or which rule, a RANSAC's mask follows)."""
+    lo = float(values[inl].max()) if inl.any() else -np.inf
+    hi = float(values[~inl].min()) if (~inl).any() else np.inf
+    return (lo, hi) if lo < hi else None
+
+
+def within(interval: tuple[float, float] | None, tau: float) -> bool:
+    """Whether the threshold ``tau`` lies in ``interval`` (:func:`threshold_interval`; ends within float rounding)."""
+    return interval is not None and interval[0] < tau * (1 + 1e-9) and tau <= interval[1] * (1 + 1e-9)
 
 # ---------------------------------------------------------------------------------------------
 # One rule for equivalences and tolerances

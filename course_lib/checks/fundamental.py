@@ -46,9 +46,9 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import (EPS32, FAILED, RTOL, Check, RecordingRng, call_recording, close_rel,
-                                    counted_repeats, declare_defining, load_fixture, repeated_sample,
-                                    same_up_to_scale, source_has, unique_key)
+from course_lib.checks.core import (EPS32, FAILED, RTOL, Check, call_minimal, close_rel, declare_defining, load_fixture,
+                                    minimal_verdict, rng_verdicts, same_up_to_scale, samples_needed, source_has,
+                                    threshold_interval, unique_key, within)
 
 __all__ = [
     "check_normalize_points",
@@ -447,17 +447,6 @@ def _usable(F, inl, n: int) -> bool:
     return F.shape == (3, 3) and np.isfinite(F).all() and np.linalg.norm(F) > 0 and inl.shape == (n,)
 
 
-def _threshold_interval(values: np.ndarray, inl: np.ndarray) -> tuple[float, float] | None:
-    """``(lo, hi)``: the mask is ``values < τ`` for every τ in (lo, hi]; None when no threshold explains it."""
-    lo = float(values[inl].max()) if inl.any() else -np.inf
-    hi = float(values[~inl].min()) if (~inl).any() else np.inf
-    return (lo, hi) if lo < hi else None
-
-
-def _within(interval, tau: float) -> bool:
-    return interval is not None and interval[0] < tau * (1 + 1e-9) and tau <= interval[1] * (1 + 1e-9)
-
-
 #: The inlier rules a mask may follow, as what the student did, and the threshold each one amounts to.
 _RULES = {
     "squared": ("you compared the squared Sampson distance with threshold_px (d² < threshold_px); compare the distance "
@@ -472,26 +461,17 @@ _RULES = {
 def _mask_rule(F, x1, x2, inl, thr: float) -> tuple[str, tuple | None]:
     """Which rule the mask follows with the returned F: ``("right" | a key of _RULES | "other", interval)``."""
     d = np.sqrt(_sampson_sq(F, x1, x2))
-    interval = _threshold_interval(d, inl)
-    if _within(interval, thr):
+    interval = threshold_interval(d, inl)
+    if within(interval, thr):
         return "right", interval
-    if _within(interval, thr**2):
+    if within(interval, thr**2):
         return "threshold_squared", interval
-    if _within(interval, np.sqrt(thr)):
+    if within(interval, np.sqrt(thr)):
         return "squared", interval
     e = np.abs(np.sum(_h(x2) * (_h(x1) @ _unit(F).T), axis=1))
-    if _within(_threshold_interval(e, inl), thr):
+    if within(threshold_interval(e, inl), thr):
         return "algebraic", interval
     return "other", interval
-
-
-def _needed(w: float, confidence: float, max_iters: int) -> float:
-    """Adaptive RANSAC's count for inlier ratio ``w`` and 8-point samples, at most ``max_iters``."""
-    if w >= 1.0:
-        return 1.0
-    if w <= 0.0:
-        return float(max_iters)
-    return float(min(max_iters, np.log(1.0 - confidence) / np.log(1.0 - w**8)))
 
 
 def _ransac_threshold_case(c: Check, f: dict, run: dict, named: str | None) -> None:
@@ -538,7 +518,7 @@ def _iterations_verdict(c: Check, case: str, inl, n_iters, max_iters: int = 2000
         c.fail(f"{case}: n_iters is missing: return the number of samples drawn")
         return
     w = float(inl.mean())
-    need = _needed(w, confidence, max_iters)
+    need = samples_needed(w, 8, confidence, max_iters)
     # at least about N(w) of the returned ratio (the best ratio so far is never higher); more when the best sample
     # came late, but never max_iters when the ratio needs far fewer (a fixed count)
     ok = 1 <= n_iters < max_iters and n_iters >= 0.25 * need - 1
@@ -564,19 +544,15 @@ def _ransac_randomness(c: Check, fn: Callable, f: dict, out: tuple, case: str) -
         return
     same = (again[1].shape == out[1].shape and np.array_equal(again[1], out[1]) and again[0].shape == out[0].shape
             and np.allclose(again[0], out[0]) and again[2] == out[2])
+    rng = np.random.default_rng(5)
+    before = rng.bit_generator.state
+    ran = _unpack_ransac(c.call(fn, x1, x2, rng, threshold_px=thr, case=case), c, case) is not None
     c.gate(same, f"{case}: the same seed gives the same result",
            f"{case}: two runs with the same seeded rng (and another np.random state) differ: draw every sample from the "
            "rng argument (rng.choice(N, 8, replace=False)), never from np.random or a generator of your own")
-    c.gate(not touched, f"{case}: numpy's global random state is left untouched",
-           f"{case}: the call changed numpy's global random state (np.random.seed or a draw from np.random): draw "
-           "from the rng argument only")
-    rng = np.random.default_rng(5)
-    before = rng.bit_generator.state
-    if _unpack_ransac(c.call(fn, x1, x2, rng, threshold_px=thr, case=case), c, case) is None:
+    rng_verdicts(c, case, 8, touched, rng.bit_generator.state != before if ran else None)
+    if not ran:
         return
-    c.gate(rng.bit_generator.state != before, f"{case}: the samples are drawn from the rng argument",
-           f"{case}: the rng argument is untouched after the call (no number was drawn from it): draw every sample "
-           "from it (rng.choice(N, 8, replace=False)), not from a generator of your own or np.random")
     short = _unpack_ransac(c.call(fn, x1, x2, np.random.default_rng(1), threshold_px=thr, max_iters=3, case=case), c,
                            case)
     if short is not None:
@@ -612,7 +588,7 @@ def _ransac_count_case(c: Check, fn: Callable, f: dict) -> None:
     if int((inl != truth).sum()) > max(2, 0.05 * len(inl)):  # the inlier test itself is off (other verdicts say how): no count to compare
         return
     w = float(inl.mean())
-    need = _needed(w, 0.999, 2000)
+    need = samples_needed(w, 8, 0.999, 2000)
     n = out[2]
     c.gate(n >= 0.8 * need - 1, f"{case}: draws as many samples as N = log(1 - confidence) / log(1 - w⁸) asks",
            f"{case}: n_iters = {n}, while the returned inlier ratio {w:.0%} at confidence 0.999 needs N = {need:.0f} "
@@ -646,38 +622,17 @@ def _ransac_minimal_case(c: Check, fn: Callable, f: dict) -> None:
     true_inl = f["rs_true_inliers"].astype(bool)
     x1, x2 = f["rs_x1_true"][true_inl][:8], f["rs_x2_true"][true_inl][:8]
     case = "exactly 8 noiseless matches (threshold 1 px)"
-    rng = RecordingRng(13)
-    res, raised = call_recording(c, fn, x1, x2, rng=rng, k=8, case=case, stand_in=(np.eye(3), np.zeros(8, bool), 1),
-                                 threshold_px=1.0)
-    if raised is not None:
-        c.fail(f"{case}: your function raised {type(raised).__name__}: {str(raised)[:100]}, after a sample that held "
-               f"a match twice (indices {repeated_sample(rng, 8).tolist()}): rng.choice(N, 8) draws with replacement "
-               "unless you pass replace=False; draw 8 distinct matches, rng.choice(N, 8, replace=False)",
-               named="with_replacement")
-        return
-    out = _unpack_ransac(res, c, case)
+    called = call_minimal(c, fn, x1, x2, k=8, item=("match", "matches"), seed=13, case=case,
+                          stand_in=(np.eye(3), np.zeros(8, bool), 1), threshold_px=1.0)
+    out = None if called is None else _unpack_ransac(called[0], c, case)
     if out is None or not (c.shape(out[0], (3, 3), f"{case}: F") & c.shape(out[1], (8,), f"{case}: inliers")):
         return
     F, inl = out[0], out[1]
     d = np.sqrt(_sampson_sq(F, x1, x2)) if np.isfinite(F).all() and np.linalg.norm(F) > 0 else np.full(8, np.inf)
-    ok = bool(inl.all()) and float(d.max()) < MINIMAL_TOL_PX
-    skipped = counted_repeats(rng, 8, out[2])
-    if ok and skipped:
-        c.fail(f"{case}: n_iters = {out[2]}, where the first sample of 8 distinct matches has every match as inlier "
-               f"(N = 1): the {skipped} samples before it each held a match twice (a degenerate sample, counted in n_iters): "
-               "rng.choice(N, 8) draws with replacement unless you pass replace=False; draw 8 distinct matches, "
-               "rng.choice(N, 8, replace=False)", named="with_replacement")
-        return
-    twice = None if ok else repeated_sample(rng, 8)
-    what = (f"{case}: {int(inl.sum())} of 8 inliers, largest Sampson distance {float(d.max()):.3g} px; the only sample "
-            "of 8 distinct matches is all of them, so F must fit every match exactly")
-    if twice is not None:
-        c.fail(f"{what}: a sample held a match twice (indices {twice.tolist()}): rng.choice(N, 8) draws with "
-               "replacement unless you pass replace=False; draw 8 distinct matches, rng.choice(N, 8, replace=False)",
-               named="with_replacement")
-        return
-    c.expect(ok, f"{case}: F fits all 8 matches exactly", f"{what} (each sample is 8 distinct matches, "
-             "rng.choice(N, 8, replace=False); the refit uses every inlier)")
+    minimal_verdict(c, called[1], 8, ("match", "matches"), case, bool(inl.all()) and float(d.max()) < MINIMAL_TOL_PX,
+                    out[2], f"{case}: F fits all 8 matches exactly",
+                    f"{case}: {int(inl.sum())} of 8 inliers, largest Sampson distance {float(d.max()):.3g} px; the only "
+                    "sample of 8 distinct matches is all of them, so F must fit every match exactly")
 
 
 def check_ransac_fundamental(ransac_fundamental: Callable) -> None:

@@ -35,8 +35,9 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib.conventions import nearest_rotation, project, rotation_angle_deg, world_to_camera
-from course_lib.checks.core import (FAILED, RTOL, Check, RecordingRng, call_recording, counted_repeats,
-                                    declare_defining, load_fixture, repeated_sample, source_has, unique_key)
+from course_lib.checks.core import (FAILED, RTOL, Check, call_minimal, declare_defining, load_fixture, minimal_verdict,
+                                    rng_verdicts, samples_needed, source_has, threshold_interval,
+                                    unique_key, within)
 
 __all__ = [
     "check_pnp_linear",
@@ -238,15 +239,6 @@ def _ransac_fields(out, c: Check, case: str, n: int):
     return pose[0], pose[1], inl, it
 
 
-def _iterations_needed(w: float, confidence: float, max_iters: int) -> float:
-    """Adaptive RANSAC's count for inlier ratio ``w`` and 6-point samples."""
-    if w >= 1.0:
-        return 1.0
-    if w <= 0.0:
-        return float(max_iters)
-    return min(float(max_iters), np.log(1.0 - confidence) / np.log(1.0 - w**6))
-
-
 #: The inlier rules a mask may follow, as what the student did.
 _MASK_RULES = {
     "squared": "you compared the SQUARED reprojection error with threshold_px (e² < threshold_px): compare the error "
@@ -264,16 +256,13 @@ _MASK_RULES = {
 def _mask_facts(inl, e_px, z, thr: float, behind) -> dict:
     """How the mask relates to the returned pose's reprojection errors ``e_px (N,)`` and depths ``z (N,)``."""
     front = z > 0
-    lo = float(e_px[inl & front].max()) if (inl & front).any() else -np.inf  # the mask is e < τ for τ in (lo, hi]
-    hi = float(e_px[~inl & front].min()) if (~inl & front).any() else np.inf
-    interval = (lo, hi) if lo < hi else None
-    within = lambda tau: interval is not None and lo < tau * (1 + 1e-9) and tau <= hi * (1 + 1e-9)  # noqa: E731
+    interval = threshold_interval(e_px[front], inl[front])  # the points behind the camera: their own verdict
     keys = set()
-    if within(thr**2) and not within(thr):
+    if within(interval, thr**2) and not within(interval, thr):
         keys.add("threshold_squared")
-    if within(np.sqrt(thr)) and not within(thr):
+    if within(interval, np.sqrt(thr)) and not within(interval, thr):
         keys.add("squared")
-    if thr != THRESHOLD_PX and within(THRESHOLD_PX) and not within(thr):
+    if thr != THRESHOLD_PX and within(interval, THRESHOLD_PX) and not within(interval, thr):
         keys.add("constant")
     if (inl & front).any() and e_px[inl & front].max() > 10 * thr and inl.mean() > 0.9:
         keys.add("normalized")
@@ -373,7 +362,7 @@ def _iterations_verdict(c: Check, case: str, inl, it, max_iters: int = 1000) -> 
     if it is None:
         c.fail(f"{case}: no n_iters returned: return (R_cw, t_cw, inliers, n_iters), the number of samples drawn")
         return
-    need = _iterations_needed(float(inl.mean()), 0.999, max_iters)
+    need = samples_needed(float(inl.mean()), 6, 0.999, max_iters)
     ok = 1 <= it <= min(max_iters, 4 * need + 10) and it >= 0.25 * need - 1
     why = (f"n_iters = {it} > max_iters = {max_iters}" if it > max_iters else
            f"n_iters = {it}, while your inlier ratio {inl.mean():.0%} needs about {need:.0f} samples at confidence "
@@ -396,7 +385,7 @@ def _confidence_verdict(c: Check, fn, f, case: str) -> None:
     (_, _, _, lo), (_, _, inl, hi) = runs
     if lo is None or hi is None:
         return  # no n_iters: said above
-    need = _iterations_needed(float(inl.mean()), 0.99999, 1000)
+    need = samples_needed(float(inl.mean()), 6, 0.99999, 1000)
     c.expect(lo <= hi and hi >= 0.7 * need, f"{case}: more samples for a higher confidence",
              f"{case}: n_iters = {lo} at confidence 0.9 and {hi} at 0.99999 ({inl.mean():.0%} inliers need about "
              f"{need:.0f} samples at 0.99999): the confidence argument must set the number of samples, "
@@ -435,20 +424,14 @@ def _rng_verdicts(c: Check, fn, f) -> None:
     c.gate(all(i is not None and 1 <= i <= RNG_MAX_ITERS for i in its), f"{case}: draws max_iters samples at most",
            f"{case}: n_iters = {its[0]} with max_iters={RNG_MAX_ITERS}: stop after max_iters samples and return "
            "their count")
+    rng = np.random.default_rng(RNG_SEED + 1)
+    before = rng.bit_generator.state
+    ran = _ransac_fields(c.call(fn, X, x, K, rng, max_iters=RNG_MAX_ITERS, case=case), c, case, len(X)) is not None
     c.gate(_same_run(*runs), f"{case}: the same rng seed gives the same result",
            f"{case}: the same rng seed gave different results when np.random's global state changed: draw every "
            "sample from the rng argument (rng.choice(N, 6, replace=False)), not from np.random or a generator of "
            "your own")
-    c.gate(not touched, f"{case}: numpy's global random state is left untouched",
-           f"{case}: the call changed numpy's global random state (np.random.seed or a draw from np.random): draw "
-           "from the rng argument only")
-    rng = np.random.default_rng(RNG_SEED + 1)
-    before = rng.bit_generator.state
-    if _ransac_fields(c.call(fn, X, x, K, rng, max_iters=RNG_MAX_ITERS, case=case), c, case, len(X)) is None:
-        return
-    c.gate(rng.bit_generator.state != before, f"{case}: the samples are drawn from the rng argument",
-           f"{case}: the rng argument is untouched after the call (no number was drawn from it): draw every sample from "
-           "it (rng.choice(N, 6, replace=False)), not from a generator of your own or np.random")
+    rng_verdicts(c, case, 6, touched, rng.bit_generator.state != before if ran else None)
 
 
 def _minimal_verdict(c: Check, fn, f) -> None:
@@ -460,37 +443,17 @@ def _minimal_verdict(c: Check, fn, f) -> None:
     X = X[world_to_camera(R, t, X)[:, 2] > 0][:6]
     x = project(K, R, t, X)
     case = "exactly 6 noiseless points"
-    rng = RecordingRng(RANSAC_SEED)
-    res, raised = call_recording(c, fn, X, x, K, rng=rng, k=6, case=case, stand_in=(np.eye(3), np.zeros(3),
-                                 np.zeros(6, bool), 1))
-    twice = repeated_sample(rng, 6)
-    advice = (f"a sample held a point twice (indices {None if twice is None else twice.tolist()}): rng.choice(N, 6) "
-              "draws with replacement unless you pass replace=False; draw 6 distinct points, rng.choice(N, 6, "
-              "replace=False)")
-    if raised is not None:
-        c.fail(f"{case}: your function raised {type(raised).__name__}: {str(raised)[:100]}, after {advice}",
-               named="with_replacement")
-        return
-    out = _ransac_fields(res, c, case, len(X))
+    called = call_minimal(c, fn, X, x, K, k=6, item=("point", "points"), seed=RANSAC_SEED, case=case,
+                          stand_in=(np.eye(3), np.zeros(3), np.zeros(6, bool), 1))
+    out = None if called is None else _ransac_fields(called[0], c, case, len(X))
     if out is None:
         return
     Rs, ts, inl, it = out
     e = _errors(K, Rs, ts, X, x)
-    ok = bool(inl.all()) and float(e.max()) < 0.05
-    skipped = counted_repeats(rng, 6, it)
-    if ok and skipped:
-        c.fail(f"{case}: n_iters = {it}, where the first sample of 6 distinct points has every point as inlier (N = 1): "
-               f"the {skipped} samples before it each held a point twice (a degenerate sample, counted in n_iters): rng.choice(N, 6) "
-               "draws with replacement unless you pass replace=False; draw 6 distinct points, rng.choice(N, 6, "
-               "replace=False)", named="with_replacement")
-        return
-    what = (f"{case}: {int(inl.sum())} of 6 inliers, largest reprojection error {float(e.max()):.3g} px; the only "
-            "sample of 6 distinct points is all of them, so the pose must reproject every point exactly")
-    if not ok and twice is not None:
-        c.fail(f"{what}: {advice}", named="with_replacement")
-        return
-    c.expect(ok, f"{case}: the pose reprojects all 6 points exactly", f"{what} (each sample is 6 distinct points, "
-             "rng.choice(N, 6, replace=False); the refit uses every inlier)")
+    minimal_verdict(c, called[1], 6, ("point", "points"), case, bool(inl.all()) and float(e.max()) < 0.05, it,
+                    f"{case}: the pose reprojects all 6 points exactly",
+                    f"{case}: {int(inl.sum())} of 6 inliers, largest reprojection error {float(e.max()):.3g} px; the "
+                    "only sample of 6 distinct points is all of them, so the pose must reproject every point exactly")
 
 
 def check_pnp_ransac(fn, exercise: str = "pnp_ransac") -> None:

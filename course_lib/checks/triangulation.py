@@ -125,20 +125,16 @@ def _points_shape(c: Check, X, n: int, case: str) -> np.ndarray | None:
     if X is FAILED:
         return None
     A = _arr(X)
-    if A is None:
-        c.fail(f"{case}: expected an array of shape ({n}, 3), got {type(X).__name__}")
-        return None
-    if A.shape == (n, 4):
-        c.fail(f"{case}: returned homogeneous points of shape ({n}, 4): divide by the last coordinate X_h[3] and drop it")
-        return None
-    if A.shape in ((3, n), (4, n)) and n not in (3, 4):
-        c.fail(f"{case}: shape {A.shape}: points are rows in the kit, return shape ({n}, 3) (transpose)")
-        return None
-    if A.shape != (n, 3):
-        c.fail(f"{case}: shape {A.shape}, expected ({n}, 3)")
-        return None
-    if not np.isfinite(A).all():
-        c.fail(f"{case}: the points contain NaN or inf")
+    shape = None if A is None else A.shape
+    problem = (f"expected an array of shape ({n}, 3), got {type(X).__name__}" if A is None
+               else f"returned homogeneous points of shape ({n}, 4): divide by the last coordinate X_h[3] and drop it"
+               if shape == (n, 4)
+               else f"shape {shape}: points are rows in the kit, return shape ({n}, 3) (transpose)"
+               if shape in ((3, n), (4, n)) and n not in (3, 4)
+               else f"shape {shape}, expected ({n}, 3)" if shape != (n, 3)
+               else "the points contain NaN or inf" if not np.isfinite(A).all() else None)
+    if problem:
+        c.fail(f"{case}: {problem}")
         return None
     return A
 
