@@ -286,8 +286,8 @@ class _FocalWatch:
             return
         fs = [e["f"] for e in mapper.intrinsics_log if e["accepted"]]
         settled = len(fs) >= 2 and abs(np.log(fs[-1] / fs[-2])) < np.log1p(FOCAL_SETTLED)
-        jumped = abs(np.log(f / self.start_px)) > np.log(FOCAL_JUMP)
-        if (settled or jumped or at_end) and abs(np.log(f / self.start_px)) > np.log1p(self.opts.focal_restart_change):
+        moved = abs(np.log(f / self.start_px))
+        if (settled or moved > np.log(FOCAL_JUMP) or at_end) and moved > np.log1p(self.opts.focal_restart_change):
             raise _FocalMoved({"from_px": round(self.start_px, 3), "to_px": round(f, 3), "images": n, "at_end": bool(at_end)})
 
 

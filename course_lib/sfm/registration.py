@@ -146,23 +146,25 @@ class ImageRegistration(ObservationManager):
         self.R[i], self.t[i] = R, t
         self.registered[i] = True
         self.candidate[js[~inl], i] = False
-        median = float(np.median(_errors(X[inl], uv[inl], self.K, R, t)))
+        median = _inlier_median(X, uv, inl, self.K, R, t)
         self.pnp_medians.append(median)
         return {"correspondences": int(len(js)), "pnp_inliers": int(inl.sum()), "ransac_iterations": int(res.n_iters),
                 "pnp_median_px": round(median, 3), **second, **retried}, None
 
-    def _pose_cost(self, X: np.ndarray, uv: np.ndarray, R: np.ndarray, t: np.ndarray) -> float:
-        """MSAC cost of a pose on all ``(N,)`` 2D-3D matches: squared reprojection errors truncated at ``pnp_threshold_px``.
+    def _pose_fit(self, X: np.ndarray, uv: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, float]:
+        """A pose on all ``(N,)`` 2D-3D matches: ``(inliers, cost)``, its errors within ``pnp_threshold_px`` and its
+        MSAC cost, the squared reprojection errors truncated at that threshold.
 
-        Lower is better. Unlike the inlier count, it tells apart two poses that explain the same
+        Lower cost is better. Unlike the inlier count, it tells apart two poses that explain the same
         matches within the threshold but one of them much more closely (the two basins of a narrow
         field of view: 141 and 140 inliers, median errors 0.45 and 1.17 px).
         """
         thr = self.opts.pnp_threshold_px
-        return float(np.sum(np.minimum(_errors(X, uv, self.K, R, t), thr) ** 2))
+        e = _errors(X, uv, self.K, R, t)
+        return e < thr, float(np.sum(np.minimum(e, thr) ** 2))
 
     def _retry_if_unusual(self, X: np.ndarray, uv: np.ndarray, inl: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple:
-        """Where the pose fits its inliers unusually badly, PnP RANSAC again (fresh draws); the lowest :meth:`_pose_cost` kept.
+        """Where the pose fits its inliers unusually badly, PnP RANSAC again (fresh draws); the lowest cost of :meth:`_pose_fit` kept.
 
         At a narrow field of view a rotation and a sideways shift of the camera move the image
         alike, and PnP has two nearly equal poses (the rendered ring at 3x the guessed focal length:
@@ -179,10 +181,11 @@ class ImageRegistration(ObservationManager):
         if o.pnp_retries <= 0 or len(done) < 3:
             return R, t, inl, {}
         usual = o.pnp_retry_factor * float(np.median(done))
-        if float(np.median(_errors(X[inl], uv[inl], self.K, R, t))) <= usual:
+        median = _inlier_median(X, uv, inl, self.K, R, t)
+        if median <= usual:
             return R, t, inl, {}
-        best, cost, n = (R, t, inl), self._pose_cost(X, uv, R, t), 0
-        while n < o.pnp_retries and float(np.median(_errors(X[best[2]], uv[best[2]], self.K, *best[:2]))) > usual:
+        best, cost, n = (R, t, inl), self._pose_fit(X, uv, R, t)[1], 0
+        while n < o.pnp_retries and median > usual:
             n += 1
             try:
                 res = call("pnp_ransac", X, uv, self.K, self.rng, threshold_px=o.pnp_threshold_px)
@@ -190,9 +193,9 @@ class ImageRegistration(ObservationManager):
                 continue
             keep = np.asarray(res.inliers, bool)
             R2, t2 = call("pnp_nonlinear", X[keep], uv[keep], self.K, res.R_cw, res.t_cw)
-            c2 = self._pose_cost(X, uv, R2, t2)
+            inl2, c2 = self._pose_fit(X, uv, R2, t2)
             if c2 < cost:
-                best, cost = (R2, t2, _errors(X, uv, self.K, R2, t2) < o.pnp_threshold_px), c2
+                best, cost, median = (R2, t2, inl2), c2, _inlier_median(X, uv, inl2, self.K, R2, t2)
         info = {"pnp_retries": n}
         turn = rotation_angle_deg(best[0], R)
         if turn >= 0.5:
@@ -213,21 +216,21 @@ class ImageRegistration(ObservationManager):
         """
         import cv2
 
-        thr = self.opts.pnp_threshold_px
-
-        def score(R_, t_):
-            e = np.minimum(_errors(X, uv, self.K, R_, t_), thr)
-            return int((e < thr).sum()), -float(np.sum(e**2))
-
         ok, rvec, tvec = cv2.solvePnP(X[inl], uv[inl], self.K, None, flags=cv2.SOLVEPNP_SQPNP)
         if not ok:
             return R, t, inl, {}
         R2, t2 = call("pnp_nonlinear", X[inl], uv[inl], self.K, cv2.Rodrigues(rvec)[0], tvec.ravel())
-        if score(R2, t2) <= score(R, t):
+        (inl1, cost1), (inl2, cost2) = self._pose_fit(X, uv, R, t), self._pose_fit(X, uv, R2, t2)
+        if (int(inl2.sum()), -cost2) <= (int(inl1.sum()), -cost1):
             return R, t, inl, {}
         turn = rotation_angle_deg(R2, R)
         info = {"second_start_deg": round(float(turn), 2)} if turn >= 0.5 else {}
-        return R2, t2, _errors(X, uv, self.K, R2, t2) < thr, info
+        return R2, t2, inl2, info
+
+
+def _inlier_median(X: np.ndarray, uv: np.ndarray, inl: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> float:
+    """The median reprojection error (pixels) of a pose's inliers ``inl (N,)`` among ``(N,)`` 2D-3D matches."""
+    return float(np.median(_errors(X[inl], uv[inl], K, R, t)))
 
 
 def _errors(X: np.ndarray, uv: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
