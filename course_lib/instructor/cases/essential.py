@@ -4,7 +4,7 @@ Built from :mod:`course_lib.sfm.essential` (fixture ``essential``); the checks a
 :mod:`course_lib.checks.essential`. The embedded case is a random subset of the reference inliers
 of notebook 01 (its F refit on that subset), so the hidden cases of a grading run (salted seeds)
 repeat nothing that ships. What the classic mistakes give is stored with each case
-(:mod:`course_lib.instructor.mistakes.essential`).
+(:func:`essential_variants`).
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ from course_lib.checks.essential import FIXTURE
 from course_lib.data.synthetic import make_scene
 from course_lib.instructor.cases import builds
 from course_lib.instructor.cases.fundamental import embedded_pair, random_subset
-from course_lib.instructor.mistakes.essential import essential_variants
 from course_lib.sfm import essential as ref
 from course_lib.sfm.fundamental import eight_point, ransac_fundamental
 from course_lib.starting_points import STEP_PAIR, STEP_SEED, STEP_THRESHOLD_PX
@@ -73,3 +72,24 @@ def _svd_det_sign(E) -> float:
     """det(U) det(V) of ``np.linalg.svd(E)``: -1 means that R = U W Vᵀ comes out as a reflection."""
     U, _, Vt = np.linalg.svd(E)
     return float(np.sign(np.linalg.det(U) * np.linalg.det(Vt)))
+
+# --------------------------------------------------------------------------- what the classic mistakes give
+# (stored with the cases, keyed as the check module's sentences are: the shipped checks hold no implementation)
+
+
+def _corrected(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    return U @ np.diag([1.0, 1.0, 0.0]) @ Vt
+
+
+def essential_variants(F: np.ndarray, K: np.ndarray) -> dict[str, np.ndarray]:
+    """E (3, 3) of the classic mistakes of E = Kᵀ F K, each also corrected to singular values (1, 1, 0)."""
+    Ki = np.linalg.inv(K)
+    raw = {"k_f_kt": K @ F @ K.T, "inverse": Ki.T @ F @ Ki, "transposed": K.T @ F.T @ K, "k_f_k": K @ F @ K}
+    out = {}
+    for key, M in raw.items():
+        out[key] = M / np.linalg.norm(M)
+        out[f"{key}_corrected"] = _corrected(M)
+    E = K.T @ F @ K
+    out["uncorrected"] = E / np.linalg.norm(E)
+    return out
