@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib.checks.nerf_data import ENCODING_CASES, FIXTURE, RAY_CASES, as_tensor
-from course_lib.instructor.cases import builds
+from course_lib.instructor.cases import builds, store
 from course_lib.nerf import encoding, rays
 
 
@@ -67,10 +67,8 @@ def _rays(out: dict, g: np.random.Generator) -> None:
         W = H + int(g.integers(1, 4))
         K, c2w = _camera(g, H, W, 2.0 if name == "tiny" else 9.0)
         o, d = rays.get_rays(H, W, as_tensor(K), as_tensor(c2w))
-        out[f"rays_{name}_HW"] = np.array([H, W])
-        out[f"rays_{name}_K"] = K.astype(np.float32)
-        out[f"rays_{name}_c2w"] = c2w.astype(np.float32)
-        out[f"rays_{name}_o"], out[f"rays_{name}_d"] = o.numpy(), d.numpy()
+        store(out, f"rays_{name}", HW=np.array([H, W]), K=K.astype(np.float32), c2w=c2w.astype(np.float32), o=o.numpy(),
+              d=d.numpy())
         K32, c2w32 = out[f"rays_{name}_K"].astype(float), out[f"rays_{name}_c2w"].astype(float)
         for label, v in _ray_mistakes(H, W, K32, c2w32, d.numpy().astype(float)).items():
             out[f"rays_{name}_d__{label}"] = v.astype(np.float32)
@@ -152,6 +150,7 @@ def _build() -> dict[str, np.ndarray]:
     _queries(out, g)
     _encodings(out, g)
     return out
+
 
 # --------------------------------------------------------------------------- what the classic mistakes give
 # (stored with the cases, keyed as the check module's sentences are: the shipped checks hold no implementation)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib.checks.nerf_model import CONFIG_NAMES, FIXTURE, config_kwargs, copy_probe_weights
-from course_lib.instructor.cases import builds
+from course_lib.instructor.cases import builds, store
 from course_lib.nerf.encoding import positional_encoding
 from course_lib.nerf.model import NeRF
 
@@ -62,9 +62,7 @@ def _build() -> dict[str, np.ndarray]:
         with torch.no_grad():
             rgb, sigma = m(P, Dv)
             raw = m.sigma_head(m.trunk_features(P))[..., 0]
-        out[f"{name}_rgb"], out[f"{name}_sigma"], out[f"{name}_sigma_raw"] = rgb.numpy(), sigma.numpy(), raw.numpy()
-        for k, v in nerf_variants(m, P, Dv).items():
-            out[f"{name}_{k}"] = v
+        store(out, name, rgb=rgb.numpy(), sigma=sigma.numpy(), sigma_raw=raw.numpy(), **nerf_variants(m, P, Dv))
     # the reference encoding of every point and direction the check sends (NeRF is graded on its own)
     rows = np.unique(np.concatenate([pts.reshape(-1, 3), dirs.reshape(-1, 3)]), axis=0)
     out["enc_rows"] = rows
@@ -74,6 +72,7 @@ def _build() -> dict[str, np.ndarray]:
     out["psnr_mse"] = mse
     out["psnr_db"] = -10.0 * np.log10(np.asarray(mse, float))  # PSNR of images in [0, 1]
     return out
+
 
 # --------------------------------------------------------------------------- what the classic mistakes give
 # (stored with the cases, keyed as the check module's sentences are: the shipped checks hold no implementation)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib.checks.nerf_rendering import FIXTURE, KEYS
-from course_lib.instructor.cases import builds
+from course_lib.instructor.cases import builds, store
 from course_lib.nerf.render import volume_render
 
 
@@ -62,9 +62,7 @@ def _build() -> dict[str, np.ndarray]:
     g = np.random.default_rng(8)
     out: dict[str, np.ndarray] = {}
     *slab, trans = _slab_case(g)
-    for k, v in zip(("rgb", "sigma", "z_vals", "rays_d"), slab):
-        out[f"slab_{k}"] = v
-    out["slab_trans"] = trans
+    store(out, "slab", **dict(zip(("rgb", "sigma", "z_vals", "rays_d"), slab)), trans=trans)
     for label, res in render_variants_of(*slab, white=True).items():
         for k in ("weights", "acc_map"):
             out[f"slab__{label}_{k}"] = res[k].astype(np.float32)
@@ -72,12 +70,12 @@ def _build() -> dict[str, np.ndarray]:
     out.update(zip(("rgb", "sigma", "z_vals", "rays_d"), args))
     for white in (True, False):
         bg = "white" if white else "black"
-        for k, v in _render(args, white).items():
-            out[f"{bg}_{k}"] = v
+        store(out, bg, **_render(args, white))
         for label, res in render_variants_of(*args, white=white).items():
             for k in KEYS:
                 out[f"{bg}__{label}_{k}"] = res[k].astype(np.float32)
     return out
+
 
 # --------------------------------------------------------------------------- what the classic mistakes give
 # (stored with the cases, keyed as the check module's sentences are: the shipped checks hold no implementation)
