@@ -205,16 +205,16 @@ class Isolation:
 
     @classmethod
     def for_grading(cls, library: Path, secret: list[Path], notebooks_dir: Path, self_test: bool = False,
-                    insecure: bool = False, limits: Limits | None = None) -> "Isolation":
+                    insecure: bool = False, limits: Limits | None = None, scratch: Path | None = None) -> "Isolation":
         """The isolation of a grading run: hide the kit and the notebooks (unless ``self_test``) and ``secret``
-        (the grader's scratch folder, the hidden cases)."""
+        (the grader's scratch folder, the hidden cases); ``scratch``: the run's folder."""
         hide = [Path(p).resolve() for p in secret]
         if not self_test:  # the kit, and the instructor's library wherever it is installed
             hide += [REPO_ROOT.resolve(), Path(notebooks_dir).resolve(), Path(course_lib.__file__).resolve().parent]
         hide = sorted({h for h in hide if not any(h != o and h.is_relative_to(o) for o in hide)})
         keep = [Path(p).resolve() for p in python_homes()]
         keep = [k for k in keep if any(k.is_relative_to(h) for h in hide)]
-        return cls(Path(library), hide, keep, insecure, limits or Limits())
+        return cls(Path(library), hide, keep, insecure, limits or Limits(), scratch)
 
     def read_only(self) -> list[str]:
         """The allow-list: the host paths a student's process sees, read-only (each site-packages folder inside them

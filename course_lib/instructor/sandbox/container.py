@@ -35,7 +35,7 @@ from pathlib import Path
 from course_lib.instructor.sandbox.jail import IsolationError, seccomp_filter
 from course_lib.instructor.settings import STUDENT_UID
 
-__all__ = ["ENV", "enabled", "check", "command", "preexec", "verify", "describe", "NBVAL_NOTE"]
+__all__ = ["ENV", "enabled", "check", "preexec", "verify", "describe", "NBVAL_NOTE"]
 
 ENV = "COURSE_GRADER_CONTAINER"
 NBVAL_NOTE = "not run in container mode (the notebook's kernel needs TCP sockets, which the mode refuses)"
@@ -106,11 +106,6 @@ def memory_total() -> int | None:
                 if text.isdigit() and int(text) < 1 << 50:  # "max" (v2) or a huge number (v1): no limit
                     found.append(int(text))
     return min(found) if found else None
-
-
-def command(mode: str, server_dir: Path) -> list[str]:
-    """The command line of ``server.py MODE`` in container mode (no launcher: the process confines itself first)."""
-    return [sys.executable, "-S", "-E", "-B", str(server_dir / "server.py"), mode, str(server_dir / "config.json")]
 
 
 def preexec(limits, cpu_seconds: float | None, cgroup, work: Path):

@@ -69,6 +69,8 @@ HOW_TO_ENABLE = ("allow unprivileged user namespaces for bwrap (sysctl kernel.un
                  "24.04 kernel.apparmor_restrict_unprivileged_userns=0; in Docker a seccomp profile that allows "
                  "unshare and no AppArmor confinement of the container)")
 REPORT = "the sandbox did not come out as the grader makes it (a bwrap the grader does not know?)"
+#: How every refusal starts (``grade-class`` grades a submission refused while others ran again, alone).
+REFUSAL = "refusing to run the students' code"
 
 
 class IsolationError(KitInputError):
@@ -82,7 +84,7 @@ def bwrap_path() -> str | None:
 
 def refusal(what: str, how: str = HOW_TO_ENABLE) -> str:
     """The one line of a refusal: what is missing, how to enable it, and the way out for a trusted run."""
-    return f"refusing to run the students' code: {what}; {how}, or pass --insecure for a trusted local run"
+    return f"{REFUSAL}: {what}; {how}, or pass --insecure for a trusted local run"
 
 
 def private_folder(prefix: str, parent: Path | None = None) -> Path:
@@ -236,8 +238,7 @@ def seed_bytes(seed: Path) -> int:
 
 
 def sandboxed(iso, mode: str, server_dir: Path, seed: Path | None, stage_dir: Path):
-    """Everything needed to start ``server.py MODE`` in a sandbox, refused (:class:`IsolationError`) when it cannot be
-    (``iso.insecure``: the plain server, as the grading user).
+    """Everything needed to start ``server.py MODE`` in a sandbox, refused (:class:`IsolationError`) when it cannot be.
 
     Refuses without bubblewrap, and when the student's uid would be the grading user's (the grader is root and
     ``COURSE_GRADER_STUDENT_UID`` is 0). Makes the pipe ``bwrap`` reports to, the seccomp filter's pipe and, for a
@@ -248,9 +249,6 @@ def sandboxed(iso, mode: str, server_dir: Path, seed: Path | None, stage_dir: Pa
         must inherit (the caller closes them once it started), the read end of bwrap's report, the staged folders,
         and whether a seccomp filter is applied.
     """
-    if iso.insecure:
-        return ([sys.executable, "-S", "-E", "-B", str(server_dir / "server.py"), mode, str(server_dir / "config.json")],
-                [], None, {}, False)
     if bwrap_path() is None:
         raise IsolationError(refusal("bubblewrap (bwrap) is not installed", INSTALL))
     if os.getuid() == 0 and STUDENT_UID == 0:

@@ -275,7 +275,7 @@ def serve(cfg: dict) -> None:
             args = decode(msg["args"], arrays, recorder)
             kwargs = decode(msg["kwargs"], arrays, recorder)
             gens = _generators(args, kwargs)
-            _set_rng(msg.get("rng"), arrays)
+            wire.set_global_rng(msg.get("rng"), arrays)
             fn = target if msg.get("h") is None else handles[int(msg["h"])]
             if msg.get("h") is not None and msg.get("params"):
                 _load_params(fn, msg["params"], arrays)
@@ -285,7 +285,7 @@ def serve(cfg: dict) -> None:
             out: list = []
             tree = encode(value, out, handles=handles)
             cb_tree = encode([[i, list(a), k] for i, a, k in calls], out)
-            reply = {"ok": True, "value": tree, "callbacks": cb_tree, "rng": _get_rng(out),
+            reply = {"ok": True, "value": tree, "callbacks": cb_tree, "rng": wire.global_rng(out),
                      "gens": [[where, encode(g, out)] for where, g in gens]}
         except BaseException as exc:  # noqa: BLE001 - the student's exception, as data
             out, reply = [], _exc_reply(exc)
@@ -339,16 +339,12 @@ def oracle_stub(step: str, exercise: str, own):
 
 def _oracle_error(reply: dict, step: str, exercise: str) -> Exception:
     """The reference's exception, as the student's code sees it (a builtin type where it was one)."""
-    import builtins
-
     name = ident(reply.get("type", "RuntimeError"), "RuntimeError")
-    cls = getattr(builtins, name, None) if reply.get("builtin") else None
     msg = (f"{reply.get('message', '')} (raised by the grader's reference {step}, which answers for your {step} "
            f"while {exercise} is graded)")
-    if not (isinstance(cls, type) and issubclass(cls, Exception)) or cls is StopIteration:
-        cls, msg = RuntimeError, f"{name}: {msg}"
+    cls = wire.builtin_exception(reply)
     try:
-        return cls(msg)
+        return cls(msg) if cls is not None else RuntimeError(f"{name}: {msg}")
     except Exception:  # noqa: BLE001 - exception types with other constructors
         return RuntimeError(f"{name}: {msg}")
 
@@ -370,28 +366,6 @@ def _load_params(module, params: list, arrays: list) -> None:
                 mine[name].copy_(torch.from_numpy(arrays[int(k)]))
 
 
-def _set_rng(state, arrays) -> None:
-    if not state:
-        return
-    import numpy as np
-
-    if state.get("np") is not None:
-        np.random.set_state(tuple(decode(state["np"], arrays)))
-    torch = sys.modules.get("torch")
-    if torch is not None and state.get("torch") is not None:
-        torch.set_rng_state(decode(state["torch"], arrays))
-
-
-def _get_rng(arrays: list) -> dict:
-    import numpy as np
-
-    out = {"np": encode(list(np.random.get_state()), arrays)}
-    torch = sys.modules.get("torch")
-    if torch is not None:
-        out["torch"] = encode(torch.get_rng_state(), arrays)
-    return out
-
-
 # ---------------------------------------------------------------------------------------------
 # The nbval launcher
 # ---------------------------------------------------------------------------------------------
@@ -408,7 +382,6 @@ PYTEST_BOOT = ("import ctypes, sys\nctypes.CDLL(None).prctl(4, 0, 0, 0, 0)\nimpo
                "    d['argv'] = [sys.executable, '-P', '-B', '-m', 'ipykernel_launcher', '-f', '{connection_file}']\n"
                "    return d\n"
                "ks.get_kernel_dict = sealed\nimport pytest\nsys.exit(pytest.main(sys.argv[1:]))\n")
-REPORT_LIMIT = 16 << 20
 
 
 def launch(cfg: dict) -> int:
@@ -426,18 +399,7 @@ def launch(cfg: dict) -> int:
     r, w = os.pipe()
     argv = [a.replace("{junit}", f"/proc/self/fd/{w}") for a in cfg["argv"]]
     got: list[bytes] = []
-
-    def read() -> None:
-        size = 0
-        while True:
-            b = os.read(r, 1 << 16)
-            if not b:
-                return
-            if size < REPORT_LIMIT:
-                got.append(b[:REPORT_LIMIT - size])
-                size += len(b)
-
-    reader = threading.Thread(target=read, daemon=True)
+    reader = threading.Thread(target=lambda: got.append(wire.read_until_closed(r, wire.MAX_REPORT)[0]), daemon=True)
     reader.start()
     proc = subprocess.Popen([cfg["python"], "-B", "-P", "-c", PYTEST_BOOT, *argv], cwd=cfg["nb_dir"],
                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
@@ -450,8 +412,7 @@ def launch(cfg: dict) -> int:
         except OSError:
             pass
     reader.join(5)
-    data = b"".join(got)
-    view = memoryview(data)
+    view = memoryview(got[0] if got else b"")
     while view:
         view = view[os.write(collect_fd, view):]
     os.close(collect_fd)
