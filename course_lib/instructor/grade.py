@@ -20,7 +20,7 @@ side, never from the submission), :func:`grade_submission` runs five steps, each
    nbval in the same sandbox, check cells restored, package installs left out with a neutral note; nbval says
    whether each check cell runs when the notebook runs top to bottom, and the check cell's verdict is computed by
    the grader: the same check on the notebook's own cases, with the student's function in the sandbox.
-5. **Slow code is graded**: an exercise's budget (:data:`DEFAULT_TIMEOUT`, 120 s) lets correct but slow code
+5. **Slow code is graded**: an exercise's budget (:data:`~.settings.DEFAULT_EXERCISE_SECONDS`, 120 s) lets correct but slow code
    finish; the feedback says when it was slow.
 
 Points per exercise (default 10): 90 % times the hidden score (:func:`course_lib.checks.core.score_against` the
@@ -78,9 +78,7 @@ from course_lib.paths import REPO_ROOT
 from course_lib.validate import KitInputError
 
 __all__ = ["HiddenCases", "prepare_hidden", "grade_submission", "preflight", "to_markdown", "HIDDEN_SHARE",
-           "IsolationError", "plain_text", "plain_data", "DEFAULT_TIMEOUT", "MAX_FEEDBACK_BYTES"]
-
-DEFAULT_TIMEOUT = DEFAULT_EXERCISE_SECONDS  # s for the hidden checks of one exercise (settings.exercise_seconds)
+           "IsolationError", "plain_text", "plain_data", "MAX_FEEDBACK_BYTES"]
 
 
 def grade_submission(
@@ -90,7 +88,7 @@ def grade_submission(
     exercises: list[str] | None = None,
     hidden: HiddenCases | None = None,
     salt: int | None = None,
-    timeout: float = DEFAULT_TIMEOUT,
+    timeout: float = DEFAULT_EXERCISE_SECONDS,
     cell_timeout: float = 120.0,
     run_nbval: bool = True,
     allow_reference: bool = False,

@@ -85,25 +85,14 @@ def nbval_seconds(cell_timeout: float) -> float:
 
 
 class Clock:
-    """A wall-clock budget: ``left()`` seconds until its deadline, ``spent()`` since it started.
-
-    Args:
-        seconds: the budget (``None``: no deadline).
-    """
+    """A wall-clock budget of ``seconds`` (``None``: no deadline) from now: its ``deadline`` (``time.monotonic()``)."""
 
     def __init__(self, seconds: float | None):
-        self.t0 = time.monotonic()
         self.seconds = None if seconds is None else float(seconds)
-        self.deadline = float("inf") if seconds is None else self.t0 + float(seconds)
-
-    def left(self) -> float:
-        return self.deadline - time.monotonic()
-
-    def spent(self) -> float:
-        return time.monotonic() - self.t0
+        self.deadline = float("inf") if seconds is None else time.monotonic() + float(seconds)
 
     def expired(self) -> bool:
-        return self.left() <= 0
+        return time.monotonic() >= self.deadline
 
 
 #: Bytes of a submitted notebook the grader reads (an honest one, outputs included, is under 2 MB), and bytes of

@@ -69,12 +69,7 @@ def facts(hide: list[str], keep: list[str] = (), readable: list[str] = ()) -> di
     ``unreadable``: which of the ``readable`` folders (the student release) it cannot read; ``net``: its
     network interfaces.
     """
-    out: dict = {"uid": os.getuid(), "gid": os.getgid(), "pid": os.getpid(), "ns": {}, "status": {}}
-    for ns in NAMESPACES:
-        try:
-            out["ns"][ns] = os.readlink(f"/proc/self/ns/{ns}")
-        except OSError:
-            out["ns"][ns] = None
+    out: dict = {"uid": os.getuid(), "gid": os.getgid(), "pid": os.getpid(), "ns": namespaces(), "status": {}}
     try:
         with open("/proc/self/status") as f:
             for line in f:
@@ -111,6 +106,17 @@ def facts(hide: list[str], keep: list[str] = (), readable: list[str] = ()) -> di
         out["inet"] = True
     except OSError:
         out["inet"] = False
+    return out
+
+
+def namespaces() -> dict[str, str | None]:
+    """This process's namespaces (``/proc/self/ns``; None for one it cannot read)."""
+    out = {}
+    for ns in NAMESPACES:
+        try:
+            out[ns] = os.readlink(f"/proc/self/ns/{ns}")
+        except OSError:
+            out[ns] = None
     return out
 
 
