@@ -202,13 +202,17 @@ class NbvalRun:
             head, _ = wire.read_frame_before(report_r, time.monotonic() + START_SECONDS, 1 << 20)
             facts = head.get("facts") if isinstance(head.get("facts"), dict) else {}
         except (TimeoutError, EOFError, OSError, wire.WireError):
-            facts = None
+            head, facts = {}, None
         no_info = started.mode == launch.BUBBLEWRAP and not started.info
         if started.mode != launch.INSECURE and (no_info or facts is None):
             if started.proc.poll() is not None and no_info:
                 raise launch.refuse_start(started, what="the sandbox of nbval")
             return f"nbval of {name} did not start"
-        return launch.check(started, self.iso, facts or {}, cgroup, what="the sandbox of nbval")
+        box = launch.check(started, self.iso, facts or {}, cgroup, what="the sandbox of nbval")
+        if head.get("seed_failed"):  # the submission's problem: its notebook does not run
+            why = str(head["seed_failed"])[:200]
+            return f"nbval of {name}: the submission could not be copied into the sandbox ({why})"
+        return box
 
     def pytest_command(self, name: str, junit: str, rootdir: str) -> list[str]:
         """pytest's arguments for nbval of notebook ``name``: no conftest.py and no pytest configuration of the

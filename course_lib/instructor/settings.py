@@ -233,13 +233,12 @@ class Isolation:
             out.append(p)
         return out
 
-    def cgroup(self, parent: Cgroup | None = None, memory_bytes: int | None = None) -> Cgroup | None:
+    def cgroup(self, parent: Cgroup | None = None) -> Cgroup | None:
         """A cgroup with this isolation's totals for one process tree, inside ``parent`` (None where none can be
         made)."""
         if self.insecure and parent is None:
             return None
-        return Cgroup.create(self.limits.memory_total_bytes if memory_bytes is None else memory_bytes,
-                             self.limits.processes_total, parent=parent)
+        return Cgroup.create(self.limits.memory_total_bytes, self.limits.processes_total, parent=parent)
 
 
 #: Distributions never shown to a student's process, wherever installed: the kit itself (the instructor's library,

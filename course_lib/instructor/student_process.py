@@ -56,7 +56,7 @@ import numpy as np
 
 from course_lib.instructor import oracle as oracle_module
 from course_lib.instructor.remote import RemoteModule
-from course_lib.instructor.sandbox import jail, launch, server, wire
+from course_lib.instructor.sandbox import jail, launch, wire
 from course_lib.instructor.settings import START_SECONDS, Isolation
 
 __all__ = ["StudentProcess", "StudentProcessEnded"]
@@ -142,8 +142,6 @@ class StudentProcess:
                                         launch.env(cwd), [req_r, rep_w], stderr)
         self.proc, self.info = self.started.proc, self.started.info
         first = self._receive()
-        if first is None and self._seed_failed():
-            return
         secure = self.started.mode != launch.INSECURE
         if secure and ((not self.info and self.started.mode == launch.BUBBLEWRAP)
                        or (first is None and self.event != "timeout")):
@@ -155,6 +153,11 @@ class StudentProcess:
             return
         facts = first[0].get("facts") if first[0].get("event") == "sandbox" else None
         self.sandbox = launch.check(self.started, iso, facts if isinstance(facts, dict) else {}, self.cgroup)
+        if first[0].get("seed_failed"):  # the submission's problem, reported as this exercise's; nothing of it ran
+            self._end("exit", "your submission could not be copied into the sandbox's working folder "
+                              f"({str(first[0]['seed_failed'])[:200]}); none of your code ran")
+            self.sandbox = {"note": "the submission could not be copied into the sandbox"}
+            return
         self._send({"op": "go"}, [])
         self.t0 = time.monotonic()  # the exercise's budget counts from here: its definitions and every call
         self.deadline = self.t0 + self.budget
@@ -169,22 +172,6 @@ class StudentProcess:
             return (self.tmp / "stderr.txt").read_text(errors="replace")[:n]
         except OSError:
             return ""
-
-    def _seed_failed(self) -> bool:
-        """Whether the process ended because the submission could not be copied into its working folder (the
-        submission's problem, reported as this exercise's, never as a sandbox that cannot be made)."""
-        try:
-            self.proc.wait(timeout=2)
-        except subprocess.TimeoutExpired:
-            return False
-        said = [ln for ln in self._stderr(4000).splitlines() if ln.startswith(server.SEED_FAILED)]
-        if self.proc.returncode != server.SEED_EXIT or not said:
-            return False
-        self.kill()
-        self.event, self.ended = "exit", (f"your submission could not be copied into the sandbox's working folder "
-                                          f"({said[0][len(server.SEED_FAILED):][:200]}); none of your code ran")
-        self.sandbox = {"note": "the submission could not be copied into the sandbox"}
-        return True
 
     # -- the connection ------------------------------------------------------------------------
     def _remaining(self) -> float:

@@ -54,8 +54,9 @@ from course_lib.instructor.sandbox import server
 from course_lib.instructor.settings import STUDENT_UID, site_allow_list
 from course_lib.validate import KitInputError
 
-__all__ = ["IsolationError", "bwrap_path", "command", "install_server", "verify", "privileges_left", "read_info", "seccomp_filter",
-           "preexec", "sandboxed", "refusal", "STUDENT_UID", "HOW_TO_ENABLE", "INSTALL", "REPORT", "WORK", "SEED", "kill_tree"]
+__all__ = ["IsolationError", "bwrap_path", "command", "install_server", "verify", "privileges_left", "read_info",
+           "seccomp_filter", "preexec", "sandboxed", "refusal", "STUDENT_UID", "HOW_TO_ENABLE", "INSTALL", "REPORT",
+           "REFUSAL", "WORK", "SEED", "kill_tree"]
 
 #: The working folder of a student's process inside the sandbox, and where the grader's copy of the submission is.
 WORK = "/tmp/work"

@@ -153,25 +153,21 @@ def _undumpable() -> None:
         pass
 
 
-#: How the server ends when the submission cannot be copied into its working folder (the grader reports it as the
-#: submission's problem, never as a sandbox that cannot be made).
-SEED_EXIT, SEED_FAILED = 4, "course-grader: the submission could not be copied into the working folder: "
-
-
-def _seed(cfg: dict) -> None:
-    """The working folder: a copy of the grader's copy of the submission (regular files only)."""
+def _seed(cfg: dict) -> str:
+    """The working folder: a copy of the grader's copy of the submission (regular files only). Why it could not be
+    copied, else ``""``: the submission's problem, which the grader reports as such (never as a sandbox it cannot
+    make), and then runs none of the student's code."""
     import shutil
 
     os.makedirs(cfg["cwd"], exist_ok=True)
     if cfg.get("seed") and os.path.isdir(cfg["seed"]):
         try:
             shutil.copytree(cfg["seed"], cfg["cwd"], dirs_exist_ok=True, symlinks=False)
-        except (OSError, shutil.Error) as exc:  # the submission's problem, not the sandbox's: the grader reports it
+        except (OSError, shutil.Error) as exc:
             errors = exc.args[0] if isinstance(exc, shutil.Error) and exc.args and isinstance(exc.args[0], list) else []
             why = {str(e[-1]).split("] ")[-1].split(":")[0] for e in errors if isinstance(e, tuple)} or {str(exc)}
-            sys.stderr.write(f"{SEED_FAILED}{'; '.join(sorted(why))[:300]}\n")
-            sys.stderr.flush()
-            os._exit(SEED_EXIT)
+            return "; ".join(sorted(why))[:300]
+    return ""
 
 
 def _await_go(fd: int) -> None:
@@ -230,7 +226,7 @@ def serve(cfg: dict) -> None:
 
     global REQ_FD, REP_FD
     REQ_FD, REP_FD = int(cfg["req_fd"]), int(cfg["rep_fd"])
-    _seed(cfg)
+    seed_failed = _seed(cfg)
     os.chdir(cfg["cwd"])
     sys.path[:] = [cfg["path"]] + [p for p in cfg["sys_path"] if p]
     for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -242,7 +238,7 @@ def serve(cfg: dict) -> None:
 
         torch.set_num_threads(1)
     # ready: the exercise's time starts with the grader's go (the imports above are the kit's, not the student's)
-    write_frame(REP_FD, {"event": "sandbox", "facts": _facts(cfg)})
+    write_frame(REP_FD, {"event": "sandbox", "facts": _facts(cfg), "seed_failed": seed_failed})
     _await_go(REQ_FD)
     req, rep = REQ_FD, REP_FD
     _guard_exit(rep)
@@ -396,9 +392,9 @@ def launch(cfg: dict) -> int:
     import threading
 
     _undumpable()
-    _seed(cfg)
+    seed_failed = _seed(cfg)
     report_fd, go_fd, collect_fd = int(cfg["report_fd"]), int(cfg["go_fd"]), int(cfg["collect_fd"])
-    write_frame(report_fd, {"event": "sandbox", "facts": _facts(cfg)})
+    write_frame(report_fd, {"event": "sandbox", "facts": _facts(cfg), "seed_failed": seed_failed})
     os.close(report_fd)
     _await_go(go_fd)
     os.close(go_fd)

@@ -546,7 +546,8 @@ def unpack(data, header_limit: int = MAX_HEADER, max_nodes: int = MAX_NODES,
 
 
 def write_frame(fd: int, header: dict, arrays: list = (), deadline: float | None = None) -> None:
-    """Send one message on ``fd``; ``TimeoutError`` when ``deadline`` (``time.monotonic()``) passes before it is sent."""
+    """Send one message on ``fd``; ``TimeoutError`` when ``deadline`` (``time.monotonic()``) passes before it is
+    sent."""
     data = pack(header, list(arrays))
     view = memoryview(struct.pack("<Q", len(data)) + data)
     while view:
