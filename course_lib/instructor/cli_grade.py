@@ -15,7 +15,7 @@ from pathlib import Path
 
 from course_lib.instructor.grade import grade_submission, to_markdown
 from course_lib.instructor.notebooks import NOTEBOOKS_DIR
-from course_lib.instructor.settings import DEFAULT_EXERCISE_SECONDS, DEFAULT_SUBMISSION_SECONDS
+from course_lib.instructor.settings import DEFAULT_CELL_SECONDS, DEFAULT_EXERCISE_SECONDS, DEFAULT_SUBMISSION_SECONDS
 from course_lib.validate import KitInputError, output_dir
 
 
@@ -41,7 +41,8 @@ def add_grading_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--submission-timeout", type=float, default=DEFAULT_SUBMISSION_SECONDS,
                         help=f"wall-clock seconds for everything of one submission, nbval included (default "
                              f"{DEFAULT_SUBMISSION_SECONDS:g}); what is not graded by then gets no credit")
-    parser.add_argument("--cell-timeout", type=float, default=120.0, help="seconds for one notebook cell under nbval")
+    parser.add_argument("--cell-timeout", type=float, default=DEFAULT_CELL_SECONDS,
+                        help="seconds for one notebook cell under nbval")
     parser.add_argument("--nbval-jobs", type=int, default=2, help="notebooks run under nbval at the same time")
     parser.add_argument("--no-nbval", action="store_true", help="skip the nbval run (hidden checks only)")
     parser.add_argument("--allow-reference", action="store_true",

@@ -65,6 +65,7 @@ from course_lib.instructor.notebooks import NOTEBOOKS_DIR
 from course_lib.instructor.sandbox import container, jail, launch
 from course_lib.instructor.sandbox.jail import IsolationError
 from course_lib.instructor.settings import (
+    DEFAULT_CELL_SECONDS,
     DEFAULT_EXERCISE_SECONDS,
     DEFAULT_SUBMISSION_SECONDS,
     Clock,
@@ -89,7 +90,7 @@ def grade_submission(
     hidden: HiddenCases | None = None,
     salt: int | None = None,
     timeout: float = DEFAULT_EXERCISE_SECONDS,
-    cell_timeout: float = 120.0,
+    cell_timeout: float = DEFAULT_CELL_SECONDS,
     run_nbval: bool = True,
     allow_reference: bool = False,
     workdir: Path | None = None,

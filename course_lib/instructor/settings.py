@@ -28,8 +28,9 @@ from course_lib.instructor.release import release_files
 from course_lib.paths import REPO_ROOT
 
 __all__ = ["Limits", "Isolation", "Clock", "student_library", "exercise_seconds", "nbval_seconds", "SYSTEM_PATHS",
-           "CALL_BACK_FACTOR", "site_allow_list", "site_folders", "START_SECONDS", "GRACE_SECONDS", "DEFAULT_EXERCISE_SECONDS", "DEFAULT_SUBMISSION_SECONDS",
-           "STUDENT_UID", "MAX_NOTEBOOK_BYTES", "MAX_CODE_BYTES", "MAX_CODE_NODES", "MAX_CELL_NODES"]
+           "CALL_BACK_FACTOR", "site_allow_list", "site_folders", "START_SECONDS", "GRACE_SECONDS",
+           "DEFAULT_EXERCISE_SECONDS", "DEFAULT_CELL_SECONDS", "DEFAULT_SUBMISSION_SECONDS", "STUDENT_UID",
+           "MAX_NOTEBOOK_BYTES", "MAX_CODE_BYTES", "MAX_CODE_NODES", "MAX_CELL_NODES"]
 
 # ---------------------------------------------------------------------------------------------
 # Budgets: the one place where the grader's clocks are set
@@ -39,6 +40,8 @@ __all__ = ["Limits", "Isolation", "Clock", "student_library", "exercise_seconds"
 #: finite-difference Jacobian in bundle_adjust, one residual function per view in triangulate_nonlinear); an endless
 #: loop costs this once, and the submission's clock bounds all. The measurements behind it: docs/benchmarks.md.
 DEFAULT_EXERCISE_SECONDS = 120.0
+#: Seconds for one notebook cell under nbval by default (``--cell-timeout``; :func:`nbval_seconds` gives a notebook's).
+DEFAULT_CELL_SECONDS = 120.0
 #: Seconds for a student's process to start (the interpreter, the sandbox, the numpy and torch imports: the kit's own
 #: work, not the student's; torch's import is the slow part, docs/benchmarks.md); the exercise's budget starts after.
 START_SECONDS = 120.0
