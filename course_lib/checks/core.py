@@ -593,6 +593,23 @@ class Check:
         self.fail(f"{case}: return {what}, got {type(out).__name__}")
         return None
 
+    def arrays(self, out: Any, case: str, shapes: dict[str, tuple], what: str) -> tuple | None:
+        """The fields of a returned result (:meth:`fields`, named by ``shapes``' keys) as finite float arrays of
+        those shapes (a shape ``(n,)`` takes any n values, e.g. a (3, 1) translation); None after a failed check."""
+        out = self.fields(out, case, tuple(shapes), what)
+        if out is None:
+            return None
+        arrs = [as_float(v) for v in out]
+        if not all(a is not None and (a.shape == s or (len(s) == 1 and a.size == s[0]))
+                   for a, s in zip(arrs, shapes.values())):
+            got = ", ".join("no numeric array" if a is None else str(a.shape) for a in arrs)
+            self.fail(f"{case}: {', '.join(shapes)} must have shapes {', '.join(map(str, shapes.values()))}, got {got}")
+            return None
+        if not all(np.isfinite(a).all() for a in arrs):
+            self.fail(f"{case}: {' or '.join(shapes)} contains NaN or inf")
+            return None
+        return tuple(a.reshape(s) for a, s in zip(arrs, shapes.values()))
+
     def shape(self, value: Any, shape: tuple, what: str) -> bool:
         """Check that ``value`` is an array of ``shape`` (``None`` entries match any size)."""
         if value is FAILED:

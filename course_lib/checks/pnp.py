@@ -50,21 +50,7 @@ RNG_SEED, RNG_MAX_ITERS = 1, 3
 
 def _pose(out, c: Check, case: str):
     """``(R (3, 3), t (3,))`` from the student's return value, or None after recording a failure."""
-    out = c.fields(out, case, ("R_cw", "t_cw"), "the tuple (R_cw, t_cw)")
-    if out is None:
-        return None
-    try:
-        R, t = np.asarray(out[0], float), np.asarray(out[1], float)
-    except (TypeError, ValueError):
-        c.fail(f"{case}: R_cw and t_cw must be numeric arrays")
-        return None
-    if R.shape != (3, 3) or t.size != 3:
-        c.fail(f"{case}: R_cw must have shape (3, 3) and t_cw shape (3,), got {R.shape} and {t.shape}")
-        return None
-    if not (np.isfinite(R).all() and np.isfinite(t).all()):
-        c.fail(f"{case}: R_cw or t_cw contains NaN or inf")
-        return None
-    return R, t.reshape(3)
+    return c.arrays(out, case, {"R_cw": (3, 3), "t_cw": (3,)}, "the tuple (R_cw, t_cw)")
 
 
 def _errors(K, R, t, X, x) -> np.ndarray:
