@@ -115,10 +115,11 @@ def set_torch_threads(threads: int) -> int:
     """Set torch's intra-op threads and return the number set.
 
     Args:
-        threads: > 0: that many; 0: torch's default (unchanged); -1 ("auto"): one thread when the
-            machine is busy (:func:`cores_in_use` above 3/4 of the cores), else one per core. On a machine
-            whose cores are already taken, several torch threads wait for each other at every
-            operation and run many times slower than one.
+        threads: > 0: that many; 0: torch's default (unchanged); -1 ("auto"): the number in
+            ``OMP_NUM_THREADS`` where it is set (the caller has shared the cores out already, as the test
+            suite's workers do), else one thread when the machine is busy (:func:`cores_in_use` above 3/4
+            of the cores), else one per core. On a machine whose cores are already taken, several torch
+            threads wait for each other at every operation and run many times slower than one.
     """
     import torch
 
@@ -126,7 +127,11 @@ def set_torch_threads(threads: int) -> int:
         torch.set_num_threads(int(threads))
     elif threads < 0:
         cores = os.cpu_count() or 1
-        torch.set_num_threads(1 if cores_in_use() > 0.75 * cores else cores)
+        asked = os.environ.get("OMP_NUM_THREADS", "").strip()
+        if asked.isdigit() and int(asked) > 0:
+            torch.set_num_threads(min(int(asked), cores))
+        else:
+            torch.set_num_threads(1 if cores_in_use() > 0.75 * cores else cores)
     return torch.get_num_threads()
 
 

@@ -234,21 +234,8 @@ def check_jacobian_sparsity(fn, exercise: str = "jacobian_sparsity") -> None:
 
 
 def _triple(out, c: Check, case: str, M: int, N: int):
-    out = c.fields(out, case, ("R_cw", "t_cw", "X"), "the tuple (R_cw (M, 3, 3), t_cw (M, 3), X (N, 3))")
-    if out is None:
-        return None
-    try:
-        R, t, X = (np.asarray(a, float) for a in out)
-    except (TypeError, ValueError):
-        c.fail(f"{case}: R_cw, t_cw and X must be numeric arrays")
-        return None
-    if R.shape != (M, 3, 3) or t.shape != (M, 3) or X.shape != (N, 3):
-        c.fail(f"{case}: shapes {R.shape}, {t.shape}, {X.shape}; expected ({M}, 3, 3), ({M}, 3), ({N}, 3)")
-        return None
-    if not (np.isfinite(R).all() and np.isfinite(t).all() and np.isfinite(X).all()):
-        c.fail(f"{case}: the result contains NaN or inf")
-        return None
-    return R, t, X
+    return c.arrays(out, case, {"R_cw": (M, 3, 3), "t_cw": (M, 3), "X": (N, 3)},
+                    "the tuple (R_cw (M, 3, 3), t_cw (M, 3), X (N, 3))")
 
 
 def _cost(K, R, t, X, uv) -> float:

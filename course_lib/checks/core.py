@@ -78,6 +78,7 @@ __all__ = [
     "as_float",
     "Outcome",
     "report_cases",
+    "refinement_verdicts",
     "EPS32",
     "RTOL",
     "close_rel",
@@ -592,6 +593,23 @@ class Check:
         self.fail(f"{case}: return {what}, got {type(out).__name__}")
         return None
 
+    def arrays(self, out: Any, case: str, shapes: dict[str, tuple], what: str) -> tuple | None:
+        """The fields of a returned result (:meth:`fields`, named by ``shapes``' keys) as finite float arrays of
+        those shapes (a shape ``(n,)`` takes any n values, e.g. a (3, 1) translation); None after a failed check."""
+        out = self.fields(out, case, tuple(shapes), what)
+        if out is None:
+            return None
+        arrs = [as_float(v) for v in out]
+        if not all(a is not None and (a.shape == s or (len(s) == 1 and a.size == s[0]))
+                   for a, s in zip(arrs, shapes.values())):
+            got = ", ".join("no numeric array" if a is None else str(a.shape) for a in arrs)
+            self.fail(f"{case}: {', '.join(shapes)} must have shapes {', '.join(map(str, shapes.values()))}, got {got}")
+            return None
+        if not all(np.isfinite(a).all() for a in arrs):
+            self.fail(f"{case}: {' or '.join(shapes)} contains NaN or inf")
+            return None
+        return tuple(a.reshape(s) for a, s in zip(arrs, shapes.values()))
+
     def shape(self, value: Any, shape: tuple, what: str) -> bool:
         """Check that ``value`` is an array of ``shape`` (``None`` entries match any size)."""
         if value is FAILED:
@@ -920,23 +938,39 @@ class Outcome:
 
 
 def report_cases(c: "Check", outcomes: list[Outcome], mistakes: dict[str, str],
+                 first: Callable[[Outcome, str | None], None] | None = None,
                  then: Callable[[Outcome, str | None], None] | None = None) -> str | None:
     """The checks' one way from cases to verdicts: name the mistake, then print each case's verdict.
 
     The mistake named is the one that explains every failing case (:func:`unique_key`); each case then passes,
-    or fails with its facts followed by that mistake's sentence (``mistakes[key]``) or else by its advice. ``then``
-    records the case's further verdicts, right after its own. Returns the named key (None: none).
+    or fails with its facts followed by that mistake's sentence (``mistakes[key]``, when the key is one of them)
+    or else by its advice. ``first`` and ``then`` record the case's further verdicts, before and after its own
+    (they are given the named key too). Returns the named key (None: none).
     """
     named = unique_key([o.keys for o in outcomes if not o.ok])
+    own = named if named in mistakes else None
     for o in outcomes:
+        if first is not None:
+            first(o, named)
         if o.ok:
             c.expect(True, f"{o.case}: {o.passed}", "")
         else:
-            why = mistakes[named] if named else o.advice
-            c.fail(f"{o.case}: " + ": ".join(t for t in (o.failed, why) if t), named=named)
+            c.fail(f"{o.case}: " + ": ".join(t for t in (o.failed, mistakes[own] if own else o.advice) if t), named=own)
         if then is not None:
             then(o, named)
     return named
+
+
+def refinement_verdicts(c: "Check", case: str, e0: float, e_s: float, ok: bool, facts: str, why: str | None,
+                        advice: tuple[str, str], named: str | None) -> None:
+    """The verdicts of a non-linear refinement whose RMS reprojection error goes from ``e0`` to ``e_s`` px: it lowers
+    the error (a gate: returning the start satisfies it), then it reaches the least-squares optimum (``ok``; ``facts``:
+    the numbers of a failure). ``why``: the named mistake's sentence, else ``advice`` (for each verdict) follows."""
+    if c.gate(e_s <= e0 * (1 + 1e-9) + 1e-9, f"{case}: lowers the reprojection error",
+              f"{case}: the refinement increased the RMS reprojection error ({e0:.3g} -> {e_s:.3g} px): "
+              + (why or advice[0]), named=named):
+        c.expect(ok, f"{case}: reaches the least-squares optimum", f"{case}: {facts}: " + (why or advice[1]),
+                 named=named)
 
 
 def as_float(value: Any) -> np.ndarray | None:

@@ -20,8 +20,8 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import (FAILED, RTOL, Check, code_text, declare_defining, load_fixture,
-                                    same_up_to_scale, scale_free_gap, source_has, unique_key)
+from course_lib.checks.core import (FAILED, RTOL, Check, Outcome, code_text, declare_defining, load_fixture,
+                                    report_cases, same_up_to_scale, scale_free_gap, source_has, unique_key)
 from course_lib.conventions import rotation_angle_deg, skew
 
 __all__ = ["check_essential_from_fundamental", "check_pose_candidates", "match_candidates"]
@@ -112,33 +112,29 @@ def check_essential_from_fundamental(essential_from_fundamental: Callable) -> No
                 continue
             if not c.shape(E, (3, 3), f"{case}: E"):
                 continue
-            results.append((case, name, E))
-        failing = [(name, E) for _, name, E in results
-                   if not same_up_to_scale(E, f[f"{name}_E"])
-                   or not _equal_singular_values(np.linalg.svd(E, compute_uv=False))]
-        named = unique_key([_e_keys(E, f, name) for name, E in failing])
-        for case, name, E in results:
-            s = np.linalg.svd(E, compute_uv=False)
-            rel = np.round(s / s[0], 4).tolist() if s[0] > 0 else s.tolist()
-            ok_sv = _equal_singular_values(s)
-            c.gate(ok_sv, f"{case}: E has two equal singular values and a zero one",
-                   f"{case}: E's singular values are {rel} relative to the largest, expected (1, 1, 0)"
-                   + (f": {_E_MISTAKES[named]}" if named == "uncorrected" else
-                      ": E = U diag(1, 1, 0) Vᵀ from the SVD of Kᵀ F K"), defining=SV,
-                   named="uncorrected" if named == "uncorrected" else None)
-            if same_up_to_scale(E, f[f"{name}_E"]):
-                c.expect(True, f"{case}: E matches the reference Kᵀ F K corrected to (1, 1, 0), up to scale and sign", "")
-                continue
-            text = (f"{case}: E differs from the reference Kᵀ F K corrected to (1, 1, 0) (by "
-                    f"{scale_free_gap(E, f[f'{name}_E']):.3g} at unit norm, either sign)")
-            c.fail(text + (f": {_E_MISTAKES[named]}" if named and named != "uncorrected" else ""),
-                   named=named if named != "uncorrected" else None)
+            ok = same_up_to_scale(E, f[f"{name}_E"])
+            results.append(Outcome(
+                case, ok, "E matches the reference Kᵀ F K corrected to (1, 1, 0), up to scale and sign",
+                f"E differs from the reference Kᵀ F K corrected to (1, 1, 0) (by "
+                f"{scale_free_gap(E, f[f'{name}_E']):.3g} at unit norm, either sign)",
+                keys=() if ok else _e_keys(E, f, name), data=E))
+        report_cases(c, results, {k: v for k, v in _E_MISTAKES.items() if k != "uncorrected"},
+                     first=lambda o, named: _singular_values_verdict(c, o.case, o.data, named))
         c.causes(essential_from_fundamental, [
             (source_has(r"\binv\("), "your code inverts a matrix: E = Kᵀ F K takes K itself (K⁻ᵀ E K⁻¹ = F is the other direction)"),
             (source_has(r"\bV[th]?\.T\b|transpose\(\s*V[th]?\b"),
              "np.linalg.svd returns Vᵀ already: E = U @ np.diag([1, 1, 0]) @ Vt, without transposing it"),
             (lambda fn: 0 < len(re.findall(r"\bK\b", code_text(fn))) < 3, "K goes on both sides of F: E = Kᵀ F K"),
         ])
+
+
+def _singular_values_verdict(c: Check, case: str, E, named: str | None) -> None:
+    s = np.linalg.svd(E, compute_uv=False)
+    rel = np.round(s / s[0], 4).tolist() if s[0] > 0 else s.tolist()
+    c.gate(_equal_singular_values(s), f"{case}: E has two equal singular values and a zero one",
+           f"{case}: E's singular values are {rel} relative to the largest, expected (1, 1, 0): "
+           + (_E_MISTAKES[named] if named == "uncorrected" else "E = U diag(1, 1, 0) Vᵀ from the SVD of Kᵀ F K"),
+           defining=SV, named="uncorrected" if named == "uncorrected" else None)
 
 
 def _equal_singular_values(s) -> bool:

@@ -29,8 +29,8 @@ import numpy as np
 
 from course_lib.conventions import nearest_rotation, project, rotation_angle_deg, world_to_camera
 from course_lib.checks.core import (FAILED, RTOL, Check, Outcome, call_minimal, declare_defining, load_fixture,
-                                    minimal_verdict, report_cases, rng_verdicts, samples_needed, source_has,
-                                    threshold_interval, under_global_seed, unique_key, within)
+                                    minimal_verdict, refinement_verdicts, report_cases, rng_verdicts, samples_needed,
+                                    source_has, threshold_interval, under_global_seed, unique_key, within)
 
 __all__ = [
     "check_pnp_linear",
@@ -50,21 +50,7 @@ RNG_SEED, RNG_MAX_ITERS = 1, 3
 
 def _pose(out, c: Check, case: str):
     """``(R (3, 3), t (3,))`` from the student's return value, or None after recording a failure."""
-    out = c.fields(out, case, ("R_cw", "t_cw"), "the tuple (R_cw, t_cw)")
-    if out is None:
-        return None
-    try:
-        R, t = np.asarray(out[0], float), np.asarray(out[1], float)
-    except (TypeError, ValueError):
-        c.fail(f"{case}: R_cw and t_cw must be numeric arrays")
-        return None
-    if R.shape != (3, 3) or t.size != 3:
-        c.fail(f"{case}: R_cw must have shape (3, 3) and t_cw shape (3,), got {R.shape} and {t.shape}")
-        return None
-    if not (np.isfinite(R).all() and np.isfinite(t).all()):
-        c.fail(f"{case}: R_cw or t_cw contains NaN or inf")
-        return None
-    return R, t.reshape(3)
+    return c.arrays(out, case, {"R_cw": (3, 3), "t_cw": (3,)}, "the tuple (R_cw, t_cw)")
 
 
 def _errors(K, R, t, X, x) -> np.ndarray:
@@ -498,6 +484,11 @@ _NONLINEAR_MISTAKES = {
                  "vector (Rotation.from_rotvec / as_rotvec)",
 }
 
+#: What to change when the refinement increases the error, and when it stops short of the optimum.
+_NONLINEAR_ADVICE = ("the residual must be the projection K (R X + t) / z minus the observed pixels, with "
+                     "R = Rotation.from_rotvec(p[:3]).as_matrix()",
+                     "not at the least-squares optimum: minimize the sum of squared reprojection errors (pixels) over "
+                     "all six parameters, to convergence")
 #: The ways a parametrisation reads a rotation into 3 numbers and back: a rotation vector and the 12 Euler sequences,
 #: extrinsic (lower case) and intrinsic (upper case).
 _READINGS = ("rotvec",) + tuple(a for seq in ("xyz", "xzy", "yxz", "yzx", "zxy", "zyx") for a in (seq, seq.upper()))
@@ -620,14 +611,6 @@ def check_pnp_nonlinear(fn, exercise: str = "pnp_nonlinear") -> None:
         named = unique_key([(keys, None if key != "nl_wide" else {"euler_mix", "early_stop"})
                             for key, *_, ok, _, keys in results if not ok])
         for key, case, R, t, e0, e_r, e_s, ok, R_r, keys in results:
-            why = _NONLINEAR_MISTAKES[named] if named else None
-            if not c.gate(e_s <= e0 * (1 + 1e-9) + 1e-9, f"{case}: lowers the reprojection error",
-                          f"{case}: the refinement increased the RMS reprojection error ({e0:.3g} -> {e_s:.3g} px): "
-                          + (why or "the residual must be the projection K (R X + t) / z minus the observed pixels, "
-                                    "with R = Rotation.from_rotvec(p[:3]).as_matrix()"), named=named):
-                continue
-            rot = rotation_angle_deg(R, R_r)
-            c.expect(ok, f"{case}: reaches the least-squares optimum",
-                     f"{case}: RMS reprojection error {e_s:.4g} px, {rot:.2g}° from the optimum ({e_r:.4g} px): "
-                     + (why or "not at the least-squares optimum: minimize the sum of squared reprojection errors (pixels) "
-                                "over all six parameters, to convergence"), named=named)
+            refinement_verdicts(c, case, e0, e_s, ok, f"RMS reprojection error {e_s:.4g} px, "
+                                f"{rotation_angle_deg(R, R_r):.2g}° from the optimum ({e_r:.4g} px)",
+                                _NONLINEAR_MISTAKES[named] if named else None, _NONLINEAR_ADVICE, named)

@@ -24,8 +24,8 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib.conventions import project, rotation_angle_deg
-from course_lib.checks.core import (FAILED, Check, Outcome, as_float, declare_defining, load_fixture, report_cases,
-                                    unique_key)
+from course_lib.checks.core import (FAILED, Check, Outcome, as_float, declare_defining, load_fixture,
+                                    refinement_verdicts, report_cases, unique_key)
 
 __all__ = [
     "check_triangulate_linear",
@@ -441,19 +441,14 @@ def check_triangulate_nonlinear(fn, exercise: str = "triangulate_nonlinear") -> 
                            for Y in (f[f"{key}_X0"], f[f"{key}_X"], A)) for key, _, A in results}
         failing = [(key, A) for key, _, A in results if e_of[key][2] > e_of[key][1] * (1 + 1e-3) + 1e-6]
         named = unique_key([_nonlinear_keys(f, key, A, f[f"{key}_X"]) for key, A in failing])
+        advice = ("minimize the plain sum of squared reprojection errors (pixels) over every view that sees the "
+                  "point, to convergence")
         for key, case, A in results:
             e0, e_ref, e_s = e_of[key]
-            hint = _NONLINEAR_MISTAKES[named] if named else None
-            if e_s > e0 * (1 + 1e-9) + 1e-9:
-                c.fail(f"{case}: {hint or 'the non-linear step increased the RMS reprojection error'} "
-                       f"({e0:.3g} px before, {e_s:.3g} px after; the optimum is {e_ref:.3g} px)", named=named)
-                continue
-            c.gate(True, f"{case}: lowers the reprojection error", "")
-            ok = e_s <= e_ref * (1 + 1e-3) + 1e-6
-            c.expect(ok, f"{case}: reaches the least-squares optimum",
-                     f"{case}: RMS reprojection error {e_s:.4g} px, the optimum is {e_ref:.4g} px: "
-                     + (hint or "minimize the plain sum of squared reprojection errors (pixels) over every view that "
-                                "sees the point, to convergence"), named=named)
+            refinement_verdicts(c, case, e0, e_s, e_s <= e_ref * (1 + 1e-3) + 1e-6,
+                                f"RMS reprojection error {e_s:.4g} px, the optimum is {e_ref:.4g} px",
+                                _NONLINEAR_MISTAKES[named] if named else None,
+                                (f"the optimum is {e_ref:.3g} px: {advice}", advice), named)
 
 
 def _not_finite(exc: Exception) -> str | None:

@@ -30,9 +30,9 @@
     longer budgets) unless ``grid_resolution`` / ``n_samples`` are set.
 
 Both run for 5 minutes (``minutes``: the whole run, loading and the final evaluation included)
-and use ``threads=-1``: ``torch.set_num_threads(1)`` when the machine is busy (other work on
-more than 3/4 of the cores), else all cores -- on a shared machine several torch threads wait for
-each other at every operation and run many times slower than one.
+and use ``threads=-1``: ``OMP_NUM_THREADS`` where it is set, else ``torch.set_num_threads(1)`` when the
+machine is busy (other work on more than 3/4 of the cores), else all cores -- on a shared machine
+several torch threads wait for each other at every operation and run many times slower than one.
 
 Every default lives here, in :class:`TrainConfig` or a preset: ``train(data, config="fast")`` and
 ``python -m course_lib nerf train`` run the same thing. Every field can be overridden
@@ -166,7 +166,7 @@ class TrainConfig:
     seed: int = 0
     """Seed of the torch Generator (rays, jitter) and of the initial weights."""
     threads: int = -1
-    """Torch threads on a CPU (0: torch's default; -1: all cores, or 1 on a busy machine)."""
+    """Torch threads on a CPU (0: torch's default; -1: OMP_NUM_THREADS where set, else all cores, or 1 on a busy machine)."""
 
     # ---- budget and outputs
     minutes: float | None = 5.0

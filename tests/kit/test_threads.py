@@ -59,3 +59,18 @@ def test_cores_in_use_sees_a_busy_core():
         spin.kill()
         spin.wait()
     assert 0.5 <= busy <= (os.cpu_count() or 1) + 0.1  # one spinning process: at least about one core
+
+
+def test_auto_torch_threads_honour_omp_num_threads(monkeypatch):
+    """"auto" takes the number the caller set in OMP_NUM_THREADS (the suite's workers: one each), busy or idle."""
+    import torch
+
+    old = torch.get_num_threads()
+    monkeypatch.setattr(threads, "cores_in_use", lambda *a, **k: 0.0)  # an idle machine: auto alone would take all
+    try:
+        monkeypatch.setenv("OMP_NUM_THREADS", "1")
+        assert threads.set_torch_threads(-1) == 1
+        monkeypatch.delenv("OMP_NUM_THREADS")
+        assert threads.set_torch_threads(-1) == (os.cpu_count() or 1)
+    finally:
+        torch.set_num_threads(old)
