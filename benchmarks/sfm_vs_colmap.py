@@ -261,28 +261,29 @@ def scenes(which: str, extra=()):
     """Yield ``(name, data, R_true, t_true, scene_size, image_size)``; truth None for the course data."""
     for folder in extra:
         yield _p3_scene(Path(folder))
-    tmp = Path(tempfile.mkdtemp(prefix="sfm_vs_colmap_"))
-    if which in ("all", "embedded"):
-        from course_lib.data.building import load_ground_truth
+    with tempfile.TemporaryDirectory(prefix="sfm_vs_colmap_") as folder:  # removed when the scenes are done
+        tmp = Path(folder)
+        if which in ("all", "embedded"):
+            from course_lib.data.building import load_ground_truth
 
-        data = read_p3(EMBEDDED_SFM)
-        _, names, R, t = load_ground_truth(EMBEDDED_SFM)
-        gt = json.loads((EMBEDDED_SFM / "ground_truth.json").read_text())
-        assert names == data.image_names
-        yield "embedded", data, R, t, float(gt["scene_size"]), data.image_size
-    if which in ("all", "syn"):
-        for name, M, noise, frac, kind, seed in SYNTHETIC:
-            sc = make_scene(np.random.default_rng(seed), n_cameras=M, n_points=400, noise_px=noise,
-                            outlier_fraction=frac, outlier_kind=kind)
-            data, _ = write_scene_p3(sc, tmp / name)
-            yield name, data, sc.R_cw, sc.t_cw, sc.scene_size, sc.image_size
-    if which in ("all", "hard"):
-        from course_lib.data import scenes as hard
+            data = read_p3(EMBEDDED_SFM)
+            _, names, R, t = load_ground_truth(EMBEDDED_SFM)
+            gt = json.loads((EMBEDDED_SFM / "ground_truth.json").read_text())
+            assert names == data.image_names
+            yield "embedded", data, R, t, float(gt["scene_size"]), data.image_size
+        if which in ("all", "syn"):
+            for name, M, noise, frac, kind, seed in SYNTHETIC:
+                sc = make_scene(np.random.default_rng(seed), n_cameras=M, n_points=400, noise_px=noise,
+                                outlier_fraction=frac, outlier_kind=kind)
+                data, _ = write_scene_p3(sc, tmp / name)
+                yield name, data, sc.R_cw, sc.t_cw, sc.scene_size, sc.image_size
+        if which in ("all", "hard"):
+            from course_lib.data import scenes as hard
 
-        for name, gen, seed in HARD:
-            sc = getattr(hard, gen)(np.random.default_rng(seed))
-            data, _ = write_scene_p3(sc, tmp / name)
-            yield name, data, sc.R_cw, sc.t_cw, sc.scene_size, sc.image_size
+            for name, gen, seed in HARD:
+                sc = getattr(hard, gen)(np.random.default_rng(seed))
+                data, _ = write_scene_p3(sc, tmp / name)
+                yield name, data, sc.R_cw, sc.t_cw, sc.scene_size, sc.image_size
     if which in ("all", "course"):
         for key in ("wpi", "upenn"):
             folder = course_data(key)

@@ -1,11 +1,7 @@
 """Checks of notebook 05 (bundle adjustment) and its step input.
 
-Each ``check_*`` function runs the student's function on stored cases (fixture
-``bundle_adjustment``, built from :mod:`course_lib.sfm.visibility` and
-:mod:`course_lib.sfm.bundle_adjustment` by ``python -m course_lib fixtures bundle_adjustment``):
-small synthetic scenes with known truth and the embedded scene's reconstruction before bundle
-adjustment. It compares with the stored reference results and with properties, and names the
-likely mistake:
+Cases (fixture ``bundle_adjustment``, :mod:`course_lib.instructor.cases.bundle_adjustment`): small synthetic
+scenes with known truth and the embedded scene's reconstruction before bundle adjustment:
 
 * ``visibility_matrix``: the matrix transposed (cameras as rows, the handout's ``V_ij`` layout),
   True where a point is *not* seen, a comparison with NaN (always True), the last axis not
@@ -238,25 +234,8 @@ def check_jacobian_sparsity(fn, exercise: str = "jacobian_sparsity") -> None:
 
 
 def _triple(out, c: Check, case: str, M: int, N: int):
-    if out is FAILED:
-        return None
-    if all(hasattr(out, a) for a in ("R_cw", "t_cw", "X")):
-        out = (out.R_cw, out.t_cw, out.X)
-    if not isinstance(out, (tuple, list)) or len(out) < 3:
-        c.fail(f"{case}: return the tuple (R_cw (M, 3, 3), t_cw (M, 3), X (N, 3)), got {type(out).__name__}")
-        return None
-    try:
-        R, t, X = (np.asarray(a, float) for a in out[:3])
-    except (TypeError, ValueError):
-        c.fail(f"{case}: R_cw, t_cw and X must be numeric arrays")
-        return None
-    if R.shape != (M, 3, 3) or t.shape != (M, 3) or X.shape != (N, 3):
-        c.fail(f"{case}: shapes {R.shape}, {t.shape}, {X.shape}; expected ({M}, 3, 3), ({M}, 3), ({N}, 3)")
-        return None
-    if not (np.isfinite(R).all() and np.isfinite(t).all() and np.isfinite(X).all()):
-        c.fail(f"{case}: the result contains NaN or inf")
-        return None
-    return R, t, X
+    return c.arrays(out, case, {"R_cw": (M, 3, 3), "t_cw": (M, 3), "X": (N, 3)},
+                    "the tuple (R_cw (M, 3, 3), t_cw (M, 3), X (N, 3))")
 
 
 def _cost(K, R, t, X, uv) -> float:

@@ -20,6 +20,11 @@ properties (rank 2, det R = +1, points in front), and prints short verdicts thro
       ...
       11 of 18 checks passed
 
+Every check module works the same way: it reads its cases, names a mistake only when that mistake is the unique
+explanation of what it saw on every case built to isolate it (what each mistake gives is stored with the cases:
+:func:`unique_key`, :func:`report_cases`), and otherwise says which property fails, with numbers. Equal means one
+rule for all (:func:`close_rel`, :func:`same_up_to_scale`, :data:`RTOL`): a correct answer in float32 passes.
+
 Lines of passing checks are deterministic (no floating-point numbers), so nbval can compare
 them; failing lines may carry numbers, since they never appear in a reference run.
 
@@ -70,20 +75,25 @@ __all__ = [
     "load_fixture",
     "using_cases",
     "as_array",
+    "as_float",
+    "Outcome",
+    "report_cases",
+    "refinement_verdicts",
     "EPS32",
     "RTOL",
     "close_rel",
     "same_up_to_scale",
+    "scale_free_gap",
     "scale_of",
     "unique_key",
     "RecordingRng",
-    "call_recording",
     "counted_repeats",
     "repeated_sample",
     "samples_needed",
     "call_minimal",
     "minimal_verdict",
     "rng_verdicts",
+    "under_global_seed",
     "threshold_interval",
     "within",
 ]
@@ -270,19 +280,11 @@ def score_reasons(result: CheckResult, reference: CheckResult | None = None) -> 
 
 
 def score(result: CheckResult) -> float:
-    """The fraction (0..1) of an exercise's hidden-check points that ``result`` earns.
+    """The fraction (0..1) of an exercise's hidden-check points that ``result`` earns, by :data:`SCORING_RULE`.
 
-    The one scoring rule of the grader (:mod:`course_lib.instructor.grade` calls it on the result of
-    the hidden checks, computed in the grader's own process):
-
-    * only point checks earn: a gate (shape, dtype) that passes earns nothing, a gate that fails
-      counts as one failed check (the checks behind it could not run);
-    * the fraction is passed point checks / counted checks;
-    * a failed defining property caps the fraction at :data:`DEFINING_CAP` (one half): a result
-      without the property that defines it earns at most half of the points, however many other
-      checks pass.
-
-    A result without verdicts (made by hand) scores ``passed / total``.
+    The grader's one rule (:mod:`course_lib.instructor.grade` calls it on the hidden checks' result, in its own
+    process): passed point checks / (point checks + failed gates), capped at :data:`DEFINING_CAP` when a defining
+    property fails. A result without verdicts (made by hand) scores ``passed / total``.
     """
     if not result.verdicts:
         return result.passed / result.total if result.total else 0.0
@@ -292,14 +294,9 @@ def score(result: CheckResult) -> float:
 def score_against(result: CheckResult, reference: CheckResult) -> float:
     """The fraction (0..1) of the hidden-check points that ``result`` earns, measured on the reference's run.
 
-    The grader runs the same checks on the same hidden cases with the reference solution and with
-    the student's; the reference's passing point checks are what there is to earn. A check that
-    the reference passed and the student's run did not pass *or did not record at all* (a call that
-    returned nothing usable, so that the checks after it never ran) counts as failed: a missing
-    answer never makes a check disappear from the count. As in :func:`score`, a failed gate counts
-    as one failed check (a RANSAC that never adapts its number of samples earns less than full
-    marks), and a failed defining property caps the fraction at :data:`DEFINING_CAP`. Nothing to
-    earn (the reference passed no point check) scores 0.
+    As :func:`score`, but what there is to earn is the reference's passing point checks on the same hidden cases: one
+    that the student's run did not pass *or did not record at all* (the checks after an unusable answer never ran)
+    counts as failed. Nothing to earn (the reference passed no point check) scores 0.
     """
     return _fraction(result, reference) if _tally(reference)[0] else 0.0
 
@@ -553,6 +550,66 @@ class Check:
             self.fail(f"{case}: your function raised {type(exc).__name__}: {exc}{where}")
         return FAILED
 
+    def call_explained(self, fn: Callable, *args, case: str, explain: Callable[[Exception], str | None] | None,
+                       named: str | None = None, **kwargs) -> Any:
+        """:meth:`call`, where an exception that ``explain`` has words for is a failed check in those words.
+
+        ``explain(exc)`` returns what the exception means for this exercise (the verdict's text after the case,
+        e.g. why least_squares refuses an (N, 2) residual), or None to report it as :meth:`call` does (as does an
+        ``explain`` of None); ``named``:
+        the mistake those words name (see :meth:`expect`). ``NotImplementedError`` is never explained.
+        """
+        said: list[str] = []
+
+        def guarded(*a, **kw):
+            try:
+                return fn(*a, **kw)
+            except NotImplementedError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - unexplained ones are re-raised for call to report
+                text = explain(exc) if explain is not None else None
+                if text is None:
+                    raise
+                said.append(text)
+                return said  # a usable stand-in: the verdict below answers the call
+
+        out = self.call(guarded, *args, case=case, **kwargs)
+        if said:
+            self.fail(f"{case}: {said[0]}", named=named)
+            return FAILED
+        return out
+
+    def fields(self, out: Any, case: str, names: tuple[str, ...], what: str, optional: int = 0) -> tuple | None:
+        """The fields ``names`` of a returned result: its attributes of those names (a named tuple, a dataclass), or
+        the first items of a tuple; the last ``optional`` may be missing (None). None for :data:`FAILED`, or after a
+        failed check that says to return ``what`` (e.g. "a PnPResult(R_cw, t_cw, inliers, n_iters)")."""
+        if out is FAILED:
+            return None
+        needed = len(names) - optional
+        if all(hasattr(out, n) for n in names[:needed]):
+            return tuple(getattr(out, n, None) for n in names)
+        if isinstance(out, (tuple, list)) and len(out) >= needed:
+            return tuple(out[:len(names)]) + (None,) * (len(names) - len(out))
+        self.fail(f"{case}: return {what}, got {type(out).__name__}")
+        return None
+
+    def arrays(self, out: Any, case: str, shapes: dict[str, tuple], what: str) -> tuple | None:
+        """The fields of a returned result (:meth:`fields`, named by ``shapes``' keys) as finite float arrays of
+        those shapes (a shape ``(n,)`` takes any n values, e.g. a (3, 1) translation); None after a failed check."""
+        out = self.fields(out, case, tuple(shapes), what)
+        if out is None:
+            return None
+        arrs = [as_float(v) for v in out]
+        if not all(a is not None and (a.shape == s or (len(s) == 1 and a.size == s[0]))
+                   for a, s in zip(arrs, shapes.values())):
+            got = ", ".join("no numeric array" if a is None else str(a.shape) for a in arrs)
+            self.fail(f"{case}: {', '.join(shapes)} must have shapes {', '.join(map(str, shapes.values()))}, got {got}")
+            return None
+        if not all(np.isfinite(a).all() for a in arrs):
+            self.fail(f"{case}: {' or '.join(shapes)} contains NaN or inf")
+            return None
+        return tuple(a.reshape(s) for a, s in zip(arrs, shapes.values()))
+
     def shape(self, value: Any, shape: tuple, what: str) -> bool:
         """Check that ``value`` is an array of ``shape`` (``None`` entries match any size)."""
         if value is FAILED:
@@ -668,26 +725,6 @@ class RecordingRng(np.random.Generator):
         return self._draw(super().permutation, *args, **kwargs)
 
 
-def call_recording(c: "Check", fn: Callable, *args, rng: RecordingRng, k: int, case: str, stand_in: Any,
-                   **kwargs) -> tuple[Any, BaseException | None]:
-    """``c.call(fn, *args, rng, **kwargs)`` for a RANSAC handed a :class:`RecordingRng`: ``(result, None)``, or
-    ``(stand_in, exception)`` when the student's code raised after it drew a sample of ``k`` indices that held one
-    twice (the degenerate sample explains the exception: the check names it rather than only showing it)."""
-    raised: list[BaseException] = []
-
-    def guarded(*a, **kw):
-        try:
-            return fn(*a, **kw)
-        except Exception as exc:  # noqa: BLE001 - without a repeated sample, c.call reports it as usual
-            if isinstance(exc, NotImplementedError) or repeated_sample(rng, k) is None:
-                raise
-            raised.append(exc)
-            return stand_in
-
-    out = c.call(guarded, *args, rng, case=case, **kwargs)
-    return out, (raised[0] if raised else None)
-
-
 def counted_repeats(rng: RecordingRng, k: int, n_iters: Any) -> int:
     """How many samples of ``k`` indices that held an index twice a RANSAC drew, skipped and counted in ``n_iters``,
     on a case whose first sample of ``k`` distinct indices ends the loop (``k`` points, no noise): every draw of ``k``
@@ -726,19 +763,22 @@ def _distinct_advice(k: int, items: str) -> str:
             f"rng.choice(N, {k}, replace=False)")
 
 
-def call_minimal(c: "Check", fn: Callable, *args, k: int, item: tuple[str, str], seed: int, case: str, stand_in: Any,
+def call_minimal(c: "Check", fn: Callable, *args, k: int, item: tuple[str, str], seed: int, case: str,
                  **kwargs) -> tuple[Any, RecordingRng] | None:
     """Call a RANSAC on exactly ``k`` noiseless items (``item``: their name, singular and plural) with a
-    :class:`RecordingRng` seeded with ``seed``: ``(result, rng)``, or None after a failed check that names a sample
-    drawn with replacement, when the student's code raised after drawing one (:func:`call_recording`)."""
+    :class:`RecordingRng` seeded with ``seed``: ``(result, rng)``, or None after a failed check; when the student's
+    code raised after it drew a sample that held an item twice, that check names the degenerate sample (it explains
+    the exception)."""
     rng = RecordingRng(seed)
-    res, raised = call_recording(c, fn, *args, rng=rng, k=k, case=case, stand_in=stand_in, **kwargs)
-    if raised is None:
-        return res, rng
-    c.fail(f"{case}: your function raised {type(raised).__name__}: {str(raised)[:100]}, after a sample that held a "
-           f"{item[0]} twice (indices {repeated_sample(rng, k).tolist()}): {_distinct_advice(k, item[1])}",
-           named="with_replacement")
-    return None
+
+    def explain(exc: Exception) -> str | None:
+        twice = repeated_sample(rng, k)
+        return None if twice is None else (
+            f"your function raised {type(exc).__name__}: {str(exc)[:100]}, after a sample that held a {item[0]} twice "
+            f"(indices {twice.tolist()}): {_distinct_advice(k, item[1])}")
+
+    res = c.call_explained(fn, *args, rng, case=case, explain=explain, named="with_replacement", **kwargs)
+    return None if res is FAILED else (res, rng)
 
 
 def minimal_verdict(c: "Check", rng: RecordingRng, k: int, item: tuple[str, str], case: str, ok: bool, n_iters: Any,
@@ -760,6 +800,19 @@ def minimal_verdict(c: "Check", rng: RecordingRng, k: int, item: tuple[str, str]
         return
     c.expect(ok, pass_msg, f"{what} (each sample is {k} distinct {item[1]}, rng.choice(N, {k}, replace=False); the "
              "refit uses every inlier)")
+
+
+def under_global_seed(seed: int, call: Callable[[], Any]) -> tuple[Any, bool]:
+    """``call()`` with numpy's global random state seeded with ``seed`` (restored after): ``(its result, whether it
+    changed that state)``; a RANSAC that draws from ``rng`` only gives the same result under any global state."""
+    saved = np.random.get_state()
+    try:
+        np.random.seed(seed)
+        before = np.random.get_state()[1].copy()
+        out = call()
+        return out, not np.array_equal(np.random.get_state()[1], before)
+    finally:
+        np.random.set_state(saved)
 
 
 def rng_verdicts(c: "Check", case: str, k: int, touched: bool, drawn: bool | None = None) -> None:
@@ -819,23 +872,28 @@ def close_rel(a: Any, b: Any, rtol: float = RTOL) -> bool:
     return bool(np.abs(a - b).max(initial=0.0) <= rtol * scale_of(b))
 
 
+def scale_free_gap(a: Any, b: Any) -> float:
+    """The largest entry of ``a - b`` with both at unit norm, for the closer sign (inf: not comparable, or zero)."""
+    try:
+        a, b = np.asarray(a, float), np.asarray(b, float)
+    except (TypeError, ValueError):
+        return float("inf")
+    if a.shape != b.shape or not (np.isfinite(a).all() and np.isfinite(b).all()):
+        return float("inf")
+    na, nb = np.linalg.norm(a), np.linalg.norm(b)
+    if na == 0 or nb == 0:
+        return float("inf")
+    a, b = a / na, b / nb
+    return float(min(np.abs(a - b).max(), np.abs(a + b).max()))
+
+
 def same_up_to_scale(a: Any, b: Any, rtol: float = RTOL) -> bool:
-    """``a = λ b`` for some λ ≠ 0 of either sign (both compared at unit norm, :func:`close_rel`).
+    """``a = λ b`` for some λ ≠ 0 of either sign (:func:`scale_free_gap` within ``rtol``).
 
     The checks' one rule for what is defined up to scale and sign (F, E, a null vector): F / F[2, 2],
     -F and F in float32 are the same F.
     """
-    try:
-        a, b = np.asarray(a, float), np.asarray(b, float)
-    except (TypeError, ValueError):
-        return False
-    if a.shape != b.shape or not (np.isfinite(a).all() and np.isfinite(b).all()):
-        return False
-    na, nb = np.linalg.norm(a), np.linalg.norm(b)
-    if na == 0 or nb == 0:
-        return False
-    a, b = a / na, b / nb
-    return bool(min(np.abs(a - b).max(), np.abs(a + b).max()) <= rtol)
+    return scale_free_gap(a, b) <= rtol
 
 
 def unique_key(per_case: list) -> str | None:
@@ -853,6 +911,78 @@ def unique_key(per_case: list) -> str | None:
     keys = set().union(*(exp for exp, _ in pairs))
     fits = [k for k in keys if all(k in exp for exp, testable in pairs if testable is None or k in testable)]
     return fits[0] if len(fits) == 1 else None
+
+
+@dataclass
+class Outcome:
+    """One case of a check, read: what :func:`report_cases` needs to print its verdict.
+
+    Attributes:
+        case: the case's name (each line starts with it).
+        ok: whether the result is right.
+        passed: the passing line's text, after the case.
+        failed: the failing line's facts (with numbers), after the case.
+        keys: the mistakes whose result this one is on the case, as :func:`unique_key` takes them (a set, or
+            ``(explained, testable)``); only read when the case fails.
+        advice: what to change, printed after the facts when no mistake is named.
+        data: whatever else the check's own verdicts of the case need.
+    """
+
+    case: str
+    ok: bool
+    passed: str
+    failed: str = ""
+    keys: Any = ()
+    advice: str = ""
+    data: Any = None
+
+
+def report_cases(c: "Check", outcomes: list[Outcome], mistakes: dict[str, str],
+                 first: Callable[[Outcome, str | None], None] | None = None,
+                 then: Callable[[Outcome, str | None], None] | None = None) -> str | None:
+    """The checks' one way from cases to verdicts: name the mistake, then print each case's verdict.
+
+    The mistake named is the one that explains every failing case (:func:`unique_key`); each case then passes,
+    or fails with its facts followed by that mistake's sentence (``mistakes[key]``, when the key is one of them)
+    or else by its advice. ``first`` and ``then`` record the case's further verdicts, before and after its own
+    (they are given the named key too). Returns the named key (None: none).
+    """
+    named = unique_key([o.keys for o in outcomes if not o.ok])
+    own = named if named in mistakes else None
+    for o in outcomes:
+        if first is not None:
+            first(o, named)
+        if o.ok:
+            c.expect(True, f"{o.case}: {o.passed}", "")
+        else:
+            c.fail(f"{o.case}: " + ": ".join(t for t in (o.failed, mistakes[own] if own else o.advice) if t), named=own)
+        if then is not None:
+            then(o, named)
+    return named
+
+
+def refinement_verdicts(c: "Check", case: str, e0: float, e_s: float, ok: bool, facts: str, why: str | None,
+                        advice: tuple[str, str], named: str | None) -> None:
+    """The verdicts of a non-linear refinement whose RMS reprojection error goes from ``e0`` to ``e_s`` px: it lowers
+    the error (a gate: returning the start satisfies it), then it reaches the least-squares optimum (``ok``; ``facts``:
+    the numbers of a failure). ``why``: the named mistake's sentence, else ``advice`` (for each verdict) follows."""
+    if c.gate(e_s <= e0 * (1 + 1e-9) + 1e-9, f"{case}: lowers the reprojection error",
+              f"{case}: the refinement increased the RMS reprojection error ({e0:.3g} -> {e_s:.3g} px): "
+              + (why or advice[0]), named=named):
+        c.expect(ok, f"{case}: reaches the least-squares optimum", f"{case}: {facts}: " + (why or advice[1]),
+                 named=named)
+
+
+def as_float(value: Any) -> np.ndarray | None:
+    """``value`` as a float64 numpy array (torch tensors included); None for :data:`FAILED`, None or what is none."""
+    if value is FAILED or value is None:
+        return None
+    try:
+        if hasattr(value, "detach"):
+            value = value.detach().cpu().double().numpy()
+        return np.asarray(value, dtype=float)
+    except (TypeError, ValueError, RuntimeError):
+        return None
 
 
 def as_array(value: Any) -> np.ndarray | None:

@@ -1,29 +1,16 @@
 """Checks of notebook 02 (the essential matrix and the four pose candidates).
 
-Each ``check_*`` function runs the student's function on stored cases (fixture ``essential``,
-built in the instructor's kit from :mod:`course_lib.sfm.essential` by ``python -m course_lib fixtures essential``) and
-tests the defining properties one at a time:
+Cases (fixture ``essential``, :mod:`course_lib.instructor.cases.essential`): E from a noiseless and from a noisy
+synthetic pair (with the true relative pose) and from the embedded scene's pair (the reference F of notebook 01):
 
 * ``essential_from_fundamental``: two equal singular values and a zero one (defining), and E equal
   to the reference Kᵀ F K projected to (s, s, 0), up to scale and sign;
 * ``pose_candidates``: every R a rotation (defining), every C of unit length, every (R, C) factoring
   E (E ∝ [t]ₓ R with t = -R C), and the four candidates equal to the reference's, in any order.
 
-A verdict names a mistake (``K F Kᵀ``, ``C holds t``, ...) only when the student's results equal
-what that mistake gives (stored with the cases by :mod:`course_lib.instructor.mistakes.essential`, or
-a transformation of the reference's candidates) on every case that the result fails, and no other
-mistake's; otherwise it says which property fails, with numbers.
-
-Equivalences, one rule for all (:mod:`course_lib.checks.core`): E is defined up to scale and sign
-(an E with singular values (s, s, 0), -E, E in float32 get full marks); the four candidates are a
-set (any order gets full marks: notebook 03 picks one by cheirality, never by position).
-
-Defining properties (failing one costs at least half of the points): E's two equal singular values
-and a zero one; every candidate R a rotation (det +1), checked on E and on a multiple of E of every
-pair (for one of the two the SVD gives det U det V = -1, so a missing flip shows on every pair).
-
-Cases: E from a noiseless and from a noisy synthetic pair (with the true relative pose) and from
-the embedded scene's pair (1, 2) (the reference F of notebook 01) when it is present.
+E is defined up to scale and sign; the four candidates are a set (any order gets full marks: notebook 03 picks
+one by cheirality, never by position). det R = +1 is checked on E and on a multiple of E of every pair (for one
+of the two the SVD gives det U det V = -1, so a missing flip shows on every pair).
 """
 
 from __future__ import annotations
@@ -33,8 +20,8 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import (FAILED, RTOL, Check, code_text, declare_defining, load_fixture,
-                                    same_up_to_scale, source_has, unique_key)
+from course_lib.checks.core import (FAILED, RTOL, Check, Outcome, code_text, declare_defining, load_fixture,
+                                    report_cases, same_up_to_scale, scale_free_gap, source_has, unique_key)
 from course_lib.conventions import rotation_angle_deg, skew
 
 __all__ = ["check_essential_from_fundamental", "check_pose_candidates", "match_candidates"]
@@ -63,12 +50,6 @@ _CASE_TEXT = {
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def _unit(M):
-    M = np.asarray(M, float)
-    n = np.linalg.norm(M)
-    return M / n if n > 0 else M
 
 
 def match_candidates(R, C, R_ref, C_ref, tol: float = 10 * RTOL) -> list[int]:
@@ -114,11 +95,7 @@ def _e_keys(E, f: dict, name: str) -> set[str]:
 
 
 def check_essential_from_fundamental(essential_from_fundamental: Callable) -> None:
-    """Check ``essential_from_fundamental(F (3, 3), K (3, 3)) -> E (3, 3)`` (notebook 02).
-
-    E must have two equal singular values and a zero one and equal the reference ``Kᵀ F K``
-    projected to singular values ``(1, 1, 0)``, up to scale and sign.
-    """
+    """Check ``essential_from_fundamental(F (3, 3), K (3, 3)) -> E (3, 3)`` (notebook 02)."""
     f = load_fixture(FIXTURE)
     with Check("essential_from_fundamental") as c:
         results = []
@@ -135,35 +112,29 @@ def check_essential_from_fundamental(essential_from_fundamental: Callable) -> No
                 continue
             if not c.shape(E, (3, 3), f"{case}: E"):
                 continue
-            results.append((case, name, E))
-        failing = [(name, E) for _, name, E in results
-                   if not same_up_to_scale(E, f[f"{name}_E"])
-                   or not _equal_singular_values(np.linalg.svd(E, compute_uv=False))]
-        named = unique_key([_e_keys(E, f, name) for name, E in failing])
-        for case, name, E in results:
-            s = np.linalg.svd(E, compute_uv=False)
-            rel = np.round(s / s[0], 4).tolist() if s[0] > 0 else s.tolist()
-            ok_sv = _equal_singular_values(s)
-            c.gate(ok_sv, f"{case}: E has two equal singular values and a zero one",
-                   f"{case}: E's singular values are {rel} relative to the largest, expected (1, 1, 0)"
-                   + (f": {_E_MISTAKES[named]}" if named == "uncorrected" else
-                      ": E = U diag(1, 1, 0) Vᵀ from the SVD of Kᵀ F K"), defining=SV,
-                   named="uncorrected" if named == "uncorrected" else None)
-            if same_up_to_scale(E, f[f"{name}_E"]):
-                c.expect(True, f"{case}: E matches the reference Kᵀ F K corrected to (1, 1, 0), up to scale and sign", "")
-                continue
-            E_ref = _unit(f[f"{name}_E"])
-            diff = min(np.abs(_unit(E) - E_ref).max(), np.abs(_unit(E) + E_ref).max())
-            text = (f"{case}: E differs from the reference Kᵀ F K corrected to (1, 1, 0) (by {diff:.3g} at unit norm, "
-                    "either sign)")
-            c.fail(text + (f": {_E_MISTAKES[named]}" if named and named != "uncorrected" else ""),
-                   named=named if named != "uncorrected" else None)
+            ok = same_up_to_scale(E, f[f"{name}_E"])
+            results.append(Outcome(
+                case, ok, "E matches the reference Kᵀ F K corrected to (1, 1, 0), up to scale and sign",
+                f"E differs from the reference Kᵀ F K corrected to (1, 1, 0) (by "
+                f"{scale_free_gap(E, f[f'{name}_E']):.3g} at unit norm, either sign)",
+                keys=() if ok else _e_keys(E, f, name), data=E))
+        report_cases(c, results, {k: v for k, v in _E_MISTAKES.items() if k != "uncorrected"},
+                     first=lambda o, named: _singular_values_verdict(c, o.case, o.data, named))
         c.causes(essential_from_fundamental, [
             (source_has(r"\binv\("), "your code inverts a matrix: E = Kᵀ F K takes K itself (K⁻ᵀ E K⁻¹ = F is the other direction)"),
             (source_has(r"\bV[th]?\.T\b|transpose\(\s*V[th]?\b"),
              "np.linalg.svd returns Vᵀ already: E = U @ np.diag([1, 1, 0]) @ Vt, without transposing it"),
             (lambda fn: 0 < len(re.findall(r"\bK\b", code_text(fn))) < 3, "K goes on both sides of F: E = Kᵀ F K"),
         ])
+
+
+def _singular_values_verdict(c: Check, case: str, E, named: str | None) -> None:
+    s = np.linalg.svd(E, compute_uv=False)
+    rel = np.round(s / s[0], 4).tolist() if s[0] > 0 else s.tolist()
+    c.gate(_equal_singular_values(s), f"{case}: E has two equal singular values and a zero one",
+           f"{case}: E's singular values are {rel} relative to the largest, expected (1, 1, 0): "
+           + (_E_MISTAKES[named] if named == "uncorrected" else "E = U diag(1, 1, 0) Vᵀ from the SVD of Kᵀ F K"),
+           defining=SV, named="uncorrected" if named == "uncorrected" else None)
 
 
 def _equal_singular_values(s) -> bool:
@@ -192,12 +163,7 @@ _C_MISTAKES = {
 
 
 def check_pose_candidates(pose_candidates: Callable) -> None:
-    """Check ``pose_candidates(E (3, 3)) -> (R (4, 3, 3), C (4, 3))`` (notebook 02).
-
-    Every R must be a rotation (det +1), every C of unit length, every (R, C) must factor E as
-    ``E ∝ [t]ₓ R`` with ``t = -R C``, and the four candidates must equal the reference's as a set
-    (any order: notebook 03 picks one by cheirality).
-    """
+    """Check ``pose_candidates(E (3, 3)) -> (R (4, 3, 3), C (4, 3))`` (notebook 02)."""
     f = load_fixture(FIXTURE)
     with Check("pose_candidates") as c:
         results = []

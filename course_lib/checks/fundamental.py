@@ -1,14 +1,13 @@
 """Checks of notebook 01 (the fundamental matrix): normalization, 8-point, Sampson distance, RANSAC.
 
-Each ``check_*`` function runs the student's function on stored cases (fixture ``fundamental``,
-built on the instructor's side by :mod:`course_lib.instructor.cases.fundamental`) and tests the
-defining properties one at a time, on cases built to isolate them, against ground truth where
-there is one (the noiseless points of a noisy synthetic pair), never against the noisy inputs alone:
+Cases: fixture ``fundamental`` (:mod:`course_lib.instructor.cases.fundamental`, which also stores what each named
+mistake gives on them); F is judged against ground truth where there is one (the noiseless points of a noisy
+pair), never against the noisy inputs alone. What each check tests:
 
 * ``normalize_points``: x_n = T x, the centroid at the origin, the mean distance sqrt(2), one scale
   for both axes, T as the reference's; a strip of a facade and a cloud of large pixel coordinates
   (a 6000 x 4000 image) far from the origin;
-* ``eight_point``: rank 2 (defining), and how well F fits: equal to the truth on a noiseless pair
+* ``eight_point``: rank 2 (defining, on every case), and how well F fits: equal to the truth on a noiseless pair
   (camera 1 off the origin), as close to the noiseless points as the reference's on noisy pairs
   (1 px with many matches, 2 px with few, 1 px in a 6000 x 4000 image), as close to the matches as
   the reference's on the embedded pair;
@@ -21,23 +20,9 @@ there is one (the noiseless points of a noisy synthetic pair), never against the
   rng argument's only: the same seed gives the same result whatever numpy's global state, the rng
   is drawn from (its state advances), and numpy's global state is left untouched.
 
-A verdict names a mistake ("you compared the distance with threshold_px²") only when that mistake
-is the unique explanation of what the check saw on every case that isolates it: what a named
-mistake gives on a case is stored with the case (made on the instructor's side by
-:mod:`course_lib.instructor.mistakes.fundamental`), and the name is given when the student's results
-equal that mistake's on every case where it can be told apart, and no other's. Otherwise the verdict
-says which property fails, with numbers. This module holds no working variant of any exercise.
-Where it needs a distance of its own it uses the point-to-line distance (no exercise of the
-notebook) or OpenCV (``cv2.sampsonDistance``).
-
-Equivalences, one rule for all (:func:`course_lib.checks.core.same_up_to_scale`,
-:data:`course_lib.checks.core.RTOL`): F is defined up to scale and sign (F / F[2, 2] and -F are the
-same F), and a correct answer computed in float32 passes every check.
-
-Defining property (failing it costs at least half of the points): ``eight_point``'s F has rank 2,
-checked on every case.
-
-The grader builds new cases for every grading run.
+Where the check needs a distance of its own it uses the point-to-line distance (no exercise of the
+notebook) or OpenCV (``cv2.sampsonDistance``). F is defined up to scale and sign
+(:func:`course_lib.checks.core.same_up_to_scale`).
 """
 
 from __future__ import annotations
@@ -46,9 +31,9 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import (EPS32, FAILED, RTOL, Check, call_minimal, close_rel, declare_defining, load_fixture,
-                                    minimal_verdict, rng_verdicts, same_up_to_scale, samples_needed, source_has,
-                                    threshold_interval, unique_key, within)
+from course_lib.checks.core import (EPS32, FAILED, RTOL, Check, Outcome, call_minimal, close_rel, declare_defining,
+                                    load_fixture, minimal_verdict, report_cases, rng_verdicts, same_up_to_scale, scale_free_gap,
+                                    samples_needed, source_has, threshold_interval, under_global_seed, within)
 
 __all__ = [
     "check_normalize_points",
@@ -80,12 +65,6 @@ declare_defining("eight_point", {
 
 def _h(x: np.ndarray) -> np.ndarray:
     return np.column_stack([x, np.ones(len(x))])
-
-
-def _unit(F: np.ndarray) -> np.ndarray:
-    F = np.asarray(F, float)
-    n = np.linalg.norm(F)
-    return F / n if n > 0 else F
 
 
 def _line_distance_px(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
@@ -214,11 +193,7 @@ def _normalize_case(c: Check, fn: Callable, x: np.ndarray, T_ref: np.ndarray, ca
 
 
 def check_normalize_points(normalize_points: Callable) -> None:
-    """Check ``normalize_points(x (N, 2)) -> (x_n (N, 2), T (3, 3))`` (notebook 01).
-
-    Hartley's normalization: centroid at the origin, mean distance sqrt(2), one scale for both
-    axes, ``x_n = T x`` in homogeneous coordinates; on a facade strip and on large pixel coordinates.
-    """
+    """Check ``normalize_points(x (N, 2)) -> (x_n (N, 2), T (3, 3))`` (notebook 01): Hartley's normalization."""
     f = load_fixture(FIXTURE)
     with Check("normalize_points") as c:
         for key, label in _NORM_CASES:
@@ -265,7 +240,7 @@ def _eight_point_fit(F, f, p: str, name: str):
     if name == "noiseless":
         return same_up_to_scale(F, F_ref), "F equals the true F (up to scale and sign)", (
             "F is not the true F: on noiseless matches the 8-point F is exact (your F differs by "
-            f"{min(np.abs(_unit(F) - _unit(F_ref)).max(), np.abs(_unit(F) + _unit(F_ref)).max()):.3g} at unit norm)")
+            f"{scale_free_gap(F, F_ref):.3g} at unit norm)")
     if f"{p}_x1_true" in f:
         xt1, xt2 = f[f"{p}_x1_true"], f[f"{p}_x2_true"]
         d, d_ref = _median_px(F, xt1, xt2), _median_px(F_ref, xt1, xt2)
@@ -279,17 +254,21 @@ def _eight_point_fit(F, f, p: str, name: str):
         f"lines {d:.3g} px, reference {d_ref:.3g} px")
 
 
-def check_eight_point(eight_point: Callable) -> None:
-    """Check ``eight_point(x1 (N, 2), x2 (N, 2)) -> F (3, 3)`` (notebook 01).
+def _rank_verdict(c: Check, case: str, F, p: str, f) -> None:
+    r = _rank(F, f[f"{p}_T1"], f[f"{p}_T2"])
+    s = np.linalg.svd(np.linalg.inv(f[f"{p}_T2"]).T @ F @ np.linalg.inv(f[f"{p}_T1"]), compute_uv=False)
+    c.gate(r == 2, f"{case}: F has rank 2",
+           f"{case}: F has rank {r} (singular values in normalized coordinates "
+           f"{np.array2string(s / s[0], precision=2)}): a fundamental matrix has rank 2; zero the smallest singular "
+           "value, F = U diag(s1, s2, 0) Vᵀ",
+           defining="rank 2")
 
-    On each case F must have rank 2; on the noiseless pair it must equal the truth up to scale and
-    sign; on the noisy pairs it must fit the noiseless points as well as the reference's F; on the
-    embedded pair the matches. A named mistake (its result stored with the cases) is named only
-    when the student's F equals it on every case that F fails.
-    """
+
+def check_eight_point(eight_point: Callable) -> None:
+    """Check ``eight_point(x1 (N, 2), x2 (N, 2)) -> F (3, 3)`` (notebook 01)."""
     f = load_fixture(FIXTURE)
     with Check("eight_point") as c:
-        results = []  # (case text, F, p, name, fit ok, pass text, fail text)
+        results = []
         for name in [str(n) for n in f["cases"]]:
             p = f"ep_{name}"
             x1, x2 = f[f"{p}_x1"], f[f"{p}_x2"]
@@ -303,21 +282,10 @@ def check_eight_point(eight_point: Callable) -> None:
             if not c.shape(F, (3, 3), f"{case}: F"):
                 continue
             ok, good, bad = _eight_point_fit(F, f, p, name)
-            results.append((case, F, p, name, ok, good, bad))
-        failing = [r for r in results if not r[4]]
-        named = unique_key([{key for key in _EIGHT_POINT_MISTAKES if f"{p}_mis_{key}" in f
-                             and same_up_to_scale(F, f[f"{p}_mis_{key}"], 1e-4)} for _, F, p, *_ in failing])
-        for case, F, p, name, ok, good, bad in results:
-            if ok:
-                c.expect(True, f"{case}: {good}", "")
-            else:
-                c.fail(f"{case}: {bad}" + (f": {_EIGHT_POINT_MISTAKES[named]}" if named else ""), named=named)
-            r = _rank(F, f[f"{p}_T1"], f[f"{p}_T2"])
-            s = np.linalg.svd(np.linalg.inv(f[f"{p}_T2"]).T @ F @ np.linalg.inv(f[f"{p}_T1"]), compute_uv=False)
-            c.gate(r == 2, f"{case}: F has rank 2",
-                   f"{case}: F has rank {r} (singular values in normalized coordinates "
-                   f"{np.array2string(s / s[0], precision=2)}): a fundamental matrix has rank 2; zero the smallest "
-                   "singular value, F = U diag(s1, s2, 0) Vᵀ", defining="rank 2")
+            results.append(Outcome(case, ok, good, bad, data=(F, p), keys=() if ok else {
+                key for key in _EIGHT_POINT_MISTAKES
+                if f"{p}_mis_{key}" in f and same_up_to_scale(F, f[f"{p}_mis_{key}"], 1e-4)}))
+        report_cases(c, results, _EIGHT_POINT_MISTAKES, then=lambda o, _: _rank_verdict(c, o.case, *o.data, f))
         c.blame_earlier("normalize_points", fn=eight_point)
         c.causes(eight_point, [
             (source_has(r"\beigh\("), "np.linalg.eigh sorts the eigenvalues in ascending order: the solution is the "
@@ -377,7 +345,7 @@ def check_sampson_distance(sampson_distance: Callable) -> None:
     """Check ``sampson_distance(F (3, 3), x1 (N, 2), x2 (N, 2)) -> (N,)`` in pixels (notebook 01)."""
     f = load_fixture(FIXTURE)
     with Check("sampson_distance") as c:
-        results = []  # (case, d, p)
+        results = []
         for k, name in enumerate(str(n) for n in f["sd_cases"]):
             p = f"sd_{name}"
             F, x1, x2, d_ref = f[f"{p}_F"], f[f"{p}_x1"], f[f"{p}_x2"], f[f"{p}_d"]
@@ -390,7 +358,13 @@ def check_sampson_distance(sampson_distance: Callable) -> None:
                 continue
             if not c.shape(d, (len(x1),), f"{case}: d"):
                 continue
-            results.append((case, d, p))
+            ok = _same_distances(d, f[f"{p}_d"])
+            j = int(np.argmax(np.abs(d - f[f"{p}_d"])))
+            results.append(Outcome(case, ok, "distances match the reference (pixels)",
+                                   f"distances differ from the Sampson distance (match {j}: {d[j]:.4g} px, expected "
+                                   f"{f[f'{p}_d'][j]:.4g} px)", advice=_SAMPSON_DEN, keys=() if ok else {
+                                       key for key in _SAMPSON_MISTAKES
+                                       if f"{p}_mis_{key}" in f and _same_distances(d, f[f"{p}_mis_{key}"])}))
             if k == 0:
                 d10 = _as_array(c.call(sampson_distance, -10.0 * F, x1, x2, case=case), c, f"{case}: d")
                 usable = d10 is not None and d10.shape == d.shape  # an unusable answer fails the gate too
@@ -398,33 +372,17 @@ def check_sampson_distance(sampson_distance: Callable) -> None:
                        f"{case}: the result changes when F is multiplied by -10: a distance in pixels must not depend "
                        "on the scale (or sign) of F" if usable else
                        f"{case}: called with -10 F, your function returned nothing usable (expected shape {d.shape})")
-        failing = [(case, d, p) for case, d, p in results if not _same_distances(d, f[f"{p}_d"])]
-        named = unique_key([{key for key in _SAMPSON_MISTAKES if f"{p}_mis_{key}" in f
-                             and _same_distances(d, f[f"{p}_mis_{key}"])} for _, d, p in failing])
-        for case, d, p in results:
-            d_ref = f[f"{p}_d"]
-            if _same_distances(d, d_ref):
-                c.expect(True, f"{case}: distances match the reference (pixels)", "")
-                continue
-            j = int(np.argmax(np.abs(d - d_ref)))
-            facts = f"match {j}: {d[j]:.4g} px, expected {d_ref[j]:.4g} px"
-            c.fail(f"{case}: " + (f"{_SAMPSON_MISTAKES[named]} ({facts})" if named else
-                                  f"distances differ from the Sampson distance ({facts}): {_SAMPSON_DEN}"), named=named)
+        report_cases(c, results, _SAMPSON_MISTAKES)
 
 
 # --------------------------------------------------------------------------- ransac_fundamental
 
 
 def _unpack_ransac(out, c: Check, case: str):
-    if out is FAILED:
+    out = c.fields(out, case, ("F", "inliers", "n_iters"), "a RansacResult(F, inliers, n_iters)")
+    if out is None:
         return None
-    if hasattr(out, "F") and hasattr(out, "inliers"):
-        F, inl, n = out.F, out.inliers, getattr(out, "n_iters", None)
-    elif isinstance(out, (tuple, list)) and len(out) == 3:
-        F, inl, n = out
-    else:
-        c.fail(f"{case}: expected a RansacResult(F, inliers, n_iters), got {type(out).__name__}")
-        return None
+    F, inl, n = out
     try:
         F, inl = np.asarray(F, float), np.asarray(inl)
     except (TypeError, ValueError):
@@ -468,7 +426,7 @@ def _mask_rule(F, x1, x2, inl, thr: float) -> tuple[str, tuple | None]:
         return "threshold_squared", interval
     if within(interval, np.sqrt(thr)):
         return "squared", interval
-    e = np.abs(np.sum(_h(x2) * (_h(x1) @ _unit(F).T), axis=1))
+    e = np.abs(np.sum(_h(x2) * (_h(x1) @ (F / np.linalg.norm(F)).T), axis=1))
     if within(threshold_interval(e, inl), thr):
         return "algebraic", interval
     return "other", interval
@@ -532,14 +490,9 @@ def _ransac_randomness(c: Check, fn: Callable, f: dict, out: tuple, case: str) -
     """The rng is the only randomness: same seed, same result (whatever numpy's global state); the rng is drawn
     from; numpy's global state untouched. max_iters and confidence are used."""
     x1, x2, thr = f["rs_x1"], f["rs_x2"], CHECK_THRESHOLD_PX
-    state = np.random.get_state()
-    try:  # another global state: a function that draws from np.random (not from rng) gives another result
-        np.random.seed(20261124)
-        before = np.random.get_state()[1].copy()
-        again = _unpack_ransac(c.call(fn, x1, x2, np.random.default_rng(0), threshold_px=thr, case=case), c, case)
-        touched = not np.array_equal(np.random.get_state()[1], before)
-    finally:
-        np.random.set_state(state)
+    # another global state: a function that draws from np.random (not from rng) gives another result
+    again, touched = under_global_seed(20261124, lambda: _unpack_ransac(
+        c.call(fn, x1, x2, np.random.default_rng(0), threshold_px=thr, case=case), c, case))
     if again is None:
         return
     same = (again[1].shape == out[1].shape and np.array_equal(again[1], out[1]) and again[0].shape == out[0].shape
@@ -622,8 +575,7 @@ def _ransac_minimal_case(c: Check, fn: Callable, f: dict) -> None:
     true_inl = f["rs_true_inliers"].astype(bool)
     x1, x2 = f["rs_x1_true"][true_inl][:8], f["rs_x2_true"][true_inl][:8]
     case = "exactly 8 noiseless matches (threshold 1 px)"
-    called = call_minimal(c, fn, x1, x2, k=8, item=("match", "matches"), seed=13, case=case,
-                          stand_in=(np.eye(3), np.zeros(8, bool), 1), threshold_px=1.0)
+    called = call_minimal(c, fn, x1, x2, k=8, item=("match", "matches"), seed=13, case=case, threshold_px=1.0)
     out = None if called is None else _unpack_ransac(called[0], c, case)
     if out is None or not (c.shape(out[0], (3, 3), f"{case}: F") & c.shape(out[1], (8,), f"{case}: inliers")):
         return
@@ -636,16 +588,7 @@ def _ransac_minimal_case(c: Check, fn: Callable, f: dict) -> None:
 
 
 def check_ransac_fundamental(ransac_fundamental: Callable) -> None:
-    """Check ``ransac_fundamental(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000)`` (notebook 01).
-
-    On a synthetic pair with about 20 % outliers (0.7 px noise, threshold_px = 1.5) and one without
-    outliers (1 px noise, threshold_px = 0.8: both sides of 1 px): the inliers must match the true
-    inliers, F must fit the noiseless points as well as the reference's, and the returned mask must be
-    the matches within threshold_px of the returned F. The iteration count must adapt (to the inliers and the confidence, within max_iters),
-    the samples come from ``rng`` only (same seed, same result; the rng drawn from; numpy's
-    global state untouched); without outliers and with a wide threshold, F must be refit on all
-    inliers; on a subset of the embedded pair the inlier set must agree with the reference's.
-    """
+    """Check ``ransac_fundamental(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000)`` (notebook 01)."""
     f = load_fixture(FIXTURE)
     with Check("ransac_fundamental") as c:
         x1, x2 = f["rs_x1"], f["rs_x2"]

@@ -1,9 +1,7 @@
 """Checks of notebook 06 (NeRF data and rays): get_rays, stratified sampling, query points, encoding.
 
-Each ``check_*`` function runs the student's function on stored cases (fixture ``nerf_data``,
-built from :mod:`course_lib.nerf.rays` and :mod:`course_lib.nerf.encoding` by
-``python -m course_lib fixtures nerf_data``), compares with the stored reference results and with
-properties, and names the likely mistake when something is off:
+Cases (fixture ``nerf_data``, :mod:`course_lib.instructor.cases.nerf_data`, the mistakes' results by
+:func:`course_lib.instructor.cases.nerf_data.encoding_variant`); what each check names:
 
 * ``get_rays``: meshgrid ij/xy transposition, OpenGL instead of OpenCV camera axes (y flipped,
   rays pointing backwards), the rotation transposed or missing, half-pixel offset (``W / 2``
@@ -19,11 +17,7 @@ properties, and names the likely mistake when something is off:
 * ``positional_encoding``: missing identity term, sin/cos order, missing (or extra) pi factor,
   wrong frequencies.
 
-The helpers ``to_numpy`` and ``match_variant`` are shared with the other NeRF check modules.
-The cases, the reference's results on them and the results of the classic mistakes are stored
-arrays, made on the instructor's side by :mod:`course_lib.instructor.cases.nerf_data` (the
-mistakes by :mod:`course_lib.instructor.cases.nerf_variants`); this module computes no ray, sample
-or encoding, imports no reference solution, and ships to students.
+The helpers ``close`` and ``matching`` are shared with the other NeRF check modules.
 """
 
 from __future__ import annotations
@@ -32,34 +26,21 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import FAILED, Check, declare_defining, load_fixture, unique_key
+from course_lib.checks.core import Check, Outcome, as_float, declare_defining, load_fixture, report_cases
 
 __all__ = [
     "check_get_rays",
     "check_stratified_samples",
     "check_query_points",
     "check_positional_encoding",
-    "to_numpy",
-    "match_variant",
-    "stored_variants",
+    "close",
+    "matching",
 ]
 
 FIXTURE = "nerf_data"
 
 
 # --------------------------------------------------------------------------- shared helpers
-
-
-def to_numpy(v) -> np.ndarray | None:
-    """A float64 numpy array from a torch tensor, numpy array or nested list; None if impossible."""
-    if v is FAILED or v is None:
-        return None
-    try:
-        if hasattr(v, "detach"):
-            v = v.detach().cpu().double().numpy()
-        return np.asarray(v, dtype=float)
-    except (TypeError, ValueError, RuntimeError):
-        return None
 
 
 def close(a, b, rtol: float = 1e-4, atol: float = 1e-5) -> bool:
@@ -73,12 +54,12 @@ def close(a, b, rtol: float = 1e-4, atol: float = 1e-5) -> bool:
     return bool(np.allclose(a, b, rtol=rtol, atol=atol * scale))
 
 
-def match_variant(value, variants: list[tuple[str, np.ndarray]], **tol) -> str | None:
-    """The hint of the first variant that ``value`` equals (same shape, within tolerance), else None."""
-    for hint, arr in variants:
-        if arr is not None and close(value, arr, **tol):
-            return hint
-    return None
+def matching(value, f: dict, prefix: str, hints: dict[str, str], suffix: str = "", **tol) -> list[str]:
+    """The labels (keys of ``hints``) of the mistakes stored as ``<prefix>__<label><suffix>`` that ``value`` equals
+    (:func:`close`, with ``tol``), in the order of their keys."""
+    labels = [(k, k[len(prefix) + 2:len(k) - len(suffix)]) for k in sorted(f)
+              if k.startswith(prefix + "__") and k.endswith(suffix)]
+    return [label for k, label in labels if label in hints and close(value, f[k].astype(float), **tol)]
 
 
 def _torch():
@@ -102,30 +83,6 @@ def tensor_gate(c: Check, case: str, what: str, value, like) -> bool:
     return c.gate(ok, f"{case}: {what} is a {like.dtype} tensor, as its inputs",
                   f"{case}: {what} is {got}: return a torch tensor of the inputs' dtype ({like.dtype}); the kit's "
                   "trainer (notebook 08) calls your function with float32 tensors and computes in float32")
-
-
-def _as_pair(out, c: Check, case: str, names=("rays_o", "rays_d")):
-    if out is FAILED:
-        return None
-    if not isinstance(out, (tuple, list)) or len(out) != 2:
-        c.fail(f"{case}: expected a tuple ({names[0]}, {names[1]}), got {type(out).__name__}")
-        return None
-    a, b = to_numpy(out[0]), to_numpy(out[1])
-    if a is None or b is None:
-        c.fail(f"{case}: {names[0]} and {names[1]} must be arrays (torch tensors)")
-        return None
-    return a, b
-
-
-def stored_variants(f: dict, prefix: str, hints: dict[str, str]) -> list[tuple[str, np.ndarray]]:
-    """``[(hint, array)]`` of the mistakes stored under ``<prefix>__<label>`` whose label has a hint."""
-    out = []
-    for key in sorted(f):
-        if key.startswith(prefix + "__"):
-            label = key[len(prefix) + 2:]
-            if label in hints:
-                out.append((hints[label], f[key].astype(float)))
-    return out
 
 
 # --------------------------------------------------------------------------- fixtures
@@ -162,17 +119,19 @@ RAY_HINTS = {
 # --------------------------------------------------------------------------- get_rays
 
 
-def _one_camera(c: Check, get_rays: Callable, f, name: str) -> dict | None:
+def _one_camera(c: Check, get_rays: Callable, f, name: str) -> Outcome | None:
     H, W = (int(v) for v in f[f"rays_{name}_HW"])
     K, c2w = f[f"rays_{name}_K"].astype(float), f[f"rays_{name}_c2w"].astype(float)
     case = f"{H}x{W} camera ({name})"
     K_t, c2w_t = as_tensor(K), as_tensor(c2w)  # the kit's trainer passes float32 tensors
-    raw = c.call(get_rays, H, W, K_t, c2w_t, case=case)
-    pair = _as_pair(raw, c, case)
-    if pair is None:
+    raw = c.fields(c.call(get_rays, H, W, K_t, c2w_t, case=case), case, ("rays_o", "rays_d"), "(rays_o, rays_d)")
+    if raw is None:
+        return None
+    o, d = (as_float(v) for v in raw)
+    if o is None or d is None:
+        c.fail(f"{case}: rays_o and rays_d must be arrays (torch tensors)")
         return None
     tensor_gate(c, case, "rays_d", raw[1], K_t)
-    o, d = pair
     d_ref = f[f"rays_{name}_d"].astype(float)
     if d.shape == (W, H, 3) and close(np.swapaxes(d, 0, 1), d_ref):
         c.fail(f"{case}: rays_d has shape (W, H, 3) = {d.shape}: you built the pixel grid with meshgrid's ij/xy "
@@ -184,7 +143,7 @@ def _one_camera(c: Check, get_rays: Callable, f, name: str) -> dict | None:
         return None
     if not c.shape(d, (H, W, 3), f"{case}: rays_d"):
         return None
-    labels = {label for label, arr in _stored(f, f"rays_{name}_d") if label in RAY_HINTS and close(d, arr)}
+    labels = set(matching(d, f, f"rays_{name}_d", RAY_HINTS))
     R_, t_ = np.asarray(c2w, float)[:3, :3], np.asarray(c2w, float)[:3, 3]
     if not labels and np.allclose(((d - t_) @ R_)[..., 2], 1.0, atol=1e-4) and not np.allclose((d @ R_)[..., 2], 1.0,
                                                                                              atol=1e-4):
@@ -192,25 +151,15 @@ def _one_camera(c: Check, get_rays: Callable, f, name: str) -> dict | None:
     d_cam = d @ c2w[:3, :3]
     if not labels and np.all(d_cam[..., 2] < 0) and close(-d, d_ref * (d_cam[..., 2:] / -1.0)):
         labels.add("backwards")  # exactly the reference's rays reversed (up to length): nothing else explains it
-    return {"case": case, "name": name, "o": o, "d": d, "H": H, "W": W, "labels": labels, "c2w": c2w}
+    ok = close(d, d_ref)
+    return Outcome(case, ok, "rays_d matches the reference (one ray per pixel, OpenCV axes, z_cam = 1)", keys=labels,
+                   advice=f"rays_d differs from the reference (max error {float(np.abs(d - d_ref).max()):.3g}): the "
+                   "camera-frame direction of pixel (u, v) is ((u - cx) / fx, (v - cy) / fy, 1), rotated by c2w[:3, :3]"
+                   + ("" if ok else _direction_property(d, c2w)), data=(o, H, W, f[f"rays_{name}_o"].astype(float)))
 
 
-def _stored(f: dict, prefix: str) -> list[tuple[str, np.ndarray]]:
-    return [(k[len(prefix) + 2:], f[k].astype(float)) for k in sorted(f) if k.startswith(prefix + "__")]
-
-
-def _camera_verdicts(c: Check, f, r: dict, named: str | None) -> None:
-    case, name, o, d, H, W = (r[k] for k in ("case", "name", "o", "d", "H", "W"))
-    d_ref, o_ref = f[f"rays_{name}_d"].astype(float), f[f"rays_{name}_o"].astype(float)
-    if close(d, d_ref):
-        c.expect(True, f"{case}: rays_d matches the reference (one ray per pixel, OpenCV axes, z_cam = 1)", "")
-    else:
-        err = float(np.abs(d - d_ref).max())
-        hint = (RAY_HINTS.get(named) or "rays point backwards (z_cam < 0): the camera looks along +z in the kit's "
-                "OpenCV axes") if named else (
-            f"rays_d differs from the reference (max error {err:.3g}): the camera-frame direction of pixel (u, v) is "
-            "((u - cx) / fx, (v - cy) / fy, 1), rotated by c2w[:3, :3]" + _direction_property(d, r["c2w"]))
-        c.fail(f"{case}: {hint}", named=named)
+def _origin_verdict(c: Check, r: Outcome) -> None:
+    case, (o, H, W, o_ref) = r.case, r.data
     if o.shape == (3,) or o.shape == (1, 1, 3):
         c.fail(f"{case}: rays_o has shape {o.shape}: repeat the camera centre for every pixel "
                "(rays_o.expand(H, W, 3) or torch.broadcast_to)")
@@ -236,18 +185,11 @@ def _direction_property(d, c2w) -> str:
 
 
 def check_get_rays(get_rays: Callable) -> None:
-    """Check ``get_rays(H, W, K, c2w) -> (rays_o (H, W, 3), rays_d (H, W, 3))`` (notebook 06).
-
-    Runs it on two cameras of the fixture (W != H, fx != fy, an off-centre principal point),
-    compares with the reference, and names the likely mistake (meshgrid transposition, OpenGL
-    axes, rotation, principal point).
-    """
+    """Check ``get_rays(H, W, K, c2w) -> (rays_o (H, W, 3), rays_d (H, W, 3))`` (notebook 06)."""
     f = load_fixture(FIXTURE)
     with Check("get_rays") as c:
         runs = [r for r in (_one_camera(c, get_rays, f, name) for name in RAY_CASES) if r is not None]
-        named = unique_key([r["labels"] for r in runs if not close(r["d"], f[f"rays_{r['name']}_d"].astype(float))])
-        for r in runs:
-            _camera_verdicts(c, f, r, named)
+        report_cases(c, runs, RAY_HINTS, then=lambda r, _: _origin_verdict(c, r))
 
 
 # --------------------------------------------------------------------------- stratified sampling
@@ -272,14 +214,14 @@ def _bins(near, far, S: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
 
 def _check_evaluation(c: Check, fn: Callable, near, far, S: int, R: int, z_ref: np.ndarray, case: str) -> None:
     short = case.split(", near=")[0]
-    z = to_numpy(c.call(fn, near, far, S, R, False, case=case))
+    z = as_float(c.call(fn, near, far, S, R, False, case=case))
     if z is None or not c.shape(z, (R, S), f"{short}: z_vals"):
         return
     if close(z, z_ref):
         c.expect(True, f"{short}: the evenly spaced depths of the reference"
                  + (", the same for every ray" if np.ndim(near) == 0 else ", each ray between its own near and far"), "")
         return
-    z2 = to_numpy(c.call(fn, near, far, S, R, False, case=case))
+    z2 = as_float(c.call(fn, near, far, S, R, False, case=case))
     lo, up = _bins(near, far, S)["kit"]
     inside = np.all((z >= lo - 1e-6) & (z <= up + 1e-6))
     near_a, far_a = np.broadcast_to(np.asarray(near, float), (R,))[:, None], np.broadcast_to(np.asarray(far, float), (R,))[:, None]
@@ -338,7 +280,7 @@ def _check_training(c: Check, fn: Callable, near, far, S: int, R: int, seed: int
     import torch
 
     short = case.split(", near=")[0] if ", near=" in case else case
-    zt = to_numpy(c.call(fn, near, far, S, R, True, generator=_gen(seed), case=case))
+    zt = as_float(c.call(fn, near, far, S, R, True, generator=_gen(seed), case=case))
     if zt is None or not c.shape(zt, (R, S), f"{short}: z_vals"):
         return
     c.gate(not close(zt, z_ref), f"{short}: the depths are jittered",
@@ -366,7 +308,7 @@ def _check_training(c: Check, fn: Callable, near, far, S: int, R: int, seed: int
     try:
         torch.manual_seed(20261124)
         before = torch.get_rng_state()
-        zt2 = to_numpy(c.call(fn, near, far, S, R, True, generator=_gen(seed), case=case))
+        zt2 = as_float(c.call(fn, near, far, S, R, True, generator=_gen(seed), case=case))
         touched = not torch.equal(torch.get_rng_state(), before)
     finally:
         torch.set_rng_state(saved)
@@ -379,7 +321,7 @@ def _check_training(c: Check, fn: Callable, near, far, S: int, R: int, seed: int
     c.gate(not touched, f"{short}: torch's global random state is left untouched",
            f"{case}: the call changed torch's global random state (torch.manual_seed or torch.rand without the "
            "generator): draw from the generator argument only")
-    zt3 = to_numpy(c.call(fn, near, far, S, R, True, generator=_gen(seed + 1), case=case))
+    zt3 = as_float(c.call(fn, near, far, S, R, True, generator=_gen(seed + 1), case=case))
     c.gate(zt3 is not None and np.shape(zt3) == np.shape(zt) and not close(zt, zt3),
            f"{short}: another generator seed gives other samples",
            f"{case}: two generator seeds gave the same samples: draw the uniform numbers from the generator argument "
@@ -434,28 +376,13 @@ QUERY_HINTS = {
 BROADCAST = ("size of tensor", "must match the size", "broadcast", "shape mismatch", "operands could not be")
 
 
-def _query_call(c: Check, fn: Callable, args, case: str):
-    """The student's pts, or None; a broadcasting error is explained, not only shown (one call per case)."""
-    broadcast: list[Exception] = []
-
-    def guarded(*a):
-        try:
-            return fn(*a)
-        except Exception as exc:
-            msg = str(exc).lower()
-            if isinstance(exc, NotImplementedError) or not any(w in msg for w in BROADCAST):
-                raise
-            broadcast.append(exc)
-            return np.zeros(0)  # a placeholder; the verdict below explains the error
-
-    out = c.call(guarded, *args, case=case)
-    if broadcast:
-        exc = broadcast[0]
-        c.fail(f"{case}: a broadcasting error ({type(exc).__name__}: {str(exc).splitlines()[0][:120]}): rays_o and "
-               "rays_d are (R, 3), z_vals is (R, S); add axes so that they meet as (R, 1, 3) and (R, S, 1): "
-               "rays_o[:, None, :] + z_vals[..., None] * rays_d[:, None, :]")
+def _broadcast_error(exc: Exception) -> str | None:
+    """A broadcasting error of query_points, explained (not only shown as torch's message)."""
+    if not any(w in str(exc).lower() for w in BROADCAST):
         return None
-    return to_numpy(out)
+    return (f"a broadcasting error ({type(exc).__name__}: {str(exc).splitlines()[0][:120]}): rays_o and rays_d are "
+            "(R, 3), z_vals is (R, S); add axes so that they meet as (R, 1, 3) and (R, S, 1): "
+            "rays_o[:, None, :] + z_vals[..., None] * rays_d[:, None, :]")
 
 
 def check_query_points(query_points: Callable) -> None:
@@ -466,7 +393,8 @@ def check_query_points(query_points: Callable) -> None:
             ro, rd, zv, ref = (f[f"query_{k}_{n}"].astype(float) for n in ("o", "d", "z", "pts"))
             R, S = zv.shape
             case = f"{R} rays, {S} samples"
-            p = _query_call(c, query_points, (as_tensor(ro), as_tensor(rd), as_tensor(zv)), case)
+            p = as_float(c.call_explained(query_points, as_tensor(ro), as_tensor(rd), as_tensor(zv), case=case,
+                                          explain=_broadcast_error))
             if p is None:
                 continue
             if p.shape == (R, R, S) or (p.ndim == 3 and p.shape[-1] != 3):
@@ -475,7 +403,7 @@ def check_query_points(query_points: Callable) -> None:
                 continue
             if not c.shape(p, (R, S, 3), f"{case}: pts"):
                 continue
-            hint = match_variant(p, stored_variants(f, f"query_{k}_pts", QUERY_HINTS))
+            hint = next((QUERY_HINTS[lab] for lab in matching(p, f, f"query_{k}_pts", QUERY_HINTS)), None)
             c.expect(close(p, ref), f"{case}: pts = o + t d matches the reference",
                      f"{case}: " + (hint or "pts differs from o + t d (pts[r, s] = rays_o[r] + z_vals[r, s] * rays_d[r])"),
                      named=hint and hint[:30])
@@ -524,7 +452,7 @@ def check_positional_encoding(positional_encoding: Callable) -> None:
             case = label.format(L=L, shape=xin.shape)
             x_t = as_tensor(xin)
             raw = c.call(positional_encoding, x_t, L, include_input=inc, case=case)
-            out = to_numpy(raw)
+            out = as_float(raw)
             if out is None:
                 continue
             tensor_gate(c, case, "the encoding", raw, x_t)
@@ -540,18 +468,12 @@ def check_positional_encoding(positional_encoding: Callable) -> None:
                     hint = ": keep the leading (batch) axes and concatenate along the last axis"
                 c.fail(f"{case}: the encoding has shape {out.shape}, expected {want}{hint}")
                 continue
-            labels = {lab for lab, arr in _stored(f, f"enc_{key}") if lab in ENCODING_HINTS
-                      and close(out, arr, rtol=1e-3, atol=2e-3)}
+            labels = set(matching(out, f, f"enc_{key}", ENCODING_HINTS, rtol=1e-3, atol=2e-3))
             if inc and close(out[..., -D:], xin) and close(out[..., :-D], ref[..., D:], rtol=1e-3, atol=2e-3):
                 labels.add("identity_last")
-            runs.append((case, out, ref, labels))
-        failing = [labels for case, out, ref, labels in runs if not close(out, ref, rtol=1e-3, atol=2e-3)]
-        named = unique_key(failing)
-        for case, out, ref, labels in runs:
-            if close(out, ref, rtol=1e-3, atol=2e-3):  # float32 sin(2^9 pi x) is good to ~1e-4
-                c.expect(True, f"{case}: shape and values match the reference", "")
-                continue
-            c.fail(f"{case}: " + (ENCODING_HINTS[named] if named else
-                                  f"the values differ from the reference (max error {float(np.abs(out - ref).max()):.3g}); "
-                                  "compare with the formula above: [x, sin(2^0 pi x), cos(2^0 pi x), ..., "
-                                  "cos(2^(L-1) pi x)] (x only with include_input=True)"), named=named)
+            ok = close(out, ref, rtol=1e-3, atol=2e-3)  # float32 sin(2^9 pi x) is good to ~1e-4
+            runs.append(Outcome(case, ok, "shape and values match the reference", keys=labels, advice=(
+                f"the values differ from the reference (max error {float(np.abs(out - ref).max()):.3g}); compare "
+                "with the formula above: [x, sin(2^0 pi x), cos(2^0 pi x), ..., cos(2^(L-1) pi x)] (x only with "
+                "include_input=True)")))
+        report_cases(c, runs, ENCODING_HINTS)

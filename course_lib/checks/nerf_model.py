@@ -42,9 +42,9 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import (FAILED, Check, code_constants, code_text, declare_defining,
+from course_lib.checks.core import (FAILED, Check, as_float, code_constants, code_text, declare_defining,
                                     load_fixture, source_has)
-from course_lib.checks.nerf_data import close, to_numpy
+from course_lib.checks.nerf_data import close
 
 __all__ = ["check_nerf_model", "check_psnr", "layer_table", "expected_layers", "config_kwargs", "probe_weights",
            "copy_probe_weights", "encoding_table", "pack_table", "CONFIG_NAMES"]
@@ -306,12 +306,10 @@ def _outputs(c: Check, model, pts, dirs, lead, case: str):
 
     with torch.no_grad():
         out = c.call(model, pts, dirs, case=f"{case} forward")
-    if out is FAILED:
+    out = c.fields(out, case, ("rgb", "sigma"), "(rgb, sigma) from forward")
+    if out is None:
         return None
-    if not isinstance(out, (tuple, list)) or len(out) != 2:
-        c.fail(f"{case}: forward must return (rgb, sigma), got {type(out).__name__}")
-        return None
-    rgb, sigma = to_numpy(out[0]), to_numpy(out[1])
+    rgb, sigma = (as_float(v) for v in out)
     if sigma is not None and sigma.shape == (*lead, 1):
         c.fail(f"{case}: sigma has shape {sigma.shape}: drop the last axis (sigma[..., 0]) so that it is {lead}")
         return None
@@ -329,7 +327,7 @@ def _quiet_forward(model, pts, dirs, lead):
             rgb, sigma = model(pts, dirs)
     except Exception:  # noqa: BLE001 - the first call reported it already
         return None
-    rgb, sigma = to_numpy(rgb), to_numpy(sigma)
+    rgb, sigma = as_float(rgb), as_float(sigma)
     if rgb is None or sigma is None or rgb.shape != (*lead, 3) or sigma.size != int(np.prod(lead)):
         return None
     return rgb, sigma.reshape(lead)
@@ -386,17 +384,23 @@ def _own_init_gates(c: Check, model, rgb, sigma, pts, dirs, lead, case: str) -> 
                f"{case}: rgb ignores viewdirs: concatenate γ(d) with the feature vector before the colour layer")
 
 
-def _check_config(c: Check, NeRF, f, name: str, pts, dirs, lead, seed: int) -> None:
-    """The checks of one configuration: layer sizes, outputs, and the outputs with the reference's weights."""
+def _build(c: Check, NeRF, kw: dict):
+    """``(case, model)``: the student's network built with ``kw`` (torch seeded), or :data:`FAILED` after a failure."""
     import torch
 
-    kw, cfg = config_kwargs(f, name)
     case = "NeRF(" + ", ".join(f"{k}={v}" for k, v in kw.items()) + ")"
     torch.manual_seed(0)
     model = c.call(NeRF, case=case, **kw)
     if model is not FAILED and not isinstance(model, torch.nn.Module):
         c.fail(f"{case}: expected an nn.Module, got {type(model).__name__}")
         model = FAILED
+    return case, model
+
+
+def _check_config(c: Check, NeRF, f, name: str, pts, dirs, lead, seed: int) -> None:
+    """The checks of one configuration: layer sizes, outputs, and the outputs with the reference's weights."""
+    kw, cfg = config_kwargs(f, name)
+    case, model = _build(c, NeRF, kw)
     own = None
     if model is not FAILED:
         ref_layers, mine = expected_layers(cfg), layer_table(model)
@@ -456,14 +460,8 @@ def _no_viewdirs_case(c: Check, NeRF, f, pts, dirs, lead) -> None:
     import torch
 
     kw, _ = config_kwargs(f, CONFIG_NAMES[-1])
-    kw["use_viewdirs"] = False
-    case = "NeRF(" + ", ".join(f"{k}={v}" for k, v in kw.items()) + ")"
-    torch.manual_seed(0)
-    model = c.call(NeRF, case=case, **kw)
+    case, model = _build(c, NeRF, dict(kw, use_viewdirs=False))
     if model is FAILED:
-        return
-    if not isinstance(model, torch.nn.Module):
-        c.fail(f"{case}: expected an nn.Module, got {type(model).__name__}")
         return
     own = _outputs(c, model, pts, dirs, lead, case)
     other = None if own is None else _quiet_forward(model, pts, torch.flip(dirs, dims=(0,)), lead)
@@ -526,7 +524,7 @@ def check_psnr(psnr: Callable) -> None:
         for k, (mse, want) in enumerate(zip(f["psnr_mse"].astype(float), f["psnr_db"].astype(float))):
             case = f"mse number {k + 1} (a scalar tensor)"
             got = c.call(psnr, torch.tensor(mse, dtype=torch.float32), case=case)
-            v = to_numpy(got)
+            v = as_float(got)
             if v is None:
                 continue
             if v.size != 1:

@@ -16,11 +16,8 @@ computed differently, weights that forget alpha (w = T) or the transmittance (w 
 Defining property (failing it costs at least half of the points): Δ in α, the interval length in
 the opacity, checked on the slabs and on the random rays with both backgrounds.
 
-The cases (the slabs included), the reference's results on them and the results of the classic
-mistakes are stored arrays, made on the instructor's side by
-:mod:`course_lib.instructor.cases.nerf_rendering` (the mistakes by
-:mod:`course_lib.instructor.cases.nerf_variants`); this module renders nothing, imports no reference
-solution, and ships to students.
+The cases (the slabs included) and what the mistakes give on them are made by
+:mod:`course_lib.instructor.cases.nerf_rendering`.
 """
 
 from __future__ import annotations
@@ -29,8 +26,8 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import FAILED, Check, declare_defining, load_fixture, unique_key
-from course_lib.checks.nerf_data import close, to_numpy
+from course_lib.checks.core import FAILED, Check, as_float, declare_defining, load_fixture, unique_key
+from course_lib.checks.nerf_data import close, matching
 
 __all__ = ["check_volume_render", "RENDER_HINTS"]
 
@@ -72,15 +69,6 @@ RENDER_HINTS = {
 NO_DELTA = {"no_delta"}
 
 
-def _variants(f, case: str, key: str) -> list[tuple[str, np.ndarray]]:
-    """``[(label, array)]`` of the stored mistakes of ``case`` for result ``key`` (weights, acc_map, ...)."""
-    out = []
-    for k in sorted(f):
-        if k.startswith(case + "__") and k.endswith("_" + key):
-            out.append((k[len(case) + 2:-len(key) - 1], f[k].astype(float)))
-    return out
-
-
 def _call(c: Check, fn, args, white: bool, case: str):
     import torch
 
@@ -94,7 +82,7 @@ def _call(c: Check, fn, args, white: bool, case: str):
     if missing:
         c.fail(f"{case}: the result has no {', '.join(missing)}: return a dict with keys {', '.join(KEYS)}")
         return None
-    res = {k: to_numpy(out[k]) for k in KEYS}
+    res = {k: as_float(out[k]) for k in KEYS}
     R, S = np.shape(args[1])
     shapes = {"rgb_map": (R, 3), "depth_map": (R,), "acc_map": (R,), "weights": (R, S)}
     for k in KEYS:
@@ -117,8 +105,7 @@ def _slab_eval(c: Check, volume_render: Callable, f) -> dict | None:
     trans = f["slab_trans"].astype(float)
     absorbed = res["weights"].sum(-1)  # the light the samples absorb: sum_i w_i = 1 - exp(-sigma L)
     ok = bool(np.allclose(absorbed, 1.0 - trans, atol=1e-4))
-    labels = {lab for lab, arr in _variants(f, "slab", "weights")
-              if lab in RENDER_HINTS and close(res["weights"], arr, rtol=1e-3, atol=1e-5)}
+    labels = set(matching(res["weights"], f, "slab", RENDER_HINTS, "_weights", rtol=1e-3, atol=1e-5))
     return {"case": case, "res": res, "ok": ok, "labels": labels, "absorbed": absorbed, "trans": trans}
 
 
@@ -151,8 +138,7 @@ def _random_eval(c: Check, volume_render: Callable, f, white: bool) -> dict | No
     if res is None:
         return None
     ok = close(res["weights"], f[f"{bg}_weights"].astype(float), rtol=1e-3, atol=1e-5)
-    labels = {lab for lab, arr in _variants(f, bg, "weights")
-              if lab in RENDER_HINTS and close(res["weights"], arr, rtol=1e-3, atol=1e-5)}
+    labels = set(matching(res["weights"], f, bg, RENDER_HINTS, "_weights", rtol=1e-3, atol=1e-5))
     return {"case": case, "res": res, "ok": ok, "labels": labels, "bg": bg, "white": white}
 
 

@@ -1,12 +1,7 @@
 """Checks of notebook 04 (PnP) and its step input.
 
-Each ``check_*`` function runs the student's function on stored cases (fixture ``pnp``, built
-in the instructor's kit from :mod:`course_lib.sfm.pnp` by ``python -m course_lib fixtures pnp``): synthetic views with
-known truth and the embedded scene (``data/synthetic-building``: its third image registered
-against the two-view reconstruction of step 3, in a randomly moved world frame). It tests one
-property at a time and names a mistake only when it is the unique explanation on every case where
-it can be told apart (:func:`course_lib.checks.core.unique_key`); otherwise it says which
-property fails, with numbers:
+Cases (fixture ``pnp``, :mod:`course_lib.instructor.cases.pnp`): synthetic views with known truth and the embedded
+scene (its third image registered against the two-view reconstruction of step 3, in a randomly moved world frame):
 
 * ``pnp_linear``: R_cw a rotation (defining: R Rᵀ = I, det +1), the true pose on a noiseless view,
   the reference's on a noisy and the embedded view; named: R_wc returned (transposed), the centre
@@ -25,9 +20,7 @@ property fails, with numbers:
   the cases), only t or only R moved, R_wc returned; a residual of shape (N, 2) that least_squares
   refuses is explained.
 
-Equivalences (one rule, :mod:`course_lib.checks.core`): a correct pose in float32, a quaternion or a
-rotation vector get full marks; rotation angles are measured with atan2 (float32 rounding reads as
-1e-5°, not 0.01°).
+Rotation angles are measured with atan2 (float32 rounding reads as 1e-5°, not 0.01°).
 """
 
 from __future__ import annotations
@@ -35,9 +28,9 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib.conventions import nearest_rotation, project, rotation_angle_deg, world_to_camera
-from course_lib.checks.core import (FAILED, RTOL, Check, call_minimal, declare_defining, load_fixture, minimal_verdict,
-                                    rng_verdicts, samples_needed, source_has, threshold_interval,
-                                    unique_key, within)
+from course_lib.checks.core import (FAILED, RTOL, Check, Outcome, call_minimal, declare_defining, load_fixture,
+                                    minimal_verdict, refinement_verdicts, report_cases, rng_verdicts, samples_needed,
+                                    source_has, threshold_interval, under_global_seed, unique_key, within)
 
 __all__ = [
     "check_pnp_linear",
@@ -57,25 +50,7 @@ RNG_SEED, RNG_MAX_ITERS = 1, 3
 
 def _pose(out, c: Check, case: str):
     """``(R (3, 3), t (3,))`` from the student's return value, or None after recording a failure."""
-    if out is FAILED:
-        return None
-    if hasattr(out, "R_cw") and hasattr(out, "t_cw"):
-        out = (out.R_cw, out.t_cw)
-    if not isinstance(out, (tuple, list)) or len(out) < 2:
-        c.fail(f"{case}: return the tuple (R_cw, t_cw), got {type(out).__name__}")
-        return None
-    try:
-        R, t = np.asarray(out[0], float), np.asarray(out[1], float)
-    except (TypeError, ValueError):
-        c.fail(f"{case}: R_cw and t_cw must be numeric arrays")
-        return None
-    if R.shape != (3, 3) or t.size != 3:
-        c.fail(f"{case}: R_cw must have shape (3, 3) and t_cw shape (3,), got {R.shape} and {t.shape}")
-        return None
-    if not (np.isfinite(R).all() and np.isfinite(t).all()):
-        c.fail(f"{case}: R_cw or t_cw contains NaN or inf")
-        return None
-    return R, t.reshape(3)
+    return c.arrays(out, case, {"R_cw": (3, 3), "t_cw": (3,)}, "the tuple (R_cw, t_cw)")
 
 
 def _errors(K, R, t, X, x) -> np.ndarray:
@@ -151,6 +126,9 @@ def _pose_keys(R, t, R_ref, t_ref, rot_tol, t_tol, dlt: bool = True) -> tuple[se
 
 # --------------------------------------------------------------------------- pnp_linear
 
+_DLT_ADVICE = ("check the two equations per point, u_n (p3ᵀX) - p1ᵀX = 0 and v_n (p3ᵀX) - p2ᵀX = 0, with x_n = K⁻¹ x "
+               "(normalized coordinates), and the orthogonalization R = U Vᵀ")
+
 
 def check_pnp_linear(fn, exercise: str = "pnp_linear") -> None:
     """Check ``fn(X, x, K) -> (R_cw, t_cw)`` on noiseless, noisy and embedded 2D-3D matches."""
@@ -181,20 +159,13 @@ def check_pnp_linear(fn, exercise: str = "pnp_linear") -> None:
                     testable.add("pixels")
                     if _pixel_hint(R, K, f[f"{key}_true_R"], tol_deg=2.0):
                         keys.add("pixels")
-            results.append((key, case, R, t, ok, keys, testable))
-        named = unique_key([(keys, testable) for *_, ok, keys, testable in results if not ok])
-        for key, case, R, t, ok, keys, testable in results:
-            K, X, x, R_r, t_r = (f[f"{key}_{s}"] for s in ("K", "X", "x", "R", "t"))
-            good = "recovers the true pose exactly" if key == "lin_noiseless" else "close to the reference pose"
-            if ok:
-                c.expect(True, f"{case}: {good}", "")
-                continue
-            why = _POSE_MISTAKES[named] if named else (
-                "check the two equations per point, u_n (p3ᵀX) - p1ᵀX = 0 and v_n (p3ᵀX) - p2ᵀX = 0, with x_n = K⁻¹ x "
-                "(normalized coordinates), and the orthogonalization R = U Vᵀ")
-            c.fail(f"{case}: rotation {rotation_angle_deg(R, R_r):.3g}° from the {'truth' if key == 'lin_noiseless' else 'reference'}, "
-                   f"translation off by {np.linalg.norm(t - t_r):.3g} (|t| = {np.linalg.norm(t_r):.3g}), RMS reprojection "
-                   f"error {_rms(_errors(K, R, t, X, x)):.3g} px: {why}", named=named)
+            truth = "truth" if key == "lin_noiseless" else "reference"
+            results.append(Outcome(case, ok, "recovers the true pose exactly" if key == "lin_noiseless" else
+                                   "close to the reference pose",
+                                   f"rotation {rotation_angle_deg(R, R_r):.3g}° from the {truth}, translation off by "
+                                   f"{np.linalg.norm(t - t_r):.3g} (|t| = {np.linalg.norm(t_r):.3g}), RMS reprojection "
+                                   f"error {_rms(_errors(K, R, t, X, x)):.3g} px", (keys, testable), _DLT_ADVICE))
+        report_cases(c, results, _POSE_MISTAKES)
         c.causes(fn, [
             ((source_has(r"\bV[th]?\[:, *-1\]"), source_has(r"\bsvd\(")), "np.linalg.svd(A) returns Vᵀ: the DLT's P is its last row, Vt[-1]"
                                                 ".reshape(3, 4), not its last column"),
@@ -214,16 +185,10 @@ def _pixel_hint(R, K, R_true, tol_deg: float = 0.05) -> bool:
 
 def _ransac_fields(out, c: Check, case: str, n: int):
     """``(R, t, inliers (n,) bool, n_iters or None)`` from the student's return value, or None after a failure."""
-    if out is FAILED:
+    out = c.fields(out, case, ("R_cw", "t_cw", "inliers", "n_iters"), "a PnPResult(R_cw, t_cw, inliers, n_iters)", 1)
+    if out is None:
         return None
-    if all(hasattr(out, a) for a in ("R_cw", "t_cw", "inliers")):
-        R, t, inl, it = out.R_cw, out.t_cw, out.inliers, getattr(out, "n_iters", None)
-    elif isinstance(out, (tuple, list)) and len(out) >= 3:
-        R, t, inl = out[:3]
-        it = out[3] if len(out) > 3 else None
-    else:
-        c.fail(f"{case}: return a PnPResult(R_cw, t_cw, inliers, n_iters), got {type(out).__name__}")
-        return None
+    R, t, inl, it = out
     pose = _pose((R, t), c, case)
     if pose is None:
         return None
@@ -405,20 +370,14 @@ def _rng_verdicts(c: Check, fn, f) -> None:
     """
     K, X, x = (f[f"ransac_rng_{s}"] for s in ("K", "X", "x"))
     case = f"1 px noise, max_iters={RNG_MAX_ITERS}"
-    saved = np.random.get_state()
     runs, touched = [], False
-    try:
-        for global_seed in (11, 22):
-            np.random.seed(global_seed)  # the global state must not matter
-            before = np.random.get_state()[1].copy()
-            out = _ransac_fields(c.call(fn, X, x, K, np.random.default_rng(RNG_SEED), max_iters=RNG_MAX_ITERS,
-                                        case=case), c, case, len(X))
-            touched = touched or not np.array_equal(np.random.get_state()[1], before)
-            if out is None:
-                return
-            runs.append(out)
-    finally:
-        np.random.set_state(saved)
+    for global_seed in (11, 22):  # the global state must not matter
+        out, moved = under_global_seed(global_seed, lambda: _ransac_fields(
+            c.call(fn, X, x, K, np.random.default_rng(RNG_SEED), max_iters=RNG_MAX_ITERS, case=case), c, case, len(X)))
+        touched = touched or moved
+        if out is None:
+            return
+        runs.append(out)
     its = [r[3] for r in runs]
     # gates: a constant answer satisfies them as well as a right one
     c.gate(all(i is not None and 1 <= i <= RNG_MAX_ITERS for i in its), f"{case}: draws max_iters samples at most",
@@ -443,8 +402,7 @@ def _minimal_verdict(c: Check, fn, f) -> None:
     X = X[world_to_camera(R, t, X)[:, 2] > 0][:6]
     x = project(K, R, t, X)
     case = "exactly 6 noiseless points"
-    called = call_minimal(c, fn, X, x, K, k=6, item=("point", "points"), seed=RANSAC_SEED, case=case,
-                          stand_in=(np.eye(3), np.zeros(3), np.zeros(6, bool), 1))
+    called = call_minimal(c, fn, X, x, K, k=6, item=("point", "points"), seed=RANSAC_SEED, case=case)
     out = None if called is None else _ransac_fields(called[0], c, case, len(X))
     if out is None:
         return
@@ -526,6 +484,11 @@ _NONLINEAR_MISTAKES = {
                  "vector (Rotation.from_rotvec / as_rotvec)",
 }
 
+#: What to change when the refinement increases the error, and when it stops short of the optimum.
+_NONLINEAR_ADVICE = ("the residual must be the projection K (R X + t) / z minus the observed pixels, with "
+                     "R = Rotation.from_rotvec(p[:3]).as_matrix()",
+                     "not at the least-squares optimum: minimize the sum of squared reprojection errors (pixels) over "
+                     "all six parameters, to convergence")
 #: The ways a parametrisation reads a rotation into 3 numbers and back: a rotation vector and the 12 Euler sequences,
 #: extrinsic (lower case) and intrinsic (upper case).
 _READINGS = ("rotvec",) + tuple(a for seq in ("xyz", "xzy", "yxz", "yzx", "zxy", "zyx") for a in (seq, seq.upper()))
@@ -601,26 +564,13 @@ def _nonlinear_keys(f, key: str, R, t, R0, t0, R_r, t_r) -> set[str]:
     return out | (_pose_keys(R, t, R_r, t_r, 0.5, 0.05, dlt=False)[0] & {"transposed", "C_for_t", "t_sign"})
 
 
-def _nonlinear_call(c: Check, fn, args: tuple, case: str):
-    """The student's call; least_squares' refusal of a 2-D residual is explained, not only shown."""
-    two_d: list[Exception] = []
-
-    def guarded(*a):
-        try:
-            return fn(*a)
-        except ValueError as exc:
-            msg = str(exc).lower()
-            if "dimension" not in msg and "1-d" not in msg and "1d" not in msg:
-                raise
-            two_d.append(exc)
-            return (np.eye(3), np.zeros(3))
-
-    out = c.call(guarded, *args, case=case)
-    if two_d:
-        c.fail(f"{case}: your function raised ValueError: {str(two_d[0])[:80]}: least_squares needs the residuals as a "
-               "flat (1-d) vector of length 2N: return (projected - observed).ravel(), not an (N, 2) array")
-        return FAILED
-    return out
+def _two_d_residual(exc: Exception) -> str | None:
+    """least_squares' refusal of a 2-D residual, explained."""
+    msg = str(exc).lower()
+    if not isinstance(exc, ValueError) or ("dimension" not in msg and "1-d" not in msg and "1d" not in msg):
+        return None
+    return (f"your function raised ValueError: {str(exc)[:80]}: least_squares needs the residuals as a flat (1-d) "
+            "vector of length 2N: return (projected - observed).ravel(), not an (N, 2) array")
 
 
 def check_pnp_nonlinear(fn, exercise: str = "pnp_nonlinear") -> None:
@@ -637,7 +587,7 @@ def check_pnp_nonlinear(fn, exercise: str = "pnp_nonlinear") -> None:
                 continue
             else:
                 K, X, x, R0, t0, R_r, t_r = (f[f"{key}_{s}"] for s in ("K", "X", "x", "R0", "t0", "R", "t"))
-            out = _pose(_nonlinear_call(c, fn, (X, x, K, R0, t0), case), c, case)
+            out = _pose(c.call_explained(fn, X, x, K, R0, t0, case=case, explain=_two_d_residual), c, case)
             if out is None:
                 continue
             R, t = out
@@ -661,14 +611,6 @@ def check_pnp_nonlinear(fn, exercise: str = "pnp_nonlinear") -> None:
         named = unique_key([(keys, None if key != "nl_wide" else {"euler_mix", "early_stop"})
                             for key, *_, ok, _, keys in results if not ok])
         for key, case, R, t, e0, e_r, e_s, ok, R_r, keys in results:
-            why = _NONLINEAR_MISTAKES[named] if named else None
-            if not c.gate(e_s <= e0 * (1 + 1e-9) + 1e-9, f"{case}: lowers the reprojection error",
-                          f"{case}: the refinement increased the RMS reprojection error ({e0:.3g} -> {e_s:.3g} px): "
-                          + (why or "the residual must be the projection K (R X + t) / z minus the observed pixels, "
-                                    "with R = Rotation.from_rotvec(p[:3]).as_matrix()"), named=named):
-                continue
-            rot = rotation_angle_deg(R, R_r)
-            c.expect(ok, f"{case}: reaches the least-squares optimum",
-                     f"{case}: RMS reprojection error {e_s:.4g} px, {rot:.2g}° from the optimum ({e_r:.4g} px): "
-                     + (why or "not at the least-squares optimum: minimize the sum of squared reprojection errors (pixels) "
-                                "over all six parameters, to convergence"), named=named)
+            refinement_verdicts(c, case, e0, e_s, ok, f"RMS reprojection error {e_s:.4g} px, "
+                                f"{rotation_angle_deg(R, R_r):.2g}° from the optimum ({e_r:.4g} px)",
+                                _NONLINEAR_MISTAKES[named] if named else None, _NONLINEAR_ADVICE, named)

@@ -1,11 +1,7 @@
 """Checks of notebook 03 (triangulation) and its step input.
 
-Each ``check_*`` function runs the student's function on stored cases (fixture ``triangulation``,
-built in the instructor's kit from :mod:`course_lib.sfm.triangulation` by ``python -m course_lib fixtures triangulation``):
-synthetic scenes with known truth (:func:`course_lib.data.synthetic.make_scene`: camera 1 is never at
-the world's origin there) and the embedded scene (``data/synthetic-building``, in a random world
-frame). It tests one property at a time and names a mistake only when it is the unique explanation
-on every case:
+Cases (fixture ``triangulation``, :mod:`course_lib.instructor.cases.triangulation`): synthetic scenes with known
+truth (camera 1 is never at the world's origin there) and the embedded scene (in a random world frame):
 
 * ``triangulate_linear``: the true points on a noiseless pair, the reference's on noisy and embedded
   pairs, one point (N = 1); named when the points are exactly what a mistake gives on every case:
@@ -28,13 +24,13 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib.conventions import project, rotation_angle_deg
-from course_lib.checks.core import FAILED, Check, declare_defining, load_fixture, unique_key
+from course_lib.checks.core import (FAILED, Check, Outcome, as_float, declare_defining, load_fixture,
+                                    refinement_verdicts, report_cases, unique_key)
 
 __all__ = [
     "check_triangulate_linear",
     "check_choose_pose",
     "check_triangulate_nonlinear",
-    "pose_fields",
 ]
 
 FIXTURE = "triangulation"
@@ -45,15 +41,6 @@ declare_defining("choose_pose", {
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def _arr(v) -> np.ndarray | None:
-    if v is FAILED or v is None:
-        return None
-    try:
-        return np.asarray(v, dtype=float)
-    except (TypeError, ValueError):
-        return None
 
 
 def _reproj_rms(K, R_cws, t_cws, uv, X) -> float:
@@ -124,7 +111,7 @@ def _points_shape(c: Check, X, n: int, case: str) -> np.ndarray | None:
     """The student's points as an (n, 3) array, or None after a failed check that says what the shape is."""
     if X is FAILED:
         return None
-    A = _arr(X)
+    A = as_float(X)
     shape = None if A is None else A.shape
     problem = (f"expected an array of shape ({n}, 3), got {type(X).__name__}" if A is None
                else f"returned homogeneous points of shape ({n}, 4): divide by the last coordinate X_h[3] and drop it"
@@ -168,27 +155,23 @@ def check_triangulate_linear(fn, exercise: str = "triangulate_linear") -> None:
             k = f"lin_{name}"
             if f"{k}_P1" not in f:
                 continue
-            P1, P2, x1, x2 = f[f"{k}_P1"], f[f"{k}_P2"], f[f"{k}_x1"], f[f"{k}_x2"]
+            cams = P1, P2, x1, x2 = f[f"{k}_P1"], f[f"{k}_P2"], f[f"{k}_x1"], f[f"{k}_x2"]
             ref = f[f"{k}_Xtrue"] if name == "noiseless" else f[f"{k}_X"]
             A = _points_shape(c, c.call(fn, P1, P2, x1, x2, case=case), len(ref), case)
             if A is None:
                 continue
+            ok = _points_close(A, ref, tol)
             mis = {key: f[f"{k}_mis_{key}"] for key in _LINEAR_MISTAKES if f"{k}_mis_{key}" in f}
-            results.append((case, A, ref, tol, (P1, P2, x1, x2), mis, name))
-        failing = [r for r in results if not _points_close(r[1], r[2], r[3])]
-        named = unique_key([_linear_keys(A, ref, mis, max(tol, 1e-6), cams) for _, A, ref, tol, cams, mis, _ in failing])
-        for case, A, ref, tol, cams, mis, name in results:
-            if _points_close(A, ref, tol):
-                c.expect(True, f"{case}: {'recovers the true points exactly' if name == 'noiseless' else 'matches the reference'}",
-                         "")
-            else:
-                c.fail(f"{case}: {_points_numbers(A, ref, *cams)}" + (f": {_LINEAR_MISTAKES[named]}" if named else ""),
-                       named=named)
+            results.append(Outcome(case, ok, "recovers the true points exactly" if name == "noiseless" else
+                                   "matches the reference", _points_numbers(A, ref, *cams),
+                                   keys=() if ok else _linear_keys(A, ref, mis, max(tol, 1e-6), cams)))
+        report_cases(c, results, _LINEAR_MISTAKES)
+        failing = any(not o.ok for o in results)
         # one point at a time must work too (N = 1)
         P1, P2 = f["lin_noiseless_P1"], f["lin_noiseless_P2"]
         X1 = c.call(fn, P1, P2, f["lin_noiseless_x1"][:1], f["lin_noiseless_x2"][:1], case="a single point (N = 1)")
         if X1 is not FAILED:
-            A = _arr(X1)
+            A = as_float(X1)
             want = f["lin_noiseless_Xtrue"][:1]
             case = "a single point (N = 1)"
             if A is None or A.size != 3:
@@ -207,18 +190,6 @@ def check_triangulate_linear(fn, exercise: str = "triangulate_linear") -> None:
 
 
 # --------------------------------------------------------------------------- choose_pose
-
-
-def pose_fields(out):
-    """``(R_cw, t_cw, X, in_front, counts)`` from a PoseChoice-like object or a tuple, or None."""
-    if out is FAILED or out is None:
-        return None
-    names = ("R_cw", "t_cw", "X", "in_front", "counts")
-    if all(hasattr(out, n) for n in names):
-        return tuple(getattr(out, n) for n in names)
-    if isinstance(out, (tuple, list)) and len(out) >= 5:
-        return tuple(out[:5])
-    return None
 
 
 #: The wrong cheirality tests, in the order of the rows of the stored ``<case>_mis_counts``, as what the student did.
@@ -274,14 +245,11 @@ def _match_candidate(R_s, t_s, R, C, right: int) -> tuple[int | None, str | None
 def _pose_eval(c: Check, fn, f, key, case) -> dict | None:
     """Call choose_pose on one case; what it returned, read (or None after a failed check)."""
     R, C, K, x1, x2 = f[f"{key}_R"], f[f"{key}_C"], f[f"{key}_K"], f[f"{key}_x1"], f[f"{key}_x2"]
-    out = c.call(fn, R, C, K, x1, x2, case=case)
-    if out is FAILED:
-        return None
-    fields = pose_fields(out)
+    fields = c.fields(c.call(fn, R, C, K, x1, x2, case=case), case, ("R_cw", "t_cw", "X", "in_front", "counts"),
+                      "a PoseChoice(R_cw, t_cw, X, in_front, counts) (or that 5-tuple)")
     if fields is None:
-        c.fail(f"{case}: return a PoseChoice(R_cw, t_cw, X, in_front, counts) (or that 5-tuple), got {type(out).__name__}")
         return None
-    R_s, t_s, X_s, front_s, counts_s = (_arr(v) for v in fields)
+    R_s, t_s, X_s, front_s, counts_s = (as_float(v) for v in fields)
     if R_s is None or R_s.shape != (3, 3) or t_s is None or t_s.size != 3:
         c.fail(f"{case}: R_cw must have shape (3, 3) and t_cw shape (3,)")
         return None
@@ -451,10 +419,10 @@ def check_triangulate_nonlinear(fn, exercise: str = "triangulate_nonlinear") -> 
             if f"{key}_K" not in f:
                 continue
             K, R, t, uv, X0, ref = (f[f"{key}_{s}"] for s in ("K", "R", "t", "uv", "X0", "X"))
-            X = _nonlinear_call(c, fn, (K, R, t, uv, X0), case, bool(np.isnan(uv).any()))
+            X = c.call_explained(fn, K, R, t, uv, X0, case=case, explain=_not_finite if np.isnan(uv).any() else None)
             if X is FAILED:
                 continue
-            A = _arr(X)
+            A = as_float(X)
             if A is not None and A.shape == (ref.shape[0], 4):
                 c.fail(f"{case}: returned homogeneous points of shape {A.shape}: divide by the last coordinate and drop it")
                 continue
@@ -473,38 +441,20 @@ def check_triangulate_nonlinear(fn, exercise: str = "triangulate_nonlinear") -> 
                            for Y in (f[f"{key}_X0"], f[f"{key}_X"], A)) for key, _, A in results}
         failing = [(key, A) for key, _, A in results if e_of[key][2] > e_of[key][1] * (1 + 1e-3) + 1e-6]
         named = unique_key([_nonlinear_keys(f, key, A, f[f"{key}_X"]) for key, A in failing])
+        advice = ("minimize the plain sum of squared reprojection errors (pixels) over every view that sees the "
+                  "point, to convergence")
         for key, case, A in results:
             e0, e_ref, e_s = e_of[key]
-            hint = _NONLINEAR_MISTAKES[named] if named else None
-            if e_s > e0 * (1 + 1e-9) + 1e-9:
-                c.fail(f"{case}: {hint or 'the non-linear step increased the RMS reprojection error'} "
-                       f"({e0:.3g} px before, {e_s:.3g} px after; the optimum is {e_ref:.3g} px)", named=named)
-                continue
-            c.gate(True, f"{case}: lowers the reprojection error", "")
-            ok = e_s <= e_ref * (1 + 1e-3) + 1e-6
-            c.expect(ok, f"{case}: reaches the least-squares optimum",
-                     f"{case}: RMS reprojection error {e_s:.4g} px, the optimum is {e_ref:.4g} px: "
-                     + (hint or "minimize the plain sum of squared reprojection errors (pixels) over every view that "
-                                "sees the point, to convergence"), named=named)
+            refinement_verdicts(c, case, e0, e_s, e_s <= e_ref * (1 + 1e-3) + 1e-6,
+                                f"RMS reprojection error {e_s:.4g} px, the optimum is {e_ref:.4g} px",
+                                _NONLINEAR_MISTAKES[named] if named else None,
+                                (f"the optimum is {e_ref:.3g} px: {advice}", advice), named)
 
 
-def _nonlinear_call(c: Check, fn, args: tuple, case: str, has_nan: bool):
-    """The student's call; scipy's "not finite" error on a case whose uv holds NaN is explained, not only shown."""
-    not_finite: list[Exception] = []
-
-    def guarded(*a):
-        try:
-            return fn(*a)
-        except ValueError as exc:
-            if not has_nan or "finite" not in str(exc).lower():
-                raise
-            not_finite.append(exc)
-            return np.zeros(0)
-
-    out = c.call(guarded, *args, case=case)
-    if not_finite:
-        c.fail(f"{case}: your function raised ValueError: {str(not_finite[0])[:100]}: uv is NaN where a view does not "
-               "see the point (here some points are unseen in one view); leave out the views where the point is not "
-               "seen: residuals only over the i with np.isfinite(uv[j, i]).all()")
-        return FAILED
-    return out
+def _not_finite(exc: Exception) -> str | None:
+    """scipy's "not finite" error on a case whose uv holds NaN, explained."""
+    if not isinstance(exc, ValueError) or "finite" not in str(exc).lower():
+        return None
+    return (f"your function raised ValueError: {str(exc)[:100]}: uv is NaN where a view does not see the point (here "
+            "some points are unseen in one view); leave out the views where the point is not seen: residuals only "
+            "over the i with np.isfinite(uv[j, i]).all()")

@@ -33,6 +33,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from course_lib.instructor.gradebook import Gradebook
+from course_lib.instructor.sandbox.jail import REFUSAL
+from course_lib.instructor.settings import STUDENT_UID
 from course_lib.paths import REPO_ROOT
 
 __all__ = ["Submission", "find_submissions", "default_jobs", "grade_class", "grade_one", "grader_version"]
@@ -42,13 +44,6 @@ __all__ = ["Submission", "find_submissions", "default_jobs", "grade_class", "gra
 GRADING_BYTES = 3 << 30
 #: The single-submission grader, run once per submission (the tests put a stand-in here).
 GRADER = [sys.executable, "-m", "course_lib", "grade"]
-#: The students' processes run as this uid when the grader is root (settings.STUDENT_UID); each job of a class run
-#: gets its own (this, this - 1, ...), so that one submission's processes (a fork bomb) never count against the
-#: process limit of another's (RLIMIT_NPROC counts all the processes of a uid).
-STUDENT_UID = int(os.environ.get("COURSE_GRADER_STUDENT_UID", "65534"))
-#: How the grader says that it would not run a student's code (its sandbox could not be made); a grading refused
-#: while others ran (a namespace not made for lack of a resource) is graded again alone, after them.
-REFUSAL = "refusing to run the students' code"
 #: Seconds a grading may take past ``--submission-timeout`` before it is stopped: the hidden cases are made (and the
 #: reference run on them) before the submission's clock starts.
 START_SECONDS = 600.0
@@ -134,7 +129,9 @@ def grade_class(submissions: list[Submission], gradebook: Gradebook, reports: Pa
 
     todo = [s for s in submissions if regrade or not gradebook.graded(s.student, s.commit)]
     version, out, limit = grader_version(), [], submission_timeout + START_SECONDS
-    uids: queue.Queue = queue.Queue()  # as root: a uid of its own for the students' processes of each job
+    # as root, each job's students' processes run as a uid of their own (STUDENT_UID, STUDENT_UID - 1, ...), so that
+    # one submission's processes (a fork bomb) never count against another's process limit (RLIMIT_NPROC is per uid)
+    uids: queue.Queue = queue.Queue()
     for k in range(max(1, jobs)):
         uids.put(STUDENT_UID - k)
 
@@ -157,8 +154,9 @@ def grade_class(submissions: list[Submission], gradebook: Gradebook, reports: Pa
             tqdm(total=len(todo), desc="grading", unit="submission", disable=not progress) as bar:
         for fut in as_completed([pool.submit(one, s) for s in todo]):
             o = fut.result()
-            if o.status == "crashed" and REFUSAL in o.report["error"] and jobs > 1:
-                again.append(o.sub)  # refused while others ran (a sandbox not made: e.g. EAGAIN); nothing of it ran
+            if o.status == "crashed" and REFUSAL in o.report["error"] and jobs > 1:  # a grading refused while others
+                # ran (a sandbox not made for lack of a resource another held) is graded again alone, after them
+                again.append(o.sub)  # nothing of it ran
             else:
                 done(o)
         for sub in again:  # alone, after the others: a refusal now is the grader's last word

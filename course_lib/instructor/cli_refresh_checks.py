@@ -14,15 +14,13 @@ It refuses to store an error output, and says which check cells changed.
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 import nbformat
 
+from course_lib.instructor.notebooks import CHECK_MARK, execute_quick
 from course_lib.paths import REPO_ROOT
 from course_lib.validate import KitInputError
-
-CHECK_MARK = "# NBVAL_CHECK_OUTPUT"
 
 
 def _is_check(cell) -> bool:
@@ -39,25 +37,12 @@ def refresh_checks(path: Path, timeout: float = 600.0, write: bool = True) -> li
     Raises:
         KitInputError: a cell raised (nothing is written), or the notebook's cells changed while it ran.
     """
-    from nbclient import NotebookClient
-
     path = Path(path)
     if not path.is_file():
         raise KitInputError(f"{path} is not a notebook file")
     stored = nbformat.read(path, as_version=4)
     run = nbformat.read(path, as_version=4)
-    old = {k: os.environ.get(k) for k in ("COURSE_LIB_QUICK", "MPLBACKEND")}
-    os.environ["COURSE_LIB_QUICK"] = "1"
-    os.environ["MPLBACKEND"] = "Agg"
-    try:
-        NotebookClient(run, timeout=timeout, kernel_name="python3", allow_errors=True,
-                       resources={"metadata": {"path": str(path.parent)}}).execute()
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+    execute_quick(run, path.parent, timeout)
     errors = [(i, o) for i, c in enumerate(run.cells) if c.cell_type == "code"
               for o in c.outputs if o.output_type == "error"]
     if errors:

@@ -20,7 +20,7 @@ side, never from the submission), :func:`grade_submission` runs five steps, each
    nbval in the same sandbox, check cells restored, package installs left out with a neutral note; nbval says
    whether each check cell runs when the notebook runs top to bottom, and the check cell's verdict is computed by
    the grader: the same check on the notebook's own cases, with the student's function in the sandbox.
-5. **Slow code is graded**: an exercise's budget (:data:`DEFAULT_TIMEOUT`, 120 s) lets correct but slow code
+5. **Slow code is graded**: an exercise's budget (:data:`~.settings.DEFAULT_EXERCISE_SECONDS`, 120 s) lets correct but slow code
    finish; the feedback says when it was slow.
 
 Points per exercise (default 10): 90 % times the hidden score (:func:`course_lib.checks.core.score_against` the
@@ -62,7 +62,7 @@ from course_lib.instructor.grade_report import (
 from course_lib.instructor.grade_run import HIDDEN_SHARE, add_nbval, hidden_checks, start_nbval
 from course_lib.instructor.nbval_run import NbvalRun
 from course_lib.instructor.notebooks import NOTEBOOKS_DIR
-from course_lib.instructor.sandbox import container, jail
+from course_lib.instructor.sandbox import container, jail, launch
 from course_lib.instructor.sandbox.jail import IsolationError
 from course_lib.instructor.settings import (
     DEFAULT_EXERCISE_SECONDS,
@@ -78,9 +78,7 @@ from course_lib.paths import REPO_ROOT
 from course_lib.validate import KitInputError
 
 __all__ = ["HiddenCases", "prepare_hidden", "grade_submission", "preflight", "to_markdown", "HIDDEN_SHARE",
-           "IsolationError", "plain_text", "plain_data", "DEFAULT_TIMEOUT", "MAX_FEEDBACK_BYTES"]
-
-DEFAULT_TIMEOUT = DEFAULT_EXERCISE_SECONDS  # s for the hidden checks of one exercise (settings.exercise_seconds)
+           "IsolationError", "plain_text", "plain_data", "MAX_FEEDBACK_BYTES"]
 
 
 def grade_submission(
@@ -90,7 +88,7 @@ def grade_submission(
     exercises: list[str] | None = None,
     hidden: HiddenCases | None = None,
     salt: int | None = None,
-    timeout: float = DEFAULT_TIMEOUT,
+    timeout: float = DEFAULT_EXERCISE_SECONDS,
     cell_timeout: float = 120.0,
     run_nbval: bool = True,
     allow_reference: bool = False,
@@ -136,18 +134,18 @@ def grade_submission(
     if not insecure:
         preflight(notebooks_dir, limits)  # one line, and no grading, where the sandbox cannot be made or verified
     with _scratch(workdir) as work, _shared_folder() as shared:
+        work = Path(work)
         copy = copy_submission(submission, shared / "submission", max_total_bytes=(limits or Limits()).submission_bytes)
-        hidden = ready_hidden(hidden, specs, salt, work, notebooks_dir, timeout)
+        hidden = ready_hidden(hidden, specs, salt, work, notebooks_dir)
         iso = Isolation.for_grading(hidden.library if not allow_reference else REPO_ROOT,
                                     [work, Path(hidden.fixtures_dir)], notebooks_dir, self_test=allow_reference,
-                                    insecure=insecure, limits=limits)
-        iso.scratch = shared
+                                    insecure=insecure, limits=limits, scratch=shared)
         run = GradingRun(specs, omitted, hidden, iso, copy, timeout, allow_reference, kit=kit,
                          clock=Clock(submission_timeout),
                          cgroup=None if insecure else Cgroup.create(iso.limits.submission_memory_bytes,
                                                                      4 * iso.limits.processes_total))
         nbval_run = None
-        run_nbval = run_nbval and not (container.enabled() and not insecure)  # container mode: no TCP for kernels
+        run_nbval = run_nbval and launch.mode_of(iso) != launch.CONTAINER  # container mode: no TCP for kernels
         try:
             plan_submission(run)
             nbval_run = start_nbval(run, cell_timeout, nbval_jobs) if run_nbval and run.to_nbval else None
@@ -178,7 +176,7 @@ def _report_of(run: GradingRun, nbval_run: NbvalRun | None, seconds: float, budg
                             "left out": [cap(r, 300) for r in run.submission.refused[:50]]}
     report["isolation"] = {"insecure": bool(insecure), "hidden checks": run.sandbox_seen,
                            "nbval": nbval_run.sandbox if nbval_run else
-                           {"note": container.NBVAL_NOTE} if container.enabled() and not insecure else {}}
+                           {"note": container.NBVAL_NOTE} if launch.mode_of(run.iso) == launch.CONTAINER else {}}
     return plain_data(report)
 
 
@@ -196,8 +194,7 @@ def preflight(notebooks_dir: Path = NOTEBOOKS_DIR, limits: Limits | None = None)
     if probe is not None:
         probe.close()
     with _shared_folder() as lib:  # an empty library: the sandbox itself is what is checked here
-        iso = Isolation.for_grading(lib, [], notebooks_dir, limits=limits)
-        iso.scratch = lib
+        iso = Isolation.for_grading(lib, [], notebooks_dir, limits=limits, scratch=lib)
         with StudentProcess(iso, "", "preflight", None, 30.0):
             pass
 
@@ -214,12 +211,9 @@ def _shared_folder():
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-@contextlib.contextmanager
 def _scratch(workdir: Path | None):
-    """The grader's scratch folder (a temporary one, removed at the end, when ``workdir`` is None)."""
-    if workdir is not None:
-        Path(workdir).mkdir(parents=True, exist_ok=True)
-        yield Path(workdir)
-        return
-    with tempfile.TemporaryDirectory(prefix="course-grade-") as tmp:
-        yield Path(tmp)
+    """The grader's scratch folder: ``workdir``, else a temporary one (removed at the end)."""
+    if workdir is None:
+        return tempfile.TemporaryDirectory(prefix="course-grade-")
+    Path(workdir).mkdir(parents=True, exist_ok=True)
+    return contextlib.nullcontext(workdir)

@@ -105,8 +105,7 @@ def _temporary_student_library(notebooks_dir: Path) -> Path:
     return student_library(lib, notebooks_dir)
 
 
-def prepare_hidden(specs: list[NotebookSpec], salt: int, workdir: Path, notebooks_dir: Path = NOTEBOOKS_DIR,
-                   timeout: float = 120.0) -> HiddenCases:
+def prepare_hidden(specs: list[NotebookSpec], salt: int, workdir: Path, notebooks_dir: Path = NOTEBOOKS_DIR) -> HiddenCases:
     """Build the hidden fixtures for a grading-time seed and run the instructor's solutions on them.
 
     The reference runs in this process (the expected results never leave it). The student release's
@@ -136,11 +135,11 @@ def prepare_hidden(specs: list[NotebookSpec], salt: int, workdir: Path, notebook
 
 
 def ready_hidden(hidden: HiddenCases | None, specs: list[NotebookSpec], salt: int | None, work: Path,
-                  notebooks_dir: Path, timeout: float) -> HiddenCases:
+                 notebooks_dir: Path) -> HiddenCases:
     """The hidden cases of this run (made here, with a random seed unless ``salt``, when ``hidden`` is None)."""
     if hidden is None:
         salt = secrets.randbits(62) if salt is None else int(salt)
-        hidden = prepare_hidden(specs, salt, work, notebooks_dir, timeout=max(timeout, 120.0))
+        hidden = prepare_hidden(specs, salt, work, notebooks_dir)
     else:
         _preload(specs)
     if hidden.library is None:

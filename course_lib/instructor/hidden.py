@@ -35,7 +35,7 @@ import numpy as np
 
 from course_lib.checks import core
 from course_lib.instructor.cases import builders
-from course_lib.instructor.oracle import Oracle
+from course_lib.instructor.oracle import Oracle, bound_address_space, status_kib
 from course_lib.instructor.remote import RemoteFunction
 from course_lib.instructor.sandbox import jail, wire
 from course_lib.instructor.settings import GRACE_SECONDS, START_SECONDS
@@ -312,24 +312,17 @@ def _no_outcome(why: str, dt: float, timeout: float, deadline: float | None, oom
 
 def _worker(job: HiddenJob, timeout: float, isolation, cgroup, w: int) -> None:
     """The exercise's worker: the student's process, the check, the verdict sent to the grader as JSON."""
-    import resource
-
     wire.close_inherited(w)
-    rss0 = _status_kib("VmRSS")
+    rss0 = status_kib("VmRSS")
     if cgroup is not None:
         cgroup.enter()
     else:  # no cgroup: the worker's own address space is bounded
-        extra = isolation.limits.memory_total_bytes if isolation is not None else 4 << 30
-        vm = _status_kib("VmSize") << 10
-        try:
-            resource.setrlimit(resource.RLIMIT_AS, (vm + extra, vm + extra))
-        except (ValueError, OSError):
-            pass
+        bound_address_space(isolation.limits.memory_total_bytes if isolation is not None else 4 << 30)
     single_thread_math()
     t0 = time.perf_counter()
 
     def send(head: dict) -> None:
-        head["memory"] = {"worker peak growth bytes": max(0, _status_kib("VmHWM") - rss0) << 10}
+        head["memory"] = {"worker peak growth bytes": max(0, status_kib("VmHWM") - rss0) << 10}
         wire.write_frame(w, head)
 
     try:
@@ -434,15 +427,6 @@ def _outcome_from(head: dict, seconds: float) -> HiddenOutcome:
                          sandbox=head.get("sandbox") or {}, attempted=bool(head.get("attempted", True)),
                          memory=dict(head.get("memory") or {},
                                      **{"largest reply bytes": int(head.get("largest_reply", 0))}))
-
-
-def _status_kib(key: str) -> int:
-    """A ``/proc/self/status`` figure in KiB (0 where there is none)."""
-    try:
-        with open("/proc/self/status") as f:
-            return next(int(ln.split()[1]) for ln in f if ln.startswith(key + ":"))
-    except (OSError, StopIteration, ValueError, IndexError):
-        return 0
 
 
 def _child_main(conn, fn, args):

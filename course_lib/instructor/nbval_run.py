@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import os
 import re
-import select
 import shutil
 import subprocess
 import sys
@@ -34,13 +33,12 @@ from pathlib import Path
 
 import nbformat
 
-from course_lib.instructor.sandbox import jail, wire
+from course_lib.instructor.sandbox import jail, launch, wire
 from course_lib.instructor.settings import START_SECONDS, Isolation
 
 __all__ = ["NbvalRun", "MAX_NBVAL_RERUNS"]
 
 MAX_NBVAL_RERUNS = 3  # reruns of a notebook after cells that timed out
-REPORT_LIMIT = 16 << 20  # bytes of one junit report
 
 
 class NbvalRun:
@@ -149,90 +147,72 @@ class NbvalRun:
 
     def _pytest(self, tmp: Path, seed: Path, name: str, attempt: int, end: float):
         """One sandboxed pytest run, until ``end`` at the latest; its junit report comes out through the launcher."""
-        insecure = self.iso.insecure
         stage = tmp / f"run{attempt}"
         stage.mkdir()
-        work = str(stage / "work") if insecure else jail.WORK
+        work, seed_at = launch.paths(self.iso, stage, seed)
         nb_dir = os.path.join(work, "notebooks")
         report_r, report_w = os.pipe()
         go_r, go_w = os.pipe()
         collect_r, collect_w = os.pipe()
-        cfg = {"cwd": work, "nb_dir": nb_dir, "seed": str(seed) if insecure else jail.SEED, "python": sys.executable,
-               "argv": self.pytest_command(name, "{junit}", nb_dir), "hide": [str(h) for h in self.iso.hide],
-               "keep": [str(k) for k in self.iso.keep], "library": str(self.iso.library), "report_fd": report_w,
-               "go_fd": go_r, "collect_fd": collect_w, "own_pid_namespace": not insecure}
-        server_dir = jail.install_server(stage / "grader", cfg)
-        cmd, more, info_r, staged, filtered = jail.sandboxed(self.iso, "exec", server_dir, seed, stage / "stage")
-        fds = [report_w, go_r, collect_w] + more
+        cfg = {"cwd": work, "nb_dir": nb_dir, "seed": seed_at, "python": sys.executable,
+               "argv": self.pytest_command(name, "{junit}", nb_dir), "report_fd": report_w, "go_fd": go_r,
+               "collect_fd": collect_w}
+        fds = [report_w, go_r, collect_w]
         cgroup = self.iso.cgroup(parent=self.cgroup)
-        proc = None
+        started = None
         try:
             with self._lock:  # its own session, so that whatever the notebook started is stopped with it
                 if name in self._replace or self._stopped:
                     return {}, "replaced"
-                launch = jail.preexec(self.iso.limits, max(1.0, end - time.monotonic()), cgroup,
-                                      as_student=not insecure and os.getuid() == 0, staged=staged)
-                try:
-                    proc = subprocess.Popen(cmd, cwd=stage, env=self._env(work), stdin=subprocess.DEVNULL,
-                                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, pass_fds=fds,
-                                            start_new_session=True, preexec_fn=launch)
-                except (OSError, subprocess.SubprocessError) as exc:
-                    if insecure:
-                        raise
-                    raise jail.IsolationError(jail.refusal(jail.launch_failure(exc, staged))) from None
-                self._procs[name] = proc
-            for fd in fds:
-                os.close(fd)
-            fds = []
-            box = self._checked(name, proc, info_r, report_r, filtered)
+                given, fds = fds, []  # closed by launch.start, whatever happens
+                started = launch.start(self.iso, "exec", cfg, stage, seed, cgroup, max(1.0, end - time.monotonic()),
+                                       self._env(work), given)
+                self._procs[name] = started.proc
+            box = self._checked(name, started, report_r, cgroup)
             if isinstance(box, str):
                 return {}, box
-            os.write(go_w, _go_frame())
-            junit, complete = _read_until(collect_r, end, REPORT_LIMIT)
+            wire.write_frame(go_w, {"op": "go"})
+            junit, complete = wire.read_until_closed(collect_r, wire.MAX_REPORT, end)
             if not complete:
                 return {}, f"nbval did not finish {name} within its time"
             try:
-                proc.wait(timeout=max(1.0, end - time.monotonic()))
+                started.proc.wait(timeout=max(1.0, end - time.monotonic()))
             except subprocess.TimeoutExpired:
                 return {}, f"nbval did not finish {name} within its time"
         finally:
-            wire.close_fds(fds + [report_r, go_w, collect_r] + ([info_r] if info_r is not None else []))
-            if proc is not None:
-                jail.kill_tree(proc.pid)
-                proc.wait()
+            wire.close_fds(fds + [report_r, go_w, collect_r])
+            if started is not None:
+                jail.kill_tree(started.proc.pid)
+                started.proc.wait()
                 with self._lock:
                     self._procs.pop(name, None)
             if cgroup is not None:
                 cgroup.close()
-        self._record_sandbox(box, cgroup)
+        if not self.sandbox:
+            self.sandbox = box
         return _read_junit(junit, name)
 
-    def _checked(self, name: str, proc: subprocess.Popen, info_r: int | None, report_r: int,
-                 filtered: bool) -> dict | str:
+    def _checked(self, name: str, started: launch.Started, report_r: int, cgroup) -> dict | str:
         """What the sandbox of a run enforces, checked before the notebook runs; a note when it did not start.
 
         Raises:
             IsolationError: bubblewrap could not make the sandbox, or it is not isolated.
         """
-        started = time.monotonic() + START_SECONDS
-        info = jail.read_info(info_r, started) if info_r is not None else {}
         try:
-            head, _ = wire.read_frame_before(report_r, started, 1 << 20)
+            head, _ = wire.read_frame_before(report_r, time.monotonic() + START_SECONDS, 1 << 20)
             facts = head.get("facts") if isinstance(head.get("facts"), dict) else {}
         except (TimeoutError, EOFError, OSError, wire.WireError):
-            facts = None
-        if self.iso.insecure:
-            return {"tool": "none (--insecure)", "namespaces": False, "read_only": False}
-        if not info or facts is None:
-            if proc.poll() is not None and not info:
-                raise jail.IsolationError(jail.refusal(f"bubblewrap could not make the sandbox of nbval "
-                                                       f"(exit code {proc.returncode})"))
+            head, facts = {}, None
+        no_info = started.mode == launch.BUBBLEWRAP and not started.info
+        if started.mode != launch.INSECURE and (no_info or facts is None):
+            if started.proc.poll() is not None and no_info:
+                raise launch.refuse_start(started, what="the sandbox of nbval")
             return f"nbval of {name} did not start"
-        missing = jail.verify(facts, info, self.iso, filtered)
-        if missing:
-            raise jail.IsolationError(jail.refusal("the sandbox of nbval is not isolated: " + "; ".join(missing),
-                                                   jail.REPORT))
-        return jail.describe(facts, info, self.iso, filtered)
+        box = launch.check(started, self.iso, facts or {}, cgroup, what="the sandbox of nbval")
+        if head.get("seed_failed"):  # the submission's problem: its notebook does not run
+            why = str(head["seed_failed"])[:200]
+            return f"nbval of {name}: the submission could not be copied into the sandbox ({why})"
+        return box
 
     def pytest_command(self, name: str, junit: str, rootdir: str) -> list[str]:
         """pytest's arguments for nbval of notebook ``name``: no conftest.py and no pytest configuration of the
@@ -246,20 +226,11 @@ class NbvalRun:
         submission (in the sandbox: fresh folders of its tmpfs), so that no start-up file or configuration of the
         submission is read by the kernel."""
         home = Path(work).parent / "home"
-        env = {k: v for k, v in os.environ.items() if k in ("PATH", "LANG", "LC_ALL", "TZ")}
-        env.update(COURSE_LIB_QUICK="1", PYTHONDONTWRITEBYTECODE="1", PYTHONPATH=str(self.iso.library),
-                   HOME=str(home), JUPYTER_RUNTIME_DIR=str(home / "runtime"), JUPYTER_DATA_DIR=str(home / "data"),
-                   IPYTHONDIR=str(home / "ipython"), MPLCONFIGDIR=str(home / "mpl"), MPLBACKEND="Agg", TMPDIR="/tmp",
-                   JUPYTER_CONFIG_DIR=str(home / "jupyter"), JUPYTER_CONFIG_PATH="", JUPYTER_PATH="",
-                   OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONNOUSERSITE="1")
-        if os.environ.get("COURSE_DATA"):
-            env["COURSE_DATA"] = os.environ["COURSE_DATA"]
-        return env
-
-    def _record_sandbox(self, box: dict, cgroup) -> None:
-        """What the sandbox enforced (checked before the notebook ran), with the totals."""
-        if not self.sandbox:
-            self.sandbox = dict(box, **self.iso.limits.totals(cgroup))
+        more = {"COURSE_DATA": os.environ["COURSE_DATA"]} if os.environ.get("COURSE_DATA") else {}
+        return launch.env(home, PYTHONPATH=str(self.iso.library), JUPYTER_RUNTIME_DIR=str(home / "runtime"),
+                          JUPYTER_DATA_DIR=str(home / "data"), IPYTHONDIR=str(home / "ipython"),
+                          MPLCONFIGDIR=str(home / "mpl"), JUPYTER_CONFIG_DIR=str(home / "jupyter"),
+                          JUPYTER_CONFIG_PATH="", JUPYTER_PATH="", PYTHONNOUSERSITE="1", **more)
 
     def results(self) -> tuple[dict[tuple[str, int], str], dict[str, str]]:
         """``{(notebook, code cell index): "pass" or a failure text}`` and ``{notebook: note}`` for runs that failed."""
@@ -290,26 +261,6 @@ def _other_notebooks(submission: Path):
         return [n for n in names if n in skip or (in_nb_dir and n.endswith(".ipynb"))]
 
     return ignore
-
-
-def _go_frame() -> bytes:
-    data = wire.pack({"op": "go"}, [])
-    return len(data).to_bytes(8, "little") + data
-
-
-def _read_until(fd: int, end: float, limit: int) -> tuple[bytes, bool]:
-    """What arrives on ``fd`` until the other side closes it (``complete``) or ``end``; at most ``limit`` bytes kept."""
-    got, size = [], 0
-    while True:
-        left = end - time.monotonic()
-        if left <= 0 or not select.select([fd], [], [], left)[0]:
-            return b"".join(got), False
-        b = os.read(fd, 1 << 16)
-        if not b:
-            return b"".join(got), True
-        if size < limit:
-            got.append(b[:limit - size])
-            size += len(b)
 
 
 def _read_junit(junit: bytes, name: str) -> tuple[dict[tuple[str, int], str], str]:

@@ -12,7 +12,9 @@ reference verdicts never come from a file the student can edit.
 from __future__ import annotations
 
 import ast
+import functools
 import hashlib
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,6 +39,12 @@ __all__ = [
     "in_optional_import",
     "stream_text",
     "sha256",
+    "execute_quick",
+    "INSTRUCTOR_PACKAGE",
+    "SKIP_NAMES",
+    "module_name",
+    "course_lib_modules",
+    "file_key",
 ]
 
 BEGIN, END = "# BEGIN SOLUTION", "# END SOLUTION"
@@ -129,6 +137,26 @@ def marker_regions(source: str, where: str) -> list[tuple[int, int]]:
 def stream_text(cell) -> str:
     return "".join(o.get("text", "") for o in cell.get("outputs", []) if o.get("output_type") == "stream"
                    and o.get("name") == "stdout")
+
+
+def execute_quick(nb, folder: Path, timeout: float, **env: str):
+    """Execute ``nb`` in place, in a fresh kernel whose working folder is ``folder``, as nbval runs it: quick mode
+    (``COURSE_LIB_QUICK=1``), no display, an error kept as the cell's output; ``env`` is set for the kernel too."""
+    from nbclient import NotebookClient
+
+    values = dict(COURSE_LIB_QUICK="1", MPLBACKEND="Agg", **env)
+    old = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        NotebookClient(nb, timeout=timeout, kernel_name="python3", allow_errors=True,
+                       resources={"metadata": {"path": str(folder)}}).execute()
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return nb
 
 
 def _module_exists(name: str) -> bool:
@@ -291,19 +319,39 @@ def _reference_of(name: str, region_texts: list[str]) -> str | None:
     return None
 
 
-_DEFS_CACHE: dict[tuple, set[str]] = {}
+#: The package that only the instructor needs (release, grading, the hidden cases); it never ships.
+INSTRUCTOR_PACKAGE = "course_lib.instructor"
+SKIP_NAMES = {"__pycache__", ".ipynb_checkpoints", ".pytest_cache", ".DS_Store"}
 
 
-def _top_level_names(path: Path) -> set[str]:
-    """Names of the top-level defs and classes of a file (cached by path, size and modification time)."""
-    st = path.stat()
-    key = (str(path), st.st_size, st.st_mtime_ns)
-    if key not in _DEFS_CACHE:
-        try:
-            _DEFS_CACHE[key] = {n.name for n in _top_defs(ast.parse(path.read_text()))}
-        except SyntaxError:
-            _DEFS_CACHE[key] = set()
-    return _DEFS_CACHE[key]
+def module_name(path: Path) -> str:
+    rel = path.relative_to(REPO_ROOT).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def course_lib_modules() -> dict[str, Path]:
+    """``{module name: file}`` of the course_lib modules that may ship (everything but the instructor package)."""
+    files = sorted(p for p in (REPO_ROOT / "course_lib").rglob("*.py") if not SKIP_NAMES & set(p.parts))
+    mods = {module_name(p): p for p in files}
+    return {m: p for m, p in mods.items() if m != INSTRUCTOR_PACKAGE and not m.startswith(INSTRUCTOR_PACKAGE + ".")}
+
+
+def file_key(path: Path) -> tuple[str, int, int]:
+    """A file's path, size and modification time: the key of the caches of what a file defines and imports."""
+    st = Path(path).stat()
+    return str(path), st.st_size, st.st_mtime_ns
+
+
+@functools.lru_cache(maxsize=None)
+def _top_level_names(path: str, size: int, mtime_ns: int) -> set[str]:
+    """Names of the top-level defs and classes of a file (cached by :func:`file_key`)."""
+    try:
+        return {n.name for n in _top_defs(ast.parse(Path(path).read_text()))}
+    except SyntaxError:
+        return set()
 
 
 def library_definition(name: str) -> str | None:
@@ -313,15 +361,8 @@ def library_definition(name: str) -> str | None:
     exercise such as ``psnr``) is the library's own function of that name, when there is one; None
     when no module, or more than one, defines it.
     """
-    root = REPO_ROOT / "course_lib"
-    found = []
-    for p in sorted(root.rglob("*.py")):
-        rel = p.relative_to(REPO_ROOT).with_suffix("")
-        if "instructor" in rel.parts or "__pycache__" in rel.parts or p.name == "saved_solutions.py":
-            continue
-        if name in _top_level_names(p):
-            parts = list(rel.parts[:-1]) if rel.parts[-1] == "__init__" else list(rel.parts)
-            found.append(".".join(parts))
+    found = [m for m, p in course_lib_modules().items()
+             if m != "course_lib.saved_solutions" and name in _top_level_names(*file_key(p))]
     return f"{found[0]}:{name}" if len(found) == 1 else None
 
 

@@ -60,7 +60,7 @@ import time
 from course_lib.instructor.sandbox import wire
 from course_lib.threads import single_thread_math
 
-__all__ = ["MAX_CALLS", "Oracle", "earlier_steps"]
+__all__ = ["MAX_CALLS", "Oracle", "earlier_steps", "bound_address_space", "status_kib"]
 
 #: Call-backs the grader answers while it grades one exercise; one more stops the exercise's process. An honest
 #: ransac_fundamental makes ~800 on the hidden cases (eight_point and sampson_distance per sample); one without the
@@ -167,6 +167,25 @@ class Oracle:
         self._stop()
 
 
+def status_kib(key: str) -> int:
+    """A ``/proc/self/status`` figure in KiB (0 where there is none)."""
+    try:
+        with open("/proc/self/status") as f:
+            return next(int(ln.split()[1]) for ln in f if ln.startswith(key + ":"))
+    except (OSError, StopIteration, ValueError, IndexError):
+        return 0
+
+
+def bound_address_space(extra_bytes: int) -> None:
+    """Let this process (a worker forked from the grader) add at most ``extra_bytes`` to the address space it has."""
+    vm = status_kib("VmSize") << 10
+    try:
+        if vm:
+            resource.setrlimit(resource.RLIMIT_AS, (vm + extra_bytes, vm + extra_bytes))
+    except (ValueError, OSError):
+        pass
+
+
 def _error(kind: str, message: str) -> dict:
     return {"ok": False, "type": kind, "builtin": True, "message": message}
 
@@ -175,12 +194,7 @@ def _worker(req: int, rep: int, steps: dict[str, str]) -> None:
     """The worker's loop: decode a request, run the reference, send the result (or its exception) as data."""
     wire.close_inherited(req, rep)
     single_thread_math()
-    try:
-        with open("/proc/self/status") as f:
-            vm = next(int(ln.split()[1]) * 1024 for ln in f if ln.startswith("VmSize:"))
-        resource.setrlimit(resource.RLIMIT_AS, (vm + WORKER_EXTRA_BYTES, vm + WORKER_EXTRA_BYTES))
-    except (OSError, ValueError, StopIteration):
-        pass
+    bound_address_space(WORKER_EXTRA_BYTES)
     while True:
         try:
             head, arrays = wire.read_frame(req)

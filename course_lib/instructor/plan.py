@@ -22,36 +22,22 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from course_lib.instructor.notebooks import NotebookSpec, in_optional_import, resolve_import
-from course_lib.paths import REPO_ROOT
+from course_lib.instructor.notebooks import (
+    NotebookSpec,
+    course_lib_modules,
+    file_key,
+    in_optional_import,
+    resolve_import,
+)
 
-__all__ = ["INSTRUCTOR_PACKAGE", "SKIP_NAMES", "ReleasePlan", "release_plan", "solution_modules", "redact_module",
-           "imported_names", "course_lib_modules", "module_name", "exercise_definitions"]
-
-#: The package that only the instructor needs (release, grading, the hidden cases); it never ships.
-INSTRUCTOR_PACKAGE = "course_lib.instructor"
-SKIP_NAMES = {"__pycache__", ".ipynb_checkpoints", ".pytest_cache", ".DS_Store"}
-
-
-def module_name(path: Path) -> str:
-    rel = path.relative_to(REPO_ROOT).with_suffix("")
-    parts = list(rel.parts)
-    if parts[-1] == "__init__":
-        parts = parts[:-1]
-    return ".".join(parts)
-
+__all__ = ["ReleasePlan", "release_plan", "solution_modules", "redact_module", "imported_names", "exercise_definitions"]
 
 def module_imports(path: Path) -> dict[str, set[str]]:
     """``{"top": modules imported when the module loads, "lazy": imported inside functions}`` (course_lib only).
 
     Imports inside ``try`` blocks that catch ImportError count as neither (they are optional).
     """
-    return {k: set(v) for k, v in _imports(*_file_key(path))[0].items()}
-
-
-def _file_key(path: Path) -> tuple[str, int, int]:
-    st = Path(path).stat()
-    return str(path), st.st_size, st.st_mtime_ns
+    return {k: set(v) for k, v in _imports(*file_key(path))[0].items()}
 
 
 @functools.lru_cache(maxsize=None)
@@ -72,13 +58,6 @@ def _imports(path: str, size: int, mtime_ns: int) -> tuple[dict[str, set[str]], 
                     # importing a.b.c imports the packages a and a.b first
                     out["lazy" if id(node) in func_nodes else "top"].add(mod)
     return out, names
-
-
-def course_lib_modules() -> dict[str, Path]:
-    """``{module name: file}`` of the course_lib modules that may ship (everything but the instructor package)."""
-    files = sorted(p for p in (REPO_ROOT / "course_lib").rglob("*.py") if not SKIP_NAMES & set(p.parts))
-    mods = {module_name(p): p for p in files}
-    return {m: p for m, p in mods.items() if m != INSTRUCTOR_PACKAGE and not m.startswith(INSTRUCTOR_PACKAGE + ".")}
 
 
 def solution_modules(specs: list[NotebookSpec]) -> dict[str, list[str]]:
@@ -168,8 +147,8 @@ def release_plan(specs: list[NotebookSpec]) -> ReleasePlan:
     the modules it loads) is redacted; any other solution module is left out, and so is every
     module that imports a left-out module (at load time or inside a function; imports inside a
     ``try`` that catches ImportError are optional and do not count). The instructor package
-    (:data:`INSTRUCTOR_PACKAGE`) never ships; the checks (``course_lib.checks``) import no solution
-    module, so they always ship (a test enforces it).
+    (:data:`~course_lib.instructor.notebooks.INSTRUCTOR_PACKAGE`) never ships; the checks (``course_lib.checks``)
+    import no solution module, so they always ship (a test enforces it).
     """
     mods = course_lib_modules()
     imports = {m: module_imports(p) for m, p in mods.items()}
@@ -273,7 +252,7 @@ def imported_names(module: str) -> set[str]:
     for m, p in course_lib_modules().items():
         if m == module:
             continue
-        out.update(_imports(*_file_key(p))[1].get(module, ()))
+        out.update(_imports(*file_key(p))[1].get(module, ()))
     return out
 
 

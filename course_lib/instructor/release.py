@@ -43,24 +43,20 @@ from course_lib import __version__
 from course_lib.checks.core import SCORING_RULE
 from course_lib.instructor.notebooks import (
     CHECK_MARK,
+    INSTRUCTOR_PACKAGE,
     NOTEBOOKS_DIR,
+    SKIP_NAMES,
     NotebookSpec,
     ReleaseError,
+    course_lib_modules,
+    execute_quick,
     kit_specs,
     marker_regions,
+    module_name,
     sha256,
     stream_text,
 )
-from course_lib.instructor.plan import (
-    INSTRUCTOR_PACKAGE,
-    SKIP_NAMES,
-    ReleasePlan,
-    course_lib_modules,
-    imported_names,
-    module_name,
-    redact_module,
-    release_plan,
-)
+from course_lib.instructor.plan import ReleasePlan, imported_names, redact_module, release_plan
 from course_lib.paths import REPO_ROOT
 
 __all__ = ["stub_source", "stub_notebook", "student_readme", "student_environment", "write_release", "release_files",
@@ -347,8 +343,6 @@ def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float 
     Returns:
         ``{notebook: [problems]}`` (empty lists when the release is sound).
     """
-    from nbclient import NotebookClient
-
     out_dir = Path(out_dir).resolve()
     problems: dict[str, list[str]] = {}
     manifest = json.loads((out_dir / "RELEASE_MANIFEST.json").read_text())
@@ -357,20 +351,15 @@ def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float 
     if only:
         paths = [p for p in paths if any(p.name.startswith(o) for o in only)]
 
-    old_env = {k: os.environ.get(k) for k in ("PYTHONPATH", "COURSE_LIB_QUICK", "MPLBACKEND", "COURSE_LIB_SOLUTIONS")}
-    os.environ["PYTHONPATH"] = str(out_dir) + (os.pathsep + old_env["PYTHONPATH"] if old_env["PYTHONPATH"] else "")
-    os.environ["COURSE_LIB_QUICK"] = "1"
-    os.environ["MPLBACKEND"] = "Agg"
     scratch = tempfile.TemporaryDirectory(prefix="kit-solutions-")
-    os.environ["COURSE_LIB_SOLUTIONS"] = str(solutions) if solutions is not None else scratch.name
+    env = {"PYTHONPATH": os.pathsep.join(filter(None, [str(out_dir), os.environ.get("PYTHONPATH")])),
+           "COURSE_LIB_SOLUTIONS": str(solutions) if solutions is not None else scratch.name}
     try:
         for p in paths:
             nb = nbformat.read(p, as_version=4)
             probe = nbformat.v4.new_code_cell("import course_lib\nprint(course_lib.__file__)")
             nb.cells.insert(0, probe)
-            client = NotebookClient(nb, timeout=timeout, kernel_name="python3", allow_errors=True,
-                                    resources={"metadata": {"path": str(p.parent)}})
-            client.execute()
+            execute_quick(nb, p.parent, timeout, **env)
             found, failed_before = [], False
             where = stream_text(nb.cells.pop(0)).strip()
             if not where.startswith(str(out_dir)):
@@ -391,9 +380,4 @@ def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float 
             problems[p.name] = found
     finally:
         scratch.cleanup()
-        for k, v in old_env.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
     return problems

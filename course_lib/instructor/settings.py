@@ -85,25 +85,14 @@ def nbval_seconds(cell_timeout: float) -> float:
 
 
 class Clock:
-    """A wall-clock budget: ``left()`` seconds until its deadline, ``spent()`` since it started.
-
-    Args:
-        seconds: the budget (``None``: no deadline).
-    """
+    """A wall-clock budget of ``seconds`` (``None``: no deadline) from now: its ``deadline`` (``time.monotonic()``)."""
 
     def __init__(self, seconds: float | None):
-        self.t0 = time.monotonic()
         self.seconds = None if seconds is None else float(seconds)
-        self.deadline = float("inf") if seconds is None else self.t0 + float(seconds)
-
-    def left(self) -> float:
-        return self.deadline - time.monotonic()
-
-    def spent(self) -> float:
-        return time.monotonic() - self.t0
+        self.deadline = float("inf") if seconds is None else time.monotonic() + float(seconds)
 
     def expired(self) -> bool:
-        return self.left() <= 0
+        return time.monotonic() >= self.deadline
 
 
 #: Bytes of a submitted notebook the grader reads (an honest one, outputs included, is under 2 MB), and bytes of
@@ -205,16 +194,16 @@ class Isolation:
 
     @classmethod
     def for_grading(cls, library: Path, secret: list[Path], notebooks_dir: Path, self_test: bool = False,
-                    insecure: bool = False, limits: Limits | None = None) -> "Isolation":
+                    insecure: bool = False, limits: Limits | None = None, scratch: Path | None = None) -> "Isolation":
         """The isolation of a grading run: hide the kit and the notebooks (unless ``self_test``) and ``secret``
-        (the grader's scratch folder, the hidden cases)."""
+        (the grader's scratch folder, the hidden cases); ``scratch``: the run's folder."""
         hide = [Path(p).resolve() for p in secret]
         if not self_test:  # the kit, and the instructor's library wherever it is installed
             hide += [REPO_ROOT.resolve(), Path(notebooks_dir).resolve(), Path(course_lib.__file__).resolve().parent]
         hide = sorted({h for h in hide if not any(h != o and h.is_relative_to(o) for o in hide)})
         keep = [Path(p).resolve() for p in python_homes()]
         keep = [k for k in keep if any(k.is_relative_to(h) for h in hide)]
-        return cls(Path(library), hide, keep, insecure, limits or Limits())
+        return cls(Path(library), hide, keep, insecure, limits or Limits(), scratch)
 
     def read_only(self) -> list[str]:
         """The allow-list: the host paths a student's process sees, read-only (each site-packages folder inside them
@@ -244,13 +233,12 @@ class Isolation:
             out.append(p)
         return out
 
-    def cgroup(self, parent: Cgroup | None = None, memory_bytes: int | None = None) -> Cgroup | None:
+    def cgroup(self, parent: Cgroup | None = None) -> Cgroup | None:
         """A cgroup with this isolation's totals for one process tree, inside ``parent`` (None where none can be
         made)."""
         if self.insecure and parent is None:
             return None
-        return Cgroup.create(self.limits.memory_total_bytes if memory_bytes is None else memory_bytes,
-                             self.limits.processes_total, parent=parent)
+        return Cgroup.create(self.limits.memory_total_bytes, self.limits.processes_total, parent=parent)
 
 
 #: Distributions never shown to a student's process, wherever installed: the kit itself (the instructor's library,

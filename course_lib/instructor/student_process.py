@@ -43,9 +43,7 @@ same arguments); a module whose layers match the weights it sent.
 
 from __future__ import annotations
 
-import builtins
 import os
-import select
 import shutil
 import signal
 import struct
@@ -58,7 +56,7 @@ import numpy as np
 
 from course_lib.instructor import oracle as oracle_module
 from course_lib.instructor.remote import RemoteModule
-from course_lib.instructor.sandbox import container, jail, server, wire
+from course_lib.instructor.sandbox import jail, launch, wire
 from course_lib.instructor.settings import START_SECONDS, Isolation
 
 __all__ = ["StudentProcess", "StudentProcessEnded"]
@@ -78,9 +76,7 @@ _EXC_TYPES: dict[str, type] = {}
 def _student_exception(reply: dict) -> BaseException:
     name = wire.ident(reply.get("type", "Exception"), "Exception")
     msg = str(reply.get("message", ""))[:2000] + str(reply.get("where", ""))[:100]
-    cls = getattr(builtins, name, None) if reply.get("builtin") else None
-    if not (isinstance(cls, type) and issubclass(cls, Exception)) or cls is StopIteration:
-        cls = _EXC_TYPES.setdefault(name, type(name, (StudentError,), {}))
+    cls = wire.builtin_exception(reply) or _EXC_TYPES.setdefault(name, type(name, (StudentError,), {}))
     try:
         return cls(msg)
     except Exception:  # noqa: BLE001 - exception types with other constructors (UnicodeDecodeError)
@@ -135,71 +131,33 @@ class StudentProcess:
     def _start(self, code: str, submission: Path | None, torch: bool) -> None:
         iso = self.iso
         seed = Path(submission).resolve() if submission is not None and Path(submission).is_dir() else None
-        insecure, boxed = iso.insecure, container.enabled() and not iso.insecure  # boxed: container mode
-        cwd = str(self.tmp / "work") if insecure or boxed else jail.WORK
+        cwd, seed_at = launch.paths(iso, self.tmp, seed)
         req_r, self.req_w = os.pipe()
         self.rep_r, rep_w = os.pipe()
-        cfg = {"cwd": cwd, "seed": (str(seed) if insecure or boxed else jail.SEED) if seed else None,
-               "path": str(iso.library), "sys_path": iso.python_path(), "code": code, "name": self.name,
-               "torch": bool(torch), "req_fd": req_r, "rep_fd": rep_w, "hide": [str(h) for h in iso.hide],
-               "keep": [str(k) for k in iso.keep], "library": str(iso.library),
+        cfg = {"cwd": cwd, "seed": seed_at, "path": str(iso.library), "sys_path": iso.python_path(), "code": code,
+               "name": self.name, "torch": bool(torch), "req_fd": req_r, "rep_fd": rep_w,
                "oracle": self.oracle.names if self.oracle is not None else []}
-        server_dir = jail.install_server(self.tmp / "grader", cfg)
-        env = {k: v for k, v in os.environ.items() if k in ("PATH", "LANG", "LC_ALL", "TZ")}
-        env.update(HOME=cwd, TMPDIR="/tmp", OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1",
-                   PYTHONDONTWRITEBYTECODE="1", MPLBACKEND="Agg", COURSE_LIB_QUICK="1")
-        fds = [req_r, rep_w]
-        info_r, staged, filtered = None, {}, False
-        if boxed:
-            container.check(self.cgroup)
-            argv = container.command("serve", server_dir)
-        else:
-            argv, more, info_r, staged, filtered = jail.sandboxed(iso, "serve", server_dir, seed, self.tmp / "stage")
-            fds += more
-        stderr = open(self.tmp / "stderr.txt", "wb")
-        try:
-            self.proc = subprocess.Popen(
-                argv, cwd=self.tmp, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=stderr,
-                pass_fds=fds, start_new_session=True,
-                preexec_fn=container.preexec(iso.limits, self.budget + 30, self.cgroup, Path(cwd)) if boxed else
-                jail.preexec(iso.limits, self.budget + 30, self.cgroup, as_student=not insecure and os.getuid() == 0,
-                             staged=staged))
-        except (OSError, subprocess.SubprocessError) as exc:  # the launcher could not even start (preexec_fn)
-            if insecure:
-                raise
-            raise jail.IsolationError(jail.refusal(jail.launch_failure(exc, staged))) from None
-        finally:
-            stderr.close()
-            for fd in fds:
-                os.close(fd)
-        info = jail.read_info(info_r, time.monotonic() + START_SECONDS) if info_r is not None else {}
-        self.info = info  # bwrap's: the sandbox's host pid and namespaces
-        if info_r is not None:
-            os.close(info_r)
+        with open(self.tmp / "stderr.txt", "wb") as stderr:
+            self.started = launch.start(iso, "serve", cfg, self.tmp, seed, self.cgroup, self.budget + 30,
+                                        launch.env(cwd), [req_r, rep_w], stderr)
+        self.proc, self.info = self.started.proc, self.started.info
         first = self._receive()
-        if first is None and self._seed_failed():
-            return
-        if not insecure and ((not info and not boxed) or (first is None and self.event != "timeout")):
-            self._refuse_start()
-        facts = first[0].get("facts") if first is not None and first[0].get("event") == "sandbox" else None
-        if not isinstance(facts, dict):
-            facts = {}
+        secure = self.started.mode != launch.INSECURE
+        if secure and ((not self.info and self.started.mode == launch.BUBBLEWRAP)
+                       or (first is None and self.event != "timeout")):
+            raise launch.refuse_start(self.started, self._stderr(2000) or self.ended or "")
         if first is None:  # the process did not start in time: none of the student's code ran
             self.ended = (f"the process for your {self.name} did not start within {START_SECONDS:g} s (the machine is "
                           "overloaded); none of your code ran")
             self.sandbox = {"note": "the process did not start"}
             return
-        if insecure:
-            self.sandbox = {"tool": "none (--insecure)", "namespaces": False, "read_only": False,
-                            "note": "--insecure: the student's code ran without a sandbox, as the grading user"}
-        else:
-            missing = container.verify(facts) if boxed else jail.verify(facts, info, iso, filtered)
-            if missing:
-                self.kill()
-                raise jail.IsolationError(jail.refusal("the sandbox is not isolated: " + "; ".join(missing),
-                                                     jail.REPORT))
-            self.sandbox = container.describe(self.cgroup) if boxed else jail.describe(facts, info, iso, filtered)
-        self.sandbox.update(iso.limits.totals(self.cgroup))
+        facts = first[0].get("facts") if first[0].get("event") == "sandbox" else None
+        self.sandbox = launch.check(self.started, iso, facts if isinstance(facts, dict) else {}, self.cgroup)
+        if first[0].get("seed_failed"):  # the submission's problem, reported as this exercise's; nothing of it ran
+            self._end("exit", "your submission could not be copied into the sandbox's working folder "
+                              f"({str(first[0]['seed_failed'])[:200]}); none of your code ran")
+            self.sandbox = {"note": "the submission could not be copied into the sandbox"}
+            return
         self._send({"op": "go"}, [])
         self.t0 = time.monotonic()  # the exercise's budget counts from here: its definitions and every call
         self.deadline = self.t0 + self.budget
@@ -208,55 +166,16 @@ class StudentProcess:
             self.hello = reply[0]
         self.hello["sandbox"] = self.sandbox  # the grader's record, never the student's
 
-    def _seed_failed(self) -> bool:
-        """Whether the process ended because the submission could not be copied into its working folder (the
-        submission's problem, reported as this exercise's, never as a sandbox that cannot be made)."""
+    def _stderr(self, n: int) -> str:
+        """The first ``n`` characters the process wrote to its standard error (the launcher's, bwrap's words)."""
         try:
-            self.proc.wait(timeout=2)
-            text = (self.tmp / "stderr.txt").read_text(errors="replace")[:4000]
-        except (subprocess.TimeoutExpired, OSError):
-            return False
-        said = [ln for ln in text.splitlines() if ln.startswith(server.SEED_FAILED)]
-        if self.proc.returncode != server.SEED_EXIT or not said:
-            return False
-        self.kill()
-        self.event, self.ended = "exit", (f"your submission could not be copied into the sandbox's working folder "
-                                          f"({said[0][len(server.SEED_FAILED):][:200]}); none of your code ran")
-        self.sandbox = {"note": "the submission could not be copied into the sandbox"}
-        return True
-
-    def _refuse_start(self) -> None:
-        """bwrap did not make the sandbox (or the server in it did not report): one line, and no grading."""
-        try:
-            self.proc.wait(timeout=2)
-        except subprocess.TimeoutExpired:
-            pass
-        self.kill()
-        try:
-            text = (self.tmp / "stderr.txt").read_text(errors="replace")[:2000]
+            return (self.tmp / "stderr.txt").read_text(errors="replace")[:n]
         except OSError:
-            text = ""
-        lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
-        said = [ln for ln in lines if ln.startswith("bwrap:")] or lines[-1:]
-        why = said[0] if said else (self.ended or f"bwrap ended with exit code {self.proc.returncode}")
-        raise jail.IsolationError(jail.refusal(f"bubblewrap could not make the sandbox ({why[:300]})"))
+            return ""
 
     # -- the connection ------------------------------------------------------------------------
     def _remaining(self) -> float:
         return self.deadline - time.monotonic()
-
-    def _read_exact(self, n: int) -> bytearray:
-        """``n`` bytes of the reply pipe, read as they come (the buffer grows with what arrived, never ahead of it)."""
-        buf = bytearray()
-        while len(buf) < n:
-            wait = self._remaining()
-            if wait <= 0 or not select.select([self.rep_r], [], [], wait)[0]:
-                raise TimeoutError
-            b = os.read(self.rep_r, min(n - len(buf), 1 << 20))
-            if not b:
-                raise EOFError
-            buf += b
-        return buf
 
     def _timeout_text(self) -> str:
         return (f"stopped after {self.seconds:.1f} s: an endless loop, or far too slow (the time limit of one "
@@ -266,12 +185,12 @@ class StudentProcess:
     def _receive(self) -> tuple[dict, list] | None:
         """The next reply; None (and :attr:`ended` set) when the process ended, ran out of time or sent no reply."""
         try:
-            (n,) = struct.unpack("<Q", self._read_exact(8))
+            (n,) = struct.unpack("<Q", wire.read_exact(self.rep_r, 8, self.deadline))
             if n > wire.MAX_REPLY:
                 raise wire.WireError(f"a reply of {n} bytes, more than any exercise returns "
                                      f"(the limit is {wire.MAX_REPLY >> 20} MiB)")
             self.largest_reply = max(self.largest_reply, n)
-            data = self._read_exact(n)
+            data = wire.read_exact(self.rep_r, n, self.deadline)
             head, arrays = wire.unpack(data)
         except TimeoutError:
             self._end("timeout", self._timeout_text())
@@ -313,18 +232,12 @@ class StudentProcess:
         self.kill()
 
     def _send(self, head: dict, arrays: list) -> bool:
-        data = wire.pack(head, arrays)
-        view = memoryview(struct.pack("<Q", len(data)) + data)
         try:
-            while view:
-                wait = self._remaining()
-                if wait <= 0 or not select.select([], [self.req_w], [], wait)[1]:
-                    raise TimeoutError
-                view = view[os.write(self.req_w, view[: 1 << 16]):]
+            wire.write_frame(self.req_w, head, arrays, self.deadline)
         except TimeoutError:
             self._end("timeout", self._timeout_text())
             return False
-        except (BrokenPipeError, OSError):
+        except OSError:  # the process ended (a broken pipe)
             self._end_from_exit()
             return False
         return True
@@ -342,7 +255,7 @@ class StudentProcess:
         arrays: list = []
         callbacks: list = []
         head = {"op": "call", "h": handle, "args": wire.encode(tuple(args), arrays, callbacks),
-                "kwargs": wire.encode(dict(kwargs), arrays, callbacks), "rng": self._rng_out(arrays),
+                "kwargs": wire.encode(dict(kwargs), arrays, callbacks), "rng": wire.global_rng(arrays),
                 "grad": _grad_enabled()}
         if params:
             head["params"] = []
@@ -376,7 +289,10 @@ class StudentProcess:
             raise self._malformed(exc) from None
         for cb, a, k in replay:
             cb(*a, **k)  # the grader's callbacks, replayed in order after the call
-        self._rng_in(reply.get("rng"), out)
+        try:  # the global random states the student's call left, set here, as in a notebook (the checks test it)
+            wire.set_global_rng(reply.get("rng"), out)
+        except Exception:  # noqa: BLE001 - a malformed state changes nothing
+            pass
         self._generators_in(reply.get("gens"), out, args, kwargs)
         return value
 
@@ -406,23 +322,6 @@ class StudentProcess:
         return self._receive() if sent else None
 
     @staticmethod
-    def _rng_in(state, arrays: list) -> None:
-        """The global random states the student's call left, set here: as in a notebook, a function that seeds or
-        draws from np.random (or torch's global generator) changes its caller's state (the checks test that it does
-        not). A state that cannot be set is ignored."""
-        if not isinstance(state, dict):
-            return
-
-        try:
-            if state.get("np") is not None:
-                np.random.set_state(tuple(wire.decode(state["np"], arrays)))
-            torch = sys.modules.get("torch")
-            if torch is not None and state.get("torch") is not None:
-                torch.set_rng_state(wire.decode(state["torch"], arrays))
-        except Exception:  # noqa: BLE001 - a malformed state changes nothing
-            pass
-
-    @staticmethod
     def _generators_in(gens, arrays: list, args: tuple, kwargs: dict) -> None:
         """The states of the generator arguments after the student's call, set in the caller's generators: as in a
         notebook, an rng the function drew from has advanced (the checks test that the function draws from it)."""
@@ -438,14 +337,6 @@ class StudentProcess:
                     mine.set_state(theirs.get_state())
             except Exception:  # noqa: BLE001 - a malformed entry changes nothing
                 continue
-
-    @staticmethod
-    def _rng_out(arrays: list) -> dict:
-        out = {"np": wire.encode(list(np.random.get_state()), arrays)}
-        torch = sys.modules.get("torch")
-        if torch is not None:
-            out["torch"] = wire.encode(torch.get_rng_state(), arrays)
-        return out
 
     # -- the end ------------------------------------------------------------------------------------
     def kill(self) -> None:
@@ -463,7 +354,7 @@ class StudentProcess:
         if self.proc is not None and self.proc.poll() is None and not self.ended:
             try:
                 os.set_blocking(self.req_w, False)
-                os.write(self.req_w, struct.pack("<Q", len(b := wire.pack({"op": "bye"}, []))) + b)
+                wire.write_frame(self.req_w, {"op": "bye"})
             except OSError:
                 pass
             try:

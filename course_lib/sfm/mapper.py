@@ -60,7 +60,7 @@ import numpy as np
 from course_lib.conventions import camera_center
 from course_lib.exercises import call, caller
 from course_lib.sfm.initial_pair import H_INLIER_RATIO, InitialPair, calibrated_pose, pair_degeneracy
-from course_lib.sfm.mapper_ba import MapperBundleAdjustment
+from course_lib.sfm.mapper_ba import REFINE_FROM_IMAGES, MapperBundleAdjustment
 from course_lib.sfm.mapper_options import MapperOptions
 from course_lib.sfm.merging import carry, similarity_ransac
 from course_lib.sfm.reconstruction import Reconstruction, reprojection_error_matrix, triangulation_angles_deg
@@ -129,16 +129,20 @@ class IncrementalMapper(ImageRegistration, IncrementalTriangulator, MapperBundle
         options: :class:`MapperOptions`. rng: seeded ``numpy.random.Generator`` (PnP RANSAC draws from it).
         refine_intrinsics: refine the focal length and ``k1`` (``SIMPLE_RADIAL``) in the BAs of the
             whole model; :attr:`uv` then holds the undistorted pixels (where the pinhole ``K`` sees them).
+        refine_from_images: the BAs of the whole model refine the intrinsics from this many registered images
+            on (:data:`~course_lib.sfm.mapper_ba.REFINE_FROM_IMAGES`; more where ``K`` came from a converged BA of
+            an earlier mapping, which a few views would only move away from the truth).
     """
 
     def __init__(self, data, pairs: dict, track_uv: np.ndarray, K: np.ndarray, image_size, options: MapperOptions, rng,
-                 refine_intrinsics: bool = False):
+                 refine_intrinsics: bool = False, refine_from_images: int = REFINE_FROM_IMAGES):
         self.matches, self.names = data.matches, list(data.image_names)
         self.pairs, self.image_size, self.opts, self.rng = pairs, tuple(image_size), options, rng
         self.uv_raw = np.asarray(track_uv, float)
         self.T, self.M = self.uv_raw.shape[:2]
         self.visible = np.isfinite(self.uv_raw).all(axis=2)
         self.refine = bool(refine_intrinsics)
+        self.refine_from_images = int(refine_from_images)
         self.K0 = np.asarray(K, float)
         self.set_intrinsics(self.K0, 0.0)
         self.intrinsics_log: list[dict] = []

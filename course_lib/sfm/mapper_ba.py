@@ -18,11 +18,15 @@ from course_lib.sfm import lm
 from course_lib.sfm.bundle_adjustment import adjust
 from course_lib.sfm.observations import ObservationManager
 
-__all__ = ["MapperBundleAdjustment", "REFINE_FROM_IMAGES"]
+__all__ = ["MapperBundleAdjustment", "REFINE_FROM_IMAGES", "CONVERGED_BA_ITERATIONS", "CONVERGED_BA_FTOL"]
 
 #: Registered images from which the BAs of the whole model refine the intrinsics (two views
 #: hardly constrain the focal length).
 REFINE_FROM_IMAGES = 3
+#: Iteration cap and relative cost tolerance of :meth:`MapperBundleAdjustment.converge_intrinsics`: at a narrow
+#: field of view the focal length lies along a flat valley of the cost (it trades off against the depths), where
+#: the incremental BAs' 5 iterations move it 4-9 % a time and a tolerance of 1e-4 stops early.
+CONVERGED_BA_ITERATIONS, CONVERGED_BA_FTOL = 100, 1e-8
 
 
 class MapperBundleAdjustment(ObservationManager):
@@ -58,7 +62,7 @@ class MapperBundleAdjustment(ObservationManager):
         cams = np.flatnonzero(self.registered & (self.inlier[pts].any(axis=0) | (cameras if local else self.registered)))
         if len(pts) == 0 or len(cams) < 2:
             return {"skipped": "no points to adjust"}
-        if not local and self.refine and self.registered.sum() >= REFINE_FROM_IMAGES:
+        if not local and self.refine and self.registered.sum() >= self.refine_from_images:
             return self._adjust_with_intrinsics(cams, pts, loss, f_scale, max_iterations, ftol)
         if not local:
             uv = np.where(self.inlier[np.ix_(pts, cams)][..., None], self.uv[np.ix_(pts, cams)], np.nan)
@@ -157,6 +161,23 @@ class MapperBundleAdjustment(ObservationManager):
         K[0, 0] = K[1, 1] = f
         self.set_intrinsics(K, k1)
         return {"kind": "global", **res, "gauge": gauge, "intrinsics": entry}
+
+    def converge_intrinsics(self) -> dict:
+        """A BA of the whole model with the intrinsics, run until it converges, then filtering: the focal length the
+        registered images hold (:data:`CONVERGED_BA_ITERATIONS`, :data:`CONVERGED_BA_FTOL`; the incremental BAs stop
+        after ``ba_max_iterations`` and move it only part of the way).
+
+        Returns:
+            The intrinsics' row of the BA (``f``, ``k1``, ``accepted``: within ``max_focal_change`` of the prior, as
+            :meth:`_adjust_with_intrinsics` checks), with its ``seconds``; ``{}`` where the intrinsics are not refined
+            (yet).
+        """
+        o = self.opts
+        out = self.adjust_bundle(o.ba_loss, o.ba_f_scale, CONVERGED_BA_ITERATIONS, ftol=CONVERGED_BA_FTOL)
+        if "intrinsics" not in out:
+            return {}
+        self.filter_points()
+        return {**out["intrinsics"], "seconds": out.get("seconds")}
 
     def should_bundle(self) -> bool:
         """Whether the whole model is due a bundle adjustment (OpenSfM's ``ShouldBundle``): up to 6 images

@@ -125,8 +125,9 @@ class MapperOptions:
             refined and the focal length the first model has refined moves more than
             ``focal_restart_change`` (relative) from the one it started from, once it holds
             ``focal_restart_min_images`` images or at its end, the mapping starts again from the
-            refined focal length, at most ``focal_restarts`` times (0: never), so that a wrong prior
-            cannot lock in a wrong model (:class:`course_lib.sfm.pipeline._FocalWatch`). (COLMAP: none.)
+            refined focal length (the first time, from a BA of the whole model run to convergence), at most
+            ``focal_restarts`` times (0: never), so that a wrong prior cannot lock in a wrong model
+            (:class:`course_lib.sfm.pipeline._FocalWatch`). (COLMAP: none.)
         initial_pair: force the initial pair ``(i, j)`` (0-based) of the first model.
         verbose: print one line per stage.
     """

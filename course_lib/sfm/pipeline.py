@@ -54,9 +54,9 @@ return numbers; this module calls them in order, times them and records them in 
    BAs of the whole model): where its focal length is a guess (no EXIF), stage 1 first estimates it
    from the verified pairs' fundamental matrices (:mod:`course_lib.sfm.self_calibration`, option
    ``self_calibration``) and checks the pairs with that K. While the first model grows, where its
-   refined focal length moves more than ``focal_restart_change`` from the one it started from, the
-   mapping starts again from the refined value (:class:`_FocalWatch`, ``focal_restarts``), so a
-   wrong start cannot lock in a wrong model. ``report["self_calibration"]`` and
+   refined focal length moves more than ``focal_restart_change`` from the one it started from, a BA
+   run to convergence says where the images put it, and the mapping starts again from there
+   (:class:`_FocalWatch`, ``focal_restarts``), so a wrong start cannot lock in a wrong model. ``report["self_calibration"]`` and
    ``report["focal_restarts"]`` say what happened.
 
 P3 data quirks handled upstream by the reader (:mod:`course_lib.data.p3`): duplicate rows are
@@ -75,6 +75,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from course_lib.sfm.mapper import IncrementalMapper, MapperOptions
+from course_lib.sfm.mapper_ba import REFINE_FROM_IMAGES
 from course_lib.sfm.mapper_options import relaxed
 from course_lib.sfm.mapper_report import MapperReport
 from course_lib.sfm.self_calibration import focal_from_fundamentals
@@ -164,6 +165,11 @@ FOCAL_SETTLED = 0.02
 #: A refined focal length this many times (or this fraction of) the start restarts the mapping without waiting
 #: for it to settle: the start was plainly wrong, and a model grown on from it holds the focal length back.
 FOCAL_JUMP = 1.5
+#: A focal length that the converged BA (:meth:`~course_lib.sfm.mapper_ba.MapperBundleAdjustment.converge_intrinsics`)
+#: puts this far (relative) from the start restarts the mapping; nearer, the model grows on. At 8 images that BA's
+#: focal length scatters by 2-6 % on the narrow rings (f2k-ring-24: 1480-1573 px for 1536), so a 5 % rule restarted
+#: them again and again.
+FOCAL_CONVERGED_CHANGE = 0.1
 #: Stage 1's calibrated check is redone after a focal restart where the focal length moved more than this
 #: (relative) from the one it checked with (its 4 px Sampson threshold tolerates less).
 RECHECK_FOCAL_CHANGE = 0.1
@@ -223,13 +229,15 @@ def _map_with_focal_restarts(data, pairs: dict, tracks, K: np.ndarray, size, opt
     """
     restarts = report["focal_restarts"] = []
     f_checked, t_again = float(K[0, 0]), 0.0  # the focal length of stage 1's calibrated check
+    hold_until = REFINE_FROM_IMAGES  # a focal length from a converged BA is held until as many images hold it again
     while True:
         report["n_tracks"] = len(tracks.uv)
         tr = report["tracks"]
         if opts.verbose:
             print(f"{report['verification']}: {len(pairs)} pairs verified; {tr['verified_tracks']} tracks from {tr['verified_matches']} "
                   f"inlier matches ({tr['refused_links']} links refused: they joined two features of one image)")
-        mapper = IncrementalMapper(data, pairs, tracks.uv, K, size, opts, rng, refine_intrinsics=refine)
+        mapper = IncrementalMapper(data, pairs, tracks.uv, K, size, opts, rng, refine_intrinsics=refine,
+                                   refine_from_images=hold_until)
         watch = _FocalWatch(float(K[0, 0]), opts) if refine and len(restarts) < opts.focal_restarts else None
         t_try = time.perf_counter()
         try:
@@ -242,6 +250,7 @@ def _map_with_focal_restarts(data, pairs: dict, tracks, K: np.ndarray, size, opt
                       f"model grew ({moved.row['images']} images): starting again from {moved.row['to_px']:.1f} px")
             K = K.copy()
             K[0, 0] = K[1, 1] = moved.row["to_px"]
+            hold_until = max(REFINE_FROM_IMAGES, moved.row["images"]) if moved.row["converged"] else REFINE_FROM_IMAGES
             if (getattr(data, "two_view", None) is not None and opts.min_e_f_inlier_ratio > 0
                     and abs(np.log(K[0, 0] / f_checked)) > np.log(1.0 + RECHECK_FOCAL_CHANGE)):  # its calibrated check used K
                 t0 = time.perf_counter()
@@ -266,29 +275,51 @@ class _FocalWatch:
     A model grown from a focal length far from the true one is distorted from its initial pair on;
     the bundle adjustments move the focal length towards the truth as images come in, but the
     model they move is already bent (a ring around the building, started 80 % too long, ended
-    1.5 degrees off with the right focal length). So where the refined focal length moves more than
-    ``focal_restart_change`` from the one the model started from, once the model holds
-    ``focal_restart_min_images`` images (fewer hardly fix it; all of them in a smaller set) and the
-    focal length has settled (the last two refinements within :data:`FOCAL_SETTLED`: a model grown
-    from a wrong start moves it over many registrations, and a restart from half-way would start
-    from a value as wrong), or where it has moved :data:`FOCAL_JUMP` times away (the ring at 3x the guess, started
-    from 370 px for 2304: 942 px at 8 images, then held at 1058 px, under ``max_focal_change`` of the start, by a model
-    that went on to all 24 images; two such whole mappings were 13 of 15.5 s of ``sfm``), or at the model's end, the
-    mapping starts again from the refined value (at most ``focal_restarts`` times).
+    1.5 degrees off with the right focal length). So once the model holds ``focal_restart_min_images`` images (fewer
+    hardly fix it; all of them in a smaller set) and its refined focal length is more than ``focal_restart_change``
+    from the one it started from:
+
+    * where it has moved :data:`FOCAL_JUMP` times away (the ring at 3x the guess, started from 370 px for 2304: 942 px
+      at 8 images, then held at 1058 px, under ``max_focal_change`` of the start, by a model that went on to all 24
+      images), or has settled (the last two refinements within :data:`FOCAL_SETTLED`), or at the model's end, the
+      mapping starts again from it;
+    * where it is still moving, a BA of the whole model is run to convergence, once a mapping
+      (:meth:`~course_lib.sfm.mapper_ba.MapperBundleAdjustment.converge_intrinsics`): the incremental BAs' few
+      iterations move it only part of the way (f2k-ring-24: 1012 px at 8 images where the converged BA gives 1543,
+      the truth 1536; waiting for it to settle or reach 1.5x took three more restarts, 5.6 of 8.2 s of ``sfm``).
+      Where that focal length is more than :data:`FOCAL_CONVERGED_CHANGE` from the start, the mapping starts again
+      from it, and the new mapping holds it until it has as many images (a few views would move it away again:
+      1543 -> 1240 px at 8 images); nearer, the model grows on, and from then on only a move of more than
+      :data:`FOCAL_CONVERGED_CHANGE` restarts it.
+
+    At most ``focal_restarts`` restarts.
     """
 
     start_px: float
     opts: MapperOptions
+    converged: bool = False  # this mapping's converged BA is done
 
     def check(self, mapper: IncrementalMapper, at_end: bool = False) -> None:
         n, f = int(mapper.registered.sum()), float(mapper.K[0, 0])
-        if n < min(self.opts.focal_restart_min_images, mapper.M):  # a few views hardly fix it, also at the end
-            return
+        moved = abs(np.log(f / self.start_px))
+        if n < min(self.opts.focal_restart_min_images, mapper.M) or moved <= np.log1p(self.opts.focal_restart_change):
+            return  # a few views hardly fix it, also at the end
         fs = [e["f"] for e in mapper.intrinsics_log if e["accepted"]]
         settled = len(fs) >= 2 and abs(np.log(fs[-1] / fs[-2])) < np.log1p(FOCAL_SETTLED)
-        moved = abs(np.log(f / self.start_px))
-        if (settled or moved > np.log(FOCAL_JUMP) or at_end) and moved > np.log1p(self.opts.focal_restart_change):
-            raise _FocalMoved({"from_px": round(self.start_px, 3), "to_px": round(f, 3), "images": n, "at_end": bool(at_end)})
+        # after the converged BA, a nearer focal length is within its scatter: the model grows on
+        change = np.log1p(FOCAL_CONVERGED_CHANGE if self.converged else self.opts.focal_restart_change)
+        if moved > np.log(FOCAL_JUMP) or ((settled or at_end) and moved > change):
+            raise _FocalMoved(self._row(f, n, at_end, converged=False))
+        if not self.converged:  # still moving: where do the images put it?
+            self.converged = True
+            row = mapper.converge_intrinsics()
+            if row.get("accepted") and abs(np.log(row["f"] / self.start_px)) > np.log1p(FOCAL_CONVERGED_CHANGE):
+                raise _FocalMoved(self._row(row["f"], n, at_end, converged=True))
+
+    def _row(self, f: float, n: int, at_end: bool, converged: bool) -> dict:
+        """The row of a restart in ``report["focal_restarts"]``."""
+        return {"from_px": round(self.start_px, 3), "to_px": round(float(f), 3), "images": n, "at_end": bool(at_end),
+                "converged": converged}
 
 
 def _build_models(mapper: IncrementalMapper, rgb: np.ndarray, pairs: dict, watch: _FocalWatch | None = None) -> tuple[list, list]:

@@ -17,7 +17,6 @@
 from __future__ import annotations
 
 import ast
-import tempfile
 import textwrap
 from pathlib import Path
 
@@ -223,7 +222,7 @@ def test_endless_call_backs_are_stopped_at_the_cap(iso, monkeypatch):
         assert proc.event == "limit" and proc.oracle.calls == 300
 
 
-def test_call_backs_count_on_the_exercises_clock():
+def test_call_backs_count_on_the_exercises_clock(tmp_path):
     """Reference RANSAC runs without end, all on call-backs: the exercise is stopped at its budget of 1 s (one
     clock: the reference's time on the student's call-backs is the exercise's), however fast the machine, and
     the feedback says how long it really took."""
@@ -237,7 +236,7 @@ def test_call_backs_count_on_the_exercises_clock():
             "        k += 1\n")
     steps = {"ransac_fundamental": "course_lib.sfm.fundamental:ransac_fundamental"}
     x1 = np.random.default_rng(3).normal(size=(60, 2)) * 100
-    iso = Isolation.for_grading(readable_library(Path(tempfile.mkdtemp(prefix="oracle-kit-"))), [], NOTEBOOKS_DIR)
+    iso = Isolation.for_grading(readable_library(tmp_path), [], NOTEBOOKS_DIR)
     with StudentProcess(iso, code, "pnp_ransac", None, 1.0, oracle=Oracle("pnp_ransac", steps)) as proc:
         with pytest.raises(StudentProcessEnded, match=r"stopped after \d+\.\d s"):
             RemoteFunction(proc, "pnp_ransac")(x1, x1[::-1] + 1.0)

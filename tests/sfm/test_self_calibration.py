@@ -122,22 +122,95 @@ def test_the_options_turn_it_off(tmp_path):
         run_sfm(data, np.random.default_rng(0), self_calibration="maybe")
 
 
+def _watched_mapper(f_log, converged_f=None, n=8, accepted=True):
+    """A stand-in for the mapper as :class:`_FocalWatch` sees it: ``n`` images registered, the accepted focal lengths
+    ``f_log`` of its BAs, and ``converge_intrinsics`` giving ``converged_f`` (None: the focal length stays), ``accepted``
+    or not (outside ``max_focal_change``: the focal length stays)."""
+    from types import SimpleNamespace
+
+    mapper = SimpleNamespace(registered=np.ones(n, bool), M=24, K=np.diag([f_log[-1], f_log[-1], 1.0]),
+                             intrinsics_log=[{"f": f, "accepted": True} for f in f_log], converged=[])
+
+    def converge_intrinsics():
+        f = f_log[-1] if converged_f is None else converged_f
+        mapper.converged.append(f)
+        if accepted:
+            mapper.K = np.diag([f, f, 1.0])
+        mapper.intrinsics_log.append({"f": f, "accepted": accepted})
+        return {"f": f, "accepted": accepted}
+
+    mapper.converge_intrinsics = converge_intrinsics
+    return mapper
+
+
 @pytest.mark.parametrize("f_log, restarts", [([500, 700, 900], True), ([500, 600, 690], False), ([600, 680, 690], True)],
                          ids=["far-moving", "near-moving", "near-settled"])
 def test_a_focal_length_far_from_its_start_restarts_before_it_settles(f_log, restarts):
-    """A start 1.5x or more off restarts the mapping at once (the model grown on from it holds f back); a nearer one
-    waits until it settles."""
-    from types import SimpleNamespace
-
+    """A start 1.5x or more off restarts the mapping at once (the model grown on from it holds f back), without the
+    converged BA; a nearer one waits until it settles, or until the converged BA moves it (here it is rejected: beyond
+    ``max_focal_change`` of the start)."""
     from course_lib.sfm.mapper_options import MapperOptions
     from course_lib.sfm.pipeline import FOCAL_JUMP, _FocalMoved, _FocalWatch
 
     assert 900 / 500 > FOCAL_JUMP > 690 / 500
-    mapper = SimpleNamespace(registered=np.ones(8, bool), M=24, K=np.diag([f_log[-1], f_log[-1], 1.0]),
-                             intrinsics_log=[{"f": f, "accepted": True} for f in f_log])
     watch = _FocalWatch(500.0, MapperOptions())
+    mapper = _watched_mapper(f_log, 3000.0, accepted=False)
     if restarts:
-        with pytest.raises(_FocalMoved):
+        with pytest.raises(_FocalMoved) as moved:
             watch.check(mapper)
+        assert moved.value.row["converged"] is False
     else:
         watch.check(mapper)
+
+
+@pytest.mark.parametrize("f_log, converged_f, restart_to", [
+    ([768, 900, 1012], 1543.0, 1543.0),  # f2k-ring-24: the incremental BAs' 1012 px, the converged BA's 1543 (truth 1536)
+    ([1500, 1330, 1400], 1450.0, None),  # 3 % off: within the converged BA's scatter, the model grows on
+    ([1500, 1330, 1400], 1380.0, None),  # 8 % off: still within FOCAL_CONVERGED_CHANGE
+    ([1500, 1200, 1300], 1300.0, 1300.0),  # 14 % off: restarts from it
+], ids=["drifting", "near", "within-scatter", "far"])
+def test_a_drifting_focal_length_is_converged_before_it_is_judged(f_log, converged_f, restart_to):
+    """The first time the focal length leaves its start, a BA run to convergence says where the images put it; the
+    mapping restarts from there only where that is more than FOCAL_CONVERGED_CHANGE away, and the converged BA runs
+    once a mapping."""
+    from course_lib.sfm.mapper_options import MapperOptions
+    from course_lib.sfm.pipeline import FOCAL_CONVERGED_CHANGE, _FocalMoved, _FocalWatch
+
+    assert np.log(1500 / 1380) < np.log1p(FOCAL_CONVERGED_CHANGE) < np.log(1500 / 1300)
+    watch = _FocalWatch(float(f_log[0]), MapperOptions())
+    mapper = _watched_mapper(f_log, converged_f)
+    if restart_to is None:
+        watch.check(mapper)
+        watch.check(mapper)
+    else:
+        with pytest.raises(_FocalMoved) as moved:
+            watch.check(mapper)
+        assert moved.value.row["to_px"] == pytest.approx(restart_to) and moved.value.row["converged"] is True
+    assert mapper.converged == [converged_f]
+
+
+def test_too_few_images_are_not_judged():
+    from course_lib.sfm.mapper_options import MapperOptions
+    from course_lib.sfm.pipeline import _FocalWatch
+
+    mapper = _watched_mapper([768, 1012], 1543.0, n=7)
+    _FocalWatch(768.0, MapperOptions()).check(mapper)
+    assert mapper.converged == []
+
+
+def test_a_held_focal_length_is_refined_from_the_images_asked(tmp_path):
+    """A mapping restarted from a converged BA's focal length holds it until as many images hold it again."""
+    from course_lib.sfm.mapper import IncrementalMapper
+    from course_lib.sfm.mapper_options import MapperOptions
+    from course_lib.sfm.pipeline import _build_models
+    from course_lib.sfm.reconstruction import image_size_of
+    from course_lib.sfm.tracks import verified_pairs_and_tracks
+
+    _, data, _ = _ring(tmp_path, 2.0, 0.0)
+    rng = np.random.default_rng(0)
+    opts = MapperOptions()
+    pairs, tracks = verified_pairs_and_tracks(data, rng, opts.f_threshold_px, opts.min_pair_matches, {}, 0.0)
+    mapper = IncrementalMapper(data, pairs, tracks.uv, data.K, image_size_of(data), opts, rng, refine_intrinsics=True,
+                               refine_from_images=6)
+    _build_models(mapper, tracks.rgb, pairs)
+    assert mapper.intrinsics_log and min(e["images"] for e in mapper.intrinsics_log) == 6

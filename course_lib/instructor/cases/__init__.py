@@ -23,7 +23,7 @@ import numpy as np
 
 from course_lib.paths import EMBEDDED_SFM
 
-__all__ = ["builds", "builders", "CASE_MODULES", "STEP_FIXTURES"]
+__all__ = ["builds", "builders", "store", "CASE_MODULES", "STEP_FIXTURES"]
 
 #: The case modules, in build order (a later fixture may read an earlier one).
 CASE_MODULES = (
@@ -83,3 +83,8 @@ def builders(modules: list[str] | None = None, steps: bool = True) -> dict[str, 
     wanted = None if modules is None else {m.rsplit(".", 1)[-1] for m in modules}
     return {k: fn for k, fn in _BUILDERS.items() if (steps or k not in STEP_FIXTURES)
             and (wanted is None or CHECK_MODULE[k].rsplit(".", 1)[-1] in wanted)}
+
+
+def store(out: dict[str, np.ndarray], prefix: str, **arrays) -> None:
+    """Store one case's arrays in a fixture under its prefix: ``out[f"{prefix}_{name}"] = array`` for each keyword."""
+    out.update({f"{prefix}_{k}": v for k, v in arrays.items()})

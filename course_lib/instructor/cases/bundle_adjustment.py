@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from course_lib.checks.bundle_adjustment import FIXTURE, RESIDUAL_VARIANTS
 from course_lib.data.synthetic import make_scene
-from course_lib.instructor.cases import builds
+from course_lib.instructor.cases import builds, store
 from course_lib.paths import EMBEDDED_SFM
 from course_lib.sfm import bundle_adjustment as ba
 from course_lib.sfm import visibility as vis
@@ -88,29 +88,28 @@ def _residual_cases(out, ba, vis) -> None:
     obs = vis.observation_list(sc.uv)
     p = ba.pack_params(R0, t0, X0)
     args = (p, 4, 40, obs.camera_idx, obs.point_idx, obs.uv, sc.K)
-    out.update({"res_syn_params": p, "res_syn_M": np.array(4), "res_syn_N": np.array(40),
-                "res_syn_camera_idx": obs.camera_idx, "res_syn_point_idx": obs.point_idx, "res_syn_uv": obs.uv,
-                "res_syn_K": sc.K, "res_syn_expected": ba.reprojection_residuals(*args)})
-    out.update({f"res_syn_var_{name}": residual_variant(name, *args) for name in RESIDUAL_VARIANTS})
+    store(out, "res_syn", params=p, M=np.array(4), N=np.array(40), camera_idx=obs.camera_idx,
+          point_idx=obs.point_idx, uv=obs.uv, K=sc.K, expected=ba.reprojection_residuals(*args))
+    store(out, "res_syn_var", **{name: residual_variant(name, *args) for name in RESIDUAL_VARIANTS})
     # the true parameters and the noiseless pixels: residuals vanish
     obs_t = vis.observation_list(sc.uv_true)
-    out.update({"res_true_params": ba.pack_params(sc.R_cw, sc.t_cw, sc.X), "res_true_camera_idx": obs_t.camera_idx,
-                "res_true_point_idx": obs_t.point_idx, "res_true_uv": obs_t.uv})
+    store(out, "res_true", params=ba.pack_params(sc.R_cw, sc.t_cw, sc.X), camera_idx=obs_t.camera_idx,
+          point_idx=obs_t.point_idx, uv=obs_t.uv)
 
 
 def _sparsity_cases(out, ba, vis) -> None:
     sc = _scene(54, 3, 12, 0.5, 0.0)
     obs = vis.observation_list(sc.uv)
     S = ba.jacobian_sparsity(3, 12, obs.camera_idx, obs.point_idx)
-    out.update({"sp_M": np.array(3), "sp_N": np.array(12), "sp_camera_idx": obs.camera_idx,
-                "sp_point_idx": obs.point_idx, "sp_expected": S.toarray().astype(bool)})
+    store(out, "sp", M=np.array(3), N=np.array(12), camera_idx=obs.camera_idx, point_idx=obs.point_idx,
+          expected=S.toarray().astype(bool))
     # the observations in random order (not point by point), more cameras than in the first case
     sc = _scene(57, 5, 9, 0.5, 0.0)
     obs = vis.observation_list(sc.uv)
     order = np.random.default_rng(58).permutation(len(obs.camera_idx))
     cam, pt = obs.camera_idx[order], obs.point_idx[order]
-    out.update({"sp2_M": np.array(5), "sp2_N": np.array(9), "sp2_camera_idx": cam, "sp2_point_idx": pt,
-                "sp2_expected": ba.jacobian_sparsity(5, 9, cam, pt).toarray().astype(bool)})
+    store(out, "sp2", M=np.array(5), N=np.array(9), camera_idx=cam, point_idx=pt,
+          expected=ba.jacobian_sparsity(5, 9, cam, pt).toarray().astype(bool))
 
 
 def _ba_case(out, ba) -> None:
@@ -118,10 +117,9 @@ def _ba_case(out, ba) -> None:
     sc = _scene(55, 5, 150, 0.5, 0.0)
     R0, t0, X0 = _perturb(sc, 56, rot_deg=3.0, trans=0.3, pts=0.3)
     res = ba.bundle_adjust(sc.K, R0, t0, X0, sc.uv, ftol=1e-14, xtol=1e-14, max_iterations=200)  # the optimum
-    out.update({"ba_K": sc.K, "ba_R0": R0, "ba_t0": t0, "ba_X0": X0, "ba_uv": sc.uv, "ba_R_true": sc.R_cw,
-                "ba_t_true": sc.t_cw, "ba_X_true": sc.X, "ba_R": res.R_cw, "ba_t": res.t_cw, "ba_X": res.X,
-                "ba_final_cost": np.array(0.5 * float(np.sum(res.final_errors**2))),
-                "ba_initial_cost": np.array(0.5 * float(np.sum(res.initial_errors**2)))})
+    store(out, "ba", K=sc.K, R0=R0, t0=t0, X0=X0, uv=sc.uv, R_true=sc.R_cw, t_true=sc.t_cw, X_true=sc.X, R=res.R_cw,
+          t=res.t_cw, X=res.X, final_cost=np.array(0.5 * float(np.sum(res.final_errors**2))),
+          initial_cost=np.array(0.5 * float(np.sum(res.initial_errors**2))))
     # the minima of the robust losses a student may pick (their plain cost 0.5 Σ r², for the check to name them)
     for loss in ("soft_l1", "huber", "cauchy"):
         rob = ba.bundle_adjust(sc.K, R0, t0, X0, sc.uv, loss=loss, ftol=1e-14, xtol=1e-14, max_iterations=200)
@@ -152,7 +150,7 @@ def _build() -> dict[str, np.ndarray]:
         obs = vis.observation_list(st["uv"])
         M, N = len(st["R_cw"]), len(st["X"])
         p = ba.pack_params(st["R_cw"], st["t_cw"], st["X"])
-        out.update({"emb_params": p, "emb_M": np.array(M), "emb_N": np.array(N), "emb_camera_idx": obs.camera_idx,
-                    "emb_point_idx": obs.point_idx, "emb_uv": obs.uv, "emb_K": st["K"],
-                    "emb_expected": ba.reprojection_residuals(p, M, N, obs.camera_idx, obs.point_idx, obs.uv, st["K"])})
+        store(out, "emb", params=p, M=np.array(M), N=np.array(N), camera_idx=obs.camera_idx, point_idx=obs.point_idx,
+              uv=obs.uv, K=st["K"],
+              expected=ba.reprojection_residuals(p, M, N, obs.camera_idx, obs.point_idx, obs.uv, st["K"]))
     return out

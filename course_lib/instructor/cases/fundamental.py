@@ -2,7 +2,7 @@
 
 Built from :mod:`course_lib.sfm.fundamental`: the fixture ``fundamental`` holds the check cases
 (synthetic pairs, a random subset of the embedded pair's matches, what the classic mistakes give
-on them: :mod:`course_lib.instructor.mistakes.fundamental`); the step fixture ``fundamental_step``
+on them: :func:`eight_point_variants`, :func:`sampson_variants`); the step fixture ``fundamental_step``
 holds the reference F and inliers of the embedded pair that notebook 02 starts from
 (:func:`course_lib.starting_points.two_view_step`). The checks are in :mod:`course_lib.checks.fundamental`.
 
@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 
 from course_lib.checks.fundamental import CHECK_THRESHOLD_PX, FIXTURE, TIGHT_THRESHOLD_PX
+from course_lib.conventions import fix_sign, to_homogeneous
 from course_lib.data.p3 import read_p3
 from course_lib.data.synthetic import make_scene
-from course_lib.instructor.cases import builds
-from course_lib.instructor.mistakes.fundamental import eight_point_variants, sampson_variants
+from course_lib.instructor.cases import builds, store
 from course_lib.paths import EMBEDDED_SFM
 from course_lib.sfm import fundamental as ref
 from course_lib.starting_points import STEP_PAIR, STEP_SEED, STEP_THRESHOLD_PX
@@ -88,21 +88,16 @@ def _scenes() -> dict[str, tuple[np.ndarray, ...]]:
 
 def _eight_point_case(out: dict, name: str, x1: np.ndarray, x2: np.ndarray, xt1=None, xt2=None) -> None:
     p = f"ep_{name}"
-    out[f"{p}_x1"], out[f"{p}_x2"] = x1, x2
+    store(out, p, x1=x1, x2=x2)
     if xt1 is not None and name != "noiseless":  # the truth that the check measures F against
-        out[f"{p}_x1_true"], out[f"{p}_x2_true"] = xt1, xt2
-    out[f"{p}_F"] = ref.eight_point(x1, x2)
-    out[f"{p}_T1"], out[f"{p}_T2"] = ref.normalize_points(x1)[1], ref.normalize_points(x2)[1]
-    for key, F in eight_point_variants(x1, x2).items():
-        out[f"{p}_mis_{key}"] = F
+        store(out, p, x1_true=xt1, x2_true=xt2)
+    store(out, p, F=ref.eight_point(x1, x2), T1=ref.normalize_points(x1)[1], T2=ref.normalize_points(x2)[1])
+    store(out, f"{p}_mis", **eight_point_variants(x1, x2))
 
 
 def _sampson_case(out: dict, name: str, F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> None:
-    p = f"sd_{name}"
-    out[f"{p}_F"], out[f"{p}_x1"], out[f"{p}_x2"] = F, x1, x2
-    out[f"{p}_d"] = ref.sampson_distance(F, x1, x2)
-    for key, d in sampson_variants(F, x1, x2).items():
-        out[f"{p}_mis_{key}"] = d
+    store(out, f"sd_{name}", F=F, x1=x1, x2=x2, d=ref.sampson_distance(F, x1, x2))
+    store(out, f"sd_{name}_mis", **sampson_variants(F, x1, x2))
 
 
 @builds(FIXTURE)
@@ -130,14 +125,13 @@ def _build() -> dict[str, np.ndarray]:
 
     # RANSAC on the pair with outliers, as the check calls it (seed 0 there: the check's own generator)
     res = ref.ransac_fundamental(x1, x2, np.random.default_rng(0), threshold_px=CHECK_THRESHOLD_PX)
-    out.update({"rs_x1": x1, "rs_x2": x2, "rs_true_inliers": inl, "rs_x1_true": xt1, "rs_x2_true": xt2,
-                "rs_F": res.F, "rs_inliers": res.inliers, "rs_n_iters": np.array(res.n_iters)})
+    store(out, "rs", x1=x1, x2=x2, true_inliers=inl, x1_true=xt1, x2_true=xt2, F=res.F, inliers=res.inliers,
+          n_iters=np.array(res.n_iters))
 
     # RANSAC without outliers and a wide threshold: only a refit F is precise
     x1, x2, _, xt1, xt2 = scenes["refit"]
     res = ref.ransac_fundamental(x1, x2, np.random.default_rng(44), threshold_px=REFIT_THRESHOLD_PX)
-    out.update({"rf_x1": x1, "rf_x2": x2, "rf_x1_true": xt1, "rf_x2_true": xt2, "rf_F": res.F,
-                "rf_threshold_px": np.array(REFIT_THRESHOLD_PX)})
+    store(out, "rf", x1=x1, x2=x2, x1_true=xt1, x2_true=xt2, F=res.F, threshold_px=np.array(REFIT_THRESHOLD_PX))
     # the same pair at a threshold below 1 px (the check calls it with seed 0)
     out["rf_tight_F"] = ref.ransac_fundamental(x1, x2, np.random.default_rng(0), threshold_px=TIGHT_THRESHOLD_PX).F
 
@@ -147,8 +141,7 @@ def _build() -> dict[str, np.ndarray]:
         keep = random_subset(len(x1), 41)
         x1, x2 = x1[keep], x2[keep]
         res = ref.ransac_fundamental(x1, x2, np.random.default_rng(42), threshold_px=STEP_THRESHOLD_PX)
-        out.update({"rb_x1": x1, "rb_x2": x2, "rb_F": res.F, "rb_inliers": res.inliers,
-                    "rb_threshold_px": np.array(STEP_THRESHOLD_PX)})
+        store(out, "rb", x1=x1, x2=x2, F=res.F, inliers=res.inliers, threshold_px=np.array(STEP_THRESHOLD_PX))
         _eight_point_case(out, "building", x1[res.inliers], x2[res.inliers])
         cases.append("building")
         # Sampson with an F of another scale and sign than unit norm
@@ -158,3 +151,70 @@ def _build() -> dict[str, np.ndarray]:
     out["cases"] = np.array(cases)
     out["sd_cases"] = np.array(sd_cases)
     return out
+
+
+# --------------------------------------------------------------------------- what the classic mistakes give
+# (stored with the cases, keyed as the check module's sentences are: the shipped checks hold no implementation)
+
+
+def _solve(a: np.ndarray, b: np.ndarray, rank2: bool = True) -> np.ndarray:
+    """The 8-point null vector of ``x_bᵀ F x_a = 0`` (points as given), optionally of rank 2."""
+    u1, v1 = a.T
+    u2, v2 = b.T
+    A = np.stack([u2 * u1, u2 * v1, u2, v2 * u1, v2 * v1, v2, u1, v1, np.ones_like(u1)], axis=1)
+    F = np.linalg.svd(A)[2][-1].reshape(3, 3)
+    if rank2:
+        U, s, Vt = np.linalg.svd(F)
+        F = U @ np.diag([s[0], s[1], 0.0]) @ Vt
+    return F
+
+
+def _unit(F: np.ndarray) -> np.ndarray:
+    """Unit Frobenius norm, largest-magnitude entry positive (the reference's convention: the SVD's sign
+    of a null vector differs between CPUs)."""
+    return fix_sign(F / np.linalg.norm(F))
+
+
+def eight_point_variants(x1: np.ndarray, x2: np.ndarray) -> dict[str, np.ndarray]:
+    """F (3, 3) of the classic 8-point mistakes on matches ``x1, x2 (N, 2)``."""
+    a, T1 = ref.normalize_points(x1)
+    b, T2 = ref.normalize_points(x2)
+    Fn = _solve(a, b)
+    return {
+        "transposed": _unit(T1.T @ _solve(b, a) @ T2),
+        "unnormalized": _unit(_solve(x1, x2)),
+        "no_rank2": _unit(T2.T @ _solve(a, b, rank2=False) @ T1),
+        "not_denormalized": _unit(Fn),
+        "denormalized_swapped": _unit(T1.T @ Fn @ T2),
+        "denormalized_inverse": _unit(np.linalg.inv(T2).T @ Fn @ np.linalg.inv(T1)),
+        "denormalized_no_transpose": _unit(T2 @ Fn @ T1),
+    }
+
+
+def sampson_variants(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> dict[str, np.ndarray]:
+    """Distances (N,) of the classic Sampson-distance mistakes for ``F`` and matches ``x1, x2 (N, 2)``."""
+    h1, h2 = to_homogeneous(x1), to_homogeneous(x2)
+    l2, l1 = h1 @ F.T, h2 @ F  # epipolar lines in image 2 and in image 1
+    e = np.sum(h2 * l2, axis=1)
+    g2 = l2[:, 0] ** 2 + l2[:, 1] ** 2 + l1[:, 0] ** 2 + l1[:, 1] ** 2
+    d = np.abs(e) / np.sqrt(g2)
+    d2 = np.abs(e) / np.hypot(l2[:, 0], l2[:, 1])  # x2 to the line F x1
+    d1 = np.abs(e) / np.hypot(l1[:, 0], l1[:, 1])  # x1 to the line Fᵀ x2
+    wrong_l1 = h2 @ F.T  # F x2 in place of Fᵀ x2
+    return {
+        "squared": d**2,
+        "algebraic": np.abs(e),
+        "algebraic_unit": np.abs(e) / np.linalg.norm(F),
+        "signed": e / np.sqrt(g2),
+        "one_sided_2": d2,
+        "one_sided_1": d1,
+        "symmetric_sum": d1 + d2,
+        "symmetric_mean": (d1 + d2) / 2,
+        "symmetric_rms": np.sqrt((d1**2 + d2**2) / 2),
+        "symmetric_root": np.sqrt(d1**2 + d2**2),
+        "symmetric_squared": d1**2 + d2**2,
+        "transposed": ref.sampson_distance(F.T, x1, x2),
+        "no_sqrt": np.abs(e) / g2,
+        "wrong_gradient": np.abs(e) / np.sqrt(l2[:, 0] ** 2 + l2[:, 1] ** 2 + wrong_l1[:, 0] ** 2 + wrong_l1[:, 1] ** 2),
+        "pixels_not_homogeneous_1": np.abs(e) / np.sqrt(g2 + l2[:, 2] ** 2 + l1[:, 2] ** 2),
+    }

@@ -4,7 +4,7 @@ Built from :mod:`course_lib.nerf.rays` and :mod:`course_lib.nerf.encoding` (fixt
 the checks are in :mod:`course_lib.checks.nerf_data`. Every camera, depth range, point and
 generator seed is drawn from seeded generators (salted for the hidden cases), and the results of the
 classic mistakes on each case are stored next to the reference's
-(:mod:`course_lib.instructor.cases.nerf_variants`).
+(:func:`encoding_variant`).
 """
 
 from __future__ import annotations
@@ -12,8 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib.checks.nerf_data import ENCODING_CASES, FIXTURE, RAY_CASES, as_tensor
-from course_lib.instructor.cases import builds
-from course_lib.instructor.cases.nerf_variants import ENCODING_VARIANTS, encoding_variant
+from course_lib.instructor.cases import builds, store
 from course_lib.nerf import encoding, rays
 
 
@@ -68,10 +67,8 @@ def _rays(out: dict, g: np.random.Generator) -> None:
         W = H + int(g.integers(1, 4))
         K, c2w = _camera(g, H, W, 2.0 if name == "tiny" else 9.0)
         o, d = rays.get_rays(H, W, as_tensor(K), as_tensor(c2w))
-        out[f"rays_{name}_HW"] = np.array([H, W])
-        out[f"rays_{name}_K"] = K.astype(np.float32)
-        out[f"rays_{name}_c2w"] = c2w.astype(np.float32)
-        out[f"rays_{name}_o"], out[f"rays_{name}_d"] = o.numpy(), d.numpy()
+        store(out, f"rays_{name}", HW=np.array([H, W]), K=K.astype(np.float32), c2w=c2w.astype(np.float32), o=o.numpy(),
+              d=d.numpy())
         K32, c2w32 = out[f"rays_{name}_K"].astype(float), out[f"rays_{name}_c2w"].astype(float)
         for label, v in _ray_mistakes(H, W, K32, c2w32, d.numpy().astype(float)).items():
             out[f"rays_{name}_d__{label}"] = v.astype(np.float32)
@@ -153,3 +150,47 @@ def _build() -> dict[str, np.ndarray]:
     _queries(out, g)
     _encodings(out, g)
     return out
+
+
+# --------------------------------------------------------------------------- what the classic mistakes give
+# (stored with the cases, keyed as the check module's sentences are: the shipped checks hold no implementation)
+
+
+#: Encoding mistakes stored per case: label -> keyword arguments of :func:`encoding_variant`.
+ENCODING_VARIANTS = {
+    "no_identity": {"include_input": False},
+    "extra_identity": {"include_input": True},
+    "no_pi": {"pi": False},
+    "cos_first": {"order": "freq_cos"},
+    "blocks": {"order": "blocks"},
+    "coord": {"order": "coord"},
+    "from1": {"freqs": "pow2_from1"},
+    "linear": {"freqs": "linear"},
+    "no_pi_blocks": {"pi": False, "order": "blocks"},
+    "no_identity_no_pi": {"include_input": False, "pi": False},
+    "half_angle": {"freqs": "pow2_half"},
+}
+
+
+def encoding_variant(x: np.ndarray, L: int, include_input: bool = True, pi: bool = True,
+                     order: str = "freq", freqs: str = "pow2") -> np.ndarray:
+    """One way of writing the positional encoding of ``x (..., D)`` with ``L`` frequencies.
+
+    order: "freq" (the kit's: sin and cos of each frequency side by side), "freq_cos" (cos first),
+    "blocks" (all sines, then all cosines), "coord" (grouped by coordinate).
+    freqs: "pow2" (2^k, k = 0..L-1), "pow2_from1" (k = 1..L), "linear" (k + 1), "pow2_half" (2^k / 2).
+    """
+    x = np.asarray(x, float)
+    k = np.arange(L, dtype=float)
+    fr = {"pow2": 2.0 ** k, "pow2_from1": 2.0 ** (k + 1), "linear": k + 1.0, "pow2_half": 2.0 ** (k - 1)}[freqs]
+    xf = x[..., None, :] * (fr * (np.pi if pi else 1.0))[:, None]  # (..., L, D)
+    s, co = np.sin(xf), np.cos(xf)
+    if order == "freq":
+        parts = np.stack([s, co], axis=-2).reshape(*x.shape[:-1], -1)
+    elif order == "freq_cos":
+        parts = np.stack([co, s], axis=-2).reshape(*x.shape[:-1], -1)
+    elif order == "blocks":
+        parts = np.concatenate([s.reshape(*x.shape[:-1], -1), co.reshape(*x.shape[:-1], -1)], axis=-1)
+    else:  # coord: for each coordinate, its sines and cosines
+        parts = np.concatenate([np.swapaxes(s, -1, -2), np.swapaxes(co, -1, -2)], axis=-1).reshape(*x.shape[:-1], -1)
+    return np.concatenate([x, parts], axis=-1) if include_input else parts

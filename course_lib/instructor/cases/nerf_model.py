@@ -11,8 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib.checks.nerf_model import CONFIG_NAMES, FIXTURE, config_kwargs, copy_probe_weights
-from course_lib.instructor.cases import builds
-from course_lib.instructor.cases.nerf_variants import nerf_variants
+from course_lib.instructor.cases import builds, store
 from course_lib.nerf.encoding import positional_encoding
 from course_lib.nerf.model import NeRF
 
@@ -63,9 +62,7 @@ def _build() -> dict[str, np.ndarray]:
         with torch.no_grad():
             rgb, sigma = m(P, Dv)
             raw = m.sigma_head(m.trunk_features(P))[..., 0]
-        out[f"{name}_rgb"], out[f"{name}_sigma"], out[f"{name}_sigma_raw"] = rgb.numpy(), sigma.numpy(), raw.numpy()
-        for k, v in nerf_variants(m, P, Dv).items():
-            out[f"{name}_{k}"] = v
+        store(out, name, rgb=rgb.numpy(), sigma=sigma.numpy(), sigma_raw=raw.numpy(), **nerf_variants(m, P, Dv))
     # the reference encoding of every point and direction the check sends (NeRF is graded on its own)
     rows = np.unique(np.concatenate([pts.reshape(-1, 3), dirs.reshape(-1, 3)]), axis=0)
     out["enc_rows"] = rows
@@ -75,3 +72,37 @@ def _build() -> dict[str, np.ndarray]:
     out["psnr_mse"] = mse
     out["psnr_db"] = -10.0 * np.log10(np.asarray(mse, float))  # PSNR of images in [0, 1]
     return out
+
+
+# --------------------------------------------------------------------------- what the classic mistakes give
+# (stored with the cases, keyed as the check module's sentences are: the shipped checks hold no implementation)
+
+
+def nerf_variants(model, pts, dirs) -> dict[str, np.ndarray]:
+    """Outputs of the reference network ``model`` (weights as they are) with one wire changed.
+
+    Returns ``sigma_no_trunk_relu`` (no ReLU after the trunk layers) and ``rgb_feature_relu`` (a
+    ReLU on the feature layer), for the points ``pts (..., 3)`` and directions ``dirs (..., 3)``.
+    """
+    import torch
+    from torch.nn import functional as F
+
+    with torch.no_grad():
+        x = positional_encoding(pts, model.pos_freqs)
+        e = positional_encoding(dirs, model.dir_freqs)
+        out = {}
+        for relu_trunk, relu_feature in ((False, False), (True, True)):
+            h = x
+            for i, layer in enumerate(model.trunk):
+                h = F.relu(layer(h)) if relu_trunk else layer(h)
+                if i in model.skips:
+                    h = torch.cat([x, h], dim=-1)
+            sigma = F.relu(model.sigma_head(h)[..., 0])
+            feat = model.feature(h)
+            feat = F.relu(feat) if relu_feature else feat
+            rgb = torch.sigmoid(model.rgb_head(F.relu(model.view_layer(torch.cat([feat, e], dim=-1)))))
+            if not relu_trunk:
+                out["sigma_no_trunk_relu"] = sigma.numpy()
+            else:
+                out["rgb_feature_relu"] = rgb.numpy()
+        return out

@@ -3,7 +3,7 @@
 Built from :func:`course_lib.nerf.render.volume_render` (fixture ``nerf_rendering``); the checks
 are in :mod:`course_lib.checks.nerf_rendering`. The slabs (hand-computable transmittance) and the
 random rays are drawn from seeded generators (salted for the hidden cases); the results of the
-classic mistakes on them are stored next to the reference's (:mod:`course_lib.instructor.cases.nerf_variants`).
+classic mistakes on them are stored next to the reference's (:func:`render_variant`).
 """
 
 from __future__ import annotations
@@ -11,8 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib.checks.nerf_rendering import FIXTURE, KEYS
-from course_lib.instructor.cases import builds
-from course_lib.instructor.cases.nerf_variants import render_variants_of
+from course_lib.instructor.cases import builds, store
 from course_lib.nerf.render import volume_render
 
 
@@ -63,9 +62,7 @@ def _build() -> dict[str, np.ndarray]:
     g = np.random.default_rng(8)
     out: dict[str, np.ndarray] = {}
     *slab, trans = _slab_case(g)
-    for k, v in zip(("rgb", "sigma", "z_vals", "rays_d"), slab):
-        out[f"slab_{k}"] = v
-    out["slab_trans"] = trans
+    store(out, "slab", **dict(zip(("rgb", "sigma", "z_vals", "rays_d"), slab)), trans=trans)
     for label, res in render_variants_of(*slab, white=True).items():
         for k in ("weights", "acc_map"):
             out[f"slab__{label}_{k}"] = res[k].astype(np.float32)
@@ -73,9 +70,73 @@ def _build() -> dict[str, np.ndarray]:
     out.update(zip(("rgb", "sigma", "z_vals", "rays_d"), args))
     for white in (True, False):
         bg = "white" if white else "black"
-        for k, v in _render(args, white).items():
-            out[f"{bg}_{k}"] = v
+        store(out, bg, **_render(args, white))
         for label, res in render_variants_of(*args, white=white).items():
             for k in KEYS:
                 out[f"{bg}__{label}_{k}"] = res[k].astype(np.float32)
+    return out
+
+
+# --------------------------------------------------------------------------- what the classic mistakes give
+# (stored with the cases, keyed as the check module's sentences are: the shipped checks hold no implementation)
+
+
+#: Rendering mistakes stored per case: label -> keyword arguments of :func:`render_variant`.
+RENDER_VARIANTS = {
+    "no_delta": {"delta": "none"},
+    "plain_delta": {"delta": "plain"},
+    "inclusive": {"cumprod": "inclusive"},
+    "last_zero": {"last": "zero"},
+    "last_repeat": {"last": "repeat"},
+    "form_T": {"form": "T"},
+    "form_alpha": {"form": "alpha"},
+    "depth_normalized": {"depth": "normalized"},
+    "other_background": {"white": None},
+    "dists_first": {"dists": "first"},
+}
+
+
+def render_variant(rgb, sigma, z, d, white: bool | None = True, delta: str = "norm", last: str = "1e10",
+                   cumprod: str = "exclusive", depth: str = "sum", form: str = "alpha_T",
+                   dists: str = "next", flip_white: bool = False) -> dict[str, np.ndarray]:
+    """One way of writing volume rendering (the reference is one of them, the others are mistakes).
+
+    delta: "norm" (dists * |d|), "plain" (dists, no |d|), "none" (alpha = 1 - exp(-sigma)).
+    last: the last interval: "1e10" (NeRF's), "zero" (ignored), "repeat" (the previous one).
+    cumprod: "exclusive" (T_i = prod_{j<i}), "inclusive" (prod_{j<=i}).
+    depth: "sum" (sum w z), "normalized" (sum w z / acc).
+    form: the weights: "alpha_T" (alpha_i T_i), "T" (T_i, alpha forgotten), "alpha" (alpha_i, T forgotten).
+    dists: "next" (delta_i = t_{i+1} - t_i), "first" (the extra interval put first: delta_1 = 1e10).
+    white: the background (None: the other one than ``flip_white`` says; see :func:`render_variants_of`).
+    """
+    rgb, sigma, z, d = (np.asarray(a, float) for a in (rgb, sigma, z, d))
+    gaps = np.diff(z, axis=-1)
+    tail = {"1e10": np.full_like(z[:, :1], 1e10), "zero": np.zeros_like(z[:, :1]), "repeat": gaps[:, -1:]}[last]
+    dd = np.concatenate([gaps, tail], axis=-1) if dists == "next" else np.concatenate([tail, gaps], axis=-1)
+    if delta == "norm":
+        dd = dd * np.linalg.norm(d, axis=-1, keepdims=True)
+    elif delta == "none":
+        dd = np.ones_like(dd)
+    alpha = 1.0 - np.exp(-sigma * dd)
+    keep = np.cumprod(1.0 - alpha + 1e-10, axis=-1)
+    if cumprod == "exclusive":
+        keep = np.concatenate([np.ones_like(keep[:, :1]), keep[:, :-1]], axis=-1)
+    w = {"alpha_T": alpha * keep, "T": keep, "alpha": alpha}[form]
+    acc = w.sum(-1)
+    rgb_map = (w[..., None] * rgb).sum(-2)
+    if white:
+        rgb_map = rgb_map + (1.0 - acc[:, None])
+    dep = (w * z).sum(-1)
+    if depth == "normalized":
+        dep = dep / np.maximum(acc, 1e-10)
+    return {"rgb_map": rgb_map, "depth_map": dep, "acc_map": acc, "weights": w}
+
+
+def render_variants_of(rgb, sigma, z, d, white: bool) -> dict[str, dict[str, np.ndarray]]:
+    """Every mistake of :data:`RENDER_VARIANTS` on one case: ``{label: {rgb_map, depth_map, acc_map, weights}}``."""
+    out = {}
+    for label, kw in RENDER_VARIANTS.items():
+        kw = dict(kw)
+        kw["white"] = (not white) if kw.get("white", white) is None else white
+        out[label] = render_variant(rgb, sigma, z, d, **kw)
     return out

@@ -19,7 +19,7 @@ from course_lib.checks.pnp import FIXTURE, RANSAC_SEED, THRESHOLD_PX
 from course_lib.conventions import fix_sign
 from course_lib.data.building import load_ground_truth
 from course_lib.data.synthetic import make_scene
-from course_lib.instructor.cases import builds
+from course_lib.instructor.cases import builds, store
 from course_lib.paths import EMBEDDED_SFM
 from course_lib.sfm import pnp
 from course_lib.starting_points import two_view_reconstruction
@@ -98,9 +98,8 @@ def _nonlinear_case(out, key, K, X, x, R0, t0) -> None:
     # Both mistakes leave t free: the 9 entries and t scale together, so t's length is wherever the
     # solver stopped (only its direction is stored, sign fixed); without the division by depth t runs
     # off and even its direction is where the last bits of the CPU leave it (only R is stored).
-    out.update({f"{key}_K": K, f"{key}_X": X, f"{key}_x": x, f"{key}_R0": R0, f"{key}_t0": t0,
-                f"{key}_R": R1, f"{key}_t": t1, f"{key}_mis_nine_R": Rn, f"{key}_mis_nine_tdir": _direction(tn),
-                f"{key}_mis_nodepth_R": Rd})
+    store(out, key, K=K, X=X, x=x, R0=R0, t0=t0, R=R1, t=t1, mis_nine_R=Rn, mis_nine_tdir=_direction(tn),
+          mis_nodepth_R=Rd)
 
 
 def _direction(t: np.ndarray) -> np.ndarray:
@@ -140,19 +139,16 @@ def _ransac_cases(out) -> None:
     K, X, x, outl, R, t = _view(43, 0.3, 0.2, 400)
     X, x, outl, behind = _with_behind(X, x, outl, R, t, 143)
     res = pnp.pnp_ransac(X, x, K, np.random.default_rng(RANSAC_SEED), threshold_px=THRESHOLD_PX)
-    out.update({"ransac_syn_K": K, "ransac_syn_X": X, "ransac_syn_x": x, "ransac_syn_outlier": outl,
-                "ransac_syn_behind": behind,
-                "ransac_syn_true_R": R, "ransac_syn_true_t": t, "ransac_syn_R": res.R_cw, "ransac_syn_t": res.t_cw,
-                "ransac_syn_inliers": res.inliers, "ransac_syn_noise": np.array(0.3)})
+    store(out, "ransac_syn", K=K, X=X, x=x, outlier=outl, behind=behind, true_R=R, true_t=t, R=res.R_cw, t=res.t_cw,
+          inliers=res.inliers, noise=np.array(0.3))
     # the threshold in pixels: 1 px noise, threshold 3 px
     K, X, x, outl, R, t = _view(45, 1.0, 0.1, 300)
     res = pnp.pnp_ransac(X, x, K, np.random.default_rng(RANSAC_SEED), threshold_px=THRESHOLD_CASE_PX)
-    out.update({"ransac_thr_K": K, "ransac_thr_X": X, "ransac_thr_x": x, "ransac_thr_outlier": outl,
-                "ransac_thr_R": res.R_cw, "ransac_thr_t": res.t_cw, "ransac_thr_inliers": res.inliers,
-                "ransac_thr_threshold": np.array(THRESHOLD_CASE_PX)})
+    store(out, "ransac_thr", K=K, X=X, x=x, outlier=outl, R=res.R_cw, t=res.t_cw, inliers=res.inliers,
+          threshold=np.array(THRESHOLD_CASE_PX))
     # the rng: noise comparable to the threshold, a few samples per call (max_iters=3)
     K, X, x, _, _, _ = _view(46, 1.0, 0.0, 200)
-    out.update({"ransac_rng_K": K, "ransac_rng_X": X, "ransac_rng_x": x})
+    store(out, "ransac_rng", K=K, X=X, x=x)
 
 
 @builds(FIXTURE)
@@ -160,29 +156,26 @@ def _build() -> dict[str, np.ndarray]:
     out: dict[str, np.ndarray] = {}
     # pnp_linear: noiseless, noisy
     K, X, x, _, R, t = _view(41, 0.0, 0.0, 80)
-    out.update({"lin_noiseless_K": K, "lin_noiseless_X": X[:40], "lin_noiseless_x": x[:40],
-                "lin_noiseless_R": R, "lin_noiseless_t": t})
+    store(out, "lin_noiseless", K=K, X=X[:40], x=x[:40], R=R, t=t)
     K, X, x, _, R, t = _view(42, 1.0, 0.0, 200)
     Rr, tr = pnp.pnp_linear(X, x, K)
     Rp, tp = _pixel_dlt(X, x)
-    out.update({"lin_noisy_K": K, "lin_noisy_X": X, "lin_noisy_x": x, "lin_noisy_R": Rr, "lin_noisy_t": tr,
-                "lin_noisy_true_R": R, "lin_noisy_true_t": t, "lin_noisy_pixel_R": Rp, "lin_noisy_pixel_t": tp})
+    store(out, "lin_noisy", K=K, X=X, x=x, R=Rr, t=tr, true_R=R, true_t=t, pixel_R=Rp, pixel_t=tp)
     _ransac_cases(out)
     # pnp_nonlinear: from the linear estimate, and from a start a few degrees away
     K, X, x, _, R, t = _view(44, 1.0, 0.0, 200)
     R0, t0 = pnp.pnp_linear(X, x, K)
     _nonlinear_case(out, "nl_syn", K, X, x, R0, t0)
-    out.update({"nl_syn_true_R": R, "nl_syn_true_t": t})
+    store(out, "nl_syn", true_R=R, true_t=t)
     K, X, x, _, R, t = _view(47, 1.0, 0.0, 150)
     _nonlinear_case(out, "nl_far", K, X, x, *_perturbed(R, t, 48))
     # the embedded scene (world frame moved, a subset): register the new image against step 3's reconstruction
     if (EMBEDDED_SFM / "ground_truth.json").exists():
         K, X, x = _moved_embedded(49)
         res = pnp.pnp_ransac(X, x, K, np.random.default_rng(RANSAC_SEED), threshold_px=THRESHOLD_PX)
-        out.update({"ransac_embedded_K": K, "ransac_embedded_X": X, "ransac_embedded_x": x,
-                    "ransac_embedded_R": res.R_cw, "ransac_embedded_t": res.t_cw, "ransac_embedded_inliers": res.inliers})
+        store(out, "ransac_embedded", K=K, X=X, x=x, R=res.R_cw, t=res.t_cw, inliers=res.inliers)
         Xi, xi = X[res.inliers], x[res.inliers]
         Rl, tl = pnp.pnp_linear(Xi, xi, K)
-        out.update({"lin_embedded_K": K, "lin_embedded_X": Xi, "lin_embedded_x": xi, "lin_embedded_R": Rl, "lin_embedded_t": tl})
+        store(out, "lin_embedded", K=K, X=Xi, x=xi, R=Rl, t=tl)
         _nonlinear_case(out, "nl_embedded", K, Xi, xi, Rl, tl)
     return out

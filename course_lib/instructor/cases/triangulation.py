@@ -9,14 +9,14 @@ from __future__ import annotations
 import zlib
 
 import numpy as np
+from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from course_lib.checks.triangulation import FIXTURE
 from course_lib.conventions import project, projection_matrix, skew
 from course_lib.data.synthetic import WPI_LIKE_K, look_at, make_scene
-from course_lib.instructor.cases import builds
+from course_lib.instructor.cases import builds, store
 from course_lib.instructor.cases.fundamental import random_subset
-from course_lib.instructor.mistakes.triangulation import cheirality_counts, linear_variants, nonlinear_variants
 from course_lib.paths import EMBEDDED_SFM
 from course_lib.sfm import essential
 from course_lib.sfm import triangulation as tri
@@ -58,8 +58,7 @@ def _build() -> dict[str, np.ndarray]:
         K = sc.K
         P1, P2 = projection_matrix(sc.K, sc.R_cw[0], sc.t_cw[0]), projection_matrix(sc.K, sc.R_cw[1], sc.t_cw[1])
         x1, x2, _, ids = sc.pair(0, 1)
-        out.update({f"lin_{name}_P1": P1, f"lin_{name}_P2": P2, f"lin_{name}_x1": x1, f"lin_{name}_x2": x2,
-                    f"lin_{name}_X": tri.triangulate_linear(P1, P2, x1, x2), f"lin_{name}_Xtrue": sc.X[ids]})
+        store(out, f"lin_{name}", P1=P1, P2=P2, x1=x1, x2=x2, X=tri.triangulate_linear(P1, P2, x1, x2), Xtrue=sc.X[ids])
         _store_linear_mistakes(out, f"lin_{name}")
     # a vertical baseline (camera 2 above camera 1, neither at the origin): the depth comes from v, so a system
     # that drops a v row, or mixes up u and v, is far off here even when a horizontal baseline hides it
@@ -72,8 +71,7 @@ def _build() -> dict[str, np.ndarray]:
     P1, P2 = projection_matrix(WPI_LIKE_K, R1, t1), projection_matrix(WPI_LIKE_K, R2, t2)
     x1 = project(WPI_LIKE_K, R1, t1, Xv) + g.normal(0.0, 1.0, (80, 2))
     x2 = project(WPI_LIKE_K, R2, t2, Xv) + g.normal(0.0, 1.0, (80, 2))
-    out.update({"lin_vertical_P1": P1, "lin_vertical_P2": P2, "lin_vertical_x1": x1, "lin_vertical_x2": x2,
-                "lin_vertical_X": tri.triangulate_linear(P1, P2, x1, x2), "lin_vertical_Xtrue": Xv})
+    store(out, "lin_vertical", P1=P1, P2=P2, x1=x1, x2=x2, X=tri.triangulate_linear(P1, P2, x1, x2), Xtrue=Xv)
     _store_linear_mistakes(out, "lin_vertical")
 
     # -- choose_pose: candidates from the true E; two scenes whose correct candidate has another index
@@ -139,8 +137,7 @@ def _embedded_cases(out: dict, tri) -> None:
     t_cws = np.stack([t0, ch.R_cw @ t0 + ch.t_cw])
     P1, P2 = projection_matrix(Ke, R_cws[0], t_cws[0]), projection_matrix(Ke, R_cws[1], t_cws[1])
     X = tri.triangulate_linear(P1, P2, x1, x2)
-    out.update({"lin_embedded_P1": P1, "lin_embedded_P2": P2, "lin_embedded_x1": x1, "lin_embedded_x2": x2,
-                "lin_embedded_X": X})
+    store(out, "lin_embedded", P1=P1, P2=P2, x1=x1, x2=x2, X=X)
     _store_linear_mistakes(out, "lin_embedded")
     front = ch.in_front
     _store_nl_case(out, "nl_embedded", Ke, R_cws, t_cws, np.stack([x1[front], x2[front]], axis=1), X[front], tri)
@@ -164,8 +161,7 @@ def _with_behind(x1: np.ndarray, x2: np.ndarray, K, R, t, seed: int, n: int = 2)
 
 
 def _store_linear_mistakes(out: dict, key: str) -> None:
-    for name, X in linear_variants(out[f"{key}_P1"], out[f"{key}_P2"], out[f"{key}_x1"], out[f"{key}_x2"]).items():
-        out[f"{key}_mis_{name}"] = X
+    store(out, f"{key}_mis", **linear_variants(out[f"{key}_P1"], out[f"{key}_P2"], out[f"{key}_x1"], out[f"{key}_x2"]))
 
 
 def _moving_pair(K, forward: bool, seed: int):
@@ -209,16 +205,87 @@ def _store_pose_case(out, key, Rc, Cc, K, x1, x2, tri) -> None:
     P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])  # the points of every candidate: an X of another one is named
     out[f"{key}_X_all"] = np.stack([tri.triangulate_linear(P1, K @ np.hstack([Rc[k], (-Rc[k] @ Cc[k])[:, None]]), x1, x2)
                                     for k in range(4)])
-    out.update({f"{key}_R": Rc, f"{key}_C": Cc, f"{key}_K": K, f"{key}_x1": x1, f"{key}_x2": x2,
-                f"{key}_R_cw": ch.R_cw, f"{key}_t_cw": ch.t_cw, f"{key}_X": ch.X, f"{key}_in_front": ch.in_front,
-                f"{key}_counts": ch.counts, f"{key}_index": np.array(ch.index),
-                f"{key}_mis_counts": cheirality_counts(Rc, Cc, K, x1, x2)})
+    store(out, key, R=Rc, C=Cc, K=K, x1=x1, x2=x2, R_cw=ch.R_cw, t_cw=ch.t_cw, X=ch.X, in_front=ch.in_front,
+          counts=ch.counts, index=np.array(ch.index), mis_counts=cheirality_counts(Rc, Cc, K, x1, x2))
 
 
 def _store_nl_case(out, key, K, R_cws, t_cws, uv, X0, tri) -> None:
-    out.update({f"{key}_K": K, f"{key}_R": R_cws, f"{key}_t": t_cws, f"{key}_uv": uv, f"{key}_X0": X0,
-                f"{key}_X": tri.triangulate_nonlinear(K, R_cws, t_cws, uv, X0)})
-    for name, X in nonlinear_variants(K, R_cws, t_cws, uv, X0).items():
-        out[f"{key}_mis_{name}"] = X
+    store(out, key, K=K, R=R_cws, t=t_cws, uv=uv, X0=X0, X=tri.triangulate_nonlinear(K, R_cws, t_cws, uv, X0))
+    store(out, f"{key}_mis", **nonlinear_variants(K, R_cws, t_cws, uv, X0))
     if R_cws.shape[0] > 2:  # the answer of a function that uses only the first two views
         out[f"{key}_X_2views"] = tri.triangulate_nonlinear(K, R_cws[:2], t_cws[:2], uv[:, :2], X0)
+
+
+# --------------------------------------------------------------------------- what the classic mistakes give
+# (stored with the cases, keyed as the check module's sentences are: the shipped checks hold no implementation)
+
+
+def _dlt(P1, P2, x1, x2, rows=(0, 1), smallest: bool = True) -> np.ndarray:
+    out = []
+    for a, b in zip(np.asarray(x1, float), np.asarray(x2, float)):
+        A = np.stack([a[0] * P1[2] - P1[rows[0]], a[1] * P1[2] - P1[rows[1]],
+                      b[0] * P2[2] - P2[rows[0]], b[1] * P2[2] - P2[rows[1]]])
+        Xh = np.linalg.svd(A)[2][-1 if smallest else 0]
+        out.append(Xh[:3] / Xh[3] if Xh[3] != 0 else np.full(3, np.nan))
+    return np.array(out).reshape(-1, 3)
+
+
+def linear_variants(P1, P2, x1, x2) -> dict[str, np.ndarray]:
+    """Points (N, 3) of the classic DLT mistakes."""
+    with np.errstate(all="ignore"):
+        return {"swapped": _dlt(P2, P1, x1, x2), "uv_swapped": _dlt(P1, P2, x1, x2, rows=(1, 0)),
+                "largest": _dlt(P1, P2, x1, x2, smallest=False)}
+
+
+#: The wrong cheirality tests, in the order of the rows of :func:`cheirality_counts`.
+CHEIRALITY_KEYS = ("camera2_only", "camera1_only", "no_centre", "t_for_C", "column_of_R", "sign_flipped")
+
+
+def cheirality_counts(R, C, K, x1, x2) -> np.ndarray:
+    """(len(CHEIRALITY_KEYS), 4) int: per wrong test, the points each candidate keeps."""
+    P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
+    Xc = [tri.triangulate_linear(P1, K @ np.hstack([R[k], (-R[k] @ C[k])[:, None]]), x1, x2) for k in range(4)]
+    tests = {
+        "camera2_only": lambda k, X: (X - C[k]) @ R[k][2] > 0,
+        "camera1_only": lambda k, X: X[:, 2] > 0,
+        "no_centre": lambda k, X: (X[:, 2] > 0) & (X @ R[k][2] > 0),
+        "t_for_C": lambda k, X: (X[:, 2] > 0) & ((X + R[k] @ C[k]) @ R[k][2] > 0),
+        "column_of_R": lambda k, X: (X[:, 2] > 0) & ((X - C[k]) @ R[k][:, 2] > 0),
+        "sign_flipped": lambda k, X: (X[:, 2] < 0) & ((X - C[k]) @ R[k][2] < 0),
+    }
+    with np.errstate(invalid="ignore"):
+        return np.array([[int(tests[key](k, Xc[k]).sum()) for k in range(4)] for key in CHEIRALITY_KEYS])
+
+
+def _refine(K, R_cws, t_cws, uv, X0, residual, dims: int = 3) -> np.ndarray:
+    out = X0.copy()
+    for j in range(len(X0)):
+        seen = [i for i in range(len(R_cws)) if np.isfinite(uv[j, i]).all()]
+        if len(seen) < 2:
+            continue
+        start = X0[j] if dims == 3 else np.append(X0[j], 1.0)
+        x = least_squares(lambda p: np.concatenate([residual(p, i, uv[j, i]) for i in seen]), start).x
+        out[j] = x[:3]
+    return out
+
+
+def nonlinear_variants(K, R_cws, t_cws, uv, X0) -> dict[str, np.ndarray]:
+    """Points (N, 3) of the classic mistakes of the non-linear triangulation."""
+    def proj(X, R, t):
+        return K @ (R @ X + t)
+
+    def right(X, i, x):
+        p = proj(X, R_cws[i], t_cws[i])
+        return p[:2] / p[2] - x
+
+    uv0 = np.where(np.isfinite(uv), uv, 0.0)
+    return {
+        "no_depth_division": _refine(K, R_cws, t_cws, uv, X0, lambda X, i, x: proj(X, R_cws[i], t_cws[i])[:2] - x),
+        "cross_multiplied": _refine(K, R_cws, t_cws, uv, X0,
+                                    lambda X, i, x: proj(X, R_cws[i], t_cws[i])[:2] - x * proj(X, R_cws[i], t_cws[i])[2]),
+        "nan_as_zero": np.array([least_squares(lambda X, j=j: np.concatenate([right(X, i, uv0[j, i])
+                                                                               for i in range(len(R_cws))]), X0[j]).x
+                                 for j in range(len(X0))]),
+        "unseen_not_refined": np.where(np.isfinite(uv).all(axis=(1, 2))[:, None],
+                                       tri.triangulate_nonlinear(K, R_cws, t_cws, uv, X0), X0),
+    }

@@ -32,10 +32,10 @@ import struct
 import sys
 from pathlib import Path
 
-from course_lib.instructor.sandbox.jail import IsolationError, seccomp_filter
+from course_lib.instructor.sandbox.jail import REFUSAL, IsolationError, privileges_left, seccomp_filter
 from course_lib.instructor.settings import STUDENT_UID
 
-__all__ = ["ENV", "enabled", "check", "command", "preexec", "verify", "describe", "NBVAL_NOTE"]
+__all__ = ["ENV", "enabled", "check", "preexec", "verify", "describe", "NBVAL_NOTE"]
 
 ENV = "COURSE_GRADER_CONTAINER"
 NBVAL_NOTE = "not run in container mode (the notebook's kernel needs TCP sockets, which the mode refuses)"
@@ -56,16 +56,16 @@ def check(cgroup) -> None:
         cgroup: the cgroup the process enters (None where none could be made).
     """
     if os.getuid() != 0:
-        raise IsolationError(f"refusing to run the students' code: {_HOW} (the grader runs as uid {os.getuid()})")
+        raise IsolationError(f"{REFUSAL}: {_HOW} (the grader runs as uid {os.getuid()})")
     if STUDENT_UID == 0:
-        raise IsolationError("refusing to run the students' code: COURSE_GRADER_STUDENT_UID is 0, the grader's uid")
+        raise IsolationError(f"{REFUSAL}: COURSE_GRADER_STUDENT_UID is 0, the grader's uid")
     closed = _closed_to_others(Path(os.path.realpath(sys.executable)))
     if closed:
-        raise IsolationError(f"refusing to run the students' code: the grader's Python ({sys.executable}) lies in "
+        raise IsolationError(f"{REFUSAL}: the grader's Python ({sys.executable}) lies in "
                              f"{closed}, which the student's uid cannot enter; install it where all may run it "
                              "(/usr, /opt, /autograder/venv)")
     if cgroup is None and memory_total() is None:
-        raise IsolationError(f"refusing to run the students' code: no memory total (no cgroup can be made and the "
+        raise IsolationError(f"{REFUSAL}: no memory total (no cgroup can be made and the "
                              f"container has no memory limit); {_HOW}")
 
 
@@ -106,11 +106,6 @@ def memory_total() -> int | None:
                 if text.isdigit() and int(text) < 1 << 50:  # "max" (v2) or a huge number (v1): no limit
                     found.append(int(text))
     return min(found) if found else None
-
-
-def command(mode: str, server_dir: Path) -> list[str]:
-    """The command line of ``server.py MODE`` in container mode (no launcher: the process confines itself first)."""
-    return [sys.executable, "-S", "-E", "-B", str(server_dir / "server.py"), mode, str(server_dir / "config.json")]
 
 
 def preexec(limits, cpu_seconds: float | None, cgroup, work: Path):
@@ -158,14 +153,7 @@ def verify(facts: dict) -> list[str]:
     missing = []
     if facts.get("uid") != STUDENT_UID:
         missing.append(f"it runs as uid {facts.get('uid')}, not as the student's uid {STUDENT_UID}")
-    status = facts.get("status") or {}
-    caps = [k for k in ("CapEff", "CapPrm", "CapAmb") if status.get(k) != "0000000000000000"]
-    if caps:
-        missing.append(f"capabilities left ({', '.join(caps)})")
-    if status.get("NoNewPrivs") != "1":
-        missing.append("no_new_privs is not set")
-    if status.get("Seccomp") != "2":
-        missing.append("no seccomp filter")
+    missing += privileges_left(facts, ("CapEff", "CapPrm", "CapAmb"), seccomp=True)
     if facts.get("visible"):
         missing.append(f"it can reach {', '.join(facts['visible'][:3])} (chmod -R go-rwx the kit)")
     if facts.get("unreadable"):

@@ -50,11 +50,13 @@ import tempfile
 import time
 from pathlib import Path
 
+from course_lib.instructor.sandbox import server
 from course_lib.instructor.settings import STUDENT_UID, site_allow_list
 from course_lib.validate import KitInputError
 
-__all__ = ["IsolationError", "bwrap_path", "command", "install_server", "verify", "read_info", "seccomp_filter",
-           "preexec", "sandboxed", "refusal", "STUDENT_UID", "HOW_TO_ENABLE", "INSTALL", "REPORT", "WORK", "SEED", "kill_tree"]
+__all__ = ["IsolationError", "bwrap_path", "command", "install_server", "verify", "privileges_left", "read_info",
+           "seccomp_filter", "preexec", "sandboxed", "refusal", "STUDENT_UID", "HOW_TO_ENABLE", "INSTALL", "REPORT",
+           "REFUSAL", "WORK", "SEED", "kill_tree"]
 
 #: The working folder of a student's process inside the sandbox, and where the grader's copy of the submission is.
 WORK = "/tmp/work"
@@ -69,6 +71,8 @@ HOW_TO_ENABLE = ("allow unprivileged user namespaces for bwrap (sysctl kernel.un
                  "24.04 kernel.apparmor_restrict_unprivileged_userns=0; in Docker a seccomp profile that allows "
                  "unshare and no AppArmor confinement of the container)")
 REPORT = "the sandbox did not come out as the grader makes it (a bwrap the grader does not know?)"
+#: How every refusal starts (``grade-class`` grades a submission refused while others ran again, alone).
+REFUSAL = "refusing to run the students' code"
 
 
 class IsolationError(KitInputError):
@@ -82,7 +86,7 @@ def bwrap_path() -> str | None:
 
 def refusal(what: str, how: str = HOW_TO_ENABLE) -> str:
     """The one line of a refusal: what is missing, how to enable it, and the way out for a trusted run."""
-    return f"refusing to run the students' code: {what}; {how}, or pass --insecure for a trusted local run"
+    return f"{REFUSAL}: {what}; {how}, or pass --insecure for a trusted local run"
 
 
 def private_folder(prefix: str, parent: Path | None = None) -> Path:
@@ -236,8 +240,7 @@ def seed_bytes(seed: Path) -> int:
 
 
 def sandboxed(iso, mode: str, server_dir: Path, seed: Path | None, stage_dir: Path):
-    """Everything needed to start ``server.py MODE`` in a sandbox, refused (:class:`IsolationError`) when it cannot be
-    (``iso.insecure``: the plain server, as the grading user).
+    """Everything needed to start ``server.py MODE`` in a sandbox, refused (:class:`IsolationError`) when it cannot be.
 
     Refuses without bubblewrap, and when the student's uid would be the grading user's (the grader is root and
     ``COURSE_GRADER_STUDENT_UID`` is 0). Makes the pipe ``bwrap`` reports to, the seccomp filter's pipe and, for a
@@ -248,9 +251,6 @@ def sandboxed(iso, mode: str, server_dir: Path, seed: Path | None, stage_dir: Pa
         must inherit (the caller closes them once it started), the read end of bwrap's report, the staged folders,
         and whether a seccomp filter is applied.
     """
-    if iso.insecure:
-        return ([sys.executable, "-S", "-E", "-B", str(server_dir / "server.py"), mode, str(server_dir / "config.json")],
-                [], None, {}, False)
     if bwrap_path() is None:
         raise IsolationError(refusal("bubblewrap (bwrap) is not installed", INSTALL))
     if os.getuid() == 0 and STUDENT_UID == 0:
@@ -350,16 +350,6 @@ def read_info(fd: int, deadline: float) -> dict:
     return {}
 
 
-def _own_ns() -> dict[str, str | None]:
-    out = {}
-    for ns in ("user", "mnt", "pid", "net", "ipc", "uts"):
-        try:
-            out[ns] = os.readlink(f"/proc/self/ns/{ns}")
-        except OSError:
-            out[ns] = None
-    return out
-
-
 def _host_uids(pid: int) -> list[int] | None:
     try:
         with open(f"/proc/{int(pid)}/status") as f:
@@ -371,6 +361,19 @@ def _host_uids(pid: int) -> list[int] | None:
     return None
 
 
+def privileges_left(facts: dict, caps: tuple[str, ...], seccomp: bool) -> list[str]:
+    """What a process's report (``facts["status"]``) says it kept of its privileges: any of the capability sets
+    ``caps``, no ``no_new_privs``, and (``seccomp``) no filter."""
+    status = facts.get("status") or {}
+    left = [k for k in caps if status.get(k) != "0000000000000000"]
+    missing = [f"capabilities left ({', '.join(left)})"] if left else []
+    if status.get("NoNewPrivs") != "1":
+        missing.append("no_new_privs is not set")
+    if seccomp and status.get("Seccomp") != "2":
+        missing.append("no seccomp filter")
+    return missing
+
+
 def verify(facts: dict, info: dict, iso, seccomp: bool) -> list[str]:
     """What is missing from a sandbox, from the server's ``facts`` and ``bwrap``'s ``info`` (empty: isolated).
 
@@ -380,7 +383,7 @@ def verify(facts: dict, info: dict, iso, seccomp: bool) -> list[str]:
     but the loopback; and, when the grader is root, a process on the host that runs as :data:`STUDENT_UID`.
     """
     missing = []
-    own, ns = _own_ns(), facts.get("ns") or {}
+    own, ns = server.namespaces(), facts.get("ns") or {}
     same = [n for n in ("user", "mnt", "pid", "net", "ipc") if not ns.get(n) or ns.get(n) == own.get(n)]
     if same:
         missing.append(f"no {', '.join(same)} namespace of its own")
@@ -388,14 +391,7 @@ def verify(facts: dict, info: dict, iso, seccomp: bool) -> list[str]:
         want = info.get(f"{n}-namespace")
         if want is not None and ns.get(n) != f"{n}:[{want}]":
             missing.append(f"its {n} namespace is not the one bwrap made")
-    status = facts.get("status") or {}
-    caps = [k for k in ("CapEff", "CapPrm", "CapBnd", "CapAmb") if status.get(k) != "0000000000000000"]
-    if caps:
-        missing.append(f"capabilities left ({', '.join(caps)})")
-    if status.get("NoNewPrivs") != "1":
-        missing.append("no_new_privs is not set")
-    if seccomp and status.get("Seccomp") != "2":
-        missing.append("no seccomp filter")
+    missing += privileges_left(facts, ("CapEff", "CapPrm", "CapBnd", "CapAmb"), seccomp)
     if not facts.get("root_read_only"):
         missing.append("its root is writable")
     extra = [w for w in facts.get("writable", []) if w not in WRITABLE]
@@ -410,9 +406,7 @@ def verify(facts: dict, info: dict, iso, seccomp: bool) -> list[str]:
         missing.append(f"network devices ({', '.join(facts.get('net') or ['unknown'])})")
     pid = info.get("child-pid")
     uids = _host_uids(pid) if isinstance(pid, int) else None
-    if os.getuid() == 0:
-        if STUDENT_UID == 0:
-            missing.append("COURSE_GRADER_STUDENT_UID is 0, the grading user's uid")
+    if os.getuid() == 0:  # (a STUDENT_UID of 0 is refused before the sandbox is made: sandboxed)
         if uids is None:
             missing.append("its process on the host cannot be read (bwrap --info-fd)")
         elif set(uids) != {STUDENT_UID}:

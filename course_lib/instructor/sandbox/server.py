@@ -69,12 +69,7 @@ def facts(hide: list[str], keep: list[str] = (), readable: list[str] = ()) -> di
     ``unreadable``: which of the ``readable`` folders (the student release) it cannot read; ``net``: its
     network interfaces.
     """
-    out: dict = {"uid": os.getuid(), "gid": os.getgid(), "pid": os.getpid(), "ns": {}, "status": {}}
-    for ns in NAMESPACES:
-        try:
-            out["ns"][ns] = os.readlink(f"/proc/self/ns/{ns}")
-        except OSError:
-            out["ns"][ns] = None
+    out: dict = {"uid": os.getuid(), "gid": os.getgid(), "pid": os.getpid(), "ns": namespaces(), "status": {}}
     try:
         with open("/proc/self/status") as f:
             for line in f:
@@ -114,6 +109,17 @@ def facts(hide: list[str], keep: list[str] = (), readable: list[str] = ()) -> di
     return out
 
 
+def namespaces() -> dict[str, str | None]:
+    """This process's namespaces (``/proc/self/ns``; None for one it cannot read)."""
+    out = {}
+    for ns in NAMESPACES:
+        try:
+            out[ns] = os.readlink(f"/proc/self/ns/{ns}")
+        except OSError:
+            out[ns] = None
+    return out
+
+
 def _sees(hidden: str, keep) -> bool:
     """Whether anything of the folder ``hidden`` is in view, besides the way to the ``keep`` paths inside it."""
     if not os.path.lexists(hidden) or (os.path.isdir(hidden) and not os.access(hidden, os.X_OK)):
@@ -147,25 +153,21 @@ def _undumpable() -> None:
         pass
 
 
-#: How the server ends when the submission cannot be copied into its working folder (the grader reports it as the
-#: submission's problem, never as a sandbox that cannot be made).
-SEED_EXIT, SEED_FAILED = 4, "course-grader: the submission could not be copied into the working folder: "
-
-
-def _seed(cfg: dict) -> None:
-    """The working folder: a copy of the grader's copy of the submission (regular files only)."""
+def _seed(cfg: dict) -> str:
+    """The working folder: a copy of the grader's copy of the submission (regular files only). Why it could not be
+    copied, else ``""``: the submission's problem, which the grader reports as such (never as a sandbox it cannot
+    make), and then runs none of the student's code."""
     import shutil
 
     os.makedirs(cfg["cwd"], exist_ok=True)
     if cfg.get("seed") and os.path.isdir(cfg["seed"]):
         try:
             shutil.copytree(cfg["seed"], cfg["cwd"], dirs_exist_ok=True, symlinks=False)
-        except (OSError, shutil.Error) as exc:  # the submission's problem, not the sandbox's: the grader reports it
+        except (OSError, shutil.Error) as exc:
             errors = exc.args[0] if isinstance(exc, shutil.Error) and exc.args and isinstance(exc.args[0], list) else []
             why = {str(e[-1]).split("] ")[-1].split(":")[0] for e in errors if isinstance(e, tuple)} or {str(exc)}
-            sys.stderr.write(f"{SEED_FAILED}{'; '.join(sorted(why))[:300]}\n")
-            sys.stderr.flush()
-            os._exit(SEED_EXIT)
+            return "; ".join(sorted(why))[:300]
+    return ""
 
 
 def _await_go(fd: int) -> None:
@@ -224,7 +226,7 @@ def serve(cfg: dict) -> None:
 
     global REQ_FD, REP_FD
     REQ_FD, REP_FD = int(cfg["req_fd"]), int(cfg["rep_fd"])
-    _seed(cfg)
+    seed_failed = _seed(cfg)
     os.chdir(cfg["cwd"])
     sys.path[:] = [cfg["path"]] + [p for p in cfg["sys_path"] if p]
     for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -236,7 +238,7 @@ def serve(cfg: dict) -> None:
 
         torch.set_num_threads(1)
     # ready: the exercise's time starts with the grader's go (the imports above are the kit's, not the student's)
-    write_frame(REP_FD, {"event": "sandbox", "facts": _facts(cfg)})
+    write_frame(REP_FD, {"event": "sandbox", "facts": _facts(cfg), "seed_failed": seed_failed})
     _await_go(REQ_FD)
     req, rep = REQ_FD, REP_FD
     _guard_exit(rep)
@@ -275,7 +277,7 @@ def serve(cfg: dict) -> None:
             args = decode(msg["args"], arrays, recorder)
             kwargs = decode(msg["kwargs"], arrays, recorder)
             gens = _generators(args, kwargs)
-            _set_rng(msg.get("rng"), arrays)
+            wire.set_global_rng(msg.get("rng"), arrays)
             fn = target if msg.get("h") is None else handles[int(msg["h"])]
             if msg.get("h") is not None and msg.get("params"):
                 _load_params(fn, msg["params"], arrays)
@@ -285,7 +287,7 @@ def serve(cfg: dict) -> None:
             out: list = []
             tree = encode(value, out, handles=handles)
             cb_tree = encode([[i, list(a), k] for i, a, k in calls], out)
-            reply = {"ok": True, "value": tree, "callbacks": cb_tree, "rng": _get_rng(out),
+            reply = {"ok": True, "value": tree, "callbacks": cb_tree, "rng": wire.global_rng(out),
                      "gens": [[where, encode(g, out)] for where, g in gens]}
         except BaseException as exc:  # noqa: BLE001 - the student's exception, as data
             out, reply = [], _exc_reply(exc)
@@ -339,16 +341,12 @@ def oracle_stub(step: str, exercise: str, own):
 
 def _oracle_error(reply: dict, step: str, exercise: str) -> Exception:
     """The reference's exception, as the student's code sees it (a builtin type where it was one)."""
-    import builtins
-
     name = ident(reply.get("type", "RuntimeError"), "RuntimeError")
-    cls = getattr(builtins, name, None) if reply.get("builtin") else None
     msg = (f"{reply.get('message', '')} (raised by the grader's reference {step}, which answers for your {step} "
            f"while {exercise} is graded)")
-    if not (isinstance(cls, type) and issubclass(cls, Exception)) or cls is StopIteration:
-        cls, msg = RuntimeError, f"{name}: {msg}"
+    cls = wire.builtin_exception(reply)
     try:
-        return cls(msg)
+        return cls(msg) if cls is not None else RuntimeError(f"{name}: {msg}")
     except Exception:  # noqa: BLE001 - exception types with other constructors
         return RuntimeError(f"{name}: {msg}")
 
@@ -370,28 +368,6 @@ def _load_params(module, params: list, arrays: list) -> None:
                 mine[name].copy_(torch.from_numpy(arrays[int(k)]))
 
 
-def _set_rng(state, arrays) -> None:
-    if not state:
-        return
-    import numpy as np
-
-    if state.get("np") is not None:
-        np.random.set_state(tuple(decode(state["np"], arrays)))
-    torch = sys.modules.get("torch")
-    if torch is not None and state.get("torch") is not None:
-        torch.set_rng_state(decode(state["torch"], arrays))
-
-
-def _get_rng(arrays: list) -> dict:
-    import numpy as np
-
-    out = {"np": encode(list(np.random.get_state()), arrays)}
-    torch = sys.modules.get("torch")
-    if torch is not None:
-        out["torch"] = encode(torch.get_rng_state(), arrays)
-    return out
-
-
 # ---------------------------------------------------------------------------------------------
 # The nbval launcher
 # ---------------------------------------------------------------------------------------------
@@ -408,7 +384,6 @@ PYTEST_BOOT = ("import ctypes, sys\nctypes.CDLL(None).prctl(4, 0, 0, 0, 0)\nimpo
                "    d['argv'] = [sys.executable, '-P', '-B', '-m', 'ipykernel_launcher', '-f', '{connection_file}']\n"
                "    return d\n"
                "ks.get_kernel_dict = sealed\nimport pytest\nsys.exit(pytest.main(sys.argv[1:]))\n")
-REPORT_LIMIT = 16 << 20
 
 
 def launch(cfg: dict) -> int:
@@ -417,27 +392,16 @@ def launch(cfg: dict) -> int:
     import threading
 
     _undumpable()
-    _seed(cfg)
+    seed_failed = _seed(cfg)
     report_fd, go_fd, collect_fd = int(cfg["report_fd"]), int(cfg["go_fd"]), int(cfg["collect_fd"])
-    write_frame(report_fd, {"event": "sandbox", "facts": _facts(cfg)})
+    write_frame(report_fd, {"event": "sandbox", "facts": _facts(cfg), "seed_failed": seed_failed})
     os.close(report_fd)
     _await_go(go_fd)
     os.close(go_fd)
     r, w = os.pipe()
     argv = [a.replace("{junit}", f"/proc/self/fd/{w}") for a in cfg["argv"]]
     got: list[bytes] = []
-
-    def read() -> None:
-        size = 0
-        while True:
-            b = os.read(r, 1 << 16)
-            if not b:
-                return
-            if size < REPORT_LIMIT:
-                got.append(b[:REPORT_LIMIT - size])
-                size += len(b)
-
-    reader = threading.Thread(target=read, daemon=True)
+    reader = threading.Thread(target=lambda: got.append(wire.read_until_closed(r, wire.MAX_REPORT)[0]), daemon=True)
     reader.start()
     proc = subprocess.Popen([cfg["python"], "-B", "-P", "-c", PYTEST_BOOT, *argv], cwd=cfg["nb_dir"],
                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
@@ -450,8 +414,7 @@ def launch(cfg: dict) -> int:
         except OSError:
             pass
     reader.join(5)
-    data = b"".join(got)
-    view = memoryview(data)
+    view = memoryview(got[0] if got else b"")
     while view:
         view = view[os.write(collect_fd, view):]
     os.close(collect_fd)

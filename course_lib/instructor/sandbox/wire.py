@@ -31,11 +31,14 @@ from __future__ import annotations
 import io
 import json
 import os
+import select
 import struct
 import sys
+import time
 
 __all__ = ["WireError", "Record", "encode", "decode", "declared", "pack", "unpack", "write_frame", "read_frame",
-           "read_frame_before", "MAX_REQUEST", "MAX_REPLY", "MAX_HEADER", "MAX_NODES", "MAX_ARRAYS", "MAX_SPARSE_CELLS",
+           "read_frame_before", "read_exact", "read_until_closed", "global_rng", "set_global_rng", "builtin_exception",
+           "MAX_REQUEST", "MAX_REPORT", "MAX_REPLY", "MAX_HEADER", "MAX_NODES", "MAX_ARRAYS", "MAX_SPARSE_CELLS",
            "ident", "lazy_numpy", "loaded_torch", "close_fds", "close_inherited"]
 
 MAX_REQUEST = 1 << 31  # bytes of one message from the grader (the hidden inputs)
@@ -53,6 +56,8 @@ MAX_ARRAYS = 65_536
 MAX_SPARSE_CELLS = 1 << 24
 #: Parameters of a remote module (a NeRF MLP has about 20).
 MAX_PARAMS = 4096
+#: Bytes of nbval's junit report of one notebook.
+MAX_REPORT = 16 << 20
 
 
 class WireError(Exception):
@@ -96,6 +101,36 @@ def ident(name, default: str = "Result") -> str:
 
 
 _ident = ident
+
+
+def builtin_exception(reply: dict) -> type | None:
+    """The builtin exception type an exception's reply names (``type``, with ``builtin`` set), or None: only a subclass
+    of ``Exception`` other than ``StopIteration`` (names in a message are data)."""
+    import builtins
+
+    cls = getattr(builtins, ident(reply.get("type", "Exception"), "Exception"), None) if reply.get("builtin") else None
+    return cls if isinstance(cls, type) and issubclass(cls, Exception) and cls is not StopIteration else None
+
+
+def global_rng(arrays: list) -> dict:
+    """The global numpy (and, where torch is loaded, torch) random states, encoded: they go with every call and come
+    back with its reply, so that, as in a notebook, a function that seeds or draws from them changes its caller's."""
+    out = {"np": encode(list(lazy_numpy().random.get_state()), arrays)}
+    torch = loaded_torch()
+    if torch is not None:
+        out["torch"] = encode(torch.get_rng_state(), arrays)
+    return out
+
+
+def set_global_rng(state, arrays: list) -> None:
+    """Set the global random states that :func:`global_rng` encoded (those ``state`` holds)."""
+    if not isinstance(state, dict):
+        return
+    if state.get("np") is not None:
+        lazy_numpy().random.set_state(tuple(decode(state["np"], arrays)))
+    torch = loaded_torch()
+    if torch is not None and state.get("torch") is not None:
+        torch.set_rng_state(decode(state["torch"], arrays))
 
 
 def encode(obj, arrays: list, callbacks: list | None = None, handles: dict | None = None, depth: int = 0):
@@ -510,53 +545,65 @@ def unpack(data, header_limit: int = MAX_HEADER, max_nodes: int = MAX_NODES,
     return header, arrays
 
 
-def write_frame(fd: int, header: dict, arrays: list = ()) -> None:
+def write_frame(fd: int, header: dict, arrays: list = (), deadline: float | None = None) -> None:
+    """Send one message on ``fd``; ``TimeoutError`` when ``deadline`` (``time.monotonic()``) passes before it is
+    sent."""
     data = pack(header, list(arrays))
     view = memoryview(struct.pack("<Q", len(data)) + data)
     while view:
-        n = os.write(fd, view)
-        view = view[n:]
+        if deadline is not None:
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([], [fd], [], left)[1]:
+                raise TimeoutError
+        view = view[os.write(fd, view[: 1 << 16]):]
 
 
-def _read_exact(fd: int, n: int) -> bytes:
-    chunks, left = [], n
-    while left:
-        b = os.read(fd, min(left, 1 << 24))
+def read_exact(fd: int, n: int, deadline: float | None = None) -> bytearray:
+    """``n`` bytes of ``fd``, read as they arrive (never allocated ahead of them); ``EOFError`` when the other side
+    closed first, ``TimeoutError`` when ``deadline`` (``time.monotonic()``) passed first."""
+    buf = bytearray()
+    while len(buf) < n:
+        if deadline is not None:
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([fd], [], [], left)[0]:
+                raise TimeoutError
+        b = os.read(fd, min(n - len(buf), 1 << 20))
         if not b:
             raise EOFError("the other side closed the connection")
-        chunks.append(b)
-        left -= len(b)
-    return b"".join(chunks)
+        buf += b
+    return buf
+
+
+def read_until_closed(fd: int, limit: int, deadline: float | None = None) -> tuple[bytes, bool]:
+    """What arrives on ``fd`` until the other side closes it (``complete``) or ``deadline``; at most ``limit`` bytes
+    kept (the rest is read and dropped)."""
+    got, size = [], 0
+    while True:
+        if deadline is not None:
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([fd], [], [], left)[0]:
+                return b"".join(got), False
+        b = os.read(fd, 1 << 16)
+        if not b:
+            return b"".join(got), True
+        if size < limit:
+            got.append(b[:limit - size])
+            size += len(b)
 
 
 def read_frame(fd: int, limit: int = MAX_REQUEST) -> tuple[dict, list]:
     """The next message on ``fd`` (at most ``limit`` bytes)."""
-    (n,) = struct.unpack("<Q", _read_exact(fd, 8))
+    (n,) = struct.unpack("<Q", read_exact(fd, 8))
     if n > limit:
         raise WireError(f"a message of {n} bytes is larger than the limit ({limit} bytes)")
-    return unpack(_read_exact(fd, n), header_limit=max(MAX_HEADER, min(n, 1 << 30)), max_nodes=1 << 30,
+    return unpack(read_exact(fd, n), header_limit=max(MAX_HEADER, min(n, 1 << 30)), max_nodes=1 << 30,
                   max_arrays=1 << 30)
 
 
 def read_frame_before(fd: int, deadline: float, limit: int) -> tuple[dict, list]:
     """The next frame on ``fd`` before ``deadline`` (``time.monotonic()``; else ``TimeoutError``), at most ``limit``
     bytes (else :class:`WireError`), read as it arrives; ``EOFError`` when the other side closed."""
-    import select
-    import time
-
-    def read(n: int) -> bytes:
-        buf = bytearray()
-        while len(buf) < n:
-            left = deadline - time.monotonic()
-            if left <= 0 or not select.select([fd], [], [], left)[0]:
-                raise TimeoutError
-            b = os.read(fd, min(n - len(buf), 1 << 20))
-            if not b:
-                raise EOFError("the other side closed the connection")
-            buf += b
-        return bytes(buf)
-
-    (n,) = struct.unpack("<Q", read(8))
+    (n,) = struct.unpack("<Q", read_exact(fd, 8, deadline))
     if n > limit:
         raise WireError(f"a message of {n >> 20} MiB, more than the limit ({limit >> 20} MiB)")
-    return unpack(read(n))
+    return unpack(read_exact(fd, n, deadline))
