@@ -96,8 +96,14 @@ class Timeout(BaseException):
     pass
 
 
+#: the alarm stops a call only while one runs: Python runs the handler at its next bytecode, so a SIGALRM that arrives
+#: at the end of a long C call can surface after the call returned and the timer was cleared; then it is dropped
+ARMED = [False]
+
+
 def alarm(*_):
-    raise Timeout()
+    if ARMED[0]:
+        raise Timeout()
 
 
 signal.signal(signal.SIGALRM, alarm)
@@ -110,14 +116,18 @@ CALL_SECONDS, CALLABLE_SECONDS = 0.25, 0.25
 
 
 def attempt(fn, args):
-    signal.setitimer(signal.ITIMER_REAL, CALL_SECONDS)
     try:
-        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-            return True, fn(*args)
+        ARMED[0] = True
+        signal.setitimer(signal.ITIMER_REAL, CALL_SECONDS)
+        try:
+            with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+                return True, fn(*args)
+        finally:  # a Timeout raised here (the alarm came as the call ended) is the call's, caught below
+            ARMED[0] = False
+            signal.setitimer(signal.ITIMER_REAL, 0)
     except (Exception, Timeout):
         return False, None
     finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
         if os.getpid() != MAIN_PID:  # a callable that forks: its child leaves at once
             os._exit(0)
 
