@@ -413,6 +413,7 @@ def _start_model(mapper: IncrementalMapper, report: MapperReport, relax: bool) -
     object, :func:`~course_lib.sfm.mapper_options.relaxed`) and the candidates tried again.
     """
     tried, made = report.candidates, report.relaxations
+    t_search = time.perf_counter()  # the candidates are scored as they are yielded: the stage counts them
     mapper.begin_model()
     for step in range(mapper.opts.init_relaxations + 1 if relax else 1):
         if step:
@@ -425,7 +426,7 @@ def _start_model(mapper: IncrementalMapper, report: MapperReport, relax: bool) -
             t0 = time.perf_counter()
             numbers = mapper.initialize(pair)
             if numbers is not None:
-                report.started(pair, numbers, time.perf_counter() - t0)
+                report.started(pair, numbers, time.perf_counter() - t0, time.perf_counter() - t_search)
                 return
             if pair.images in mapper.failed_starts:
                 report.start_failed(pair.images, mapper.failed_starts[pair.images], mapper.opts.init_min_points)
