@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from course_lib.checks import core
+from course_lib.exercise_table import EXERCISES
 from course_lib.instructor.cases import builders
 from course_lib.instructor.oracle import Oracle, bound_address_space, status_kib
 from course_lib.instructor.remote import RemoteFunction
@@ -328,8 +329,9 @@ def _worker(job: HiddenJob, timeout: float, isolation, cgroup, w: int) -> None:
     try:
         torch = job.check_module.startswith("course_lib.checks.nerf")
         oracle = Oracle(job.name, job.steps)  # earlier steps answered by the reference, on this exercise's clock
+        engines = () if job.allow_reference or job.name not in EXERCISES else EXERCISES[job.name].engines
         with StudentProcess(isolation, job.code, job.name, job.submission, timeout, torch=torch, oracle=oracle,
-                            cgroup=cgroup) as proc:
+                            cgroup=cgroup, engines=engines) as proc:
             wire.write_frame(w, {"event": "started"})
             _check_student(job, proc, send, t0)
     except jail.IsolationError as exc:

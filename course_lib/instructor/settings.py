@@ -100,7 +100,7 @@ class Clock:
 
 #: Bytes of a submitted notebook the grader reads (an honest one, outputs included, is under 2 MB), and bytes of
 #: source in its code cells (the kit's largest solved notebook holds 16 kB): everything the grader does with a notebook
-#: (parse, place, scan, extract, slice) is linear in its code, so these bound the grader's time and memory on it.
+#: (parse, place, extract, slice) is linear in its code, so these bound the grader's time and memory on it.
 MAX_NOTEBOOK_BYTES = 32 << 20
 MAX_CODE_BYTES = 256 << 10
 #: Syntax-tree nodes in a notebook's code cells (the kit's largest solved notebook: 3 100; the grader's work on a
