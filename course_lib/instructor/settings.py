@@ -79,7 +79,7 @@ def exercise_seconds(timeout: float, reference_seconds: float, calls_back: bool 
 
 
 def nbval_seconds(cell_timeout: float) -> float:
-    """Seconds for nbval of one notebook, its reruns after a cell that timed out included.
+    """Seconds for nbval of one notebook, its restart with a looping exercise cut short included.
 
     Three times the time limit of one cell (an honest notebook runs every cell well within it) plus 60 s for the
     kernel to start and the notebook's set-up cells.

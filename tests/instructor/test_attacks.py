@@ -838,7 +838,7 @@ def test_33_replies_are_bounded_before_anything_is_built(tmp_path, hidden, hidde
 
 def test_33_one_clock_for_call_backs_and_nbval(tmp_path, hidden, outside, monkeypatch):
     """Class 2: call-backs that keep the reference busy are the exercise's time (it is stopped at its budget, and
-    the feedback says how long it took); a notebook whose cells all outlast the cell limit (nbval reruns it) is
+    the feedback says how long it took); a notebook whose cells outlast the cell limit is
     stopped at the notebook's nbval budget."""
     before = rss_mib()
     sub = filled(tmp_path / "stall", NB01, {"normalize_points": NORMALIZE, "eight_point": HONEST,
@@ -856,7 +856,7 @@ def test_33_one_clock_for_call_backs_and_nbval(tmp_path, hidden, outside, monkey
     sleepy = ["import time\ntime.sleep(3)"] * 6
     sub = filled(tmp_path / "sleepy", NB01, {}, extra_cells=sleepy)
     report = grade01(sub, hidden, run_nbval=True, cell_timeout=2, exercises=["eight_point"])
-    g = graded_row("six cells that outlast the cell limit (nbval reruns)", report, "eight_point", before,
+    g = graded_row("six cells that outlast the cell limit", report, "eight_point", before,
                    "2 unbounded work")
     assert g["nbval"] != "pass" and report["seconds"] < 20 + 20, (report["seconds"], g)
 
