@@ -396,7 +396,7 @@ def _load_params(module, params: list, arrays: list) -> None:
 #: kernel nbval starts (``--nbval-current-env``: ipykernel's ``python -m ipykernel_launcher``, in the notebooks'
 #: folder) gets ``-P``: no module of the submission (an ``ipykernel_launcher.py`` beside the notebook) stands in for
 #: the kernel's own, and the notebook's folder is not on the kernel's ``sys.path`` at all (IPython leaves it out under
-#: ``-P``): the kernel runs the notebook's cells and nothing of the submission that the grader's scans did not read.
+#: ``-P``): the kernel runs the notebook's cells and nothing else of the submission.
 PYTEST_BOOT = ("import ctypes, sys\nctypes.CDLL(None).prctl(4, 0, 0, 0, 0)\nimport ipykernel.kernelspec as ks\n"
                "_dict = ks.get_kernel_dict\n"
                "def sealed(*a, **k):\n"
