@@ -30,7 +30,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from course_lib.alignment import align_similarity
-from course_lib.checks.core import FAILED, RTOL, Check, load_fixture, source_has
+from course_lib.checks.core import FAILED, RTOL, Check, load_fixture
 from course_lib.conventions import camera_center, rotation_angle_deg
 from course_lib.starting_points import observation_arrays
 
@@ -170,10 +170,10 @@ def check_reprojection_residuals(fn, exercise: str = "reprojection_residuals") -
         if "emb_params" in f:
             _residual_case(c, fn, f, "emb", "embedded scene before bundle adjustment")
         c.causes(fn, [
-            (source_has(r"\bfrom_euler\("), "a camera's first 3 numbers are a rotation vector: Rotation.from_rotvec, not from_euler"),
-            (source_has(r"\bnorm\("), "np.linalg.norm makes one distance of each (u, v) difference: return the u and v differences "
+            (r"\bfrom_euler\(", "a camera's first 3 numbers are a rotation vector: Rotation.from_rotvec, not from_euler"),
+            (r"\bnorm\(", "np.linalg.norm makes one distance of each (u, v) difference: return the u and v differences "
                                       "both, (proj - uv).ravel()"),
-            (source_has(r"\binv\("), "the projection uses K itself: pixels = (K x_cam)[:2] / (K x_cam)[2], no inverse"),
+            (r"\binv\(", "the projection uses K itself: pixels = (K x_cam)[:2] / (K x_cam)[2], no inverse"),
         ])
 
 

@@ -44,6 +44,7 @@ checks; the grader runs the same checks on hidden cases (:func:`using_cases`).
 
 from __future__ import annotations
 
+import re
 import traceback
 from collections import Counter
 from dataclasses import dataclass, field
@@ -67,14 +68,10 @@ __all__ = [
     "DEFINING_CAP",
     "RESULTS",
     "calls_name",
-    "code_reads",
-    "code_constants",
     "code_text",
-    "source_has",
     "FAILED",
     "load_fixture",
     "using_cases",
-    "as_array",
     "as_float",
     "Outcome",
     "report_cases",
@@ -84,7 +81,6 @@ __all__ = [
     "close_rel",
     "same_up_to_scale",
     "scale_free_gap",
-    "scale_of",
     "unique_key",
 ]
 
@@ -191,12 +187,6 @@ class CheckResult:
     def details_failed(self) -> list[str]:
         """The failed details (see :class:`Verdict`): correct maths, not in the documented form."""
         return [v.text for v in self.verdicts if v.kind == "detail" and not v.ok]
-
-    @property
-    def points(self) -> tuple[int, int]:
-        """``(passed, counted)``: passed point checks, and point checks plus failed gates."""
-        passed, n_points, failed_gates = _tally(self)
-        return passed, n_points + failed_gates
 
     def __repr__(self) -> str:  # deterministic, in case a cell displays it
         return f"CheckResult({self.exercise!r}, {self.passed}/{self.total})"
@@ -336,12 +326,6 @@ def calls_name(fn: Any, name: str, depth: int = 3) -> bool | None:
     return False
 
 
-def code_constants(fn: Any) -> list:
-    """The numeric constants written in the code of ``fn`` (a function, or the methods of a class); [] when unreadable."""
-    return [k for code in _code_objects(_functions_of(fn) or []) for k in code.co_consts
-            if isinstance(k, (int, float)) and not isinstance(k, bool)]
-
-
 def code_text(fn: Any) -> str:
     """The source of ``fn`` (a function or class, in a module or a notebook cell); "" when it cannot be read."""
     import inspect
@@ -350,27 +334,6 @@ def code_text(fn: Any) -> str:
         return inspect.getsource(fn)
     except (OSError, TypeError):
         return ""
-
-
-def source_has(pattern: str) -> Callable[[Any], bool]:
-    """A condition for :meth:`Check.causes`: the source of the student's code matches the regular expression."""
-    import re
-
-    return lambda fn: re.search(pattern, code_text(fn)) is not None
-
-
-def code_reads(fn: Any, cond: Any) -> bool:
-    """Whether the code of ``fn`` meets ``cond`` (see :meth:`Check.causes`); False when the code cannot be read."""
-    if isinstance(cond, tuple):
-        return all(code_reads(fn, c) for c in cond)
-    if callable(cond):
-        try:
-            return bool(cond(fn))
-        except Exception:  # noqa: BLE001 - a condition that cannot be decided does not hold
-            return False
-    negate = cond.startswith("!")
-    used = calls_name(fn, cond.lstrip("!"))
-    return used is not None and used != negate
 
 
 class Check:
@@ -392,7 +355,6 @@ class Check:
         self.verdicts: list[Verdict] = []
         self.passed = 0
         self.total = 0
-        self.planned: list[str] = []  # cases the check means to run (see plan)
         self.case: str | None = None  # the case of the last call
         self.answered: dict[str, bool] = {}  # case called -> whether a verdict was recorded for it
         self.unanswered_call: str | None = None  # the case of a call after which no verdict was recorded yet
@@ -465,18 +427,19 @@ class Check:
         """Print a line of advice under the verdict; it is no check and counts for nothing."""
         self.notes.append(text)
 
-    def causes(self, fn: Any, candidates: list[tuple[Any, str]]) -> None:
+    def causes(self, fn: Any, candidates: list[tuple[str | tuple[str, ...], str]]) -> None:
         """After a failure that no verdict names: the common causes of this exercise that fit the student's code.
 
-        Each candidate is ``(condition, advice)``; the condition reads the code of ``fn`` (:func:`code_reads`):
-        a name the code uses (``"eigh"``), ``"!name"`` for a name it does not use, a tuple of such conditions (all
-        must hold), or a function of ``fn`` returning a bool. Only the advice whose condition holds is printed,
-        under one note; nothing is printed when every check passed, when a failed verdict already names the
-        mistake, or when the code cannot be read (a built-in, a callable object).
+        Each candidate is ``(pattern, advice)``: a regular expression that the source of ``fn`` (:func:`code_text`)
+        matches, ``"!pattern"`` for one it does not match, or a tuple of such (all must hold). Only the advice whose
+        patterns hold is printed, under one note; nothing is printed when every check passed, when a failed verdict
+        already names the mistake, or when the code cannot be read (a built-in, a callable object).
         """
-        if self.passed == self.total or any(v.named for v in self.verdicts if not v.ok):
+        src = code_text(fn)
+        if not src or self.passed == self.total or any(v.named for v in self.verdicts if not v.ok):
             return
-        fits = [text for cond, text in candidates if code_reads(fn, cond)]
+        holds = lambda p: (re.search(p[1:], src) is None) if p.startswith("!") else bool(re.search(p, src))  # noqa: E731
+        fits = [text for pats, text in candidates if all(map(holds, (pats,) if isinstance(pats, str) else pats))]
         if fits:
             self.note("common causes that fit your code: " + "; ".join(fits))
 
@@ -501,15 +464,6 @@ class Check:
                 names = " and ".join(bad)
                 self.note(f"{self.exercise} calls your {names}, whose check {why}: fix {names} first"
                           + (" (run its check cell)" if why != "failed" else ""))
-
-    def plan(self, *cases: str) -> None:
-        """Declare the cases this check means to run (the ``case=`` names of its calls).
-
-        A planned case that no :meth:`call` reached when the check ends (the check stopped early,
-        or returned before it) counts as one failed check, and the verdict names it: a check never
-        runs fewer cases than it planned without saying so.
-        """
-        self.planned += [c for c in cases if c not in self.planned]
 
     def call(self, fn: Callable, *args, case: str, **kwargs) -> Any:
         """Call the student's function; on an exception record a failure and return :data:`FAILED`.
@@ -605,13 +559,13 @@ class Check:
         if value is FAILED:
             return False
         want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
-        arr = as_array(value)
-        if arr is None or arr.dtype == object or arr.dtype.kind in "USV":
+        arr = as_float(value)
+        if arr is None:
             return self.gate(False, "", f"{what} is {_describe(value)}, expected a numeric array of shape {want}")
         ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape, strict=True))
         if not ok:
             return self.gate(False, "", f"{what} has shape {tuple(arr.shape)}, expected {want}")
-        if np.issubdtype(arr.dtype, np.number) and not np.isfinite(arr).all():
+        if not np.isfinite(arr).all():
             return self.gate(False, "", f"{what} contains NaN or inf")
         return self.gate(True, f"{what} has shape {want}", "")
 
@@ -628,14 +582,11 @@ class Check:
     def account_for_cases(self) -> None:
         """Fail every case that did not run or whose result no check could use (called by :meth:`report`).
 
-        A planned case (:meth:`plan`) that no call reached, a case that was called but about which
-        no verdict was recorded (its result was nothing the check could read), and a last call
-        after which nothing was recorded, each count as one failed check, so that a missing answer
-        never makes checks disappear from the count.
+        A case that was called but about which no verdict was recorded (its result was nothing the
+        check could read), and a last call after which nothing was recorded, each count as one failed
+        check, so that a missing answer never makes checks disappear from the count.
         """
         last = self.unanswered_call  # the last call's result led to no verdict at all
-        for case in [c for c in self.planned if c not in self.answered]:
-            self.fail(f"{case}: this case did not run (the check stopped before it); it counts as failed")
         unanswered = [case for case, answered in self.answered.items() if not answered]
         for case in unanswered:
             self.fail(f"{case}: the result could not be checked (nothing usable was returned); it counts as failed")
@@ -687,15 +638,9 @@ EPS32 = float(np.finfo(np.float32).eps)
 RTOL = 1000 * EPS32
 
 
-def scale_of(a: Any) -> float:
-    """The scale of an array: its largest magnitude (1 for an empty or all-zero array)."""
-    a = np.asarray(a, float)
-    m = float(np.abs(a).max()) if a.size else 0.0
-    return m if m > 0 and np.isfinite(m) else 1.0
-
-
 def close_rel(a: Any, b: Any, rtol: float = RTOL) -> bool:
-    """``a`` equals ``b`` within ``rtol`` of ``b``'s scale (:func:`scale_of`), same shape, all finite.
+    """``a`` equals ``b`` within ``rtol`` of ``b``'s scale (its largest magnitude, 1 when that is 0), same shape,
+    all finite.
 
     The checks' one rule for "equal": relative to the answer's scale, so that a correct answer in
     float32 (or of large coordinates) passes.
@@ -706,7 +651,8 @@ def close_rel(a: Any, b: Any, rtol: float = RTOL) -> bool:
         return False
     if a.shape != b.shape or not np.isfinite(a).all():
         return False
-    return bool(np.abs(a - b).max(initial=0.0) <= rtol * scale_of(b))
+    scale = float(np.abs(b).max(initial=0.0)) if np.isfinite(b).all() else 0.0
+    return bool(np.abs(a - b).max(initial=0.0) <= rtol * (scale or 1.0))
 
 
 def scale_free_gap(a: Any, b: Any) -> float:
@@ -822,24 +768,14 @@ def as_float(value: Any) -> np.ndarray | None:
         return None
 
 
-def as_array(value: Any) -> np.ndarray | None:
-    """``value`` as a numpy array (torch tensors on any device, with or without grad, included); None if impossible."""
-    try:
-        if hasattr(value, "detach") and hasattr(value, "cpu"):
-            value = value.detach().cpu().numpy()
-        return value if isinstance(value, np.ndarray) else np.asarray(value)
-    except Exception:  # noqa: BLE001 - ragged lists, objects that refuse conversion: not an array
-        return None
-
-
 def _describe(value: Any) -> str:
     """A short description of a returned value for a verdict ("a str", "a tuple of 2 items", "None")."""
     if value is None:
         return "None"
     if isinstance(value, (tuple, list)):
         return f"a {type(value).__name__} of {len(value)} items"
-    arr = as_array(value)
-    if arr is not None and arr.dtype != object and arr.dtype.kind not in "USV":
+    arr = as_float(value)
+    if arr is not None:
         return f"an array of shape {tuple(arr.shape)}"
     return f"a {type(value).__name__}"
 

@@ -15,13 +15,12 @@ of the two the SVD gives det U det V = -1, so a missing flip shows on every pair
 
 from __future__ import annotations
 
-import re
 from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import (FAILED, RTOL, Check, Outcome, code_text, declare_defining, load_fixture,
-                                    report_cases, same_up_to_scale, scale_free_gap, source_has, unique_key)
+from course_lib.checks.core import (FAILED, RTOL, Check, Outcome, declare_defining, load_fixture, report_cases,
+                                    same_up_to_scale, scale_free_gap, unique_key)
 from course_lib.conventions import rotation_angle_deg, skew
 
 __all__ = ["check_essential_from_fundamental", "check_pose_candidates", "match_candidates"]
@@ -121,10 +120,10 @@ def check_essential_from_fundamental(essential_from_fundamental: Callable) -> No
         report_cases(c, results, {k: v for k, v in _E_MISTAKES.items() if k != "uncorrected"},
                      first=lambda o, named: _singular_values_verdict(c, o.case, o.data, named))
         c.causes(essential_from_fundamental, [
-            (source_has(r"\binv\("), "your code inverts a matrix: E = Kᵀ F K takes K itself (K⁻ᵀ E K⁻¹ = F is the other direction)"),
-            (source_has(r"\bV[th]?\.T\b|transpose\(\s*V[th]?\b"),
+            (r"\binv\(", "your code inverts a matrix: E = Kᵀ F K takes K itself (K⁻ᵀ E K⁻¹ = F is the other direction)"),
+            (r"\bV[th]?\.T\b|transpose\(\s*V[th]?\b",
              "np.linalg.svd returns Vᵀ already: E = U @ np.diag([1, 1, 0]) @ Vt, without transposing it"),
-            (lambda fn: 0 < len(re.findall(r"\bK\b", code_text(fn))) < 3, "K goes on both sides of F: E = Kᵀ F K"),
+            ((r"\bK\b", r"!(?s:\bK\b.*\bK\b.*\bK\b)"), "K goes on both sides of F: E = Kᵀ F K"),
         ])
 
 

@@ -30,7 +30,7 @@ from typing import Callable
 import numpy as np
 
 from course_lib.checks.core import (EPS32, FAILED, RTOL, Check, Outcome, as_float, close_rel, declare_defining,
-                                    load_fixture, report_cases, same_up_to_scale, scale_free_gap, source_has)
+                                    load_fixture, report_cases, same_up_to_scale, scale_free_gap)
 from course_lib.checks.ransac import (Ransac, Run, call, mask_outcome, minimal_verdicts, samples_needed,
                                       sampling_verdicts, threshold_interval, within)
 
@@ -284,14 +284,14 @@ def check_eight_point(eight_point: Callable) -> None:
         report_cases(c, results, _EIGHT_POINT_MISTAKES, then=lambda o, _: _rank_verdict(c, o.case, *o.data, f))
         c.blame_earlier("normalize_points", fn=eight_point)
         c.causes(eight_point, [
-            (source_has(r"\beigh\("), "np.linalg.eigh sorts the eigenvalues in ascending order: the solution is the "
+            (r"\beigh\(", "np.linalg.eigh sorts the eigenvalues in ascending order: the solution is the "
                                     "eigenvector of AᵀA with the smallest eigenvalue, V[:, 0], the first column"),
-            ((source_has(r"\bV[th]?\[:, *-1\]"), source_has(r"\bsvd\("), "!eigh"), "np.linalg.svd(A) returns Vᵀ: the null vector is its last row, "
+            ((r"\bV[th]?\[:, *-1\]", r"\bsvd\(", r"!\beigh\("), "np.linalg.svd(A) returns Vᵀ: the null vector is its last row, "
                                                 "Vt[-1], not its last column"),
-            (("!normalize_points", source_has(r"\bdef ")), "your code does not call normalize_points: normalize both point sets, solve, "
+            ((r"!\bnormalize_points\b", r"\bdef "), "your code does not call normalize_points: normalize both point sets, solve, "
                                   "denormalize F = T2ᵀ F_n T1"),
-            (source_has(r"\binv\("), "no inverse in the denormalization: x_n = T x, so F = T2ᵀ F_n T1"),
-            (source_has(r"\[: *8\b"), "the 8-point algorithm solves least squares over all N matches, not the first 8"),
+            (r"\binv\(", "no inverse in the denormalization: x_n = T x, so F = T2ᵀ F_n T1"),
+            (r"\[: *8\b", "the 8-point algorithm solves least squares over all N matches, not the first 8"),
         ])
 
 

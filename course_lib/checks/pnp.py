@@ -26,7 +26,7 @@ import numpy as np
 
 from course_lib.conventions import nearest_rotation, project, rotation_angle_deg, world_to_camera
 from course_lib.checks.core import (RTOL, Check, Outcome, declare_defining, load_fixture, refinement_verdicts,
-                                    report_cases, source_has, unique_key)
+                                    report_cases, unique_key)
 from course_lib.checks.ransac import Ransac, Run, call, mask_outcome, minimal_verdicts, sampling_verdicts
 
 __all__ = [
@@ -162,9 +162,9 @@ def check_pnp_linear(fn, exercise: str = "pnp_linear") -> None:
                                    f"error {_rms(_errors(K, R, t, X, x)):.3g} px", (keys, testable), _DLT_ADVICE))
         report_cases(c, results, _POSE_MISTAKES)
         c.causes(fn, [
-            ((source_has(r"\bV[th]?\[:, *-1\]"), source_has(r"\bsvd\(")), "np.linalg.svd(A) returns Vᵀ: the DLT's P is its last row, Vt[-1]"
+            ((r"\bV[th]?\[:, *-1\]", r"\bsvd\("), "np.linalg.svd(A) returns Vᵀ: the DLT's P is its last row, Vt[-1]"
                                                 ".reshape(3, 4), not its last column"),
-            ((source_has(r"\bdef "), "!det"), "P is found up to sign: when det(R) < 0 after the orthogonalization, flip the sign of R and t"),
+            ((r"\bdef ", r"!\bdet\b"), "P is found up to sign: when det(R) < 0 after the orthogonalization, flip the sign of R and t"),
         ])
 
 
