@@ -366,7 +366,7 @@ def _own_init_gates(c: Check, model, rgb, sigma, pts, dirs, lead, case: str) -> 
         c.gate(close(other[1], sigma), f"{case}: sigma does not depend on the viewing direction",
                f"{case}: sigma changes with the viewing direction: the density head must branch off "
                "before the view direction is concatenated")
-        c.gate(not close(other[0], rgb, rtol=1e-6, atol=1e-7), f"{case}: rgb depends on the viewing direction",
+        c.gate(not np.array_equal(other[0], rgb), f"{case}: rgb depends on the viewing direction",
                f"{case}: rgb ignores viewdirs: concatenate γ(d) with the feature vector before the colour layer")
 
 
@@ -517,10 +517,10 @@ def check_psnr(psnr: Callable) -> None:
                 c.fail(f"{case}: expected a single number, got shape {v.shape}")
                 continue
             v = float(v.reshape(()))
-            if abs(v - want) < 1e-3 * max(1.0, abs(want)):
+            if close(v, want):
                 c.expect(True, f"{case}: PSNR = -10 log10(mse)", "")
                 continue
-            hint = next((why for why, g in PSNR_VARIANTS if abs(v - g(mse)) < 1e-3 * max(1.0, abs(g(mse)))), None)
+            hint = next((why for why, g in PSNR_VARIANTS if close(v, g(mse))), None)
             c.fail(f"{case}: got {v:.3f} dB, expected {want:.3f} for mse = {mse:.4g}: "
                    + (hint or "PSNR = -10 log10(mse) for images in [0, 1] (peak 1)"), named=hint and hint[:30])
         c.causes(psnr, [
