@@ -709,6 +709,7 @@ class Outcome:
             ``(explained, testable)``); only read when the case fails.
         advice: what to change, printed after the facts when no mistake is named.
         data: whatever else the check's own verdicts of the case need.
+        defining: the defining property the verdict tests (see :meth:`Check.expect`), or None.
     """
 
     case: str
@@ -718,6 +719,7 @@ class Outcome:
     keys: Any = ()
     advice: str = ""
     data: Any = None
+    defining: str | None = None
 
 
 def report_cases(c: "Check", outcomes: list[Outcome], mistakes: dict[str, str],
@@ -736,9 +738,10 @@ def report_cases(c: "Check", outcomes: list[Outcome], mistakes: dict[str, str],
         if first is not None:
             first(o, named)
         if o.ok:
-            c.expect(True, f"{o.case}: {o.passed}", "")
+            c.expect(True, f"{o.case}: {o.passed}", "", defining=o.defining)
         else:
-            c.fail(f"{o.case}: " + ": ".join(t for t in (o.failed, mistakes[own] if own else o.advice) if t), named=own)
+            c.fail(f"{o.case}: " + ": ".join(t for t in (o.failed, mistakes[own] if own else o.advice) if t),
+                   defining=o.defining, named=own)
         if then is not None:
             then(o, named)
     return named

@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 
 from course_lib.checks.core import (FAILED, RTOL, Check, Outcome, declare_defining, load_fixture, report_cases,
-                                    same_up_to_scale, scale_free_gap, unique_key)
+                                    same_up_to_scale, scale_free_gap)
 from course_lib.conventions import rotation_angle_deg, skew
 
 __all__ = ["check_essential_from_fundamental", "check_pose_candidates", "match_candidates"]
@@ -161,11 +161,53 @@ _C_MISTAKES = {
 }
 
 
+def _candidates_outcome(case: str, E, R, C, R_ref, C_ref) -> Outcome:
+    """One case of pose_candidates: the four candidates factor E and are the reference's, in any order; else which
+    property fails (the keys of :data:`_C_MISTAKES` that explain it)."""
+    norms = np.linalg.norm(C, axis=1)
+    Cn = C / np.where(norms > 0, norms, 1.0)[:, None]
+    bad = [k for k in range(4) if not same_up_to_scale(skew(-R[k] @ Cn[k]) @ R[k], E, 10 * RTOL)]
+    factors = not bad and bool(np.abs(E @ Cn.T).max() <= 10 * RTOL * np.linalg.norm(E))
+    hits = match_candidates(R, Cn, R_ref, C_ref)
+    ok = factors and -1 not in hits and len(set(hits)) == 4
+    if len({tuple(np.round(Rk, 6).ravel()) for Rk in np.abs(R)}) < 2:
+        advice = ("the four R are one rotation, where two are expected: U W Vᵀ and U Wᵀ Vᵀ with "
+                  "W = [[0, -1, 0], [1, 0, 0], [0, 0, 1]] (W ≠ Wᵀ, so the two differ), each with C and -C; if you use "
+                  "both, check W itself and that the second rotation takes its transpose")
+    elif not factors:
+        advice = (f"candidates {bad} do not factor E (E ∝ [t]ₓ R with t = -R C): R = U W Vᵀ or U Wᵀ Vᵀ, "
+                  "t = ±U[:, 2], C = -Rᵀ t")
+    else:
+        advice = (f"the candidates factor E but {hits.count(-1)} of the reference's four are missing (found at "
+                  f"{hits}): R ∈ {{U W Vᵀ, U Wᵀ Vᵀ}}, C = ±(-Rᵀ U[:, 2]), each rotation with both signs")
+    return Outcome(case, ok, "the four candidates factor E and match the reference's (in any order)", "",
+                   () if ok else _c_keys(R, Cn, R_ref, C_ref), advice, (R, norms))
+
+
+def _candidate_gates(c: Check, case: str, R, norms) -> None:
+    """Every R a rotation (the defining property: det +1), every C of unit length."""
+    dets = np.linalg.det(R)
+    gap = max(float(np.abs(Rk @ Rk.T - np.eye(3)).max()) for Rk in R)
+    det1 = "det R = +1"
+    if gap <= RTOL and np.allclose(dets, 1.0, atol=RTOL):
+        c.gate(True, f"{case}: every R is a rotation (orthonormal, det +1)", "", defining=det1)
+    elif gap <= RTOL:
+        bad = [k for k in range(4) if dets[k] < 0]
+        c.fail(f"{case}: R[{', '.join(map(str, bad))}] has det -1 (a reflection): when det(R) < 0, flip the sign of "
+               "both R and C (test det(R) < 0, never == -1: rounding)", defining=det1)
+    else:
+        c.fail(f"{case}: R is not orthonormal (R Rᵀ differs from I by {gap:.3g}): R = U W Vᵀ or U Wᵀ Vᵀ with U, Vᵀ "
+               "from the SVD of E (numpy returns Vᵀ, not V)", defining=det1)
+    c.gate(bool(np.abs(norms - 1.0).max() <= RTOL), f"{case}: every C has unit length",
+           f"{case}: C does not have unit length (|C| = {np.round(norms, 3).tolist()}): the scale is unknown, "
+           "return C / np.linalg.norm(C)")
+
+
 def check_pose_candidates(pose_candidates: Callable) -> None:
     """Check ``pose_candidates(E (3, 3)) -> (R (4, 3, 3), C (4, 3))`` (notebook 02)."""
     f = load_fixture(FIXTURE)
     with Check("pose_candidates") as c:
-        results = []
+        outcomes = []
         for name in [str(n) for n in f["pose_cases"]]:
             E, R_ref, C_ref = f[f"{name}_E"], f[f"{name}_R"], f[f"{name}_C"]
             case = _CASE_TEXT[name]
@@ -184,53 +226,6 @@ def check_pose_candidates(pose_candidates: Callable) -> None:
                 continue
             if C.shape == (4, 3, 1):
                 C = C[..., 0]
-            if not (c.shape(R, (4, 3, 3), f"{case}: R") & c.shape(C, (4, 3), f"{case}: C")):
-                continue
-            results.append((case, E, R, C, R_ref, C_ref))
-        verdicts = []
-        for case, E, R, C, R_ref, C_ref in results:
-            norms = np.linalg.norm(C, axis=1)
-            Cn = C / np.where(norms > 0, norms, 1.0)[:, None]
-            factors = all(same_up_to_scale(skew(-R[k] @ Cn[k]) @ R[k], E, 10 * RTOL) for k in range(4)) and \
-                bool(np.abs(E @ Cn.T).max() <= 10 * RTOL * np.linalg.norm(E))
-            hits = match_candidates(R, Cn, R_ref, C_ref)
-            verdicts.append((case, E, R, C, Cn, norms, factors, hits, R_ref, C_ref))
-        failing = [v for v in verdicts if not (v[6] and -1 not in v[7] and len(set(v[7])) == 4)]
-        named = unique_key([_c_keys(R, Cn, R_ref, C_ref) for _, _, R, _, Cn, _, _, _, R_ref, C_ref in failing])
-        for case, E, R, C, Cn, norms, factors, hits, R_ref, C_ref in verdicts:
-            _pose_candidate_verdicts(c, case, E, R, Cn, norms, factors, hits, named)
-
-
-def _pose_candidate_verdicts(c: Check, case: str, E, R, Cn, norms, factors: bool, hits: list[int],
-                             named: str | None) -> None:
-    dets = np.linalg.det(R)
-    gap = max(float(np.abs(Rk @ Rk.T - np.eye(3)).max()) for Rk in R)
-    det1 = "det R = +1"
-    if gap <= RTOL and np.allclose(dets, 1.0, atol=RTOL):
-        c.gate(True, f"{case}: every R is a rotation (orthonormal, det +1)", "", defining=det1)
-    elif gap <= RTOL:
-        bad = [k for k in range(4) if dets[k] < 0]
-        c.fail(f"{case}: R[{', '.join(map(str, bad))}] has det -1 (a reflection): when det(R) < 0, flip the sign of "
-               "both R and C (test det(R) < 0, never == -1: rounding)", defining=det1)
-    else:
-        c.fail(f"{case}: R is not orthonormal (R Rᵀ differs from I by {gap:.3g}): R = U W Vᵀ or U Wᵀ Vᵀ with U, Vᵀ "
-               "from the SVD of E (numpy returns Vᵀ, not V)", defining=det1)
-    c.gate(bool(np.abs(norms - 1.0).max() <= RTOL), f"{case}: every C has unit length",
-           f"{case}: C does not have unit length (|C| = {np.round(norms, 3).tolist()}): the scale is unknown, "
-           "return C / np.linalg.norm(C)")
-    if factors and -1 not in hits and len(set(hits)) == 4:
-        c.expect(True, f"{case}: the four candidates factor E and match the reference's (in any order)", "")
-        return
-    if named is not None:
-        c.fail(f"{case}: {_C_MISTAKES[named]}", named=named)
-    elif len({tuple(np.round(Rk, 6).ravel()) for Rk in np.abs(R)}) < 2:
-        c.fail(f"{case}: the four R are one rotation, where two are expected: U W Vᵀ and U Wᵀ Vᵀ with "
-               "W = [[0, -1, 0], [1, 0, 0], [0, 0, 1]] (W ≠ Wᵀ, so the two differ), each with C and -C; if you use "
-               "both, check W itself and that the second rotation takes its transpose")
-    elif not factors:
-        bad = [k for k in range(4) if not same_up_to_scale(skew(-R[k] @ Cn[k]) @ R[k], E, 10 * RTOL)]
-        c.fail(f"{case}: candidates {bad} do not factor E (E ∝ [t]ₓ R with t = -R C): R = U W Vᵀ or U Wᵀ Vᵀ, "
-               "t = ±U[:, 2], C = -Rᵀ t")
-    else:
-        c.fail(f"{case}: the candidates factor E but {hits.count(-1)} of the reference's four are missing (found at "
-               f"{hits}): R ∈ {{U W Vᵀ, U Wᵀ Vᵀ}}, C = ±(-Rᵀ U[:, 2]), each rotation with both signs")
+            if c.shape(R, (4, 3, 3), f"{case}: R") & c.shape(C, (4, 3), f"{case}: C"):
+                outcomes.append(_candidates_outcome(case, E, R, C, R_ref, C_ref))
+        report_cases(c, outcomes, _C_MISTAKES, first=lambda o, _: _candidate_gates(c, o.case, *o.data))
