@@ -35,9 +35,6 @@ declare_defining("pose_candidates", {
     "det R = +1": "a rotation has det +1; det -1 is a reflection, no camera pose",
 })
 
-#: The documented candidate order, as a sentence for the verdicts (the sign is that of t = ±u₃).
-ORDER_TEXT = "(R = U W Vᵀ, t = +u₃), (U W Vᵀ, -u₃), (U Wᵀ Vᵀ, +u₃), (U Wᵀ Vᵀ, -u₃)"
-
 _CASE_TEXT = {
     "noiseless": "noiseless synthetic pair",
     "noisy": "noisy synthetic pair",
