@@ -439,9 +439,9 @@ def _ransac_count_case(c: Check, fn: Callable, f: dict) -> None:
     c.gate(n >= 0.8 * need - 1, f"{case}: draws as many samples as N = log(1 - confidence) / log(1 - w⁸) asks",
            f"{case}: n_iters = {n}, while the returned inlier ratio {w:.0%} at confidence 0.999 needs N = {need:.0f} "
            f"samples ({n / max(need, 1):.2f} N): N = log(1 - confidence) / log(1 - w⁸) with the same logarithm on "
-           "both sides (np.log10 on one side gives N / 2.3), recomputed at each better sample, and the loop runs "
-           "until it has drawn N samples (not until a first good sample); each sample is 8 distinct matches "
-           "(rng.choice(N, 8, replace=False))")
+           "both sides (np.log10 on one side gives N / 2.3), recomputed at each iteration that finds a better sample, and "
+           "the loop runs until it has drawn N samples (not until a first good sample); each sample is 8 distinct "
+           "matches (rng.choice(N, 8, replace=False))")
 
 
 def _ransac_refit_case(c: Check, fn: Callable, f: dict) -> None:
@@ -502,7 +502,7 @@ def check_ransac_fundamental(ransac_fundamental: Callable) -> None:
             true_inl = f["rs_true_inliers"].astype(bool)
             minimal_verdicts(c, RANSAC, ransac_fundamental, (f["rs_x1_true"][true_inl][:8],
                              f["rs_x2_true"][true_inl][:8]), "exactly 8 noiseless matches (threshold 1 px)",
-                             threshold_px=1.0)
+                             13, threshold_px=1.0)
         elif runs:
             c.fail(f"{runs[0].case}: no case gives F: the number of samples (n_iters), the confidence and the use of "
                    "rng are judged once ransac_fundamental finds F")

@@ -278,7 +278,7 @@ def check_pnp_ransac(fn, exercise: str = "pnp_ransac") -> None:
             K, X, R, t, outl = (f[f"ransac_syn_{s}"] for s in ("K", "X", "R", "t", "outlier"))
             X = X[~outl.astype(bool)]
             X = X[world_to_camera(R, t, X)[:, 2] > 0][:6]
-            minimal_verdicts(c, RANSAC, fn, (X, project(K, R, t, X), K), "exactly 6 noiseless points")
+            minimal_verdicts(c, RANSAC, fn, (X, project(K, R, t, X), K), "exactly 6 noiseless points", RANSAC_SEED)
         elif runs:
             c.fail(f"{next(iter(runs.values())).case}: no case gives the pose (every rotation is more than 1° off): "
                    "the number of samples, the confidence and the use of rng are judged once pnp_ransac finds the pose")

@@ -299,12 +299,13 @@ class RecordingRng(np.random.Generator):
         return len(distinct) - 1
 
 
-def minimal_verdicts(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, **kw) -> None:
+def minimal_verdicts(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int, **kw) -> None:
     """Exactly ``k`` noiseless items in ``args``: the only sample of ``k`` distinct items is all of them, so the model
     fits every item (error below 0.05 px) and all are inliers. A sample that holds an item twice (``k - 1`` items
-    leave the model undetermined) is named: drawn and counted before the one good sample, or seen in a failed run."""
+    leave the model undetermined) is named: drawn and counted before the one good sample, or seen in a failed run
+    (``seed``: the recording rng's)."""
     k, (one, many) = spec.k, spec.item
-    rng = RecordingRng(RNG_SEED)
+    rng = RecordingRng(seed)
 
     def explain(exc: Exception) -> str | None:
         twice = rng.repeated(k)
