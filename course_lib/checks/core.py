@@ -179,11 +179,6 @@ class CheckResult:
         return out
 
     @property
-    def named(self) -> list[str]:
-        """The keys of the mistakes the failed checks name (see :class:`Verdict`), in order, without repeats."""
-        return list(dict.fromkeys(v.named for v in self.verdicts if v.named and not v.ok))
-
-    @property
     def details_failed(self) -> list[str]:
         """The failed details (see :class:`Verdict`): correct maths, not in the documented form."""
         return [v.text for v in self.verdicts if v.kind == "detail" and not v.ok]

@@ -19,8 +19,8 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import (FAILED, RTOL, Check, Outcome, declare_defining, load_fixture, report_cases,
-                                    same_up_to_scale, scale_free_gap)
+from course_lib.checks.core import (FAILED, RTOL, Check, Outcome, as_float, declare_defining, load_fixture,
+                                    report_cases, same_up_to_scale, scale_free_gap)
 from course_lib.conventions import rotation_angle_deg, skew
 
 __all__ = ["check_essential_from_fundamental", "check_pose_candidates", "match_candidates"]
@@ -99,15 +99,9 @@ def check_essential_from_fundamental(essential_from_fundamental: Callable) -> No
             F, K = f[f"{name}_F"], f[f"{name}_K"]
             case = _CASE_TEXT[name]
             E = c.call(essential_from_fundamental, F, K, case=case)
-            if E is FAILED:
-                continue
-            try:
-                E = np.asarray(E, dtype=float)
-            except (TypeError, ValueError):
-                c.fail(f"{case}: E must be a numeric (3, 3) array, got {type(E).__name__}")
-                continue
             if not c.shape(E, (3, 3), f"{case}: E"):
                 continue
+            E = as_float(E)
             ok = same_up_to_scale(E, f[f"{name}_E"])
             results.append(Outcome(
                 case, ok, "E matches the reference Kᵀ F K corrected to (1, 1, 0), up to scale and sign",
@@ -216,13 +210,9 @@ def check_pose_candidates(pose_candidates: Callable) -> None:
             if not isinstance(out, (tuple, list)) or len(out) != 2:
                 c.fail(f"{case}: expected a tuple (R (4, 3, 3), C (4, 3)), got {type(out).__name__}")
                 continue
-            try:
-                R, C = np.asarray(out[0], float), np.asarray(out[1], float)
-            except (TypeError, ValueError):
-                c.fail(f"{case}: R and C must be numeric arrays (np.stack the four candidates)")
-                continue
-            if C.shape == (4, 3, 1):
+            R, C = as_float(out[0]), as_float(out[1])
+            if C is not None and C.shape == (4, 3, 1):
                 C = C[..., 0]
-            if c.shape(R, (4, 3, 3), f"{case}: R") & c.shape(C, (4, 3), f"{case}: C"):
+            if c.shape(out[0], (4, 3, 3), f"{case}: R") & c.shape(out[1] if C is None else C, (4, 3), f"{case}: C"):
                 outcomes.append(_candidates_outcome(case, E, R, C, R_ref, C_ref))
         report_cases(c, outcomes, _C_MISTAKES, first=lambda o, _: _candidate_gates(c, o.case, *o.data))

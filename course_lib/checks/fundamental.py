@@ -86,16 +86,6 @@ def _sampson_sq(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     return np.array([cv2.sampsonDistance(a, b, F) for a, b in zip(_h(x1), _h(x2))])
 
 
-def _as_array(v, c: Check, what: str):
-    if v is FAILED:
-        return None
-    try:
-        return np.asarray(v, dtype=float)
-    except (TypeError, ValueError):
-        c.fail(f"{what} must be a numeric array, got {type(v).__name__}")
-        return None
-
-
 def _rank(F: np.ndarray, T1: np.ndarray, T2: np.ndarray) -> int:
     """Numerical rank of F, in pixels and in the normalized coordinates of the case (``T1``, ``T2``).
 
@@ -147,16 +137,14 @@ def _normalize_case(c: Check, fn: Callable, x: np.ndarray, T_ref: np.ndarray, ca
     if not isinstance(out, (tuple, list)) or len(out) != 2:
         c.fail(f"{case}: expected a tuple (x_n, T), got {type(out).__name__}")
         return
-    xn, T = _as_array(out[0], c, f"{case}: x_n"), _as_array(out[1], c, f"{case}: T")
-    if xn is None or T is None:
-        return
-    if xn.shape == (2, len(x)):
+    xn, T = as_float(out[0]), as_float(out[1])
+    if xn is not None and xn.shape == (2, len(x)):
         c.fail(f"{case}: x_n has shape {xn.shape}: points are rows, return shape (N, 2)")
         return
-    if xn.shape == (len(x), 3) and np.allclose(xn[:, 2], 1.0):
+    if xn is not None and xn.shape == (len(x), 3) and np.allclose(xn[:, 2], 1.0):
         c.fail(f"{case}: x_n has shape {xn.shape}: return the 2-D normalized points (drop the homogeneous 1)")
         return
-    if not (c.shape(xn, (len(x), 2), f"{case}: x_n") & c.shape(T, (3, 3), f"{case}: T")):
+    if not (c.shape(out[0], (len(x), 2), f"{case}: x_n") & c.shape(out[1], (3, 3), f"{case}: T")):
         return
     with np.errstate(divide="ignore", invalid="ignore"):
         mapped = _h(x) @ T.T
@@ -269,13 +257,12 @@ def check_eight_point(eight_point: Callable) -> None:
             p = f"ep_{name}"
             x1, x2 = f[f"{p}_x1"], f[f"{p}_x2"]
             case = _CASE_TEXT[name]
-            F = _as_array(c.call(eight_point, x1, x2, case=case), c, f"{case}: F")
-            if F is None:
-                continue
-            if F.shape in ((9,), (9, 1)):
+            out = c.call(eight_point, x1, x2, case=case)
+            F = as_float(out)
+            if F is not None and F.shape in ((9,), (9, 1)):
                 c.fail(f"{case}: F has shape {F.shape}: reshape the null vector to (3, 3) (row-major, F.reshape(3, 3))")
                 continue
-            if not c.shape(F, (3, 3), f"{case}: F"):
+            if not c.shape(out, (3, 3), f"{case}: F"):
                 continue
             ok, good, bad = _eight_point_fit(F, f, p, name)
             results.append(Outcome(case, ok, good, bad, data=(F, p), keys=() if ok else {
@@ -346,13 +333,12 @@ def check_sampson_distance(sampson_distance: Callable) -> None:
             p = f"sd_{name}"
             F, x1, x2, d_ref = f[f"{p}_F"], f[f"{p}_x1"], f[f"{p}_x2"], f[f"{p}_d"]
             case = _SD_TEXT[name].format(n=len(x1), norm=np.linalg.norm(F))
-            d = _as_array(c.call(sampson_distance, F, x1, x2, case=case), c, f"{case}: d")
-            if d is None:
-                continue
-            if d.shape in ((len(x1), 1), (1, len(x1))):
+            out = c.call(sampson_distance, F, x1, x2, case=case)
+            d = as_float(out)
+            if d is not None and d.shape in ((len(x1), 1), (1, len(x1))):
                 c.fail(f"{case}: d has shape {d.shape}: return a flat array of shape (N,)")
                 continue
-            if not c.shape(d, (len(x1),), f"{case}: d"):
+            if not c.shape(out, (len(x1),), f"{case}: d"):
                 continue
             ok = _same_distances(d, f[f"{p}_d"])
             j = int(np.argmax(np.abs(d - f[f"{p}_d"])))
@@ -362,7 +348,7 @@ def check_sampson_distance(sampson_distance: Callable) -> None:
                                        key for key in _SAMPSON_MISTAKES
                                        if f"{p}_mis_{key}" in f and _same_distances(d, f[f"{p}_mis_{key}"])}))
             if k == 0:
-                d10 = _as_array(c.call(sampson_distance, -10.0 * F, x1, x2, case=case), c, f"{case}: d")
+                d10 = as_float(c.call(sampson_distance, -10.0 * F, x1, x2, case=case))
                 usable = d10 is not None and d10.shape == d.shape  # an unusable answer fails the gate too
                 c.gate(usable and _same_distances(d10, d), f"{case}: the distance does not depend on the scale of F",
                        f"{case}: the result changes when F is multiplied by -10: a distance in pixels must not depend "
