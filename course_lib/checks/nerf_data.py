@@ -390,6 +390,7 @@ def check_query_points(query_points: Callable) -> None:
     """Check ``query_points(rays_o (R, 3), rays_d (R, 3), z_vals (R, S)) -> pts (R, S, 3)``: o + t d."""
     f = load_fixture(FIXTURE)
     with Check("query_points") as c:
+        outcomes = []
         for k in range(int(f["query_n"][0])):
             ro, rd, zv, ref = (f[f"query_{k}_{n}"].astype(float) for n in ("o", "d", "z", "pts"))
             R, S = zv.shape
@@ -404,10 +405,10 @@ def check_query_points(query_points: Callable) -> None:
                 continue
             if not c.shape(p, (R, S, 3), f"{case}: pts"):
                 continue
-            hint = next((QUERY_HINTS[lab] for lab in matching(p, f, f"query_{k}_pts", QUERY_HINTS)), None)
-            c.expect(close(p, ref), f"{case}: pts = o + t d matches the reference",
-                     f"{case}: " + (hint or "pts differs from o + t d (pts[r, s] = rays_o[r] + z_vals[r, s] * rays_d[r])"),
-                     named=hint and hint[:30])
+            outcomes.append(Outcome(case, close(p, ref), "pts = o + t d matches the reference", "",
+                                    set(matching(p, f, f"query_{k}_pts", QUERY_HINTS)),
+                                    "pts differs from o + t d (pts[r, s] = rays_o[r] + z_vals[r, s] * rays_d[r])"))
+        report_cases(c, outcomes, QUERY_HINTS)
 
 
 # --------------------------------------------------------------------------- positional encoding

@@ -40,7 +40,7 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import FAILED, Check, as_float, declare_defining, load_fixture
+from course_lib.checks.core import FAILED, Check, Outcome, as_float, declare_defining, load_fixture, report_cases
 from course_lib.checks.nerf_data import close
 
 __all__ = ["check_nerf_model", "check_psnr", "layer_table", "expected_layers", "config_kwargs", "probe_weights",
@@ -507,22 +507,21 @@ def check_psnr(psnr: Callable) -> None:
 
     f = load_fixture(FIXTURE)
     with Check("psnr") as c:
+        outcomes = []
         for k, (mse, want) in enumerate(zip(f["psnr_mse"].astype(float), f["psnr_db"].astype(float))):
             case = f"mse number {k + 1} (a scalar tensor)"
-            got = c.call(psnr, torch.tensor(mse, dtype=torch.float32), case=case)
-            v = as_float(got)
+            v = as_float(c.call(psnr, torch.tensor(mse, dtype=torch.float32), case=case))
             if v is None:
                 continue
             if v.size != 1:
                 c.fail(f"{case}: expected a single number, got shape {v.shape}")
                 continue
             v = float(v.reshape(()))
-            if close(v, want):
-                c.expect(True, f"{case}: PSNR = -10 log10(mse)", "")
-                continue
-            hint = next((why for why, g in PSNR_VARIANTS if close(v, g(mse))), None)
-            c.fail(f"{case}: got {v:.3f} dB, expected {want:.3f} for mse = {mse:.4g}: "
-                   + (hint or "PSNR = -10 log10(mse) for images in [0, 1] (peak 1)"), named=hint and hint[:30])
+            outcomes.append(Outcome(case, close(v, want), "PSNR = -10 log10(mse)",
+                                    f"got {v:.3f} dB, expected {want:.3f} for mse = {mse:.4g}",
+                                    {why for why, g in PSNR_VARIANTS if close(v, g(mse))},
+                                    "PSNR = -10 log10(mse) for images in [0, 1] (peak 1)"))
+        report_cases(c, outcomes, {why: why for why, _ in PSNR_VARIANTS})
         c.causes(psnr, [
             ((r"\blog\(", r"!\blog10\b"), "log is the natural logarithm: PSNR = -10 log10(mse)"),
             (r"\blog2\(", "log2 is the base-2 logarithm: PSNR = -10 log10(mse)"),
