@@ -74,66 +74,94 @@ def accepts(obj, n_args, is_class):
     except (TypeError, ValueError):
         return False
 
-LIMIT = 10.0  # seconds for one candidate, killed after (a long C call ignores SIGALRM)
+LIMIT = 10.0  # seconds for one candidate on one exercise, killed after (a long C call ignores SIGALRM)
 
 
-def start(check, obj, name):
-    # the check of exercise ``name`` on ``obj`` in a forked child: a candidate that loops, blows up or hangs in C
-    # code costs LIMIT seconds at most, and nothing it changes reaches the next candidate
+def start(obj, todo):
+    # the checks of the exercises ``todo`` ([(name, check)], in order) on ``obj`` in a forked child that writes one
+    # score a line: a candidate that loops, blows up or hangs in C code costs LIMIT seconds per exercise at most, and
+    # nothing it changes reaches another candidate (one child per candidate: a fork of this process, which holds the
+    # whole kit, costs more than most tries)
     r, w = os.pipe()
     pid = os.fork()
     if pid == 0:
         os.close(r)
-        s = 0.0
-        try:
-            core.RESULTS.pop(name, None)
-            with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-                check(adapt(obj))
-        except BaseException:
-            pass
-        try:
-            res = core.RESULTS.get(name)
-            s = core.score(res) if res is not None else 0.0
-        except BaseException:
+        for name, check in todo:
             s = 0.0
-        os.write(w, repr(float(s)).encode())
+            try:
+                core.RESULTS.pop(name, None)
+                with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+                    check(adapt(obj))
+            except BaseException:
+                pass
+            try:
+                res = core.RESULTS.get(name)
+                s = core.score(res) if res is not None else 0.0
+            except BaseException:
+                s = 0.0
+            os.write(w, (repr(float(s)) + "\n").encode())
         os._exit(0)
     os.close(w)
-    return pid, r, time.monotonic() + LIMIT
+    os.set_blocking(r, False)
+    return pid, r
 
 
-def score(r):
-    data = os.read(r, 64)
-    os.close(r)
-    try:
-        return float(data or 0.0)
-    except ValueError:
-        return 0.0
+def take_scores(job, final):
+    # the scores the child wrote so far, each for the next exercise of its list; a line resets the child's clock.
+    # ``final`` (the child ended or was killed): the exercise it was on when it stopped scores 0
+    while True:
+        try:
+            chunk = os.read(job["r"], 65536)
+        except BlockingIOError:
+            chunk = None
+        if not chunk:
+            break
+        job["buf"] += chunk
+    *lines, job["buf"] = job["buf"].split(b"\n")
+    for line in lines:
+        name, _ = job["todo"].pop(0)
+        try:
+            s = float(line)
+        except ValueError:
+            s = 0.0
+        scored.append((name, s, job["qual"]))
+        job["end"] = time.monotonic() + LIMIT
+    if final:
+        os.close(job["r"])
+        if job["todo"]:
+            job["todo"].pop(0)
 
 
-jobs = []  # (exercise, candidate's name, check, candidate): one child each, as many at once as there are cores
+candidates = {}  # candidate's name -> (candidate, [(exercise, check)]): every exercise whose arguments it accepts
 for ex in exercises:
     check = getattr(importlib.import_module(ex["check_module"]), ex["check_function"])
-    jobs += [(ex["name"], qual, check, obj) for qual, obj in objs.items()
-             if accepts(obj, ex["n_args"], ex["is_class"])]
+    for qual, obj in objs.items():
+        if accepts(obj, ex["n_args"], ex["is_class"]):
+            candidates.setdefault(qual, (obj, []))[1].append((ex["name"], check))
+jobs = [(qual, obj, todo) for qual, (obj, todo) in candidates.items()]
 best = {ex["name"]: (0.0, None) for ex in exercises}
-running = {}
+scored = []
+running = {}  # one child per candidate, as many at once as there are cores
 while jobs or running:
     while jobs and len(running) < (os.cpu_count() or 1):
-        name, qual, check, obj = jobs.pop(0)
-        pid, r, end = start(check, obj, name)
-        running[pid] = (r, end, name, qual)
-    for pid, (r, end, name, qual) in list(running.items()):
-        if not os.waitpid(pid, os.WNOHANG)[0]:
-            if time.monotonic() < end:
-                continue
+        qual, obj, todo = jobs.pop(0)
+        pid, r = start(obj, todo)
+        running[pid] = {"r": r, "buf": b"", "end": time.monotonic() + LIMIT, "qual": qual, "obj": obj, "todo": todo}
+    for pid, job in list(running.items()):
+        ended = os.waitpid(pid, os.WNOHANG)[0]
+        if not ended and time.monotonic() >= job["end"]:
             os.kill(pid, signal.SIGKILL)
             os.waitpid(pid, 0)
-        del running[pid]
-        s = score(r)
-        if s > best[name][0]:
-            best[name] = (s, qual)
+            ended = True
+        take_scores(job, final=bool(ended))
+        if ended:
+            del running[pid]
+            if job["todo"]:  # it ended or hung on one exercise: the rest in a fresh child
+                jobs.insert(0, (job["qual"], job["obj"], job["todo"]))
     time.sleep(0.005)
+for name, s, qual in scored:
+    if s > best[name][0]:
+        best[name] = (s, qual)
 print(json.dumps(best))
 """
 
