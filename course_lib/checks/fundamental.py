@@ -33,6 +33,7 @@ from course_lib.checks.core import (EPS32, FAILED, RTOL, Check, Outcome, as_floa
                                     load_fixture, report_cases, same_up_to_scale, scale_free_gap)
 from course_lib.checks.ransac import (Ransac, Run, call, mask_outcome, minimal_verdicts, samples_needed,
                                       sampling_verdicts, threshold_interval, within)
+from course_lib.conventions import to_homogeneous
 
 __all__ = [
     "check_normalize_points",
@@ -59,15 +60,11 @@ declare_defining("eight_point", {
 # --------------------------------------------------------------------------- small helpers
 
 
-def _h(x: np.ndarray) -> np.ndarray:
-    return np.column_stack([x, np.ones(len(x))])
-
-
 def _line_distance_px(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """(N,) mean of the distances of x2 to its epipolar line F x1 and of x1 to Fᵀ x2 (the check's yardstick)."""
     F = np.asarray(F, float)
-    l2, l1 = _h(x1) @ F.T, _h(x2) @ F
-    e = np.abs(np.sum(_h(x2) * l2, axis=1))
+    l2, l1 = to_homogeneous(x1) @ F.T, to_homogeneous(x2) @ F
+    e = np.abs(np.sum(to_homogeneous(x2) * l2, axis=1))
     with np.errstate(divide="ignore", invalid="ignore"):
         return 0.5 * (e / np.hypot(l2[:, 0], l2[:, 1]) + e / np.hypot(l1[:, 0], l1[:, 1]))
 
@@ -83,7 +80,7 @@ def _sampson_sq(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     import cv2
 
     F = np.ascontiguousarray(F, dtype=np.float64)
-    return np.array([cv2.sampsonDistance(a, b, F) for a, b in zip(_h(x1), _h(x2))])
+    return np.array([cv2.sampsonDistance(a, b, F) for a, b in zip(to_homogeneous(x1), to_homogeneous(x2))])
 
 
 def _rank(F: np.ndarray, T1: np.ndarray, T2: np.ndarray) -> int:
@@ -147,9 +144,9 @@ def _normalize_case(c: Check, fn: Callable, x: np.ndarray, T_ref: np.ndarray, ca
     if not (c.shape(out[0], (len(x), 2), f"{case}: x_n") & c.shape(out[1], (3, 3), f"{case}: T")):
         return
     with np.errstate(divide="ignore", invalid="ignore"):
-        mapped = _h(x) @ T.T
+        mapped = to_homogeneous(x) @ T.T
         mapped = mapped[:, :2] / mapped[:, 2:]
-        back = _h(xn) @ T.T
+        back = to_homogeneous(xn) @ T.T
         back = back[:, :2] / back[:, 2:]
     c_x = x.mean(0)
     s_est = float(np.linalg.norm(xn - xn.mean(0), axis=1).mean() / max(np.linalg.norm(x - c_x, axis=1).mean(), 1e-300))
@@ -371,7 +368,8 @@ def _F_model(c: Check, case: str, parts: list) -> np.ndarray | None:
 def _algebraic_key(run: Run) -> set[str]:
     """``{"algebraic"}`` when the mask is a threshold on the algebraic error |x2ᵀ F x1| of the unit-norm F."""
     x1, x2 = run.args
-    e = np.abs(np.sum(_h(x2) * (_h(x1) @ (run.model / np.linalg.norm(run.model)).T), axis=1))
+    F = run.model / np.linalg.norm(run.model)
+    e = np.abs(np.sum(to_homogeneous(x2) * (to_homogeneous(x1) @ F.T), axis=1))
     return {"algebraic"} if within(threshold_interval(e, run.inl), run.thr) else set()
 
 

@@ -26,7 +26,8 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import FAILED, Check, as_float, declare_defining, load_fixture, unique_key
+from course_lib.checks.core import (FAILED, Check, Outcome, as_float, declare_defining, load_fixture, report_cases,
+                                    unique_key)
 from course_lib.checks.nerf_data import close, matching
 
 __all__ = ["check_volume_render", "RENDER_HINTS"]
@@ -96,63 +97,56 @@ def _call(c: Check, fn, args, white: bool, case: str):
     return res
 
 
-def _slab_eval(c: Check, volume_render: Callable, f) -> dict | None:
+def _slab_eval(c: Check, volume_render: Callable, f) -> Outcome | None:
     args = tuple(f[f"slab_{k}"] for k in ("rgb", "sigma", "z_vals", "rays_d"))
     case = "rays through slabs of constant density"
     res = _call(c, volume_render, args, True, case)
     if res is None:
         return None
+    c.gate(True, f"{case}: returns rgb_map, depth_map, acc_map, weights of the right shapes", "")
     trans = f["slab_trans"].astype(float)
     absorbed = res["weights"].sum(-1)  # the light the samples absorb: sum_i w_i = 1 - exp(-sigma L)
-    ok = close(absorbed, 1.0 - trans)
-    labels = set(matching(res["weights"], f, "slab", RENDER_HINTS, "_weights"))
-    return {"case": case, "res": res, "ok": ok, "labels": labels, "absorbed": absorbed, "trans": trans}
+    return Outcome(case, close(absorbed, 1.0 - trans), "the light that gets through is exp(-sigma L)",
+                   keys=set(matching(res["weights"], f, "slab", RENDER_HINTS, "_weights")),
+                   advice=f"the weights absorb {np.round(absorbed, 3).tolist()} of the light, expected 1 - exp(-sigma L) "
+                   f"= {np.round(1 - trans, 3).tolist()}: alpha_i = 1 - exp(-sigma_i delta_i), w_i = T_i alpha_i",
+                   data=(res, trans))
 
 
-def _slab_verdicts(c: Check, e: dict, named: str | None) -> None:
-    case, res, ok, trans = e["case"], e["res"], e["ok"], e["trans"]
-    c.gate(True, f"{case}: returns rgb_map, depth_map, acc_map, weights of the right shapes", "")
-    if ok:
-        c.expect(True, f"{case}: the light that gets through is exp(-sigma L)", "", defining=DELTA)
-    else:
-        hint = RENDER_HINTS[named] if named else (
-            f"the weights absorb {np.round(e['absorbed'], 3).tolist()} of the light, expected 1 - exp(-sigma L) = "
-            f"{np.round(1 - trans, 3).tolist()}: alpha_i = 1 - exp(-sigma_i delta_i), w_i = T_i alpha_i")
-        c.fail(f"{case}: {hint}", defining=DELTA if named in NO_DELTA else None, named=named)
+def _slab_verdicts(c: Check, o: Outcome) -> None:
+    """After the slabs' light: acc_map is the sum of the weights, then the colour (red matter, white background)."""
+    case, (res, trans) = o.case, o.data
     acc = res["acc_map"]
     c.gate(close(acc, res["weights"].sum(-1)), f"{case}: acc_map is the sum of the weights",
            f"{case}: acc_map is not the sum of the weights along each ray (acc_map = sum_i w_i; yours differs by up to "
            f"{float(np.abs(res['weights'].sum(-1) - acc).max()):.3g})")
-    if ok and close(acc, res["weights"].sum(-1)):  # the colour only makes sense once the opacity is right
+    if o.ok and close(acc, res["weights"].sum(-1)):  # the colour only makes sense once the opacity is right
         want = np.stack([np.ones_like(trans), trans, trans], axis=1)  # red matter in front of a white background
         c.expect(close(res["rgb_map"], want), f"{case}: the colour is red matter over the white background",
                  f"{case}: rgb_map should be sum_i w_i c_i + (1 - acc_map) (white background); "
                  f"expected {np.round(want, 3).tolist()}, got {np.round(res['rgb_map'], 3).tolist()}")
 
 
-def _random_eval(c: Check, volume_render: Callable, f, white: bool) -> dict | None:
+def _random_eval(c: Check, volume_render: Callable, f, white: bool) -> Outcome | None:
     args = tuple(f[k] for k in ("rgb", "sigma", "z_vals", "rays_d"))
     bg = "white" if white else "black"
     case = f"random rays, {bg} background"
     res = _call(c, volume_render, args, white, case)
     if res is None:
         return None
-    ok = close(res["weights"], f[f"{bg}_weights"].astype(float))
-    labels = set(matching(res["weights"], f, bg, RENDER_HINTS, "_weights"))
-    return {"case": case, "res": res, "ok": ok, "labels": labels, "bg": bg, "white": white}
+    return Outcome(case, close(res["weights"], f[f"{bg}_weights"].astype(float)), "weights match the reference",
+                   keys=set(matching(res["weights"], f, bg, RENDER_HINTS, "_weights")),
+                   advice="weights differ from the reference: w_i = T_i (1 - exp(-sigma_i delta_i)), "
+                   "T_i = prod_{j<i} exp(-sigma_j delta_j), delta_i = (z_{i+1} - z_i) |d|, delta_S = 1e10",
+                   data=(res, bg, white))
 
 
-def _random_verdicts(c: Check, f, e: dict, named: str | None) -> None:
-    case, res, bg, white = e["case"], e["res"], e["bg"], e["white"]
-    ref = {k: f[f"{bg}_{k}"].astype(float) for k in KEYS}
-    if e["ok"]:
-        c.expect(True, f"{case}: weights match the reference", "", defining=DELTA)
-    else:
-        c.fail(f"{case}: " + (RENDER_HINTS[named] if named else
-                              "weights differ from the reference: w_i = T_i (1 - exp(-sigma_i delta_i)), "
-                              "T_i = prod_{j<i} exp(-sigma_j delta_j), delta_i = (z_{i+1} - z_i) |d|, delta_S = 1e10"),
-               defining=DELTA if named in NO_DELTA else None, named=named)
+def _random_verdicts(c: Check, f, o: Outcome) -> None:
+    """After right weights: acc_map, rgb_map (the background named) and depth_map against the reference's."""
+    if not o.ok:
         return
+    case, (res, bg, white) = o.case, o.data
+    ref = {k: f[f"{bg}_{k}"].astype(float) for k in KEYS}
     c.expect(close(res["acc_map"], ref["acc_map"]), f"{case}: acc_map matches the reference",
              f"{case}: acc_map is not the sum of the weights along each ray (acc_map = sum_i w_i)")
     if close(res["rgb_map"], ref["rgb_map"]):
@@ -179,14 +173,16 @@ def _random_verdicts(c: Check, f, e: dict, named: str | None) -> None:
 def check_volume_render(volume_render: Callable) -> None:
     """Check ``volume_render(rgb, sigma, z_vals, rays_d, white_background=True) -> dict`` (notebook 08).
 
-    The dict holds ``rgb_map (R, 3)``, ``depth_map (R,)``, ``acc_map (R,)``, ``weights (R, S)``.
+    The dict holds ``rgb_map (R, 3)``, ``depth_map (R,)``, ``acc_map (R,)``, ``weights (R, S)``. The light through
+    the slabs and the random rays' weights test Δ in α, the defining property, when they pass or when the mistake
+    named leaves Δ out of α.
     """
     f = load_fixture(FIXTURE)
     with Check("volume_render") as c:
         slab = _slab_eval(c, volume_render, f)
-        runs = [r for r in (_random_eval(c, volume_render, f, white) for white in (True, False)) if r is not None]
-        named = unique_key([e["labels"] for e in ([slab] if slab else []) + runs if not e["ok"]])
-        if slab is not None:
-            _slab_verdicts(c, slab, named)
-        for e in runs:
-            _random_verdicts(c, f, e, named)
+        runs = [o for o in [slab] + [_random_eval(c, volume_render, f, white) for white in (True, False)] if o]
+        named = unique_key([o.keys for o in runs if not o.ok])
+        for o in runs:
+            o.defining = DELTA if o.ok or named in NO_DELTA else None
+        report_cases(c, runs, RENDER_HINTS,
+                     then=lambda o, _: _slab_verdicts(c, o) if o is slab else _random_verdicts(c, f, o))

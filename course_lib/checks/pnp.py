@@ -43,7 +43,7 @@ THRESHOLD_PX = 2.0
 # --------------------------------------------------------------------------- helpers
 
 
-def _pose(out, c: Check, case: str):
+def _pose(c: Check, case: str, out):
     """``(R (3, 3), t (3,))`` from the student's return value, or None after recording a failure."""
     return c.arrays(out, case, {"R_cw": (3, 3), "t_cw": (3,)}, "the tuple (R_cw, t_cw)")
 
@@ -135,7 +135,7 @@ def check_pnp_linear(fn, exercise: str = "pnp_linear") -> None:
             if f"{key}_X" not in f:
                 continue
             K, X, x, R_r, t_r = (f[f"{key}_{s}"] for s in ("K", "X", "x", "R", "t"))
-            out = _pose(c.call(fn, X, x, K, case=case), c, case)
+            out = _pose(c, case, c.call(fn, X, x, K, case=case))
             if out is None or not _rotation_verdict(c, out[0], case, defining="R is a rotation"):
                 continue
             R, t = out
@@ -178,17 +178,13 @@ def _pixel_hint(R, K, R_true, tol_deg: float = 0.05) -> bool:
 # --------------------------------------------------------------------------- pnp_ransac
 
 
-def _pose_model(c: Check, case: str, parts: list):
-    return _pose(tuple(parts), c, case)
-
-
 def _ransac_errors(pose, args) -> np.ndarray:
     X, x, K = args
     return _errors(K, *pose, X, x)
 
 
 RANSAC = Ransac(6, ("point", "points"), ("R_cw", "t_cw", "inliers", "n_iters"),
-                "a PnPResult(R_cw, t_cw, inliers, n_iters)", _pose_model, _ransac_errors, "reprojection error", "pose",
+                "a PnPResult(R_cw, t_cw, inliers, n_iters)", _pose, _ransac_errors, "reprojection error", "pose",
                 THRESHOLD_PX, 1000, {
                     "normalized": "your inliers include points whose reprojection errors are many pixels: measure the "
                                   "reprojection error in pixels (project with K), not in normalized coordinates",
@@ -411,7 +407,7 @@ def check_pnp_nonlinear(fn, exercise: str = "pnp_nonlinear") -> None:
                 continue
             else:
                 K, X, x, R0, t0, R_r, t_r = (f[f"{key}_{s}"] for s in ("K", "X", "x", "R0", "t0", "R", "t"))
-            out = _pose(c.call_explained(fn, X, x, K, R0, t0, case=case, explain=_two_d_residual), c, case)
+            out = _pose(c, case, c.call_explained(fn, X, x, K, R0, t0, case=case, explain=_two_d_residual))
             if out is None:
                 continue
             R, t = out
