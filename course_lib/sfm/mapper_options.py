@@ -116,7 +116,7 @@ class MapperOptions:
         max_k1: a refined ``|k1|`` above this is rejected likewise (the BA is then redone with ``k1``
             held). (COLMAP ``max_extra_param`` 1.)
         refine_k1_from_images: ``k1`` is held (the focal length alone refined) until the model holds
-            this many images. (COLMAP: from the start.)
+            this many images, or all the images of a smaller set. (COLMAP: from the start.)
         min_k1_effect_px: ``k1`` is held where ``k1 = 0.1`` would move the image's corners by less than
             this (a narrow field of view: 640 px wide at f = 1536 px, 2.7 px), where it trades off against
             the focal length. (COLMAP: none.)
