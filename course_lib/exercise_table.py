@@ -28,8 +28,8 @@ class Exercise:
         fields: the names of the result's parts where the stub returns several things (a tuple in
             this order, or an object with these attributes); empty for a single value.
         engines: the kit's functions and classes that compute the exercise's result with the
-            student's own functions (so the exercise's own code may not call them: the grader's scan
-            says so, :mod:`course_lib.instructor.scan`).
+            student's own functions (so the exercise's own code may not call them: the grader closes
+            them in the process where it grades the exercise).
     """
 
     name: str

@@ -30,7 +30,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from course_lib.alignment import align_similarity
-from course_lib.checks.core import FAILED, RTOL, Check, load_fixture, source_has
+from course_lib.checks.core import FAILED, RTOL, Check, Outcome, as_float, load_fixture, report_cases
 from course_lib.conventions import camera_center, rotation_angle_deg
 from course_lib.starting_points import observation_arrays
 
@@ -124,37 +124,35 @@ def check_visibility_matrix(fn, exercise: str = "visibility_matrix") -> None:
 # --------------------------------------------------------------------------- reprojection_residuals
 
 
-def _residual_case(c: Check, fn, f, key: str, case: str) -> None:
+def _residual_outcome(c: Check, fn, f, key: str, case: str) -> Outcome | None:
+    """One case of the residuals: equal to the reference's, up to the sign (observed minus projected works too)."""
     p, M, N = f[f"{key}_params"], int(f[f"{key}_M"]), int(f[f"{key}_N"])
     cam, pt, uv, K, exp = (f[f"{key}_{s}"] for s in ("camera_idx", "point_idx", "uv", "K", "expected"))
-    r = _as_array(c.call(fn, p, M, N, cam, pt, uv, K, case=case), c, case)
-    if r is None:
-        return
-    if r.shape == (len(cam), 2):
+    out = c.call(fn, p, M, N, cam, pt, uv, K, case=case)
+    r = as_float(out)
+    if r is not None and r.shape == (len(cam), 2):
         c.fail(f"{case}: r has shape {r.shape}: return the flat vector r.ravel() of shape ({2 * len(cam)},), "
                "[u_0' - u_0, v_0' - v_0, u_1' - u_1, ...]")
-        return
-    if not c.shape(r, (2 * len(cam),), f"{case}: r"):
-        return
-    r = np.asarray(r, float)
+        return None
+    if not c.shape(out, (2 * len(cam),), f"{case}: r"):
+        return None
     tol = RESIDUAL_ATOL_PX + RTOL * np.abs(exp).max()  # a float32 answer is good to ~1e-4 px
-    if np.abs(r - exp).max() < tol or np.abs(r + exp).max() < tol:  # observed minus projected works too
-        c.expect(True, f"{case}: equals the reference (up to the sign, u and v interleaved)", "")
-    else:
-        named = next((name for name, msg in RESIDUAL_VARIANTS.items() if f"{key}_var_{name}" in f
-                      and (np.abs(r - f[f"{key}_var_{name}"]).max() < tol or np.abs(r + f[f"{key}_var_{name}"]).max() < tol)),
-                     None)
-        why = RESIDUAL_VARIANTS.get(named) or ("check the projection of point point_idx[k] by camera camera_idx[k]: R "
-                                                "from the rotation vector params[6c:6c+3], t = params[6c+3:6c+6], "
-                                                "X = params[6M+3j:6M+3j+3]")
-        c.fail(f"{case}: max difference {np.abs(r - exp).max():.3g} px from the reference: {why}", named=named)
+    same = lambda a: np.abs(r - a).max() < tol or np.abs(r + a).max() < tol  # noqa: E731
+    stored = {name for name in RESIDUAL_VARIANTS if f"{key}_var_{name}" in f}  # the mistakes this case can tell
+    return Outcome(case, same(exp), "equals the reference (up to the sign, u and v interleaved)",
+                   f"max difference {np.abs(r - exp).max():.3g} px from the reference",
+                   ({name for name in stored if same(f[f"{key}_var_{name}"])}, stored),
+                   "check the projection of point point_idx[k] by camera camera_idx[k]: R from the rotation vector "
+                   "params[6c:6c+3], t = params[6c+3:6c+6], X = params[6M+3j:6M+3j+3]")
 
 
 def check_reprojection_residuals(fn, exercise: str = "reprojection_residuals") -> None:
     """Check ``fn(params, n_cameras, n_points, camera_idx, point_idx, uv, K) -> (2K,)``."""
     f = load_fixture(FIXTURE)
     with Check(exercise) as c:
-        _residual_case(c, fn, f, "res_syn", "perturbed synthetic scene")
+        cases = (("res_syn", "perturbed synthetic scene"), ("emb", "embedded scene before bundle adjustment"))
+        outcomes = [_residual_outcome(c, fn, f, key, case) for key, case in cases if f"{key}_params" in f]
+        report_cases(c, [o for o in outcomes if o is not None], RESIDUAL_VARIANTS)
         # zero at the truth
         case = "true cameras and points, noiseless pixels"
         p_t, M, N, K = f["res_true_params"], int(f["res_syn_M"]), int(f["res_syn_N"]), f["res_syn_K"]
@@ -167,13 +165,11 @@ def check_reprojection_residuals(fn, exercise: str = "reprojection_residuals") -
                    "check the projection x = K (R X + t) / z")
         elif r is not None:
             c.fail(f"{case}: r has {np.size(r)} entries, expected {2 * len(cam_t)} (two per observation)")
-        if "emb_params" in f:
-            _residual_case(c, fn, f, "emb", "embedded scene before bundle adjustment")
         c.causes(fn, [
-            (source_has(r"\bfrom_euler\("), "a camera's first 3 numbers are a rotation vector: Rotation.from_rotvec, not from_euler"),
-            (source_has(r"\bnorm\("), "np.linalg.norm makes one distance of each (u, v) difference: return the u and v differences "
+            (r"\bfrom_euler\(", "a camera's first 3 numbers are a rotation vector: Rotation.from_rotvec, not from_euler"),
+            (r"\bnorm\(", "np.linalg.norm makes one distance of each (u, v) difference: return the u and v differences "
                                       "both, (proj - uv).ravel()"),
-            (source_has(r"\binv\("), "the projection uses K itself: pixels = (K x_cam)[:2] / (K x_cam)[2], no inverse"),
+            (r"\binv\(", "the projection uses K itself: pixels = (K x_cam)[:2] / (K x_cam)[2], no inverse"),
         ])
 
 

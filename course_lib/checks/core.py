@@ -44,6 +44,7 @@ checks; the grader runs the same checks on hidden cases (:func:`using_cases`).
 
 from __future__ import annotations
 
+import re
 import traceback
 from collections import Counter
 from dataclasses import dataclass, field
@@ -67,14 +68,10 @@ __all__ = [
     "DEFINING_CAP",
     "RESULTS",
     "calls_name",
-    "code_reads",
-    "code_constants",
     "code_text",
-    "source_has",
     "FAILED",
     "load_fixture",
     "using_cases",
-    "as_array",
     "as_float",
     "Outcome",
     "report_cases",
@@ -84,18 +81,7 @@ __all__ = [
     "close_rel",
     "same_up_to_scale",
     "scale_free_gap",
-    "scale_of",
     "unique_key",
-    "RecordingRng",
-    "counted_repeats",
-    "repeated_sample",
-    "samples_needed",
-    "call_minimal",
-    "minimal_verdict",
-    "rng_verdicts",
-    "under_global_seed",
-    "threshold_interval",
-    "within",
 ]
 
 PASS, FAIL = "✔", "✘"
@@ -193,20 +179,9 @@ class CheckResult:
         return out
 
     @property
-    def named(self) -> list[str]:
-        """The keys of the mistakes the failed checks name (see :class:`Verdict`), in order, without repeats."""
-        return list(dict.fromkeys(v.named for v in self.verdicts if v.named and not v.ok))
-
-    @property
     def details_failed(self) -> list[str]:
         """The failed details (see :class:`Verdict`): correct maths, not in the documented form."""
         return [v.text for v in self.verdicts if v.kind == "detail" and not v.ok]
-
-    @property
-    def points(self) -> tuple[int, int]:
-        """``(passed, counted)``: passed point checks, and point checks plus failed gates."""
-        passed, n_points, failed_gates = _tally(self)
-        return passed, n_points + failed_gates
 
     def __repr__(self) -> str:  # deterministic, in case a cell displays it
         return f"CheckResult({self.exercise!r}, {self.passed}/{self.total})"
@@ -346,12 +321,6 @@ def calls_name(fn: Any, name: str, depth: int = 3) -> bool | None:
     return False
 
 
-def code_constants(fn: Any) -> list:
-    """The numeric constants written in the code of ``fn`` (a function, or the methods of a class); [] when unreadable."""
-    return [k for code in _code_objects(_functions_of(fn) or []) for k in code.co_consts
-            if isinstance(k, (int, float)) and not isinstance(k, bool)]
-
-
 def code_text(fn: Any) -> str:
     """The source of ``fn`` (a function or class, in a module or a notebook cell); "" when it cannot be read."""
     import inspect
@@ -360,27 +329,6 @@ def code_text(fn: Any) -> str:
         return inspect.getsource(fn)
     except (OSError, TypeError):
         return ""
-
-
-def source_has(pattern: str) -> Callable[[Any], bool]:
-    """A condition for :meth:`Check.causes`: the source of the student's code matches the regular expression."""
-    import re
-
-    return lambda fn: re.search(pattern, code_text(fn)) is not None
-
-
-def code_reads(fn: Any, cond: Any) -> bool:
-    """Whether the code of ``fn`` meets ``cond`` (see :meth:`Check.causes`); False when the code cannot be read."""
-    if isinstance(cond, tuple):
-        return all(code_reads(fn, c) for c in cond)
-    if callable(cond):
-        try:
-            return bool(cond(fn))
-        except Exception:  # noqa: BLE001 - a condition that cannot be decided does not hold
-            return False
-    negate = cond.startswith("!")
-    used = calls_name(fn, cond.lstrip("!"))
-    return used is not None and used != negate
 
 
 class Check:
@@ -402,7 +350,6 @@ class Check:
         self.verdicts: list[Verdict] = []
         self.passed = 0
         self.total = 0
-        self.planned: list[str] = []  # cases the check means to run (see plan)
         self.case: str | None = None  # the case of the last call
         self.answered: dict[str, bool] = {}  # case called -> whether a verdict was recorded for it
         self.unanswered_call: str | None = None  # the case of a call after which no verdict was recorded yet
@@ -475,18 +422,19 @@ class Check:
         """Print a line of advice under the verdict; it is no check and counts for nothing."""
         self.notes.append(text)
 
-    def causes(self, fn: Any, candidates: list[tuple[Any, str]]) -> None:
+    def causes(self, fn: Any, candidates: list[tuple[str | tuple[str, ...], str]]) -> None:
         """After a failure that no verdict names: the common causes of this exercise that fit the student's code.
 
-        Each candidate is ``(condition, advice)``; the condition reads the code of ``fn`` (:func:`code_reads`):
-        a name the code uses (``"eigh"``), ``"!name"`` for a name it does not use, a tuple of such conditions (all
-        must hold), or a function of ``fn`` returning a bool. Only the advice whose condition holds is printed,
-        under one note; nothing is printed when every check passed, when a failed verdict already names the
-        mistake, or when the code cannot be read (a built-in, a callable object).
+        Each candidate is ``(pattern, advice)``: a regular expression that the source of ``fn`` (:func:`code_text`)
+        matches, ``"!pattern"`` for one it does not match, or a tuple of such (all must hold). Only the advice whose
+        patterns hold is printed, under one note; nothing is printed when every check passed, when a failed verdict
+        already names the mistake, or when the code cannot be read (a built-in, a callable object).
         """
-        if self.passed == self.total or any(v.named for v in self.verdicts if not v.ok):
+        src = code_text(fn)
+        if not src or self.passed == self.total or any(v.named for v in self.verdicts if not v.ok):
             return
-        fits = [text for cond, text in candidates if code_reads(fn, cond)]
+        holds = lambda p: (re.search(p[1:], src) is None) if p.startswith("!") else bool(re.search(p, src))  # noqa: E731
+        fits = [text for pats, text in candidates if all(map(holds, (pats,) if isinstance(pats, str) else pats))]
         if fits:
             self.note("common causes that fit your code: " + "; ".join(fits))
 
@@ -511,15 +459,6 @@ class Check:
                 names = " and ".join(bad)
                 self.note(f"{self.exercise} calls your {names}, whose check {why}: fix {names} first"
                           + (" (run its check cell)" if why != "failed" else ""))
-
-    def plan(self, *cases: str) -> None:
-        """Declare the cases this check means to run (the ``case=`` names of its calls).
-
-        A planned case that no :meth:`call` reached when the check ends (the check stopped early,
-        or returned before it) counts as one failed check, and the verdict names it: a check never
-        runs fewer cases than it planned without saying so.
-        """
-        self.planned += [c for c in cases if c not in self.planned]
 
     def call(self, fn: Callable, *args, case: str, **kwargs) -> Any:
         """Call the student's function; on an exception record a failure and return :data:`FAILED`.
@@ -615,13 +554,13 @@ class Check:
         if value is FAILED:
             return False
         want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
-        arr = as_array(value)
-        if arr is None or arr.dtype == object or arr.dtype.kind in "USV":
+        arr = as_float(value)
+        if arr is None:
             return self.gate(False, "", f"{what} is {_describe(value)}, expected a numeric array of shape {want}")
         ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape, strict=True))
         if not ok:
             return self.gate(False, "", f"{what} has shape {tuple(arr.shape)}, expected {want}")
-        if np.issubdtype(arr.dtype, np.number) and not np.isfinite(arr).all():
+        if not np.isfinite(arr).all():
             return self.gate(False, "", f"{what} contains NaN or inf")
         return self.gate(True, f"{what} has shape {want}", "")
 
@@ -638,14 +577,11 @@ class Check:
     def account_for_cases(self) -> None:
         """Fail every case that did not run or whose result no check could use (called by :meth:`report`).
 
-        A planned case (:meth:`plan`) that no call reached, a case that was called but about which
-        no verdict was recorded (its result was nothing the check could read), and a last call
-        after which nothing was recorded, each count as one failed check, so that a missing answer
-        never makes checks disappear from the count.
+        A case that was called but about which no verdict was recorded (its result was nothing the
+        check could read), and a last call after which nothing was recorded, each count as one failed
+        check, so that a missing answer never makes checks disappear from the count.
         """
         last = self.unanswered_call  # the last call's result led to no verdict at all
-        for case in [c for c in self.planned if c not in self.answered]:
-            self.fail(f"{case}: this case did not run (the check stopped before it); it counts as failed")
         unanswered = [case for case, answered in self.answered.items() if not answered]
         for case in unanswered:
             self.fail(f"{case}: the result could not be checked (nothing usable was returned); it counts as failed")
@@ -687,159 +623,6 @@ class Check:
 
 
 # ---------------------------------------------------------------------------------------------
-# How a RANSAC draws its samples
-# ---------------------------------------------------------------------------------------------
-
-
-class RecordingRng(np.random.Generator):
-    """A numpy Generator (seeded like ``np.random.default_rng(seed)``) that records the index draws made with it.
-
-    A check hands it to a RANSAC as its ``rng`` argument; :func:`repeated_sample` then tells whether a sample of
-    ``k`` indices held one index twice (``rng.choice(N, k)`` draws with replacement unless ``replace=False``).
-    Draws of ``choice``, ``integers`` and ``permutation`` are recorded; the numbers are those of a plain Generator.
-    """
-
-    def __init__(self, seed: int):
-        super().__init__(np.random.PCG64(seed))
-        self.draws: list[np.ndarray] = []
-        self._depth = 0  # choice calls integers and permutation itself: only the outermost call is the student's draw
-
-    def _draw(self, method, *args, **kwargs):
-        self._depth += 1
-        try:
-            out = method(*args, **kwargs)
-        finally:
-            self._depth -= 1
-        arr = np.asarray(out)
-        if self._depth == 0 and arr.ndim >= 1 and arr.dtype.kind in "iu":
-            self.draws.append(arr.copy())
-        return out
-
-    def choice(self, *args, **kwargs):
-        return self._draw(super().choice, *args, **kwargs)
-
-    def integers(self, *args, **kwargs):
-        return self._draw(super().integers, *args, **kwargs)
-
-    def permutation(self, *args, **kwargs):
-        return self._draw(super().permutation, *args, **kwargs)
-
-
-def counted_repeats(rng: RecordingRng, k: int, n_iters: Any) -> int:
-    """How many samples of ``k`` indices that held an index twice a RANSAC drew, skipped and counted in ``n_iters``,
-    on a case whose first sample of ``k`` distinct indices ends the loop (``k`` points, no noise): every draw of ``k``
-    but the last held a repeat, the last did not, and ``n_iters`` counts them all. 0 when that is not what it did."""
-    draws = [d for d in rng.draws if d.shape == (k,)]
-    distinct = [len(np.unique(d)) == k for d in draws]
-    if len(draws) < 2 or not distinct[-1] or any(distinct[:-1]) or n_iters != len(draws):
-        return 0
-    return len(draws) - 1
-
-
-def repeated_sample(rng: RecordingRng, k: int) -> np.ndarray | None:
-    """The first recorded draw of exactly ``k`` indices (a row of a batch counts) that holds an index twice, else None."""
-    for d in rng.draws:
-        if d.shape[-1] != k:
-            continue
-        for row in d.reshape(-1, k):
-            if len(np.unique(row)) < k:
-                return row
-    return None
-
-
-
-def samples_needed(w: float, k: int, confidence: float, max_iters: int) -> float:
-    """Adaptive RANSAC's count N = log(1 - confidence) / log(1 - wᵏ) for inlier ratio ``w`` and samples of ``k``, at
-    most ``max_iters`` (1 when every item is an inlier)."""
-    if w >= 1.0:
-        return 1.0
-    if w <= 0.0:
-        return float(max_iters)
-    return float(min(max_iters, np.log(1.0 - confidence) / np.log(1.0 - w**k)))
-
-
-def _distinct_advice(k: int, items: str) -> str:
-    return (f"rng.choice(N, {k}) draws with replacement unless you pass replace=False; draw {k} distinct {items}, "
-            f"rng.choice(N, {k}, replace=False)")
-
-
-def call_minimal(c: "Check", fn: Callable, *args, k: int, item: tuple[str, str], seed: int, case: str,
-                 **kwargs) -> tuple[Any, RecordingRng] | None:
-    """Call a RANSAC on exactly ``k`` noiseless items (``item``: their name, singular and plural) with a
-    :class:`RecordingRng` seeded with ``seed``: ``(result, rng)``, or None after a failed check; when the student's
-    code raised after it drew a sample that held an item twice, that check names the degenerate sample (it explains
-    the exception)."""
-    rng = RecordingRng(seed)
-
-    def explain(exc: Exception) -> str | None:
-        twice = repeated_sample(rng, k)
-        return None if twice is None else (
-            f"your function raised {type(exc).__name__}: {str(exc)[:100]}, after a sample that held a {item[0]} twice "
-            f"(indices {twice.tolist()}): {_distinct_advice(k, item[1])}")
-
-    res = c.call_explained(fn, *args, rng, case=case, explain=explain, named="with_replacement", **kwargs)
-    return None if res is FAILED else (res, rng)
-
-
-def minimal_verdict(c: "Check", rng: RecordingRng, k: int, item: tuple[str, str], case: str, ok: bool, n_iters: Any,
-                    pass_msg: str, what: str) -> None:
-    """The verdict of a RANSAC on exactly ``k`` noiseless items (:func:`call_minimal`): the only sample of ``k``
-    distinct items is all of them, so the result fits every item exactly (``ok``; ``what``: the case's numbers, for a
-    failure). A sample that held an item twice (``k - 1`` items leave the model undetermined) is named: drawn and
-    counted in ``n_iters`` before the one good sample, or seen in a run that failed."""
-    skipped = counted_repeats(rng, k, n_iters)
-    if ok and skipped:
-        c.fail(f"{case}: n_iters = {n_iters}, where the first sample of {k} distinct {item[1]} has every {item[0]} as "
-               f"inlier (N = 1): the {skipped} samples before it each held a {item[0]} twice (a degenerate sample, "
-               f"counted in n_iters): {_distinct_advice(k, item[1])}", named="with_replacement")
-        return
-    twice = None if ok else repeated_sample(rng, k)
-    if twice is not None:
-        c.fail(f"{what}: a sample held a {item[0]} twice (indices {twice.tolist()}): {_distinct_advice(k, item[1])}",
-               named="with_replacement")
-        return
-    c.expect(ok, pass_msg, f"{what} (each sample is {k} distinct {item[1]}, rng.choice(N, {k}, replace=False); the "
-             "refit uses every inlier)")
-
-
-def under_global_seed(seed: int, call: Callable[[], Any]) -> tuple[Any, bool]:
-    """``call()`` with numpy's global random state seeded with ``seed`` (restored after): ``(its result, whether it
-    changed that state)``; a RANSAC that draws from ``rng`` only gives the same result under any global state."""
-    saved = np.random.get_state()
-    try:
-        np.random.seed(seed)
-        before = np.random.get_state()[1].copy()
-        out = call()
-        return out, not np.array_equal(np.random.get_state()[1], before)
-    finally:
-        np.random.set_state(saved)
-
-
-def rng_verdicts(c: "Check", case: str, k: int, touched: bool, drawn: bool | None = None) -> None:
-    """Gates of a RANSAC's randomness (a constant answer satisfies them as well as a right one): numpy's global state
-    was not ``touched`` by the call, and (unless None) the ``rng`` argument was ``drawn`` from (its state advanced)."""
-    c.gate(not touched, f"{case}: numpy's global random state is left untouched",
-           f"{case}: the call changed numpy's global random state (np.random.seed or a draw from np.random): draw "
-           "from the rng argument only")
-    if drawn is not None:
-        c.gate(drawn, f"{case}: the samples are drawn from the rng argument",
-               f"{case}: the rng argument is untouched after the call (no number was drawn from it): draw every sample "
-               f"from it (rng.choice(N, {k}, replace=False)), not from a generator of your own or np.random")
-
-
-def threshold_interval(values: np.ndarray, inl: np.ndarray) -> tuple[float, float] | None:
-    """``(lo, hi)``: the inlier mask ``inl`` is ``values < τ`` for every τ in (lo, hi]; None when no threshold gives it
-    (how a check reads which threshold, or which rule, a RANSAC's mask follows)."""
-    lo = float(values[inl].max()) if inl.any() else -np.inf
-    hi = float(values[~inl].min()) if (~inl).any() else np.inf
-    return (lo, hi) if lo < hi else None
-
-
-def within(interval: tuple[float, float] | None, tau: float) -> bool:
-    """Whether the threshold ``tau`` lies in ``interval`` (:func:`threshold_interval`; ends within float rounding)."""
-    return interval is not None and interval[0] < tau * (1 + 1e-9) and tau <= interval[1] * (1 + 1e-9)
-
-# ---------------------------------------------------------------------------------------------
 # One rule for equivalences and tolerances
 # ---------------------------------------------------------------------------------------------
 
@@ -850,15 +633,9 @@ EPS32 = float(np.finfo(np.float32).eps)
 RTOL = 1000 * EPS32
 
 
-def scale_of(a: Any) -> float:
-    """The scale of an array: its largest magnitude (1 for an empty or all-zero array)."""
-    a = np.asarray(a, float)
-    m = float(np.abs(a).max()) if a.size else 0.0
-    return m if m > 0 and np.isfinite(m) else 1.0
-
-
 def close_rel(a: Any, b: Any, rtol: float = RTOL) -> bool:
-    """``a`` equals ``b`` within ``rtol`` of ``b``'s scale (:func:`scale_of`), same shape, all finite.
+    """``a`` equals ``b`` within ``rtol`` of ``b``'s scale (its largest magnitude, 1 when that is 0), same shape,
+    all finite.
 
     The checks' one rule for "equal": relative to the answer's scale, so that a correct answer in
     float32 (or of large coordinates) passes.
@@ -869,7 +646,8 @@ def close_rel(a: Any, b: Any, rtol: float = RTOL) -> bool:
         return False
     if a.shape != b.shape or not np.isfinite(a).all():
         return False
-    return bool(np.abs(a - b).max(initial=0.0) <= rtol * scale_of(b))
+    scale = float(np.abs(b).max(initial=0.0)) if np.isfinite(b).all() else 0.0
+    return bool(np.abs(a - b).max(initial=0.0) <= rtol * (scale or 1.0))
 
 
 def scale_free_gap(a: Any, b: Any) -> float:
@@ -926,6 +704,7 @@ class Outcome:
             ``(explained, testable)``); only read when the case fails.
         advice: what to change, printed after the facts when no mistake is named.
         data: whatever else the check's own verdicts of the case need.
+        defining: the defining property the verdict tests (see :meth:`Check.expect`), or None.
     """
 
     case: str
@@ -935,6 +714,7 @@ class Outcome:
     keys: Any = ()
     advice: str = ""
     data: Any = None
+    defining: str | None = None
 
 
 def report_cases(c: "Check", outcomes: list[Outcome], mistakes: dict[str, str],
@@ -953,9 +733,10 @@ def report_cases(c: "Check", outcomes: list[Outcome], mistakes: dict[str, str],
         if first is not None:
             first(o, named)
         if o.ok:
-            c.expect(True, f"{o.case}: {o.passed}", "")
+            c.expect(True, f"{o.case}: {o.passed}", "", defining=o.defining)
         else:
-            c.fail(f"{o.case}: " + ": ".join(t for t in (o.failed, mistakes[own] if own else o.advice) if t), named=own)
+            c.fail(f"{o.case}: " + ": ".join(t for t in (o.failed, mistakes[own] if own else o.advice) if t),
+                   defining=o.defining, named=own)
         if then is not None:
             then(o, named)
     return named
@@ -985,24 +766,14 @@ def as_float(value: Any) -> np.ndarray | None:
         return None
 
 
-def as_array(value: Any) -> np.ndarray | None:
-    """``value`` as a numpy array (torch tensors on any device, with or without grad, included); None if impossible."""
-    try:
-        if hasattr(value, "detach") and hasattr(value, "cpu"):
-            value = value.detach().cpu().numpy()
-        return value if isinstance(value, np.ndarray) else np.asarray(value)
-    except Exception:  # noqa: BLE001 - ragged lists, objects that refuse conversion: not an array
-        return None
-
-
 def _describe(value: Any) -> str:
     """A short description of a returned value for a verdict ("a str", "a tuple of 2 items", "None")."""
     if value is None:
         return "None"
     if isinstance(value, (tuple, list)):
         return f"a {type(value).__name__} of {len(value)} items"
-    arr = as_array(value)
-    if arr is not None and arr.dtype != object and arr.dtype.kind not in "USV":
+    arr = as_float(value)
+    if arr is not None:
         return f"an array of shape {tuple(arr.shape)}"
     return f"a {type(value).__name__}"
 

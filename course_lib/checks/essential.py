@@ -15,13 +15,12 @@ of the two the SVD gives det U det V = -1, so a missing flip shows on every pair
 
 from __future__ import annotations
 
-import re
 from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import (FAILED, RTOL, Check, Outcome, code_text, declare_defining, load_fixture,
-                                    report_cases, same_up_to_scale, scale_free_gap, source_has, unique_key)
+from course_lib.checks.core import (FAILED, RTOL, Check, Outcome, as_float, declare_defining, load_fixture,
+                                    report_cases, same_up_to_scale, scale_free_gap)
 from course_lib.conventions import rotation_angle_deg, skew
 
 __all__ = ["check_essential_from_fundamental", "check_pose_candidates", "match_candidates"]
@@ -35,9 +34,6 @@ declare_defining("essential_from_fundamental", {
 declare_defining("pose_candidates", {
     "det R = +1": "a rotation has det +1; det -1 is a reflection, no camera pose",
 })
-
-#: The documented candidate order, as a sentence for the verdicts (the sign is that of t = ±u₃).
-ORDER_TEXT = "(R = U W Vᵀ, t = +u₃), (U W Vᵀ, -u₃), (U Wᵀ Vᵀ, +u₃), (U Wᵀ Vᵀ, -u₃)"
 
 _CASE_TEXT = {
     "noiseless": "noiseless synthetic pair",
@@ -103,15 +99,9 @@ def check_essential_from_fundamental(essential_from_fundamental: Callable) -> No
             F, K = f[f"{name}_F"], f[f"{name}_K"]
             case = _CASE_TEXT[name]
             E = c.call(essential_from_fundamental, F, K, case=case)
-            if E is FAILED:
-                continue
-            try:
-                E = np.asarray(E, dtype=float)
-            except (TypeError, ValueError):
-                c.fail(f"{case}: E must be a numeric (3, 3) array, got {type(E).__name__}")
-                continue
             if not c.shape(E, (3, 3), f"{case}: E"):
                 continue
+            E = as_float(E)
             ok = same_up_to_scale(E, f[f"{name}_E"])
             results.append(Outcome(
                 case, ok, "E matches the reference Kᵀ F K corrected to (1, 1, 0), up to scale and sign",
@@ -121,10 +111,10 @@ def check_essential_from_fundamental(essential_from_fundamental: Callable) -> No
         report_cases(c, results, {k: v for k, v in _E_MISTAKES.items() if k != "uncorrected"},
                      first=lambda o, named: _singular_values_verdict(c, o.case, o.data, named))
         c.causes(essential_from_fundamental, [
-            (source_has(r"\binv\("), "your code inverts a matrix: E = Kᵀ F K takes K itself (K⁻ᵀ E K⁻¹ = F is the other direction)"),
-            (source_has(r"\bV[th]?\.T\b|transpose\(\s*V[th]?\b"),
+            (r"\binv\(", "your code inverts a matrix: E = Kᵀ F K takes K itself (K⁻ᵀ E K⁻¹ = F is the other direction)"),
+            (r"\bV[th]?\.T\b|transpose\(\s*V[th]?\b",
              "np.linalg.svd returns Vᵀ already: E = U @ np.diag([1, 1, 0]) @ Vt, without transposing it"),
-            (lambda fn: 0 < len(re.findall(r"\bK\b", code_text(fn))) < 3, "K goes on both sides of F: E = Kᵀ F K"),
+            ((r"\bK\b", r"!(?s:\bK\b.*\bK\b.*\bK\b)"), "K goes on both sides of F: E = Kᵀ F K"),
         ])
 
 
@@ -162,48 +152,31 @@ _C_MISTAKES = {
 }
 
 
-def check_pose_candidates(pose_candidates: Callable) -> None:
-    """Check ``pose_candidates(E (3, 3)) -> (R (4, 3, 3), C (4, 3))`` (notebook 02)."""
-    f = load_fixture(FIXTURE)
-    with Check("pose_candidates") as c:
-        results = []
-        for name in [str(n) for n in f["pose_cases"]]:
-            E, R_ref, C_ref = f[f"{name}_E"], f[f"{name}_R"], f[f"{name}_C"]
-            case = _CASE_TEXT[name]
-            if f"{name}_factor" in f and float(f[f"{name}_factor"]) != -1.0:
-                case = case.replace("-E", f"{float(f[f'{name}_factor']):g} E")
-            out = c.call(pose_candidates, E, case=case)
-            if out is FAILED:
-                continue
-            if not isinstance(out, (tuple, list)) or len(out) != 2:
-                c.fail(f"{case}: expected a tuple (R (4, 3, 3), C (4, 3)), got {type(out).__name__}")
-                continue
-            try:
-                R, C = np.asarray(out[0], float), np.asarray(out[1], float)
-            except (TypeError, ValueError):
-                c.fail(f"{case}: R and C must be numeric arrays (np.stack the four candidates)")
-                continue
-            if C.shape == (4, 3, 1):
-                C = C[..., 0]
-            if not (c.shape(R, (4, 3, 3), f"{case}: R") & c.shape(C, (4, 3), f"{case}: C")):
-                continue
-            results.append((case, E, R, C, R_ref, C_ref))
-        verdicts = []
-        for case, E, R, C, R_ref, C_ref in results:
-            norms = np.linalg.norm(C, axis=1)
-            Cn = C / np.where(norms > 0, norms, 1.0)[:, None]
-            factors = all(same_up_to_scale(skew(-R[k] @ Cn[k]) @ R[k], E, 10 * RTOL) for k in range(4)) and \
-                bool(np.abs(E @ Cn.T).max() <= 10 * RTOL * np.linalg.norm(E))
-            hits = match_candidates(R, Cn, R_ref, C_ref)
-            verdicts.append((case, E, R, C, Cn, norms, factors, hits, R_ref, C_ref))
-        failing = [v for v in verdicts if not (v[6] and -1 not in v[7] and len(set(v[7])) == 4)]
-        named = unique_key([_c_keys(R, Cn, R_ref, C_ref) for _, _, R, _, Cn, _, _, _, R_ref, C_ref in failing])
-        for case, E, R, C, Cn, norms, factors, hits, R_ref, C_ref in verdicts:
-            _pose_candidate_verdicts(c, case, E, R, Cn, norms, factors, hits, named)
+def _candidates_outcome(case: str, E, R, C, R_ref, C_ref) -> Outcome:
+    """One case of pose_candidates: the four candidates factor E and are the reference's, in any order; else which
+    property fails (the keys of :data:`_C_MISTAKES` that explain it)."""
+    norms = np.linalg.norm(C, axis=1)
+    Cn = C / np.where(norms > 0, norms, 1.0)[:, None]
+    bad = [k for k in range(4) if not same_up_to_scale(skew(-R[k] @ Cn[k]) @ R[k], E, 10 * RTOL)]
+    factors = not bad and bool(np.abs(E @ Cn.T).max() <= 10 * RTOL * np.linalg.norm(E))
+    hits = match_candidates(R, Cn, R_ref, C_ref)
+    ok = factors and -1 not in hits and len(set(hits)) == 4
+    if len({tuple(np.round(Rk, 6).ravel()) for Rk in np.abs(R)}) < 2:
+        advice = ("the four R are one rotation, where two are expected: U W Vᵀ and U Wᵀ Vᵀ with "
+                  "W = [[0, -1, 0], [1, 0, 0], [0, 0, 1]] (W ≠ Wᵀ, so the two differ), each with C and -C; if you use "
+                  "both, check W itself and that the second rotation takes its transpose")
+    elif not factors:
+        advice = (f"candidates {bad} do not factor E (E ∝ [t]ₓ R with t = -R C): R = U W Vᵀ or U Wᵀ Vᵀ, "
+                  "t = ±U[:, 2], C = -Rᵀ t")
+    else:
+        advice = (f"the candidates factor E but {hits.count(-1)} of the reference's four are missing (found at "
+                  f"{hits}): R ∈ {{U W Vᵀ, U Wᵀ Vᵀ}}, C = ±(-Rᵀ U[:, 2]), each rotation with both signs")
+    return Outcome(case, ok, "the four candidates factor E and match the reference's (in any order)", "",
+                   () if ok else _c_keys(R, Cn, R_ref, C_ref), advice, (R, norms))
 
 
-def _pose_candidate_verdicts(c: Check, case: str, E, R, Cn, norms, factors: bool, hits: list[int],
-                             named: str | None) -> None:
+def _candidate_gates(c: Check, case: str, R, norms) -> None:
+    """Every R a rotation (the defining property: det +1), every C of unit length."""
     dets = np.linalg.det(R)
     gap = max(float(np.abs(Rk @ Rk.T - np.eye(3)).max()) for Rk in R)
     det1 = "det R = +1"
@@ -219,19 +192,27 @@ def _pose_candidate_verdicts(c: Check, case: str, E, R, Cn, norms, factors: bool
     c.gate(bool(np.abs(norms - 1.0).max() <= RTOL), f"{case}: every C has unit length",
            f"{case}: C does not have unit length (|C| = {np.round(norms, 3).tolist()}): the scale is unknown, "
            "return C / np.linalg.norm(C)")
-    if factors and -1 not in hits and len(set(hits)) == 4:
-        c.expect(True, f"{case}: the four candidates factor E and match the reference's (in any order)", "")
-        return
-    if named is not None:
-        c.fail(f"{case}: {_C_MISTAKES[named]}", named=named)
-    elif len({tuple(np.round(Rk, 6).ravel()) for Rk in np.abs(R)}) < 2:
-        c.fail(f"{case}: the four R are one rotation, where two are expected: U W Vᵀ and U Wᵀ Vᵀ with "
-               "W = [[0, -1, 0], [1, 0, 0], [0, 0, 1]] (W ≠ Wᵀ, so the two differ), each with C and -C; if you use "
-               "both, check W itself and that the second rotation takes its transpose")
-    elif not factors:
-        bad = [k for k in range(4) if not same_up_to_scale(skew(-R[k] @ Cn[k]) @ R[k], E, 10 * RTOL)]
-        c.fail(f"{case}: candidates {bad} do not factor E (E ∝ [t]ₓ R with t = -R C): R = U W Vᵀ or U Wᵀ Vᵀ, "
-               "t = ±U[:, 2], C = -Rᵀ t")
-    else:
-        c.fail(f"{case}: the candidates factor E but {hits.count(-1)} of the reference's four are missing (found at "
-               f"{hits}): R ∈ {{U W Vᵀ, U Wᵀ Vᵀ}}, C = ±(-Rᵀ U[:, 2]), each rotation with both signs")
+
+
+def check_pose_candidates(pose_candidates: Callable) -> None:
+    """Check ``pose_candidates(E (3, 3)) -> (R (4, 3, 3), C (4, 3))`` (notebook 02)."""
+    f = load_fixture(FIXTURE)
+    with Check("pose_candidates") as c:
+        outcomes = []
+        for name in [str(n) for n in f["pose_cases"]]:
+            E, R_ref, C_ref = f[f"{name}_E"], f[f"{name}_R"], f[f"{name}_C"]
+            case = _CASE_TEXT[name]
+            if f"{name}_factor" in f and float(f[f"{name}_factor"]) != -1.0:
+                case = case.replace("-E", f"{float(f[f'{name}_factor']):g} E")
+            out = c.call(pose_candidates, E, case=case)
+            if out is FAILED:
+                continue
+            if not isinstance(out, (tuple, list)) or len(out) != 2:
+                c.fail(f"{case}: expected a tuple (R (4, 3, 3), C (4, 3)), got {type(out).__name__}")
+                continue
+            R, C = as_float(out[0]), as_float(out[1])
+            if C is not None and C.shape == (4, 3, 1):
+                C = C[..., 0]
+            if c.shape(out[0], (4, 3, 3), f"{case}: R") & c.shape(out[1] if C is None else C, (4, 3), f"{case}: C"):
+                outcomes.append(_candidates_outcome(case, E, R, C, R_ref, C_ref))
+        report_cases(c, outcomes, _C_MISTAKES, first=lambda o, _: _candidate_gates(c, o.case, *o.data))

@@ -13,12 +13,10 @@ pair), never against the noisy inputs alone. What each check tests:
   the reference's on the embedded pair;
 * ``sampson_distance``: the distances in pixels on a pair with outliers, on large pixel coordinates,
   with an F of another scale and sign; the result does not depend on F's scale;
-* ``ransac_fundamental``: with thresholds on both sides of 1 px (1.5 px with outliers, 0.8 px without), the returned
-  inliers are the matches within threshold_px of the returned F, F fits the noiseless points as
-  well as the reference's, the true inliers are found; a refit case without outliers; the number
-  of samples adapts to the inlier ratio and the confidence, within max_iters; the randomness is the
-  rng argument's only: the same seed gives the same result whatever numpy's global state, the rng
-  is drawn from (its state advances), and numpy's global state is left untouched.
+* ``ransac_fundamental``: the RANSAC check shared with notebook 04 (:mod:`course_lib.checks.ransac`: the mask of the
+  returned F, the count, the confidence, the rng, 8 noiseless matches) at thresholds on both sides of 1 px (1.5 px
+  with outliers, 0.8 px without); and F's own: F fits the noiseless points as well as the reference's, the true
+  inliers are found, a refit case without outliers, the count on an exact case, the embedded pair.
 
 Where the check needs a distance of its own it uses the point-to-line distance (no exercise of the
 notebook) or OpenCV (``cv2.sampsonDistance``). F is defined up to scale and sign
@@ -31,9 +29,10 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import (EPS32, FAILED, RTOL, Check, Outcome, call_minimal, close_rel, declare_defining,
-                                    load_fixture, minimal_verdict, report_cases, rng_verdicts, same_up_to_scale, scale_free_gap,
-                                    samples_needed, source_has, threshold_interval, under_global_seed, within)
+from course_lib.checks.core import (EPS32, FAILED, RTOL, Check, Outcome, as_float, close_rel, declare_defining,
+                                    load_fixture, report_cases, same_up_to_scale, scale_free_gap)
+from course_lib.checks.ransac import (Ransac, Run, call, mask_outcome, minimal_verdicts, samples_needed,
+                                      sampling_verdicts, threshold_interval, within)
 
 __all__ = [
     "check_normalize_points",
@@ -48,9 +47,6 @@ FIXTURE = "fundamental"
 #: so that d < threshold², d² < threshold and d < threshold differ.
 CHECK_THRESHOLD_PX = 1.5
 TIGHT_THRESHOLD_PX = 0.8
-#: On 8 noiseless matches, F fits every match within this many pixels (float32 rounding stays far below; a fit of
-#: 7 distinct matches misses the 8th by pixels).
-MINIMAL_TOL_PX = 0.05
 #: A matrix has rank 2 when its smallest singular value is below this share of its largest (in pixels and in
 #: the case's normalized coordinates): far above float32 rounding, far below a 3-rank 8-point F (1e-4 and more).
 RANK_RTOL = 10 * EPS32
@@ -88,16 +84,6 @@ def _sampson_sq(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
 
     F = np.ascontiguousarray(F, dtype=np.float64)
     return np.array([cv2.sampsonDistance(a, b, F) for a, b in zip(_h(x1), _h(x2))])
-
-
-def _as_array(v, c: Check, what: str):
-    if v is FAILED:
-        return None
-    try:
-        return np.asarray(v, dtype=float)
-    except (TypeError, ValueError):
-        c.fail(f"{what} must be a numeric array, got {type(v).__name__}")
-        return None
 
 
 def _rank(F: np.ndarray, T1: np.ndarray, T2: np.ndarray) -> int:
@@ -151,16 +137,14 @@ def _normalize_case(c: Check, fn: Callable, x: np.ndarray, T_ref: np.ndarray, ca
     if not isinstance(out, (tuple, list)) or len(out) != 2:
         c.fail(f"{case}: expected a tuple (x_n, T), got {type(out).__name__}")
         return
-    xn, T = _as_array(out[0], c, f"{case}: x_n"), _as_array(out[1], c, f"{case}: T")
-    if xn is None or T is None:
-        return
-    if xn.shape == (2, len(x)):
+    xn, T = as_float(out[0]), as_float(out[1])
+    if xn is not None and xn.shape == (2, len(x)):
         c.fail(f"{case}: x_n has shape {xn.shape}: points are rows, return shape (N, 2)")
         return
-    if xn.shape == (len(x), 3) and np.allclose(xn[:, 2], 1.0):
+    if xn is not None and xn.shape == (len(x), 3) and np.allclose(xn[:, 2], 1.0):
         c.fail(f"{case}: x_n has shape {xn.shape}: return the 2-D normalized points (drop the homogeneous 1)")
         return
-    if not (c.shape(xn, (len(x), 2), f"{case}: x_n") & c.shape(T, (3, 3), f"{case}: T")):
+    if not (c.shape(out[0], (len(x), 2), f"{case}: x_n") & c.shape(out[1], (3, 3), f"{case}: T")):
         return
     with np.errstate(divide="ignore", invalid="ignore"):
         mapped = _h(x) @ T.T
@@ -273,13 +257,12 @@ def check_eight_point(eight_point: Callable) -> None:
             p = f"ep_{name}"
             x1, x2 = f[f"{p}_x1"], f[f"{p}_x2"]
             case = _CASE_TEXT[name]
-            F = _as_array(c.call(eight_point, x1, x2, case=case), c, f"{case}: F")
-            if F is None:
-                continue
-            if F.shape in ((9,), (9, 1)):
+            out = c.call(eight_point, x1, x2, case=case)
+            F = as_float(out)
+            if F is not None and F.shape in ((9,), (9, 1)):
                 c.fail(f"{case}: F has shape {F.shape}: reshape the null vector to (3, 3) (row-major, F.reshape(3, 3))")
                 continue
-            if not c.shape(F, (3, 3), f"{case}: F"):
+            if not c.shape(out, (3, 3), f"{case}: F"):
                 continue
             ok, good, bad = _eight_point_fit(F, f, p, name)
             results.append(Outcome(case, ok, good, bad, data=(F, p), keys=() if ok else {
@@ -288,14 +271,14 @@ def check_eight_point(eight_point: Callable) -> None:
         report_cases(c, results, _EIGHT_POINT_MISTAKES, then=lambda o, _: _rank_verdict(c, o.case, *o.data, f))
         c.blame_earlier("normalize_points", fn=eight_point)
         c.causes(eight_point, [
-            (source_has(r"\beigh\("), "np.linalg.eigh sorts the eigenvalues in ascending order: the solution is the "
+            (r"\beigh\(", "np.linalg.eigh sorts the eigenvalues in ascending order: the solution is the "
                                     "eigenvector of AᵀA with the smallest eigenvalue, V[:, 0], the first column"),
-            ((source_has(r"\bV[th]?\[:, *-1\]"), source_has(r"\bsvd\("), "!eigh"), "np.linalg.svd(A) returns Vᵀ: the null vector is its last row, "
+            ((r"\bV[th]?\[:, *-1\]", r"\bsvd\(", r"!\beigh\("), "np.linalg.svd(A) returns Vᵀ: the null vector is its last row, "
                                                 "Vt[-1], not its last column"),
-            (("!normalize_points", source_has(r"\bdef ")), "your code does not call normalize_points: normalize both point sets, solve, "
+            ((r"!\bnormalize_points\b", r"\bdef "), "your code does not call normalize_points: normalize both point sets, solve, "
                                   "denormalize F = T2ᵀ F_n T1"),
-            (source_has(r"\binv\("), "no inverse in the denormalization: x_n = T x, so F = T2ᵀ F_n T1"),
-            (source_has(r"\[: *8\b"), "the 8-point algorithm solves least squares over all N matches, not the first 8"),
+            (r"\binv\(", "no inverse in the denormalization: x_n = T x, so F = T2ᵀ F_n T1"),
+            (r"\[: *8\b", "the 8-point algorithm solves least squares over all N matches, not the first 8"),
         ])
 
 
@@ -350,13 +333,12 @@ def check_sampson_distance(sampson_distance: Callable) -> None:
             p = f"sd_{name}"
             F, x1, x2, d_ref = f[f"{p}_F"], f[f"{p}_x1"], f[f"{p}_x2"], f[f"{p}_d"]
             case = _SD_TEXT[name].format(n=len(x1), norm=np.linalg.norm(F))
-            d = _as_array(c.call(sampson_distance, F, x1, x2, case=case), c, f"{case}: d")
-            if d is None:
-                continue
-            if d.shape in ((len(x1), 1), (1, len(x1))):
+            out = c.call(sampson_distance, F, x1, x2, case=case)
+            d = as_float(out)
+            if d is not None and d.shape in ((len(x1), 1), (1, len(x1))):
                 c.fail(f"{case}: d has shape {d.shape}: return a flat array of shape (N,)")
                 continue
-            if not c.shape(d, (len(x1),), f"{case}: d"):
+            if not c.shape(out, (len(x1),), f"{case}: d"):
                 continue
             ok = _same_distances(d, f[f"{p}_d"])
             j = int(np.argmax(np.abs(d - f[f"{p}_d"])))
@@ -366,7 +348,7 @@ def check_sampson_distance(sampson_distance: Callable) -> None:
                                        key for key in _SAMPSON_MISTAKES
                                        if f"{p}_mis_{key}" in f and _same_distances(d, f[f"{p}_mis_{key}"])}))
             if k == 0:
-                d10 = _as_array(c.call(sampson_distance, -10.0 * F, x1, x2, case=case), c, f"{case}: d")
+                d10 = as_float(c.call(sampson_distance, -10.0 * F, x1, x2, case=case))
                 usable = d10 is not None and d10.shape == d.shape  # an unusable answer fails the gate too
                 c.gate(usable and _same_distances(d10, d), f"{case}: the distance does not depend on the scale of F",
                        f"{case}: the result changes when F is multiplied by -10: a distance in pixels must not depend "
@@ -378,146 +360,44 @@ def check_sampson_distance(sampson_distance: Callable) -> None:
 # --------------------------------------------------------------------------- ransac_fundamental
 
 
-def _unpack_ransac(out, c: Check, case: str):
-    out = c.fields(out, case, ("F", "inliers", "n_iters"), "a RansacResult(F, inliers, n_iters)")
-    if out is None:
+def _F_model(c: Check, case: str, parts: list) -> np.ndarray | None:
+    F = as_float(parts[0])
+    if F is None or F.shape != (3, 3) or not np.isfinite(F).all() or not np.linalg.norm(F) > 0:
+        c.fail(f"{case}: F must be a finite, non-zero (3, 3) array, got {'no array' if F is None else F.shape}")
         return None
-    F, inl, n = out
-    try:
-        F, inl = np.asarray(F, float), np.asarray(inl)
-    except (TypeError, ValueError):
-        c.fail(f"{case}: F must be a numeric (3, 3) array and inliers a bool array")
-        return None
-    if inl.dtype != bool:
-        if inl.ndim == 1 and np.issubdtype(inl.dtype, np.integer) and (inl.size == 0 or inl.max() > 1):
-            c.fail(f"{case}: inliers holds indices: return a boolean mask of shape (N,) (True for an inlier)")
-            return None
-        inl = inl.astype(bool)
-    try:
-        n = None if n is None else int(n)
-    except (TypeError, ValueError):
-        n = None
-    return F, inl, n
+    return F
 
 
-def _usable(F, inl, n: int) -> bool:
-    F = np.asarray(F, float)
-    return F.shape == (3, 3) and np.isfinite(F).all() and np.linalg.norm(F) > 0 and inl.shape == (n,)
+def _algebraic_key(run: Run) -> set[str]:
+    """``{"algebraic"}`` when the mask is a threshold on the algebraic error |x2ᵀ F x1| of the unit-norm F."""
+    x1, x2 = run.args
+    e = np.abs(np.sum(_h(x2) * (_h(x1) @ (run.model / np.linalg.norm(run.model)).T), axis=1))
+    return {"algebraic"} if within(threshold_interval(e, run.inl), run.thr) else set()
 
 
-#: The inlier rules a mask may follow, as what the student did, and the threshold each one amounts to.
-_RULES = {
-    "squared": ("you compared the squared Sampson distance with threshold_px (d² < threshold_px); compare the distance "
-                "itself (pixels), sampson_distance(F, x1, x2) < threshold_px"),
-    "threshold_squared": ("you compared the Sampson distance with threshold_px² (d < threshold_px²); compare it with "
-                          "threshold_px itself, sampson_distance(F, x1, x2) < threshold_px"),
-    "algebraic": ("you counted inliers with the algebraic error |x2ᵀ F x1|, which has no unit: compare the Sampson "
-                  "distance with the threshold, sampson_distance(F, x1, x2) < threshold_px"),
-}
+RANSAC = Ransac(8, ("match", "matches"), ("F", "inliers", "n_iters"), "a RansacResult(F, inliers, n_iters)", _F_model,
+                lambda F, args: np.sqrt(_sampson_sq(F, *args)), "Sampson distance", "F", 1.0, 2000, {
+                    "algebraic": "you counted inliers with the algebraic error |x2ᵀ F x1|, which has no unit: compare "
+                                 "the Sampson distance with the threshold, sampson_distance(F, x1, x2) < threshold_px"})
 
 
-def _mask_rule(F, x1, x2, inl, thr: float) -> tuple[str, tuple | None]:
-    """Which rule the mask follows with the returned F: ``("right" | a key of _RULES | "other", interval)``."""
-    d = np.sqrt(_sampson_sq(F, x1, x2))
-    interval = threshold_interval(d, inl)
-    if within(interval, thr):
-        return "right", interval
-    if within(interval, thr**2):
-        return "threshold_squared", interval
-    if within(interval, np.sqrt(thr)):
-        return "squared", interval
-    e = np.abs(np.sum(_h(x2) * (_h(x1) @ (F / np.linalg.norm(F)).T), axis=1))
-    if within(threshold_interval(e, inl), thr):
-        return "algebraic", interval
-    return "other", interval
-
-
-def _ransac_threshold_case(c: Check, f: dict, run: dict, named: str | None) -> None:
-    """The verdicts of one call at one threshold: the inliers, the fit of F, the mask of F."""
-    case, F, inl, thr, p = run["case"], run["F"], run["inl"], run["thr"], run["p"]
-    x1, x2 = f[f"{p}_x1"], f[f"{p}_x2"]
-    true_inl = f["rs_true_inliers"].astype(bool) if p == "rs" else np.ones(len(x1), bool)
-    xt1, xt2 = f[f"{p}_x1_true"][true_inl], f[f"{p}_x2_true"][true_inl]
+def _fit_verdicts(c: Check, f: dict, p: str, run: Run) -> bool:
+    """The true inliers found (on the pair with outliers), and F as close to the true geometry as the reference's."""
+    true_inl = f["rs_true_inliers"].astype(bool) if p == "rs" else np.ones(len(run.inl), bool)
+    case, inl = run.case, run.inl
     if p == "rs":
         prec = float(true_inl[inl].mean()) if inl.any() else 0.0
         rec = float(inl[true_inl].mean())
         c.expect(prec >= 0.9 and rec >= 0.8, f"{case}: finds the true inliers (precision >= 90 %, recall >= 80 %)",
                  f"{case}: the inliers disagree with the true ones (precision {prec:.0%}, recall {rec:.0%}, "
                  f"{int(inl.sum())} of {len(inl)} matches)")
+    xt1, xt2 = f[f"{p}_x1_true"][true_inl], f[f"{p}_x2_true"][true_inl]
     F_ref = f["rs_F"] if p == "rs" else f["rf_tight_F"]
-    d, d_ref = _median_px(F, xt1, xt2), _median_px(F_ref, xt1, xt2)
-    c.expect(d <= 3.0 * d_ref + 0.3, f"{case}: F fits the true geometry as well as the reference",
-             f"{case}: F fits the true geometry worse than the reference's: median epipolar distance of the noiseless "
-             f"points {d:.3g} px, reference {d_ref:.3g} px (check the inlier test, the number of samples and the final "
-             "refit on all inliers of the best sample)")
-    rule, interval = run["rule"], run["interval"]
-    if rule == "right":
-        c.expect(True, f"{case}: the inliers are the matches within threshold_px of the returned F", "")
-        return
-    d_all = np.sqrt(_sampson_sq(F, x1, x2))
-    wrong = int((inl != (d_all < thr)).sum())
-    if named is not None:
-        c.fail(f"{case}: {wrong} matches are labelled against the Sampson distances of your F: {_RULES[named]}",
-               named=named)
-    elif rule == "other" and wrong <= 0.1 * len(inl):
-        c.detail(False, "", f"{case}: correct RANSAC, but {wrong} inlier labels are not those of the returned F: the "
-                 "docstring asks for the inliers recomputed with the refit F, sampson_distance(F, x1, x2) < threshold_px")
-    else:
-        where = ("no threshold on the Sampson distance to your F gives your mask" if interval is None else
-                 f"your mask is the matches with Sampson distance below some τ between {interval[0]:.3g} and "
-                 f"{interval[1]:.3g} px")
-        c.fail(f"{case}: {wrong} matches are labelled against the Sampson distances of your F ({where}; threshold_px = "
-               f"{thr:g}): inliers are sampson_distance(F, x1, x2) < threshold_px with the returned F")
-
-
-def _iterations_verdict(c: Check, case: str, inl, n_iters, max_iters: int = 2000, confidence: float = 0.999) -> None:
-    """n_iters adapts: about log(1 - p) / log(1 - w⁸) for the returned inlier ratio w, never above max_iters."""
-    if n_iters is None:
-        c.fail(f"{case}: n_iters is missing: return the number of samples drawn")
-        return
-    w = float(inl.mean())
-    need = samples_needed(w, 8, confidence, max_iters)
-    # at least about N(w) of the returned ratio (the best ratio so far is never higher); more when the best sample
-    # came late, but never max_iters when the ratio needs far fewer (a fixed count)
-    ok = 1 <= n_iters < max_iters and n_iters >= 0.25 * need - 1
-    c.gate(ok, f"{case}: the number of iterations adapts to the inlier ratio",
-           f"{case}: n_iters = {n_iters}, while your inlier ratio {w:.0%} at confidence {confidence} needs about "
-           f"{need:.0f} samples (N = log(1 - confidence) / log(1 - w⁸), updated with the best ratio so far, at most "
-           "max_iters)")
-
-
-def _ransac_randomness(c: Check, fn: Callable, f: dict, out: tuple, case: str) -> None:
-    """The rng is the only randomness: same seed, same result (whatever numpy's global state); the rng is drawn
-    from; numpy's global state untouched. max_iters and confidence are used."""
-    x1, x2, thr = f["rs_x1"], f["rs_x2"], CHECK_THRESHOLD_PX
-    # another global state: a function that draws from np.random (not from rng) gives another result
-    again, touched = under_global_seed(20261124, lambda: _unpack_ransac(
-        c.call(fn, x1, x2, np.random.default_rng(0), threshold_px=thr, case=case), c, case))
-    if again is None:
-        return
-    same = (again[1].shape == out[1].shape and np.array_equal(again[1], out[1]) and again[0].shape == out[0].shape
-            and np.allclose(again[0], out[0]) and again[2] == out[2])
-    rng = np.random.default_rng(5)
-    before = rng.bit_generator.state
-    ran = _unpack_ransac(c.call(fn, x1, x2, rng, threshold_px=thr, case=case), c, case) is not None
-    c.gate(same, f"{case}: the same seed gives the same result",
-           f"{case}: two runs with the same seeded rng (and another np.random state) differ: draw every sample from the "
-           "rng argument (rng.choice(N, 8, replace=False)), never from np.random or a generator of your own")
-    rng_verdicts(c, case, 8, touched, rng.bit_generator.state != before if ran else None)
-    if not ran:
-        return
-    short = _unpack_ransac(c.call(fn, x1, x2, np.random.default_rng(1), threshold_px=thr, max_iters=3, case=case), c,
-                           case)
-    if short is not None:
-        c.gate(short[2] is not None and short[2] <= 3, f"{case}: max_iters bounds the number of samples",
-               f"{case}: max_iters=3 gave n_iters = {short[2]}: stop after at most max_iters samples")
-    low = _unpack_ransac(c.call(fn, x1, x2, np.random.default_rng(0), threshold_px=thr, confidence=0.01, case=case),
-                         c, case)
-    if low is not None and low[2] is not None and out[2] is not None:
-        c.gate(low[2] < out[2] or out[2] <= 1, f"{case}: a lower confidence stops earlier",
-               f"{case}: confidence=0.01 drew {low[2]} samples, confidence=0.999 drew {out[2]}: the number of samples "
-               "must follow the confidence argument: N = log(1 - confidence) / log(1 - w⁸), recomputed whenever a "
-               "better sample is found, and the loop stops once it has drawn N samples")
+    d, d_ref = _median_px(run.model, xt1, xt2), _median_px(F_ref, xt1, xt2)
+    return c.expect(d <= 3.0 * d_ref + 0.3, f"{case}: F fits the true geometry as well as the reference",
+                    f"{case}: F fits the true geometry worse than the reference's: median epipolar distance of the "
+                    f"noiseless points {d:.3g} px, reference {d_ref:.3g} px (check the inlier test, the number of "
+                    "samples and the final refit on all inliers of the best sample)")
 
 
 def _ransac_count_case(c: Check, fn: Callable, f: dict) -> None:
@@ -534,31 +414,30 @@ def _ransac_count_case(c: Check, fn: Callable, f: dict) -> None:
     order = g.permutation(len(x1))
     x1, x2 = x1[order], x2[order]
     case = f"noiseless inliers with {n_out} gross outliers among {len(x1)} matches (threshold 1 px)"
-    out = _unpack_ransac(c.call(fn, x1, x2, np.random.default_rng(11), threshold_px=1.0, case=case), c, case)
-    if out is None or out[2] is None or not c.shape(out[1], (len(x1),), f"{case}: inliers"):
+    run = call(c, RANSAC, fn, (x1, x2), case, 11, threshold_px=1.0)
+    if run is None or run.n_iters is None:
         return
-    inl, truth = np.asarray(out[1], bool), order < n_in
-    if int((inl != truth).sum()) > max(2, 0.05 * len(inl)):  # the inlier test itself is off (other verdicts say how): no count to compare
+    if int((run.inl != (order < n_in)).sum()) > max(2, 0.05 * len(x1)):  # the inlier test is off (said elsewhere)
         return
-    w = float(inl.mean())
+    w = float(run.inl.mean())
     need = samples_needed(w, 8, 0.999, 2000)
-    n = out[2]
+    n = run.n_iters
     c.gate(n >= 0.8 * need - 1, f"{case}: draws as many samples as N = log(1 - confidence) / log(1 - w⁸) asks",
            f"{case}: n_iters = {n}, while the returned inlier ratio {w:.0%} at confidence 0.999 needs N = {need:.0f} "
            f"samples ({n / max(need, 1):.2f} N): N = log(1 - confidence) / log(1 - w⁸) with the same logarithm on "
-           "both sides (np.log10 on one side gives N / 2.3), recomputed at each better sample, and the loop runs "
-           "until it has drawn N samples (not until a first good sample); each sample is 8 distinct matches "
-           "(rng.choice(N, 8, replace=False))")
+           "both sides (np.log10 on one side gives N / 2.3), recomputed at each iteration that finds a better sample, and "
+           "the loop runs until it has drawn N samples (not until a first good sample); each sample is 8 distinct "
+           "matches (rng.choice(N, 8, replace=False))")
 
 
 def _ransac_refit_case(c: Check, fn: Callable, f: dict) -> None:
     """No outliers, 1 px noise, a wide threshold: every match is an inlier, and only the refit F is precise."""
     x1, x2, thr = f["rf_x1"], f["rf_x2"], float(f["rf_threshold_px"])
     case = f"synthetic pair without outliers, 1 px noise ({len(x1)} matches, threshold {thr:g} px)"
-    out = _unpack_ransac(c.call(fn, x1, x2, np.random.default_rng(3), threshold_px=thr, case=case), c, case)
-    if out is None or not c.shape(out[0], (3, 3), f"{case}: F"):
+    run = call(c, RANSAC, fn, (x1, x2), case, 3, threshold_px=thr)
+    if run is None:
         return
-    d = _median_px(out[0], f["rf_x1_true"], f["rf_x2_true"])
+    d = _median_px(run.model, f["rf_x1_true"], f["rf_x2_true"])
     d_ref = _median_px(f["rf_F"], f["rf_x1_true"], f["rf_x2_true"])
     # a refit on all inliers lands near the fit of all matches (honest variants within 1.2x); the 8-match fit of the
     # best sample alone is several times worse (5.5x on this case)
@@ -568,80 +447,53 @@ def _ransac_refit_case(c: Check, fn: Callable, f: dict) -> None:
              "F with eight_point on all inliers of the best sample at the end")
 
 
-def _ransac_minimal_case(c: Check, fn: Callable, f: dict) -> None:
-    """Exactly 8 noiseless matches: the only sample of 8 distinct matches is all of them, so F fits every match exactly
-    and all 8 are inliers. A sample that holds a match twice has 7 matches, which leave F undetermined; the rng records
-    the samples (:class:`~course_lib.checks.core.RecordingRng`), so such a sample is named when it is seen."""
-    true_inl = f["rs_true_inliers"].astype(bool)
-    x1, x2 = f["rs_x1_true"][true_inl][:8], f["rs_x2_true"][true_inl][:8]
-    case = "exactly 8 noiseless matches (threshold 1 px)"
-    called = call_minimal(c, fn, x1, x2, k=8, item=("match", "matches"), seed=13, case=case, threshold_px=1.0)
-    out = None if called is None else _unpack_ransac(called[0], c, case)
-    if out is None or not (c.shape(out[0], (3, 3), f"{case}: F") & c.shape(out[1], (8,), f"{case}: inliers")):
-        return
-    F, inl = out[0], out[1]
-    d = np.sqrt(_sampson_sq(F, x1, x2)) if np.isfinite(F).all() and np.linalg.norm(F) > 0 else np.full(8, np.inf)
-    minimal_verdict(c, called[1], 8, ("match", "matches"), case, bool(inl.all()) and float(d.max()) < MINIMAL_TOL_PX,
-                    out[2], f"{case}: F fits all 8 matches exactly",
-                    f"{case}: {int(inl.sum())} of 8 inliers, largest Sampson distance {float(d.max()):.3g} px; the only "
-                    "sample of 8 distinct matches is all of them, so F must fit every match exactly")
-
-
-def check_ransac_fundamental(ransac_fundamental: Callable) -> None:
-    """Check ``ransac_fundamental(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000)`` (notebook 01)."""
-    f = load_fixture(FIXTURE)
-    with Check("ransac_fundamental") as c:
-        x1, x2 = f["rs_x1"], f["rs_x2"]
-        true_inl = f["rs_true_inliers"].astype(bool)
-        runs, main = [], None
-        for p, thr in (("rs", CHECK_THRESHOLD_PX), ("rf", TIGHT_THRESHOLD_PX)):
-            x1, x2 = f[f"{p}_x1"], f[f"{p}_x2"]
-            case = (f"synthetic pair with {int((~true_inl).sum())} outliers among {len(x1)} matches" if p == "rs" else
-                    f"synthetic pair without outliers, 1 px noise ({len(x1)} matches), threshold_px={thr:g}")
-            out = _unpack_ransac(c.call(ransac_fundamental, x1, x2, np.random.default_rng(0), threshold_px=thr,
-                                        case=case), c, case)
-            if out is None:
-                continue
-            F, inl, n_iters = out
-            if not (c.shape(F, (3, 3), f"{case}: F") & c.shape(inl, (len(x1),), f"{case}: inliers")):
-                continue
-            if not _usable(F, inl, len(x1)):
-                c.fail(f"{case}: F is zero: return the fitted F")
-                continue
-            rule, interval = _mask_rule(F, x1, x2, inl, thr)
-            runs.append({"case": case, "F": F, "inl": inl, "thr": thr, "rule": rule, "interval": interval, "p": p})
-            if p == "rs":
-                main = (case, out)
-        wrong_rules = [r["rule"] for r in runs if r["rule"] != "right"]
-        named = (wrong_rules[0] if len(runs) == 2 and len(wrong_rules) == 2 and wrong_rules[0] == wrong_rules[1]
-                 and wrong_rules[0] in _RULES else None)
-        for run in runs:
-            _ransac_threshold_case(c, f, run, named)
-        if main is not None:
-            case, out = main
-            _iterations_verdict(c, case, out[1], out[2])
-            _ransac_randomness(c, ransac_fundamental, f, out, case)
-        _ransac_refit_case(c, ransac_fundamental, f)
-        _ransac_count_case(c, ransac_fundamental, f)
-        _ransac_minimal_case(c, ransac_fundamental, f)
-        if "rb_x1" in f:
-            _ransac_embedded(c, ransac_fundamental, f)
-        c.blame_earlier("eight_point", "sampson_distance", fn=ransac_fundamental)
-
-
 def _ransac_embedded(c: Check, fn: Callable, f: dict) -> None:
     x1, x2 = f["rb_x1"], f["rb_x2"]
     ref_inl = f["rb_inliers"].astype(bool)
     thr = float(f["rb_threshold_px"])
     case = f"embedded building pair, {len(x1)} matches (threshold {thr:g} px)"
-    out = _unpack_ransac(c.call(fn, x1, x2, np.random.default_rng(7), threshold_px=thr, case=case), c, case)
-    if out is None or not c.shape(out[1], (len(x1),), f"{case}: inliers"):
+    run = call(c, RANSAC, fn, (x1, x2), case, 7, threshold_px=thr)
+    if run is None:
         return
-    inl = out[1]
-    n, n_ref, common = int(inl.sum()), int(ref_inl.sum()), int((inl & ref_inl).sum())
+    n, n_ref, common = int(run.inl.sum()), int(ref_inl.sum()), int((run.inl & ref_inl).sum())
     # real matches can have two consensus sets of similar size: ask for about as many inliers as the
     # reference found, most of the reference's among them (not for the same set)
     c.expect(0.85 * n_ref <= n <= 1.25 * n_ref and common >= 0.8 * n_ref,
              f"{case}: finds about as many inliers as the reference, most of them the same",
              f"{case}: the inliers disagree with the reference: {n} inliers, the reference has {n_ref} ({common} in "
              "common)")
+
+
+def check_ransac_fundamental(ransac_fundamental: Callable) -> None:
+    """Check ``ransac_fundamental(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=2000)`` (notebook 01).
+
+    The shared RANSAC verdicts (:mod:`course_lib.checks.ransac`) and F's own: the true inliers, F against the true
+    geometry, the refit, the count on an exact case, the embedded pair.
+    """
+    f = load_fixture(FIXTURE)
+    with Check("ransac_fundamental") as c:
+        n_out = int((~f["rs_true_inliers"].astype(bool)).sum())
+        runs, good = [], []
+        for p, thr, case in (("rs", CHECK_THRESHOLD_PX, f"synthetic pair with {n_out} outliers among "
+                              f"{len(f['rs_x1'])} matches"),
+                             ("rf", TIGHT_THRESHOLD_PX, f"synthetic pair without outliers, 1 px noise "
+                              f"({len(f['rf_x1'])} matches), threshold_px={TIGHT_THRESHOLD_PX:g}")):
+            run = call(c, RANSAC, ransac_fundamental, (f[f"{p}_x1"], f[f"{p}_x2"]), case, threshold_px=thr)
+            if run is not None:
+                runs.append(run)
+                good.append(_fit_verdicts(c, f, p, run))
+        report_cases(c, [mask_outcome(RANSAC, run, _algebraic_key(run)) for run in runs], RANSAC.mistakes)
+        if any(good):
+            sampling_verdicts(c, RANSAC, ransac_fundamental, runs[0])
+            true_inl = f["rs_true_inliers"].astype(bool)
+            minimal_verdicts(c, RANSAC, ransac_fundamental, (f["rs_x1_true"][true_inl][:8],
+                             f["rs_x2_true"][true_inl][:8]), "exactly 8 noiseless matches (threshold 1 px)",
+                             13, threshold_px=1.0)
+        elif runs:
+            c.fail(f"{runs[0].case}: no case gives F: the number of samples (n_iters), the confidence and the use of "
+                   "rng are judged once ransac_fundamental finds F")
+        _ransac_refit_case(c, ransac_fundamental, f)
+        _ransac_count_case(c, ransac_fundamental, f)
+        if "rb_x1" in f:
+            _ransac_embedded(c, ransac_fundamental, f)
+        c.blame_earlier("eight_point", "sampson_distance", fn=ransac_fundamental)

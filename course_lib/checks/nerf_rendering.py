@@ -104,8 +104,8 @@ def _slab_eval(c: Check, volume_render: Callable, f) -> dict | None:
         return None
     trans = f["slab_trans"].astype(float)
     absorbed = res["weights"].sum(-1)  # the light the samples absorb: sum_i w_i = 1 - exp(-sigma L)
-    ok = bool(np.allclose(absorbed, 1.0 - trans, atol=1e-4))
-    labels = set(matching(res["weights"], f, "slab", RENDER_HINTS, "_weights", rtol=1e-3, atol=1e-5))
+    ok = close(absorbed, 1.0 - trans)
+    labels = set(matching(res["weights"], f, "slab", RENDER_HINTS, "_weights"))
     return {"case": case, "res": res, "ok": ok, "labels": labels, "absorbed": absorbed, "trans": trans}
 
 
@@ -120,12 +120,12 @@ def _slab_verdicts(c: Check, e: dict, named: str | None) -> None:
             f"{np.round(1 - trans, 3).tolist()}: alpha_i = 1 - exp(-sigma_i delta_i), w_i = T_i alpha_i")
         c.fail(f"{case}: {hint}", defining=DELTA if named in NO_DELTA else None, named=named)
     acc = res["acc_map"]
-    c.gate(np.allclose(res["weights"].sum(-1), acc, atol=1e-4), f"{case}: acc_map is the sum of the weights",
+    c.gate(close(acc, res["weights"].sum(-1)), f"{case}: acc_map is the sum of the weights",
            f"{case}: acc_map is not the sum of the weights along each ray (acc_map = sum_i w_i; yours differs by up to "
            f"{float(np.abs(res['weights'].sum(-1) - acc).max()):.3g})")
-    if ok and np.allclose(res["weights"].sum(-1), acc, atol=1e-4):  # the colour only makes sense once the opacity is right
+    if ok and close(acc, res["weights"].sum(-1)):  # the colour only makes sense once the opacity is right
         want = np.stack([np.ones_like(trans), trans, trans], axis=1)  # red matter in front of a white background
-        c.expect(np.allclose(res["rgb_map"], want, atol=1e-3), f"{case}: the colour is red matter over the white background",
+        c.expect(close(res["rgb_map"], want), f"{case}: the colour is red matter over the white background",
                  f"{case}: rgb_map should be sum_i w_i c_i + (1 - acc_map) (white background); "
                  f"expected {np.round(want, 3).tolist()}, got {np.round(res['rgb_map'], 3).tolist()}")
 
@@ -137,8 +137,8 @@ def _random_eval(c: Check, volume_render: Callable, f, white: bool) -> dict | No
     res = _call(c, volume_render, args, white, case)
     if res is None:
         return None
-    ok = close(res["weights"], f[f"{bg}_weights"].astype(float), rtol=1e-3, atol=1e-5)
-    labels = set(matching(res["weights"], f, bg, RENDER_HINTS, "_weights", rtol=1e-3, atol=1e-5))
+    ok = close(res["weights"], f[f"{bg}_weights"].astype(float))
+    labels = set(matching(res["weights"], f, bg, RENDER_HINTS, "_weights"))
     return {"case": case, "res": res, "ok": ok, "labels": labels, "bg": bg, "white": white}
 
 
@@ -153,25 +153,25 @@ def _random_verdicts(c: Check, f, e: dict, named: str | None) -> None:
                               "T_i = prod_{j<i} exp(-sigma_j delta_j), delta_i = (z_{i+1} - z_i) |d|, delta_S = 1e10"),
                defining=DELTA if named in NO_DELTA else None, named=named)
         return
-    c.expect(close(res["acc_map"], ref["acc_map"], rtol=1e-3), f"{case}: acc_map matches the reference",
+    c.expect(close(res["acc_map"], ref["acc_map"]), f"{case}: acc_map matches the reference",
              f"{case}: acc_map is not the sum of the weights along each ray (acc_map = sum_i w_i)")
-    if close(res["rgb_map"], ref["rgb_map"], rtol=1e-3):
+    if close(res["rgb_map"], ref["rgb_map"]):
         c.expect(True, f"{case}: rgb_map matches the reference", "")
     else:
         other = f[f"{bg}__other_background_rgb_map"].astype(float)
         named_bg = None
-        if close(res["rgb_map"], other, rtol=1e-3):
+        if close(res["rgb_map"], other):
             hint = ("no white background: add (1 - acc_map) to rgb_map when white_background=True" if white else
                     "white background added although white_background=False")
             named_bg = "background"
         else:
             hint = "rgb_map = sum_i w_i c_i (+ (1 - acc_map) on a white background)"
         c.fail(f"{case}: {hint}", named=named_bg)
-    if close(res["depth_map"], ref["depth_map"], rtol=1e-3):
+    if close(res["depth_map"], ref["depth_map"]):
         c.expect(True, f"{case}: depth_map matches the reference", "")
     else:
         norm = f[f"{bg}__depth_normalized_depth_map"].astype(float)
-        normed = close(res["depth_map"], norm, rtol=1e-3)
+        normed = close(res["depth_map"], norm)
         c.fail(f"{case}: " + ("depth_map divided by acc_map: the kit's depth is the expected depth sum_i w_i z_i"
                               if normed else "depth_map = sum_i w_i z_i"), named="depth_normalized" if normed else None)
 

@@ -6,14 +6,11 @@ scene (its third image registered against the two-view reconstruction of step 3,
 * ``pnp_linear``: R_cw a rotation (defining: R Rᵀ = I, det +1), the true pose on a noiseless view,
   the reference's on a noisy and the embedded view; named: R_wc returned (transposed), the centre
   returned as t, t with the wrong sign or scale, the DLT on pixel coordinates.
-* ``pnp_ransac``: the pose despite 20 % outliers, the inliers (a mask over all points, in front of
-  the camera: mirrored points behind the camera that reproject exactly are outliers), the mask being
-  the points within threshold_px of the returned pose at two thresholds (named: the squared error,
-  the error against threshold_px², a constant threshold, normalized coordinates), the refit, the
-  adaptive count and the confidence, and the randomness: the rng argument only (the same seed gives
-  the same result whatever numpy's global state, the rng is drawn from, the global state
-  untouched). In a notebook it runs the student's ``pnp_linear``; a failure then ends with a note
-  when that one failed its own checks.
+* ``pnp_ransac``: the RANSAC check shared with notebook 01 (:mod:`course_lib.checks.ransac`: the mask of the
+  returned pose at two thresholds, points behind the camera being outliers, the count, the confidence, the rng,
+  6 noiseless points) and the pose's own: the pose despite 20 % outliers, the inliers against the reference's, the
+  refit. In a notebook it runs the student's ``pnp_linear``; a failure then ends with a note when that one failed
+  its own checks.
 * ``pnp_nonlinear``: a rotation, a lower reprojection error, the least-squares optimum (from the
   linear estimate, from a start 3° away, on the embedded view); named: the 9 entries of R projected
   back with an SVD and the residual without the division by the depth (their results stored with
@@ -28,9 +25,9 @@ from __future__ import annotations
 import numpy as np
 
 from course_lib.conventions import nearest_rotation, project, rotation_angle_deg, world_to_camera
-from course_lib.checks.core import (FAILED, RTOL, Check, Outcome, call_minimal, declare_defining, load_fixture,
-                                    minimal_verdict, refinement_verdicts, report_cases, rng_verdicts, samples_needed,
-                                    source_has, threshold_interval, under_global_seed, unique_key, within)
+from course_lib.checks.core import (RTOL, Check, Outcome, declare_defining, load_fixture, refinement_verdicts,
+                                    report_cases, unique_key)
+from course_lib.checks.ransac import Ransac, Run, call, mask_outcome, minimal_verdicts, sampling_verdicts
 
 __all__ = [
     "check_pnp_linear",
@@ -41,8 +38,6 @@ __all__ = [
 FIXTURE = "pnp"
 RANSAC_SEED = 0
 THRESHOLD_PX = 2.0
-#: The rng case: the student's rng seed and max_iters (a few samples, so that the result depends on them).
-RNG_SEED, RNG_MAX_ITERS = 1, 3
 
 
 # --------------------------------------------------------------------------- helpers
@@ -167,9 +162,9 @@ def check_pnp_linear(fn, exercise: str = "pnp_linear") -> None:
                                    f"error {_rms(_errors(K, R, t, X, x)):.3g} px", (keys, testable), _DLT_ADVICE))
         report_cases(c, results, _POSE_MISTAKES)
         c.causes(fn, [
-            ((source_has(r"\bV[th]?\[:, *-1\]"), source_has(r"\bsvd\(")), "np.linalg.svd(A) returns Vᵀ: the DLT's P is its last row, Vt[-1]"
+            ((r"\bV[th]?\[:, *-1\]", r"\bsvd\("), "np.linalg.svd(A) returns Vᵀ: the DLT's P is its last row, Vt[-1]"
                                                 ".reshape(3, 4), not its last column"),
-            ((source_has(r"\bdef "), "!det"), "P is found up to sign: when det(R) < 0 after the orthogonalization, flip the sign of R and t"),
+            ((r"\bdef ", r"!\bdet\b"), "P is found up to sign: when det(R) < 0 after the orthogonalization, flip the sign of R and t"),
         ])
 
 
@@ -183,281 +178,110 @@ def _pixel_hint(R, K, R_true, tol_deg: float = 0.05) -> bool:
 # --------------------------------------------------------------------------- pnp_ransac
 
 
-def _ransac_fields(out, c: Check, case: str, n: int):
-    """``(R, t, inliers (n,) bool, n_iters or None)`` from the student's return value, or None after a failure."""
-    out = c.fields(out, case, ("R_cw", "t_cw", "inliers", "n_iters"), "a PnPResult(R_cw, t_cw, inliers, n_iters)", 1)
-    if out is None:
-        return None
-    R, t, inl, it = out
-    pose = _pose((R, t), c, case)
-    if pose is None:
-        return None
-    inl = np.asarray(inl)
-    if inl.shape != (n,) or inl.dtype != bool:
-        c.fail(f"{case}: inliers must be a bool array of shape ({n},), got {inl.dtype} {inl.shape} "
-               "(a mask over ALL correspondences, not the inlier indices)")
-        return None
-    try:
-        it = None if it is None else int(it)
-    except (TypeError, ValueError):
-        it = -1
-    return pose[0], pose[1], inl, it
+def _pose_model(c: Check, case: str, parts: list):
+    return _pose(tuple(parts), c, case)
 
 
-#: The inlier rules a mask may follow, as what the student did.
-_MASK_RULES = {
-    "squared": "you compared the SQUARED reprojection error with threshold_px (e² < threshold_px): compare the error "
-               "itself, in pixels",
-    "threshold_squared": "you compared the reprojection error with threshold_px² (e < threshold_px²): compare it with "
-                         "threshold_px itself",
-    "constant": f"you compared with {THRESHOLD_PX:g} px whatever threshold_px was passed: use the threshold_px argument",
-    "normalized": "your inliers include points whose reprojection errors are many pixels: measure the reprojection "
-                  "error in pixels (project with K), not in normalized coordinates",
-    "no_cheirality": "your inliers include points behind the returned camera (depth z <= 0) that reproject within "
-                     "threshold_px: an inlier must also be in front of the camera",
-}
+def _ransac_errors(pose, args) -> np.ndarray:
+    X, x, K = args
+    return _errors(K, *pose, X, x)
 
 
-def _mask_facts(inl, e_px, z, thr: float, behind) -> dict:
-    """How the mask relates to the returned pose's reprojection errors ``e_px (N,)`` and depths ``z (N,)``."""
-    front = z > 0
-    interval = threshold_interval(e_px[front], inl[front])  # the points behind the camera: their own verdict
+RANSAC = Ransac(6, ("point", "points"), ("R_cw", "t_cw", "inliers", "n_iters"),
+                "a PnPResult(R_cw, t_cw, inliers, n_iters)", _pose_model, _ransac_errors, "reprojection error", "pose",
+                THRESHOLD_PX, 1000, {
+                    "normalized": "your inliers include points whose reprojection errors are many pixels: measure the "
+                                  "reprojection error in pixels (project with K), not in normalized coordinates",
+                    "no_cheirality": "your inliers include points behind the returned camera (depth z <= 0) that "
+                                     "reproject within threshold_px: an inlier must also be in front of the camera"})
+
+
+def _mask_keys(run: Run) -> set[str]:
+    """The PnP rules the mask shows: errors measured in normalized coordinates, no cheirality test."""
+    inl, e, thr = run.inl, run.e, run.thr
     keys = set()
-    if within(interval, thr**2) and not within(interval, thr):
-        keys.add("threshold_squared")
-    if within(interval, np.sqrt(thr)) and not within(interval, thr):
-        keys.add("squared")
-    if thr != THRESHOLD_PX and within(interval, THRESHOLD_PX) and not within(interval, thr):
-        keys.add("constant")
-    if (inl & front).any() and e_px[inl & front].max() > 10 * thr and inl.mean() > 0.9:
+    if np.isfinite(e[inl]).any() and e[inl][np.isfinite(e[inl])].max() > 10 * thr and inl.mean() > 0.9:
         keys.add("normalized")
-    if behind is not None and (inl & behind).any():
+    if (inl & ~np.isfinite(e)).any():
         keys.add("no_cheirality")
-    tie = np.abs(e_px - thr) <= 1e-6 * thr  # a point at the threshold may go either way
-    wrong = (inl != (e_px < thr)) & ~tie & front  # points behind the camera: their own verdict
-    return {"keys": keys, "wrong": int(wrong.sum()), "interval": interval}
+    return keys
 
 
-def _mask_verdict(c: Check, case: str, facts: dict, thr: float, named: str | None) -> None:
-    """The returned mask must be the inliers of the returned pose (error below the threshold in pixels, in front)."""
-    if facts["wrong"] == 0:
-        c.expect(True, f"{case}: the inliers are the points within threshold_px of the returned pose", "")
-        return
-    if named is not None and named in facts["keys"]:
-        why = _MASK_RULES[named]
-    else:
-        named = None
-        iv = facts["interval"]
-        why = ("your mask is the points with reprojection error below some τ between "
-               f"{iv[0]:.3g} and {iv[1]:.3g} px, threshold_px = {thr:g}" if iv is not None else
-               "no threshold on the returned pose's reprojection errors gives your mask") + \
-              ": after the refit, recompute the inliers with the final pose (error < threshold_px, in front)"
-    c.fail(f"{case}: {facts['wrong']} points are labelled against the returned pose's reprojection errors: {why}",
-           named=named)
-
-
-def _ransac_call(c: Check, fn, f, key: str, case: str, threshold: float | None = None):
-    """One call on a stored case: the fields and what the mask says, or None."""
-    K, X, x = (f[f"{key}_{s}"] for s in ("K", "X", "x"))
-    kw = {} if threshold is None else {"threshold_px": threshold}
-    out = _ransac_fields(c.call(fn, X, x, K, np.random.default_rng(RANSAC_SEED), case=case, **kw), c, case, len(X))
-    if out is None:
-        return None
-    R, t, inl, it = out
-    thr = THRESHOLD_PX if threshold is None else threshold
-    z = world_to_camera(R, t, X)[:, 2]
-    with np.errstate(all="ignore"):
-        e_px = np.linalg.norm(project(K, R, t, X) - x, axis=1)
-    e_px = np.where(np.isfinite(e_px), e_px, np.inf)
-    behind = f.get(f"{key}_behind")
-    facts = _mask_facts(inl, e_px, z, thr, None if behind is None else behind.astype(bool))
-    return {"key": key, "case": case, "R": R, "t": t, "inl": inl, "it": it, "thr": thr, "facts": facts,
-            "e": _errors(K, R, t, X, x)}
-
-
-def _ransac_verdicts(c: Check, f, run: dict, named: str | None, pose_named: str | None = None) -> None:
-    """The pose, the inliers, the outliers and points behind rejected, the mask; for one call."""
-    key, case, R, t, inl, thr = (run[k] for k in ("key", "case", "R", "t", "inl", "thr"))
-    R_r, t_r, inl_r = (f[f"{key}_{s}"] for s in ("R", "t", "inliers"))
-    if float((~inl == inl_r).mean()) > 0.9 and float((inl == inl_r).mean()) < 0.5:
-        c.fail(f"{case}: your inlier mask is inverted: inliers are the points with reprojection error BELOW the "
-               "threshold", named="inverted")
-        return
+def _pose_verdicts(c: Check, f, key: str, run: Run, pose_named: str | None) -> bool:
+    """The pose despite the outliers, the inliers against the reference's and the injected outliers rejected."""
+    case, (R, t), inl = run.case, run.model, run.inl
+    R_r, inl_r = f[f"{key}_R"], f[f"{key}_inliers"]
     rot = rotation_angle_deg(nearest_rotation(R), R_r)
-    c.expect(rot <= 1.0, f"{case}: finds the pose despite the outliers",
-             f"{case}: rotation {rot:.3g}° from the reference ({int(inl.sum())} inliers, reference {int(inl_r.sum())}): "
-             + (_POSE_MISTAKES[pose_named] if pose_named else "score each sample by the reprojection error in pixels "
-                "of ALL points, keep the best, then refit on its inliers"), named=pose_named)
-    if rot > 1.0:
-        return
+    if not c.expect(rot <= 1.0, f"{case}: finds the pose despite the outliers",
+                    f"{case}: rotation {rot:.3g}° from the reference ({int(inl.sum())} inliers, reference "
+                    f"{int(inl_r.sum())}): " + (_POSE_MISTAKES[pose_named] if pose_named else "score each sample by "
+                    "the reprojection error in pixels of ALL points, keep the best, then refit on its inliers"),
+                    named=pose_named):
+        return False
     agree = float((inl == inl_r).mean())
     c.expect(agree > 0.9, f"{case}: the inliers agree with the reference",
              f"{case}: only {agree:.0%} of the inlier labels agree with the reference ({int(inl.sum())} inliers, "
              f"reference {int(inl_r.sum())}): inliers are the points with reprojection error below threshold_px "
-             f"= {thr:g} (pixels, in front of the camera)")
+             f"= {run.thr:g} (pixels, in front of the camera)")
     if f"{key}_outlier" in f:
         outl = f[f"{key}_outlier"].astype(bool)
         c.expect((inl & outl).sum() <= 0.02 * len(inl), f"{case}: rejects the outliers",
                  f"{case}: {int((inl & outl).sum())} injected outliers are marked as inliers")
-    if f"{key}_behind" in f:
-        behind = f[f"{key}_behind"].astype(bool)
-        n_b = int((inl & behind).sum())
-        c.expect(n_b == 0, f"{case}: points behind the camera are no inliers",
-                 f"{case}: {n_b} of the {int(behind.sum())} points behind the camera (they reproject exactly, depth < 0) "
-                 "are marked as inliers: " + _MASK_RULES["no_cheirality"],
-                 named="no_cheirality" if named == "no_cheirality" else None)
-    _mask_verdict(c, case, run["facts"], thr, named if named != "no_cheirality" else None)
+    return True
 
 
-def _refit_verdict(c: Check, f, case: str, R, t) -> None:
+def _refit_verdict(c: Check, f, run: Run) -> None:
     """A pose refit on all inliers reprojects the true inliers nearly as well as the reference's."""
     K, X, x, outl = (f[f"ransac_syn_{s}"] for s in ("K", "X", "x", "outlier"))
     outl = outl.astype(bool)
+    R, t = run.model
+    c.gate(np.allclose(R @ R.T, np.eye(3), atol=10 * RTOL) and np.linalg.det(R) > 0, f"{run.case}: R_cw is a rotation",
+           f"{run.case}: R_cw is not a rotation (orthonormal, det +1): pnp_ransac returns what pnp_linear gives; "
+           "orthogonalize R there (R = U Vᵀ)")
     rms = _rms(_errors(K, R, t, X[~outl], x[~outl]))
     ref = _rms(_errors(K, f["ransac_syn_R"], f["ransac_syn_t"], X[~outl], x[~outl]))
     bound = float(np.sqrt(ref**2 + (0.5 * float(f["ransac_syn_noise"])) ** 2))
-    c.expect(rms <= bound, f"{case}: the pose is refit on all inliers",
-             f"{case}: RMS reprojection error over the true inliers {rms:.3g} px, the reference's {ref:.3g} px (a pose "
-             "from 6 points carries their noise): refit pnp_linear on ALL inliers of the best sample, then recompute "
-             "the inliers")
-
-
-def _iterations_verdict(c: Check, case: str, inl, it, max_iters: int = 1000) -> None:
-    """n_iters adapts to the inlier ratio: about log(1 - p) / log(1 - w^6), never more than max_iters."""
-    if it is None:
-        c.fail(f"{case}: no n_iters returned: return (R_cw, t_cw, inliers, n_iters), the number of samples drawn")
-        return
-    need = samples_needed(float(inl.mean()), 6, 0.999, max_iters)
-    ok = 1 <= it <= min(max_iters, 4 * need + 10) and it >= 0.25 * need - 1
-    why = (f"n_iters = {it} > max_iters = {max_iters}" if it > max_iters else
-           f"n_iters = {it}, while your inlier ratio {inl.mean():.0%} needs about {need:.0f} samples at confidence "
-           "0.999: update the number of iterations N = log(1 - confidence) / log(1 - w^6) with the best inlier ratio "
-           "w so far, and stop after N samples" if it >= 1 else f"n_iters = {it}: count the samples drawn")
-    c.expect(ok, f"{case}: n_iters adapts to the inlier ratio", f"{case}: {why}")
-
-
-def _confidence_verdict(c: Check, fn, f, case: str) -> None:
-    """The confidence sets the count: at 0.99999 at least about log(1e-5) / log(1 - w^6) samples, more than at 0.9."""
-    K, X, x = (f[f"ransac_syn_{s}"] for s in ("K", "X", "x"))
-    runs = []
-    for p in (0.9, 0.99999):
-        # the same case: its verdict ("more samples for a higher confidence") answers both calls
-        out = _ransac_fields(c.call(fn, X, x, K, np.random.default_rng(RANSAC_SEED), confidence=p, case=case),
-                             c, case, len(X))
-        if out is None:
-            return
-        runs.append(out)
-    (_, _, _, lo), (_, _, inl, hi) = runs
-    if lo is None or hi is None:
-        return  # no n_iters: said above
-    need = samples_needed(float(inl.mean()), 6, 0.99999, 1000)
-    c.expect(lo <= hi and hi >= 0.7 * need, f"{case}: more samples for a higher confidence",
-             f"{case}: n_iters = {lo} at confidence 0.9 and {hi} at 0.99999 ({inl.mean():.0%} inliers need about "
-             f"{need:.0f} samples at 0.99999): the confidence argument must set the number of samples, "
-             "N = log(1 - confidence) / log(1 - w^6)")
-
-
-def _same_run(a, b) -> bool:
-    return (np.allclose(a[0], b[0], atol=1e-12) and np.allclose(a[1], b[1], atol=1e-12) and a[2].shape == b[2].shape
-            and np.array_equal(a[2], b[2]))
-
-
-def _rng_verdicts(c: Check, fn, f) -> None:
-    """A few samples per call (max_iters=3, noise comparable to the threshold): the rng argument is the only randomness.
-
-    The same rng seed under two global np.random states gives the same result, the rng argument is drawn from
-    (its state advances), and numpy's global state is left as it was.
-    """
-    K, X, x = (f[f"ransac_rng_{s}"] for s in ("K", "X", "x"))
-    case = f"1 px noise, max_iters={RNG_MAX_ITERS}"
-    runs, touched = [], False
-    for global_seed in (11, 22):  # the global state must not matter
-        out, moved = under_global_seed(global_seed, lambda: _ransac_fields(
-            c.call(fn, X, x, K, np.random.default_rng(RNG_SEED), max_iters=RNG_MAX_ITERS, case=case), c, case, len(X)))
-        touched = touched or moved
-        if out is None:
-            return
-        runs.append(out)
-    its = [r[3] for r in runs]
-    # gates: a constant answer satisfies them as well as a right one
-    c.gate(all(i is not None and 1 <= i <= RNG_MAX_ITERS for i in its), f"{case}: draws max_iters samples at most",
-           f"{case}: n_iters = {its[0]} with max_iters={RNG_MAX_ITERS}: stop after max_iters samples and return "
-           "their count")
-    rng = np.random.default_rng(RNG_SEED + 1)
-    before = rng.bit_generator.state
-    ran = _ransac_fields(c.call(fn, X, x, K, rng, max_iters=RNG_MAX_ITERS, case=case), c, case, len(X)) is not None
-    c.gate(_same_run(*runs), f"{case}: the same rng seed gives the same result",
-           f"{case}: the same rng seed gave different results when np.random's global state changed: draw every "
-           "sample from the rng argument (rng.choice(N, 6, replace=False)), not from np.random or a generator of "
-           "your own")
-    rng_verdicts(c, case, 6, touched, rng.bit_generator.state != before if ran else None)
-
-
-def _minimal_verdict(c: Check, fn, f) -> None:
-    """Exactly 6 noiseless points: the only sample of 6 distinct points is all of them, so the pose is exact and every
-    point an inlier. A sample that holds a point twice has 5, which leave the DLT undetermined; the rng records the
-    samples (:class:`~course_lib.checks.core.RecordingRng`), so such a sample is named when it is seen."""
-    K, X, R, t, outl = (f[f"ransac_syn_{s}"] for s in ("K", "X", "R", "t", "outlier"))
-    X = X[~outl.astype(bool)]
-    X = X[world_to_camera(R, t, X)[:, 2] > 0][:6]
-    x = project(K, R, t, X)
-    case = "exactly 6 noiseless points"
-    called = call_minimal(c, fn, X, x, K, k=6, item=("point", "points"), seed=RANSAC_SEED, case=case)
-    out = None if called is None else _ransac_fields(called[0], c, case, len(X))
-    if out is None:
-        return
-    Rs, ts, inl, it = out
-    e = _errors(K, Rs, ts, X, x)
-    minimal_verdict(c, called[1], 6, ("point", "points"), case, bool(inl.all()) and float(e.max()) < 0.05, it,
-                    f"{case}: the pose reprojects all 6 points exactly",
-                    f"{case}: {int(inl.sum())} of 6 inliers, largest reprojection error {float(e.max()):.3g} px; the "
-                    "only sample of 6 distinct points is all of them, so the pose must reproject every point exactly")
+    c.expect(rms <= bound, f"{run.case}: the pose is refit on all inliers",
+             f"{run.case}: RMS reprojection error over the true inliers {rms:.3g} px, the reference's {ref:.3g} px (a "
+             "pose from 6 points carries their noise): refit pnp_linear on ALL inliers of the best sample, then "
+             "recompute the inliers")
 
 
 def check_pnp_ransac(fn, exercise: str = "pnp_ransac") -> None:
     """Check ``fn(X, x, K, rng, threshold_px=2.0, confidence=0.999, max_iters=1000) -> PnPResult``.
 
-    Cases: synthetic matches with 20 % outliers and a few points behind the camera (pose, inliers,
-    outliers and points behind rejected, the mask of the returned pose, the refit, the adaptive count,
-    the confidence), a case with 1 px noise called with ``threshold_px=3`` (the threshold in pixels),
-    a case with 1 px noise called with ``max_iters=3`` (the rng argument as the only randomness), and
-    the embedded scene.
+    The shared RANSAC verdicts (:mod:`course_lib.checks.ransac`) on synthetic matches with 20 % outliers and a few
+    points behind the camera, a case with 1 px noise called with ``threshold_px=3`` and the embedded scene; and the
+    pose's own: the pose despite the outliers, the inliers against the reference's, the outliers rejected, the refit.
     """
     f = load_fixture(FIXTURE)
     with Check(exercise) as c:
         thr = float(f["ransac_thr_threshold"])
-        runs = []
-        for key, case, threshold in (("ransac_syn", "synthetic view with 20 % outliers", None),
-                                     ("ransac_thr", f"1 px noise, threshold_px={thr:g}", thr),
-                                     ("ransac_embedded", "embedded scene", None)):
+        runs = {}
+        for key, case, kw in (("ransac_syn", "synthetic view with 20 % outliers", {}),
+                              ("ransac_thr", f"1 px noise, threshold_px={thr:g}", {"threshold_px": thr}),
+                              ("ransac_embedded", "embedded scene", {})):
             if f"{key}_X" in f:
-                run = _ransac_call(c, fn, f, key, case, threshold)
+                run = call(c, RANSAC, fn, tuple(f[f"{key}_{s}"] for s in ("X", "x", "K")), case, RANSAC_SEED, **kw)
                 if run is not None:
-                    runs.append(run)
-        named = unique_key([run["facts"]["keys"] for run in runs if run["facts"]["wrong"] > 0
-                            or (run["key"] == "ransac_syn" and "no_cheirality" in run["facts"]["keys"])])
-        pose_off = [run for run in runs if rotation_angle_deg(nearest_rotation(run["R"]), f[f"{run['key']}_R"]) > 1.0]
-        pose_named = unique_key([_pose_keys(nearest_rotation(run["R"]), run["t"], f[f"{run['key']}_R"],
-                                            f[f"{run['key']}_t"], 1.0, 0.05, dlt=False) for run in pose_off])
-        # a function that finds no pose in any case (a constant, a stub) is not judged on how it samples: its
-        # iteration count and its use of rng say nothing about a RANSAC that does not estimate
-        no_pose = bool(runs) and len(pose_off) == len(runs)
-        for run in runs:
-            _ransac_verdicts(c, f, run, named, pose_named)
-            if run["key"] == "ransac_syn" and no_pose:
-                c.fail(f"{run['case']}: no case gives the pose (every rotation is more than 1° off): the number of "
-                       "samples, the confidence and the use of rng are judged once pnp_ransac finds the pose")
-            elif run["key"] == "ransac_syn":
-                R, t, inl, it = run["R"], run["t"], run["inl"], run["it"]
-                c.gate(np.allclose(R @ R.T, np.eye(3), atol=10 * RTOL) and np.linalg.det(R) > 0,
-                       f"{run['case']}: R_cw is a rotation", f"{run['case']}: R_cw is not a rotation (orthonormal, "
-                       "det +1): pnp_ransac returns what pnp_linear gives; orthogonalize R there (R = U Vᵀ)")
-                _refit_verdict(c, f, run["case"], R, t)
-                _iterations_verdict(c, run["case"], inl, it)
-                _confidence_verdict(c, fn, f, run["case"])
-        if not no_pose:
-            _rng_verdicts(c, fn, f)
-            _minimal_verdict(c, fn, f)
+                    runs[key] = run
+        off = [k for k, r in runs.items() if rotation_angle_deg(nearest_rotation(r.model[0]), f[f"{k}_R"]) > 1.0]
+        pose_named = unique_key([_pose_keys(nearest_rotation(runs[k].model[0]), runs[k].model[1], f[f"{k}_R"],
+                                            f[f"{k}_t"], 1.0, 0.05, dlt=False) for k in off])
+        found = {key: _pose_verdicts(c, f, key, run, pose_named) for key, run in runs.items()}
+        report_cases(c, [mask_outcome(RANSAC, run, _mask_keys(run)) for run in runs.values()], RANSAC.mistakes)
+        if found.get("ransac_syn"):
+            _refit_verdict(c, f, runs["ransac_syn"])
+        if any(found.values()):
+            sampling_verdicts(c, RANSAC, fn, next(iter(runs.values())),
+                              (tuple(f[f"ransac_rng_{s}"] for s in ("X", "x", "K")), "1 px noise"))
+            K, X, R, t, outl = (f[f"ransac_syn_{s}"] for s in ("K", "X", "R", "t", "outlier"))
+            X = X[~outl.astype(bool)]
+            X = X[world_to_camera(R, t, X)[:, 2] > 0][:6]
+            minimal_verdicts(c, RANSAC, fn, (X, project(K, R, t, X), K), "exactly 6 noiseless points", RANSAC_SEED)
+        elif runs:
+            c.fail(f"{next(iter(runs.values())).case}: no case gives the pose (every rotation is more than 1° off): "
+                   "the number of samples, the confidence and the use of rng are judged once pnp_ransac finds the pose")
         c.blame_earlier("pnp_linear", fn=fn)
 
 

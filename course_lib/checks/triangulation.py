@@ -35,8 +35,9 @@ __all__ = [
 
 FIXTURE = "triangulation"
 
+IN_FRONT = "in front of both cameras"
 declare_defining("choose_pose", {
-    "in front of both cameras": "the right candidate is the one with the points in front of camera 1 AND camera 2",
+    IN_FRONT: "the right candidate is the one with the points in front of camera 1 AND camera 2",
 })
 
 
@@ -201,6 +202,8 @@ _CHEIRALITY_MISTAKES = (
     "your test uses the third column of R: r3ᵀ is the third ROW, R[2]",
     "your test keeps the points behind the cameras (the sign is flipped): in front means depth > 0",
 )
+#: The same, by key (``cheirality_<row>``).
+_CHEIRALITY = {f"cheirality_{i}": text for i, text in enumerate(_CHEIRALITY_MISTAKES)}
 _ARGMIN = ("you kept the candidate with the FEWEST points in front of both cameras: keep the one with the most "
            "(np.argmax(counts))")
 _CONFUSIONS = {
@@ -242,8 +245,9 @@ def _match_candidate(R_s, t_s, R, C, right: int) -> tuple[int | None, str | None
     return k, why
 
 
-def _pose_eval(c: Check, fn, f, key, case) -> dict | None:
-    """Call choose_pose on one case; what it returned, read (or None after a failed check)."""
+def _pose_outcome(c: Check, fn, f, key, case) -> Outcome | None:
+    """Call choose_pose on one case: the choice as an :class:`Outcome` (named: a wrong cheirality test, by the counts
+    it gives, or the candidate with the fewest points), what it returned in ``data``; None after a failed check."""
     R, C, K, x1, x2 = f[f"{key}_R"], f[f"{key}_C"], f[f"{key}_K"], f[f"{key}_x1"], f[f"{key}_x2"]
     fields = c.fields(c.call(fn, R, C, K, x1, x2, case=case), case, ("R_cw", "t_cw", "X", "in_front", "counts"),
                       "a PoseChoice(R_cw, t_cw, X, in_front, counts) (or that 5-tuple)")
@@ -254,38 +258,34 @@ def _pose_eval(c: Check, fn, f, key, case) -> dict | None:
         c.fail(f"{case}: R_cw must have shape (3, 3) and t_cw shape (3,)")
         return None
     t_s = t_s.reshape(3)
-    ref_k = int(f[f"{key}_index"])
+    ref_k, ref_counts = int(f[f"{key}_index"]), f[f"{key}_counts"]
     k, confusion = _match_candidate(R_s, t_s, R, C, ref_k)
     if k is None:
         c.fail(f"{case}: R_cw is none of the four candidates R[k]: return the chosen candidate's rotation unchanged")
         return None
     counts = counts_s.astype(int) if counts_s is not None and counts_s.shape == (4,) else None
-    n = len(f[f"{key}_in_front"])
-    tol = max(2, 0.01 * n)
-    ref_counts = f[f"{key}_counts"]
-    variants = [i for i, cnt in enumerate(f[f"{key}_mis_counts"])
-                if counts is not None and np.abs(counts - cnt).max() <= tol and np.abs(cnt - ref_counts).max() > tol]
-    return {"case": case, "key": key, "k": k, "ref_k": ref_k, "confusion": confusion, "R": R_s, "t": t_s, "X": X_s,
-            "front": front_s, "counts": counts, "tol": tol, "cheirality": set(variants)}
+    tol = max(2, 0.01 * len(f[f"{key}_in_front"]))
+    off = counts is not None and np.abs(counts - ref_counts).max() > tol
+    tests = {f"cheirality_{i}" for i, cnt in enumerate(f[f"{key}_mis_counts"])
+             if off and np.abs(counts - cnt).max() <= tol and np.abs(cnt - ref_counts).max() > tol}
+    argmin = counts is not None and not off and k != ref_k and k == int(np.argmin(counts))
+    return Outcome(case, k == ref_k, "picks the candidate with the points in front of both cameras",
+                   f"chose candidate {k} ({int(ref_counts[k])} points in front of both cameras) instead of candidate "
+                   f"{ref_k} ({int(ref_counts[ref_k])})", tests | ({"argmin"} if argmin else set()),
+                   f"your counts are {counts.tolist()}, the reference's {ref_counts.tolist()}; keep the candidate with "
+                   "the most points in front of BOTH cameras (z > 0 in camera 1 and r3ᵀ (X - C) > 0 in camera 2)"
+                   if counts is not None else "keep the candidate with the most points in front of BOTH cameras",
+                   {"key": key, "k": k, "confusion": confusion, "R": R_s, "t": t_s, "X": X_s, "front": front_s,
+                    "counts": counts, "tol": tol, "off": off, "tests": tests}, defining=IN_FRONT)
 
 
-def _pose_verdicts(c: Check, f, e: dict, cheirality: int | None, argmin: bool, confusion: str | None) -> None:
-    case, key, k, ref_k = e["case"], e["key"], e["k"], e["ref_k"]
-    ref_counts = f[f"{key}_counts"]
-    counts = e["counts"]
-    if k != ref_k:
-        why = (_CHEIRALITY_MISTAKES[cheirality] if cheirality is not None else _ARGMIN if argmin else
-               (f"your counts are {counts.tolist()}, the reference's {ref_counts.tolist()}; keep the candidate with the "
-                "most points in front of BOTH cameras (z > 0 in camera 1 and r3ᵀ (X - C) > 0 in camera 2)"
-                if counts is not None else "keep the candidate with the most points in front of BOTH cameras"))
-        c.fail(f"{case}: chose candidate {k} ({int(ref_counts[k])} points in front of both cameras) instead of "
-               f"candidate {ref_k} ({int(ref_counts[ref_k])}): {why}", defining="in front of both cameras",
-               named=f"cheirality_{cheirality}" if cheirality is not None else ("argmin" if argmin else None))
+def _pose_verdicts(c: Check, f, o: Outcome, tests: str | None, confusion: str | None) -> None:
+    """After the choice: the rest of a right choice (t_cw, X, in_front and counts, the pose); ``tests`` the named
+    cheirality test, ``confusion`` the named confusion of t_cw."""
+    if not o.ok:
         return
-    # the choice earns its share on its own (the cases put the right candidate at index 1, 2 or 3, so a constant
-    # answer, always R[0], earns nothing here); a wrong t_cw with the right choice costs the rest of the case
-    c.expect(True, f"{case}: picks the candidate with the points in front of both cameras", "",
-             defining="in front of both cameras")
+    case, e = o.case, o.data
+    key, k = e["key"], e["k"]
     if e["confusion"]:
         c.fail(f"{case}: the right candidate, but {_CONFUSIONS[e['confusion']]}",
                named=confusion if confusion == e["confusion"] else None)
@@ -302,29 +302,26 @@ def _pose_verdicts(c: Check, f, e: dict, cheirality: int | None, argmin: bool, c
                + (f": your X are the points of candidate {other[0]}, not of the chosen candidate {k} (the X of the last "
                   "candidate tried in your loop?): keep the X of the best candidate" if other else ""),
                named="X_of_other" if other else None)
-    ref_front = f[f"{key}_in_front"]
+    ref_front, ref_counts, counts = f[f"{key}_in_front"], f[f"{key}_counts"], e["counts"]
     n = len(ref_front)
-    front_s = e["front"]
-    if front_s is None or front_s.shape != (n,):
+    mine = tests if tests in e["tests"] else None
+    if e["front"] is None or e["front"].shape != (n,):
         c.fail(f"{case}: in_front must be a bool array of shape ({n},)")
     elif counts is None:
         c.fail(f"{case}: counts must have shape (4,): the number of points in front for each candidate")
     else:
-        close = (np.abs(counts - ref_counts).max() <= e["tol"]
-                 and (front_s.astype(bool) != ref_front).sum() <= max(1, int(0.01 * n)))
-        why = (_CHEIRALITY_MISTAKES[cheirality] if cheirality is not None else
+        close = not e["off"] and (e["front"].astype(bool) != ref_front).sum() <= max(1, int(0.01 * n))
+        why = (_CHEIRALITY[mine] if mine else
                "count, for each candidate, the points with z > 0 in camera 1 AND r3ᵀ (X - C) > 0 in camera 2")
         c.expect(close, f"{case}: in_front and counts agree with the reference",
                  f"{case}: counts {counts.tolist()}, expected about {ref_counts.tolist()}: {why}",
-                 defining="in front of both cameras" if cheirality is not None else None,
-                 named=f"cheirality_{cheirality}" if cheirality is not None else None)
-    R_s, t_s = e["R"], e["t"]
+                 defining=IN_FRONT if mine else None, named=mine)
     if f"{key}_true_R" in f:
-        ok = np.allclose(R_s, f[f"{key}_true_R"], atol=1e-5) and np.allclose(t_s, f[f"{key}_true_t"], atol=1e-5)
+        ok = np.allclose(e["R"], f[f"{key}_true_R"], atol=1e-5) and np.allclose(e["t"], f[f"{key}_true_t"], atol=1e-5)
         c.gate(ok, f"{case}: equals the true relative pose", f"{case}: differs from the true relative pose")
     if f"{key}_gt_R" in f:  # estimated from real matches: close to the ground truth, not equal
-        rot = rotation_angle_deg(R_s, f[f"{key}_gt_R"])
-        cos_t = float(t_s @ f[f"{key}_gt_t"] / max(np.linalg.norm(t_s), 1e-300))
+        rot = rotation_angle_deg(e["R"], f[f"{key}_gt_R"])
+        cos_t = float(e["t"] @ f[f"{key}_gt_t"] / max(np.linalg.norm(e["t"]), 1e-300))
         c.expect(rot < 1.0 and cos_t > np.cos(np.radians(3.0)), f"{case}: agrees with the ground truth of the scene",
                  f"{case}: {rot:.2g}° and {np.degrees(np.arccos(np.clip(cos_t, -1, 1))):.2g}° (direction of t) from the "
                  "ground truth")
@@ -334,29 +331,21 @@ def check_choose_pose(fn, exercise: str = "choose_pose") -> None:
     """Check ``fn(R (4,3,3), C (4,3), K, x1, x2) -> PoseChoice`` on five synthetic pairs and the embedded pair."""
     f = load_fixture(FIXTURE)
     with Check(exercise) as c:
-        evals = []
+        outcomes = []
         for key, case in (("pose_syn_a", "synthetic pair A"), ("pose_syn_b", "synthetic pair B"),
                           ("pose_syn_wide", "wide-baseline synthetic pair"),
                           ("pose_syn_fwd", "synthetic pair, camera 2 moves forward"),
                           ("pose_syn_back", "synthetic pair, camera 2 moves backward"),
                           ("pose_embedded", "embedded scene")):
             if f"{key}_R" in f:
-                e = _pose_eval(c, fn, f, key, case)
-                if e is not None:
-                    evals.append(e)
-        # a name only for what explains every case on which it can be told apart
-        off = [e for e in evals if e["counts"] is not None
-               and np.abs(e["counts"] - f[f"{e['key']}_counts"]).max() > e["tol"]]
-        name = unique_key([{str(i) for i in e["cheirality"]} for e in off])
-        cheirality = int(name) if name is not None else None
-        wrong = [e for e in evals if e["k"] != e["ref_k"]]
-        argmin = bool(wrong) and not off and all(e["counts"] is not None and e["k"] == int(np.argmin(e["counts"]))
-                                                 for e in wrong)
-        confusion = unique_key([{e["confusion"]} for e in evals if e["k"] == e["ref_k"] and e["confusion"]])
-        for e in evals:
-            mine = cheirality if cheirality is not None and cheirality in e["cheirality"] else None
-            least = argmin and e["k"] != e["ref_k"]
-            _pose_verdicts(c, f, e, mine, least, confusion)
+                o = _pose_outcome(c, fn, f, key, case)
+                if o is not None:
+                    outcomes.append(o)
+        # a test is named by the counts where they are off, a confusion of t_cw where the choice is right
+        tests = unique_key([o.data["tests"] for o in outcomes if o.data["off"]])
+        confusion = unique_key([{o.data["confusion"]} for o in outcomes if o.ok and o.data["confusion"]])
+        report_cases(c, outcomes, {**_CHEIRALITY, "argmin": _ARGMIN},
+                     then=lambda o, _: _pose_verdicts(c, f, o, tests, confusion))
         c.blame_earlier("triangulate_linear", fn=fn)
 
 

@@ -8,8 +8,8 @@
   grading run (:mod:`~course_lib.instructor.hidden`).
 * :mod:`~course_lib.instructor.grade` grades a submission (its steps: :mod:`~course_lib.instructor.grade_plan`,
   :mod:`~course_lib.instructor.grade_run`, :mod:`~course_lib.instructor.grade_report`):
-  :mod:`~course_lib.instructor.extract` cuts each exercise out of its notebook, :mod:`~course_lib.instructor.scan` flags what gets no
-  credit, :mod:`~course_lib.instructor.student_process` runs it in a sandboxed process
+  :mod:`~course_lib.instructor.extract` cuts each exercise out of its notebook,
+  :mod:`~course_lib.instructor.student_process` runs it in a sandboxed process
   (:mod:`~course_lib.instructor.sandbox`: the wire format, bubblewrap's jail and the server that runs
   inside it) that a check calls through the proxies of :mod:`~course_lib.instructor.remote`,
   :mod:`~course_lib.instructor.hidden` checks it in a worker on the exercise's clock, and

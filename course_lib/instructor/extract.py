@@ -54,7 +54,6 @@ class Extracted:
 
     name: str
     code: str  # the statements it needs + the def, in notebook order
-    tree: ast.Module
     def_cell: int  # cell index of the def used
     problems: list[str] = field(default_factory=list)  # e.g. names the grader could not find
 
@@ -332,7 +331,7 @@ def extract_exercise(nb, name: str, before_cell: int) -> Extracted | None:
     kept = [stmts[k] for k in sorted(keep)]
     kept = [s for s in kept if s.is_future] + [s for s in kept if not s.is_future]
     code = "\n\n".join(s.text for s in kept) + "\n"
-    ex = Extracted(name, code, ast.parse(code), defs[-1].cell)
+    ex = Extracted(name, code, defs[-1].cell)
     bound = set().union(*(s.binds | s.global_writes for s in kept))  # a loop variable is read where it is bound
     missing = {n for n in unbound - bound if not hasattr(builtins, n) and n not in MODULE_NAMES}
     if missing and not any(s.star for s in kept):

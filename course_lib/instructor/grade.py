@@ -3,24 +3,22 @@
 ``python -m course_lib grade SUBMISSION_DIR [--json REPORT.json] [--markdown FEEDBACK.md]``
 
 For every exercise of the instructor notebooks (the check cells and reference verdicts come from the instructor's
-side, never from the submission), :func:`grade_submission` runs five steps, each in the module named:
+side, never from the submission), :func:`grade_submission` runs four steps, each in the module named:
 
 1. **Structure** (:mod:`.grade_plan`): the submitted notebook must still hold the exercise's ``def`` before its
    check cell, in the original order, and the check cell unedited; else no credit, and the report says which.
-2. **Scan** (:mod:`.grade_plan`, a second line of defence): the exercise's code, cut out with its imports and
-   helpers, must not import the reference solutions or the check machinery. The rest of the notebook is not
-   scanned: no verdict is read from what it prints (step 4).
-3. **Hidden checks, sealed by design** (:mod:`.grade_run`, :mod:`.hidden`): the exercise's check runs in a worker of
+2. **Hidden checks, sealed by design** (:mod:`.grade_run`, :mod:`.hidden`): the exercise's check runs in a worker of
    the grader on hidden cases (the fixtures rebuilt with a grading-time seed), the student's function a proxy for
    the same function in a sandboxed process that holds only the student's code and the student release of
-   ``course_lib``, called with data (:mod:`.student_process`); the earlier exercises it calls are answered by their
-   references (:mod:`.oracle`), so each mistake costs points once, in its own exercise. **One clock, one memory
+   ``course_lib`` (no reference solution there to import), called with data (:mod:`.student_process`); the earlier
+   exercises it calls are answered by their references (:mod:`.oracle`), so each mistake costs points once, in its
+   own exercise. **One clock, one memory
    cap** per exercise and per submission count everything the submission causes.
-4. **nbval, and a verdict no notebook can forge** (:mod:`.grade_run`, :mod:`.nbval_run`): the notebooks run under
+3. **nbval, and a verdict no notebook can forge** (:mod:`.grade_run`, :mod:`.nbval_run`): the notebooks run under
    nbval in the same sandbox, check cells restored, package installs left out with a neutral note; nbval says
    whether each check cell runs when the notebook runs top to bottom, and the check cell's verdict is computed by
    the grader: the same check on the notebook's own cases, with the student's function in the sandbox.
-5. **Slow code is graded**: an exercise's budget (:data:`~.settings.DEFAULT_EXERCISE_SECONDS`, 120 s) lets correct but slow code
+4. **Slow code is graded**: an exercise's budget (:data:`~.settings.DEFAULT_EXERCISE_SECONDS`, 120 s) lets correct but slow code
    finish; the feedback says when it was slow.
 
 Points per exercise (default 10): 90 % times the hidden score (:func:`course_lib.checks.core.score_against` the
@@ -131,7 +129,7 @@ def grade_submission(
     t0 = time.perf_counter()
     if not Path(submission).is_dir():
         raise KitInputError(f"{submission} is not a folder: pass the student's kit (or a folder with their notebooks)")
-    specs, omitted, kit = specs_to_grade(notebooks_dir, notebooks, exercises)
+    specs, kit = specs_to_grade(notebooks_dir, notebooks, exercises)
     if not insecure:
         preflight(notebooks_dir, limits)  # one line, and no grading, where the sandbox cannot be made or verified
     with _scratch(workdir) as work, _shared_folder() as shared:
@@ -141,7 +139,7 @@ def grade_submission(
         iso = Isolation.for_grading(hidden.library if not allow_reference else REPO_ROOT,
                                     [work, Path(hidden.fixtures_dir)], notebooks_dir, self_test=allow_reference,
                                     insecure=insecure, limits=limits, scratch=shared)
-        run = GradingRun(specs, omitted, hidden, iso, copy, timeout, allow_reference, kit=kit,
+        run = GradingRun(specs, hidden, iso, copy, timeout, allow_reference, kit=kit,
                          clock=Clock(submission_timeout),
                          cgroup=None if insecure else Cgroup.create(iso.limits.submission_memory_bytes,
                                                                      4 * iso.limits.processes_total))

@@ -1,12 +1,12 @@
 """What a grading run grades: the notebooks and exercises, the hidden cases and the reference's verdicts on them, and
-each submitted notebook read, placed and scanned (the grades that structure and scan decide).
+each submitted notebook read and placed (the grades that its structure decides).
 
-* :func:`specs_to_grade`: the instructor notebooks and exercises to grade, the modules the release omits, and every
+* :func:`specs_to_grade`: the instructor notebooks and exercises to grade, and every
   exercise of the kit in order (the earlier steps an exercise may call).
 * :func:`prepare_hidden`: the hidden cases of a grading-time seed, and the reference's verdicts and times on them.
 * :func:`plan_submission`: each submitted notebook (the grader's copy) read within the grader's limits, its exercises
-  placed (:mod:`.placement`), each exercise cut out (:mod:`.extract`) and scanned (:mod:`.scan`); an exercise whose
-  structure or scan gives it no credit is graded here, the others wait for the hidden checks (:mod:`.grade_run`).
+  placed (:mod:`.placement`) and each exercise cut out (:mod:`.extract`); an exercise whose structure gives it no
+  credit is graded here, the others wait for the hidden checks (:mod:`.grade_run`).
 """
 
 from __future__ import annotations
@@ -30,8 +30,6 @@ from course_lib.instructor.grade_report import exc_text
 from course_lib.instructor.hidden import HiddenJob, build_hidden_fixtures, hold_in_memory, run_reference
 from course_lib.instructor.notebooks import NOTEBOOKS_DIR, ExerciseSpec, NotebookSpec, kit_specs, python_source
 from course_lib.instructor.placement import Placement, place_exercises, restored, without_installs
-from course_lib.instructor.plan import release_plan
-from course_lib.instructor.scan import scan_exercise
 from course_lib.instructor.settings import (
     MAX_CELL_NODES,
     MAX_CODE_BYTES,
@@ -148,12 +146,11 @@ def ready_hidden(hidden: HiddenCases | None, specs: list[NotebookSpec], salt: in
 
 
 def specs_to_grade(notebooks_dir: Path, notebooks: list[str] | None,
-                    exercises: list[str] | None) -> tuple[list[NotebookSpec], set[str], list[tuple[str, str | None]]]:
-    """The instructor notebooks (and their exercises) to grade, the modules the release omits, and every exercise
-    of the kit in order with its reference (the earlier steps an exercise may call)."""
+                    exercises: list[str] | None) -> tuple[list[NotebookSpec], list[tuple[str, str | None]]]:
+    """The instructor notebooks (and their exercises) to grade, and every exercise of the kit in order with its
+    reference (the earlier steps an exercise may call)."""
     unreleasable: list[str] = []
     all_specs = kit_specs(notebooks_dir, errors_out=unreleasable)
-    omitted = set(release_plan(all_specs).omit)
     for err in unreleasable:
         if not notebooks or any(err.startswith(n) for n in notebooks):
             raise KitInputError(f"cannot grade against an instructor notebook that cannot be released: {err}")
@@ -161,7 +158,7 @@ def specs_to_grade(notebooks_dir: Path, notebooks: list[str] | None,
     specs = _select(specs, exercises)
     if not specs:
         raise KitInputError(f"no instructor notebook or exercise matches {notebooks or ''} {exercises or ''}")
-    return specs, omitted, [(e.name, e.reference) for s in all_specs for e in s.exercises]
+    return specs, [(e.name, e.reference) for s in all_specs for e in s.exercises]
 
 
 @dataclass
@@ -171,7 +168,7 @@ class ExerciseGrade:
     points: float
     max_points: float
     feedback: list[str]
-    status: str  # full, detail, partial, zero, not attempted, flagged, timeout, exit, error, missing, deleted, reordered,
+    status: str  # full, detail, partial, zero, not attempted, timeout, exit, error, missing, deleted, reordered,
     # check-edited
     hidden: dict = field(default_factory=dict)
     nbval: str = "not run"
@@ -188,7 +185,6 @@ class GradingRun:
     """What the grading of one submission shares between its steps."""
 
     specs: list[NotebookSpec]
-    omitted: set[str]
     hidden: HiddenCases
     iso: Isolation
     submission: SubmissionCopy  # the grader's copy of the submission (regular files only)
@@ -207,7 +203,7 @@ class GradingRun:
 
 
 def _plan_notebook(run: GradingRun, s: NotebookSpec, path: Path) -> None:
-    """Read one submitted notebook (the grader's copy), place its exercises and scan it; never raises."""
+    """Read one submitted notebook (the grader's copy) and place its exercises; never raises."""
     if not path.is_file():
         left_out = [r for r in run.submission.refused if r.split(":")[0] in (s.name, f"notebooks/{s.name}", "notebooks")]
         why = [(None, f"{s.name} is missing from the submission ({left_out[0]})")] if left_out else []
@@ -269,9 +265,8 @@ def _unparseable_cells(nb) -> tuple[list, int]:
     return notes, nodes
 
 
-def _structure_and_scans(run: GradingRun, s: NotebookSpec, e: ExerciseSpec, nb, places: dict,
-                         notes: list) -> ExerciseGrade:
-    """The grade of one exercise after the structure check and the scans (pending the hidden checks when they pass)."""
+def _structure(run: GradingRun, s: NotebookSpec, e: ExerciseSpec, nb, places: dict, notes: list) -> ExerciseGrade:
+    """The grade of one exercise after the structure check (pending the hidden checks when it passes)."""
     g = ExerciseGrade(s.name, e.name, 0.0, e.points, [], "zero")
     if nb is None:
         g.status = "missing"
@@ -288,19 +283,9 @@ def _structure_and_scans(run: GradingRun, s: NotebookSpec, e: ExerciseSpec, nb, 
             g.status = "deleted"
             g.feedback.append(f"no top-level def of {e.name} before its check cell; no credit")
             return g
-        flags = scan_exercise(ex.tree, e.reference, run.omitted)
     except Exception as exc:  # noqa: BLE001 - the grader never dies on a submission
         g.status = "error"
         g.feedback.append(f"the grader could not take {e.name} out of the notebook ({exc_text(exc)}); no credit")
-        return g
-    if run.allow_reference:
-        # the instructor's notebooks call the reference and the kit's engines (which stand on the references there)
-        flags = [f for f in flags if "reference solution" not in f and "the kit's engine" not in f]
-    if flags:
-        g.status = "flagged"
-        g.feedback += [f"your {e.name} {f}" for f in flags[:4]]
-        g.feedback.append("no credit: exercise code must be your own and may only use numpy/scipy/torch "
-                          "and the kit's non-solution modules")
         return g
     g.feedback += [f"note: your {e.name} {pr}" for pr in ex.problems]
     run.pending.setdefault(s.name, []).append((g, e, ex))
@@ -324,10 +309,10 @@ def _structure_verdict(e: ExerciseSpec, places: dict[str, Placement]) -> tuple[s
 
 
 def plan_submission(run: GradingRun) -> None:
-    """Read, place and scan every notebook to grade (:func:`plan_notebook`), and start each exercise's grade: final
-    where the notebook's structure or the exercise's scan gives it no credit, else pending its hidden checks."""
+    """Read and place every notebook to grade (:func:`_plan_notebook`), and start each exercise's grade: final where
+    the notebook's structure gives it no credit, else pending its hidden checks."""
     for s in run.specs:
         _plan_notebook(run, s, _find_notebooks(run.submission.root) / s.name)
     for s, nb, places, notes in run.plans:
         for e in s.exercises:
-            run.grades.append(_structure_and_scans(run, s, e, nb, places, notes))
+            run.grades.append(_structure(run, s, e, nb, places, notes))

@@ -23,10 +23,8 @@ from __future__ import annotations
 import contextlib
 import importlib
 import io
-import multiprocessing as mp
 import os
 import time
-import traceback
 import types
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from course_lib.checks import core
+from course_lib.exercise_table import EXERCISES
 from course_lib.instructor.cases import builders
 from course_lib.instructor.oracle import Oracle, bound_address_space, status_kib
 from course_lib.instructor.remote import RemoteFunction
@@ -84,16 +83,6 @@ def build_in_process(name: str, salt: int) -> dict[str, np.ndarray]:
         np.random.default_rng = original
 
 
-def _build_hidden(out_dir: str, check_modules: list[str], salt: int) -> dict:
-    single_thread_math()
-    built = {}
-    for name in builders(check_modules, steps=False):
-        arrays = build_in_process(name, salt)
-        np.savez_compressed(Path(out_dir) / f"{name}.npz", **{k: np.asarray(v) for k, v in arrays.items()})
-        built[name] = sorted(arrays)
-    return built
-
-
 #: Hidden fixtures held in the grader's memory (folder -> name -> arrays); forked runs read them from here.
 _MEMORY: dict[str, dict[str, dict[str, np.ndarray]]] = {}
 
@@ -107,19 +96,19 @@ def hold_in_memory(fixtures_dir: Path) -> None:
     _MEMORY[str(fixtures_dir)] = held
 
 
-def build_hidden_fixtures(out_dir: Path, check_modules: list[str], salt: int, timeout: float = 600) -> dict:
-    """Write the hidden cases of ``check_modules`` into ``out_dir`` (no step fixture: they are no cases).
-
-    Runs in a forked process (the reference library builds them; torch stays out of this process).
-    """
-
+def build_hidden_fixtures(out_dir: Path, check_modules: list[str], salt: int) -> dict[str, list[str]]:
+    """Write the hidden cases of ``check_modules`` into ``out_dir`` (no step fixture: they are no cases), and hold
+    them in this process's memory; ``{fixture: its keys}``. The reference library builds them, in this process
+    (the grader has imported it and torch before, :func:`course_lib.instructor.grade_plan.prepare_hidden`)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    res = _in_child(_build_hidden, (str(out_dir), sorted(set(check_modules)), int(salt)), timeout)
-    if "error" in res or "value" not in res:
-        raise RuntimeError(f"building the hidden cases failed: {res.get('error', res)}")
+    built = {}
+    for name in builders(sorted(set(check_modules)), steps=False):
+        arrays = build_in_process(name, salt)
+        np.savez_compressed(out_dir / f"{name}.npz", **{k: np.asarray(v) for k, v in arrays.items()})
+        built[name] = sorted(arrays)
     hold_in_memory(out_dir)
-    return res["value"]
+    return built
 
 
 # ---------------------------------------------------------------------------------------------
@@ -328,8 +317,9 @@ def _worker(job: HiddenJob, timeout: float, isolation, cgroup, w: int) -> None:
     try:
         torch = job.check_module.startswith("course_lib.checks.nerf")
         oracle = Oracle(job.name, job.steps)  # earlier steps answered by the reference, on this exercise's clock
+        engines = () if job.allow_reference or job.name not in EXERCISES else EXERCISES[job.name].engines
         with StudentProcess(isolation, job.code, job.name, job.submission, timeout, torch=torch, oracle=oracle,
-                            cgroup=cgroup) as proc:
+                            cgroup=cgroup, engines=engines) as proc:
             wire.write_frame(w, {"event": "started"})
             _check_student(job, proc, send, t0)
     except jail.IsolationError as exc:
@@ -427,38 +417,3 @@ def _outcome_from(head: dict, seconds: float) -> HiddenOutcome:
                          sandbox=head.get("sandbox") or {}, attempted=bool(head.get("attempted", True)),
                          memory=dict(head.get("memory") or {},
                                      **{"largest reply bytes": int(head.get("largest_reply", 0))}))
-
-
-def _child_main(conn, fn, args):
-    try:
-        value = fn(*args)
-        conn.send({"value": value})
-    except BaseException as exc:  # noqa: BLE001
-        try:
-            conn.send({"error": f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=3)}"})
-        except Exception:  # noqa: BLE001
-            pass
-    finally:
-        conn.close()
-        os._exit(0)
-
-
-def _in_child(fn, args, timeout: float) -> dict:
-    """Run ``fn(*args)`` in a forked process; ``{"value": ...}``, ``{"error": ...}`` or ``{"timeout": True}``."""
-    ctx = mp.get_context("fork")
-    parent, child = ctx.Pipe(duplex=False)
-    p = ctx.Process(target=_child_main, args=(child, fn, args), daemon=True)
-    p.start()
-    child.close()
-    try:
-        if parent.poll(timeout):
-            try:
-                return parent.recv()
-            except EOFError:
-                return {"crashed": True}
-        return {"timeout": True}
-    finally:
-        if p.is_alive():
-            p.kill()
-        p.join(5)
-        parent.close()

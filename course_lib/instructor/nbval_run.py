@@ -15,8 +15,8 @@ check cells without nbval's output marker, :func:`~course_lib.instructor.placeme
 verdicts itself, :func:`~course_lib.instructor.hidden.run_hidden`): the kernel is the student's process.
 
 **One clock.** A notebook gets :func:`course_lib.instructor.settings.nbval_seconds` for all its runs
-together (the reruns after a cell that timed out included), and never more than what is left of the
-submission's time; a run that does not finish by then counts as not run.
+together (a restart included), and never more than what is left of the submission's time; a run that does
+not finish by then counts as not run.
 """
 
 from __future__ import annotations
@@ -36,9 +36,7 @@ import nbformat
 from course_lib.instructor.sandbox import jail, launch, wire
 from course_lib.instructor.settings import START_SECONDS, Isolation
 
-__all__ = ["NbvalRun", "MAX_NBVAL_RERUNS"]
-
-MAX_NBVAL_RERUNS = 3  # reruns of a notebook after cells that timed out
+__all__ = ["NbvalRun"]
 
 
 class NbvalRun:
@@ -49,7 +47,7 @@ class NbvalRun:
         isolation: the run's :class:`~course_lib.instructor.settings.Isolation`.
         cell_timeout: seconds for one cell.
         jobs: notebooks at the same time.
-        timeout: seconds for one notebook, its reruns included.
+        timeout: seconds for one notebook, a restart included.
         deadline: the submission's deadline (``time.monotonic()``), or None.
         cgroup: the submission's cgroup (each notebook gets one inside it), or None.
     """
@@ -111,43 +109,21 @@ class NbvalRun:
             self.seconds[name] = round(time.monotonic() - t0, 1)
 
     def _one(self, name: str, nb, end: float) -> tuple[dict[tuple[str, int], str], str]:
-        """Run one notebook; after a cell that timed out (nbval skips the rest), run the rest again, while time is
-        left (``end``)."""
+        """Run one notebook until ``end`` at the latest (after a cell that timed out, nbval skips the rest: a notebook
+        whose exercise looped in its hidden checks is run again with that exercise cut short, :meth:`restart`)."""
         tmp = jail.private_folder("course-nbval-", self.iso.scratch)
         try:
             seed = tmp / "seed"  # the submission's copy with only the notebook under test, restored by the grader
             shutil.copytree(self.submission, seed, ignore=_other_notebooks(self.submission), symlinks=False)
             (seed / "notebooks").mkdir(exist_ok=True)
-            results: dict[tuple[str, int], str] = {}
-            done_upto = -1
-            for attempt in range(MAX_NBVAL_RERUNS + 1):
-                with self._lock:
-                    if name in self._replace:
-                        return results, "replaced"
-                if time.monotonic() >= end:
-                    return results, (f"nbval of {name} did not finish within its time ({self.timeout:g} s for all "
-                                     "its runs, or the submission's time ran out)")
-                nbformat.write(nb, seed / "notebooks" / name)
-                res, note = self._pytest(tmp, seed, name, attempt, end)
-                if note:
-                    return results, note
-                results.update({k: v for k, v in res.items() if k[1] > done_upto})
-                timed_out = sorted(k[1] for k, v in res.items() if k[1] > done_upto and "timeout" in v.lower()
-                                   and not v.startswith("not run"))
-                if not timed_out or not any(v.startswith("not run") for k, v in res.items() if k[1] > timed_out[0]):
-                    break
-                done_upto = timed_out[0]
-                # the rerun: the cell that timed out raises at once, the cells after it run again
-                code = [c for c in nb.cells if c.cell_type == "code"]
-                code[done_upto].source = f"raise TimeoutError('this cell did not finish within {self.cell_timeout:g} s')"
-                code[done_upto].outputs = []
-            return results, ""
+            nbformat.write(nb, seed / "notebooks" / name)
+            return self._pytest(tmp, seed, name, end)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
 
-    def _pytest(self, tmp: Path, seed: Path, name: str, attempt: int, end: float):
+    def _pytest(self, tmp: Path, seed: Path, name: str, end: float):
         """One sandboxed pytest run, until ``end`` at the latest; its junit report comes out through the launcher."""
-        stage = tmp / f"run{attempt}"
+        stage = tmp / "run"
         stage.mkdir()
         work, seed_at = launch.paths(self.iso, stage, seed)
         nb_dir = os.path.join(work, "notebooks")

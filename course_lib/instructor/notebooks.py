@@ -90,13 +90,13 @@ def sha256(text: str | bytes) -> str:
 
 
 #: Magics that run the Python code that follows them (``%time x = f()``, ``%%timeit`` over the cell): their code is
-#: parsed and scanned like any other line.
+#: parsed and extracted like any other line.
 TIMING_MAGICS = ("%time ", "%timeit ", "%%time", "%%timeit")
 
 
 def python_source(source: str) -> str:
-    """Cell source as ``ast`` can parse it: the code after a timing magic kept (and scanned), every other IPython magic
-    and shell line turned into ``pass`` (what the extracted exercise code and the scan read)."""
+    """Cell source as ``ast`` can parse it: the code after a timing magic kept, every other IPython magic and shell
+    line turned into ``pass`` (what the extracted exercise code reads)."""
     out = []
     for line in source.splitlines():
         s = line.lstrip()

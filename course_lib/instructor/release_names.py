@@ -74,34 +74,16 @@ def _comments(src: str) -> list[tuple[int, str]]:
 def text_references(out_dir: Path) -> list[dict]:
     """What the kit's texts point at: ``[{"where", "kind", "ref", "module"}]``.
 
-    Texts: the notebooks' markdown cells and their code cells' docstrings and comments, the
-    ``README.md``, the comments of ``environment.txt``, the ``.md``/``.txt`` files of ``course_lib``,
-    and the docstrings of every module of the kit's ``course_lib``. ``kind`` is
-    ``"dotted"``, ``"path"``, ``"short"`` or ``"name"``; ``module`` is the module whose docstring
-    holds a ``"name"`` reference.
+    Texts: what a student reads (:func:`student_texts`), but the notebooks' outputs and the comments of the kit's
+    modules; of a notebook's code cell, its docstrings and comments. ``kind`` is ``"dotted"``, ``"path"``,
+    ``"short"`` or ``"name"``; ``module`` is the module whose docstring holds a ``"name"`` reference.
     """
-    out_dir = Path(out_dir)
-    texts: list[tuple[str, str | None, str]] = []  # (where, module, text)
-    for p in sorted((out_dir / "notebooks").glob("*.ipynb")):
-        nb = nbformat.read(p, as_version=4)
-        for i, cell in enumerate(nb.cells):
-            if cell.cell_type == "markdown":
-                texts.append((f"notebooks/{p.name}, cell {i}", None, cell.source))
-            elif cell.cell_type == "code":
-                for line, text in _docstrings(cell.source) + _comments(cell.source):
-                    texts.append((f"notebooks/{p.name}, cell {i}, line {line}", None, text))
-    if (out_dir / "README.md").exists():
-        texts.append(("README.md", None, (out_dir / "README.md").read_text()))
-    if (out_dir / "environment.txt").exists():  # its comments, one paragraph per block
-        lines = (out_dir / "environment.txt").read_text().splitlines()
-        texts.append(("environment.txt", None, "\n".join(ln.lstrip("# ") if ln.startswith("#") else "" for ln in lines)))
-    for p in sorted(q for q in (out_dir / "course_lib").rglob("*") if q.suffix in (".md", ".txt")):
-        texts.append((str(p.relative_to(out_dir)), None, p.read_text()))
-    for p in sorted((out_dir / "course_lib").rglob("*.py")):
-        rel = p.relative_to(out_dir)
-        mod = ".".join(rel.with_suffix("").parts).removesuffix(".__init__")
-        for line, text in _docstrings(p.read_text()):
-            texts.append((f"{rel}, line {line}", mod, text))
+    texts: list[tuple[str, str | None, str]] = []
+    for where, mod, kind, text in student_texts(Path(out_dir)):
+        if kind == "code":
+            texts += [(f"{where}, line {ln}", mod, t) for ln, t in _docstrings(text) + _comments(text)]
+        elif kind == "text":
+            texts.append((where, mod, text))
     refs = []
     for where, mod, text in texts:
         marked: set[str] = set()
@@ -232,41 +214,46 @@ def dangling_references(out_dir: Path) -> list[str]:
     return sorted(set(problems))
 
 
-def student_texts(root: Path, readme: str = "README.md") -> list[tuple[str, str]]:
-    """``(where, text)`` of everything a student reads in a kit at ``root`` (a release or the instructor's repo).
+def student_texts(root: Path, readme: str = "README.md") -> list[tuple[str, str | None, str, str]]:
+    """``(where, module, kind, text)`` of everything a student reads in a kit at ``root`` (a release or the
+    instructor's repo).
 
-    The notebooks' markdown, code and text outputs (the verdicts and prints they show), ``README.md``,
-    ``environment.txt``, ``docs/mistakes.md`` where present, the ``.md``/``.txt`` files of ``course_lib``
-    and the docstrings and comments of its modules (not :mod:`course_lib.instructor`, which never ships).
+    ``kind``: ``"text"`` (the notebooks' markdown, ``README.md``, ``environment.txt``, ``docs/mistakes.md`` where
+    present, the ``.md``/``.txt`` files of ``course_lib``, the docstrings of its modules, with ``module`` their
+    module), ``"code"`` (a notebook's code cell), ``"output"`` (its text outputs: the verdicts and prints they show)
+    or ``"comment"`` (a comment of a module). :mod:`course_lib.instructor` never ships and is not read.
     """
     root = Path(root)
-    out: list[tuple[str, str]] = []
+    out: list[tuple[str, str | None, str, str]] = []
     for p in sorted((root / "notebooks").glob("*.ipynb")):
         nb = nbformat.read(p, as_version=4)
         for i, cell in enumerate(nb.cells):
-            out.append((f"notebooks/{p.name}, cell {i}", cell.source))
+            out.append((f"notebooks/{p.name}, cell {i}", None, "text" if cell.cell_type == "markdown" else "code",
+                        cell.source))
             for o in cell.get("outputs", []):
                 text = o.get("text") or (o.get("data") or {}).get("text/plain") or o.get("evalue") or ""
-                out.append((f"notebooks/{p.name}, cell {i} (output)", text if isinstance(text, str) else "".join(text)))
+                out.append((f"notebooks/{p.name}, cell {i} (output)", None, "output",
+                            text if isinstance(text, str) else "".join(text)))
     for name in (readme, "environment.txt", "docs/mistakes.md"):
         if (root / name).exists():
-            out.append((name, (root / name).read_text()))
+            out.append((name, None, "text", (root / name).read_text()))
     for p in sorted((root / "course_lib").rglob("*")):
         rel = p.relative_to(root)
         if "instructor" in rel.parts or p.suffix not in (".py", ".md", ".txt"):
             continue
         if p.suffix == ".py":
-            src = p.read_text()
-            out += [(f"{rel}, line {ln}", t) for ln, t in _docstrings(src) + _comments(src)]
+            src, mod = p.read_text(), ".".join(rel.with_suffix("").parts).removesuffix(".__init__")
+            out += [(f"{rel}, line {ln}", mod, "text", t) for ln, t in _docstrings(src)]
+            out += [(f"{rel}, line {ln}", mod, "comment", t) for ln, t in _comments(src)]
         else:
-            out.append((str(rel), p.read_text()))
+            out.append((str(rel), None, "text", p.read_text()))
     return out
 
 
 def internal_references(root: Path, readme: str = "README.md") -> list[str]:
     """Where a student-read text of the kit at ``root`` cites the kit's development (:data:`INTERNAL`), one line each."""
     found = []
-    for where, text in student_texts(root, readme):
+    for where, _, _, text in student_texts(root, readme):
         for m in INTERNAL.finditer(text):
             a, b = max(0, m.start() - 40), min(len(text), m.end() + 40)
             found.append(f"{where}: '{m.group(0)}' in ...{' '.join(text[a:b].split())}...")

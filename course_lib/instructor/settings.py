@@ -79,7 +79,7 @@ def exercise_seconds(timeout: float, reference_seconds: float, calls_back: bool 
 
 
 def nbval_seconds(cell_timeout: float) -> float:
-    """Seconds for nbval of one notebook, its reruns after a cell that timed out included.
+    """Seconds for nbval of one notebook, its restart with a looping exercise cut short included.
 
     Three times the time limit of one cell (an honest notebook runs every cell well within it) plus 60 s for the
     kernel to start and the notebook's set-up cells.
@@ -100,7 +100,7 @@ class Clock:
 
 #: Bytes of a submitted notebook the grader reads (an honest one, outputs included, is under 2 MB), and bytes of
 #: source in its code cells (the kit's largest solved notebook holds 16 kB): everything the grader does with a notebook
-#: (parse, place, scan, extract, slice) is linear in its code, so these bound the grader's time and memory on it.
+#: (parse, place, extract, slice) is linear in its code, so these bound the grader's time and memory on it.
 MAX_NOTEBOOK_BYTES = 32 << 20
 MAX_CODE_BYTES = 256 << 10
 #: Syntax-tree nodes in a notebook's code cells (the kit's largest solved notebook: 3 100; the grader's work on a

@@ -103,14 +103,17 @@ class StudentProcess:
         oracle: answers the call-backs of the earlier exercises the code calls (:mod:`course_lib.instructor.oracle`);
             their names are bound to stubs in the process after the code is loaded.
         cgroup: the cgroup the process enters (None: the caller's own, e.g. the exercise worker's).
+        engines: the kit's engines that compute this exercise (``module.attr``), closed in the process before the
+            student's code runs (:attr:`course_lib.exercise_table.Exercise.engines`).
 
     Raises:
         IsolationError: the sandbox cannot be made or verified (and the run is not ``insecure``).
     """
 
     def __init__(self, iso: Isolation, code: str, name: str, submission: Path | None, budget: float,
-                 torch: bool = False, oracle=None, cgroup=None):
+                 torch: bool = False, oracle=None, cgroup=None, engines: tuple[str, ...] = ()):
         self.iso, self.name, self.budget, self.oracle, self.cgroup = iso, name, float(budget), oracle, cgroup
+        self.engines = engines
         self.t0 = time.monotonic()
         self.deadline = self.t0 + START_SECONDS  # the start: Python, numpy and torch imports
         self.ended: str | None = None  # why the process is gone (feedback for the student)
@@ -136,7 +139,8 @@ class StudentProcess:
         self.rep_r, rep_w = os.pipe()
         cfg = {"cwd": cwd, "seed": seed_at, "path": str(iso.library), "sys_path": iso.python_path(), "code": code,
                "name": self.name, "torch": bool(torch), "req_fd": req_r, "rep_fd": rep_w,
-               "oracle": self.oracle.names if self.oracle is not None else []}
+               "oracle": self.oracle.names if self.oracle is not None else [],
+               "engines": list(self.engines)}
         with open(self.tmp / "stderr.txt", "wb") as stderr:
             self.started = launch.start(iso, "serve", cfg, self.tmp, seed, self.cgroup, self.budget + 30,
                                         launch.env(cwd), [req_r, rep_w], stderr)

@@ -65,6 +65,7 @@ from course_lib.sfm.mapper_options import MapperOptions
 from course_lib.sfm.merging import carry, similarity_ransac
 from course_lib.sfm.reconstruction import Reconstruction, reprojection_error_matrix, triangulation_angles_deg
 from course_lib.sfm.registration import ImageRegistration, spread_score
+from course_lib.sfm.relocalization import relocalize
 from course_lib.sfm.triangulator import IncrementalTriangulator
 from course_lib.validate import KitInputError
 
@@ -389,6 +390,10 @@ class IncrementalMapper(ImageRegistration, IncrementalTriangulator, MapperBundle
                     st["filter_mid"] = self.filter_points(thr)
                     st["ba_all_points"] = self.adjust_bundle(loss, fs, o.final_ba_max_iterations, ftol=1e-6)
             st["filter_after"] = self.filter_points(thr)
+            st["relocalization"] = relocalize(self, thr, o.relocalize_tries, self.rng)
+            if st["relocalization"]["replaced"]:  # a pose moved to another solution: the model settles around it
+                st["ba_after_relocalization"] = self.adjust_bundle(loss, fs, o.final_ba_max_iterations, ftol=1e-6)
+                st["filter_after"] = self.filter_points(thr)
             st["reprojection_after_ba"] = self.observation_stats()
         return st
 

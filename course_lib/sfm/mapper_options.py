@@ -50,6 +50,9 @@ class MapperOptions:
             runs ``pnp_retries`` more times and the pose of lowest truncated error is kept (a narrow
             field of view has two nearly equal poses; 0: never).
             (:class:`course_lib.sfm.registration.ImageRegistration`). (COLMAP: none.)
+        relocalize_tries: once a model is finished, PnP RANSAC runs this many times per registered image on
+            the model's points; where it finds another pose, the one of lower cost after a local BA is kept
+            (:func:`course_lib.sfm.relocalization.relocalize`; 0: never). (COLMAP: none.)
         max_reproj_px: observations reprojecting farther are dropped during the run. (COLMAP
             ``filter_max_reproj_error`` 4 px.)
         final_max_reproj_px: the threshold before the final BA; None: 4 x the noise level estimated
@@ -141,6 +144,7 @@ class MapperOptions:
     structure_less_fallback: bool = True
     pnp_retries: int = 3
     pnp_retry_factor: float = 1.4
+    relocalize_tries: int = 2
     max_reproj_px: float = 4.0
     final_max_reproj_px: float | None = None
     min_angle_deg: float = 1.0

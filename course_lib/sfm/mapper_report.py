@@ -60,14 +60,15 @@ class MapperReport:
         a, b = images
         self.say(f"initial pair {self.names[a]}, {self.names[b]}: only {points} points (need {need}); next candidate")
 
-    def started(self, pair, numbers: dict, seconds: float) -> None:
+    def started(self, pair, numbers: dict, seconds: float, search_seconds: float | None = None) -> None:
         """The model started from ``pair`` (:class:`~course_lib.sfm.initial_pair.InitialPair`); ``numbers`` from
-        :meth:`~course_lib.sfm.mapper.IncrementalMapper.initialize`."""
+        :meth:`~course_lib.sfm.mapper.IncrementalMapper.initialize`, which took ``seconds``; ``search_seconds``: with the
+        candidates' scores and the pairs tried before (the stage's seconds in :attr:`seconds`)."""
         a, b = pair.images
         self.stages.append({"stage": "initial pair", "images": [a, b], **numbers, "seconds": round(seconds, 3)})
         self.initial = {"images": [a, b], "names": [self.names[a], self.names[b]], "ransac_inliers": pair.inliers,
                         "pose_inliers": pair.pose_inliers, "score": pair.score, "points": numbers["new_points"]}
-        self.seconds["initial_pair"] = seconds
+        self.seconds["initial_pair"] = seconds if search_seconds is None else search_seconds
         self.say(f"initial pair {self.names[a]}, {self.names[b]}: {numbers['new_points']} points")
 
     def registered(self, i: int, numbers: dict, seconds: float) -> None:

@@ -2,8 +2,7 @@
 
 :class:`IncrementalTriangulator` is the part of :class:`course_lib.sfm.mapper.IncrementalMapper`
 that gives tracks their points: from a newly registered image and every registered partner, again
-after the model has moved (:meth:`IncrementalTriangulator.retriangulate`), and the non-linear
-refinement of points with the cameras fixed. The triangulation itself is the exercise of notebook
+after the model has moved (:meth:`IncrementalTriangulator.retriangulate`). The triangulation itself is the exercise of notebook
 03, called through :func:`course_lib.exercises.call`.
 
 Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
@@ -104,13 +103,3 @@ class IncrementalTriangulator(ObservationManager):
         js = np.flatnonzero(np.isfinite(X0).all(axis=1))
         n_new = self._accept(js, X0[js]) if len(js) else 0
         return {"observations_back": int(back.sum()), "tracks_tried": int(todo.sum()), "points_new": int(n_new)}
-
-    def _refine_points(self, points: np.ndarray) -> int:
-        """Non-linear triangulation of the ``(T,)`` bool ``points`` with the cameras fixed; returns how many."""
-        js = np.flatnonzero(points & self.has_X)
-        if len(js) == 0:
-            return 0
-        regs = np.flatnonzero(self.registered)
-        uv = np.where(self.inlier[js][:, regs][..., None], self.uv[js][:, regs], np.nan)
-        self.X[js] = call("triangulate_nonlinear", self.K, self.R[regs], self.t[regs], uv, self.X[js])
-        return int(len(js))

@@ -96,7 +96,7 @@ def test_shape_is_a_gate_that_earns_no_points(capsys):
         c.expect(False, "", "value wrong")
     r = core.RESULTS["gate demo"]
     assert (r.passed, r.total) == (2, 3)  # the printed count keeps every check
-    assert r.points == (1, 2) and core.score(r) == 0.5  # the passing gate earns nothing
+    assert core.score(r) == 0.5  # the passing gate earns nothing
     with Check("gate only") as c:
         c.shape(np.zeros((3, 3)), (3, 3), "F")
     assert core.score(core.RESULTS["gate only"]) == 0.0  # no points for shape alone
@@ -270,29 +270,14 @@ def test_shape_reads_torch_tensors_on_any_device_and_with_grad(capsys):
     assert "all 1 checks passed" in capsys.readouterr().out
 
 
-def test_a_planned_case_that_did_not_run_counts_as_failed(capsys):
-    with Check("planned") as c:
-        c.plan("case A", "case B", "case C")
-        out = c.call(lambda: np.ones(3), case="case A")
-        c.expect(c.shape(out, (3,), "case A: d") and out.sum() == 3, "case A: right", "case A: wrong")
-        c.call(lambda: np.ones(3), case="case B")
-        c.expect(True, "case B: right", "")
-        # the check returns here: case C never runs
-    result = core.RESULTS["planned"]
-    out = capsys.readouterr().out
-    assert "case C: this case did not run (the check stopped before it)" in out
-    assert not result.ok and core.score(result) == 2 / 3
-
-
-def test_a_check_that_stops_with_an_error_names_the_cases_it_did_not_reach(capsys):
+def test_a_check_that_stops_with_an_error_is_a_failed_verdict(capsys):
     with Check("stopped") as c:
-        c.plan("first", "second")
         c.call(lambda: np.ones(3), case="first")
         c.expect(True, "first: right", "")
         raise ValueError("the check's own bug")
     out = capsys.readouterr().out
-    assert "the check could not finish" in out and "second: this case did not run" in out
-    assert core.RESULTS["stopped"].passed == 1 and core.RESULTS["stopped"].total == 3
+    assert "the check could not finish" in out
+    assert core.RESULTS["stopped"].passed == 1 and core.RESULTS["stopped"].total == 2
 
 
 def test_a_case_whose_result_no_check_could_use_counts_as_failed(capsys):
@@ -328,7 +313,6 @@ def test_a_last_call_whose_result_led_to_no_verdict_counts_as_failed(capsys):
 
 def test_a_correct_run_gets_no_extra_lines(capsys):
     with Check("clean") as c:
-        c.plan("a", "b")
         for case in ("a", "b"):
             v = c.call(lambda: np.ones(2), case=case)
             c.shape(v, (2,), f"{case}: v")

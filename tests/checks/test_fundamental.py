@@ -174,7 +174,7 @@ def _ransac_no_refit(x1, x2, rng, threshold_px=1.0, confidence=0.999, max_iters=
     [
         (_ransac_algebraic, "algebraic error"),
         (_ransac_fixed_iters, "log(1 - confidence)"),
-        (_ransac_global_rng, "same seeded rng (and another np.random state) differ"),
+        (_ransac_global_rng, "the same rng seed gave different results"),
         (_ransac_no_refit, "refit"),
     ],
 )
@@ -189,13 +189,3 @@ def test_two_view_step_is_the_reference_result():
                                        threshold_px=starting_points.STEP_THRESHOLD_PX)
     np.testing.assert_allclose(step.F, res.F, atol=1e-9)
     np.testing.assert_array_equal(step.inliers, res.inliers)
-
-
-@pytest.mark.parametrize("h", __import__("tests.checks.catalogue.fundamental", fromlist=["DETAIL"]).DETAIL,
-                         ids=lambda h: h.style)
-def test_another_documented_form_is_a_detail_not_a_failure(h, capsys):
-    """Correct maths in another form (the best sample's inlier mask): all hidden-check points, one failed detail."""
-    h.check(h.fn)
-    out = capsys.readouterr().out
-    result = grading_core.RESULTS[out.splitlines()[0]]
-    assert grading_core.score(result) == 1.0 and result.details_failed, out

@@ -307,7 +307,7 @@ def test_the_encoding_table_answers_only_for_its_points():
     from course_lib.checks.core import load_fixture
 
     f = load_fixture("nerf_model")
-    table = nerf_model.encoding_table(nerf_model.pack_table(f["enc_rows"], f["enc_values"]))
+    table = nerf_model.encoding_table(f["enc_rows"], f["enc_values"])
     pts = torch.as_tensor(f["pts"])
     got = table(pts, 3)
     assert got.shape == (*pts.shape[:-1], 21)

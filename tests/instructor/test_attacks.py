@@ -1,18 +1,16 @@
 """Issue 14: an adversarial student's submissions, built here, and the points each must get.
 
 Every attack targets ``eight_point`` of notebook 01 (the issue's own run) and is graded with the
-hidden checks only (nbval is covered by tests/instructor/test_grade.py). The attacks that reach the
-interpreter through an allowed module (``numpy.testing._private.utils.sys``) pass the static scans
-on purpose: what stops them is the separation (the student's code runs in a process that holds
-only the student release of ``course_lib``, sees neither the instructor's kit nor the hidden
-cases, and can write only its own temporary folder). For the stealth route the test first shows
+hidden checks only (nbval is covered by tests/instructor/test_grade.py). Many reach the interpreter
+through an allowed module (``numpy.testing._private.utils.sys``): what stops them is the separation
+(the student's code runs in a process that holds only the student release of ``course_lib``, sees
+neither the instructor's kit nor the hidden cases, and can write only its own temporary folder). For the stealth route the test first shows
 that the same code earns full marks when it runs with the instructor's library, so the attack is
 real. ``test_attack_table`` prints the table (``pytest -s`` or ``ATTACK_TABLE=1``).
 """
 
 from __future__ import annotations
 
-import ast
 import hashlib
 import json
 import os
@@ -154,10 +152,6 @@ def test_the_stealth_route_would_work_without_the_separation(hidden):
     result, _ = run_check("course_lib.checks.fundamental", "check_eight_point", str(hidden.fixtures_dir),
                           ns["eight_point"])
     assert result is not None and core.score(result) == 1.0 and np is not None
-    from course_lib.instructor.scan import scan_exercise
-
-    assert scan_exercise(ast.parse(code), "course_lib.sfm.fundamental:eight_point",
-                         {"course_lib.sfm.fundamental"}) == [], "the stealth route passes the static scans"
 
 
 def test_stealth_route_gets_nothing(tmp_path, hidden):
@@ -299,11 +293,9 @@ def outside(tmp_path):
 
 
 def unharmed(report: dict) -> None:
-    """The secret and the other student's notes appear nowhere in what the grader wrote, and every attack ran (none
-    was stopped by the static scans, which would prove nothing about the sandbox)."""
+    """The secret and the other student's notes appear nowhere in what the grader wrote."""
     text = json.dumps(report, ensure_ascii=False) + to_markdown(report)
     assert SECRET not in text, "a file outside the submission reached the report"
-    assert not [g for g in report["exercises"] if g["status"] == "flagged"], report["exercises"]
 
 
 def grade01(path: Path, hidden, **kw) -> dict:
@@ -690,7 +682,7 @@ def outliving(target: Path) -> str:
 PLANT_BYTECODE = f"""
     sys = {SYS}["sys"]
     os = {SYS}["os"]
-    {SYS}["builtins"].setattr(sys, "dont_write_bytecode", False)  # (an assignment would be flagged by the scans)
+    {SYS}["builtins"].setattr(sys, "dont_write_bytecode", False)
     planted = []
     for folder in list(sys.path) + [sys.prefix, sys.base_prefix, "/"]:
         try:
@@ -746,6 +738,36 @@ def hidden05(tmp_path_factory):
     specs = kit_specs(NOTEBOOKS_DIR, only=["05"])
     specs[0].exercises[:] = [e for e in specs[0].exercises if e.name == "jacobian_sparsity"]
     return prepare_hidden(specs, 33, tmp_path_factory.mktemp("hidden33"))
+
+
+#: bundle_adjust by the kit's own engine, on the earlier steps it binds (answered by the grader's references).
+ENGINE_BA = """
+    reprojection_residuals, jacobian_sparsity  # the earlier steps: the grader answers them
+    from course_lib.sfm.bundle_adjustment import adjust
+    r = adjust(K, R_cw, t_cw, X, uv, callback=callback)
+    return r.R_cw, r.t_cw, r.X
+"""
+
+
+def test_the_kits_engine_is_closed_while_its_exercise_is_graded(tmp_path, monkeypatch):
+    """bundle_adjust that calls the kit's own bundle adjuster (``adjust``, which runs on the student's earlier
+    steps) would earn points (6 of 9); the grader closes the exercise's engines in its process: it earns nothing."""
+    from course_lib.instructor import hidden as hidden_module
+
+    specs = kit_specs(NOTEBOOKS_DIR, only=["05"])
+    specs[0].exercises[:] = [e for e in specs[0].exercises if e.name == "bundle_adjust"]
+    cases = prepare_hidden(specs, 43, tmp_path / "hidden")
+    sub = filled(tmp_path / "engine", NB05, {"bundle_adjust": ENGINE_BA})
+
+    def graded() -> dict:
+        report = grade_submission(sub, notebooks=["05"], exercises=["bundle_adjust"], hidden=cases, run_nbval=False)
+        return report["exercises"][0]
+
+    with monkeypatch.context() as m:  # the attack is real: with the engine open, it earns points
+        m.setattr(hidden_module, "EXERCISES", {})
+        assert graded()["points"] > 0, "the engine route earns points where the engine is open"
+    g = graded()
+    assert g["points"] == 0 and any("the kit's engine that computes bundle_adjust" in f for f in g["feedback"]), g
 
 
 def test_33_the_sandbox_cannot_be_walked_around(tmp_path, hidden, outside):
@@ -816,7 +838,7 @@ def test_33_replies_are_bounded_before_anything_is_built(tmp_path, hidden, hidde
 
 def test_33_one_clock_for_call_backs_and_nbval(tmp_path, hidden, outside, monkeypatch):
     """Class 2: call-backs that keep the reference busy are the exercise's time (it is stopped at its budget, and
-    the feedback says how long it took); a notebook whose cells all outlast the cell limit (nbval reruns it) is
+    the feedback says how long it took); a notebook whose cells outlast the cell limit is
     stopped at the notebook's nbval budget. The budgets are the test's own, a few seconds (the real ones, some 25 s
     here, only make the test wait): the mechanism is what is tested."""
     from course_lib.instructor import grade_run, settings
@@ -841,7 +863,7 @@ def test_33_one_clock_for_call_backs_and_nbval(tmp_path, hidden, outside, monkey
     sleepy = ["import time\ntime.sleep(3)"] * 6
     sub = filled(tmp_path / "sleepy", NB01, {}, extra_cells=sleepy)
     report = grade01(sub, hidden, run_nbval=True, cell_timeout=2, exercises=["eight_point"])
-    g = graded_row("six cells that outlast the cell limit (nbval reruns)", report, "eight_point", before,
+    g = graded_row("six cells that outlast the cell limit", report, "eight_point", before,
                    "2 unbounded work")
     assert g["nbval"] != "pass" and report["seconds"] < 10 + 20, (report["seconds"], g)
 

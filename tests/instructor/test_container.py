@@ -96,12 +96,12 @@ def test_the_mode_refuses_without_root_or_a_memory_total(monkeypatch):
     with pytest.raises(IsolationError, match="runs as uid 1000"):
         container.check(cgroup=None)
     monkeypatch.setattr(container.os, "getuid", lambda: 0)
-    monkeypatch.setattr(container, "_closed_to_others", lambda path: None)
+    monkeypatch.setattr(container, "closed_to", lambda path, uid, gid: None)
     monkeypatch.setattr(container, "memory_total", lambda: None)
     with pytest.raises(IsolationError, match="no memory total"):
         container.check(cgroup=None)
     container.check(cgroup=object())  # the grader's own cgroup for the process: a total
-    monkeypatch.setattr(container, "_closed_to_others", lambda path: "/root")
+    monkeypatch.setattr(container, "closed_to", lambda path, uid, gid: "/root")
     with pytest.raises(IsolationError, match="which the student's uid cannot enter"):
         container.check(cgroup=object())
 

@@ -200,10 +200,10 @@ def test_instructor_notebooks_full_marks_in_self_test_and_zero_as_student_work(t
     write_submission(sub, {n: nbformat.read(NOTEBOOKS_DIR / n, as_version=4) for n in (NB01, NB02)})
     self_test = grade(sub, hidden, allow_reference=True)
     assert self_test["total"] == 54 and all(g["status"] == "full" for g in self_test["exercises"])  # 90 % without nbval
-    student = grade(sub, hidden)
+    student = grade(sub, hidden)  # the reference solutions are not in the student's sandbox
     assert student["total"] == 0
     for g in student["exercises"]:
-        assert g["status"] == "flagged" and any("calls the reference solution" in f for f in g["feedback"]), g
+        assert any(re.search(r"(ImportError|ModuleNotFoundError).*course_lib\.sfm", f) for f in g["feedback"]), g
 
 
 def test_untouched_release_gets_zero_and_one_line_per_exercise(tmp_path, hidden):
@@ -268,12 +268,11 @@ def test_checks_patched_in_the_notebook_change_nothing(tmp_path, hidden):
     report = grade(write_submission(tmp_path, nbs), hidden)
     for g in report["exercises"]:
         assert g["points"] == (0 if g["name"] == "eight_point" else 9), g
-    # a patch hidden inside the exercise function itself is flagged too
-    body = textwrap.dedent(SOLUTIONS["normalize_points"]) + "\nimport course_lib.checks.core as c\nc.RESULTS.clear()\n"
-    report = grade(write_submission(tmp_path / "inner", solved(bodies={"normalize_points": body})), hidden)
-    g = by_name(report)["normalize_points"]
-    assert g["points"] == 0 and g["status"] in ("flagged", "tampered"), g
-    assert any("check" in f and "core" in f for f in g["feedback"]), g
+    # a patch inside the exercise function itself changes only the student's own process
+    body = ("import course_lib.checks.core as c\nc.Check.expect = lambda *a, **k: None\nc.RESULTS.clear()\n"
+            "return np.eye(3)")
+    report = grade(write_submission(tmp_path / "inner", solved(bodies={"eight_point": body})), hidden)
+    assert by_name(report)["eight_point"]["points"] == 0, by_name(report)["eight_point"]
 
 
 def test_a_harmless_checkmark_of_the_student_is_not_tampering(tmp_path, hidden):
@@ -288,8 +287,8 @@ def test_reference_imported_in_a_helper_cell_gets_nothing(tmp_path, hidden):
     nbs[NB01].cells.insert(2, nbformat.v4.new_code_cell("from course_lib.sfm.fundamental import eight_point as ref_eight_point"))
     report = grade(write_submission(tmp_path, nbs), hidden)
     g = by_name(report)
-    assert g["eight_point"]["points"] == 0 and g["eight_point"]["status"] == "flagged"
-    assert any("reference solution" in f for f in g["eight_point"]["feedback"])
+    assert g["eight_point"]["points"] == 0  # the reference is not in the student's sandbox
+    assert any("ModuleNotFoundError" in f for f in g["eight_point"]["feedback"]), g["eight_point"]
     assert g["normalize_points"]["points"] == 9
 
 
@@ -376,37 +375,6 @@ def test_a_looping_exercise_under_nbval_does_not_cost_the_cells_after_it(tmp_pat
     g = by_name(report)
     assert g["essential_from_fundamental"]["status"] == "timeout" and g["essential_from_fundamental"]["nbval"] == "fail"
     assert g["pose_candidates"]["points"] == 10 and g["pose_candidates"]["nbval"] == "pass", g["pose_candidates"]
-
-
-@pytest.mark.parametrize("code, phrase", [
-    ("import numpy as np\ndef f(x):\n    np.median = lambda a: 0.0\n    return x\n", "monkeypatching"),
-    ("import numpy as np\nclass A(np.ndarray):\n    def __array_ufunc__(self, *a, **k):\n        return True\n"
-     "def f(x):\n    return x\n", "special method __array_ufunc__"),
-    ("def f(x):\n    return eval('x')\n", "calls eval()"),
-    ("def f(x):\n    return x.__class__.__mro__\n", "attribute __mro__"),
-    ("import importlib\ndef f(x):\n    return importlib.import_module('course_lib.sfm.fundamental')\n", "imports importlib"),
-    ("from course_lib.sfm import fundamental as F\ndef f(x):\n    return F.eight_point(x, x)\n",
-     "calls the reference solution"),
-])
-def test_scan_flags_tricks_in_exercise_code(code, phrase):
-    import ast as _ast
-
-    from course_lib.instructor.scan import scan_exercise
-
-    found = scan_exercise(_ast.parse(code), "course_lib.sfm.fundamental:eight_point", {"course_lib.sfm.fundamental"})
-    assert any(phrase in f for f in found), found
-
-
-def test_scan_accepts_ordinary_exercise_code():
-    import ast as _ast
-
-    from course_lib.instructor.scan import scan_exercise
-
-    code = ("import numpy as np\nimport torch\nfrom torch import nn\nclass M(nn.Module):\n"
-            "    def __init__(self):\n        super().__init__()\n        self.l = nn.Linear(3, 3)\n"
-            "    def forward(self, x):\n        return self.l(x)\n"
-            "def f(x):\n    y = np.zeros(3)\n    y[0] = 1\n    return torch.as_tensor(y)\n")
-    assert scan_exercise(_ast.parse(code), "course_lib.nerf.model:NeRF", set()) == []
 
 
 #: Every kind of invisible or reordering character a student's text may carry (issue 40, item 6).

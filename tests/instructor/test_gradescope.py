@@ -98,7 +98,8 @@ def test_results_of_an_attacking_submission(package, tmp_path):
 
 def assert_attack_fails(results: dict, kit_file: Path, why: str) -> None:
     tests = {t["name"].split(": ")[1]: t for t in results["tests"]}
-    assert tests["eight_point"]["score"] == 0 and "reference solution" in tests["eight_point"]["output"]
+    assert tests["eight_point"]["score"] == 0  # the reference is not in the student's process
+    assert "No module named 'course_lib.sfm.fundamental'" in tests["eight_point"]["output"], tests["eight_point"]
     assert tests["normalize_points"]["score"] == 0 and why in tests["normalize_points"]["output"]
     reference = kit_file.read_text()
     leaked = [ln for ln in reference.splitlines() if len(ln.strip()) > 30 and ln.strip() in json.dumps(results)]

@@ -122,13 +122,13 @@ def test_the_options_turn_it_off(tmp_path):
         run_sfm(data, np.random.default_rng(0), self_calibration="maybe")
 
 
-def _watched_mapper(f_log, converged_f=None, n=8, accepted=True):
+def _watched_mapper(f_log, converged_f=None, n=8, accepted=True, M=24):
     """A stand-in for the mapper as :class:`_FocalWatch` sees it: ``n`` images registered, the accepted focal lengths
     ``f_log`` of its BAs, and ``converge_intrinsics`` giving ``converged_f`` (None: the focal length stays), ``accepted``
     or not (outside ``max_focal_change``: the focal length stays)."""
     from types import SimpleNamespace
 
-    mapper = SimpleNamespace(registered=np.ones(n, bool), M=24, K=np.diag([f_log[-1], f_log[-1], 1.0]),
+    mapper = SimpleNamespace(registered=np.ones(n, bool), M=M, K=np.diag([f_log[-1], f_log[-1], 1.0]),
                              intrinsics_log=[{"f": f, "accepted": True} for f in f_log], converged=[])
 
     def converge_intrinsics():
@@ -187,6 +187,24 @@ def test_a_drifting_focal_length_is_converged_before_it_is_judged(f_log, converg
             watch.check(mapper)
         assert moved.value.row["to_px"] == pytest.approx(restart_to) and moved.value.row["converged"] is True
     assert mapper.converged == [converged_f]
+
+
+@pytest.mark.parametrize("f_log, restarts", [([451, 480, 495], False), ([451, 700, 900], True)], ids=["moved", "jumped"])
+def test_a_small_set_all_in_the_model_is_not_mapped_again(f_log, restarts):
+    """Five photos, all registered, f 10 % from its start and settled: no restart (the whole model's BAs refine f);
+    2x from its start: the restart as on a larger set."""
+    from course_lib.sfm.mapper_options import MapperOptions
+    from course_lib.sfm.pipeline import _FocalMoved, _FocalWatch
+
+    mapper = _watched_mapper(f_log, 3000.0, n=5, M=5, accepted=False)
+    watch = _FocalWatch(451.0, MapperOptions())
+    if restarts:
+        with pytest.raises(_FocalMoved):
+            watch.check(mapper, at_end=True)
+    else:
+        watch.check(mapper)
+        watch.check(mapper, at_end=True)
+        assert mapper.converged == []
 
 
 def test_too_few_images_are_not_judged():

@@ -32,7 +32,7 @@ import struct
 import sys
 from pathlib import Path
 
-from course_lib.instructor.sandbox.jail import REFUSAL, IsolationError, privileges_left, seccomp_filter
+from course_lib.instructor.sandbox.jail import REFUSAL, IsolationError, closed_to, privileges_left, seccomp_filter
 from course_lib.instructor.settings import STUDENT_UID
 
 __all__ = ["ENV", "enabled", "check", "preexec", "verify", "describe", "NBVAL_NOTE"]
@@ -59,7 +59,7 @@ def check(cgroup) -> None:
         raise IsolationError(f"{REFUSAL}: {_HOW} (the grader runs as uid {os.getuid()})")
     if STUDENT_UID == 0:
         raise IsolationError(f"{REFUSAL}: COURSE_GRADER_STUDENT_UID is 0, the grader's uid")
-    closed = _closed_to_others(Path(os.path.realpath(sys.executable)))
+    closed = closed_to(sys.executable, STUDENT_UID, STUDENT_UID)
     if closed:
         raise IsolationError(f"{REFUSAL}: the grader's Python ({sys.executable}) lies in "
                              f"{closed}, which the student's uid cannot enter; install it where all may run it "
@@ -67,17 +67,6 @@ def check(cgroup) -> None:
     if cgroup is None and memory_total() is None:
         raise IsolationError(f"{REFUSAL}: no memory total (no cgroup can be made and the "
                              f"container has no memory limit); {_HOW}")
-
-
-def _closed_to_others(path: Path) -> str | None:
-    """The first folder on the way to ``path`` that others (the student's uid) may not enter, or None."""
-    for folder in reversed(path.parents):
-        try:
-            if not os.stat(folder).st_mode & 0o001:
-                return str(folder)
-        except OSError:
-            return str(folder)
-    return None
 
 
 def memory_total() -> int | None:

@@ -54,7 +54,7 @@ from course_lib.instructor.sandbox import server
 from course_lib.instructor.settings import STUDENT_UID, site_allow_list
 from course_lib.validate import KitInputError
 
-__all__ = ["IsolationError", "bwrap_path", "command", "install_server", "verify", "privileges_left", "read_info",
+__all__ = ["IsolationError", "bwrap_path", "closed_to", "command", "install_server", "verify", "privileges_left", "read_info",
            "seccomp_filter", "preexec", "sandboxed", "refusal", "STUDENT_UID", "HOW_TO_ENABLE", "INSTALL", "REPORT",
            "REFUSAL", "WORK", "SEED", "kill_tree"]
 
@@ -115,24 +115,24 @@ def install_server(folder: Path, config: dict) -> Path:
     return folder
 
 
-def reachable(path: str, uid: int, gid: int) -> bool:
-    """Whether user ``uid`` (group ``gid``, no other group) can reach and read ``path`` (its real path)."""
-    real = os.path.realpath(path)
-    parts = [p for p in real.split("/") if p]
+def closed_to(path: str, uid: int, gid: int) -> str | None:
+    """The first folder on the way to ``path`` (its real path) that user ``uid`` (group ``gid``, no other group)
+    cannot enter, or ``path`` itself where it cannot read it; None where it can reach and read ``path``."""
+    parts = [p for p in os.path.realpath(path).split("/") if p]
     here = "/"
     for k in range(len(parts) + 1):
         try:
             st = os.stat(here)
         except OSError:
-            return False
+            return here
         last = k == len(parts)
         need = (stat.S_IRUSR if not stat.S_ISDIR(st.st_mode) else stat.S_IRUSR | stat.S_IXUSR) if last else stat.S_IXUSR
         shift = 0 if st.st_uid == uid else (3 if st.st_gid == gid else 6)
         if (st.st_mode << shift) & need != need:
-            return False
+            return here
         if not last:
             here = os.path.join(here, parts[k])
-    return True
+    return None
 
 
 def _binds(paths: list[str], staged: dict[str, str]) -> list[str]:
@@ -158,7 +158,7 @@ def staging(paths: list[str], stage_root: Path) -> dict[str, str]:
     ``/root``), each with a folder of ``stage_root`` where :func:`preexec` shows it to the student's uid alone."""
     out = {}
     for k, p in enumerate(sorted(paths, key=len)):
-        if os.path.islink(p) or reachable(p, STUDENT_UID, STUDENT_UID):
+        if os.path.islink(p) or closed_to(p, STUDENT_UID, STUDENT_UID) is None:
             continue
         dst = Path(stage_root) / str(k)
         if os.path.isdir(p):

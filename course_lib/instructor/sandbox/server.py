@@ -19,7 +19,8 @@ Two commands:
     ``req_fd`` (requests) and ``rep_fd`` (replies): each request names a function or an object
     handle and carries its arguments as data; each reply carries the result as data, or the
     exception the student's code raised. Objects that are not data (an ``nn.Module``) stay here and
-    are answered by handle. The earlier exercises named in ``CONFIG["oracle"]`` are rebound, after
+    are answered by handle. The kit's engines that compute the exercise (``CONFIG["engines"]``) are closed before
+    the student's code runs. The earlier exercises named in ``CONFIG["oracle"]`` are rebound, after
     the student's code ran, to :func:`oracle_stub`\\ s: while a call runs, a stub sends its arguments
     to the grader (an ``oracle`` event on the reply pipe) and waits for the answer on the request
     pipe (:mod:`course_lib.instructor.oracle`).
@@ -250,6 +251,8 @@ def serve(cfg: dict) -> None:
     sys.modules["__main__"] = module
     handles: dict = {}
     try:
+        for path in cfg.get("engines", ()):  # the kit's engines that compute this exercise: closed while it is graded
+            _close_engine(path, cfg["name"])
         exec(compile(cfg["code"], "<your notebook>", "exec"), module.__dict__)  # noqa: S102 - sandboxed
         target = module.__dict__.get(cfg["name"])
         for step in cfg.get("oracle", ()):  # the earlier exercises it calls: answered by the grader from now on
@@ -294,6 +297,23 @@ def serve(cfg: dict) -> None:
             if isinstance(exc, WireError):
                 reply["wire"] = True
         write_frame(rep, reply, out)
+
+
+def _close_engine(path: str, exercise: str) -> None:
+    """Put a function that raises in place of the kit's engine ``path`` (``module.attr``), which computes ``exercise``
+    from the student's other functions: while ``exercise`` is graded, its own code computes it."""
+    import importlib
+
+    module, attr = path.rsplit(".", 1)
+
+    def closed(*args, **kwargs):
+        raise RuntimeError(f"{path} is the kit's engine that computes {exercise}; while {exercise} is graded it is "
+                           f"closed: write {exercise} yourself")
+
+    try:
+        setattr(importlib.import_module(module), attr, closed)
+    except ImportError:  # a module the student kit leaves out: nothing to close
+        pass
 
 
 def _generators(args, kwargs) -> list:
@@ -376,7 +396,7 @@ def _load_params(module, params: list, arrays: list) -> None:
 #: kernel nbval starts (``--nbval-current-env``: ipykernel's ``python -m ipykernel_launcher``, in the notebooks'
 #: folder) gets ``-P``: no module of the submission (an ``ipykernel_launcher.py`` beside the notebook) stands in for
 #: the kernel's own, and the notebook's folder is not on the kernel's ``sys.path`` at all (IPython leaves it out under
-#: ``-P``): the kernel runs the notebook's cells and nothing of the submission that the grader's scans did not read.
+#: ``-P``): the kernel runs the notebook's cells and nothing else of the submission.
 PYTEST_BOOT = ("import ctypes, sys\nctypes.CDLL(None).prctl(4, 0, 0, 0, 0)\nimport ipykernel.kernelspec as ks\n"
                "_dict = ks.get_kernel_dict\n"
                "def sealed(*a, **k):\n"
