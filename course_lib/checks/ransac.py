@@ -28,13 +28,15 @@ import numpy as np
 
 from course_lib.checks.core import FAILED, Check, Outcome, as_float
 
-__all__ = ["Ransac", "Run", "RecordingRng", "read", "mask_outcome", "sampling_verdicts", "minimal_verdicts",
+__all__ = ["Ransac", "Run", "RecordingRng", "read", "probe", "mask_outcome", "sampling_verdicts", "minimal_verdicts",
            "samples_needed", "threshold_interval", "within"]
 
 #: The confidence the exercises default to, and the two the confidence verdict compares.
 CONFIDENCE, LOW, HIGH = 0.999, 0.01, 0.99999
 #: The randomness case: the rng seed and max_iters of its calls (a few samples, so that the result depends on them).
 RNG_SEED, RNG_MAX_ITERS = 1, 3
+#: The samples of the randomness case's calls where one with ``RNG_MAX_ITERS`` raised (every sample contaminated).
+RNG_RETRY_ITERS = 30
 
 
 @dataclass(frozen=True)
@@ -124,6 +126,22 @@ def call(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int
     return Run(case, args, *got, thr, spec.error(got[0], args))
 
 
+def probe(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int = 0, rng=None, **kw) -> Run | None:
+    """As :func:`call`, for the probes of the loop's control (a low confidence, ``max_iters`` of a few): their few
+    samples may all be contaminated or degenerate and leave fewer than ``k`` inliers to refit on, where a right
+    function (or the grader's reference standing in for an earlier step) may raise; an exception there is no verdict
+    (the calls with the default arguments are judged). None where it raised or after a failed check."""
+    rng = np.random.default_rng(seed) if rng is None else rng
+    try:
+        out = fn(*(a.copy() if isinstance(a, np.ndarray) else a for a in args), rng, **kw)
+    except Exception:  # noqa: BLE001 - see the docstring
+        return None
+    got = read(c, spec, out, case, len(args[0]))
+    if got is None:
+        return None
+    return Run(case, args, *got, kw.get("threshold_px", spec.threshold), spec.error(got[0], args))
+
+
 def threshold_interval(values: np.ndarray, inl: np.ndarray) -> tuple[float, float] | None:
     """``(lo, hi)``: the inlier mask ``inl`` is ``values < τ`` for every τ in (lo, hi]; None when no threshold gives it
     (how a check reads which threshold, or which rule, a RANSAC's mask follows)."""
@@ -196,15 +214,19 @@ def sampling_verdicts(c: Check, spec: Ransac, fn: Callable, run: Run, rng_case: 
                  f"{case}: n_iters = {run.n_iters}, while your inlier ratio {w:.0%} at confidence {CONFIDENCE} needs "
                  f"about {need:.0f} samples: N = log(1 - confidence) / log(1 - w^{k}), updated with the best inlier "
                  "ratio so far, at most max_iters, and the loop stops once it has drawn N samples")
-    lo, hi = (call(c, spec, fn, run.args, case, confidence=p) for p in (LOW, HIGH))
-    if lo is not None and hi is not None and lo.n_iters is not None and hi.n_iters is not None:
+    lo, hi = (probe(c, spec, fn, run.args, case, confidence=p, threshold_px=run.thr) for p in (LOW, HIGH))
+    if hi is not None and hi.n_iters is not None and (lo is None or lo.n_iters is not None):
+        # lo None: the call at the low confidence raised where the same call at the high one ran, so it drew fewer
+        # samples (none of them clean enough to refit on): the count followed the confidence
         need = samples_needed(float(hi.inl.mean()), k, HIGH, spec.max_iters)
-        c.expect((lo.n_iters < hi.n_iters or hi.n_iters <= 1) and hi.n_iters >= 0.7 * need, f"{case}: more samples for a higher confidence",
-                 f"{case}: n_iters = {lo.n_iters} at confidence {LOW} and {hi.n_iters} at {HIGH} ({hi.inl.mean():.0%} "
+        fewer = lo is None or lo.n_iters < hi.n_iters or hi.n_iters <= 1
+        c.expect(fewer and hi.n_iters >= 0.7 * need, f"{case}: more samples for a higher confidence",
+                 f"{case}: n_iters = {'none (it raised)' if lo is None else lo.n_iters} at confidence {LOW} and "
+                 f"{hi.n_iters} at {HIGH} ({hi.inl.mean():.0%} "
                  f"inliers need about {need:.0f} samples at {HIGH}): the number of samples must follow the confidence "
                  f"argument, N = log(1 - confidence) / log(1 - w^{k})")
     args, name = rng_case or (run.args, case)
-    _rng_verdicts(c, spec, fn, args, f"{name}, max_iters={RNG_MAX_ITERS}")
+    _rng_verdicts(c, spec, fn, args, name)
 
 
 def _under_global_seed(seed: int, call_: Callable[[], Any]) -> tuple[Any, bool]:
@@ -220,36 +242,37 @@ def _under_global_seed(seed: int, call_: Callable[[], Any]) -> tuple[Any, bool]:
         np.random.set_state(saved)
 
 
-def _rng_verdicts(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str) -> None:
+def _rng_verdicts(c: Check, spec: Ransac, fn: Callable, args: tuple, name: str) -> None:
     """Gates (a constant answer satisfies them as well as a right one), with a few samples per call: the same rng seed
     under two global np.random states gives the same result, max_iters bounds the count, the rng argument is drawn
-    from (its state advances), and numpy's global state is left as it was."""
-    runs, touched = [], False
-    for global_seed in (11, 22):
-        run, moved = _under_global_seed(global_seed, lambda: call(c, spec, fn, args, case, RNG_SEED,
-                                                                 max_iters=RNG_MAX_ITERS))
-        touched = touched or moved
-        if run is None:
-            return
-        runs.append(run)
+    from (its state advances), and numpy's global state is left as it was. Where a call with ``RNG_MAX_ITERS``
+    samples raised (all of them contaminated), the three calls are made again with ``RNG_RETRY_ITERS``."""
+    for m in (RNG_MAX_ITERS, RNG_RETRY_ITERS):
+        case, runs, touched = f"{name}, max_iters={m}", [], False
+        for global_seed in (11, 22):
+            run, moved = _under_global_seed(global_seed, lambda: probe(c, spec, fn, args, case, RNG_SEED, max_iters=m))
+            touched = touched or moved
+            runs.append(run)
+        rng = np.random.default_rng(RNG_SEED + 1)
+        before = rng.bit_generator.state
+        if None not in runs and probe(c, spec, fn, args, case, rng=rng, max_iters=m) is not None:
+            break
+    else:
+        return
     its = [r.n_iters for r in runs]
-    c.gate(all(i is not None and 1 <= i <= RNG_MAX_ITERS for i in its), f"{case}: draws max_iters samples at most",
-           f"{case}: n_iters = {its[0]} with max_iters={RNG_MAX_ITERS}: stop after at most max_iters samples and "
+    c.gate(all(i is not None and 1 <= i <= m for i in its), f"{case}: draws max_iters samples at most",
+           f"{case}: n_iters = {its[0]} with max_iters={m}: stop after at most max_iters samples and "
            "return their count")
     c.gate(_same(*runs), f"{case}: the same rng seed gives the same result",
            f"{case}: the same rng seed gave different results when np.random's global state changed: draw every "
            f"sample from the rng argument (rng.choice(N, {spec.k}, replace=False)), not from np.random or a generator "
            "of your own")
-    rng = np.random.default_rng(RNG_SEED + 1)
-    before = rng.bit_generator.state
-    ran = call(c, spec, fn, args, case, rng=rng, max_iters=RNG_MAX_ITERS) is not None
     c.gate(not touched, f"{case}: numpy's global random state is left untouched",
            f"{case}: the call changed numpy's global random state (np.random.seed or a draw from np.random): draw "
            "from the rng argument only")
-    if ran:
-        c.gate(rng.bit_generator.state != before, f"{case}: the samples are drawn from the rng argument",
-               f"{case}: the rng argument is untouched after the call (no number was drawn from it): draw every sample "
-               f"from it (rng.choice(N, {spec.k}, replace=False)), not from a generator of your own or np.random")
+    c.gate(rng.bit_generator.state != before, f"{case}: the samples are drawn from the rng argument",
+           f"{case}: the rng argument is untouched after the call (no number was drawn from it): draw every sample "
+           f"from it (rng.choice(N, {spec.k}, replace=False)), not from a generator of your own or np.random")
 
 
 class RecordingRng(np.random.Generator):

@@ -104,7 +104,7 @@ MISTAKES = {
                          "squared error"),
     "ransac_fundamental": (SOLUTIONS["ransac_fundamental"].replace("n_iters < min(needed, max_iters)",
                                                                    "n_iters < max_iters"),
-                           "updated with the best ratio so far"),
+                           "updated with the best inlier ratio so far"),
     "essential_from_fundamental": ("""
         return K.T @ F @ K
     """, "did not correct the singular values"),
