@@ -374,6 +374,25 @@ def test_ctrl_c_anywhere_in_a_step_saves_a_consistent_checkpoint(scene, tmp_path
         torch.testing.assert_close(a, b)
 
 
+def test_a_second_ctrl_c_inside_a_step_stops_at_once_without_a_checkpoint(scene, tmp_path, monkeypatch):
+    import signal
+    from course_lib.nerf import train as train_mod
+    from course_lib.nerf.train import TrainingInterrupted
+
+    original = train_mod.train_step
+
+    def two_ctrl_c(state):
+        signal.raise_signal(signal.SIGINT)  # deferred: the step goes on
+        signal.raise_signal(signal.SIGINT)  # the user insists: stop here
+        return original(state)
+
+    monkeypatch.setattr(train_mod, "train_step", two_ctrl_c)
+    with pytest.raises(KeyboardInterrupt) as stopped:
+        train(scene, None, tiny_nerf_config(iters=6), out_dir=tmp_path, progress=False)
+    assert not isinstance(stopped.value, TrainingInterrupted) and not (tmp_path / "checkpoint.pt").exists()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # train put Python's handler back
+
+
 @pytest.mark.parametrize("sh", [{"grid_sh_degree": 0}, {"grid_sh_degree": 1, "grid_sh_start": 0.5},
                                 {"grid_sh_degree": 1, "grid_sh_start": 0.7},
                                 {"grid_sh_degree": 1, "grid_sh_start": 0.5, "grid_sparse_adam": True}],
