@@ -372,7 +372,7 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
         :class:`TrainResult` (model, metrics, history, snapshots, test renders).
 
     Raises:
-        TrainingInterrupted: Ctrl-C (a ``KeyboardInterrupt``), after the checkpoint was written.
+        TrainingInterrupted: Ctrl-C (a ``KeyboardInterrupt``) at the end of its step, checkpoint written (:class:`CtrlC`).
 
     Introduced in ``notebooks/08_nerf_rendering_and_training.ipynb``.
     """
