@@ -216,7 +216,8 @@ def _train(args) -> int:
         print(f"\ninterrupted at step {exc.step}; checkpoint saved; run the same command to resume", flush=True)
         return 130
     except KeyboardInterrupt:
-        print("\ninterrupted before training started; nothing saved", flush=True)
+        print("\ninterrupted before training started (or by a second Ctrl-C inside a step); nothing saved now",
+              flush=True)
         return 130
     m = res.metrics
     if m.get("final_psnr") is None:

@@ -27,6 +27,9 @@ from __future__ import annotations
 
 import json
 import math
+import signal
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -257,17 +260,58 @@ def _sync(device: torch.device) -> None:
         torch.mps.synchronize()
 
 
+class CtrlC:
+    """Ctrl-C deferred to the top of a training step, so that a checkpoint is always consistent.
+
+    A ``KeyboardInterrupt`` raised wherever SIGINT lands could stop a step half done: after the
+    optimizer step but before ``state.step += 1``, or after it but before the history got the step
+    (a checkpoint at step n whose history ended at n - 1: the resumed history skipped a step).
+    While :meth:`deferred` is active the handler only sets :attr:`requested`; the loop stops at
+    the next step boundary (:meth:`check`). A second Ctrl-C before then interrupts at once (a
+    stuck step); that interrupt is not ``safe`` and :func:`train` writes no checkpoint for it.
+    """
+
+    def __init__(self):
+        self.requested = False
+        self.safe = False  # True when the KeyboardInterrupt came from check(): the state is whole
+
+    def handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def check(self) -> None:
+        if self.requested:
+            self.safe = True
+            raise KeyboardInterrupt
+
+    @contextmanager
+    def deferred(self):
+        """Install :meth:`handle` for SIGINT (only in the main thread, over Python's default handler)."""
+        ours = (threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGINT) is signal.default_int_handler)
+        if ours:
+            signal.signal(signal.SIGINT, self.handle)
+        try:
+            yield self
+        finally:
+            if ours:
+                signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def _train_loop(state: TrainState, clock: RunClock, outputs: RunOutputs, bar: ProgressBar, callback, device: torch.device,
-                pending: list) -> tuple[str, int]:
+                pending: list, ctrl_c: CtrlC) -> tuple[str, int]:
     """The steps of :func:`train` until the iterations or the time run out or ``callback`` stops it.
 
     ``pending`` collects the ``(step, loss, mse)`` not yet recorded (they come to the host every
-    25 steps on a GPU). Returns ``(what stopped it, steps taken)``.
+    25 steps on a GPU). A Ctrl-C stops it at the top of a step (``ctrl_c``, :class:`CtrlC`).
+    Returns ``(what stopped it, steps taken)``.
     """
     cfg = state.config
     steps = 0
     sync_every = 1 if device.type == "cpu" else 25  # on a GPU the losses come to the host every 25 steps
     while state.step < cfg.iters:
+        ctrl_c.check()  # between steps: model, optimizer, step and history agree
         if steps >= 2:  # what the end of the run will need, from the speeds measured so far (not the first step's)
             clock.reserve = outputs.end_seconds(state)
         if clock.time_up():
@@ -328,7 +372,7 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
         :class:`TrainResult` (model, metrics, history, snapshots, test renders).
 
     Raises:
-        TrainingInterrupted: Ctrl-C (a ``KeyboardInterrupt``), after the checkpoint was written.
+        TrainingInterrupted: Ctrl-C (a ``KeyboardInterrupt``) at the end of its step, checkpoint written (:class:`CtrlC`).
 
     Introduced in ``notebooks/08_nerf_rendering_and_training.ipynb``.
     """
@@ -353,10 +397,15 @@ def train(train_data: BlenderData, test_data: BlenderData | None = None, config:
     if cfg.snapshot_every and state.step == 0 and not cfg.minutes:  # (untrained: the slowest render of all)
         clock.timed("snapshots", outputs.snapshot, state)
     pending: list = []
+    ctrl_c = CtrlC()
     try:
-        stopped_by, steps = _train_loop(state, clock, outputs, bar, callback, device, pending)
+        with ctrl_c.deferred():
+            stopped_by, steps = _train_loop(state, clock, outputs, bar, callback, device, pending, ctrl_c)
+            ctrl_c.check()  # a Ctrl-C during the last step stops the run too
     except KeyboardInterrupt:
         bar.close()
+        if not ctrl_c.safe:  # a second Ctrl-C inside a step: the state may be half updated, keep the last checkpoint
+            raise
         _record(state, pending)
         outputs.checkpoint(state)
         raise TrainingInterrupted(state.step, outputs.ckpt) from None

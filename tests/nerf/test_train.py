@@ -339,6 +339,60 @@ def test_ctrl_c_saves_a_checkpoint_and_resumes(scene, tmp_path):
     assert m["history"]["iterations"][-6:] == list(range(n, n + 6))
 
 
+@pytest.mark.parametrize("where", ["set_learning_rate", "train_step", "run_callbacks", "_sync", "_record", "periodic"])
+def test_ctrl_c_anywhere_in_a_step_saves_a_consistent_checkpoint(scene, tmp_path, monkeypatch, where):
+    # SIGINT raised (deterministically) inside the 3rd step at each point of it: the checkpoint's
+    # model, optimizer, step and history must agree, and resuming must end where an uninterrupted run ends
+    import signal
+    from course_lib.nerf import run as run_mod, train as train_mod
+    from course_lib.nerf.train import TrainingInterrupted
+
+    owner = {"periodic": run_mod.RunOutputs, "run_callbacks": train_mod.TrainState}.get(where, train_mod)
+    original, calls = getattr(owner, where), []
+
+    def ctrl_c_after(*args, **kw):
+        out = original(*args, **kw)
+        calls.append(1)
+        if len(calls) == 3 if where != "run_callbacks" else len(calls) == 6:  # run_callbacks: "before" and "after"
+            signal.raise_signal(signal.SIGINT)
+        return out
+
+    cfg = tiny_nerf_config(iters=6, checkpoint_every=0)
+    full = train(scene, None, cfg, progress=False)
+    monkeypatch.setattr(owner, where, ctrl_c_after)
+    with pytest.raises(TrainingInterrupted) as stopped:
+        train(scene, None, cfg, out_dir=tmp_path, progress=False)
+    monkeypatch.setattr(owner, where, original)
+    ck = load_checkpoint(tmp_path)
+    n = stopped.value.step
+    assert ck["step"] == n == 3 and ck["history"]["iterations"] == [1, 2, 3]
+    assert {len(v) for k, v in ck["history"].items() if not k.startswith("test_")} == {3}
+    resumed = train(scene, None, cfg, out_dir=tmp_path, progress=False)
+    assert resumed.history["iterations"] == list(range(1, 7))
+    assert resumed.history["loss"] == pytest.approx(full.history["loss"], rel=1e-5)
+    for a, b in zip(full.model.state_dict().values(), resumed.model.state_dict().values()):
+        torch.testing.assert_close(a, b)
+
+
+def test_a_second_ctrl_c_inside_a_step_stops_at_once_without_a_checkpoint(scene, tmp_path, monkeypatch):
+    import signal
+    from course_lib.nerf import train as train_mod
+    from course_lib.nerf.train import TrainingInterrupted
+
+    original = train_mod.train_step
+
+    def two_ctrl_c(state):
+        signal.raise_signal(signal.SIGINT)  # deferred: the step goes on
+        signal.raise_signal(signal.SIGINT)  # the user insists: stop here
+        return original(state)
+
+    monkeypatch.setattr(train_mod, "train_step", two_ctrl_c)
+    with pytest.raises(KeyboardInterrupt) as stopped:
+        train(scene, None, tiny_nerf_config(iters=6), out_dir=tmp_path, progress=False)
+    assert not isinstance(stopped.value, TrainingInterrupted) and not (tmp_path / "checkpoint.pt").exists()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # train put Python's handler back
+
+
 @pytest.mark.parametrize("sh", [{"grid_sh_degree": 0}, {"grid_sh_degree": 1, "grid_sh_start": 0.5},
                                 {"grid_sh_degree": 1, "grid_sh_start": 0.7},
                                 {"grid_sh_degree": 1, "grid_sh_start": 0.5, "grid_sparse_adam": True}],
