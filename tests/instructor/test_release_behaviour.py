@@ -126,7 +126,7 @@ def attempt(fn, args):
         finally:  # a Timeout raised here (the alarm came as the call ended) is the call's, caught below
             ARMED[0] = False
             signal.setitimer(signal.ITIMER_REAL, 0)
-    except (Exception, Timeout):
+    except (Exception, Timeout, KeyboardInterrupt):  # KeyboardInterrupt: nerf.train's Ctrl-C handler called twice
         return False, None
     finally:
         if os.getpid() != MAIN_PID:  # a callable that forks: its child leaves at once

@@ -311,8 +311,11 @@ def test_ctrl_c_saves_a_checkpoint_and_resumes(scene, tmp_path):
     cmd = [sys.executable, "-X", "faulthandler", "-m", "course_lib", "nerf", "train", str(folder), "--out", str(out),
            "--quiet", "--threads", "1", "--samples", "16", "--batch", "128", "--device", "cpu", "--checkpoint-seconds", "0"]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    # Ctrl-C as in a terminal: a command started in the background of a shell (pytest under `cmd &`, as CI or
+    # try-as-new-user may run it) inherits SIGINT ignored, and a Python started so keeps ignoring it
     proc = subprocess.Popen(cmd + ["--iters", "1000000"], cwd=repo, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 120
     while not (out / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
         time.sleep(0.2)  # the first checkpoint: training is under way
@@ -339,6 +342,18 @@ def test_ctrl_c_saves_a_checkpoint_and_resumes(scene, tmp_path):
     assert m["history"]["iterations"][-6:] == list(range(n, n + 6))
 
 
+@pytest.fixture
+def sigint_as_in_a_terminal():
+    """Python's own SIGINT handler for the test, as in a terminal: pytest started in the background of a shell
+    inherits SIGINT ignored, and train() then leaves Ctrl-C alone (it defers only Python's default handler)."""
+    import signal
+
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
+@pytest.mark.usefixtures("sigint_as_in_a_terminal")
 @pytest.mark.parametrize("where", ["set_learning_rate", "train_step", "run_callbacks", "_sync", "_record", "periodic"])
 def test_ctrl_c_anywhere_in_a_step_saves_a_consistent_checkpoint(scene, tmp_path, monkeypatch, where):
     # SIGINT raised (deterministically) inside the 3rd step at each point of it: the checkpoint's
@@ -374,6 +389,7 @@ def test_ctrl_c_anywhere_in_a_step_saves_a_consistent_checkpoint(scene, tmp_path
         torch.testing.assert_close(a, b)
 
 
+@pytest.mark.usefixtures("sigint_as_in_a_terminal")
 def test_a_second_ctrl_c_inside_a_step_stops_at_once_without_a_checkpoint(scene, tmp_path, monkeypatch):
     import signal
     from course_lib.nerf import train as train_mod
