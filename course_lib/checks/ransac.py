@@ -119,11 +119,15 @@ def call(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int
     """Call the student's RANSAC on ``args`` with ``rng`` (default: a Generator seeded with ``seed``); None after a
     failed check."""
     rng = np.random.default_rng(seed) if rng is None else rng
-    got = read(c, spec, c.call(fn, *args, rng, case=case, **kw), case, len(args[0]))
+    return _run(c, spec, c.call(fn, *args, rng, case=case, **kw), args, case, kw)
+
+
+def _run(c: Check, spec: Ransac, out: Any, args: tuple, case: str, kw: dict) -> Run | None:
+    """The :class:`Run` of a call's result ``out`` (made with the keyword arguments ``kw``); None after a failed check."""
+    got = read(c, spec, out, case, len(args[0]))
     if got is None:
         return None
-    thr = kw.get("threshold_px", spec.threshold)
-    return Run(case, args, *got, thr, spec.error(got[0], args))
+    return Run(case, args, *got, kw.get("threshold_px", spec.threshold), spec.error(got[0], args))
 
 
 def probe(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int = 0, rng=None, **kw) -> Run | None:
@@ -136,10 +140,7 @@ def probe(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: in
         out = fn(*(a.copy() if isinstance(a, np.ndarray) else a for a in args), rng, **kw)
     except Exception:  # noqa: BLE001 - see the docstring
         return None
-    got = read(c, spec, out, case, len(args[0]))
-    if got is None:
-        return None
-    return Run(case, args, *got, kw.get("threshold_px", spec.threshold), spec.error(got[0], args))
+    return _run(c, spec, out, args, case, kw)
 
 
 def threshold_interval(values: np.ndarray, inl: np.ndarray) -> tuple[float, float] | None:
