@@ -184,7 +184,7 @@ class IncrementalMapper(ImageRegistration, IncrementalTriangulator, MapperBundle
                 conn[j] += inl.sum()
         return conn
 
-    def _pair_inliers(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+    def verified_matches(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
         """The verified matches of pair ``(a, b)``, undistorted: ``x1, x2 (N, 2)``."""
         inl = self.pairs[(a, b)][1]
         pm = self.matches[(a, b)]
@@ -194,7 +194,7 @@ class IncrementalMapper(ImageRegistration, IncrementalTriangulator, MapperBundle
         """Whether pair ``(a, b)`` cannot start a model (:func:`pair_degeneracy`); such pairs, and the
         ``"mostly planar"`` ones (tried after the others), are named in :attr:`degenerate`."""
         if (a, b) not in self._degenerate_checked:
-            x1, x2 = self._pair_inliers(a, b)
+            x1, x2 = self.verified_matches(a, b)
             kind, ratio = pair_degeneracy(x1, x2, self.K, self.opts.f_threshold_px, self.opts.init_min_points)
             self._degenerate_checked.add((a, b))
             if kind:
@@ -210,14 +210,14 @@ class IncrementalMapper(ImageRegistration, IncrementalTriangulator, MapperBundle
         """The verified pair ``(a, b)``: its undistorted matches and their calibrated pose, computed once.
 
         Returns:
-            ``(x1, x2, choice, inliers)``: the matches (:meth:`_pair_inliers`) and
+            ``(x1, x2, choice, inliers)``: the matches (:meth:`verified_matches`) and
             :func:`calibrated_pose`'s result (pose of ``b`` with ``a`` at the origin; ``choice`` None
             where no essential matrix fits). The initial pair's score (:meth:`score_pair`) and the
             structure-less registration (:meth:`register_from_pairs`) share it; it is recomputed
             after the intrinsics change (:meth:`set_intrinsics`).
         """
         if (a, b) not in self._two_view:
-            x1, x2 = self._pair_inliers(a, b)
+            x1, x2 = self.verified_matches(a, b)
             try:
                 choice, inl = calibrated_pose(x1, x2, self.K, self.opts.init_max_error_px, int(self.rng.integers(2**31 - 1)))
             except KitInputError:

@@ -9,8 +9,11 @@ for every registered image, PnP RANSAC again on all its matches with the model's
 each refined by OpenCV's Levenberg-Marquardt), and where a pose more than :data:`MIN_TURN_DEG` from the model's comes
 out, compares the two *after* a local bundle adjustment of that image and its points from each (the other cameras
 held): the cost is the same truncated squared error over every observation of those points, so the model's points,
-which the final BA bent towards the pose it had, do not decide for it. The pose of lower cost is kept. A pose is
-only replaced by a better optimum of the BA's own cost, so no threshold is tuned on the error.
+which the final BA bent towards the pose it had, do not decide for it, plus the truncated squared Sampson distances
+of the image's verified matches with the registered images (:func:`_pair_cost`), which no point shapes: on the ring at
+2x the guess (no K, seed 1) the two basins of 7.png are 0.2 % apart in the points' error (239.5 for the pose 3.0 deg
+off, 239.0 for the right one) and 10 % apart in the pairs' (74.5 against 67.6 over 662 matches). The pose of lower
+cost is kept. A pose is only replaced by a lower optimum of that cost, so no threshold is tuned on the error.
 
 Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
 """
@@ -23,6 +26,7 @@ import numpy as np
 
 from course_lib.conventions import rotation_angle_deg
 from course_lib.exercises import call
+from course_lib.sfm.structureless import pair_sampson
 from course_lib.validate import KitInputError
 
 __all__ = ["relocalize", "MIN_TURN_DEG"]
@@ -119,4 +123,20 @@ def _settled_cost(mapper, i: int, R: np.ndarray, t: np.ndarray, points: np.ndarr
     mapper.candidate |= seen
     e = mapper.errors()[seen]
     mapper.candidate[:] = kept
-    return float(np.sum(np.minimum(np.nan_to_num(e, nan=np.inf), threshold_px) ** 2))
+    return float(np.sum(np.minimum(np.nan_to_num(e, nan=np.inf), threshold_px) ** 2)) + _pair_cost(mapper, i, threshold_px)
+
+
+def _pair_cost(mapper, i: int, threshold_px: float) -> float:
+    """``sum min(d, threshold_px)^2`` of the Sampson distances ``d`` (pixels) of image ``i``'s verified matches with
+    every registered image to the epipolar geometry of the two poses: measurements that the model's points, which the
+    final BA bent towards the pose it had, do not shape (all of a pair's F-inliers, the untriangulated ones too)."""
+    total = 0.0
+    for k in np.flatnonzero(mapper.registered):
+        key = (min(i, int(k)), max(i, int(k)))
+        if k == i or key not in mapper.pairs:
+            continue
+        x_a, x_b = mapper.verified_matches(*key)
+        x_k, x_i = (x_a, x_b) if k == key[0] else (x_b, x_a)
+        d = pair_sampson(mapper.K, mapper.R[k], mapper.t[k], mapper.R[i], mapper.t[i], x_k, x_i)
+        total += float(np.sum(np.minimum(np.nan_to_num(d, nan=np.inf), threshold_px) ** 2))
+    return total
