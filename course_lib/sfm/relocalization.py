@@ -3,17 +3,19 @@
 At a narrow field of view the pose of an image has two or more nearly equal solutions: the rendered ring at 3x the
 guessed focal length registered 7.png 5.8 degrees off at a usual PnP error (114 of 138 inliers, median 0.68 px), and
 on the finished model that pose and the right one (6 degrees away) explain its 197 2D-3D matches alike (177 and 178
-within 4 px, median 0.17 and 0.19 px). The registration's retry (:meth:`~course_lib.sfm.registration.ImageRegistration`
-``_retry_if_unusual``) does not fire there, and the final BA keeps the pose it is given. So :func:`relocalize` runs,
-for every registered image, PnP RANSAC again on all its matches with the model's points (``tries`` times, fresh draws,
-each refined by OpenCV's Levenberg-Marquardt), and where a pose more than :data:`MIN_TURN_DEG` from the model's comes
-out, compares the two *after* a local bundle adjustment of that image and its points from each (the other cameras
-held): the cost is the same truncated squared error over every observation of those points, so the model's points,
-which the final BA bent towards the pose it had, do not decide for it, plus the truncated squared Sampson distances
-of the image's verified matches with the registered images (:func:`_pair_cost`), which no point shapes: on the ring at
-2x the guess (no K, seed 1) the two basins of 7.png are 0.2 % apart in the points' error (239.5 for the pose 3.0 deg
-off, 239.0 for the right one) and 10 % apart in the pairs' (74.5 against 67.6 over 662 matches). The pose of lower
-cost is kept. A pose is only replaced by a lower optimum of that cost, so no threshold is tuned on the error.
+within 4 px, median 0.17 and 0.19 px). The registration's retry
+(:meth:`~course_lib.sfm.registration.ImageRegistration` ``_retry_if_unusual``) does not fire there, and the final BA
+keeps the pose it is given. So :func:`relocalize` runs, for every registered image, PnP RANSAC again on all its
+matches with the model's points (``tries`` times, fresh draws, each refined by OpenCV's Levenberg-Marquardt), and
+where a pose more than :data:`MIN_TURN_DEG` from the model's comes out, it and that pose refined on the points and the
+image's verified matches together (:func:`_refine_on_all`: PnP on the points alone can land between the two basins)
+are compared with the model's pose *after* a local bundle adjustment of that image and its points from each (the other
+cameras held): the cost is the same truncated squared error over every observation of those points, so the model's
+points, which the final BA bent towards the pose it had, do not decide for it, plus the truncated squared Sampson
+distances of the image's verified matches with the registered images (:func:`_pair_cost`), which no point shapes: on
+the ring at 2x the guess (no K, seed 1) the two basins of 7.png are 0.2 % apart in the points' error (239.5 for the
+pose 3.0 deg off, 239.0 for the right one) and 10 % apart in the pairs' (74.5 against 67.6 over 662 matches). The pose
+of lower cost is kept. A pose is only replaced by a lower optimum of that cost, so no threshold is tuned on the error.
 
 Introduced in ``notebooks/05_bundle_adjustment.ipynb``.
 """
