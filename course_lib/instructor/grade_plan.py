@@ -20,7 +20,7 @@ import re
 import secrets
 import shutil
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import nbformat
@@ -79,17 +79,6 @@ def _preload(specs: list[NotebookSpec]) -> None:
                 if mod:
                     with contextlib.suppress(ImportError):
                         importlib.import_module(mod)
-
-
-def _select(specs: list[NotebookSpec], exercises: list[str] | None) -> list[NotebookSpec]:
-    if not exercises:
-        return specs
-    out = []
-    for s in specs:
-        keep = [e for e in s.exercises if e.name in exercises]
-        if keep:
-            out.append(NotebookSpec(s.name, keep, s.solution_modules, s.imports))
-    return out
 
 
 def _temporary_student_library(notebooks_dir: Path) -> Path:
@@ -152,7 +141,9 @@ def specs_to_grade(notebooks_dir: Path, notebooks: list[str] | None,
         if not notebooks or any(err.startswith(n) for n in notebooks):
             raise KitInputError(f"cannot grade against an instructor notebook that cannot be released: {err}")
     specs = [s for s in all_specs if s.exercises and (not notebooks or any(s.name.startswith(n) for n in notebooks))]
-    specs = _select(specs, exercises)
+    if exercises:
+        specs = [replace(s, exercises=[e for e in s.exercises if e.name in exercises]) for s in specs]
+        specs = [s for s in specs if s.exercises]
     if not specs:
         raise KitInputError(f"no instructor notebook or exercise matches {notebooks or ''} {exercises or ''}")
     return specs, [(e.name, e.reference) for s in all_specs for e in s.exercises]

@@ -118,7 +118,6 @@ class HiddenJob:
 @dataclass
 class HiddenOutcome:
     status: str  # "ok", "timeout", "exit", "error"
-    lines: list[str] = field(default_factory=list)  # the verdict lines ("  ✔ ..." / "  ✘ ...")
     message: str = ""
     seconds: float = 0.0
     result: object = None  # the CheckResult of the hidden checks (computed in the exercise's worker)
@@ -127,6 +126,11 @@ class HiddenOutcome:
     memory: dict = field(default_factory=dict)  # worker peak growth, exercise cgroup peak, largest reply (bytes)
     public: str | None = None  # what the check printed on the notebook's own cases (None: not run)
     public_note: str = ""  # why it was not run or did not finish
+
+    @property
+    def lines(self) -> list[str]:
+        """The verdict lines ("  ✔ ..." / "  ✘ ...") of the hidden checks."""
+        return list(self.result.lines) if self.result is not None else []
 
     @property
     def passing(self) -> list[str]:
@@ -166,8 +170,7 @@ def run_reference(job: HiddenJob) -> HiddenOutcome:
     except Exception as exc:  # noqa: BLE001
         return HiddenOutcome("error", message=f"the reference run failed: {type(exc).__name__}: {exc}",
                              seconds=time.perf_counter() - t0)
-    lines = list(result.lines) if result is not None else []
-    return HiddenOutcome("ok" if result is not None else "error", lines=lines, result=result,
+    return HiddenOutcome("ok" if result is not None else "error", result=result,
                          message="" if result is not None else "the check recorded no verdict",
                          seconds=time.perf_counter() - t0)
 
@@ -388,8 +391,7 @@ def _outcome_from(head: dict, seconds: float) -> HiddenOutcome:
     if isinstance(res, dict):
         result = core.CheckResult(res["exercise"], res["passed"], res["total"], list(res["lines"]),
                                   [core.Verdict(v["ok"], v["text"], v["kind"], v["defining"]) for v in res["verdicts"]])
-    return HiddenOutcome(head.get("status", "error"), lines=list(result.lines) if result else [],
-                         message=head.get("message", ""), seconds=seconds, result=result,
+    return HiddenOutcome(head.get("status", "error"), message=head.get("message", ""), seconds=seconds, result=result,
                          sandbox=head.get("sandbox") or {}, attempted=bool(head.get("attempted", True)),
                          memory=dict(head.get("memory") or {},
                                      **{"largest reply bytes": int(head.get("largest_reply", 0))}))
