@@ -181,13 +181,10 @@ def run_hidden(job: HiddenJob, timeout: float = 60.0, isolation=None, cgroup_par
     own sandboxed process.
 
     **One clock, one memory cap.** The worker is forked from the grader (it has the hidden cases and the full
-    library) into the exercise's cgroup (``cgroup_parent``'s child, with the memory total of
-    :class:`~course_lib.instructor.settings.Limits`), where the student's process and the oracle's worker run too:
-    everything the exercise causes (the student's code, the decoding of its replies, the check's work on them, the
-    earlier steps it calls back) shares one memory total and one wall clock. The grader waits for the worker's
-    verdict until ``timeout`` seconds after the student's process started (plus
-    :data:`~course_lib.instructor.settings.GRACE_SECONDS`, and never past ``deadline``, the submission's), then
-    stops the worker and everything in its cgroup. The outcome's ``seconds`` is the real time spent on the hidden
+    library) into the exercise's cgroup (``cgroup_parent``'s child), where the student's process and the oracle's
+    worker run too. The grader waits for the worker's verdict until ``timeout`` seconds after the student's process
+    started (plus :data:`~course_lib.instructor.settings.GRACE_SECONDS`, and never past ``deadline``, the
+    submission's), then stops the worker and everything in its cgroup. The outcome's ``seconds`` is the real time spent on the hidden
     checks. With ``job.public_dir``, the verdict on the notebook's own cases follows on the same clock; a run out of
     time there leaves the hidden checks' outcome as it was.
 

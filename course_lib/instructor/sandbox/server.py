@@ -26,13 +26,9 @@ Two commands:
     pipe (:mod:`course_lib.instructor.oracle`).
 
 ``server.py exec CONFIG.json``
-    The nbval launcher. It makes itself undumpable (no process of the sandbox can read its memory
-    or its file descriptors), copies the submission, reports :func:`facts` on ``report_fd`` and
-    waits for ``go`` on ``go_fd``; then runs ``CONFIG["argv"]`` (pytest with nbval) as an undumpable
-    process that writes its junit report into a pipe only it holds (``{junit}`` in the arguments).
-    After pytest ended, it kills every other process of the sandbox (inside a PID namespace of
-    its own) and copies the report, at most 16 MiB, to the grader's ``collect_fd``. The student's
-    notebook never holds, and cannot reach, the report the grader reads.
+    The nbval launcher (:func:`launch`): the same report and ``go``, then pytest with nbval, whose junit report
+    reaches the grader through a pipe that the student's notebook never holds
+    (:mod:`course_lib.instructor.nbval_run`).
 """
 
 from __future__ import annotations
@@ -391,7 +387,9 @@ PYTEST_BOOT = ("import ctypes, sys\nctypes.CDLL(None).prctl(4, 0, 0, 0, 0)\nimpo
 
 
 def launch(cfg: dict) -> int:
-    """Run pytest (``cfg["argv"]``) after the grader's go; its junit report goes to ``collect_fd``. The exit code."""
+    """Run pytest (``cfg["argv"]``) after the grader's go, undumpable (no process of the sandbox can read its memory or
+    descriptors), its junit report written into a pipe only it holds; then kill every other process of the sandbox
+    and copy the report (at most ``wire.MAX_REPORT`` bytes) to ``collect_fd``. The exit code."""
     import subprocess
     import threading
 
