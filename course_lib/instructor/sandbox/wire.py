@@ -212,12 +212,13 @@ def _made_type(name: str, fields: tuple | None = None):
     grader by naming new types)."""
     import collections
 
+    if fields is not None and len(fields) > 64:
+        return None
     if len(_TYPES) > 4096:
         _TYPES.clear()
     if (name, fields) not in _TYPES:
         try:
-            _TYPES[name, fields] = (type(name, (Record,), {}) if fields is None else
-                                    collections.namedtuple(name, fields) if len(fields) <= 64 else None)
+            _TYPES[name, fields] = type(name, (Record,), {}) if fields is None else collections.namedtuple(name, fields)
         except ValueError:
             _TYPES[name, fields] = None
     return _TYPES[name, fields]
