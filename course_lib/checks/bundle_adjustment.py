@@ -1,27 +1,13 @@
-"""Checks of notebook 05 (bundle adjustment) and its step input.
+"""Checks of notebook 05 (bundle adjustment): visibility, reprojection residuals, Jacobian sparsity, bundle_adjust.
 
-Cases (fixture ``bundle_adjustment``, :mod:`course_lib.instructor.cases.bundle_adjustment`): small synthetic
-scenes with known truth and the embedded scene's reconstruction before bundle adjustment:
-
-* ``visibility_matrix``: the matrix transposed (cameras as rows, the handout's ``V_ij`` layout),
-  True where a point is *not* seen, a comparison with NaN (always True), the last axis not
-  reduced; ints instead of bools is correct maths in another form (a detail).
-* ``reprojection_residuals``: a (K, 2) array instead of the flat (2K,) vector, all u's before
-  all v's, ``R_wc`` instead of ``R_cw``, no division by the depth, a parameter layout other than
-  ``[r_0, t_0, r_1, t_1, ..., X_0, X_1, ...]``, K missing, Euler angles for the rotation vector
-  (:data:`RESIDUAL_VARIANTS`).
-* ``jacobian_sparsity``: 9 parameters per camera (the SciPy cookbook's cameras carry f, k1, k2;
-  here K is fixed), point columns without the ``6M`` offset, rows of u and v not interleaved,
-  only the u row filled, the matrix transposed; a second case lists the observations in random
-  order.
-* ``bundle_adjust``: the cost does not reach the *minimum* (computed with tight tolerances, so a
-  solve stopped after a few evaluations fails), cameras that did not move, cameras far from those
-  of the minimum (after a similarity alignment), rotations that are no rotations, a callback that
-  is never called, called once (before or after solving) or at every evaluation of the
-  residuals instead of after every iteration.
-
-In a notebook ``bundle_adjust`` runs the student's own residuals and sparsity: when they failed
-their checks, the verdict says so (:meth:`~course_lib.checks.core.Check.blame_earlier`).
+Cases (fixture ``bundle_adjustment``, :mod:`course_lib.instructor.cases.bundle_adjustment`): small synthetic scenes
+with known truth and the embedded scene's reconstruction before bundle adjustment. Each check names the mistakes
+written next to it (the residuals' are :data:`RESIDUAL_VARIANTS`, their results stored with the cases); ints instead
+of bools in the visibility matrix are correct maths in another form (a detail). ``bundle_adjust`` is judged against
+the *minimum* of the cost (computed with tight tolerances, so a solve stopped early fails), its cameras after a
+similarity alignment, and its callback against the solver's iterations. In a notebook it runs the student's own
+residuals and sparsity: when those failed their checks, the verdict says so
+(:meth:`~course_lib.checks.core.Check.blame_earlier`).
 """
 
 from __future__ import annotations

@@ -1,11 +1,9 @@
 """The check machinery shared by every notebook: verdicts, fixtures, and safe calls.
 
-A check cell in a notebook calls one function of a check module of
-:mod:`course_lib.checks` (one per notebook topic, e.g. :mod:`course_lib.checks.fundamental`)
-with the student's function. That check function runs the
-student's code on stored cases (fixtures), compares with the stored reference results and with
-properties (rank 2, det R = +1, points in front), and prints short verdicts through a
-:class:`Check`::
+A check cell in a notebook calls one function of a check module of :mod:`course_lib.checks` (one per notebook
+topic, e.g. :mod:`course_lib.checks.fundamental`) with the student's function. That check function runs the
+student's code on stored cases (fixtures), compares with the stored reference results and with properties (rank 2,
+det R = +1, points in front), and prints short verdicts through a :class:`Check`::
 
     from course_lib.checks.fundamental import check_eight_point
 
@@ -20,26 +18,14 @@ properties (rank 2, det R = +1, points in front), and prints short verdicts thro
       ...
       11 of 18 checks passed
 
-Every check module works the same way: it reads its cases, names a mistake only when that mistake is the unique
-explanation of what it saw on every case built to isolate it (what each mistake gives is stored with the cases:
-:func:`unique_key`, :func:`report_cases`), and otherwise says which property fails, with numbers. Equal means one
-rule for all (:func:`close_rel`, :func:`same_up_to_scale`, :data:`RTOL`): a correct answer in float32 passes.
-
-Lines of passing checks are deterministic (no floating-point numbers), so nbval can compare
-them; failing lines may carry numbers, since they never appear in a reference run.
-
-Checks are weighed by what they test (:func:`score`, the grader's one rule): shape and dtype
-checks are gates that earn no points; a check of a *defining* property (rank 2 for F, det +1 for
-a rotation, Δ in α; declared per exercise with :func:`declare_defining`) caps the score at one
-half when it fails, and the printed verdict then leads with it. docs/mistakes.md (in the instructor's kit)
-documents the defining properties and the catalogue of classic mistakes that the checks name.
-
-Fixtures are stored cases in ``data/fixtures/<name>.npz`` (inputs, the reference's results, the
-results of classic mistakes), made from the reference solutions on the instructor's side by one
-command, ``python -m course_lib fixtures`` (:mod:`course_lib.instructor.cases`); the test suite
-rebuilds them and compares, to prove they are current. Check cells and step inputs read fixtures
-only (:func:`load_fixture`), so a student release without the reference solutions still runs and
-checks; the grader runs the same checks on hidden cases (:func:`using_cases`).
+Every check module works the same way: it reads its cases (:func:`load_fixture`; the grader's hidden cases through
+:func:`using_cases`), names a mistake only when that mistake is the unique explanation of what it saw on every case
+built to isolate it (what each mistake gives is stored with the cases: :func:`unique_key`, :func:`report_cases`), and
+otherwise says which property fails, with numbers. Equal means one rule for all (:func:`close_rel`,
+:func:`same_up_to_scale`, :data:`RTOL`): a correct answer in float32 passes. Lines of passing checks are
+deterministic (no floating-point numbers), so nbval can compare them. Checks are weighed by what they test
+(:data:`SCORING_RULE`, :func:`score`): shape and dtype checks are gates, a failed *defining* property
+(:func:`declare_defining`) caps the score at one half and leads the verdict.
 """
 
 from __future__ import annotations
@@ -259,10 +245,8 @@ def score(result: CheckResult) -> float:
 
     The grader's one rule (:mod:`course_lib.instructor.grade` calls it on the hidden checks' result, in its own
     process): passed point checks / (point checks + failed gates), capped at :data:`DEFINING_CAP` when a defining
-    property fails. A result without verdicts (made by hand) scores ``passed / total``.
+    property fails. A result without verdicts scores 0.
     """
-    if not result.verdicts:
-        return result.passed / result.total if result.total else 0.0
     return _fraction(result)
 
 
@@ -345,11 +329,8 @@ class Check:
 
     def __init__(self, exercise: str):
         self.exercise = exercise
-        self.lines: list[str] = []
         self.notes: list[str] = []
         self.verdicts: list[Verdict] = []
-        self.passed = 0
-        self.total = 0
         self.case: str | None = None  # the case of the last call
         self.answered: dict[str, bool] = {}  # case called -> whether a verdict was recorded for it
         self.unanswered_call: str | None = None  # the case of a call after which no verdict was recorded yet
@@ -375,7 +356,6 @@ class Check:
                              f"(declared: {sorted(DEFINING.get(self.exercise, {}))}); use declare_defining")
         if kind not in ("points", "gate", "detail"):
             raise ValueError(f"kind must be 'points', 'gate' or 'detail', got {kind!r}")
-        self.total += 1
         ok = bool(condition)
         text = pass_msg if ok else fail_msg
         self.verdicts.append(Verdict(ok, text, kind, defining, None if ok else named))
@@ -388,12 +368,15 @@ class Check:
             named.append(self.case)
         for case in named:
             self.answered[case] = True
-        if ok:
-            self.passed += 1
-            self.lines.append(f"  {PASS} {pass_msg}")
-            return True
-        self.lines.append(f"  {FAIL} {fail_msg}")
-        return False
+        return ok
+
+    @property
+    def passed(self) -> int:
+        return sum(v.ok for v in self.verdicts)
+
+    @property
+    def total(self) -> int:
+        return len(self.verdicts)
 
     def fail(self, msg: str, defining: str | None = None, named: str | None = None) -> bool:
         """Record a failed check (of ``defining`` when it is a defining property's; ``named``: see :meth:`expect`)."""
@@ -607,8 +590,9 @@ class Check:
         what = DEFINING.get(self.exercise, {})
         printed = [f"  {FAIL} the defining property fails: {name} ({what.get(name, '')}); "
                    "this costs at least half of the points" for name in broken]
-        printed += [self.lines[i] for i in lead]
-        printed += [line for i, line in enumerate(self.lines) if i not in lead]
+        lines = [f"  {PASS if v.ok else FAIL} {v.text}" for v in self.verdicts]
+        printed += [lines[i] for i in lead]
+        printed += [line for i, line in enumerate(lines) if i not in lead]
         printed += [f"  note: {text}" for text in self.notes]
         result.lines = printed  # as printed, so that the grader's feedback leads with the property too
         RESULTS[self.exercise] = result

@@ -1,16 +1,10 @@
 """Checks of notebook 02 (the essential matrix and the four pose candidates).
 
 Cases (fixture ``essential``, :mod:`course_lib.instructor.cases.essential`): E from a noiseless and from a noisy
-synthetic pair (with the true relative pose) and from the embedded scene's pair (the reference F of notebook 01):
-
-* ``essential_from_fundamental``: two equal singular values and a zero one (defining), and E equal
-  to the reference Kᵀ F K projected to (s, s, 0), up to scale and sign;
-* ``pose_candidates``: every R a rotation (defining), every C of unit length, every (R, C) factoring
-  E (E ∝ [t]ₓ R with t = -R C), and the four candidates equal to the reference's, in any order.
-
-E is defined up to scale and sign; the four candidates are a set (any order gets full marks: notebook 03 picks
-one by cheirality, never by position). det R = +1 is checked on E and on a multiple of E of every pair (for one
-of the two the SVD gives det U det V = -1, so a missing flip shows on every pair).
+synthetic pair and from the embedded scene's pair. Defining properties: two equal singular values and a zero one
+(essential_from_fundamental), det R = +1 for every candidate (pose_candidates, checked on E and on a multiple of E
+of every pair: for one of the two the SVD gives det U det V = -1, so a missing flip shows on every pair). E is
+defined up to scale and sign; the four candidates are a set (notebook 03 picks one by cheirality, never by position).
 """
 
 from __future__ import annotations
@@ -35,14 +29,8 @@ declare_defining("pose_candidates", {
     "det R = +1": "a rotation has det +1; det -1 is a reflection, no camera pose",
 })
 
-_CASE_TEXT = {
-    "noiseless": "noiseless synthetic pair",
-    "noisy": "noisy synthetic pair",
-    "building": "embedded building pair",
-    "noiseless_neg": "noiseless synthetic pair, -E",
-    "noisy_neg": "noisy synthetic pair, -E",
-    "building_neg": "embedded building pair, -E",
-}
+_CASE_TEXT = {"noiseless": "noiseless synthetic pair", "noisy": "noisy synthetic pair",
+              "building": "embedded building pair"}
 
 
 # --------------------------------------------------------------------------- helpers
@@ -201,9 +189,10 @@ def check_pose_candidates(pose_candidates: Callable) -> None:
         outcomes = []
         for name in [str(n) for n in f["pose_cases"]]:
             E, R_ref, C_ref = f[f"{name}_E"], f[f"{name}_R"], f[f"{name}_C"]
-            case = _CASE_TEXT[name]
-            if f"{name}_factor" in f and float(f[f"{name}_factor"]) != -1.0:
-                case = case.replace("-E", f"{float(f[f'{name}_factor']):g} E")
+            case = _CASE_TEXT[name.removesuffix("_neg")]
+            if name.endswith("_neg"):  # a multiple of E (-E where that shows a missing det flip)
+                factor = float(f[f"{name}_factor"])
+                case += ", -E" if factor == -1.0 else f", {factor:g} E"
             out = c.fields(c.call(pose_candidates, E, case=case), case, ("R", "C"), "the tuple (R (4, 3, 3), C (4, 3))")
             if out is None:
                 continue

@@ -1,26 +1,14 @@
 """Checks of notebook 01 (the fundamental matrix): normalization, 8-point, Sampson distance, RANSAC.
 
 Cases: fixture ``fundamental`` (:mod:`course_lib.instructor.cases.fundamental`, which also stores what each named
-mistake gives on them); F is judged against ground truth where there is one (the noiseless points of a noisy
-pair), never against the noisy inputs alone. What each check tests:
-
-* ``normalize_points``: x_n = T x, the centroid at the origin, the mean distance sqrt(2), one scale
-  for both axes, T as the reference's; a strip of a facade and a cloud of large pixel coordinates
-  (a 6000 x 4000 image) far from the origin;
-* ``eight_point``: rank 2 (defining, on every case), and how well F fits: equal to the truth on a noiseless pair
-  (camera 1 off the origin), as close to the noiseless points as the reference's on noisy pairs
-  (1 px with many matches, 2 px with few, 1 px in a 6000 x 4000 image), as close to the matches as
-  the reference's on the embedded pair;
-* ``sampson_distance``: the distances in pixels on a pair with outliers, on large pixel coordinates,
-  with an F of another scale and sign; the result does not depend on F's scale;
-* ``ransac_fundamental``: the RANSAC check shared with notebook 04 (:mod:`course_lib.checks.ransac`: the mask of the
-  returned F, the count, the confidence, the rng, 8 noiseless matches) at thresholds on both sides of 1 px (1.5 px
-  with outliers, 0.8 px without); and F's own: F fits the noiseless points as well as the reference's, the true
-  inliers are found, a refit case without outliers, the count on an exact case, the embedded pair.
-
-Where the check needs a distance of its own it uses the point-to-line distance (no exercise of the
-notebook) or OpenCV (``cv2.sampsonDistance``). F is defined up to scale and sign
-(:func:`course_lib.checks.core.same_up_to_scale`).
+mistake gives on them): synthetic pairs (camera 1 off the origin; noiseless, 1 and 2 px noise, a 6000 x 4000 image,
+outliers) and the embedded pair. F is judged against ground truth where there is one (the noiseless points of a noisy
+pair), never against the noisy inputs alone, and is defined up to scale and sign
+(:func:`course_lib.checks.core.same_up_to_scale`); rank 2 is eight_point's defining property. ``ransac_fundamental``
+gets the RANSAC check shared with notebook 04 (:mod:`course_lib.checks.ransac`) at thresholds on both sides of 1 px,
+and F's own verdicts (the true geometry, the true inliers, the refit, the count on an exact case, the embedded pair).
+Where the check needs a distance of its own it uses the point-to-line distance (no exercise of the notebook) or
+OpenCV (``cv2.sampsonDistance``).
 """
 
 from __future__ import annotations
@@ -83,20 +71,22 @@ def _sampson_sq(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     return np.array([cv2.sampsonDistance(a, b, F) for a, b in zip(to_homogeneous(x1), to_homogeneous(x2))])
 
 
-def _rank(F: np.ndarray, T1: np.ndarray, T2: np.ndarray) -> int:
-    """Numerical rank of F, in pixels and in the normalized coordinates of the case (``T1``, ``T2``).
+def _rank_verdict(c: Check, case: str, F, p: str, f) -> None:
+    """F has rank 2, in pixels and in the normalized coordinates of the case (``T1``, ``T2``).
 
-    A pixel-scale F has singular values spread over many orders of magnitude, so a full-rank F (the
-    8-point result without the rank-2 step) can look rank 2 in pixels; in normalized coordinates
-    that test is reliable. The other way round, a matrix such as np.eye(3), full rank in pixels, can
-    look rank 2 in normalized coordinates. So rank 2 must hold in both (:data:`RANK_RTOL`).
+    A pixel-scale F has singular values spread over many orders of magnitude, so a full-rank F (the 8-point result
+    without the rank-2 step) can look rank 2 in pixels; in normalized coordinates that test is reliable. The other
+    way round, a matrix such as np.eye(3), full rank in pixels, can look rank 2 in normalized coordinates. So rank 2
+    must hold in both (:data:`RANK_RTOL`).
     """
-    def rank(M):
-        s = np.linalg.svd(M, compute_uv=False)
-        return int(np.sum(s > RANK_RTOL * s[0]))
-
-    F = np.asarray(F, float)
-    return max(rank(F), rank(np.linalg.inv(T2).T @ F @ np.linalg.inv(T1)))
+    s_px = np.linalg.svd(F, compute_uv=False)
+    s = np.linalg.svd(np.linalg.inv(f[f"{p}_T2"]).T @ F @ np.linalg.inv(f[f"{p}_T1"]), compute_uv=False)
+    r = max(int(np.sum(v > RANK_RTOL * v[0])) for v in (s_px, s))
+    c.gate(r == 2, f"{case}: F has rank 2",
+           f"{case}: F has rank {r} (singular values in normalized coordinates "
+           f"{np.array2string(s / s[0], precision=2)}): a fundamental matrix has rank 2; zero the smallest singular "
+           "value, F = U diag(s1, s2, 0) Vᵀ",
+           defining="rank 2")
 
 
 # --------------------------------------------------------------------------- normalize_points
@@ -228,16 +218,6 @@ def _eight_point_fit(F, f, p: str, name: str):
     return d <= 1.2 * d_ref + 0.02, "epipolar residuals as small as the reference's", (
         f"F fits the matches worse than the reference's 8-point F: median distance of the points to their epipolar "
         f"lines {d:.3g} px, reference {d_ref:.3g} px")
-
-
-def _rank_verdict(c: Check, case: str, F, p: str, f) -> None:
-    r = _rank(F, f[f"{p}_T1"], f[f"{p}_T2"])
-    s = np.linalg.svd(np.linalg.inv(f[f"{p}_T2"]).T @ F @ np.linalg.inv(f[f"{p}_T1"]), compute_uv=False)
-    c.gate(r == 2, f"{case}: F has rank 2",
-           f"{case}: F has rank {r} (singular values in normalized coordinates "
-           f"{np.array2string(s / s[0], precision=2)}): a fundamental matrix has rank 2; zero the smallest singular "
-           "value, F = U diag(s1, s2, 0) Vᵀ",
-           defining="rank 2")
 
 
 def check_eight_point(eight_point: Callable) -> None:

@@ -1,21 +1,11 @@
 """Checks of notebook 06 (NeRF data and rays): get_rays, stratified sampling, query points, encoding.
 
-Cases (fixture ``nerf_data``, :mod:`course_lib.instructor.cases.nerf_data`, the mistakes' results by
-:func:`course_lib.instructor.cases.nerf_data.encoding_variant`); what each check names:
-
-* ``get_rays``: meshgrid ij/xy transposition, OpenGL instead of OpenCV camera axes (y flipped,
-  rays pointing backwards), the rotation transposed or missing, half-pixel offset (``W / 2``
-  instead of ``cx``), normalized directions, ``rays_o`` not repeated per pixel.
-* ``stratified_samples``: jitter in evaluation, no jitter in training, jitter larger than a bin,
-  one jitter for all samples, ignoring the generator. Defining property (failing it costs at
-  least half of the points): every training sample lies in its own bin, so the depths are sorted
-  (the renderer's intervals t_{i+1} - t_i must be positive). The kit's bins (edges at the
-  midpoints between the evaluation depths) and the paper's equal bins (width (far - near) / S) are
-  both accepted.
-* ``query_points``: ``o + t d`` with the wrong broadcasting (a broadcasting error is explained, not
-  shown as torch's message alone), ``o`` and ``d`` swapped, the origin missing.
-* ``positional_encoding``: missing identity term, sin/cos order, missing (or extra) pi factor,
-  wrong frequencies.
+Cases (fixture ``nerf_data``, :mod:`course_lib.instructor.cases.nerf_data`, which also stores what each mistake gives
+on them); the mistakes each check names are the hint tables next to it (:data:`RAY_HINTS`, :data:`QUERY_HINTS`,
+:data:`ENCODING_HINTS`; a broadcasting error of query_points is explained, not shown as torch's message alone).
+``stratified_samples``' defining property: every training sample lies in its own bin, so the depths are sorted (the
+renderer's intervals t_{i+1} - t_i must be positive); the kit's bins (edges at the midpoints between the evaluation
+depths) and the paper's equal bins are both accepted.
 
 The helpers ``close`` and ``matching`` are shared with the other NeRF check modules.
 """

@@ -1,33 +1,19 @@
 """Checks of notebook 07 (the NeRF MLP): the ``NeRF`` module and ``psnr``.
 
-``check_nerf_model(NeRF)`` grades the network by **what it computes**, never by the layers it
-declares: it builds the student's class with its default arguments (the paper's network: 8 ReLU
-layers of width 256, the encoded position concatenated again after the 4th, a density head, a
-view-dependent branch and a sigmoid RGB head) and with two small configurations (drawn per fixture),
-copies the reference's test weights into its layers and compares the outputs with the reference's
-on the fixture's points (``nerf_model``, built by ``python -m course_lib fixtures nerf_model``):
+``check_nerf_model(NeRF)`` grades the network by **what it computes**, never by the layers it declares: it builds
+the student's class with its default arguments (the paper's network) and with two small configurations (drawn per
+fixture, ``nerf_model``), copies the reference's test weights into its layers *by role* (the heads may be defined
+before the trunk, the skip may be ``[h, γ(x)]`` or ``[γ(x), h]``) and compares density and colour with the
+reference's. Layer sizes, output shapes and ranges, and the view (in)dependence of sigma and rgb are gates: a class
+with the right layers whose forward returns constants earns nothing. The skip input and the ReLU density are
+defining properties.
 
-* points: with the reference's weights, the density equals the reference's (the trunk with its skip
-  input, the density head, its ReLU) and the colour equals the reference's (the view branch);
-* gates (they earn nothing, a failure costs): the layer sizes, the output shapes, rgb in [0, 1],
-  sigma >= 0, sigma independent of the viewing direction, rgb dependent on it. A class with the
-  right layers whose forward returns constants earns nothing;
-* defining properties (failing one costs at least half of the points): the skip input (the
-  encoded position concatenated again) and the ReLU density (a sigmoid, softplus, exp, abs or no
-  activation on the density is named).
+**Graded on its own:** the network is fed the *reference* positional encoding of the check's points (notebook 06's
+exercise): in the notebook :func:`encoding_table` answers ``positional_encoding`` from stored values while the check
+runs; in grading the grader answers it through a call-back (:mod:`course_lib.instructor.oracle`). A mistake in
+notebook 06 never costs NeRF points.
 
-Conventions that are the same maths are accepted: the skip concatenated as ``[h, γ(x)]`` as well as
-``[γ(x), h]``, and the heads defined before the trunk (the test weights are copied by role).
-
-**Graded on its own:** the network is fed the *reference* positional encoding of the check's points
-(notebook 06's exercise). In the notebook, :func:`encoding_table` answers ``positional_encoding``
-from the stored reference values (a table, no computation: the kit ships no encoding); the check
-puts it in place of the notebook's ``positional_encoding`` while it runs. In grading, the grader
-answers the student's ``positional_encoding`` with the reference's, through a call-back
-(:mod:`course_lib.instructor.oracle`). A mistake in notebook 06 never costs NeRF points.
-
-``check_psnr(psnr)``: PSNR in dB of images in [0, 1] on the fixture's MSE values; names the
-flipped sign, a peak of 255, the natural logarithm, the factor 20 with the MSE.
+``check_psnr(psnr)``: PSNR in dB of images in [0, 1] on the fixture's MSE values (:data:`PSNR_VARIANTS`).
 """
 
 from __future__ import annotations
@@ -402,8 +388,8 @@ def _check_config(c: Check, NeRF, f, name: str, pts, dirs, lead, seed: int) -> N
         why = ("its layers do not have the documented sizes (see above), so the reference's weights cannot be copied in"
                if own is not None else "the network could not be built (see above)" if model is FAILED else
                "its forward pass did not return rgb (..., 3) and sigma (...) as documented (see above)")
-        for what, prop in (("the density's input (trunk and skip)", None), ("sigma", None), ("rgb", None)):
-            c.fail(f"{with_w}, {what} cannot be compared: {why}", defining=prop)
+        for what in ("the density's input (trunk and skip)", "sigma", "rgb"):
+            c.fail(f"{with_w}, {what} cannot be compared: {why}")
         return
     rgb, sigma, trunk_ok = res
     no_relu = f.get(f"{name}_sigma_no_trunk_relu")

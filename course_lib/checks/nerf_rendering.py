@@ -1,23 +1,11 @@
 """Checks of notebook 08 (volume rendering): ``volume_render``.
 
-``check_volume_render(volume_render)`` runs the student's function on
-
-* rays through a slab of constant density (hand-computable: behind a slab of density sigma and
-  thickness L the transmittance is exp(-sigma L), whatever the sample spacing), and
-* random rays with unnormalized directions, compared with the reference stored in fixture
-  ``nerf_rendering`` (``python -m course_lib fixtures nerf_rendering``), with a white and a black
-  background,
-
-and names the likely mistake: alpha = 1 - exp(-sigma) without the interval length delta, delta
-not scaled by |d|, inclusive instead of exclusive cumulative product in the transmittance, the
-last interval, no white background (or one where black was asked for), depth or accumulation
-computed differently, weights that forget alpha (w = T) or the transmittance (w = alpha).
-
-Defining property (failing it costs at least half of the points): Δ in α, the interval length in
-the opacity, checked on the slabs and on the random rays with both backgrounds.
-
-The cases (the slabs included) and what the mistakes give on them are made by
-:mod:`course_lib.instructor.cases.nerf_rendering`.
+``check_volume_render(volume_render)`` runs the student's function on rays through slabs of constant density
+(hand-computable: behind a slab of density sigma and thickness L the transmittance is exp(-sigma L), whatever the
+sample spacing) and on random rays with unnormalized directions, with a white and a black background, compared with
+the reference (fixture ``nerf_rendering``, :mod:`course_lib.instructor.cases.nerf_rendering`, which also stores what
+each mistake of :data:`RENDER_HINTS` gives). Δ in α (the interval length in the opacity) is the defining property,
+checked on the slabs and on the random rays with both backgrounds.
 """
 
 from __future__ import annotations

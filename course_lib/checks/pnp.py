@@ -1,23 +1,14 @@
-"""Checks of notebook 04 (PnP) and its step input.
+"""Checks of notebook 04 (PnP): pnp_linear, pnp_ransac, pnp_nonlinear.
 
 Cases (fixture ``pnp``, :mod:`course_lib.instructor.cases.pnp`): synthetic views with known truth and the embedded
-scene (its third image registered against the two-view reconstruction of step 3, in a randomly moved world frame):
-
-* ``pnp_linear``: R_cw a rotation (defining: R Rᵀ = I, det +1), the true pose on a noiseless view,
-  the reference's on a noisy and the embedded view; named: R_wc returned (transposed), the centre
-  returned as t, t with the wrong sign or scale, the DLT on pixel coordinates.
-* ``pnp_ransac``: the RANSAC check shared with notebook 01 (:mod:`course_lib.checks.ransac`: the mask of the
-  returned pose at two thresholds, points behind the camera being outliers, the count, the confidence, the rng,
-  6 noiseless points) and the pose's own: the pose despite 20 % outliers, the inliers against the reference's, the
-  refit. In a notebook it runs the student's ``pnp_linear``; a failure then ends with a note when that one failed
-  its own checks.
-* ``pnp_nonlinear``: a rotation, a lower reprojection error, the least-squares optimum (from the
-  linear estimate, from a start 3° away, on the embedded view); named: the 9 entries of R projected
-  back with an SVD and the residual without the division by the depth (their results stored with
-  the cases), only t or only R moved, R_wc returned; a residual of shape (N, 2) that least_squares
-  refuses is explained.
-
-Rotation angles are measured with atan2 (float32 rounding reads as 1e-5°, not 0.01°).
+scene (its third image registered against the two-view reconstruction of step 3, in a randomly moved world frame).
+``pnp_linear``'s defining property is R_cw a rotation (R Rᵀ = I, det +1); the confusions of a pose it names are
+:data:`_POSE_MISTAKES`. ``pnp_ransac`` gets the RANSAC check shared with notebook 01
+(:mod:`course_lib.checks.ransac`) and the pose's own verdicts (despite the outliers, the inliers, the refit).
+``pnp_nonlinear`` must lower the reprojection error and reach the least-squares optimum from the linear estimate,
+from starts 3° and 25° away and on the embedded view; the mistakes it names are :data:`_NONLINEAR_MISTAKES` (a
+residual of shape (N, 2), which least_squares refuses, is explained). Rotation angles are measured with atan2
+(float32 rounding reads as 1e-5°, not 0.01°).
 """
 
 from __future__ import annotations

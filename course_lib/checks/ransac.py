@@ -1,22 +1,12 @@
 """The RANSAC check shared by notebooks 01 (F from matches) and 04 (PnP): the mask, the count, the samples, the rng.
 
 A RANSAC exercise is described once, by a :class:`Ransac` (its sample size, what it returns, the error that decides
-an inlier); the verdicts that every RANSAC earns the same way are here, with one scoring:
-
-* the mask (:func:`mask_outcome`, reported with :func:`~course_lib.checks.core.report_cases`): the inliers are the
-  items whose error under the *returned* model is below ``threshold_px``; a mask that follows another rule is named
-  when one rule explains every case (the squared error, the error against threshold_px², a constant threshold, the
-  mask inverted, and the rules of the exercise);
-* the samples (:func:`sampling_verdicts`): ``n_iters`` adapts to the inlier ratio, N = log(1 - confidence) /
-  log(1 - wᵏ) (a point check), the confidence sets N (a point check), and gates on the randomness: the rng argument
-  is the only randomness (the same seed gives the same result whatever numpy's global state), it is drawn from,
-  numpy's global state is left untouched, and max_iters bounds the count;
-* exactly k noiseless items (:func:`minimal_verdicts`): the only sample of k distinct items is all of them, so the
-  model fits every item; a sample that held an item twice is named from the draws the rng recorded
-  (:class:`RecordingRng`).
-
-The exercise's own properties (F against the true geometry, the pose despite the outliers, the refit) stay in its
-check module (:mod:`course_lib.checks.fundamental`, :mod:`course_lib.checks.pnp`).
+an inlier); the verdicts that every RANSAC earns the same way are here, with one scoring: the mask follows the
+*returned* model (:func:`mask_outcome`; another rule is named when one explains every case), the count adapts and
+follows the confidence, N = log(1 - confidence) / log(1 - wᵏ), the rng argument is the only randomness
+(:func:`sampling_verdicts`), and exactly k noiseless items are fitted exactly, with a sample that held an item twice
+named from the recorded draws (:func:`minimal_verdicts`, :class:`RecordingRng`). The exercise's own properties (F
+against the true geometry, the pose despite the outliers, the refit) stay in its check module.
 """
 
 from __future__ import annotations

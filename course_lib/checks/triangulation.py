@@ -1,22 +1,11 @@
-"""Checks of notebook 03 (triangulation) and its step input.
+"""Checks of notebook 03 (triangulation): triangulate_linear, choose_pose, triangulate_nonlinear.
 
-Cases (fixture ``triangulation``, :mod:`course_lib.instructor.cases.triangulation`): synthetic scenes with known
-truth (camera 1 is never at the world's origin there) and the embedded scene (in a random world frame):
-
-* ``triangulate_linear``: the true points on a noiseless pair, the reference's on noisy and embedded
-  pairs, one point (N = 1); named when the points are exactly what a mistake gives on every case:
-  homogeneous points not divided (each row is ``±X / sqrt(1 + |X|²)``), divided by ``|X_h[3]|`` (some
-  points mirrored, ``X -> -X``), all mirrored, the cameras or u and v swapped in the rows of A, the
-  singular vector of the largest singular value (stored); otherwise the distances and the
-  reprojection errors, in pixels.
-* ``choose_pose``: the candidate with the points in front of BOTH cameras (defining), its R_cw and
-  t_cw, the points triangulated with it, ``in_front`` and the counts. A wrong cheirality test is
-  named when the student's counts equal that test's on every case; the candidate with the fewest
-  points when the counts are right and the choice is their minimum on every case; points that belong
-  to another candidate when they equal that candidate's; otherwise what was chosen and counted.
-* ``triangulate_nonlinear``: lowers the reprojection error and reaches the optimum, on a 3-view scene
-  with points unseen in one view (NaN) and on the embedded pair; a mistake is named when the points
-  equal its stored result (or, for R transposed, optimize its cost) on every case.
+Cases (fixture ``triangulation``, :mod:`course_lib.instructor.cases.triangulation`): synthetic scenes with known truth
+(camera 1 is never at the world's origin there) and the embedded scene (in a random world frame). A mistake is named
+when the result is exactly what it gives on every case (:data:`_LINEAR_MISTAKES`, a wrong cheirality test by the
+counts it gives, :data:`_NONLINEAR_MISTAKES`); otherwise the verdict gives the distances and reprojection errors in
+pixels. choose_pose's defining property: the candidate with the points in front of BOTH cameras. The non-linear
+triangulation runs on a 3-view scene with points unseen in one view (NaN) and on the embedded pair.
 """
 
 from __future__ import annotations
@@ -108,8 +97,9 @@ def _reprojection_px(P, X, x) -> np.ndarray:
         return np.linalg.norm(Xh[:, :2] / Xh[:, 2:] - x, axis=1)
 
 
-def _points_shape(c: Check, X, n: int, case: str) -> np.ndarray | None:
-    """The student's points as an (n, 3) array, or None after a failed check that says what the shape is."""
+def _points_shape(c: Check, X, n: int, case: str, nan: str = "the points contain NaN or inf") -> np.ndarray | None:
+    """The student's points as a finite (n, 3) array, or None after a failed check that says what the shape is (or
+    ``nan``, what NaN means)."""
     if X is FAILED:
         return None
     A = as_float(X)
@@ -119,8 +109,10 @@ def _points_shape(c: Check, X, n: int, case: str) -> np.ndarray | None:
                if shape == (n, 4)
                else f"shape {shape}: points are rows in the kit, return shape ({n}, 3) (transpose)"
                if shape in ((3, n), (4, n)) and n not in (3, 4)
+               else f"shape {shape}: keep the points axis for N = 1 (shape (1, 3)); np.squeeze or X[0] drops it"
+               if n == 1 and A.size == 3 and shape != (1, 3)
                else f"shape {shape}, expected ({n}, 3)" if shape != (n, 3)
-               else "the points contain NaN or inf" if not np.isfinite(A).all() else None)
+               else nan if not np.isfinite(A).all() else None)
     if problem:
         c.fail(f"{case}: {problem}")
         return None
@@ -170,24 +162,16 @@ def check_triangulate_linear(fn, exercise: str = "triangulate_linear") -> None:
         failing = any(not o.ok for o in results)
         # one point at a time must work too (N = 1)
         P1, P2 = f["lin_noiseless_P1"], f["lin_noiseless_P2"]
-        X1 = c.call(fn, P1, P2, f["lin_noiseless_x1"][:1], f["lin_noiseless_x2"][:1], case="a single point (N = 1)")
-        if X1 is not FAILED:
-            A = as_float(X1)
+        case = "a single point (N = 1)"
+        A = _points_shape(c, c.call(fn, P1, P2, f["lin_noiseless_x1"][:1], f["lin_noiseless_x2"][:1], case=case), 1, case)
+        if A is not None:
             want = f["lin_noiseless_Xtrue"][:1]
-            case = "a single point (N = 1)"
-            if A is None or A.size != 3:
-                c.fail(f"{case}: expected an array of shape (1, 3), got "
-                       f"{type(X1).__name__ if A is None else 'shape ' + str(A.shape)}")
-            elif A.shape != (1, 3):
-                c.fail(f"{case}: returned shape {A.shape}: keep the points axis for N = 1 (shape (1, 3)); "
-                       "np.squeeze or X[0] drops it")
-            else:
-                c.expect(np.allclose(A, want, rtol=1e-6, atol=1e-6 * _scale(f["lin_noiseless_Xtrue"])), f"{case} works",
-                         f"{case}: the right shape (1, 3) but not the true point ({np.round(A[0], 3).tolist()} instead "
-                         f"of {np.round(want[0], 3).tolist()})" + (
-                             ": the same points as the cases above, one at a time" if failing else
-                             ": the N-point cases pass, so look for what depends on N (a loop over range(N - 1), a "
-                             "reshape or mean over the points axis, an index [1] that is a second point)"))
+            c.expect(np.allclose(A, want, rtol=1e-6, atol=1e-6 * _scale(f["lin_noiseless_Xtrue"])), f"{case} works",
+                     f"{case}: the right shape (1, 3) but not the true point ({np.round(A[0], 3).tolist()} instead "
+                     f"of {np.round(want[0], 3).tolist()})" + (
+                         ": the same points as the cases above, one at a time" if failing else
+                         ": the N-point cases pass, so look for what depends on N (a loop over range(N - 1), a "
+                         "reshape or mean over the points axis, an index [1] that is a second point)"))
 
 
 # --------------------------------------------------------------------------- choose_pose
@@ -409,18 +393,9 @@ def check_triangulate_nonlinear(fn, exercise: str = "triangulate_nonlinear") -> 
                 continue
             K, R, t, uv, X0, ref = (f[f"{key}_{s}"] for s in ("K", "R", "t", "uv", "X0", "X"))
             X = c.call_explained(fn, K, R, t, uv, X0, case=case, explain=_not_finite if np.isnan(uv).any() else None)
-            if X is FAILED:
-                continue
-            A = as_float(X)
-            if A is not None and A.shape == (ref.shape[0], 4):
-                c.fail(f"{case}: returned homogeneous points of shape {A.shape}: divide by the last coordinate and drop it")
-                continue
-            if A is None or A.shape != ref.shape:
-                c.fail(f"{case}: expected shape {ref.shape}, got {None if A is None else A.shape}")
-                continue
-            if not np.isfinite(A).all():
-                c.fail(f"{case}: the points contain NaN: uv is NaN where a view does not see the point; leave those "
-                       "views out of the residuals (np.isfinite(uv[j, i]).all())")
+            A = _points_shape(c, X, len(ref), case, "the points contain NaN: uv is NaN where a view does not see the "
+                              "point; leave those views out of the residuals (np.isfinite(uv[j, i]).all())")
+            if A is None:
                 continue
             if np.allclose(A, X0, atol=1e-12):
                 c.fail(f"{case}: the points did not move: return the optimized points (result.x), not X0")

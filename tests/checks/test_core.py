@@ -138,8 +138,9 @@ def test_passing_defining_checks_print_as_before(capsys):
     assert core.score(core.RESULTS["defining pass"]) == 1.0
 
 
-def test_score_of_a_result_without_verdicts_is_passed_over_total():
-    assert core.score(core.CheckResult("by hand", 3, 4)) == 0.75
+def test_score_of_a_result_without_verdicts_is_zero():
+    """Points come from recorded verdicts only: a result that claims passes without them earns nothing."""
+    assert core.score(core.CheckResult("by hand", 3, 4)) == 0.0
     assert core.score(core.CheckResult("empty", 0, 0)) == 0.0
 
 

@@ -64,16 +64,16 @@ def _build() -> dict[str, np.ndarray]:
     *slab, trans = _slab_case(g)
     store(out, "slab", **dict(zip(("rgb", "sigma", "z_vals", "rays_d"), slab)), trans=trans)
     for label, res in render_variants_of(*slab, white=True).items():
-        for k in ("weights", "acc_map"):
-            out[f"slab__{label}_{k}"] = res[k].astype(np.float32)
+        out[f"slab__{label}_weights"] = res["weights"].astype(np.float32)
     args = _random_case(g)
     out.update(zip(("rgb", "sigma", "z_vals", "rays_d"), args))
-    for white in (True, False):
+    for white in (True, False):  # the check reads the mistakes' weights, and the two that it tells by another map
         bg = "white" if white else "black"
         store(out, bg, **_render(args, white))
-        for label, res in render_variants_of(*args, white=white).items():
-            for k in KEYS:
-                out[f"{bg}__{label}_{k}"] = res[k].astype(np.float32)
+        var = render_variants_of(*args, white=white)
+        out.update({f"{bg}__{label}_weights": res["weights"].astype(np.float32) for label, res in var.items()})
+        out[f"{bg}__other_background_rgb_map"] = var["other_background"]["rgb_map"].astype(np.float32)
+        out[f"{bg}__depth_normalized_depth_map"] = var["depth_normalized"]["depth_map"].astype(np.float32)
     return out
 
 
@@ -91,14 +91,14 @@ RENDER_VARIANTS = {
     "form_T": {"form": "T"},
     "form_alpha": {"form": "alpha"},
     "depth_normalized": {"depth": "normalized"},
-    "other_background": {"white": None},
+    "other_background": {"white": "the other one"},  # the other background than the case asks for
     "dists_first": {"dists": "first"},
 }
 
 
-def render_variant(rgb, sigma, z, d, white: bool | None = True, delta: str = "norm", last: str = "1e10",
+def render_variant(rgb, sigma, z, d, white: bool = True, delta: str = "norm", last: str = "1e10",
                    cumprod: str = "exclusive", depth: str = "sum", form: str = "alpha_T",
-                   dists: str = "next", flip_white: bool = False) -> dict[str, np.ndarray]:
+                   dists: str = "next") -> dict[str, np.ndarray]:
     """One way of writing volume rendering (the reference is one of them, the others are mistakes).
 
     delta: "norm" (dists * |d|), "plain" (dists, no |d|), "none" (alpha = 1 - exp(-sigma)).
@@ -107,7 +107,7 @@ def render_variant(rgb, sigma, z, d, white: bool | None = True, delta: str = "no
     depth: "sum" (sum w z), "normalized" (sum w z / acc).
     form: the weights: "alpha_T" (alpha_i T_i), "T" (T_i, alpha forgotten), "alpha" (alpha_i, T forgotten).
     dists: "next" (delta_i = t_{i+1} - t_i), "first" (the extra interval put first: delta_1 = 1e10).
-    white: the background (None: the other one than ``flip_white`` says; see :func:`render_variants_of`).
+    white: whether the background is white.
     """
     rgb, sigma, z, d = (np.asarray(a, float) for a in (rgb, sigma, z, d))
     gaps = np.diff(z, axis=-1)
@@ -134,9 +134,5 @@ def render_variant(rgb, sigma, z, d, white: bool | None = True, delta: str = "no
 
 def render_variants_of(rgb, sigma, z, d, white: bool) -> dict[str, dict[str, np.ndarray]]:
     """Every mistake of :data:`RENDER_VARIANTS` on one case: ``{label: {rgb_map, depth_map, acc_map, weights}}``."""
-    out = {}
-    for label, kw in RENDER_VARIANTS.items():
-        kw = dict(kw)
-        kw["white"] = (not white) if kw.get("white", white) is None else white
-        out[label] = render_variant(rgb, sigma, z, d, **kw)
-    return out
+    return {label: render_variant(rgb, sigma, z, d, **dict(kw, white=(not white) if "white" in kw else white))
+            for label, kw in RENDER_VARIANTS.items()}

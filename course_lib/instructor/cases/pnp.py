@@ -64,11 +64,6 @@ def _moved_embedded(seed: int, keep: float = 0.85):
     return K, s * X[order] @ Rs.T + T, x[order].copy()
 
 
-def _pixel_dlt(X, x):
-    """A typical mistake: the DLT on pixel coordinates, then R = orthogonalized P[:, :3] (kept for its answer)."""
-    return pnp.pnp_linear(X, x, np.eye(3))  # K = I: the DLT runs on the pixels themselves
-
-
 def _nine_entries_then_svd(X, x, K, R0, t0):
     """A classic near miss of pnp_nonlinear: least squares over the 9 entries of R and t, then R = U Vᵀ."""
     def res(p):
@@ -119,7 +114,7 @@ def _with_behind(X, x, outl, R, t, seed: int, n: int = 8):
 
     Such a point (on the ray through the camera centre, on the other side) reprojects with no error, so
     only a cheirality test (depth > 0) rejects it; they are outliers, at random rows. Returns
-    ``(X, x, outlier, behind)``.
+    ``(X, x, outlier)``.
     """
     g = np.random.default_rng(seed)
     C = -R.T @ t
@@ -128,19 +123,19 @@ def _with_behind(X, x, outl, R, t, seed: int, n: int = 8):
     rows = np.sort(g.choice(len(X) + n, n, replace=False))
     keep = np.setdiff1d(np.arange(len(X) + n), rows)
     X2, x2 = np.empty((len(X) + n, 3)), np.empty((len(X) + n, 2))
-    o2, b2 = np.zeros(len(X) + n, bool), np.zeros(len(X) + n, bool)
+    o2 = np.zeros(len(X) + n, bool)
     X2[keep], x2[keep], o2[keep] = X, x, outl
-    X2[rows], x2[rows], o2[rows], b2[rows] = Xb, x[src], True, True
-    return X2, x2, o2, b2
+    X2[rows], x2[rows], o2[rows] = Xb, x[src], True
+    return X2, x2, o2
 
 
 def _ransac_cases(out) -> None:
     # outliers: the pose, the inliers, the refit (its RMS over the true inliers)
     K, X, x, outl, R, t = _view(43, 0.3, 0.2, 400)
-    X, x, outl, behind = _with_behind(X, x, outl, R, t, 143)
+    X, x, outl = _with_behind(X, x, outl, R, t, 143)
     res = pnp.pnp_ransac(X, x, K, np.random.default_rng(RANSAC_SEED), threshold_px=THRESHOLD_PX)
-    store(out, "ransac_syn", K=K, X=X, x=x, outlier=outl, behind=behind, true_R=R, true_t=t, R=res.R_cw, t=res.t_cw,
-          inliers=res.inliers, noise=np.array(0.3))
+    store(out, "ransac_syn", K=K, X=X, x=x, outlier=outl, R=res.R_cw, t=res.t_cw, inliers=res.inliers,
+          noise=np.array(0.3))
     # the threshold in pixels: 1 px noise, threshold 3 px
     K, X, x, outl, R, t = _view(45, 1.0, 0.1, 300)
     res = pnp.pnp_ransac(X, x, K, np.random.default_rng(RANSAC_SEED), threshold_px=THRESHOLD_CASE_PX)
@@ -159,14 +154,12 @@ def _build() -> dict[str, np.ndarray]:
     store(out, "lin_noiseless", K=K, X=X[:40], x=x[:40], R=R, t=t)
     K, X, x, _, R, t = _view(42, 1.0, 0.0, 200)
     Rr, tr = pnp.pnp_linear(X, x, K)
-    Rp, tp = _pixel_dlt(X, x)
-    store(out, "lin_noisy", K=K, X=X, x=x, R=Rr, t=tr, true_R=R, true_t=t, pixel_R=Rp, pixel_t=tp)
+    store(out, "lin_noisy", K=K, X=X, x=x, R=Rr, t=tr, true_R=R)
     _ransac_cases(out)
     # pnp_nonlinear: from the linear estimate, and from a start a few degrees away
-    K, X, x, _, R, t = _view(44, 1.0, 0.0, 200)
+    K, X, x, _, _, _ = _view(44, 1.0, 0.0, 200)
     R0, t0 = pnp.pnp_linear(X, x, K)
     _nonlinear_case(out, "nl_syn", K, X, x, R0, t0)
-    store(out, "nl_syn", true_R=R, true_t=t)
     K, X, x, _, R, t = _view(47, 1.0, 0.0, 150)
     _nonlinear_case(out, "nl_far", K, X, x, *_perturbed(R, t, 48))
     # the embedded scene (world frame moved, a subset): register the new image against step 3's reconstruction

@@ -71,7 +71,7 @@ def _build() -> dict[str, np.ndarray]:
     P1, P2 = projection_matrix(WPI_LIKE_K, R1, t1), projection_matrix(WPI_LIKE_K, R2, t2)
     x1 = project(WPI_LIKE_K, R1, t1, Xv) + g.normal(0.0, 1.0, (80, 2))
     x2 = project(WPI_LIKE_K, R2, t2, Xv) + g.normal(0.0, 1.0, (80, 2))
-    store(out, "lin_vertical", P1=P1, P2=P2, x1=x1, x2=x2, X=tri.triangulate_linear(P1, P2, x1, x2), Xtrue=Xv)
+    store(out, "lin_vertical", P1=P1, P2=P2, x1=x1, x2=x2, X=tri.triangulate_linear(P1, P2, x1, x2))
     _store_linear_mistakes(out, "lin_vertical")
 
     # -- choose_pose: candidates from the true E; two scenes whose correct candidate has another index
@@ -115,7 +115,6 @@ def _build() -> dict[str, np.ndarray]:
     X0 = tri.triangulate_linear(projection_matrix(sc.K, R_cws[0], t_cws[0]), projection_matrix(sc.K, R_cws[1], t_cws[1]),
                                 uv[:, 0], uv[:, 1])
     _store_nl_case(out, "nl_syn", sc.K, R_cws, t_cws, uv, X0, tri)
-    out["nl_syn_Xtrue"] = sc.X
 
     # -- the embedded scene: step 2's reference result for the pair, a random subset of its matches, and
     #    (for the linear and the non-linear case) a random frame of the world, so that camera 1 is not [I | 0]
@@ -205,8 +204,8 @@ def _store_pose_case(out, key, Rc, Cc, K, x1, x2, tri) -> None:
     P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])  # the points of every candidate: an X of another one is named
     out[f"{key}_X_all"] = np.stack([tri.triangulate_linear(P1, K @ np.hstack([Rc[k], (-Rc[k] @ Cc[k])[:, None]]), x1, x2)
                                     for k in range(4)])
-    store(out, key, R=Rc, C=Cc, K=K, x1=x1, x2=x2, R_cw=ch.R_cw, t_cw=ch.t_cw, X=ch.X, in_front=ch.in_front,
-          counts=ch.counts, index=np.array(ch.index), mis_counts=cheirality_counts(Rc, Cc, K, x1, x2))
+    store(out, key, R=Rc, C=Cc, K=K, x1=x1, x2=x2, X=ch.X, in_front=ch.in_front, counts=ch.counts,
+          index=np.array(ch.index), mis_counts=cheirality_counts(Rc, Cc, K, x1, x2))
 
 
 def _store_nl_case(out, key, K, R_cws, t_cws, uv, X0, tri) -> None:
