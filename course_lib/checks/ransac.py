@@ -92,6 +92,7 @@ class Run:
     n_iters: int | None
     thr: float
     e: np.ndarray
+    seed: int = 0  # the rng seed of the call that is judged (the probes of the same case draw the same samples)
 
 
 def read(c: Check, spec: Ransac, out: Any, case: str, n: int) -> tuple | None:
@@ -117,17 +118,55 @@ def read(c: Check, spec: Ransac, out: Any, case: str, n: int) -> tuple | None:
 
 def call(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int = 0, rng=None, **kw) -> Run | None:
     """Call the student's RANSAC on ``args`` with ``rng`` (default: a Generator seeded with ``seed``); None after a
-    failed check."""
+    failed check. A call that raised is judged by the majority of three seeds (:func:`_majority`)."""
     rng = np.random.default_rng(seed) if rng is None else rng
-    return _run(c, spec, c.call(fn, *args, rng, case=case, **kw), args, case, kw)
+    judged = [seed]
+    out = c.call(_majority(c, spec, fn, seed, case, judged), *args, rng, case=case, **kw)
+    return _run(c, spec, out, args, case, kw, judged[-1])
 
 
-def _run(c: Check, spec: Ransac, out: Any, args: tuple, case: str, kw: dict) -> Run | None:
-    """The :class:`Run` of a call's result ``out`` (made with the keyword arguments ``kw``); None after a failed check."""
+#: Where a call raised, the seeds it is made again with (its own seed plus each).
+RETRY_SEEDS = (1000, 2000)
+
+
+def _majority(c: Check, spec: Ransac, fn: Callable, seed: int, case: str, judged: list[int]) -> Callable:
+    """``fn``, judged by the majority of three seeds where it raises: the result of a RANSAC depends on its draws, and
+    a right loop can fail on an unlucky one (a first sample whose model has one inlier among hundreds: 1 - wᵏ rounds to
+    1, and N = log(1 - p) / log(1 - wᵏ) divides by zero or is -inf, so the loop ends and the refit has one item). When
+    the calls with the seeds :data:`RETRY_SEEDS` both return, the first is judged (a note says so); when one of them
+    raises too, the first exception stands. The seed of the result judged is appended to ``judged``."""
+    k = spec.k
+
+    def repeated(*args, **kw):
+        *data, rng = args
+        fresh = lambda: (a.copy() if isinstance(a, np.ndarray) else a for a in data)  # noqa: E731
+        try:
+            return fn(*fresh(), rng, **kw)
+        except NotImplementedError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - called again; re-raised for Check.call to report when it is no fluke
+            first = exc
+        try:
+            outs = [fn(*fresh(), np.random.default_rng(seed + s), **kw) for s in RETRY_SEEDS]
+        except Exception:  # noqa: BLE001
+            raise first from None
+        judged.append(seed + RETRY_SEEDS[0])
+        c.note(f"{case}: with the rng seeded {seed} your function raised {type(first).__name__}: {str(first)[:100]}; "
+               f"it returned with the seeds {seed + RETRY_SEEDS[0]} and {seed + RETRY_SEEDS[1]}, and the first of "
+               f"those is judged. If a first sample with almost no inliers ended your loop: 1 - w**{k} rounds to 1 "
+               f"for a tiny w, so log(1 - w**{k}) is 0; np.log1p(-w**{k}) keeps N finite")
+        return outs[0]
+
+    return repeated
+
+
+def _run(c: Check, spec: Ransac, out: Any, args: tuple, case: str, kw: dict, seed: int = 0) -> Run | None:
+    """The :class:`Run` of a call's result ``out`` (made with the keyword arguments ``kw`` and the rng seed ``seed``);
+    None after a failed check."""
     got = read(c, spec, out, case, len(args[0]))
     if got is None:
         return None
-    return Run(case, args, *got, kw.get("threshold_px", spec.threshold), spec.error(got[0], args))
+    return Run(case, args, *got, kw.get("threshold_px", spec.threshold), spec.error(got[0], args), seed)
 
 
 def probe(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int = 0, rng=None, **kw) -> Run | None:
@@ -215,7 +254,7 @@ def sampling_verdicts(c: Check, spec: Ransac, fn: Callable, run: Run, rng_case: 
                  f"{case}: n_iters = {run.n_iters}, while your inlier ratio {w:.0%} at confidence {CONFIDENCE} needs "
                  f"about {need:.0f} samples: N = log(1 - confidence) / log(1 - w^{k}), updated with the best inlier "
                  "ratio so far, at most max_iters, and the loop stops once it has drawn N samples")
-    lo, hi = (probe(c, spec, fn, run.args, case, confidence=p, threshold_px=run.thr) for p in (LOW, HIGH))
+    lo, hi = (probe(c, spec, fn, run.args, case, run.seed, confidence=p, threshold_px=run.thr) for p in (LOW, HIGH))
     if hi is not None and hi.n_iters is not None and (lo is None or lo.n_iters is not None):
         # lo None: the call at the low confidence raised where the same call at the high one ran, so it drew fewer
         # samples (none of them clean enough to refit on): the count followed the confidence
