@@ -15,6 +15,10 @@ an inlier); the verdicts that every RANSAC earns the same way are here, with one
   model fits every item; a sample that held an item twice is named from the draws the rng recorded
   (:class:`RecordingRng`).
 
+A RANSAC's result depends on its draws: a call that fails (it raises, or fails the case's own verdicts) is judged by
+the majority of three seeds (:func:`call`), so a right loop is not failed for one unlucky draw and a wrong one, which
+fails on every seed, still is.
+
 The exercise's own properties (F against the true geometry, the pose despite the outliers, the refit) stay in its
 check module (:mod:`course_lib.checks.fundamental`, :mod:`course_lib.checks.pnp`).
 """
@@ -116,48 +120,84 @@ def read(c: Check, spec: Ransac, out: Any, case: str, n: int) -> tuple | None:
     return model, inl.astype(bool), n_iters
 
 
-def call(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int = 0, rng=None, **kw) -> Run | None:
+def call(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int = 0, rng=None,
+         judge: Callable[[Check, Run], Any] | None = None, **kw) -> Run | None:
     """Call the student's RANSAC on ``args`` with ``rng`` (default: a Generator seeded with ``seed``); None after a
-    failed check. A call that raised is judged by the majority of three seeds (:func:`_majority`)."""
-    rng = np.random.default_rng(seed) if rng is None else rng
-    judged = [seed]
-    out = c.call(_majority(c, spec, fn, seed, case, judged), *args, rng, case=case, **kw)
-    return _run(c, spec, out, args, case, kw, judged[-1])
+    failed check. Without ``rng``, a call that fails (it raises, returns nothing usable, or fails a verdict of
+    ``judge(check, run)``: the case's own verdicts, recorded by the caller after the call) is judged by the majority
+    of three seeds (:func:`_majority`)."""
+    if rng is not None:
+        return _run(c, spec, c.call(fn, *args, rng, case=case, **kw), args, case, kw)
+    return _majority(c, spec, fn, args, case, seed, judge, kw)
 
 
-#: Where a call raised, the seeds it is made again with (its own seed plus each).
+#: Where a call failed, the seeds it is made again with (its own seed plus each).
 RETRY_SEEDS = (1000, 2000)
 
 
-def _majority(c: Check, spec: Ransac, fn: Callable, seed: int, case: str, judged: list[int]) -> Callable:
-    """``fn``, judged by the majority of three seeds where it raises: the result of a RANSAC depends on its draws, and
-    a right loop can fail on an unlucky one (a first sample whose model has one inlier among hundreds: 1 - wᵏ rounds to
-    1, and N = log(1 - p) / log(1 - wᵏ) divides by zero or is -inf, so the loop ends and the refit has one item). When
-    the calls with the seeds :data:`RETRY_SEEDS` both return, the first is judged (a note says so); when one of them
-    raises too, the first exception stands. The seed of the result judged is appended to ``judged``."""
-    k = spec.k
+@dataclass
+class _Attempt:
+    """One call with one seed, recorded on a scratch check: the run, why it failed ("" when it passed), and whether
+    that may be the draws' luck (it raised, or the result failed a verdict of the case; not a result of the wrong
+    form, which no draw explains)."""
 
-    def repeated(*args, **kw):
-        *data, rng = args
-        fresh = lambda: (a.copy() if isinstance(a, np.ndarray) else a for a in data)  # noqa: E731
+    seed: int
+    check: Check
+    run: Run | None
+    why: str
+    luck: bool
+
+
+def _attempt(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int, judge, kw: dict) -> _Attempt:
+    raised = []
+
+    def watched(*a, **k):
         try:
-            return fn(*fresh(), rng, **kw)
+            return fn(*a, **k)
         except NotImplementedError:
             raise
-        except Exception as exc:  # noqa: BLE001 - called again; re-raised for Check.call to report when it is no fluke
-            first = exc
-        try:
-            outs = [fn(*fresh(), np.random.default_rng(seed + s), **kw) for s in RETRY_SEEDS]
-        except Exception:  # noqa: BLE001
-            raise first from None
-        judged.append(seed + RETRY_SEEDS[0])
-        c.note(f"{case}: with the rng seeded {seed} your function raised {type(first).__name__}: {str(first)[:100]}; "
-               f"it returned with the seeds {seed + RETRY_SEEDS[0]} and {seed + RETRY_SEEDS[1]}, and the first of "
-               f"those is judged. If a first sample with almost no inliers ended your loop: 1 - w**{k} rounds to 1 "
-               f"for a tiny w, so log(1 - w**{k}) is 0; np.log1p(-w**{k}) keeps N finite")
-        return outs[0]
+        except Exception:
+            raised.append(True)
+            raise
 
-    return repeated
+    scratch = Check(c.exercise)
+    run = _run(scratch, spec, scratch.call(watched, *args, np.random.default_rng(seed), case=case, **kw), args, case,
+               kw, seed)
+    judged = Check(c.exercise)
+    if run is not None and judge is not None:
+        judge(judged, run)
+    why = next((v.text for v in scratch.verdicts + judged.verdicts if not v.ok), "")
+    return _Attempt(seed, scratch, run, why, bool(raised) or (run is not None and bool(why)))
+
+
+def _majority(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int, judge, kw: dict) -> Run | None:
+    """The call with ``seed``, and where it fails by bad luck, with the seeds :data:`RETRY_SEEDS` too: a RANSAC's
+    result depends on its draws, and a right loop fails on an unlucky one now and then (a first sample whose model
+    has one inlier among hundreds: 1 - wᵏ rounds to 1, N = log(1 - p) / log(1 - wᵏ) divides by zero or is -inf, the
+    loop ends and the refit raises; or a plain loop settles on a poor consensus). Bad luck: the call raised or its
+    result failed a verdict of ``judge``; a result of the wrong form is no draw's luck and is judged at once. When
+    both other seeds pass, the first of them is judged (a note says so); else the call with ``seed`` is. What the
+    judged call recorded (its failure, when it failed) is recorded on ``c``; the caller records the case's verdicts
+    on the run returned."""
+    tries = [_attempt(c, spec, fn, args, case, seed, judge, kw)]
+    for d in RETRY_SEEDS if tries[0].luck else ():
+        tries.append(_attempt(c, spec, fn, args, case, seed + d, judge, kw))
+        if tries[-1].why:
+            break  # two of three failed
+    chosen = tries[1] if len(tries) == 3 and not tries[2].why else tries[0]
+    c.case = case
+    c.answered.setdefault(case, False)
+    for v in chosen.check.verdicts:
+        c.expect(v.ok, v.text, v.text, defining=v.defining, kind=v.kind, named=v.named)
+    c.unanswered_call = chosen.check.unanswered_call
+    if chosen is not tries[0]:
+        k = spec.k
+        c.note(f"{case}: with the rng seeded {seed} your function failed ({tries[0].why[:160]}), with the seeds "
+               f"{tries[1].seed} and {tries[2].seed} it passed, and the first of those is judged: a RANSAC depends on "
+               "its draws, so a case is judged by the majority of three seeds"
+               + (f". If a first sample with almost no inliers ended your loop: 1 - w**{k} rounds to 1 for a tiny w, "
+                  f"so log(1 - w**{k}) is 0; np.log1p(-w**{k}) keeps N finite" if "raised" in tries[0].why else ""))
+    return chosen.run
 
 
 def _run(c: Check, spec: Ransac, out: Any, args: tuple, case: str, kw: dict, seed: int = 0) -> Run | None:

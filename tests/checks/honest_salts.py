@@ -146,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m tests.checks.honest_salts", description=__doc__.splitlines()[0])
     p.add_argument("--salts", type=int, default=20, help="grade on salts first..first+N-1 (default 20)")
     p.add_argument("--first", type=int, default=0, help="the first salt (default 0)")
+    p.add_argument("--only", default="", help="comma-separated salts to grade on (instead of --salts/--first)")
     p.add_argument("--exercises", default=",".join(RANDOMIZED),
                    help="comma-separated exercises, or 'all' (default: the randomized ones)")
     p.add_argument("--own-steps", action="store_true",
@@ -154,8 +155,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true", help="no line per salt")
     a = p.parse_args(argv)
     exercises = None if a.exercises == "all" else tuple(a.exercises.split(","))
+    salts = [int(x) for x in a.only.split(",")] if a.only else list(range(a.first, a.first + a.salts))
     log = None if a.quiet else (lambda s: print(s, file=sys.stderr, flush=True))
-    tallies = grade_salts(honest_of(exercises), list(range(a.first, a.first + a.salts)), not a.own_steps, log)
+    tallies = grade_salts(honest_of(exercises), salts, not a.own_steps, log)
     print(table(tallies))
     return 1 if any(t.lost for t in tallies) else 0
 
