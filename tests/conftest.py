@@ -9,10 +9,12 @@ What the workers would otherwise share is split here, before any test module imp
 * threads: one per worker for BLAS, OpenMP and torch (two workers with two threads each on two cores spend their
   time waiting for one another), and for the kernels and processes the tests start.
 
-The files go to the workers in the order of :data:`FIRST` (the longest first, so that no long file starts last),
-then every file with a slow test, then the rest in collection order. The notebooks that write into the repository's
-``outputs/`` folder (``REPO_ROOT / "outputs"``: the same folder from nbval's kernel and from the browser test's) run
-on one worker with the browser test, one after the other (:func:`pytest_xdist_make_scheduler`).
+The notebooks that write into the repository's ``outputs/`` folder (``REPO_ROOT / "outputs"``: the same folder from
+nbval's kernel and from the browser test's) run on one worker with the browser test, one after the other
+(:func:`pytest_xdist_make_scheduler`). The files go to the workers longest first, so that no long file starts last
+and the workers end together: that unit first (the longest, in the whole suite and in ``pytest -m "not slow"``, where
+notebooks 08-10 alone are the longest), then :data:`FIRST`, then every other file with a slow test, then the rest in
+collection order.
 """
 
 from __future__ import annotations
@@ -24,15 +26,22 @@ import pytest
 
 UIDS_PER_WORKER = 16
 
-#: The longest files, longest first (measured with --durations; README, "Test"). The browser test's work unit holds
-#: the notebooks that write into outputs/ too (:data:`OUTPUTS_WRITERS`: 08-10, which train), so it is the longest.
+#: The longest files after the browser test's unit, longest first (measured with a per-worker timeline of the whole
+#: suite, README "Test"); the last ones are the longest of the quick subset too.
 FIRST = (
-    "tests/browser/test_browser.py",
     "tests/student/test_literal_student.py",
-    "tests/instructor/test_attacks.py",
-    "tests/instructor/test_release_behaviour.py",
     "tests/instructor/test_honest_grading.py",
+    "tests/instructor/test_release_behaviour.py",
     "tests/instructor/test_kit_holds_no_solution.py",
+    "tests/instructor/test_attacks.py",
+    "tests/instructor/test_grade.py",
+    "tests/instructor/test_valid_variants.py",
+    "tests/instructor/test_release.py",
+    "tests/instructor/test_gradescope.py",
+    "tests/instructor/test_template.py",
+    "tests/checks/test_mistakes.py",
+    "tests/nerf/test_train.py",
+    "tests/instructor/test_classroom.py",
 )
 
 #: The files whose notebooks write into the repository's outputs/ folder: one work unit, on one worker.
@@ -56,7 +65,9 @@ def pytest_collection_modifyitems(config, items) -> None:
 
     def rank(item) -> tuple[int, int]:
         path = item.nodeid.split("::", 1)[0]
-        return (0, FIRST.index(path)) if path in FIRST else ((1, 0) if path in slow else (2, 0))
+        if path in OUTPUTS_WRITERS:
+            return (0, 0)
+        return (1, FIRST.index(path)) if path in FIRST else ((2, 0) if path in slow else (3, 0))
 
     items.sort(key=rank)  # stable: a file's tests keep their order
 

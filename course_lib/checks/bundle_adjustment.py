@@ -86,15 +86,11 @@ def _visibility_case(c: Check, fn, case: str, uv, expected) -> None:
     if V is None:
         return
     T, M = expected.shape
-    if V.shape == (M, T) and V.shape != (T, M):
-        c.fail(f"{case}: V has shape {V.shape}, expected ({T}, {M}): the kit stores points as rows, "
-               "V[j, i] for point j and image i (the transpose of the handout's V_ij)")
-        return
-    if V.shape == (T, M, 2):
-        c.fail(f"{case}: V has shape {V.shape}: one entry per point and image, not per coordinate; reduce the "
-               "last axis, e.g. V = ~np.isnan(track_uv).any(axis=2)")
-        return
-    if not c.shape(V, (T, M), f"{case}: V"):
+    if not c.shape(V, (T, M), f"{case}: V", {
+            (M, T): f"the kit stores points as rows, V[j, i] for point j and image i, shape ({T}, {M}) (the "
+                    "transpose of the handout's V_ij)",
+            (T, M, 2): "one entry per point and image, not per coordinate; reduce the last axis, e.g. "
+                       "V = ~np.isnan(track_uv).any(axis=2)"}):
         return
     if V.dtype != bool:
         c.detail(False, "", f"{case}: correct values, but V has dtype {V.dtype}: the docstring asks for a bool array "
@@ -129,13 +125,10 @@ def _residual_outcome(c: Check, fn, f, key: str, case: str) -> Outcome | None:
     p, M, N = f[f"{key}_params"], int(f[f"{key}_M"]), int(f[f"{key}_N"])
     cam, pt, uv, K, exp = (f[f"{key}_{s}"] for s in ("camera_idx", "point_idx", "uv", "K", "expected"))
     out = c.call(fn, p, M, N, cam, pt, uv, K, case=case)
+    if not c.shape(out, (2 * len(cam),), f"{case}: r", {(len(cam), 2): f"return the flat vector r.ravel() of shape "
+                                                        f"({2 * len(cam)},), [u_0' - u_0, v_0' - v_0, u_1' - u_1, ...]"}):
+        return None
     r = as_float(out)
-    if r is not None and r.shape == (len(cam), 2):
-        c.fail(f"{case}: r has shape {r.shape}: return the flat vector r.ravel() of shape ({2 * len(cam)},), "
-               "[u_0' - u_0, v_0' - v_0, u_1' - u_1, ...]")
-        return None
-    if not c.shape(out, (2 * len(cam),), f"{case}: r"):
-        return None
     tol = RESIDUAL_ATOL_PX + RTOL * np.abs(exp).max()  # a float32 answer is good to ~1e-4 px
     same = lambda a: np.abs(r - a).max() < tol or np.abs(r + a).max() < tol  # noqa: E731
     stored = {name for name in RESIDUAL_VARIANTS if f"{key}_var_{name}" in f}  # the mistakes this case can tell

@@ -549,8 +549,9 @@ class Check:
             return None
         return tuple(a.reshape(s) for a, s in zip(arrs, shapes.values()))
 
-    def shape(self, value: Any, shape: tuple, what: str) -> bool:
-        """Check that ``value`` is an array of ``shape`` (``None`` entries match any size)."""
+    def shape(self, value: Any, shape: tuple, what: str, hints: dict[tuple, str] | None = None) -> bool:
+        """Check that ``value`` is an array of ``shape`` (``None`` entries match any size); ``hints``: what to change
+        for a wrong shape that is a known mistake (``{(9,): "reshape the null vector to (3, 3)"}``)."""
         if value is FAILED:
             return False
         want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
@@ -559,7 +560,9 @@ class Check:
             return self.gate(False, "", f"{what} is {_describe(value)}, expected a numeric array of shape {want}")
         ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape, strict=True))
         if not ok:
-            return self.gate(False, "", f"{what} has shape {tuple(arr.shape)}, expected {want}")
+            hint = (hints or {}).get(tuple(arr.shape))
+            return self.gate(False, "", f"{what} has shape {tuple(arr.shape)}" + (f": {hint}" if hint else
+                                                                                  f", expected {want}"))
         if not np.isfinite(arr).all():
             return self.gate(False, "", f"{what} contains NaN or inf")
         return self.gate(True, f"{what} has shape {want}", "")

@@ -19,7 +19,7 @@ from typing import Callable
 
 import numpy as np
 
-from course_lib.checks.core import (FAILED, RTOL, Check, Outcome, as_float, declare_defining, load_fixture,
+from course_lib.checks.core import (RTOL, Check, Outcome, as_float, declare_defining, load_fixture,
                                     report_cases, same_up_to_scale, scale_free_gap)
 from course_lib.conventions import rotation_angle_deg, skew
 
@@ -204,11 +204,8 @@ def check_pose_candidates(pose_candidates: Callable) -> None:
             case = _CASE_TEXT[name]
             if f"{name}_factor" in f and float(f[f"{name}_factor"]) != -1.0:
                 case = case.replace("-E", f"{float(f[f'{name}_factor']):g} E")
-            out = c.call(pose_candidates, E, case=case)
-            if out is FAILED:
-                continue
-            if not isinstance(out, (tuple, list)) or len(out) != 2:
-                c.fail(f"{case}: expected a tuple (R (4, 3, 3), C (4, 3)), got {type(out).__name__}")
+            out = c.fields(c.call(pose_candidates, E, case=case), case, ("R", "C"), "the tuple (R (4, 3, 3), C (4, 3))")
+            if out is None:
                 continue
             R, C = as_float(out[0]), as_float(out[1])
             if C is not None and C.shape == (4, 3, 1):

@@ -131,18 +131,13 @@ def _normalize_case(c: Check, fn: Callable, x: np.ndarray, T_ref: np.ndarray, ca
     out = c.call(fn, x, case=case)
     if out is FAILED:
         return
-    if not isinstance(out, (tuple, list)) or len(out) != 2:
-        c.fail(f"{case}: expected a tuple (x_n, T), got {type(out).__name__}")
+    out = c.fields(out, case, ("x_n", "T"), "the tuple (x_n, T)")
+    if out is None or not (c.shape(out[0], (len(x), 2), f"{case}: x_n", {
+            (2, len(x)): "points are rows, return shape (N, 2)",
+            (len(x), 3): "return the 2-D normalized points (drop the homogeneous 1)"})
+            & c.shape(out[1], (3, 3), f"{case}: T")):
         return
     xn, T = as_float(out[0]), as_float(out[1])
-    if xn is not None and xn.shape == (2, len(x)):
-        c.fail(f"{case}: x_n has shape {xn.shape}: points are rows, return shape (N, 2)")
-        return
-    if xn is not None and xn.shape == (len(x), 3) and np.allclose(xn[:, 2], 1.0):
-        c.fail(f"{case}: x_n has shape {xn.shape}: return the 2-D normalized points (drop the homogeneous 1)")
-        return
-    if not (c.shape(out[0], (len(x), 2), f"{case}: x_n") & c.shape(out[1], (3, 3), f"{case}: T")):
-        return
     with np.errstate(divide="ignore", invalid="ignore"):
         mapped = to_homogeneous(x) @ T.T
         mapped = mapped[:, :2] / mapped[:, 2:]
@@ -255,12 +250,10 @@ def check_eight_point(eight_point: Callable) -> None:
             x1, x2 = f[f"{p}_x1"], f[f"{p}_x2"]
             case = _CASE_TEXT[name]
             out = c.call(eight_point, x1, x2, case=case)
+            reshape = "reshape the null vector to (3, 3) (row-major, F.reshape(3, 3))"
+            if not c.shape(out, (3, 3), f"{case}: F", {(9,): reshape, (9, 1): reshape}):
+                continue
             F = as_float(out)
-            if F is not None and F.shape in ((9,), (9, 1)):
-                c.fail(f"{case}: F has shape {F.shape}: reshape the null vector to (3, 3) (row-major, F.reshape(3, 3))")
-                continue
-            if not c.shape(out, (3, 3), f"{case}: F"):
-                continue
             ok, good, bad = _eight_point_fit(F, f, p, name)
             results.append(Outcome(case, ok, good, bad, data=(F, p), keys=() if ok else {
                 key for key in _EIGHT_POINT_MISTAKES
@@ -331,12 +324,10 @@ def check_sampson_distance(sampson_distance: Callable) -> None:
             F, x1, x2, d_ref = f[f"{p}_F"], f[f"{p}_x1"], f[f"{p}_x2"], f[f"{p}_d"]
             case = _SD_TEXT[name].format(n=len(x1), norm=np.linalg.norm(F))
             out = c.call(sampson_distance, F, x1, x2, case=case)
+            flat = "return a flat array of shape (N,)"
+            if not c.shape(out, (len(x1),), f"{case}: d", {(len(x1), 1): flat, (1, len(x1)): flat}):
+                continue
             d = as_float(out)
-            if d is not None and d.shape in ((len(x1), 1), (1, len(x1))):
-                c.fail(f"{case}: d has shape {d.shape}: return a flat array of shape (N,)")
-                continue
-            if not c.shape(out, (len(x1),), f"{case}: d"):
-                continue
             ok = _same_distances(d, f[f"{p}_d"])
             j = int(np.argmax(np.abs(d - f[f"{p}_d"])))
             results.append(Outcome(case, ok, "distances match the reference (pixels)",

@@ -140,10 +140,8 @@ def _one_camera(c: Check, get_rays: Callable, f, name: str) -> Outcome | None:
                "transposed; use torch.meshgrid(u, v, indexing='xy') (or indexing='ij' with (v, u)) so that rows are "
                "image rows v", named="meshgrid")
         return None
-    if d.shape == (H * W, 3):
-        c.fail(f"{case}: rays_d has shape {d.shape}: return one ray per pixel as (H, W, 3) (reshape at the end)")
-        return None
-    if not c.shape(d, (H, W, 3), f"{case}: rays_d"):
+    if not c.shape(d, (H, W, 3), f"{case}: rays_d", {(H * W, 3): "return one ray per pixel as (H, W, 3) (reshape at "
+                                                                "the end)"}):
         return None
     labels = set(matching(d, f, f"rays_{name}_d", RAY_HINTS))
     R_, t_ = np.asarray(c2w, float)[:3, :3], np.asarray(c2w, float)[:3, 3]

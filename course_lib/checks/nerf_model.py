@@ -296,10 +296,8 @@ def _outputs(c: Check, model, pts, dirs, lead, case: str):
     if out is None:
         return None
     rgb, sigma = (as_float(v) for v in out)
-    if sigma is not None and sigma.shape == (*lead, 1):
-        c.fail(f"{case}: sigma has shape {sigma.shape}: drop the last axis (sigma[..., 0]) so that it is {lead}")
-        return None
-    if not (c.shape(rgb, (*lead, 3), f"{case}: rgb") & c.shape(sigma, lead, f"{case}: sigma")):
+    drop = f"drop the last axis (sigma[..., 0]) so that it is {lead}"
+    if not (c.shape(rgb, (*lead, 3), f"{case}: rgb") & c.shape(sigma, lead, f"{case}: sigma", {(*lead, 1): drop})):
         return None
     return rgb, sigma
 

@@ -17,6 +17,7 @@ total, no grading) unless container mode applies (:mod:`course_lib.instructor.sa
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import signal
@@ -143,10 +144,8 @@ class Cgroup:
         """Kill every process left in the cgroup and remove it."""
         kill = os.path.join(self.paths[0], "cgroup.kill")
         if self.version == 2 and os.path.exists(kill):
-            try:
+            with contextlib.suppress(OSError):
                 _write(kill, "1")
-            except OSError:
-                pass
         for _ in range(50):
             left = _kill_members(self.paths)
             if not left:
@@ -182,10 +181,8 @@ def _kill_members(paths: list[str]) -> int:
             continue
         for pid in pids:
             left += 1
-            try:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.kill(pid, signal.SIGKILL)
-            except (ProcessLookupError, PermissionError):
-                pass
     return left
 
 

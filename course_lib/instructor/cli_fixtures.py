@@ -12,6 +12,7 @@ import argparse
 
 import numpy as np
 
+from course_lib.fixtures import load_fixture
 from course_lib.instructor.cases import builders
 from course_lib.paths import FIXTURES_DIR
 
@@ -36,21 +37,13 @@ def build_fixtures(names: list[str] | None = None, write: bool = True) -> dict[s
     diffs: dict[str, list[str]] = {}
     for name in todo:
         new = found[name]()
-        old = _stored(name)
+        old = load_fixture(name) if (FIXTURES_DIR / f"{name}.npz").exists() else {}
         changed = [k for k in sorted(set(new) | set(old)) if not same_arrays(new.get(k), old.get(k), mistake="_mis_" in k)]
         diffs[name] = changed
         if write and changed:
             FIXTURES_DIR.mkdir(parents=True, exist_ok=True)
             np.savez_compressed(FIXTURES_DIR / f"{name}.npz", **{k: np.asarray(v) for k, v in new.items()})
     return diffs
-
-
-def _stored(name: str) -> dict[str, np.ndarray]:
-    path = FIXTURES_DIR / f"{name}.npz"
-    if not path.exists():
-        return {}
-    with np.load(path, allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}
 
 
 def same_arrays(a, b, mistake: bool = False) -> bool:

@@ -23,10 +23,6 @@ from course_lib.paths import REPO_ROOT
 from course_lib.validate import KitInputError
 
 
-def _is_check(cell) -> bool:
-    return cell.cell_type == "code" and cell.source.lstrip().startswith(CHECK_MARK)
-
-
 def _text(outputs) -> str:
     return "".join(o.get("text", "") for o in outputs if o.get("output_type") == "stream")
 
@@ -50,7 +46,7 @@ def refresh_checks(path: Path, timeout: float = 600.0, write: bool = True) -> li
         raise KitInputError(f"{path.name}: cell {i} raised {o.ename}: {o.evalue}; nothing was written")
     changed = []
     for i, (s, r) in enumerate(zip(stored.cells, run.cells)):
-        if not _is_check(s):
+        if s.cell_type != "code" or not s.source.lstrip().startswith(CHECK_MARK):
             continue
         if _text(s.outputs) != _text(r.outputs):
             changed.append(i)

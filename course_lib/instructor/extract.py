@@ -31,7 +31,6 @@ import ast
 import bisect
 import builtins
 import functools
-import hashlib
 import re
 import symtable
 from dataclasses import dataclass, field
@@ -93,13 +92,14 @@ class Statement:
         return isinstance(self.node, ast.ImportFrom) and self.node.module == "__future__"
 
 
-def code_cells(nb) -> list[tuple[int, str, ast.Module | None]]:
-    """``[(cell index, python source, tree or None if it does not parse)]`` of the code cells."""
+def code_cells(cells) -> list[tuple[int, str, ast.Module | None]]:
+    """``[(cell index, python source, tree or None if it does not parse)]`` of the code cells among ``cells``
+    (a notebook's ``(cell type, source)`` pairs)."""
     out = []
-    for i, cell in enumerate(nb.cells):
-        if cell.cell_type != "code":
+    for i, (kind, source) in enumerate(cells):
+        if kind != "code":
             continue
-        src = python_source(cell.source)
+        src = python_source(source)
         try:
             tree = ast.parse(src)
         except SyntaxError:
@@ -235,32 +235,24 @@ def top_level_statements(nb, before_cell: int) -> tuple[list[Statement], list[in
     The whole notebook is parsed and analysed once (the last few notebooks are kept): every exercise of a notebook
     takes its prefix, so the grader's work on a notebook is linear in its size, not in its size times its exercises.
     """
-    stmts, bad = _analysed(nb)
+    stmts, bad = _analysed(tuple((c.cell_type, c.source) for c in nb.cells))
     return [s for s in stmts if s.cell < before_cell], [i for i in bad if i < before_cell]
 
 
-_ANALYSED: dict[str, tuple[list[Statement], list[int]]] = {}
-
-
-def _analysed(nb) -> tuple[list[Statement], list[int]]:
-    key = hashlib.sha256("\0".join(f"{c.cell_type}\1{c.source}" for c in nb.cells).encode("utf-8", "replace")
-                         ).hexdigest()
-    if key not in _ANALYSED:
-        stmts: list[Statement] = []
-        bad = []
-        lazy = False
-        for i, src, tree in code_cells(nb):
-            if tree is None:
-                bad.append(i)
-                continue
-            for node in tree.body:
-                lazy = lazy or (isinstance(node, ast.ImportFrom) and node.module == "__future__"
-                                and any(a.name == "annotations" for a in node.names))
-                stmts.append(analyse(i, src, node, lazy))
-        while len(_ANALYSED) >= 4:
-            _ANALYSED.pop(next(iter(_ANALYSED)))
-        _ANALYSED[key] = (stmts, bad)
-    return _ANALYSED[key]
+@functools.lru_cache(maxsize=4)
+def _analysed(cells: tuple[tuple[str, str], ...]) -> tuple[list[Statement], list[int]]:
+    stmts: list[Statement] = []
+    bad = []
+    lazy = False
+    for i, src, tree in code_cells(cells):
+        if tree is None:
+            bad.append(i)
+            continue
+        for node in tree.body:
+            lazy = lazy or (isinstance(node, ast.ImportFrom) and node.module == "__future__"
+                            and any(a.name == "annotations" for a in node.names))
+            stmts.append(analyse(i, src, node, lazy))
+    return stmts, bad
 
 
 def _slice(stmts: list[Statement], name: str) -> tuple[set[int], set[str]]:

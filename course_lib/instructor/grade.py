@@ -8,18 +8,14 @@ side, never from the submission), :func:`grade_submission` runs four steps, each
 1. **Structure** (:mod:`.grade_plan`): the submitted notebook must still hold the exercise's ``def`` before its
    check cell, in the original order, and the check cell unedited; else no credit, and the report says which.
 2. **Hidden checks, sealed by design** (:mod:`.grade_run`, :mod:`.hidden`): the exercise's check runs in a worker of
-   the grader on hidden cases (the fixtures rebuilt with a grading-time seed), the student's function a proxy for
-   the same function in a sandboxed process that holds only the student's code and the student release of
-   ``course_lib`` (no reference solution there to import), called with data (:mod:`.student_process`); the earlier
-   exercises it calls are answered by their references (:mod:`.oracle`), so each mistake costs points once, in its
-   own exercise. **One clock, one memory
-   cap** per exercise and per submission count everything the submission causes.
-3. **nbval, and a verdict no notebook can forge** (:mod:`.grade_run`, :mod:`.nbval_run`): the notebooks run under
-   nbval in the same sandbox, check cells restored, package installs left out with a neutral note; nbval says
-   whether each check cell runs when the notebook runs top to bottom, and the check cell's verdict is computed by
-   the grader: the same check on the notebook's own cases, with the student's function in the sandbox.
-4. **Slow code is graded**: an exercise's budget (:data:`~.settings.DEFAULT_EXERCISE_SECONDS`, 120 s) lets correct but slow code
-   finish; the feedback says when it was slow.
+   the grader on hidden cases (the fixtures rebuilt with a grading-time seed), the student's function in a sandboxed
+   process that holds only the student's code and the student release of ``course_lib`` (:mod:`.student_process`);
+   the earlier exercises it calls are answered by their references (:mod:`.oracle`), so each mistake costs points
+   once. **One clock, one memory cap** per exercise and per submission count everything the submission causes.
+3. **nbval, and a verdict no notebook can forge** (:mod:`.nbval_run`): the notebooks run under nbval in the same
+   sandbox, check cells restored; the check cell's verdict is computed by the grader, on the notebook's own cases.
+4. **Slow code is graded**: an exercise's budget (:data:`~.settings.DEFAULT_EXERCISE_SECONDS`) lets correct but slow
+   code finish; the feedback says when it was slow.
 
 Points per exercise (default 10): 90 % times the hidden score (:func:`course_lib.checks.core.score_against` the
 reference's), plus 10 % when all hidden checks pass, the notebook runs top to bottom through the check cell, and
@@ -108,9 +104,8 @@ def grade_submission(
         exercises: grade only these exercises.
         hidden: hidden cases prepared by :func:`prepare_hidden` (made here when None).
         salt: the hidden seed (random when None; it is written into the report).
-        timeout: wall-clock seconds for the hidden checks of one exercise (its definitions, every call, the
-            grader's checks of the results and the call-backs together, once its process started); at least 10
-            times the reference's time on the same cases plus 5 s (:func:`~.settings.exercise_seconds`).
+        timeout: wall-clock seconds for the hidden checks of one exercise, at the least
+            (:func:`~.settings.exercise_seconds`).
         cell_timeout: seconds for one notebook cell under nbval.
         run_nbval: run the notebooks under nbval.
         allow_reference: the instructor's self-test: calls of the reference solution are allowed.

@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import ast
 import atexit
+import contextlib
 import importlib
 import os
 import re
 import secrets
 import shutil
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import nbformat
@@ -69,30 +70,15 @@ def exercise_key(e: ExerciseSpec) -> str:
 def _preload(specs: list[NotebookSpec]) -> None:
     """Import torch, the check modules and the references, and load the notebooks' own cases, once, so that forked
     runs start fast."""
-    try:
+    with contextlib.suppress(ImportError):  # pragma: no cover
         import torch  # noqa: F401
-    except ImportError:  # pragma: no cover
-        pass
     hold_in_memory(FIXTURES_DIR)  # the notebooks' own cases, on which the check cells' verdicts are computed
     for s in specs:
         for e in s.exercises:
             for mod in (e.check_module, e.reference.split(":")[0] if e.reference else None):
                 if mod:
-                    try:
+                    with contextlib.suppress(ImportError):
                         importlib.import_module(mod)
-                    except ImportError:
-                        pass
-
-
-def _select(specs: list[NotebookSpec], exercises: list[str] | None) -> list[NotebookSpec]:
-    if not exercises:
-        return specs
-    out = []
-    for s in specs:
-        keep = [e for e in s.exercises if e.name in exercises]
-        if keep:
-            out.append(NotebookSpec(s.name, keep, s.solution_modules, s.imports))
-    return out
 
 
 def _temporary_student_library(notebooks_dir: Path) -> Path:
@@ -155,7 +141,9 @@ def specs_to_grade(notebooks_dir: Path, notebooks: list[str] | None,
         if not notebooks or any(err.startswith(n) for n in notebooks):
             raise KitInputError(f"cannot grade against an instructor notebook that cannot be released: {err}")
     specs = [s for s in all_specs if s.exercises and (not notebooks or any(s.name.startswith(n) for n in notebooks))]
-    specs = _select(specs, exercises)
+    if exercises:
+        specs = [replace(s, exercises=[e for e in s.exercises if e.name in exercises]) for s in specs]
+        specs = [s for s in specs if s.exercises]
     if not specs:
         raise KitInputError(f"no instructor notebook or exercise matches {notebooks or ''} {exercises or ''}")
     return specs, [(e.name, e.reference) for s in all_specs for e in s.exercises]
@@ -172,12 +160,6 @@ class ExerciseGrade:
     # check-edited
     hidden: dict = field(default_factory=dict)
     nbval: str = "not run"
-
-
-def _find_notebooks(sub: Path) -> Path:
-    if (sub / "notebooks").is_dir():
-        return sub / "notebooks"
-    return sub
 
 
 @dataclass
@@ -204,35 +186,28 @@ class GradingRun:
 
 def _plan_notebook(run: GradingRun, s: NotebookSpec, path: Path) -> None:
     """Read one submitted notebook (the grader's copy) and place its exercises; never raises."""
+    unread = lambda *why: run.plans.append((s, None, {}, [(None, w) for w in why]))  # noqa: E731 - no credit, why
     if not path.is_file():
         left_out = [r for r in run.submission.refused if r.split(":")[0] in (s.name, f"notebooks/{s.name}", "notebooks")]
-        why = [(None, f"{s.name} is missing from the submission ({left_out[0]})")] if left_out else []
-        run.plans.append((s, None, {}, why))
-        return
+        return unread(*[f"{s.name} is missing from the submission ({r})" for r in left_out[:1]])
     size = path.stat().st_size
     if size > MAX_NOTEBOOK_BYTES:
-        run.plans.append((s, None, {}, [(None, f"{s.name} is {size / 2**20:.0f} MiB, more than the grader reads "
-                                               f"({MAX_NOTEBOOK_BYTES >> 20} MiB): clear its outputs and submit it "
-                                               "again")]))
-        return
+        return unread(f"{s.name} is {size / 2**20:.0f} MiB, more than the grader reads ({MAX_NOTEBOOK_BYTES >> 20} "
+                      "MiB): clear its outputs and submit it again")
     try:
         nb = nbformat.read(path, as_version=4)
         code = sum(len(c.source.encode("utf-8", "replace")) for c in nb.cells if c.cell_type == "code")
         if code > MAX_CODE_BYTES:
-            run.plans.append((s, None, {}, [(None, f"the code cells of {s.name} hold {code / 1024:.0f} KiB of source, "
-                                                   f"more than the grader reads ({MAX_CODE_BYTES >> 10} KiB); none of "
-                                                   "it was graded")]))
-            return
+            return unread(f"the code cells of {s.name} hold {code / 1024:.0f} KiB of source, more than the grader "
+                          f"reads ({MAX_CODE_BYTES >> 10} KiB); none of it was graded")
         notes, nodes = _unparseable_cells(nb)
         if nodes > MAX_CODE_NODES:
-            run.plans.append((s, None, {}, [(None, f"the code cells of {s.name} hold {nodes} syntax-tree nodes, more "
-                                                   f"than the grader reads ({MAX_CODE_NODES}); none of it was graded")]))
-            return
+            return unread(f"the code cells of {s.name} hold {nodes} syntax-tree nodes, more than the grader reads "
+                          f"({MAX_CODE_NODES}); none of it was graded")
         places = place_exercises(nb, s)
         nbv, installs = without_installs(restored(nb, s, places))
     except Exception as exc:  # noqa: BLE001 - a notebook the grader cannot read is that notebook's verdict
-        run.plans.append((s, None, {}, [(None, f"the notebook cannot be read by the grader: {exc_text(exc)}")]))
-        return
+        return unread(f"the notebook cannot be read by the grader: {exc_text(exc)}")
     run.plans.append((s, nb, places, notes + installs))
     run.to_nbval[s.name] = nbv
 
@@ -311,8 +286,10 @@ def _structure_verdict(e: ExerciseSpec, places: dict[str, Placement]) -> tuple[s
 def plan_submission(run: GradingRun) -> None:
     """Read and place every notebook to grade (:func:`_plan_notebook`), and start each exercise's grade: final where
     the notebook's structure gives it no credit, else pending its hidden checks."""
+    root = run.submission.root
+    folder = root / "notebooks" if (root / "notebooks").is_dir() else root
     for s in run.specs:
-        _plan_notebook(run, s, _find_notebooks(run.submission.root) / s.name)
+        _plan_notebook(run, s, folder / s.name)
     for s, nb, places, notes in run.plans:
         for e in s.exercises:
             run.grades.append(_structure(run, s, e, nb, places, notes))

@@ -58,15 +58,11 @@ def plain_text(text: str) -> str:
     escape (``\\u202e``); tabs and newlines kept. The one sanitiser of everything the report and the feedback show."""
     text = _ANSI.sub("", text)
     if text.isascii():
-        return _ASCII_CONTROL.sub(_escape, text)
+        return _ASCII_CONTROL.sub(lambda m: _escape_char(m.group()), text)
     return "".join(_escape_char(c) if c not in "\t\n" and _hidden_char(c) else c for c in text)
 
 
 _ASCII_CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f]")
-
-
-def _escape(m: re.Match) -> str:
-    return _escape_char(m.group())
 
 
 def _escape_char(c: str) -> str:

@@ -35,6 +35,7 @@ class Gradebook:
     def __init__(self, path: Path):
         self.path = Path(path)
         self.db = sqlite3.connect(self.path)
+        self.db.row_factory = sqlite3.Row
         self.db.executescript(_SCHEMA)
 
     def close(self) -> None:
@@ -64,13 +65,9 @@ class Gradebook:
 
     def latest(self) -> list[sqlite3.Row]:
         """Each student's latest grading (id, student, commit_id, graded_at, status, total, max), by student."""
-        self.db.row_factory = sqlite3.Row
-        try:
-            return self.db.execute(
-                "SELECT id, student, commit_id, graded_at, status, total, max FROM gradings WHERE id IN "
-                "(SELECT max(id) FROM gradings GROUP BY student) ORDER BY student").fetchall()
-        finally:
-            self.db.row_factory = None
+        return self.db.execute(
+            "SELECT id, student, commit_id, graded_at, status, total, max FROM gradings WHERE id IN "
+            "(SELECT max(id) FROM gradings GROUP BY student) ORDER BY student").fetchall()
 
     def export_csv(self, path: Path) -> int:
         """Write one row per student (latest grading): total, then points per notebook, then per exercise (columns

@@ -6,12 +6,9 @@
   0, which the checks reuse for the student's own RANSAC calls, is kept. They stay in this
   process.
 * :func:`run_hidden` runs the check function of the exercise on those cases
-  (:func:`course_lib.fixtures.using_cases`) in a worker forked from the grader, inside the
-  exercise's cgroup and on the exercise's clock; the student's function it receives is a proxy for
-  the same function in a sandboxed process (:class:`course_lib.instructor.student_process.StudentProcess`)
-  that holds only the student's code and the student release of ``course_lib``. The grader itself
-  only waits for the worker's verdict (data) and stops the worker when the exercise's time is up.
-  :func:`run_reference` runs the instructor's solution here, for the expected verdicts.
+  (:func:`course_lib.fixtures.using_cases`) in a worker forked from the grader, with the student's function in a
+  sandboxed process (:class:`course_lib.instructor.student_process.StudentProcess`); the grader itself only waits for
+  the worker's verdict (data). :func:`run_reference` runs the instructor's solution here, for the expected verdicts.
 * **The check cell's verdict, computed here.** When the hidden checks all pass, the same worker runs the check
   again on the notebook's own cases (the stored fixtures the check cell reads), with the same proxy, and sends
   what that check prints: the verdict of the nbval share comes from the grader, never from what the notebook's
@@ -23,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import importlib
 import io
+import math
 import os
 import time
 import types
@@ -41,17 +39,8 @@ from course_lib.instructor.settings import GRACE_SECONDS, START_SECONDS
 from course_lib.instructor.student_process import StudentProcess
 from course_lib.threads import single_thread_math
 
-__all__ = [
-    "build_hidden_fixtures",
-    "build_in_process",
-    "HiddenJob",
-    "HiddenOutcome",
-    "run_hidden",
-    "run_check",
-    "run_reference",
-    "all_pass",
-    "hold_in_memory",
-]
+__all__ = ["build_hidden_fixtures", "build_in_process", "HiddenJob", "HiddenOutcome", "run_hidden", "run_check",
+           "run_reference", "all_pass", "hold_in_memory"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -62,20 +51,15 @@ __all__ = [
 KEPT_SEEDS = {0}
 
 
-def _salted_rng_factory(salt: int):
+def build_in_process(name: str, salt: int) -> dict[str, np.ndarray]:
+    """The hidden cases of fixture ``name`` for a grading ``salt``, built in this process."""
     original = np.random.default_rng
 
-    def default_rng(seed=None):
+    def salted(seed=None):
         if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool) and int(seed) not in KEPT_SEEDS:
             return original(np.random.SeedSequence([int(salt) % 2**63, int(seed)]))
         return original(seed)
 
-    return original, default_rng
-
-
-def build_in_process(name: str, salt: int) -> dict[str, np.ndarray]:
-    """The hidden cases of fixture ``name`` for a grading ``salt``, built in this process."""
-    original, salted = _salted_rng_factory(salt)
     np.random.default_rng = salted
     try:
         return builders()[name]()
@@ -134,7 +118,6 @@ class HiddenJob:
 @dataclass
 class HiddenOutcome:
     status: str  # "ok", "timeout", "exit", "error"
-    lines: list[str] = field(default_factory=list)  # the verdict lines ("  ✔ ..." / "  ✘ ...")
     message: str = ""
     seconds: float = 0.0
     result: object = None  # the CheckResult of the hidden checks (computed in the exercise's worker)
@@ -143,6 +126,11 @@ class HiddenOutcome:
     memory: dict = field(default_factory=dict)  # worker peak growth, exercise cgroup peak, largest reply (bytes)
     public: str | None = None  # what the check printed on the notebook's own cases (None: not run)
     public_note: str = ""  # why it was not run or did not finish
+
+    @property
+    def lines(self) -> list[str]:
+        """The verdict lines ("  ✔ ..." / "  ✘ ...") of the hidden checks."""
+        return list(self.result.lines) if self.result is not None else []
 
     @property
     def passing(self) -> list[str]:
@@ -182,25 +170,21 @@ def run_reference(job: HiddenJob) -> HiddenOutcome:
     except Exception as exc:  # noqa: BLE001
         return HiddenOutcome("error", message=f"the reference run failed: {type(exc).__name__}: {exc}",
                              seconds=time.perf_counter() - t0)
-    lines = list(result.lines) if result is not None else []
-    return HiddenOutcome("ok" if result is not None else "error", lines=lines, result=result,
+    return HiddenOutcome("ok" if result is not None else "error", result=result,
                          message="" if result is not None else "the check recorded no verdict",
                          seconds=time.perf_counter() - t0)
 
 
 def run_hidden(job: HiddenJob, timeout: float = 60.0, isolation=None, cgroup_parent=None,
-               deadline: float | None = None) -> HiddenOutcome:
+               deadline: float = math.inf) -> HiddenOutcome:
     """Run the hidden checks of one exercise: the check in a worker of the grader, the student's function in its
     own sandboxed process.
 
     **One clock, one memory cap.** The worker is forked from the grader (it has the hidden cases and the full
-    library) into the exercise's cgroup (``cgroup_parent``'s child, with the memory total of
-    :class:`~course_lib.instructor.settings.Limits`), where the student's process and the oracle's worker run too:
-    everything the exercise causes (the student's code, the decoding of its replies, the check's work on them, the
-    earlier steps it calls back) shares one memory total and one wall clock. The grader waits for the worker's
-    verdict until ``timeout`` seconds after the student's process started (plus
-    :data:`~course_lib.instructor.settings.GRACE_SECONDS`, and never past ``deadline``, the submission's), then
-    stops the worker and everything in its cgroup. The outcome's ``seconds`` is the real time spent on the hidden
+    library) into the exercise's cgroup (``cgroup_parent``'s child), where the student's process and the oracle's
+    worker run too. The grader waits for the worker's verdict until ``timeout`` seconds after the student's process
+    started (plus :data:`~course_lib.instructor.settings.GRACE_SECONDS`, and never past ``deadline``, the
+    submission's), then stops the worker and everything in its cgroup. The outcome's ``seconds`` is the real time spent on the hidden
     checks. With ``job.public_dir``, the verdict on the notebook's own cases follows on the same clock; a run out of
     time there leaves the hidden checks' outcome as it was.
 
@@ -209,7 +193,7 @@ def run_hidden(job: HiddenJob, timeout: float = 60.0, isolation=None, cgroup_par
         timeout: the exercise's budget in seconds (:func:`course_lib.instructor.settings.exercise_seconds`).
         isolation: the grading run's :class:`course_lib.instructor.settings.Isolation`.
         cgroup_parent: the submission's cgroup (None: none could be made).
-        deadline: the submission's deadline (``time.monotonic()``), or None.
+        deadline: the submission's deadline (``time.monotonic()``).
 
     Raises:
         IsolationError: the student's sandbox could not be made or verified (nothing of the student's ran).
@@ -254,21 +238,20 @@ def run_hidden(job: HiddenJob, timeout: float = 60.0, isolation=None, cgroup_par
     return out
 
 
-def _await_frames(r: int, frames: dict, t0: float, timeout: float, deadline: float | None) -> str:
+def _await_frames(r: int, frames: dict, t0: float, timeout: float, deadline: float) -> str:
     """Read the worker's frames into ``frames`` (``"outcome"``, then ``"public"`` when one follows) until the
     exercise's time is up; ``""`` when all came, else why not (``"timeout"``, ``"ended"``)."""
-    end = lambda until: min(until, deadline) if deadline is not None else until  # noqa: E731
-    budget_end = end(t0 + START_SECONDS + timeout + GRACE_SECONDS)
+    budget_end = min(t0 + START_SECONDS + timeout + GRACE_SECONDS, deadline)
     while True:
         try:
-            head, _ = wire.read_frame_before(r, budget_end, 64 << 20)
+            head, _ = wire.read_frame(r, 64 << 20, budget_end)
         except TimeoutError:
             return "timeout"
         except (EOFError, OSError, wire.WireError):
             return "ended"
         event = head.get("event")
         if event == "started":
-            budget_end = end(time.monotonic() + timeout + GRACE_SECONDS)
+            budget_end = min(time.monotonic() + timeout + GRACE_SECONDS, deadline)
         elif event == "isolation":
             raise jail.IsolationError(str(head.get("message", "the sandbox could not be verified")))
         elif event == "outcome" and "outcome" not in frames:
@@ -280,12 +263,12 @@ def _await_frames(r: int, frames: dict, t0: float, timeout: float, deadline: flo
             return ""
 
 
-def _no_outcome(why: str, dt: float, timeout: float, deadline: float | None, oom: bool, isolation,
+def _no_outcome(why: str, dt: float, timeout: float, deadline: float, oom: bool, isolation,
                 peak: int | None) -> HiddenOutcome:
     """The outcome of an exercise whose worker sent no verdict: out of time, out of memory, or ended."""
     memory = {"cgroup peak bytes": peak}
     if why == "timeout":
-        past = deadline is not None and time.monotonic() >= deadline - 0.5
+        past = time.monotonic() >= deadline - 0.5
         msg = (f"stopped after {dt:.1f} s: " + ("the submission's time for grading ran out" if past else
                f"your code, the grader's checks of its results and the earlier steps it called took longer "
                f"than the exercise's time limit ({timeout:g} s)"))
@@ -332,28 +315,21 @@ def _worker(job: HiddenJob, timeout: float, isolation, cgroup, w: int) -> None:
 def _check_student(job: HiddenJob, proc: StudentProcess, send, t0: float) -> None:
     """The check on the hidden cases with the student's function ``proc`` serves; its outcome sent; then, when they
     all pass and ``job.public_dir`` is set, the check on the notebook's own cases, and what it prints."""
-    hello = proc.hello
-    box = hello.get("sandbox", getattr(proc, "sandbox", {}))
+    hello, box = proc.hello, proc.sandbox
     seconds = lambda: time.perf_counter() - t0  # noqa: E731
+    failed = lambda status, why: send(_outcome_dict(status, message=why, seconds=seconds(), sandbox=box))  # noqa: E731
     if proc.ended:
-        send(_outcome_dict("timeout" if proc.event == "timeout" else "exit", message=proc.ended, seconds=seconds(),
-                           sandbox=box))
-        return
+        return failed("timeout" if proc.event == "timeout" else "exit", proc.ended)
     if not hello.get("ok"):
-        send(_outcome_dict("error", message=f"defining {job.name} failed: {hello.get('type')}: "
-                           f"{str(hello.get('message'))[:2000]}{hello.get('where', '')}", seconds=seconds(), sandbox=box))
-        return
+        return failed("error", f"defining {job.name} failed: {hello.get('type')}: {str(hello.get('message'))[:2000]}"
+                               f"{hello.get('where', '')}")
     if not hello.get("found"):
-        send(_outcome_dict("error", message=f"the exercise code does not define {job.name}", seconds=seconds(),
-                           sandbox=box))
-        return
+        return failed("error", f"the exercise code does not define {job.name}")
     fn = RemoteFunction(proc, job.name, _reference(job.reference) if job.reference else None)
     try:
         result, _ = run_check(job.check_module, job.check_function, job.fixtures_dir, fn)
     except Exception as exc:  # noqa: BLE001 - a check that cannot finish is the grader's problem, reported
-        send(_outcome_dict("error", message=f"the grader failed: {type(exc).__name__}: {str(exc)[:500]}",
-                           seconds=seconds(), sandbox=box))
-        return
+        return failed("error", f"the grader failed: {type(exc).__name__}: {str(exc)[:500]}")
     attempted = not (fn.calls and fn.not_implemented == fn.calls)
     status = ("timeout" if proc.event == "timeout" else "exit") if proc.ended else "ok"
     if status == "ok" and result is None:
@@ -412,8 +388,7 @@ def _outcome_from(head: dict, seconds: float) -> HiddenOutcome:
     if isinstance(res, dict):
         result = core.CheckResult(res["exercise"], res["passed"], res["total"], list(res["lines"]),
                                   [core.Verdict(v["ok"], v["text"], v["kind"], v["defining"]) for v in res["verdicts"]])
-    return HiddenOutcome(head.get("status", "error"), lines=list(result.lines) if result else [],
-                         message=head.get("message", ""), seconds=seconds, result=result,
+    return HiddenOutcome(head.get("status", "error"), message=head.get("message", ""), seconds=seconds, result=result,
                          sandbox=head.get("sandbox") or {}, attempted=bool(head.get("attempted", True)),
                          memory=dict(head.get("memory") or {},
                                      **{"largest reply bytes": int(head.get("largest_reply", 0))}))

@@ -21,6 +21,7 @@ not finish by then counts as not run.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import shutil
@@ -48,12 +49,12 @@ class NbvalRun:
         cell_timeout: seconds for one cell.
         jobs: notebooks at the same time.
         timeout: seconds for one notebook, a restart included.
-        deadline: the submission's deadline (``time.monotonic()``), or None.
+        deadline: the submission's deadline (``time.monotonic()``).
         cgroup: the submission's cgroup (each notebook gets one inside it), or None.
     """
 
     def __init__(self, submission: Path, isolation: Isolation, cell_timeout: float, jobs: int = 2,
-                 timeout: float = 1800.0, deadline: float | None = None, cgroup=None):
+                 timeout: float = 1800.0, deadline: float = math.inf, cgroup=None):
         from concurrent.futures import ThreadPoolExecutor
 
         self.submission, self.iso = Path(submission), isolation
@@ -62,7 +63,6 @@ class NbvalRun:
         self.pool = ThreadPoolExecutor(max_workers=max(1, jobs))
         self.futures: dict[str, object] = {}
         self.sandbox: dict = {}
-        self.seconds: dict[str, float] = {}
         self._lock = threading.Lock()
         self._procs: dict[str, subprocess.Popen] = {}
         self._replace: dict[str, object] = {}
@@ -93,20 +93,14 @@ class NbvalRun:
         self.pool.shutdown(wait=True, cancel_futures=True)
 
     def _run(self, name: str, nb) -> tuple[dict[tuple[str, int], str], str]:
-        t0 = time.monotonic()
-        end = t0 + self.timeout
-        if self.deadline is not None:
-            end = min(end, self.deadline)
-        try:
-            while True:
-                with self._lock:
-                    nb = self._replace.pop(name, nb)
-                out = self._one(name, nb, end)
-                with self._lock:
-                    if name not in self._replace:
-                        return out
-        finally:
-            self.seconds[name] = round(time.monotonic() - t0, 1)
+        end = min(time.monotonic() + self.timeout, self.deadline)
+        while True:  # again from the start while a restart replaced the notebook
+            with self._lock:
+                nb = self._replace.pop(name, nb)
+            out = self._one(name, nb, end)
+            with self._lock:
+                if name not in self._replace:
+                    return out
 
     def _one(self, name: str, nb, end: float) -> tuple[dict[tuple[str, int], str], str]:
         """Run one notebook until ``end`` at the latest (after a cell that timed out, nbval skips the rest: a notebook
@@ -175,7 +169,7 @@ class NbvalRun:
             IsolationError: bubblewrap could not make the sandbox, or it is not isolated.
         """
         try:
-            head, _ = wire.read_frame_before(report_r, time.monotonic() + START_SECONDS, 1 << 20)
+            head, _ = wire.read_frame(report_r, 1 << 20, time.monotonic() + START_SECONDS)
             facts = head.get("facts") if isinstance(head.get("facts"), dict) else {}
         except (TimeoutError, EOFError, OSError, wire.WireError):
             head, facts = {}, None

@@ -17,35 +17,17 @@ import hashlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from unittest import mock
 
 import nbformat
 
 from course_lib.paths import REPO_ROOT
 from course_lib.validate import KitInputError
 
-__all__ = [
-    "BEGIN",
-    "END",
-    "CHECK_MARK",
-    "NOTEBOOKS_DIR",
-    "ReleaseError",
-    "ExerciseSpec",
-    "NotebookSpec",
-    "notebook_spec",
-    "kit_specs",
-    "marker_regions",
-    "python_source",
-    "resolve_import",
-    "in_optional_import",
-    "stream_text",
-    "sha256",
-    "execute_quick",
-    "INSTRUCTOR_PACKAGE",
-    "SKIP_NAMES",
-    "module_name",
-    "course_lib_modules",
-    "file_key",
-]
+__all__ = ["BEGIN", "END", "CHECK_MARK", "NOTEBOOKS_DIR", "ReleaseError", "ExerciseSpec", "NotebookSpec",
+           "notebook_spec", "kit_specs", "marker_regions", "python_source", "resolve_import", "optional_imports",
+           "stream_text", "sha256", "execute_quick", "INSTRUCTOR_PACKAGE", "SKIP_NAMES", "module_name",
+           "course_lib_modules", "file_key"]
 
 BEGIN, END = "# BEGIN SOLUTION", "# END SOLUTION"
 CHECK_MARK = "# NBVAL_CHECK_OUTPUT"
@@ -144,25 +126,10 @@ def execute_quick(nb, folder: Path, timeout: float, **env: str):
     (``COURSE_LIB_QUICK=1``), no display, an error kept as the cell's output; ``env`` is set for the kernel too."""
     from nbclient import NotebookClient
 
-    values = dict(COURSE_LIB_QUICK="1", MPLBACKEND="Agg", **env)
-    old = {k: os.environ.get(k) for k in values}
-    os.environ.update(values)
-    try:
+    with mock.patch.dict(os.environ, dict(COURSE_LIB_QUICK="1", MPLBACKEND="Agg", **env)):
         NotebookClient(nb, timeout=timeout, kernel_name="python3", allow_errors=True,
                        resources={"metadata": {"path": str(folder)}}).execute()
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
     return nb
-
-
-def _module_exists(name: str) -> bool:
-    parts = name.split(".")
-    base = REPO_ROOT.joinpath(*parts)
-    return base.with_suffix(".py").exists() or (base / "__init__.py").exists()
 
 
 def resolve_import(node: ast.AST) -> list[tuple[str, str | None]]:
@@ -177,10 +144,9 @@ def resolve_import(node: ast.AST) -> list[tuple[str, str | None]]:
     elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
         for a in node.names:
             sub = f"{node.module}.{a.name}"
-            if sub.startswith("course_lib") and _module_exists(sub):
-                out.append((sub, None))
-            else:
-                out.append((node.module, a.name))
+            base = REPO_ROOT.joinpath(*sub.split("."))  # a module of the kit, or a name in one
+            is_module = base.with_suffix(".py").exists() or (base / "__init__.py").exists()
+            out.append((sub, None) if sub.startswith("course_lib") and is_module else (node.module, a.name))
     return out
 
 
@@ -214,6 +180,7 @@ def notebook_spec(path: Path) -> NotebookSpec:
         except SyntaxError as exc:
             raise ReleaseError(f"{where}: not valid Python ({exc.msg}, line {exc.lineno})") from None
         region_lines = {k for a, b in regions for k in range(a, b + 1)}
+        optional = optional_imports(tree)
         for node in ast.walk(tree):
             if isinstance(node, (ast.Import, ast.ImportFrom)):
                 for mod, name in resolve_import(node):
@@ -221,7 +188,7 @@ def notebook_spec(path: Path) -> NotebookSpec:
                         continue
                     if node.lineno - 1 in region_lines:
                         sol_mods.add(mod)
-                    elif not in_optional_import(tree, node):
+                    elif id(node) not in optional:
                         mods.add(mod)
                     if mod.startswith("course_lib.checks.") and name and name.startswith("check_"):
                         check_imports[name] = mod
@@ -283,8 +250,8 @@ def _checked_exercise(nb, notebook: str, i: int, tree: ast.Module, defined: dict
                         reference=_reference_of(ex, texts) or library_definition(ex))
 
 
-def _optional_ids(tree: ast.Module) -> set[int]:
-    """ids of the nodes inside ``try:`` blocks whose handlers catch ImportError (optional imports)."""
+def optional_imports(tree: ast.Module) -> set[int]:
+    """The ids of the nodes inside ``try:`` blocks whose handlers catch ImportError (an import there is optional)."""
     out: set[int] = set()
     for t in ast.walk(tree):
         if isinstance(t, ast.Try):
@@ -293,15 +260,6 @@ def _optional_ids(tree: ast.Module) -> set[int]:
             if names & {"ImportError", "ModuleNotFoundError", "Exception", None}:
                 out |= {id(n) for s in t.body for n in ast.walk(s)}
     return out
-
-
-def in_optional_import(tree: ast.Module, node: ast.AST, _cache: dict = {}) -> bool:  # noqa: B006 - per-tree cache
-    """True if ``node`` sits in a ``try:`` whose handlers catch ImportError (an optional import)."""
-    key = id(tree)
-    if key not in _cache or _cache[key][0] is not tree:
-        _cache.clear()
-        _cache[key] = (tree, _optional_ids(tree))
-    return id(node) in _cache[key][1]
 
 
 def _reference_of(name: str, region_texts: list[str]) -> str | None:

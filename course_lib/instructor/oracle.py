@@ -39,11 +39,10 @@ The stubs exist only in X's process, and Y's grade comes from Y's own process, w
 student's function (no stub of Y is bound there: an exercise is never its own earlier step). Y's
 hidden checks call Y directly; nothing that happens in X's process reaches them.
 
-The NeRF model (a :class:`~course_lib.instructor.remote.RemoteModule`) is no exception:
+The NeRF model (a :func:`~course_lib.instructor.remote.remote_module`) is no exception:
 its forward pass runs in the student's process, where ``positional_encoding`` is the stub, so the
-network is fed the reference's encoding of whatever it encodes (this replaced the earlier table of
-stored encodings that the grader bound there). Gradients do not flow through a call-back (the
-encoding of input points needs none). A numpy ``Generator`` argument travels as its state: the
+network is fed the reference's encoding of whatever it encodes. Gradients do not flow through a call-back
+(the encoding of input points needs none). A numpy ``Generator`` argument travels as its state: the
 student's generator is not advanced by the reference's draws.
 """
 
@@ -126,13 +125,13 @@ class Oracle:
             self._start()
             wire.write_frame(self.fds[1], {"name": name, "args": head.get("args"), "kwargs": head.get("kwargs")},
                              arrays)
-            reply = wire.read_frame_before(self.fds[0], t0 + wait, wire.MAX_REPLY + (1 << 20))
+            reply = wire.read_frame(self.fds[0], wire.MAX_REPLY + (1 << 20), t0 + wait)
         except TimeoutError:
-            self._stop()
+            self.close()
             reply = (dict(_error("TimeoutError", f"the grader's {name} did not finish on these arguments in the "
                                                  f"{wait:.1f} s left of {self.exercise}'s time"), deadline=True), [])
         except (OSError, EOFError, ValueError, wire.WireError) as exc:
-            self._stop()
+            self.close()
             reply = (_error("RuntimeError", f"the grader's {name} could not answer ({type(exc).__name__}: "
                                             f"{str(exc)[:200]})"), [])
         return reply
@@ -152,7 +151,8 @@ class Oracle:
         os.close(rep_w)
         self.pid, self.fds = pid, (rep_r, req_w)
 
-    def _stop(self) -> None:
+    def close(self) -> None:
+        """End the worker (at the end of the exercise, or when it cannot answer; a later call starts a new one)."""
         if self.pid is not None:
             try:
                 os.kill(self.pid, signal.SIGKILL)
@@ -161,10 +161,6 @@ class Oracle:
                 pass
         wire.close_fds(self.fds or ())
         self.pid, self.fds = None, None
-
-    def close(self) -> None:
-        """End the worker (at the end of the exercise)."""
-        self._stop()
 
 
 def status_kib(key: str) -> int:
@@ -197,7 +193,7 @@ def _worker(req: int, rep: int, steps: dict[str, str]) -> None:
     bound_address_space(WORKER_EXTRA_BYTES)
     while True:
         try:
-            head, arrays = wire.read_frame(req)
+            head, arrays = wire.read_frame(req, trusted=True)
         except (EOFError, OSError):
             return
         reply, out = _run_reference(head, arrays, steps)

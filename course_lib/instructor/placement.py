@@ -58,7 +58,7 @@ def place_exercises(nb, spec: NotebookSpec) -> dict[str, Placement]:
     defs: dict[str, list[int]] = {}
     broken: dict[str, int] = {}
     names = {e.name for e in spec.exercises}
-    for i, src, tree in code_cells(nb):
+    for i, src, tree in code_cells((c.cell_type, c.source) for c in nb.cells):
         if tree is None:
             for n in names:
                 if re.search(rf"^\s*(def|class) {re.escape(n)}\b", src, re.M):

@@ -26,36 +26,30 @@ from course_lib.instructor.notebooks import (
     NotebookSpec,
     course_lib_modules,
     file_key,
-    in_optional_import,
+    optional_imports,
     resolve_import,
 )
 
 __all__ = ["ReleasePlan", "release_plan", "solution_modules", "redact_module", "imported_names", "exercise_definitions"]
 
-def module_imports(path: Path) -> dict[str, set[str]]:
-    """``{"top": modules imported when the module loads, "lazy": imported inside functions}`` (course_lib only).
-
-    Imports inside ``try`` blocks that catch ImportError count as neither (they are optional).
-    """
-    return {k: set(v) for k, v in _imports(*file_key(path))[0].items()}
-
 
 @functools.lru_cache(maxsize=None)
 def _imports(path: str, size: int, mtime_ns: int) -> tuple[dict[str, set[str]], dict[str, set[str]]]:
-    """The file's :func:`module_imports`, and ``{module: names}`` of its ``from module import names`` statements
-    (cached by the file's path, size and modification time)."""
+    """``{"top": modules imported when the module loads, "lazy": imported inside functions}`` (course_lib only;
+    imports inside ``try`` blocks that catch ImportError count as neither: they are optional), and ``{module: names}``
+    of its ``from module import names`` statements (cached by :func:`~course_lib.instructor.notebooks.file_key`)."""
     tree = ast.parse(Path(path).read_text())
     out: dict[str, set[str]] = {"top": set(), "lazy": set()}
     names: dict[str, set[str]] = {}
     func_nodes = {id(n) for f in ast.walk(tree) if isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef))
                   for n in ast.walk(f) if n is not f}
+    optional = optional_imports(tree)
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom) and node.module:
             names.setdefault(node.module, set()).update(a.name for a in node.names)
-        if isinstance(node, (ast.Import, ast.ImportFrom)) and not in_optional_import(tree, node):
+        if isinstance(node, (ast.Import, ast.ImportFrom)) and id(node) not in optional:
             for mod, _ in resolve_import(node):
                 if mod.startswith("course_lib"):
-                    # importing a.b.c imports the packages a and a.b first
                     out["lazy" if id(node) in func_nodes else "top"].add(mod)
     return out, names
 
@@ -151,20 +145,12 @@ def release_plan(specs: list[NotebookSpec]) -> ReleasePlan:
     import no solution module, so they always ship (a test enforces it).
     """
     mods = course_lib_modules()
-    imports = {m: module_imports(p) for m, p in mods.items()}
+    imports = {m: _imports(*file_key(p))[0] for m, p in mods.items()}
     demos = [s for s in specs if not s.exercises]
     specs = [s for s in specs if s.exercises]
     sol = solution_modules(specs)
-    needed: set[str] = set()
-    todo = [m for s in specs for m in s.imports]
-    while todo:
-        m = todo.pop()
-        if m in needed or m not in mods:
-            continue
-        needed.add(m)
-        todo += sorted(imports[m]["top"])
-        parts = m.split(".")
-        todo += [".".join(parts[:k]) for k in range(1, len(parts))]
+    parents = lambda m: [m.rsplit(".", k)[0] for k in range(1, m.count(".") + 1)]  # noqa: E731 - a.b.c loads a, a.b
+    needed = _closure([m for s in specs for m in s.imports], mods, lambda m: sorted(imports[m]["top"]) + parents(m))
     omit = {m for m in sol if m not in needed and m in mods}
     grown = True
     while grown:
@@ -184,13 +170,7 @@ def release_plan(specs: list[NotebookSpec]) -> ReleasePlan:
     ex_nb = {e.name: e.notebook for s in specs for e in s.exercises}
     left_out = []
     for d in demos:
-        reach, todo = set(), list(d.imports)
-        while todo:
-            m = todo.pop()
-            if m in reach or m not in mods:
-                continue
-            reach.add(m)
-            todo += sorted(imports[m]["top"] | imports[m]["lazy"])
+        reach = _closure(d.imports, mods, lambda m: imports[m]["top"] | imports[m]["lazy"])
         if reach & omit:
             left_out.append(d.name)
             notes.append(f"notebooks/{d.name} has no exercises and needs {sorted(reach & omit)[0]} (a reference "
@@ -198,6 +178,17 @@ def release_plan(specs: list[NotebookSpec]) -> ReleasePlan:
     plan = ReleasePlan(sorted(omit), redact, ex_nb, notes, left_out)
     _account_for_exercises(plan, mods)
     return plan
+
+
+def _closure(start: list[str], mods: dict, follow) -> set[str]:
+    """The modules of ``mods`` reached from ``start`` by following ``follow(module)``."""
+    seen, todo = set(), list(start)
+    while todo:
+        m = todo.pop()
+        if m not in seen and m in mods:
+            seen.add(m)
+            todo += follow(m)
+    return seen
 
 
 def redact_module(path: Path, names: list[str], exercise_notebook: dict[str, str], keep: set[str] = frozenset()) -> str:
@@ -217,11 +208,10 @@ def redact_module(path: Path, names: list[str], exercise_notebook: dict[str, str
             if target in names:
                 spans.append((node, "stand_in", target))
         if not spans:
-            used = _names_used(tree)
             for node in tree.body:
                 target = _bound_name(node)
                 if target and target.startswith("_") and not target.startswith("__") and target not in keep \
-                        and target not in used[target]:
+                        and target not in _used_outside(tree, target):
                     spans.append((node, "drop", target))
         if not spans:
             break
@@ -266,25 +256,16 @@ def _bound_name(node: ast.AST) -> str | None:
     return None
 
 
-def _names_used(tree: ast.Module) -> dict[str, set[str]]:
-    """For each top-level name: the names used anywhere *outside* its own definition."""
-
-    class Uses(dict):
-        def __missing__(self, key):
-            found = set()
-            for node in tree.body:
-                if _bound_name(node) == key:
-                    continue
-                for n in ast.walk(node):
-                    if isinstance(n, ast.Name):
-                        found.add(n.id)
-                    elif isinstance(n, ast.Attribute):
-                        found.add(n.attr)
-                    elif isinstance(n, ast.Constant) and isinstance(n.value, str):
-                        found.update(re.findall(r"\w+", n.value))
-            self[key] = found
-            return found
-
-    return Uses()
-
-
+def _used_outside(tree: ast.Module, name: str) -> set[str]:
+    """The names (and words of strings) used anywhere in the module *outside* the top-level definition of ``name``."""
+    found = set()
+    for node in tree.body:
+        if _bound_name(node) != name:
+            for n in ast.walk(node):
+                if isinstance(n, ast.Name):
+                    found.add(n.id)
+                elif isinstance(n, ast.Attribute):
+                    found.add(n.attr)
+                elif isinstance(n, ast.Constant) and isinstance(n.value, str):
+                    found.update(re.findall(r"\w+", n.value))
+    return found

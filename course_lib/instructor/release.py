@@ -8,12 +8,8 @@
   ``# HINT`` are kept), the signature and docstring untouched. Check cells keep their source and
   their stored reference verdicts (nbval compares the student's run with them), markdown and
   figures stay, the outputs of exercise cells are cleared, execution timestamps are dropped.
-* ``course_lib/`` without the reference solutions. A module is a *solution module* when a
-  solution region imports it (:func:`solution_modules`). Solution modules that no released
-  notebook needs are left out, with every module that imports them (:func:`release_plan`); solution
-  modules that the kit itself builds on (the NeRF trainer imports :mod:`course_lib.nerf.render`)
-  are shipped *redacted*: their exercise functions are replaced by a stand-in that calls the
-  student's own function of the same name (:mod:`course_lib.saved_solutions`).
+* ``course_lib/`` without the reference solutions: left out, or shipped redacted, as
+  :mod:`course_lib.instructor.plan` decides.
 * ``data/`` (the embedded scenes and the fixtures behind the check cells), an ``environment.txt`` with
   the pins the student kit uses (:func:`student_environment`), ``conftest.py``, a ``pyproject.toml`` whose pytest runs the notebooks, a ``README.md`` for
   students, and ``RELEASE_MANIFEST.json`` (exercises, their check cells, reference verdicts,
@@ -60,7 +56,7 @@ from course_lib.instructor.plan import ReleasePlan, imported_names, redact_modul
 from course_lib.paths import REPO_ROOT
 
 __all__ = ["stub_source", "stub_notebook", "student_readme", "student_environment", "write_release", "release_files",
-           "verify_release"]
+           "write_files", "verify_release"]
 
 #: Top-level files copied as they are, when present (``environment.txt`` is rewritten: :func:`student_environment`).
 COPIED_FILES = ("conftest.py",)
@@ -245,12 +241,17 @@ def write_release(out_dir: Path, notebooks_dir: Path = NOTEBOOKS_DIR, force: boo
     files = release_files(notebooks_dir)
     if out_dir.exists() and any(out_dir.iterdir()):
         shutil.rmtree(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    write_files(files, out_dir)
+    return json.loads(files["RELEASE_MANIFEST.json"])
+
+
+def write_files(files: dict[str, bytes], out_dir: Path) -> Path:
+    """Write ``{path inside out_dir: content}`` (:func:`release_files`, or a part of it) into ``out_dir``."""
     for rel, data in sorted(files.items()):
-        dst = out_dir / rel
+        dst = Path(out_dir) / rel
         dst.parent.mkdir(parents=True, exist_ok=True)
         dst.write_bytes(data)
-    return json.loads(files["RELEASE_MANIFEST.json"])
+    return Path(out_dir)
 
 
 def release_files(notebooks_dir: Path = NOTEBOOKS_DIR) -> dict[str, bytes]:
@@ -278,11 +279,8 @@ def release_files(notebooks_dir: Path = NOTEBOOKS_DIR) -> dict[str, bytes]:
         if p.is_relative_to(instructor_dir) or rel in omit_files or p.suffix != ".py" and p.suffix not in (".json", ".txt", ".md"):
             continue
         mod = module_name(p) if p.suffix == ".py" else None
-        if mod in plan.redact:
-            keep = imported_names(mod)
-            files[rel] = redact_module(p, plan.redact[mod], plan.exercise_notebook, keep).encode()
-        else:
-            files[rel] = p.read_bytes()
+        files[rel] = (redact_module(p, plan.redact[mod], plan.exercise_notebook, imported_names(mod)).encode()
+                      if mod in plan.redact else p.read_bytes())
     # data
     for p in _walk(REPO_ROOT / "data"):
         files[str(p.relative_to(REPO_ROOT))] = p.read_bytes()
@@ -351,10 +349,9 @@ def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float 
     if only:
         paths = [p for p in paths if any(p.name.startswith(o) for o in only)]
 
-    scratch = tempfile.TemporaryDirectory(prefix="kit-solutions-")
-    env = {"PYTHONPATH": os.pathsep.join(filter(None, [str(out_dir), os.environ.get("PYTHONPATH")])),
-           "COURSE_LIB_SOLUTIONS": str(solutions) if solutions is not None else scratch.name}
-    try:
+    with tempfile.TemporaryDirectory(prefix="kit-solutions-") as scratch:
+        env = {"PYTHONPATH": os.pathsep.join(filter(None, [str(out_dir), os.environ.get("PYTHONPATH")])),
+               "COURSE_LIB_SOLUTIONS": str(solutions) if solutions is not None else scratch}
         for p in paths:
             nb = nbformat.read(p, as_version=4)
             probe = nbformat.v4.new_code_cell("import course_lib\nprint(course_lib.__file__)")
@@ -372,12 +369,8 @@ def verify_release(out_dir: Path, only: list[str] | None = None, timeout: float 
                 if is_check and (errors or not stream_text(cell).strip()):
                     found.append(f"cell {i}: the check cell " + (f"raised {errors[0].ename}" if errors else "printed nothing"))
                 for e in errors:
-                    if e.ename in allowed_errors or (e.ename in CONSEQUENCES and failed_before):
-                        failed_before = True
-                        continue
-                    found.append(f"cell {i}: {e.ename}: {e.evalue}")
+                    if not (e.ename in allowed_errors or (e.ename in CONSEQUENCES and failed_before)):
+                        found.append(f"cell {i}: {e.ename}: {e.evalue}")
                     failed_before = True
             problems[p.name] = found
-    finally:
-        scratch.cleanup()
     return problems

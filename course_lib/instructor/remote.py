@@ -3,7 +3,7 @@
 The check function of an exercise receives a :class:`RemoteFunction` in place of the student's
 function: each call is sent, as data, to the :class:`~course_lib.instructor.student_process.StudentProcess`
 that holds the student's code, and the decoded result comes back. An ``nn.Module`` the student's
-class builds stays in that process; the grader gets a :class:`RemoteModule` with the module's
+class builds stays in that process; the grader gets a stand-in (:func:`remote_module`) with the module's
 parameters and linear layers, whose forward pass sends the (possibly replaced) parameters and the
 inputs back to the student's process.
 """
@@ -11,10 +11,11 @@ inputs back to the student's process.
 from __future__ import annotations
 
 import copy
+import functools
 
 from course_lib.instructor.sandbox import wire
 
-__all__ = ["RemoteFunction", "RemoteModule"]
+__all__ = ["RemoteFunction", "remote_module"]
 
 
 class RemoteFunction:
@@ -57,21 +58,15 @@ def _copies(value):
         return value
 
 
-class RemoteModule:
-    """Placeholder; :meth:`make` builds the ``torch.nn.Module`` subclass (torch is imported lazily)."""
-
-    _cls = None
-
-    @classmethod
-    def make(cls, proc, tree: dict, arrays: list):
-        layers = wire.check_module_tree(tree, arrays)  # before anything is built
-        if RemoteModule._cls is None:
-            RemoteModule._cls = _remote_module_class()
-        name = wire.ident(tree.get("n", "Module"), "Module")
-        sub = type(name, (RemoteModule._cls,), {})
-        return sub(proc, tree, arrays, layers)
+def remote_module(proc, tree: dict, arrays: list):
+    """The ``torch.nn.Module`` that stands for a student's module (a ``"module"`` handle of :func:`wire.encode`),
+    its declared layers checked against the weights it sent before anything is built."""
+    layers = wire.check_module_tree(tree, arrays)
+    sub = type(wire.ident(tree.get("n", "Module"), "Module"), (_remote_module_class(),), {})
+    return sub(proc, tree, arrays, layers)
 
 
+@functools.cache
 def _remote_module_class():
     import torch  # deferred: torch, only for a student's nn.Module (the SfM exercises never load it)
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import course_lib
 from course_lib.instructor.cgroups import Cgroup
 from course_lib.instructor.notebooks import NOTEBOOKS_DIR
-from course_lib.instructor.release import release_files
+from course_lib.instructor.release import release_files, write_files
 from course_lib.paths import REPO_ROOT
 
 __all__ = ["Limits", "Isolation", "Clock", "student_library", "exercise_seconds", "nbval_seconds", "SYSTEM_PATHS",
@@ -60,14 +60,12 @@ CALL_BACK_FACTOR = 3.0
 
 
 def exercise_seconds(timeout: float, reference_seconds: float, calls_back: bool = False) -> float:
-    """The wall-clock budget of one exercise's hidden checks: the only place it is computed.
+    """The wall-clock budget of one exercise's hidden checks (everything it causes, from the moment its sandboxed
+    process has started): the only place it is computed.
 
-    Everything the exercise causes counts against it, from the moment its sandboxed process has started
-    (:data:`START_SECONDS`): its definitions and every call, the grader's decoding of its replies and its
-    checks of them, and the earlier steps it calls back. At least ``timeout`` (``--timeout``) and ten times the
-    reference's time on the same hidden cases (:func:`course_lib.instructor.hidden.run_reference`, measured
-    through the same check) plus 5 s; :data:`CALL_BACK_FACTOR` times that when its code calls earlier exercises
-    (their call-backs are on this clock too). The feedback states this budget and the real time spent.
+    At least ``timeout`` (``--timeout``) and ten times the reference's time on the same hidden cases
+    (:func:`course_lib.instructor.hidden.run_reference`) plus 5 s; :data:`CALL_BACK_FACTOR` times that when its code
+    calls earlier exercises (their call-backs are on this clock too).
 
     Args:
         timeout: the run's per-exercise floor, in seconds.
@@ -120,17 +118,9 @@ STUDENT_UID = int(os.environ.get("COURSE_GRADER_STUDENT_UID", "65534"))
 
 @dataclass
 class Limits:
-    """Resource limits of a student's sandboxed process tree.
-
-    Per process (``setrlimit`` before it starts): CPU seconds, address space, file size, processes
-    (``RLIMIT_NPROC``). For the whole tree: ``memory_total_bytes`` and ``processes_total`` in a cgroup of
-    its own where the grader can make one (:class:`course_lib.instructor.cgroups.Cgroup`; the grader's own
-    work on the exercise, decoding and checking its replies, runs in the same cgroup), ``disk_bytes`` for
-    what it may write (its ``/tmp`` holds that on top of its working copy of the submission, which
-    ``submission_bytes`` bounds: a submission the copy takes always fits), and
-    ``submission_memory_bytes`` for everything one submission runs at the same time (the exercise and the
-    notebooks under nbval).
-    """
+    """Resource limits of a student's sandboxed process tree: per process (``setrlimit`` before it starts, the
+    ``RLIMIT_*`` fields), and for the whole tree in a cgroup of its own (:class:`course_lib.instructor.cgroups.Cgroup`,
+    where the grader's own work on the exercise, decoding and checking its replies, runs too)."""
 
     cpu_seconds: int = 300  # RLIMIT_CPU (an exercise's process gets its wall-clock budget + 30 s; nbval its budget)
     memory_bytes: int = 8 << 30  # RLIMIT_AS (torch needs a few GiB of address space)
@@ -145,14 +135,11 @@ class Limits:
     def apply(self, cpu_seconds: float | None = None) -> None:
         """Set the per-process limits in this process (a limit the platform refuses is left as it is)."""
         cpu = int(self.cpu_seconds if cpu_seconds is None else cpu_seconds)
-        for name, value in (("RLIMIT_CPU", (cpu, cpu + 5)), ("RLIMIT_AS", (int(self.memory_bytes),) * 2),
-                            ("RLIMIT_FSIZE", (int(self.file_bytes),) * 2), ("RLIMIT_CORE", (0, 0)),
-                            ("RLIMIT_NPROC", (int(self.processes),) * 2)):
-            which = getattr(resource, name, None)
-            if which is None:
-                continue
+        for which, value in ((resource.RLIMIT_CPU, (cpu, cpu + 5)), (resource.RLIMIT_AS, (int(self.memory_bytes),) * 2),
+                             (resource.RLIMIT_FSIZE, (int(self.file_bytes),) * 2), (resource.RLIMIT_CORE, (0, 0)),
+                             (resource.RLIMIT_NPROC, (int(self.processes),) * 2)):
             try:
-                soft, hard = resource.getrlimit(which)
+                _, hard = resource.getrlimit(which)
                 cap = lambda v: v if hard == resource.RLIM_INFINITY else min(v, hard)  # noqa: E731
                 resource.setrlimit(which, (cap(value[0]), cap(value[1])))
             except (ValueError, OSError):
@@ -298,10 +285,4 @@ def python_homes() -> list[str]:
 def student_library(out_dir: Path, notebooks_dir: Path | None = None) -> Path:
     """Write the student release's ``course_lib`` and ``data`` into ``out_dir`` (what a student's code may import)."""
     files = release_files(Path(notebooks_dir or NOTEBOOKS_DIR))
-    out_dir = Path(out_dir)
-    for rel, data in sorted(files.items()):
-        if rel.startswith(("course_lib/", "data/")):
-            dst = out_dir / rel
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            dst.write_bytes(data)
-    return out_dir
+    return write_files({rel: data for rel, data in files.items() if rel.startswith(("course_lib/", "data/"))}, out_dir)

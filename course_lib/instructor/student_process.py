@@ -1,48 +1,29 @@
 """The grader's side of the separation: the student's code runs in a sandboxed process, called as data.
 
-The check function of an exercise runs in the grader's exercise worker
-(:func:`course_lib.instructor.hidden.run_hidden`), with the full library and the hidden cases. The
-student's function it receives is a proxy (:mod:`course_lib.instructor.remote`) whose calls go to a
-:class:`StudentProcess`: :meth:`StudentProcess.call` encodes the arguments as data
-(:mod:`course_lib.instructor.sandbox.wire`: JSON and ``np.save`` arrays, never pickle), sends them to
-the process, which holds only the student's extracted code and the *student release* of ``course_lib``
-(:func:`course_lib.instructor.settings.student_library`), and decodes the result.
+The check function of an exercise runs in the grader's exercise worker (:func:`course_lib.instructor.hidden.run_hidden`)
+with the full library and the hidden cases; the student's function it receives is a proxy
+(:mod:`course_lib.instructor.remote`) whose calls go to a :class:`StudentProcess`: the arguments are sent as data
+(:mod:`course_lib.instructor.sandbox.wire`: JSON and ``np.save`` arrays, never pickle) to a process that holds only
+the student's extracted code and the student release of ``course_lib``, and the result is decoded here.
 
-The student's process:
+The process is started in the run's isolation mode and checked before any of the student's code runs
+(:mod:`course_lib.instructor.sandbox.launch`: fail closed); it works in a fresh copy of the grader's copy of the
+submission, under the limits of :class:`~course_lib.instructor.settings.Limits` and the totals of its exercise's
+cgroup. With every call it receives the grader's global numpy and torch random states (so that
+``torch.manual_seed(0)`` in a check seeds the student's initialisation as in the notebook); its call-backs to the
+earlier exercises are answered by their references (:mod:`course_lib.instructor.oracle`). **One clock**: its
+definitions, every call, the decoding of its replies and the call-backs share the exercise's budget, counted once the
+process has started (:data:`~course_lib.instructor.settings.START_SECONDS`); when it runs out, the process is killed
+and every later call fails at once.
 
-* runs :mod:`course_lib.instructor.sandbox.server` inside bubblewrap (:mod:`course_lib.instructor.sandbox.jail`):
-  its own namespaces, an allow-listed read-only view, a size-limited tmpfs, no capabilities, a seccomp
-  filter; as :data:`~course_lib.instructor.settings.STUDENT_UID` when the grader is root. Before any of the
-  student's code runs, the server reports what confines it and the grader checks it
-  (:func:`~course_lib.instructor.sandbox.jail.verify`): a sandbox the grader cannot verify ends the grading
-  (:class:`~course_lib.instructor.sandbox.jail.IsolationError`), unless the run is ``insecure``; in container
-  mode (:mod:`course_lib.instructor.sandbox.container`) it confines itself as it starts, checked the same way;
-* starts as ``python -S -E -B`` (no ``site``: the instructor's editable install is not on its path; no
-  bytecode written) with ``sys.path`` = the student release, then the standard library and site-packages;
-* works in a fresh copy of the grader's copy of the submission (regular files only,
-  :mod:`course_lib.instructor.submission`); its output goes to a file there;
-* has resource limits (:class:`~course_lib.instructor.settings.Limits`) and the totals of its exercise's cgroup;
-* receives the grader's global numpy and torch random states with every call (so that
-  ``torch.manual_seed(0)`` in a check seeds the student's initialisation as it would in the
-  notebook); nothing of the student's process flows back but the results (not its random state);
-* may call back (:mod:`course_lib.instructor.oracle`): while the grader waits for a reply, a request
-  of the stubs bound in place of the earlier exercises the code calls is answered by the reference
-  of that exercise; the call-back's time is the exercise's (one clock), and more call-backs than
-  ``oracle.MAX_CALLS`` end the process;
-* has one wall-clock budget per exercise (its definitions, every call, the decoding of its replies and
-  the call-backs together, counted once the process has started and imported numpy and torch, which
-  has a limit of its own, :data:`~course_lib.instructor.settings.START_SECONDS`): when it runs out, the
-  process is killed and every later call fails at once. ``os._exit`` is reported as such.
-
-A reply is checked before anything is built from it: at most ``wire.MAX_REPLY`` bytes, read as they
-arrive; a header of at most ``wire.MAX_HEADER`` bytes and ``wire.MAX_NODES`` values; arrays whose size
-equals what they declare; a sparse matrix whose declared shape is within :data:`SPARSE_SLACK` times the
-size of the expected answer's (:meth:`StudentProcess.call`'s ``expect``: the reference's result on the
-same arguments); a module whose layers match the weights it sent.
+A reply is checked before anything is built from it: at most ``wire.MAX_REPLY`` bytes, read as they arrive, bounded
+as :func:`wire.unpack` says; a sparse matrix whose declared shape is within :data:`SPARSE_SLACK` times the size of
+the expected answer's (:meth:`StudentProcess.call`'s ``expect``); a module whose layers match the weights it sent.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import signal
@@ -55,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from course_lib.instructor import oracle as oracle_module
-from course_lib.instructor.remote import RemoteModule
+from course_lib.instructor.remote import remote_module
 from course_lib.instructor.sandbox import jail, launch, wire
 from course_lib.instructor.settings import START_SECONDS, Isolation
 
@@ -122,8 +103,7 @@ class StudentProcess:
         self.largest_reply = 0
         self.req_w = self.rep_r = -1
         self.proc = None
-        self.info: dict = {}
-        self.sandbox: dict = {}
+        self.sandbox: dict = {}  # what confines the process (the grader's record, never the student's)
         self.tmp = jail.private_folder("course-student-", iso.scratch)
         try:
             self._start(code, submission, torch)
@@ -144,12 +124,13 @@ class StudentProcess:
         with open(self.tmp / "stderr.txt", "wb") as stderr:
             self.started = launch.start(iso, "serve", cfg, self.tmp, seed, self.cgroup, self.budget + 30,
                                         launch.env(cwd), [req_r, rep_w], stderr)
-        self.proc, self.info = self.started.proc, self.started.info
+        self.proc = self.started.proc
         first = self._receive()
         secure = self.started.mode != launch.INSECURE
-        if secure and ((not self.info and self.started.mode == launch.BUBBLEWRAP)
+        if secure and ((not self.started.info and self.started.mode == launch.BUBBLEWRAP)
                        or (first is None and self.event != "timeout")):
-            raise launch.refuse_start(self.started, self._stderr(2000) or self.ended or "")
+            said = (self.tmp / "stderr.txt").read_text(errors="replace")[:2000]  # the launcher's, bwrap's words
+            raise launch.refuse_start(self.started, said or self.ended or "")
         if first is None:  # the process did not start in time: none of the student's code ran
             self.ended = (f"the process for your {self.name} did not start within {START_SECONDS:g} s (the machine is "
                           "overloaded); none of your code ran")
@@ -166,16 +147,7 @@ class StudentProcess:
         self.t0 = time.monotonic()  # the exercise's budget counts from here: its definitions and every call
         self.deadline = self.t0 + self.budget
         reply = self._receive() if not self.ended else None
-        if reply is not None:
-            self.hello = reply[0]
-        self.hello["sandbox"] = self.sandbox  # the grader's record, never the student's
-
-    def _stderr(self, n: int) -> str:
-        """The first ``n`` characters the process wrote to its standard error (the launcher's, bwrap's words)."""
-        try:
-            return (self.tmp / "stderr.txt").read_text(errors="replace")[:n]
-        except OSError:
-            return ""
+        self.hello = reply[0] if reply is not None else {}
 
     # -- the connection ------------------------------------------------------------------------
     def _remaining(self) -> float:
@@ -260,7 +232,7 @@ class StudentProcess:
         callbacks: list = []
         head = {"op": "call", "h": handle, "args": wire.encode(tuple(args), arrays, callbacks),
                 "kwargs": wire.encode(dict(kwargs), arrays, callbacks), "rng": wire.global_rng(arrays),
-                "grad": _grad_enabled()}
+                "grad": torch.is_grad_enabled() if (torch := sys.modules.get("torch")) is not None else True}
         if params:
             head["params"] = []
             for name, value in params:
@@ -285,8 +257,7 @@ class StudentProcess:
             raise self._malformed(exc) from None
         _check_sparse(self.name, [s for s in sizes if s[0] == "sparse"], expect)
         try:
-            value = wire.decode(reply["value"], out,
-                                module_proxy=lambda tree, arrs: RemoteModule.make(self, tree, arrs))
+            value = wire.decode(reply["value"], out, module_proxy=lambda tree, arrs: remote_module(self, tree, arrs))
             replay = wire.decode(reply.get("callbacks"), out) or []
             replay = [(callbacks[int(i)], tuple(a), dict(k)) for i, a, k in replay]
         except Exception as exc:  # noqa: BLE001 - a forged reply ends this exercise, not the grading
@@ -347,10 +318,8 @@ class StudentProcess:
         if self.proc is not None and self.proc.poll() is None:
             jail.kill_tree(self.proc.pid)
         if self.proc is not None:
-            try:
+            with contextlib.suppress(subprocess.TimeoutExpired):  # pragma: no cover
                 self.proc.wait(timeout=5)
-            except subprocess.TimeoutExpired:  # pragma: no cover
-                pass
 
     def close(self) -> None:
         if self.oracle is not None:
@@ -361,10 +330,8 @@ class StudentProcess:
                 wire.write_frame(self.req_w, {"op": "bye"})
             except OSError:
                 pass
-            try:
+            with contextlib.suppress(subprocess.TimeoutExpired):
                 self.proc.wait(timeout=2)
-            except subprocess.TimeoutExpired:
-                pass
         self.kill()
         wire.close_fds((self.req_w, self.rep_r))
         self.req_w = self.rep_r = -1
@@ -382,22 +349,13 @@ class StudentProcess:
 
 
 def _shapes_of(value, out: set, depth: int = 0) -> set:
-    """The shapes of every array and sparse matrix in an expected answer (tuples, lists, dicts, records)."""
-    if depth > 20:
-        return out
-    sparse = sys.modules.get("scipy.sparse")
-    if sparse is not None and sparse.issparse(value):
+    """The shapes of every array, tensor and sparse matrix in an expected answer (tuples, lists, dicts, records)."""
+    if hasattr(value, "shape") and hasattr(value, "dtype"):
         out.add(tuple(int(n) for n in value.shape))
-    elif isinstance(value, np.ndarray) or hasattr(value, "shape") and hasattr(value, "dtype"):
-        out.add(tuple(int(n) for n in value.shape))
-    elif isinstance(value, (tuple, list)):
-        for v in list(value)[:1000]:
-            _shapes_of(v, out, depth + 1)
-    elif isinstance(value, dict):
-        for v in list(value.values())[:1000]:
-            _shapes_of(v, out, depth + 1)
-    elif hasattr(value, "__dict__") and not isinstance(value, type):
-        for v in list(vars(value).values())[:1000]:
+    elif depth < 20:
+        parts = (value.values() if isinstance(value, dict) else value if isinstance(value, (tuple, list)) else
+                 vars(value).values() if hasattr(value, "__dict__") and not isinstance(value, type) else ())
+        for v in list(parts)[:1000]:
             _shapes_of(v, out, depth + 1)
     return out
 
@@ -429,8 +387,3 @@ def _check_sparse(name: str, sparse: list[tuple], expect) -> None:
                     if shapes else f"no exercise returns more than {limit} cells")
             raise ValueError(f"your {name} returned a sparse matrix of shape {shape} (at {path}); {want}, so the "
                              "grader did not build it")
-
-
-def _grad_enabled() -> bool:
-    torch = sys.modules.get("torch")
-    return bool(torch.is_grad_enabled()) if torch is not None else True

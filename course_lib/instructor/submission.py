@@ -84,10 +84,6 @@ def copy_submission(src: Path, dst: Path, *, max_file_bytes: int = 256 << 20, ma
     return walk.out
 
 
-def _inside(path: str, folder: str) -> bool:
-    return path == folder or path.startswith(folder.rstrip("/") + "/")
-
-
 def _copy_dir(walk: _Walk, src: str, dst: Path, rel: str, depth: int) -> None:
     if depth > walk.max_depth:
         walk.out.refused.append(f"{rel}: folders nested more than {walk.max_depth} deep")
@@ -124,7 +120,7 @@ def _copy_entry(walk: _Walk, path: str, dst: Path, rel: str, depth: int) -> None
     linked = stat.S_ISLNK(st.st_mode)
     if linked:
         real = os.path.realpath(path)
-        if not _inside(real, walk.src_real):
+        if real != walk.src_real and not real.startswith(walk.src_real.rstrip("/") + "/"):
             walk.out.refused.append(f"{rel}: a symbolic link to a place outside the submission (left out)")
             return
         try:

@@ -132,11 +132,19 @@ def measured(request):
                      f"{children:.0f}"))
 
 
+#: What :func:`grade_eight_point` gave each notebook 01 (its bytes) with each budget: the attack table reuses the
+#: gradings of the tests before it (the same notebook, the same hidden cases) and grades only what they did not.
+GRADED: dict[tuple[bytes, float], dict] = {}
+
+
 def grade_eight_point(path: Path, hidden, timeout: float = 20.0) -> dict:
-    report = grade_submission(path, notebooks=["01"], exercises=["eight_point"], hidden=hidden, timeout=timeout,
-                              run_nbval=False)
-    (g,) = report["exercises"]
-    return dict(g, seconds_total=report["seconds"], isolation=report.get("isolation", {}))
+    key = ((path / "notebooks" / NB01).read_bytes(), timeout)
+    if key not in GRADED:
+        report = grade_submission(path, notebooks=["01"], exercises=["eight_point"], hidden=hidden, timeout=timeout,
+                                  run_nbval=False)
+        (g,) = report["exercises"]
+        GRADED[key] = dict(g, seconds_total=report["seconds"], isolation=report.get("isolation", {}))
+    return GRADED[key]
 
 
 def test_the_stealth_route_would_work_without_the_separation(hidden):
@@ -222,7 +230,7 @@ def test_honest_gets_full_hidden_marks_and_the_untouched_release_zero(tmp_path, 
 
 def test_attack_table(tmp_path, hidden, capsys, request):
     """Every attack with its points and the first lines of its feedback (printed with ``pytest -s`` or
-    ``ATTACK_TABLE=1``)."""
+    ``ATTACK_TABLE=1``); the attacks that the tests above graded are not graded again (:data:`GRADED`)."""
     (tmp_path / "outside.txt").write_text("original")
     attacks = [
         ("honest eight_point", HONEST, None),
@@ -237,12 +245,10 @@ def test_attack_table(tmp_path, hidden, capsys, request):
     ]
     rows = []
     for k, (what, body, cell) in enumerate(attacks):
-        sub = submission(tmp_path / f"a{k}", body, extra_cell=cell)
-        report = grade_submission(sub, notebooks=["01"], exercises=["eight_point"], hidden=hidden,
-                                  timeout=6.0 if "loop" in what else 20.0, run_nbval=False)
-        (g,) = report["exercises"]
+        g = grade_eight_point(submission(tmp_path / f"a{k}", body, extra_cell=cell), hidden,
+                              timeout=6.0 if "loop" in what else 20.0)
         rows.append((what, g["points"], g["max_points"], g["status"], " / ".join(g["feedback"][:2])[:230],
-                     report["seconds"]))
+                     g["seconds_total"]))
     with capsys.disabled():
         show_table(request, "Issue 14", ["attack", "points", "status", "feedback", "s"],
                    [(what, f"{pts:g} / {mx:g}", status, fb, f"{sec:g}") for what, pts, mx, status, fb, sec in rows])

@@ -147,7 +147,7 @@ def probe(secret_file, outside_file):
 def test_the_student_process_sees_only_the_release_and_its_folder(iso, tmp_path):
     outside = tmp_path / "outside.txt"
     with StudentProcess(iso, PROBE, "probe", None, 60) as proc:
-        box = proc.hello["sandbox"]
+        box = proc.sandbox
         out = RemoteFunction(proc, "probe")(str(iso.hide[0] / "answers.txt"), str(outside))
     assert out["course_lib"].startswith(str(iso.library)), out
     assert out["import reference"] == "ModuleNotFoundError"
@@ -206,7 +206,7 @@ def test_insecure_runs_without_a_sandbox_and_says_so(iso):
     plain = Isolation(iso.library, iso.hide, iso.keep, insecure=True)
     code = "import course_lib\ndef where():\n    return course_lib.__file__\n"
     with StudentProcess(plain, code, "where", None, 30) as proc:
-        assert proc.hello["sandbox"]["namespaces"] is False and "--insecure" in proc.hello["sandbox"]["note"]
+        assert proc.sandbox["namespaces"] is False and "--insecure" in proc.sandbox["note"]
         assert RemoteFunction(proc, "where")().startswith(str(iso.library))
 
 
@@ -219,7 +219,7 @@ def test_nothing_of_the_student_survives_its_process(iso):
             "        while True:\n            pass\n"
             "    while True:\n        time.sleep(0.1)\n")
     proc = StudentProcess(iso, code, "f", None, 3)
-    namespace = f"pid:[{proc.info['pid-namespace']}]"
+    namespace = f"pid:[{proc.started.info['pid-namespace']}]"
     with pytest.raises(StudentProcessEnded, match="stopped after 3"):
         RemoteFunction(proc, "f")()
     proc.close()
@@ -366,7 +366,7 @@ def test_a_reply_larger_than_any_exercise_returns_ends_only_that_process(iso):
 
 def test_a_sandbox_report_that_says_nothing_is_refused_on_every_count(iso):
     """verify() names everything an empty (or forged) report lacks: no grading on a sandbox it cannot confirm."""
-    missing = " | ".join(jail.verify({}, {}, iso, seccomp=True))
+    missing = " | ".join(jail.verify({}, {}, seccomp=True))
     for what in ("namespace of its own", "capabilities left", "no_new_privs", "no seccomp filter", "root is writable",
                  "network devices"):
         assert what in missing, (what, missing)

@@ -10,15 +10,17 @@ the way a student fills it). Then, as a student who works through the course:
    checks ``course_lib.__file__`` inside the kernel), in quick mode (``COURSE_LIB_QUICK=1``);
    no cell may end in an error, and every check cell prints its verdict;
 2. the kit's grader (:func:`course_lib.instructor.grade.grade_submission`) gives every exercise
-   of the filled release its whole hidden share (every hidden check passes).
+   of the filled release full marks.
 
-Full marks are these and the nbval share, which the grader gives when the notebook runs top to
-bottom through the check cell (1: here in the student's own chain of saved solutions, not the
-grader's stand-ins) and the check on the notebook's own cases prints the reference verdict (each
-literal solution through its check below, compared line by line with the instructor's stored
-verdict). The grader is run without nbval here: nbval would run notebooks 01-08 a second time
-(some 90 s of CPU); the grader's nbval share itself is tested on the honest catalogue
-(``tests/instructor/test_honest_grading.py``) and on attacks (``tests/instructor/test_attacks.py``).
+Full marks are the whole hidden share (every hidden check passes) and the nbval share: the grader gives it when the notebook runs top to bottom
+through the check cell and the check on the notebook's own cases, run by the grader with the student's
+function in its sandbox, prints the reference verdict. The grading here is the grader's own, with one
+stand-in: the notebooks' top-to-bottom runs are the in-order run of 1 (in the student's own chain of
+saved solutions), not nbval's runs of notebooks 01-08 a second time in sandboxed kernels (some 90 s of
+CPU; the grader's nbval runner itself is tested on the honest catalogue,
+``tests/instructor/test_honest_grading.py``, and on attacks, ``tests/instructor/test_attacks.py``). So
+2 asserts full marks on every exercise: the whole hidden share, and the nbval share from the grader's
+own verdict of each check cell.
 
 The catalogue is also held to each check function on its own (fast, no notebook), so a
 failure of the notebook run is the kit's, not the catalogue's.
@@ -82,30 +84,69 @@ def test_each_literal_solution_passes_its_check(exercise, capsys):
     assert lines(out) == lines(spec.verdict), f"printed:\n{out}\nthe reference's verdict:\n{spec.verdict}"
 
 
-def test_the_filled_release_runs_notebooks_01_to_10_in_order_without_an_error(filled_release):
-    kit, filled = filled_release
+@pytest.fixture(scope="module")
+def in_order(filled_release):
+    """The in-order run of 1: ``{notebook: [problems]}``."""
+    kit, _ = filled_release
+    return verify_release(kit, only=list(COURSE), allowed_errors=())
+
+
+def test_the_filled_release_runs_notebooks_01_to_10_in_order_without_an_error(filled_release, in_order):
+    kit, _ = filled_release
     released = sorted(p.name for p in (kit / "notebooks").glob("*.ipynb"))
     missing = [n for n in COURSE if not any(name.startswith(n) for name in released)]
-    problems = verify_release(kit, only=list(COURSE), allowed_errors=())
-    errors = {name: found for name, found in problems.items() if found}
+    errors = {name: found for name, found in in_order.items() if found}
     assert not missing and not errors, "\n".join(
         [f"notebooks/{n}*: not in the release" for n in missing]
         + [f"{name}: {'; '.join(p[:400] for p in found)}" for name, found in errors.items()])
 
 
-def test_the_filled_release_gets_the_whole_hidden_share(filled_release):
-    from course_lib.instructor.grade import HIDDEN_SHARE, grade_submission
+class InOrderRun:
+    """The grader's nbval runner (:class:`~course_lib.instructor.nbval_run.NbvalRun`) answered by the in-order run:
+    every code cell of a notebook ran top to bottom when the student's in-order run of it ended without a problem."""
 
+    sandbox: dict = {}
+
+    def __init__(self, problems: dict[str, list[str]]):
+        self.problems, self.notebooks = problems, {}
+
+    def submit(self, name: str, nb) -> None:
+        self.notebooks[name] = nb
+
+    restart = submit
+
+    def stop(self) -> None:
+        pass
+
+    def results(self) -> tuple[dict[tuple[str, int], str], dict[str, str]]:
+        out = {}
+        for name, nb in self.notebooks.items():
+            found = self.problems.get(name, ["not in the in-order run"])
+            verdict = "pass" if not found else "; ".join(found)[:300]
+            out.update({(name, k): verdict for k in range(sum(c.cell_type == "code" for c in nb.cells))})
+        return out, {}
+
+
+def test_the_filled_release_gets_full_marks(filled_release, in_order, monkeypatch):
+    from course_lib.instructor import grade
+    from course_lib.instructor.grade import grade_submission
+
+    def start_nbval(run, cell_timeout, jobs):  # the notebooks' runs: the in-order run (the module's docstring)
+        runner = InOrderRun(in_order)
+        for name, nb in run.to_nbval.items():
+            runner.submit(name, nb)
+        return runner
+
+    monkeypatch.setattr(grade, "start_nbval", start_nbval)
     kit, _ = filled_release
     try:
-        report = grade_submission(kit, salt=GRADE_SEED, run_nbval=False)  # nbval: see the module's docstring
+        report = grade_submission(kit, salt=GRADE_SEED)
     except Exception as exc:  # noqa: BLE001 - a grader that refuses to run without its isolation
         if any(w in str(exc).lower() for w in ("isolation", "namespace", "sandbox")):
             pytest.skip(f"the grader refuses to grade here: {exc}")
         raise
-    short = {f"{g['notebook'][:2]} {g['name']}": (g["points"], g["status"], g["feedback"][:3])
-             for g in report["exercises"]
-             if g["status"] != "full" or g["points"] < round(g["max_points"] * HIDDEN_SHARE, 2)}
+    short = {f"{g['notebook'][:2]} {g['name']}": (g["points"], g["status"], g["nbval"], g["feedback"][:3])
+             for g in report["exercises"] if g["status"] != "full" or g["points"] < g["max_points"]}
     assert not short, f"{report['total']} / {report['max']}: {short}"
     assert report["max"] == sum(e.points for s in kit_specs() for e in s.exercises)
     assert sorted(g["name"] for g in report["exercises"]) == sorted(SPECS)

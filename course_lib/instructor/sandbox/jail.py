@@ -37,10 +37,10 @@ local run) skips the sandbox, and the report says so.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
-import select
 import shutil
 import signal
 import stat
@@ -50,11 +50,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from course_lib.instructor.sandbox import server
+from course_lib.instructor.sandbox import server, wire
 from course_lib.instructor.settings import STUDENT_UID, site_allow_list
 from course_lib.validate import KitInputError
 
-__all__ = ["IsolationError", "bwrap_path", "closed_to", "command", "install_server", "verify", "privileges_left", "read_info",
+__all__ = ["IsolationError", "closed_to", "command", "install_server", "verify", "privileges_left", "read_info",
            "seccomp_filter", "preexec", "sandboxed", "refusal", "STUDENT_UID", "HOW_TO_ENABLE", "INSTALL", "REPORT",
            "REFUSAL", "WORK", "SEED", "kill_tree"]
 
@@ -77,11 +77,6 @@ REFUSAL = "refusing to run the students' code"
 
 class IsolationError(KitInputError):
     """The grader cannot verify that a student's code would run isolated: it refuses to run it (one line)."""
-
-
-def bwrap_path() -> str | None:
-    """The ``bwrap`` program, or None where bubblewrap is not installed."""
-    return shutil.which("bwrap")
 
 
 def refusal(what: str, how: str = HOW_TO_ENABLE) -> str:
@@ -186,15 +181,15 @@ def command(iso, mode: str, server_dir: Path, seed: Path | None, info_fd: int, s
         staged: :func:`staging`'s folders (a grader that runs as root).
     """
     disk = int(iso.limits.disk_bytes) + (seed_bytes(seed) if seed is not None else 0)
-    args = [bwrap_path() or "bwrap", "--unshare-all", "--unshare-user", "--disable-userns", "--die-with-parent",
-            "--new-session", "--cap-drop", "ALL", "--hostname", "sandbox",
+    args = [shutil.which("bwrap") or "bwrap", "--unshare-all", "--unshare-user", "--disable-userns",
+            "--die-with-parent", "--new-session", "--cap-drop", "ALL", "--hostname", "sandbox",
             "--size", str(disk), "--tmpfs", "/tmp"]
     args += _binds(iso.read_only(), staged or {})
-    for p in site_hidden(iso.read_only()):  # each site-packages folder: only the student's dependencies
+    # what of each site-packages folder is not the student's dependencies, and each hidden folder inside a shown one:
+    # an empty read-only file or folder in its place
+    for p in site_hidden(iso.read_only()) + iso.covered():
         args += ["--ro-bind", "/dev/null", p] if os.path.isfile(p) and not os.path.islink(p) else \
             ["--size", "4096", "--tmpfs", p, "--remount-ro", p]
-    for h in iso.covered():  # a hidden folder inside a shown one: an empty read-only folder in its place
-        args += ["--size", "4096", "--tmpfs", h, "--remount-ro", h]
     args += ["--ro-bind", str(server_dir), SERVER]
     if seed is not None:
         args += ["--ro-bind", str(seed), SEED]
@@ -232,26 +227,21 @@ def seed_bytes(seed: Path) -> int:
     total = 1 << 20
     for folder, _, files in os.walk(seed):
         for f in files:
-            try:
+            with contextlib.suppress(OSError):
                 total += -(-os.lstat(os.path.join(folder, f)).st_size // 4096) * 4096
-            except OSError:
-                pass
     return total
 
 
 def sandboxed(iso, mode: str, server_dir: Path, seed: Path | None, stage_dir: Path):
-    """Everything needed to start ``server.py MODE`` in a sandbox, refused (:class:`IsolationError`) when it cannot be.
-
-    Refuses without bubblewrap, and when the student's uid would be the grading user's (the grader is root and
-    ``COURSE_GRADER_STUDENT_UID`` is 0). Makes the pipe ``bwrap`` reports to, the seccomp filter's pipe and, for a
-    grader that runs as root, the staged read-only folders (:func:`staging`, under ``stage_dir``).
+    """Everything needed to start ``server.py MODE`` in a sandbox, refused (:class:`IsolationError`) without
+    bubblewrap, and when the student's uid would be the grading user's.
 
     Returns:
         ``(argv, fds, info_r, staged, filtered)``: the command line (:func:`command`), the descriptors the process
         must inherit (the caller closes them once it started), the read end of bwrap's report, the staged folders,
         and whether a seccomp filter is applied.
     """
-    if bwrap_path() is None:
+    if shutil.which("bwrap") is None:
         raise IsolationError(refusal("bubblewrap (bwrap) is not installed", INSTALL))
     if os.getuid() == 0 and STUDENT_UID == 0:
         raise IsolationError(refusal("COURSE_GRADER_STUDENT_UID is 0, the grading user's uid",
@@ -335,10 +325,7 @@ def _show_staged(staged: dict[str, str]) -> None:
 def read_info(fd: int, deadline: float) -> dict:
     """``bwrap --info-fd``'s JSON (the sandbox's host pid and namespaces); ``{}`` when bwrap wrote none in time."""
     data = b""
-    while len(data) < 1 << 16:
-        left = deadline - time.monotonic()
-        if left <= 0 or not select.select([fd], [], [], left)[0]:
-            break
+    while len(data) < 1 << 16 and wire.ready(fd, deadline):
         b = os.read(fd, 4096)
         if not b:
             break
@@ -348,17 +335,6 @@ def read_info(fd: int, deadline: float) -> dict:
         except ValueError:
             continue
     return {}
-
-
-def _host_uids(pid: int) -> list[int] | None:
-    try:
-        with open(f"/proc/{int(pid)}/status") as f:
-            for line in f:
-                if line.startswith("Uid:"):
-                    return [int(x) for x in line.split()[1:5]]
-    except (OSError, ValueError):
-        return None
-    return None
 
 
 def privileges_left(facts: dict, caps: tuple[str, ...], seccomp: bool) -> list[str]:
@@ -374,7 +350,7 @@ def privileges_left(facts: dict, caps: tuple[str, ...], seccomp: bool) -> list[s
     return missing
 
 
-def verify(facts: dict, info: dict, iso, seccomp: bool) -> list[str]:
+def verify(facts: dict, info: dict, seccomp: bool) -> list[str]:
     """What is missing from a sandbox, from the server's ``facts`` and ``bwrap``'s ``info`` (empty: isolated).
 
     Checked: new user, mount, PID, network and IPC namespaces (also against ``bwrap``'s own report); no
@@ -405,7 +381,8 @@ def verify(facts: dict, info: dict, iso, seccomp: bool) -> list[str]:
     if set(facts.get("net") or ["?"]) - {"lo"}:
         missing.append(f"network devices ({', '.join(facts.get('net') or ['unknown'])})")
     pid = info.get("child-pid")
-    uids = _host_uids(pid) if isinstance(pid, int) else None
+    status = server.proc_lines(f"/proc/{pid}/status") if isinstance(pid, int) else None
+    uids = next(([int(x) for x in ln.split()[1:5]] for ln in status or [] if ln.startswith("Uid:")), None)
     if os.getuid() == 0:  # (a STUDENT_UID of 0 is refused before the sandbox is made: sandboxed)
         if uids is None:
             missing.append("its process on the host cannot be read (bwrap --info-fd)")
@@ -416,10 +393,8 @@ def verify(facts: dict, info: dict, iso, seccomp: bool) -> list[str]:
     return missing
 
 
-def describe(facts: dict, info: dict, iso, seccomp: bool) -> dict:
-    """What confined a verified sandbox, for the report (``isolation``)."""
-    pid = info.get("child-pid")
-    uids = _host_uids(pid) if isinstance(pid, int) else None
+def describe(iso, seccomp: bool) -> dict:
+    """What confined a verified sandbox (:func:`verify`), for the report (``isolation``)."""
     return {"tool": "bubblewrap", "namespaces": True, "read_only": True,
             "namespaces list": "user, mount, PID, IPC, network (loopback only), UTS, cgroup",
             "file system": "a fresh root: the Python installation, the student release and system libraries "
@@ -428,8 +403,8 @@ def describe(facts: dict, info: dict, iso, seccomp: bool) -> dict:
                     "(/dev/shm)",
             "capabilities": "none (no_new_privs)", "seccomp": "filter" if seccomp else "none on this architecture",
             "uid": (f"{STUDENT_UID} (the grader runs as root)" if os.getuid() == 0 else
-                    f"{uids[0] if uids else os.getuid()}, the grading user's, in a user namespace of its own with "
-                    "nothing of that user's in view")}
+                    f"{os.getuid()}, the grading user's, in a user namespace of its own with nothing of that user's "
+                    "in view")}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -483,10 +458,8 @@ def kill_tree(pid: int) -> None:
     except OSError:
         kids = []
     for k in kids:
-        try:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
             os.kill(k, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
     for _ in range(50 if kids else 0):  # the launcher reaps its child and exits on its own
         try:
             with open(f"/proc/{pid}/stat") as f:
@@ -496,7 +469,5 @@ def kill_tree(pid: int) -> None:
             break
         time.sleep(0.01)
     for kill, target in ((os.killpg, pid), (os.kill, pid)):
-        try:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
             kill(target, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass

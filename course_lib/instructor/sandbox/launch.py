@@ -14,6 +14,7 @@ the server reports of itself with what the mode must give, and refuses where any
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
@@ -138,27 +139,20 @@ def check(started: Started, iso, facts: dict, cgroup, what: str = "the sandbox")
         box = {"tool": "none (--insecure)", "namespaces": False, "read_only": False,
                "note": "--insecure: the student's code ran without a sandbox, as the grading user"}
         return dict(box, **iso.limits.totals(cgroup))
-    if started.mode == CONTAINER:
-        missing = container.verify(facts)
-    else:
-        missing = jail.verify(facts, started.info, iso, started.filtered)
+    boxed = started.mode == BUBBLEWRAP
+    missing = jail.verify(facts, started.info, started.filtered) if boxed else container.verify(facts)
     if missing:
         jail.kill_tree(started.proc.pid)
         raise jail.IsolationError(jail.refusal(f"{what} is not isolated: " + "; ".join(missing), jail.REPORT))
-    if started.mode == CONTAINER:
-        box = container.describe(cgroup)
-    else:
-        box = jail.describe(facts, started.info, iso, started.filtered)
+    box = jail.describe(iso, started.filtered) if boxed else container.describe(cgroup)
     return dict(box, **iso.limits.totals(cgroup))
 
 
 def refuse_start(started: Started, stderr_text: str = "", what: str = "the sandbox") -> jail.IsolationError:
     """The refusal when a process did not report before its start's time ran out or it ended: bubblewrap could not
     make ``what`` (its own words from ``stderr_text`` where it said any). The process is killed."""
-    try:
+    with contextlib.suppress(subprocess.TimeoutExpired):
         started.proc.wait(timeout=2)
-    except subprocess.TimeoutExpired:
-        pass
     jail.kill_tree(started.proc.pid)
     lines = [ln.strip() for ln in stderr_text.splitlines() if ln.strip()]
     said = [ln for ln in lines if ln.startswith("bwrap:")] or lines[-1:]

@@ -26,17 +26,14 @@ Two commands:
     pipe (:mod:`course_lib.instructor.oracle`).
 
 ``server.py exec CONFIG.json``
-    The nbval launcher. It makes itself undumpable (no process of the sandbox can read its memory
-    or its file descriptors), copies the submission, reports :func:`facts` on ``report_fd`` and
-    waits for ``go`` on ``go_fd``; then runs ``CONFIG["argv"]`` (pytest with nbval) as an undumpable
-    process that writes its junit report into a pipe only it holds (``{junit}`` in the arguments).
-    After pytest ended, it kills every other process of the sandbox (inside a PID namespace of
-    its own) and copies the report, at most 16 MiB, to the grader's ``collect_fd``. The student's
-    notebook never holds, and cannot reach, the report the grader reads.
+    The nbval launcher (:func:`launch`): the same report and ``go``, then pytest with nbval, whose junit report
+    reaches the grader through a pipe that the student's notebook never holds
+    (:mod:`course_lib.instructor.nbval_run`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sys
@@ -70,36 +67,20 @@ def facts(hide: list[str], keep: list[str] = (), readable: list[str] = ()) -> di
     ``unreadable``: which of the ``readable`` folders (the student release) it cannot read; ``net``: its
     network interfaces.
     """
-    out: dict = {"uid": os.getuid(), "gid": os.getgid(), "pid": os.getpid(), "ns": namespaces(), "status": {}}
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                key, _, value = line.partition(":")
-                if key in ("CapEff", "CapPrm", "CapBnd", "CapAmb", "NoNewPrivs", "Seccomp"):
-                    out["status"][key] = value.strip()
-    except OSError:
-        pass
-    writable = []
-    try:
-        with open("/proc/self/mountinfo") as f:
-            for line in f:
-                parts = line.split()
-                if len(parts) > 5 and "rw" in parts[5].split(","):
-                    writable.append(parts[4])
-    except OSError:
-        writable = ["(no /proc/self/mountinfo)"]
-    out["writable"] = sorted(set(writable))
+    status, mounts, net = (proc_lines(p) for p in ("/proc/self/status", "/proc/self/mountinfo", "/proc/net/dev"))
+    wanted = ("CapEff", "CapPrm", "CapBnd", "CapAmb", "NoNewPrivs", "Seccomp")
+    out: dict = {"uid": os.getuid(), "ns": namespaces(),
+                 "status": {k: v.strip() for k, _, v in (ln.partition(":") for ln in status or []) if k in wanted},
+                 "writable": sorted({p[4] for p in map(str.split, mounts) if len(p) > 5 and "rw" in p[5].split(",")})
+                 if mounts is not None else ["(no /proc/self/mountinfo)"],
+                 "net": sorted(ln.split(":")[0].strip() for ln in net[2:] if ":" in ln) if net is not None
+                 else ["(no /proc/net/dev)"]}
     try:
         out["root_read_only"] = bool(os.statvfs("/").f_flag & os.ST_RDONLY)
     except OSError:
         out["root_read_only"] = False
     out["visible"] = [h for h in hide if _sees(h, keep)]
     out["unreadable"] = [p for p in readable if not os.access(p, os.R_OK | os.X_OK)]
-    try:
-        with open("/proc/net/dev") as f:
-            out["net"] = sorted(ln.split(":")[0].strip() for ln in f.readlines()[2:] if ":" in ln)
-    except OSError:
-        out["net"] = ["(no /proc/net/dev)"]
     import socket
 
     try:  # container mode: its filter refuses every socket but AF_UNIX
@@ -108,6 +89,15 @@ def facts(hide: list[str], keep: list[str] = (), readable: list[str] = ()) -> di
     except OSError:
         out["inet"] = False
     return out
+
+
+def proc_lines(path: str) -> list[str] | None:
+    """The lines of a file of ``/proc`` (None where it cannot be read)."""
+    try:
+        with open(path) as f:
+            return f.read().splitlines()
+    except OSError:
+        return None
 
 
 def namespaces() -> dict[str, str | None]:
@@ -264,19 +254,14 @@ def serve(cfg: dict) -> None:
     write_frame(rep, hello)
     while True:
         try:
-            msg, arrays = read_frame(req)
+            msg, arrays = read_frame(req, trusted=True)
         except EOFError:
             break
         if msg.get("op") == "bye":
             break
         calls: list = []
+        recorder = lambda i: lambda *a, **k: calls.append((i, a, k))  # noqa: E731 - replayed by the grader
         try:
-            def recorder(i):
-                def cb(*args, **kwargs):
-                    calls.append((i, args, kwargs))
-
-                return cb
-
             args = decode(msg["args"], arrays, recorder)
             kwargs = decode(msg["kwargs"], arrays, recorder)
             gens = _generators(args, kwargs)
@@ -284,8 +269,7 @@ def serve(cfg: dict) -> None:
             fn = target if msg.get("h") is None else handles[int(msg["h"])]
             if msg.get("h") is not None and msg.get("params"):
                 _load_params(fn, msg["params"], arrays)
-            grad = _grad_mode(msg.get("grad", True))
-            with grad:
+            with _grad_mode(msg.get("grad", True)):
                 value = fn(*args, **kwargs)
             out: list = []
             tree = encode(value, out, handles=handles)
@@ -310,17 +294,15 @@ def _close_engine(path: str, exercise: str) -> None:
         raise RuntimeError(f"{path} is the kit's engine that computes {exercise}; while {exercise} is graded it is "
                            f"closed: write {exercise} yourself")
 
-    try:
+    with contextlib.suppress(ImportError):  # a module the student kit leaves out: nothing to close
         setattr(importlib.import_module(module), attr, closed)
-    except ImportError:  # a module the student kit leaves out: nothing to close
-        pass
 
 
 def _generators(args, kwargs) -> list:
     """``[[where, generator]]``: the random generators among the call's arguments (``where``: ``["a", i]`` or
     ``["k", name]``); their states after the call go back with the reply, so that, as in a notebook, the caller's
     generator has advanced by what the student's function drew from it."""
-    np, torch = wire.lazy_numpy(), wire.loaded_torch()
+    np, torch = wire.lazy_numpy(), sys.modules.get("torch")
     kinds = tuple(k for k in (getattr(np.random, "Generator", None), getattr(torch, "Generator", None)) if k)
     out = [[["a", i], a] for i, a in enumerate(args) if isinstance(a, kinds)]
     return out + [[["k", k], v] for k, v in kwargs.items() if isinstance(v, kinds)]
@@ -347,7 +329,7 @@ def oracle_stub(step: str, exercise: str, own):
             raise ValueError(f"{step} was called with {size >> 20} MiB of arguments: while {exercise} is graded, "
                              f"the grader answers {step} for at most {MAX_REPLY >> 20} MiB")
         write_frame(REP_FD, head, out)
-        reply, arrays = read_frame(REQ_FD)
+        reply, arrays = read_frame(REQ_FD, trusted=True)
         if reply.get("ok"):
             return decode(reply.get("value"), arrays)
         if reply.get("unbound"):
@@ -372,8 +354,6 @@ def _oracle_error(reply: dict, step: str, exercise: str) -> Exception:
 
 
 def _grad_mode(enabled: bool):
-    import contextlib
-
     torch = sys.modules.get("torch")
     return torch.set_grad_enabled(bool(enabled)) if torch is not None else contextlib.nullcontext()
 
@@ -407,7 +387,9 @@ PYTEST_BOOT = ("import ctypes, sys\nctypes.CDLL(None).prctl(4, 0, 0, 0, 0)\nimpo
 
 
 def launch(cfg: dict) -> int:
-    """Run pytest (``cfg["argv"]``) after the grader's go; its junit report goes to ``collect_fd``. The exit code."""
+    """Run pytest (``cfg["argv"]``) after the grader's go, undumpable (no process of the sandbox can read its memory or
+    descriptors), its junit report written into a pipe only it holds; then kill every other process of the sandbox
+    and copy the report (at most ``wire.MAX_REPORT`` bytes) to ``collect_fd``. The exit code."""
     import subprocess
     import threading
 
@@ -429,10 +411,8 @@ def launch(cfg: dict) -> int:
     os.close(w)
     rc = proc.wait()
     if cfg.get("own_pid_namespace"):  # every process the notebook left behind (never outside a PID namespace)
-        try:
+        with contextlib.suppress(OSError):
             os.kill(-1, 9)
-        except OSError:
-            pass
     reader.join(5)
     view = memoryview(got[0] if got else b"")
     while view:

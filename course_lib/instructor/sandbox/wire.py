@@ -28,8 +28,10 @@ torch random generators (their state), and (student side) an ``nn.Module`` as a 
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
+import math
 import os
 import select
 import struct
@@ -37,9 +39,9 @@ import sys
 import time
 
 __all__ = ["WireError", "Record", "encode", "decode", "declared", "pack", "unpack", "write_frame", "read_frame",
-           "read_frame_before", "read_exact", "read_until_closed", "global_rng", "set_global_rng", "builtin_exception",
+           "ready", "read_exact", "read_until_closed", "global_rng", "set_global_rng", "builtin_exception",
            "MAX_REQUEST", "MAX_REPORT", "MAX_REPLY", "MAX_HEADER", "MAX_NODES", "MAX_ARRAYS", "MAX_SPARSE_CELLS",
-           "ident", "lazy_numpy", "loaded_torch", "close_fds", "close_inherited"]
+           "ident", "lazy_numpy", "close_fds", "close_inherited"]
 
 MAX_REQUEST = 1 << 31  # bytes of one message from the grader (the hidden inputs)
 #: Bytes of one reply from the student's process: what an exercise can honestly return (the largest honest reply
@@ -67,19 +69,15 @@ class WireError(Exception):
 def close_fds(fds) -> None:
     """Close each of ``fds`` (a pipe's end); one that is closed already is no error."""
     for fd in fds:
-        try:
+        with contextlib.suppress(OSError):
             os.close(fd)
-        except OSError:
-            pass
 
 
 def close_inherited(*keep: int) -> None:
     """Close every file descriptor above 2 but ``keep``: a worker forked from the grader holds no pipe of the grader's
     other work (nbval's, another exercise's). Without ``/proc`` they stay open."""
-    try:
+    with contextlib.suppress(OSError):
         close_fds(fd for fd in [int(f) for f in os.listdir("/proc/self/fd")] if fd > 2 and fd not in keep)
-    except OSError:
-        pass
 
 
 def lazy_numpy():
@@ -89,18 +87,10 @@ def lazy_numpy():
     return np
 
 
-def loaded_torch():
-    """torch where this process has imported it, else None (the wire never imports torch itself)."""
-    return sys.modules.get("torch")
-
-
 def ident(name, default: str = "Result") -> str:
     """``name`` if it is a short public identifier, else ``default`` (names in a message are data)."""
     name = str(name)[:100]
     return name if name.isidentifier() and not name.startswith("__") and len(name) < 80 else default
-
-
-_ident = ident
 
 
 def builtin_exception(reply: dict) -> type | None:
@@ -116,7 +106,7 @@ def global_rng(arrays: list) -> dict:
     """The global numpy (and, where torch is loaded, torch) random states, encoded: they go with every call and come
     back with its reply, so that, as in a notebook, a function that seeds or draws from them changes its caller's."""
     out = {"np": encode(list(lazy_numpy().random.get_state()), arrays)}
-    torch = loaded_torch()
+    torch = sys.modules.get("torch")  # where this process imported it (the wire never imports it)
     if torch is not None:
         out["torch"] = encode(torch.get_rng_state(), arrays)
     return out
@@ -128,7 +118,7 @@ def set_global_rng(state, arrays: list) -> None:
         return
     if state.get("np") is not None:
         lazy_numpy().random.set_state(tuple(decode(state["np"], arrays)))
-    torch = loaded_torch()
+    torch = sys.modules.get("torch")
     if torch is not None and state.get("torch") is not None:
         torch.set_rng_state(decode(state["torch"], arrays))
 
@@ -150,13 +140,13 @@ def encode(obj, arrays: list, callbacks: list | None = None, handles: dict | Non
     if isinstance(obj, complex):
         return {"$": "complex", "re": repr(obj.real), "im": repr(obj.imag)}
     np = sys.modules.get("numpy")
-    torch = loaded_torch()
+    torch = sys.modules.get("torch")
     if np is not None:
-        if isinstance(obj, np.ndarray) or isinstance(obj, np.generic):
+        if isinstance(obj, (np.ndarray, np.generic)):
             arr = np.asarray(obj)
             if arr.dtype.hasobject:
                 raise WireError("an array of Python objects (dtype=object) cannot be sent; use a numeric array")
-            arrays.append(np.asarray(arr))
+            arrays.append(arr)
             return {"$": "nd" if isinstance(obj, np.ndarray) else "npscalar", "a": len(arrays) - 1}
         if isinstance(obj, np.random.Generator):
             return {"$": "rng", "s": encode(obj.bit_generator.state, arrays, depth=depth + 1)}
@@ -216,26 +206,22 @@ class Record:
 _TYPES: dict = {}
 
 
-def _record_type(name: str):
-    if len(_TYPES) > 4096:  # a reply cannot grow the grader by naming new types
-        _TYPES.clear()
-    if ("record", name) not in _TYPES:
-        _TYPES[("record", name)] = type(name, (Record,), {})
-    return _TYPES[("record", name)]
-
-
-def _ntuple_type(name: str, fields: tuple):
+def _made_type(name: str, fields: tuple | None = None):
+    """The :class:`Record` subclass ``name`` (``fields`` None), or the namedtuple ``name`` of ``fields`` (None where it
+    cannot be one: the value is then a plain tuple); made once, and at most 4096 of them (a reply cannot grow the
+    grader by naming new types)."""
     import collections
 
-    key = ("ntuple", name, fields)
-    if len(fields) > 64 or len(_TYPES) > 4096:
-        return None  # a plain tuple
-    if key not in _TYPES:
+    if fields is not None and len(fields) > 64:
+        return None
+    if len(_TYPES) > 4096:
+        _TYPES.clear()
+    if (name, fields) not in _TYPES:
         try:
-            _TYPES[key] = collections.namedtuple(name, fields)
+            _TYPES[name, fields] = type(name, (Record,), {}) if fields is None else collections.namedtuple(name, fields)
         except ValueError:
-            _TYPES[key] = None
-    return _TYPES[key]
+            _TYPES[name, fields] = None
+    return _TYPES[name, fields]
 
 
 def _array(arrays: list, k) -> object:
@@ -301,7 +287,7 @@ def decode(tree, arrays: list, callback=None, module_proxy=None):
     if kind in ("rng", "tgen"):
         return _generator(kind, tree, arrays, sub)
     if kind == "ntuple":
-        t = _ntuple_type(ident(tree["n"]), tuple(ident(f, "field") for f in _items(tree["f"])))
+        t = _made_type(ident(tree["n"]), tuple(ident(f, "field") for f in _items(tree["f"])))
         vals = [sub(v) for v in _items(tree["v"])]
         return t(*vals) if t is not None and len(vals) == len(t._fields) else tuple(vals)
     if kind == "tuple":
@@ -313,7 +299,7 @@ def decode(tree, arrays: list, callback=None, module_proxy=None):
     if kind == "record":
         if not isinstance(tree["f"], dict):
             raise WireError("malformed record")
-        return _record_type(ident(tree["n"]))(**{ident(k, "field"): sub(v) for k, v in tree["f"].items()})
+        return _made_type(ident(tree["n"]))(**{ident(k, "field"): sub(v) for k, v in tree["f"].items()})
     if kind == "sparse":
         return _sparse(tree, arrays)
     if kind == "cb":
@@ -389,16 +375,12 @@ def declared(tree) -> list[tuple]:
     Returns ``("sparse", path, (rows, cols))`` for every sparse matrix and ``("module", path, layers, shapes)``
     for every remote module (``layers``: its ``[in, out, bias]`` list; ``shapes``: the shapes of the parameters
     it sends), ``path`` saying where in the value it is (``"value[1]"``). Malformed entries raise
-    :class:`WireError`. Walks at most :data:`MAX_NODES` values.
+    :class:`WireError`. (:func:`unpack` bounded the tree's size before.)
     """
     out: list[tuple] = []
     stack = [(tree, "value")]
-    seen = 0
     while stack:
         node, path = stack.pop()
-        seen += 1
-        if seen > MAX_NODES:
-            raise WireError(f"the reply holds more than {MAX_NODES} values")
         if not isinstance(node, dict):
             if isinstance(node, list):
                 raise WireError("malformed message")
@@ -493,9 +475,7 @@ def _load_npy(data) -> object:
     shape, fortran, dtype = read_header(fp)
     if dtype.hasobject or dtype.kind not in "biufcSUMmV":
         raise WireError("malformed message (an array of Python objects)")
-    count = 1
-    for n in shape:
-        count *= int(n)
+    count = math.prod(int(n) for n in shape)
     start = fp.tell()
     if count * dtype.itemsize != len(data) - start:
         raise WireError("malformed message (an array whose size differs from its header)")
@@ -545,16 +525,22 @@ def unpack(data, header_limit: int = MAX_HEADER, max_nodes: int = MAX_NODES,
     return header, arrays
 
 
+def ready(fd: int, deadline: float | None, write: bool = False) -> bool:
+    """Whether ``fd`` can be read (``write``: written) before ``deadline`` (``time.monotonic()``; None: no deadline)."""
+    if deadline is None:
+        return True
+    left = deadline - time.monotonic()
+    return left > 0 and bool(select.select([] if write else [fd], [fd] if write else [], [], left)[int(write)])
+
+
 def write_frame(fd: int, header: dict, arrays: list = (), deadline: float | None = None) -> None:
     """Send one message on ``fd``; ``TimeoutError`` when ``deadline`` (``time.monotonic()``) passes before it is
     sent."""
     data = pack(header, list(arrays))
     view = memoryview(struct.pack("<Q", len(data)) + data)
     while view:
-        if deadline is not None:
-            left = deadline - time.monotonic()
-            if left <= 0 or not select.select([], [fd], [], left)[1]:
-                raise TimeoutError
+        if not ready(fd, deadline, write=True):
+            raise TimeoutError
         view = view[os.write(fd, view[: 1 << 16]):]
 
 
@@ -563,10 +549,8 @@ def read_exact(fd: int, n: int, deadline: float | None = None) -> bytearray:
     closed first, ``TimeoutError`` when ``deadline`` (``time.monotonic()``) passed first."""
     buf = bytearray()
     while len(buf) < n:
-        if deadline is not None:
-            left = deadline - time.monotonic()
-            if left <= 0 or not select.select([fd], [], [], left)[0]:
-                raise TimeoutError
+        if not ready(fd, deadline):
+            raise TimeoutError
         b = os.read(fd, min(n - len(buf), 1 << 20))
         if not b:
             raise EOFError("the other side closed the connection")
@@ -579,10 +563,8 @@ def read_until_closed(fd: int, limit: int, deadline: float | None = None) -> tup
     kept (the rest is read and dropped)."""
     got, size = [], 0
     while True:
-        if deadline is not None:
-            left = deadline - time.monotonic()
-            if left <= 0 or not select.select([fd], [], [], left)[0]:
-                return b"".join(got), False
+        if not ready(fd, deadline):
+            return b"".join(got), False
         b = os.read(fd, 1 << 16)
         if not b:
             return b"".join(got), True
@@ -591,19 +573,13 @@ def read_until_closed(fd: int, limit: int, deadline: float | None = None) -> tup
             size += len(b)
 
 
-def read_frame(fd: int, limit: int = MAX_REQUEST) -> tuple[dict, list]:
-    """The next message on ``fd`` (at most ``limit`` bytes)."""
-    (n,) = struct.unpack("<Q", read_exact(fd, 8))
-    if n > limit:
-        raise WireError(f"a message of {n} bytes is larger than the limit ({limit} bytes)")
-    return unpack(read_exact(fd, n), header_limit=max(MAX_HEADER, min(n, 1 << 30)), max_nodes=1 << 30,
-                  max_arrays=1 << 30)
-
-
-def read_frame_before(fd: int, deadline: float, limit: int) -> tuple[dict, list]:
-    """The next frame on ``fd`` before ``deadline`` (``time.monotonic()``; else ``TimeoutError``), at most ``limit``
-    bytes (else :class:`WireError`), read as it arrives; ``EOFError`` when the other side closed."""
+def read_frame(fd: int, limit: int = MAX_REQUEST, deadline: float | None = None,
+               trusted: bool = False) -> tuple[dict, list]:
+    """The next message on ``fd``, read as it arrives: at most ``limit`` bytes (else :class:`WireError`), before
+    ``deadline`` (``time.monotonic()``; else ``TimeoutError``); ``EOFError`` when the other side closed. Its header is
+    bounded as :func:`unpack`'s defaults say, unless ``trusted`` (the grader's requests: ``limit`` bounds all)."""
     (n,) = struct.unpack("<Q", read_exact(fd, 8, deadline))
     if n > limit:
-        raise WireError(f"a message of {n >> 20} MiB, more than the limit ({limit >> 20} MiB)")
-    return unpack(read_exact(fd, n, deadline))
+        raise WireError(f"a message of {n} bytes, more than the limit ({limit} bytes)")
+    data = read_exact(fd, n, deadline)
+    return unpack(data, 1 << 30, 1 << 30, 1 << 30) if trusted else unpack(data)
