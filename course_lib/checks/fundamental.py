@@ -447,7 +447,8 @@ def check_ransac_fundamental(ransac_fundamental: Callable) -> None:
                               f"{len(f['rs_x1'])} matches"),
                              ("rf", TIGHT_THRESHOLD_PX, f"synthetic pair without outliers, 1 px noise "
                               f"({len(f['rf_x1'])} matches), threshold_px={TIGHT_THRESHOLD_PX:g}")):
-            run = call(c, RANSAC, ransac_fundamental, (f[f"{p}_x1"], f[f"{p}_x2"]), case, threshold_px=thr)
+            run = call(c, RANSAC, ransac_fundamental, (f[f"{p}_x1"], f[f"{p}_x2"]), case, threshold_px=thr,
+                       judge=lambda k, r, p=p: _fit_verdicts(k, f, p, r))
             if run is not None:
                 runs.append(run)
                 good.append(_fit_verdicts(c, f, p, run))

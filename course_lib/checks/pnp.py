@@ -206,9 +206,14 @@ def _pose_verdicts(c: Check, f, key: str, run: Run, pose_named: str | None) -> b
                     named=pose_named):
         return False
     agree = float((inl == inl_r).mean())
-    c.expect(agree > 0.9, f"{case}: the inliers agree with the reference",
-             f"{case}: only {agree:.0%} of the inlier labels agree with the reference ({int(inl.sum())} inliers, "
-             f"reference {int(inl_r.sum())}): inliers are the points with reprojection error below threshold_px "
+    n, n_r, common = int(inl.sum()), int(inl_r.sum()), int((inl & inl_r).sum())
+    # the embedded scene's triangulated points can hold two consensus sets of similar size (a plain loop's refit finds
+    # 137 inliers where the reference's finds 118 on one grading salt): there, as for notebook 01's embedded pair,
+    # about as many inliers as the reference's, most of them the same
+    similar = key == "ransac_embedded" and 0.85 * n_r <= n <= 1.25 * n_r and common >= 0.8 * n_r
+    c.expect(agree > 0.9 or similar, f"{case}: the inliers agree with the reference",
+             f"{case}: only {agree:.0%} of the inlier labels agree with the reference ({n} inliers, reference {n_r}, "
+             f"{common} in common): inliers are the points with reprojection error below threshold_px "
              f"= {run.thr:g} (pixels, in front of the camera)")
     if f"{key}_outlier" in f:
         outl = f[f"{key}_outlier"].astype(bool)
@@ -249,7 +254,8 @@ def check_pnp_ransac(fn, exercise: str = "pnp_ransac") -> None:
                               ("ransac_thr", f"1 px noise, threshold_px={thr:g}", {"threshold_px": thr}),
                               ("ransac_embedded", "embedded scene", {})):
             if f"{key}_X" in f:
-                run = call(c, RANSAC, fn, tuple(f[f"{key}_{s}"] for s in ("X", "x", "K")), case, RANSAC_SEED, **kw)
+                run = call(c, RANSAC, fn, tuple(f[f"{key}_{s}"] for s in ("X", "x", "K")), case, RANSAC_SEED,
+                           judge=lambda k, r, key=key: _pose_verdicts(k, f, key, r, None), **kw)
                 if run is not None:
                     runs[key] = run
         off = [k for k, r in runs.items() if rotation_angle_deg(nearest_rotation(r.model[0]), f[f"{k}_R"]) > 1.0]

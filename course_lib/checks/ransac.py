@@ -7,6 +7,10 @@ follows the confidence, N = log(1 - confidence) / log(1 - wᵏ), the rng argumen
 (:func:`sampling_verdicts`), and exactly k noiseless items are fitted exactly, with a sample that held an item twice
 named from the recorded draws (:func:`minimal_verdicts`, :class:`RecordingRng`). The exercise's own properties (F
 against the true geometry, the pose despite the outliers, the refit) stay in its check module.
+
+A RANSAC's result depends on its draws: a call that fails (it raises, or fails the case's own verdicts) is judged by
+the majority of three seeds (:func:`call`), so a right loop is not failed for one unlucky draw and a wrong one, which
+fails on every seed, still is.
 """
 
 from __future__ import annotations
@@ -82,6 +86,7 @@ class Run:
     n_iters: int | None
     thr: float
     e: np.ndarray
+    seed: int = 0  # the rng seed of the call that is judged (the probes of the same case draw the same samples)
 
 
 def read(c: Check, spec: Ransac, out: Any, case: str, n: int) -> tuple | None:
@@ -105,19 +110,93 @@ def read(c: Check, spec: Ransac, out: Any, case: str, n: int) -> tuple | None:
     return model, inl.astype(bool), n_iters
 
 
-def call(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int = 0, rng=None, **kw) -> Run | None:
+def call(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int = 0, rng=None,
+         judge: Callable[[Check, Run], Any] | None = None, **kw) -> Run | None:
     """Call the student's RANSAC on ``args`` with ``rng`` (default: a Generator seeded with ``seed``); None after a
-    failed check."""
-    rng = np.random.default_rng(seed) if rng is None else rng
-    return _run(c, spec, c.call(fn, *args, rng, case=case, **kw), args, case, kw)
+    failed check. Without ``rng``, a call that fails (it raises, returns nothing usable, or fails a verdict of
+    ``judge(check, run)``: the case's own verdicts, recorded by the caller after the call) is judged by the majority
+    of three seeds (:func:`_majority`)."""
+    if rng is not None:
+        return _run(c, spec, c.call(fn, *args, rng, case=case, **kw), args, case, kw)
+    return _majority(c, spec, fn, args, case, seed, judge, kw)
 
 
-def _run(c: Check, spec: Ransac, out: Any, args: tuple, case: str, kw: dict) -> Run | None:
-    """The :class:`Run` of a call's result ``out`` (made with the keyword arguments ``kw``); None after a failed check."""
+#: Where a call failed, the seeds it is made again with (its own seed plus each).
+RETRY_SEEDS = (1000, 2000)
+
+
+@dataclass
+class _Attempt:
+    """One call with one seed, recorded on a scratch check: the run, why it failed ("" when it passed), and whether
+    that may be the draws' luck (it raised, or the result failed a verdict of the case; not a result of the wrong
+    form, which no draw explains)."""
+
+    seed: int
+    check: Check
+    run: Run | None
+    why: str
+    luck: bool
+
+
+def _attempt(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int, judge, kw: dict) -> _Attempt:
+    raised = []
+
+    def watched(*a, **k):
+        try:
+            return fn(*a, **k)
+        except NotImplementedError:
+            raise
+        except Exception:
+            raised.append(True)
+            raise
+
+    scratch = Check(c.exercise)
+    run = _run(scratch, spec, scratch.call(watched, *args, np.random.default_rng(seed), case=case, **kw), args, case,
+               kw, seed)
+    judged = Check(c.exercise)
+    if run is not None and judge is not None:
+        judge(judged, run)
+    why = next((v.text for v in scratch.verdicts + judged.verdicts if not v.ok), "")
+    return _Attempt(seed, scratch, run, why, bool(raised) or (run is not None and bool(why)))
+
+
+def _majority(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int, judge, kw: dict) -> Run | None:
+    """The call with ``seed``, and where it fails by bad luck, with the seeds :data:`RETRY_SEEDS` too: a RANSAC's
+    result depends on its draws, and a right loop fails on an unlucky one now and then (a first sample whose model
+    has one inlier among hundreds: 1 - wᵏ rounds to 1, N = log(1 - p) / log(1 - wᵏ) divides by zero or is -inf, the
+    loop ends and the refit raises; or a plain loop settles on a poor consensus). Bad luck: the call raised or its
+    result failed a verdict of ``judge``; a result of the wrong form is no draw's luck and is judged at once. When
+    both other seeds pass, the first of them is judged (a note says so); else the call with ``seed`` is. What the
+    judged call recorded (its failure, when it failed) is recorded on ``c``; the caller records the case's verdicts
+    on the run returned."""
+    tries = [_attempt(c, spec, fn, args, case, seed, judge, kw)]
+    for d in RETRY_SEEDS if tries[0].luck else ():
+        tries.append(_attempt(c, spec, fn, args, case, seed + d, judge, kw))
+        if tries[-1].why:
+            break  # two of three failed
+    chosen = tries[1] if len(tries) == 3 and not tries[2].why else tries[0]
+    c.case = case
+    c.answered.setdefault(case, False)
+    for v in chosen.check.verdicts:
+        c.expect(v.ok, v.text, v.text, defining=v.defining, kind=v.kind, named=v.named)
+    c.unanswered_call = chosen.check.unanswered_call
+    if chosen is not tries[0]:
+        k = spec.k
+        c.note(f"{case}: with the rng seeded {seed} your function failed ({tries[0].why[:160]}), with the seeds "
+               f"{tries[1].seed} and {tries[2].seed} it passed, and the first of those is judged: a RANSAC depends on "
+               "its draws, so a case is judged by the majority of three seeds"
+               + (f". If a first sample with almost no inliers ended your loop: 1 - w**{k} rounds to 1 for a tiny w, "
+                  f"so log(1 - w**{k}) is 0; np.log1p(-w**{k}) keeps N finite" if "raised" in tries[0].why else ""))
+    return chosen.run
+
+
+def _run(c: Check, spec: Ransac, out: Any, args: tuple, case: str, kw: dict, seed: int = 0) -> Run | None:
+    """The :class:`Run` of a call's result ``out`` (made with the keyword arguments ``kw`` and the rng seed ``seed``);
+    None after a failed check."""
     got = read(c, spec, out, case, len(args[0]))
     if got is None:
         return None
-    return Run(case, args, *got, kw.get("threshold_px", spec.threshold), spec.error(got[0], args))
+    return Run(case, args, *got, kw.get("threshold_px", spec.threshold), spec.error(got[0], args), seed)
 
 
 def probe(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int = 0, rng=None, **kw) -> Run | None:
@@ -205,7 +284,7 @@ def sampling_verdicts(c: Check, spec: Ransac, fn: Callable, run: Run, rng_case: 
                  f"{case}: n_iters = {run.n_iters}, while your inlier ratio {w:.0%} at confidence {CONFIDENCE} needs "
                  f"about {need:.0f} samples: N = log(1 - confidence) / log(1 - w^{k}), updated with the best inlier "
                  "ratio so far, at most max_iters, and the loop stops once it has drawn N samples")
-    lo, hi = (probe(c, spec, fn, run.args, case, confidence=p, threshold_px=run.thr) for p in (LOW, HIGH))
+    lo, hi = (probe(c, spec, fn, run.args, case, run.seed, confidence=p, threshold_px=run.thr) for p in (LOW, HIGH))
     if hi is not None and hi.n_iters is not None and (lo is None or lo.n_iters is not None):
         # lo None: the call at the low confidence raised where the same call at the high one ran, so it drew fewer
         # samples (none of them clean enough to refit on): the count followed the confidence
