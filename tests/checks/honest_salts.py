@@ -10,6 +10,10 @@ randomized exercises (the RANSAC of notebooks 01 and 04) are the ones most likel
 0..199 and prints, per solution, the salts where it lost a point and the failed verdicts (numbers masked, so that
 the same verdict on two salts reads the same); ``--exercises all`` takes every exercise of the catalogue (the nerf
 ones need torch and take longer). ``tests/checks/test_honest_salts.py`` runs it on a few salts.
+
+Measured on salts 0..199 (2026-11-29): before the majority rule of :func:`course_lib.checks.ransac.call`, the three
+catalogued F loops lost a point on 4 salts each, the literal student's on 1, the PnP loops on 1-3 (the embedded
+scene); after it, none (stratified_samples and NeRF, the other seeded exercises: none, before and after).
 """
 
 from __future__ import annotations
