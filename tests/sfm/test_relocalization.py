@@ -71,3 +71,23 @@ def test_a_right_model_stays_as_it_is(finished, tries):
     assert out["replaced"] == [] and out["images"] == (int(mapper.registered.sum()) if tries else 0)
     for before, after in zip(saved, _state(mapper)):
         np.testing.assert_array_equal(before, after)
+
+
+def test_the_pairs_term_follows_the_pose_and_not_the_points(finished):
+    """The pairs' term of the cost (every verified match of the image with the registered images, against the two
+    poses' epipolar geometry) tells a turned pose from the right one whatever the model's points say."""
+    from course_lib.sfm.relocalization import _pair_cost
+
+    _, mapper = finished
+    saved = _state(mapper)
+    i = int(np.flatnonzero(mapper.registered)[-1])
+    try:
+        right = _pair_cost(mapper, i, 2.0)
+        mapper.X[:] += 5.0  # points the BA bent elsewhere: the pairs' term reads none of them
+        assert _pair_cost(mapper, i, 2.0) == right
+        seen = mapper.has_X & mapper.visible[:, i]
+        mapper.R[i], mapper.t[i] = _turned(mapper.R[i], mapper.t[i], mapper.X[seen].mean(axis=0), 2.0)
+        turned = _pair_cost(mapper, i, 2.0)
+        assert turned > 3 * right  # 1287 against 174 on this scene
+    finally:
+        _restore(mapper, saved)
