@@ -127,15 +127,19 @@ RETRY_SEEDS = (1000, 2000)
 
 @dataclass
 class _Attempt:
-    """One call with one seed, recorded on a scratch check: the run, why it failed ("" when it passed), and whether
-    that may be the draws' luck (it raised, or the result failed a verdict of the case; not a result of the wrong
-    form, which no draw explains)."""
+    """One call with one seed, recorded on a scratch check: the run, why it failed ("" when it passed), whether it
+    raised, and whether that may be the draws' luck (it raised, or the result failed a verdict of the case; not a
+    result of the wrong form, which no draw explains)."""
 
     seed: int
     check: Check
     run: Run | None
     why: str
-    luck: bool
+    raised: bool
+
+    @property
+    def luck(self) -> bool:
+        return self.raised or (self.run is not None and bool(self.why))
 
 
 def _attempt(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int, judge, kw: dict) -> _Attempt:
@@ -157,7 +161,7 @@ def _attempt(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed:
     if run is not None and judge is not None:
         judge(judged, run)
     why = next((v.text for v in scratch.verdicts + judged.verdicts if not v.ok), "")
-    return _Attempt(seed, scratch, run, why, bool(raised) or (run is not None and bool(why)))
+    return _Attempt(seed, scratch, run, why, bool(raised))
 
 
 def _majority(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed: int, judge, kw: dict) -> Run | None:
@@ -186,7 +190,7 @@ def _majority(c: Check, spec: Ransac, fn: Callable, args: tuple, case: str, seed
                f"{tries[1].seed} and {tries[2].seed} it passed, and the first of those is judged: a RANSAC depends on "
                "its draws, so a case is judged by the majority of three seeds"
                + (f". If a first sample with almost no inliers ended your loop: 1 - w**{k} rounds to 1 for a tiny w, "
-                  f"so log(1 - w**{k}) is 0; np.log1p(-w**{k}) keeps N finite" if "raised" in tries[0].why else ""))
+                  f"so log(1 - w**{k}) is 0; np.log1p(-w**{k}) keeps N finite" if tries[0].raised else ""))
     return chosen.run
 
 
