@@ -17,7 +17,6 @@ import hashlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from unittest import mock
 
 import nbformat
 
@@ -126,9 +125,18 @@ def execute_quick(nb, folder: Path, timeout: float, **env: str):
     (``COURSE_LIB_QUICK=1``), no display, an error kept as the cell's output; ``env`` is set for the kernel too."""
     from nbclient import NotebookClient
 
-    with mock.patch.dict(os.environ, dict(COURSE_LIB_QUICK="1", MPLBACKEND="Agg", **env)):
+    values = dict(COURSE_LIB_QUICK="1", MPLBACKEND="Agg", **env)
+    old = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:  # only these keys are put back (mock.patch.dict would also undo what others set meanwhile, and cost an import)
         NotebookClient(nb, timeout=timeout, kernel_name="python3", allow_errors=True,
                        resources={"metadata": {"path": str(folder)}}).execute()
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
     return nb
 
 

@@ -129,7 +129,9 @@ class StudentProcess:
         secure = self.started.mode != launch.INSECURE
         if secure and ((not self.started.info and self.started.mode == launch.BUBBLEWRAP)
                        or (first is None and self.event != "timeout")):
-            said = (self.tmp / "stderr.txt").read_text(errors="replace")[:2000]  # the launcher's, bwrap's words
+            said = ""
+            with contextlib.suppress(OSError):  # unreadable: the refusal still comes, without the launcher's words
+                said = (self.tmp / "stderr.txt").read_text(errors="replace")[:2000]  # the launcher's, bwrap's words
             raise launch.refuse_start(self.started, said or self.ended or "")
         if first is None:  # the process did not start in time: none of the student's code ran
             self.ended = (f"the process for your {self.name} did not start within {START_SECONDS:g} s (the machine is "

@@ -382,7 +382,9 @@ def verify(facts: dict, info: dict, seccomp: bool) -> list[str]:
         missing.append(f"network devices ({', '.join(facts.get('net') or ['unknown'])})")
     pid = info.get("child-pid")
     status = server.proc_lines(f"/proc/{pid}/status") if isinstance(pid, int) else None
-    uids = next(([int(x) for x in ln.split()[1:5]] for ln in status or [] if ln.startswith("Uid:")), None)
+    uids = None
+    with contextlib.suppress(ValueError):  # a Uid: line that is not numbers reads as unreadable, as no line does
+        uids = next(([int(x) for x in ln.split()[1:5]] for ln in status or [] if ln.startswith("Uid:")), None)
     if os.getuid() == 0:  # (a STUDENT_UID of 0 is refused before the sandbox is made: sandboxed)
         if uids is None:
             missing.append("its process on the host cannot be read (bwrap --info-fd)")
