@@ -113,12 +113,7 @@ def _refine_on_all(mapper, i: int, R: np.ndarray, t: np.ndarray, threshold_px: f
 
     js = np.flatnonzero(mapper.has_X & mapper.inlier[:, i])
     X, uv = mapper.X[js], mapper.uv[js, i]
-    partners = []
-    for k in np.flatnonzero(mapper.registered):
-        key = (min(i, int(k)), max(i, int(k)))
-        if k != i and key in mapper.pairs:
-            x_a, x_b = mapper.verified_matches(*key)
-            partners.append((mapper.R[k], mapper.t[k], *((x_a, x_b) if k == key[0] else (x_b, x_a))))
+    partners = [(mapper.R[k], mapper.t[k], x_k, x_i) for k, x_k, x_i in _partners(mapper, i)]
     C0 = -R.T @ t
 
     def pose(p):
@@ -176,12 +171,19 @@ def _pair_cost(mapper, i: int, threshold_px: float) -> float:
     every registered image to the epipolar geometry of the two poses: measurements that the model's points, which the
     final BA bent towards the pose it had, do not shape (all of a pair's F-inliers, the untriangulated ones too)."""
     total = 0.0
-    for k in np.flatnonzero(mapper.registered):
-        key = (min(i, int(k)), max(i, int(k)))
-        if k == i or key not in mapper.pairs:
-            continue
-        x_a, x_b = mapper.verified_matches(*key)
-        x_k, x_i = (x_a, x_b) if k == key[0] else (x_b, x_a)
+    for k, x_k, x_i in _partners(mapper, i):
         d = pair_sampson(mapper.K, mapper.R[k], mapper.t[k], mapper.R[i], mapper.t[i], x_k, x_i)
         total += float(np.sum(np.minimum(np.nan_to_num(d, nan=np.inf), threshold_px) ** 2))
     return total
+
+
+def _partners(mapper, i: int) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """``[(k, x_k (N, 2), x_i (N, 2))]``: every registered image ``k`` with a verified pair with image ``i``, and the
+    pair's verified matches in ``k`` and in ``i`` (:meth:`~course_lib.sfm.mapper.IncrementalMapper.verified_matches`)."""
+    out = []
+    for k in np.flatnonzero(mapper.registered):
+        key = (min(i, int(k)), max(i, int(k)))
+        if k != i and key in mapper.pairs:
+            x_a, x_b = mapper.verified_matches(*key)
+            out.append((int(k), *((x_a, x_b) if k == key[0] else (x_b, x_a))))
+    return out
