@@ -14,7 +14,8 @@
     (:class:`course_lib.nerf.grid.GridField`: density + colour, trilinear interpolation) instead of
     an MLP, with the usual speed-ups: only the scene's box is sampled (ray-box bounds), a coarse
     grid first (40 % of the final resolution); at 6 % of the run the grid is resampled into the
-    box around the surfaces the rays hit (:func:`course_lib.nerf.schedule.surface_box`) at 80 %,
+    box around the surfaces the rays hit (:func:`course_lib.nerf.schedule.surface_box`: the samples
+    that carry 1 % of a ray's weight, so that a surface still faint then is not cut away) at 80 %,
     at 15 % refined to the final resolution; an occupancy grid skips empty space (and the faint
     fog of voxels whose opacity stays below 1 %); colours only where the weight is > 1e-4; a
     small density total-variation prior (its gradient written out); fused Adam at a high
@@ -107,6 +108,8 @@ class TrainConfig:
     """Coarse to fine: ``(fraction of the run, share)`` pairs; from that moment on the grid has ``share`` x ``grid_resolution`` voxels."""
     shrink_box_at: FractionOfRun = 0.0
     """When the grid is resampled into the box around the surfaces seen so far (:func:`course_lib.nerf.schedule.surface_box`; 0: never)."""
+    shrink_min_weight: float = 0.05
+    """The box around the surfaces counts the samples that carry at least this share of their ray's weight (:func:`course_lib.nerf.schedule.surface_box`)."""
     shrink_min_acc: float = 0.0
     """The box around the surfaces counts only the rays whose opacity reaches this (:func:`course_lib.nerf.schedule.surface_box`; 0: every ray)."""
     grid_mlp_width: int = 0
@@ -226,7 +229,7 @@ PRESETS: dict[str, TrainConfig] = {
     ),
     "fast": TrainConfig(
         preset="fast", model="grid", grid_resolution=0, grid_schedule=((0.0, 0.4), (0.06, 0.8), (0.15, 1.0)),
-        shrink_box_at=0.06, grid_mlp_width=0, alpha_init=1e-2, n_samples=0, color_threshold=1e-4,
+        shrink_box_at=0.06, shrink_min_weight=0.01, grid_mlp_width=0, alpha_init=1e-2, n_samples=0, color_threshold=1e-4,
         grid_sh_degree=1, grid_sh_start=0.45,
         occupancy_every=50, occupancy_start=0.03, occupancy_threshold=1e-2, batch_rays=0, adapt_batch=1.4,
         lr=1e-3, lr_final=1e-4,

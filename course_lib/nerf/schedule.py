@@ -5,7 +5,9 @@ the model for its callbacks (``model.training_callbacks(cfg)``, as nerfstudio's 
 runs each one before or after a step when it is due. A :class:`GridField` has four:
 
 * **shrink the box** (``cfg.shrink_box_at``): after a short coarse stage, resample the grids into
-  the box around the surfaces that the training rays hit (:func:`surface_box`);
+  the box around the surfaces that the training rays hit (:func:`surface_box`) -- once they are
+  found: until enough samples carry a clear share of a ray's weight the box is looked at again
+  every :data:`SHRINK_RETRY` of the run, for at most :data:`SHRINK_PATIENCE` after ``shrink_box_at``;
 * **coarse to fine** (``cfg.grid_schedule``): a finer grid at each stage;
 * **spherical harmonics** (``cfg.grid_sh_start``): the RGB colour grid turns view-dependent;
 * **occupancy** (``cfg.occupancy_every``): refresh the empty-space grid every N steps;
@@ -29,7 +31,13 @@ import torch
 
 from course_lib.nerf.render import render_rays
 
-__all__ = ["TrainingCallback", "BatchTuner", "grid_callbacks", "surface_box", "target_resolution"]
+__all__ = ["TrainingCallback", "BatchTuner", "grid_callbacks", "surface_box", "target_resolution", "SHRINK_RETRY",
+           "SHRINK_PATIENCE"]
+
+#: when no surface is found yet at ``shrink_box_at``, look again this much later (a fraction of the run)
+SHRINK_RETRY = 0.01
+#: and give up (keep the first box) this long after ``shrink_box_at``
+SHRINK_PATIENCE = 0.15
 
 
 @dataclass
@@ -64,7 +72,7 @@ def target_resolution(cfg, progress: float) -> int:
 
 @torch.no_grad()
 def surface_box(model, cfg, rays, generator: torch.Generator, n_rays: int = 16384, min_weight: float = 0.05,
-                margin_voxels: float = 3.0, min_acc: float = 0.0) -> tuple[list, list]:
+                margin_voxels: float = 3.0, min_acc: float = 0.0, min_points: int = 100) -> tuple[list, list] | None:
     """The box around the points where (a sample of) the training rays stop, with a margin.
 
     After a short coarse stage the density in empty space is still noisy ("fog" of small
@@ -79,9 +87,11 @@ def surface_box(model, cfg, rays, generator: torch.Generator, n_rays: int = 1638
         rays: :class:`~course_lib.nerf.scene.TrainingRays`. generator: picks the rays.
         min_weight: a sample counts where its weight exceeds this. margin_voxels: added on every side.
         min_acc: the opacity a ray needs for its samples to count (0: every ray).
+        min_points: the fewest such samples that make a box.
 
     Returns:
-        ``(box_min, box_max)`` lists, inside the current box.
+        ``(box_min, box_max)`` lists, inside the current box; None while fewer than ``min_points`` samples
+        carry ``min_weight`` (early in a run, when the field is still a faint fog: no surface is found yet).
     """
     o, d, _rgb = rays.sample(min(n_rays, len(rays)), generator)
     near, far = model.ray_bounds(o, d)
@@ -92,8 +102,8 @@ def surface_box(model, cfg, rays, generator: torch.Generator, n_rays: int = 1638
         pts = o[i:i + 4096, None, :] + out["z_vals"][..., None] * d[i:i + 4096, None, :]
         pts_all.append(pts[(out["weights"] > min_weight) & (out["acc_map"] >= min_acc)[:, None]])
     pts = torch.cat(pts_all)
-    if pts.shape[0] < 100:
-        return model.box_min.tolist(), model.box_max.tolist()
+    if pts.shape[0] < min_points:
+        return None
     lo = torch.quantile(pts, 0.001, dim=0) - margin_voxels * model.voxel_size
     hi = torch.quantile(pts, 0.999, dim=0) + margin_voxels * model.voxel_size
     return torch.maximum(lo, model.box_min).tolist(), torch.minimum(hi, model.box_max).tolist()
@@ -108,7 +118,7 @@ class BatchTuner:
     scene (fine detail everywhere: many occupied samples a ray) and ``g`` on the grid, so a batch
     chosen from the image size alone is too large for a detailed scene (few, slow steps) and too
     small for a sparse one. Once the grid is final -- and again when the colour turns
-    view-dependent, which changes ``a`` -- the tuner times ``window`` steps at the configured batch
+    view-dependent, or the box shrinks late, which change ``a`` -- the tuner times ``window`` steps at the configured batch
     ``B`` and ``window`` at ``B / 2`` (real training steps: nothing is thrown away), solves for ``a``
     and ``g`` (medians of the step times, robust to the occupancy refreshes between them) and sets
     ``B = adapt_batch * g / a`` -- the rays' part of a step ``adapt_batch`` times the grid's --
@@ -139,7 +149,7 @@ class BatchTuner:
         return statistics.median(dts) if dts else None
 
     def run(self, st) -> bool:
-        key = (self.model.resolution, self.model.sh_degree)
+        key = (self.model.resolution, self.model.sh_degree, st.bounds.shrunk)  # a later box: other costs
         if self.phase is None:
             if key != self.key:  # the step's cost changed: measure at the configured batch, then at half of it
                 self.key, self.phase, self.start = key, "full", st.step
@@ -170,8 +180,18 @@ class BatchTuner:
 def grid_callbacks(model, cfg) -> list[TrainingCallback]:
     """The callbacks of a :class:`~course_lib.nerf.grid.GridField` trained with ``cfg`` (see the module)."""
 
+    next_look = [cfg.shrink_box_at]
+
     def shrink(state) -> bool:
-        lo, hi = surface_box(model, cfg, state.rays, state.generator, min_acc=cfg.shrink_min_acc)
+        box = surface_box(model, cfg, state.rays, state.generator, min_weight=cfg.shrink_min_weight,
+                          min_acc=cfg.shrink_min_acc)
+        if box is None:  # no surface yet: look again a little later, or keep the first box for good
+            if state.progress < cfg.shrink_box_at + SHRINK_PATIENCE:
+                next_look[0] = state.progress + SHRINK_RETRY
+                return False
+            state.bounds = state.bounds.with_box(model.box_min.tolist(), model.box_max.tolist())
+            return False
+        lo, hi = box
         model.rebox(lo, hi, target_resolution(cfg, state.progress))
         model.update_occupancy(cfg.occupancy_threshold)
         state.bounds = state.bounds.with_box(lo, hi)
@@ -194,7 +214,7 @@ def grid_callbacks(model, cfg) -> list[TrainingCallback]:
 
     return [
         TrainingCallback("shrink the box", "before", lambda st: bool(cfg.shrink_box_at) and not st.bounds.shrunk
-                         and st.progress >= cfg.shrink_box_at, shrink),
+                         and st.progress >= next_look[0], shrink),
         TrainingCallback("coarse to fine", "before", lambda st: bool(cfg.grid_schedule)
                          and target_resolution(cfg, st.progress) > model.resolution, upsample),
         TrainingCallback("spherical harmonics", "before", lambda st: bool(cfg.grid_sh_degree) and model.sh_degree == 0
