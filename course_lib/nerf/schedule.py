@@ -118,9 +118,10 @@ class BatchTuner:
     scene (fine detail everywhere: many occupied samples a ray) and ``g`` on the grid, so a batch
     chosen from the image size alone is too large for a detailed scene (few, slow steps) and too
     small for a sparse one. Once the grid is final -- and again when the colour turns
-    view-dependent, or the box shrinks late, which change ``a`` -- the tuner times ``window`` steps at the configured batch
-    ``B`` and ``window`` at ``B / 2`` (real training steps: nothing is thrown away), solves for ``a``
-    and ``g`` (medians of the step times, robust to the occupancy refreshes between them) and sets
+    view-dependent, or the box shrinks late, which change ``a`` -- the tuner times ``window`` steps
+    at the configured batch ``B`` and ``window`` at ``B / 2`` (real training steps: nothing is thrown
+    away), solves for ``a`` and ``g`` (medians of the step times, robust to the occupancy refreshes
+    between them) and sets
     ``B = adapt_batch * g / a`` -- the rays' part of a step ``adapt_batch`` times the grid's --
     within ``[B / 4, 2 B]``, at least 1024 rays, a multiple of 256. Without a clear measurement
     (``a`` or ``g`` not positive: a noisy machine) it keeps the batch. It runs only with a time
@@ -180,14 +181,15 @@ class BatchTuner:
 def grid_callbacks(model, cfg) -> list[TrainingCallback]:
     """The callbacks of a :class:`~course_lib.nerf.grid.GridField` trained with ``cfg`` (see the module)."""
 
-    next_look = [cfg.shrink_box_at]
+    next_look = cfg.shrink_box_at  # when the box is looked at (again)
 
     def shrink(state) -> bool:
+        nonlocal next_look
         box = surface_box(model, cfg, state.rays, state.generator, min_weight=cfg.shrink_min_weight,
                           min_acc=cfg.shrink_min_acc)
         if box is None:  # no surface yet: look again a little later, or keep the first box for good
             if state.progress < cfg.shrink_box_at + SHRINK_PATIENCE:
-                next_look[0] = state.progress + SHRINK_RETRY
+                next_look = state.progress + SHRINK_RETRY
                 return False
             state.bounds = state.bounds.with_box(model.box_min.tolist(), model.box_max.tolist())
             return False
@@ -214,7 +216,7 @@ def grid_callbacks(model, cfg) -> list[TrainingCallback]:
 
     return [
         TrainingCallback("shrink the box", "before", lambda st: bool(cfg.shrink_box_at) and not st.bounds.shrunk
-                         and st.progress >= next_look[0], shrink),
+                         and st.progress >= next_look, shrink),
         TrainingCallback("coarse to fine", "before", lambda st: bool(cfg.grid_schedule)
                          and target_resolution(cfg, st.progress) > model.resolution, upsample),
         TrainingCallback("spherical harmonics", "before", lambda st: bool(cfg.grid_sh_degree) and model.sh_degree == 0

@@ -100,7 +100,7 @@ def test_the_box_around_the_surfaces_leaves_out_the_floaters_of_rays_that_do_not
 
 
 def test_the_box_waits_for_the_surfaces_then_gives_up_keeping_the_first_box():
-    """A faint fog everywhere (no sample carries 5 % of a ray's weight): the box is looked at again, not shrunk to it."""
+    """A faint fog everywhere (no sample carries the preset's 1 % of a ray's weight): looked at again, then kept."""
     model = GridField([-1, -1, -1], [1, 1, 1], resolution=16)
     model.density_grid.data.fill_(-3.0)
     cfg = resolve(preset("fast", n_samples=32, grid_resolution=16, grid_schedule=()), 100, 100)
